@@ -1,0 +1,398 @@
+//! Binary encoding of treelets and attribute blocks, and their zstd compression.
+//!
+//! Treelet encoding (little endian): a 36-byte header followed by the `used_nodes` node
+//! records; the zero records after them are not stored. Attribute blocks are the raw
+//! `used_nodes × channel size` bytes. Both are compressed with zstd, optionally with a per-scene
+//! trained dictionary (one per stream: nodes and each channel), and stored and sent compressed.
+//! Decoders check lengths against [`crate::limits`] before allocating and validate the tree.
+
+use crate::attribute::Channel;
+use crate::error::ProtoError;
+use crate::limits::{MAX_COMPRESSED_BLOCK, MAX_TREELET_BYTES, NODE_BYTES};
+use crate::node::Node;
+use crate::treelet::{Treelet, TreeletHeader, TreeletId};
+
+/// "ATRL" little endian.
+pub const TREELET_MAGIC: u32 = u32::from_le_bytes(*b"ATRL");
+/// Version of the treelet encoding.
+pub const TREELET_VERSION: u16 = 1;
+/// Encoded header size.
+pub const HEADER_BYTES: usize = 36;
+/// Largest raw (uncompressed) treelet encoding.
+pub const MAX_RAW_TREELET: usize = HEADER_BYTES + MAX_TREELET_BYTES as usize;
+
+/// Encodes a treelet without compression.
+pub fn encode_treelet(t: &Treelet) -> Vec<u8> {
+    let h = &t.header;
+    let mut out = Vec::with_capacity(HEADER_BYTES + t.used().len() * NODE_BYTES as usize);
+    out.extend_from_slice(&TREELET_MAGIC.to_le_bytes());
+    out.extend_from_slice(&TREELET_VERSION.to_le_bytes());
+    out.extend_from_slice(&(t.capacity() as u16).to_le_bytes());
+    out.extend_from_slice(&h.id.0.to_le_bytes());
+    out.extend_from_slice(&h.parent_id.0.to_le_bytes());
+    out.extend_from_slice(&h.parent_leaf_index.to_le_bytes());
+    out.extend_from_slice(&h.parent_leaf_parent_index.to_le_bytes());
+    out.push(h.child_index_in_parent);
+    out.push(h.root_depth);
+    out.extend_from_slice(&h.used_nodes.to_le_bytes());
+    for c in h.root_cell {
+        out.extend_from_slice(&c.to_le_bytes());
+    }
+    debug_assert_eq!(out.len(), HEADER_BYTES);
+    for n in t.used() {
+        out.extend_from_slice(&n.first_child.to_le_bytes());
+        out.push(n.valid_mask);
+        out.push(n.leaf_mask);
+        out.extend_from_slice(&n.spare.to_le_bytes());
+    }
+    out
+}
+
+struct Reader<'a> {
+    b: &'a [u8],
+    at: usize,
+}
+
+impl Reader<'_> {
+    fn take<const K: usize>(&mut self) -> [u8; K] {
+        let mut a = [0u8; K];
+        a.copy_from_slice(&self.b[self.at..self.at + K]);
+        self.at += K;
+        a
+    }
+    fn u8(&mut self) -> u8 {
+        self.take::<1>()[0]
+    }
+    fn u16(&mut self) -> u16 {
+        u16::from_le_bytes(self.take())
+    }
+    fn u32(&mut self) -> u32 {
+        u32::from_le_bytes(self.take())
+    }
+}
+
+/// Decodes the header only (cheap; used by the pool and the network to route a treelet).
+pub fn decode_header(bytes: &[u8]) -> Result<(TreeletHeader, u32), ProtoError> {
+    if bytes.len() < HEADER_BYTES {
+        return Err(ProtoError::Truncated {
+            what: "treelet header",
+            need: HEADER_BYTES,
+            have: bytes.len(),
+        });
+    }
+    let mut r = Reader { b: bytes, at: 0 };
+    let magic = r.u32();
+    if magic != TREELET_MAGIC {
+        return Err(ProtoError::BadMagic {
+            what: "treelet",
+            found: magic,
+        });
+    }
+    let version = r.u16();
+    if version != TREELET_VERSION {
+        return Err(ProtoError::UnsupportedVersion {
+            what: "treelet",
+            found: version,
+        });
+    }
+    let capacity = u32::from(r.u16());
+    crate::treelet::nodes_for_bytes(capacity * NODE_BYTES)?;
+    let header = TreeletHeader {
+        id: TreeletId(r.u32()),
+        parent_id: TreeletId(r.u32()),
+        parent_leaf_index: r.u16(),
+        parent_leaf_parent_index: r.u16(),
+        child_index_in_parent: r.u8(),
+        root_depth: r.u8(),
+        used_nodes: r.u16(),
+        root_cell: [r.u32(), r.u32(), r.u32()],
+    };
+    if header.child_index_in_parent > 7 {
+        return Err(ProtoError::OutOfRange {
+            what: "treelet header",
+            detail: format!("child index {} > 7", header.child_index_in_parent),
+        });
+    }
+    if header.id.is_none() {
+        return Err(ProtoError::OutOfRange {
+            what: "treelet header",
+            detail: "id is NONE".into(),
+        });
+    }
+    if header.used_nodes == 0 || u32::from(header.used_nodes) > capacity {
+        return Err(ProtoError::OutOfRange {
+            what: "treelet header",
+            detail: format!("used_nodes {} not in 1..={capacity}", header.used_nodes),
+        });
+    }
+    if !header.root_cell().is_valid() {
+        return Err(ProtoError::OutOfRange {
+            what: "treelet header",
+            detail: format!("root cell {:?} outside its depth", header.root_cell()),
+        });
+    }
+    Ok((header, capacity))
+}
+
+/// Decodes and validates an uncompressed treelet. `max_depth` is the scene's target depth.
+pub fn decode_treelet(bytes: &[u8], max_depth: u8) -> Result<Treelet, ProtoError> {
+    let (header, capacity) = decode_header(bytes)?;
+    let need = HEADER_BYTES + usize::from(header.used_nodes) * NODE_BYTES as usize;
+    if bytes.len() != need {
+        return Err(if bytes.len() < need {
+            ProtoError::Truncated {
+                what: "treelet nodes",
+                need,
+                have: bytes.len(),
+            }
+        } else {
+            ProtoError::TooLarge {
+                what: "treelet nodes",
+                len: bytes.len(),
+                limit: need,
+            }
+        });
+    }
+    let mut nodes = vec![Node::default(); capacity as usize];
+    let mut r = Reader {
+        b: bytes,
+        at: HEADER_BYTES,
+    };
+    for n in nodes.iter_mut().take(usize::from(header.used_nodes)) {
+        *n = Node {
+            first_child: r.u32(),
+            valid_mask: r.u8(),
+            leaf_mask: r.u8(),
+            spare: r.u16(),
+        };
+    }
+    let t = Treelet { header, nodes };
+    t.validate(max_depth)?;
+    Ok(t)
+}
+
+/// Compresses `raw` with zstd at `level`, with an optional dictionary.
+pub fn compress(raw: &[u8], level: i32, dictionary: Option<&[u8]>) -> Result<Vec<u8>, ProtoError> {
+    let mut c = match dictionary {
+        Some(d) => zstd::bulk::Compressor::with_dictionary(level, d),
+        None => zstd::bulk::Compressor::new(level),
+    }
+    .map_err(|e| ProtoError::Compression {
+        what: "compress",
+        detail: e.to_string(),
+    })?;
+    c.compress(raw).map_err(|e| ProtoError::Compression {
+        what: "compress",
+        detail: e.to_string(),
+    })
+}
+
+/// A reusable compressor for many blocks of one stream (loading a dictionary is not free).
+pub struct BlockCompressor {
+    inner: zstd::bulk::Compressor<'static>,
+}
+
+impl std::fmt::Debug for BlockCompressor {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("BlockCompressor")
+    }
+}
+
+impl BlockCompressor {
+    pub fn new(level: i32, dictionary: Option<&[u8]>) -> Result<Self, ProtoError> {
+        let inner = match dictionary {
+            Some(d) => zstd::bulk::Compressor::with_dictionary(level, d),
+            None => zstd::bulk::Compressor::new(level),
+        }
+        .map_err(|e| ProtoError::Compression {
+            what: "compressor",
+            detail: e.to_string(),
+        })?;
+        Ok(Self { inner })
+    }
+
+    pub fn compress(&mut self, raw: &[u8]) -> Result<Vec<u8>, ProtoError> {
+        self.inner.compress(raw).map_err(|e| ProtoError::Compression {
+            what: "compress",
+            detail: e.to_string(),
+        })
+    }
+}
+
+/// Decompresses a block, refusing inputs or outputs larger than `max_len` bytes.
+pub fn decompress(
+    bytes: &[u8],
+    max_len: usize,
+    dictionary: Option<&[u8]>,
+) -> Result<Vec<u8>, ProtoError> {
+    if bytes.len() > MAX_COMPRESSED_BLOCK {
+        return Err(ProtoError::TooLarge {
+            what: "compressed block",
+            len: bytes.len(),
+            limit: MAX_COMPRESSED_BLOCK,
+        });
+    }
+    let mut d = match dictionary {
+        Some(dict) => zstd::bulk::Decompressor::with_dictionary(dict),
+        None => zstd::bulk::Decompressor::new(),
+    }
+    .map_err(|e| ProtoError::Compression {
+        what: "decompress",
+        detail: e.to_string(),
+    })?;
+    d.decompress(bytes, max_len)
+        .map_err(|e| ProtoError::Compression {
+            what: "decompress",
+            detail: e.to_string(),
+        })
+}
+
+/// Decompresses and decodes a stored treelet.
+pub fn decode_compressed_treelet(
+    bytes: &[u8],
+    max_depth: u8,
+    dictionary: Option<&[u8]>,
+) -> Result<Treelet, ProtoError> {
+    let raw = decompress(bytes, MAX_RAW_TREELET, dictionary)?;
+    decode_treelet(&raw, max_depth)
+}
+
+/// Decompresses an attribute block of `channel` for a treelet with `used_nodes` records and
+/// checks its length exactly.
+pub fn decode_compressed_attributes(
+    bytes: &[u8],
+    channel: Channel,
+    used_nodes: u16,
+    dictionary: Option<&[u8]>,
+) -> Result<Vec<u8>, ProtoError> {
+    let need = usize::from(used_nodes) * channel.size();
+    let raw = decompress(bytes, need, dictionary)?;
+    if raw.len() != need {
+        return Err(ProtoError::Truncated {
+            what: "attribute block",
+            need,
+            have: raw.len(),
+        });
+    }
+    Ok(raw)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cell::Cell;
+    use proptest::prelude::*;
+
+    /// A root with children 0 and 5; child 5 has children 1 and 7 (leaves); child 0 is a
+    /// refinable leaf pointing at treelet 9.
+    pub(crate) fn sample() -> Treelet {
+        let mut nodes = vec![Node::default(); 128];
+        nodes[0] = Node {
+            first_child: 1,
+            valid_mask: 0b0010_0001,
+            leaf_mask: 0b0000_0001,
+            spare: 0,
+        };
+        nodes[1] = Node::leaf(9);
+        nodes[2] = Node {
+            first_child: 1,
+            valid_mask: 0b1000_0010,
+            leaf_mask: 0b1000_0010,
+            spare: 0,
+        };
+        nodes[3] = Node::leaf(Node::NONE);
+        nodes[4] = Node::leaf(Node::NONE);
+        Treelet {
+            header: TreeletHeader {
+                id: TreeletId(3),
+                parent_id: TreeletId(1),
+                parent_leaf_index: 17,
+                parent_leaf_parent_index: 4,
+                child_index_in_parent: 6,
+                root_depth: 5,
+                root_cell: [3, 31, 0],
+                used_nodes: 5,
+            },
+            nodes,
+        }
+    }
+
+    #[test]
+    fn treelet_round_trip() {
+        let t = sample();
+        let places = t.validate(7).unwrap();
+        assert_eq!(places[4].cell, Cell { depth: 7, x: 15, y: 125, z: 3 });
+        let raw = encode_treelet(&t);
+        assert_eq!(raw.len(), HEADER_BYTES + 5 * 8);
+        assert_eq!(decode_treelet(&raw, 7).unwrap(), t);
+        let packed = compress(&raw, 3, None).unwrap();
+        assert_eq!(decode_compressed_treelet(&packed, 7, None).unwrap(), t);
+    }
+
+    #[test]
+    fn treelet_deeper_than_scene_is_rejected() {
+        let raw = encode_treelet(&sample());
+        assert!(matches!(
+            decode_treelet(&raw, 6),
+            Err(ProtoError::MalformedTreelet { .. })
+        ));
+    }
+
+    #[test]
+    fn malformed_offsets_are_rejected() {
+        let mut t = sample();
+        t.nodes[2].first_child = 40;
+        let err = decode_treelet(&encode_treelet(&t), 7).unwrap_err();
+        assert!(err.to_string().contains("children at"), "{err}");
+        let mut t = sample();
+        t.nodes[0].leaf_mask = 0b0100_0000;
+        assert!(decode_treelet(&encode_treelet(&t), 7).is_err());
+        let mut t = sample();
+        t.nodes[0].first_child = u32::MAX;
+        assert!(decode_treelet(&encode_treelet(&t), 7).is_err());
+    }
+
+    #[test]
+    fn dictionary_round_trip() {
+        let raw = encode_treelet(&sample());
+        let samples: Vec<Vec<u8>> = (0..200u32)
+            .map(|i| {
+                let mut t = sample();
+                t.header.id = TreeletId(i + 1);
+                encode_treelet(&t)
+            })
+            .collect();
+        let dict = zstd::dict::from_samples(&samples, 4096).unwrap();
+        let packed = compress(&raw, 3, Some(&dict)).unwrap();
+        assert_eq!(decode_compressed_treelet(&packed, 7, Some(&dict)).unwrap(), sample());
+        assert!(decode_compressed_treelet(&packed, 7, None).is_err());
+    }
+
+    #[test]
+    fn attribute_block_length_is_exact() {
+        let raw = vec![7u8; 5 * 3];
+        let packed = compress(&raw, 3, None).unwrap();
+        assert_eq!(
+            decode_compressed_attributes(&packed, Channel::Color, 5, None).unwrap(),
+            raw
+        );
+        assert!(decode_compressed_attributes(&packed, Channel::Color, 6, None).is_err());
+        assert!(decode_compressed_attributes(&packed, Channel::Color, 4, None).is_err());
+    }
+
+    proptest! {
+        #[test]
+        fn hostile_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..600)) {
+            let _ = decode_treelet(&bytes, 31);
+            let _ = decode_compressed_treelet(&bytes, 31, None);
+            let _ = decode_compressed_attributes(&bytes, Channel::Normal, 100, None);
+        }
+
+        #[test]
+        fn mutated_treelets_never_panic(pos in 0usize..76, val in any::<u8>()) {
+            let mut raw = encode_treelet(&sample());
+            raw[pos] = val;
+            let _ = decode_treelet(&raw, 31);
+        }
+    }
+}

@@ -1,0 +1,206 @@
+//! Fixed-size treelets: `N` node records in breadth-first order, root at 0 (DESIGN §2).
+
+use std::fmt;
+
+use serde::{Deserialize, Serialize};
+
+use crate::cell::Cell;
+use crate::error::ProtoError;
+use crate::limits::{MAX_DEPTH, MAX_TREELET_BYTES, MIN_TREELET_BYTES, NODE_BYTES};
+use crate::node::Node;
+
+/// Global id of a treelet within its scene. The root treelet is 0; every child has a higher id
+/// than its parent.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct TreeletId(pub u32);
+
+impl TreeletId {
+    /// The root treelet of every scene.
+    pub const ROOT: TreeletId = TreeletId(0);
+    /// "No treelet" (a root's parent, a final leaf's subtreelet).
+    pub const NONE: TreeletId = TreeletId(Node::NONE);
+
+    pub fn is_none(self) -> bool {
+        self == Self::NONE
+    }
+}
+
+impl fmt::Display for TreeletId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.is_none() {
+            f.write_str("NONE")
+        } else {
+            write!(f, "{}", self.0)
+        }
+    }
+}
+
+/// Where a treelet sits: its own id, the leaf it refines, and its root voxel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TreeletHeader {
+    pub id: TreeletId,
+    /// [`TreeletId::NONE`] for the root treelet.
+    pub parent_id: TreeletId,
+    /// Local index of the refinable leaf in the parent treelet that this treelet replaces.
+    pub parent_leaf_index: u16,
+    /// Local index of that leaf's parent node in the parent treelet.
+    pub parent_leaf_parent_index: u16,
+    /// Child index (0..8) of the refined leaf within its parent node.
+    pub child_index_in_parent: u8,
+    /// Depth of the root voxel.
+    pub root_depth: u8,
+    /// Exact integer cell of the root voxel at `root_depth`.
+    pub root_cell: [u32; 3],
+    /// Node records in use (1..=N); records from here on are zero.
+    pub used_nodes: u16,
+}
+
+impl TreeletHeader {
+    pub fn root_cell(&self) -> Cell {
+        Cell {
+            depth: self.root_depth,
+            x: self.root_cell[0],
+            y: self.root_cell[1],
+            z: self.root_cell[2],
+        }
+    }
+}
+
+/// Node count `N` for a treelet size in bytes, checked against the limits.
+pub fn nodes_for_bytes(treelet_bytes: u32) -> Result<u32, ProtoError> {
+    if !(MIN_TREELET_BYTES..=MAX_TREELET_BYTES).contains(&treelet_bytes)
+        || treelet_bytes % NODE_BYTES != 0
+    {
+        return Err(ProtoError::OutOfRange {
+            what: "treelet size",
+            detail: format!(
+                "{treelet_bytes} bytes; must be a multiple of {NODE_BYTES} in {MIN_TREELET_BYTES}..={MAX_TREELET_BYTES}"
+            ),
+        });
+    }
+    Ok(treelet_bytes / NODE_BYTES)
+}
+
+/// One treelet: header plus exactly `N` node records.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Treelet {
+    pub header: TreeletHeader,
+    pub nodes: Vec<Node>,
+}
+
+/// One node's place, as found by walking a treelet from its root.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct NodePlace {
+    pub cell: Cell,
+    /// Local index of the parent node; `u32::MAX` for the root.
+    pub parent: u32,
+    /// Child index within the parent (0 for the root).
+    pub child_index: u8,
+    /// Whether the parent's `leaf_mask` marks this node as a leaf (the root: `valid_mask == 0`).
+    pub is_leaf: bool,
+}
+
+impl Treelet {
+    /// Capacity `N`.
+    pub fn capacity(&self) -> u32 {
+        self.nodes.len() as u32
+    }
+
+    /// The used node records.
+    pub fn used(&self) -> &[Node] {
+        &self.nodes[..usize::from(self.header.used_nodes)]
+    }
+
+    /// Checks that the node records form a well-formed tree: masks consistent, offsets in range,
+    /// children contiguous in child-index order and in breadth-first order, every used node
+    /// reached exactly once, unused records zero, no voxel deeper than `max_depth`, final-depth
+    /// voxels are final leaves. Returns every node's place, indexed by local index.
+    pub fn validate(&self, max_depth: u8) -> Result<Vec<NodePlace>, ProtoError> {
+        let id = self.header.id;
+        let bad = |node: u32, detail: String| ProtoError::MalformedTreelet { id, node, detail };
+        let used = u32::from(self.header.used_nodes);
+        if used == 0 || used > self.capacity() {
+            return Err(bad(
+                0,
+                format!("used_nodes {used} not in 1..={}", self.capacity()),
+            ));
+        }
+        if let Some(k) = self.nodes[used as usize..]
+            .iter()
+            .position(|n| *n != Node::default())
+        {
+            return Err(bad(used + k as u32, "unused record is not zero".into()));
+        }
+        let root = self.header.root_cell();
+        if !root.is_valid() || root.depth > max_depth || max_depth > MAX_DEPTH {
+            return Err(bad(0, format!("root cell {root:?} invalid for depth {max_depth}")));
+        }
+        let mut places = vec![None::<NodePlace>; used as usize];
+        places[0] = Some(NodePlace {
+            cell: root,
+            parent: u32::MAX,
+            child_index: 0,
+            is_leaf: self.nodes[0].valid_mask == 0,
+        });
+        // Breadth-first order: children are allocated in the order parents are expanded, so the
+        // next expected child block starts right after the previous one.
+        let mut next_free = 1u32;
+        for i in 0..used {
+            let Some(place) = places[i as usize] else {
+                return Err(bad(i, "not reachable from the root".into()));
+            };
+            let n = self.nodes[i as usize];
+            if n.spare != 0 {
+                return Err(bad(i, "spare bits set".into()));
+            }
+            if place.is_leaf {
+                if n.valid_mask != 0 || n.leaf_mask != 0 {
+                    return Err(bad(i, "leaf with child masks".into()));
+                }
+                if n.first_child != Node::NONE && place.cell.depth >= max_depth {
+                    return Err(bad(i, "refinable leaf at the target depth".into()));
+                }
+                continue;
+            }
+            if n.valid_mask == 0 {
+                return Err(bad(i, "inner node without children".into()));
+            }
+            if n.leaf_mask & !n.valid_mask != 0 {
+                return Err(bad(i, "leaf_mask not a subset of valid_mask".into()));
+            }
+            if place.cell.depth >= max_depth {
+                return Err(bad(i, format!("inner node at depth {} ≥ target", place.cell.depth)));
+            }
+            let start = u64::from(i) + u64::from(n.first_child);
+            let count = n.child_count();
+            if start != u64::from(next_free) || start + u64::from(count) > u64::from(used) {
+                return Err(bad(
+                    i,
+                    format!(
+                        "children at {start}..{} but expected block at {next_free} within {used}",
+                        start + u64::from(count)
+                    ),
+                ));
+            }
+            for (ci, k) in n.children() {
+                let c = start as u32 + k;
+                let is_leaf = n.leaf_mask & (1 << ci) != 0;
+                let child = self.nodes[c as usize];
+                if !is_leaf && child.valid_mask == 0 {
+                    return Err(bad(c, "inner child without children".into()));
+                }
+                places[c as usize] = Some(NodePlace {
+                    cell: place.cell.child(ci),
+                    parent: i,
+                    child_index: ci,
+                    is_leaf,
+                });
+            }
+            next_free += count;
+        }
+        if next_free != used {
+            return Err(bad(next_free, format!("{} records used but only {next_free} reachable", used)));
+        }
+        Ok(places.into_iter().map(|p| p.expect("all places set")).collect())
+    }
+}

@@ -1,0 +1,207 @@
+//! What an importer hands to the builder: geometry in flat, disk-backed columns.
+//!
+//! Importers stream primitives into [`ColumnWriter`]s, which append to files in a scratch
+//! directory; [`ColumnWriter::finish`] memory-maps the file. The builder then reads the columns as
+//! plain slices while the kernel pages them in and out, so the source geometry never has to fit in
+//! RAM (see ARCHITECTURE.md, "Memory bound").
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::marker::PhantomData;
+use std::path::{Path, PathBuf};
+
+use bytemuck::Pod;
+
+/// One kind of input, as the builder sees it.
+#[derive(Debug)]
+pub enum Source {
+    /// Indexed triangles (OBJ, PLY faces or triangle strips).
+    Mesh(MeshSource),
+    /// Unconnected points (point-only PLY, LAS/LAZ).
+    Points(PointSource),
+    /// A regular grid of scalar samples (NRRD, raw), surfaced by an iso threshold.
+    Volume(VolumeSource),
+}
+
+/// Indexed triangle mesh. Positions are f64 so projected coordinates keep millimetres.
+#[derive(Debug)]
+pub struct MeshSource {
+    pub positions: Column<[f64; 3]>,
+    /// Per-vertex normals, when the file has them (same length as `positions`).
+    pub normals: Option<Column<[f32; 3]>>,
+    /// Per-vertex 8-bit RGB, when the file has it (same length as `positions`).
+    pub colors: Option<Column<[u8; 3]>>,
+    /// Vertex indices, every index `< positions.len()` (importers check this).
+    pub triangles: Column<[u32; 3]>,
+}
+
+/// Point cloud.
+#[derive(Debug)]
+pub struct PointSource {
+    pub positions: Column<[f64; 3]>,
+    /// 8-bit RGB per point, when the file has colour.
+    pub colors: Option<Column<[u8; 3]>>,
+    /// Normals per point, when the file has them.
+    pub normals: Option<Column<[f32; 3]>>,
+}
+
+/// Scalar volume on a regular grid; sample `(i, j, k)` sits at `origin + (i, j, k) * spacing`
+/// and is stored at `values[i + dims[0] * (j + dims[1] * k)]`.
+#[derive(Debug)]
+pub struct VolumeSource {
+    pub dims: [u32; 3],
+    pub spacing: [f64; 3],
+    pub origin: [f64; 3],
+    pub values: Column<f32>,
+    /// Value range of the source type, used to normalise density (e.g. 0..255 for uint8).
+    pub value_range: [f32; 2],
+}
+
+/// Errors while writing or mapping a column.
+#[derive(Debug, thiserror::Error)]
+pub enum ColumnError {
+    /// The scratch file could not be created, written or mapped.
+    #[error("scratch column {path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// Appends fixed-size records to a scratch file.
+#[derive(Debug)]
+pub struct ColumnWriter<T: Pod> {
+    path: PathBuf,
+    out: BufWriter<File>,
+    len: usize,
+    _t: PhantomData<T>,
+}
+
+impl<T: Pod> ColumnWriter<T> {
+    /// Creates `dir/name.col`.
+    pub fn create(dir: &Path, name: &str) -> Result<Self, ColumnError> {
+        let path = dir.join(format!("{name}.col"));
+        let file = File::create(&path).map_err(|source| ColumnError::Io {
+            path: path.clone(),
+            source,
+        })?;
+        Ok(Self {
+            path,
+            out: BufWriter::with_capacity(1 << 20, file),
+            len: 0,
+            _t: PhantomData,
+        })
+    }
+
+    pub fn push(&mut self, value: T) -> Result<(), ColumnError> {
+        self.out
+            .write_all(bytemuck::bytes_of(&value))
+            .map_err(|source| ColumnError::Io {
+                path: self.path.clone(),
+                source,
+            })?;
+        self.len += 1;
+        Ok(())
+    }
+
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Flushes and maps the file read-only.
+    pub fn finish(self) -> Result<Column<T>, ColumnError> {
+        let path = self.path;
+        let io = |source| ColumnError::Io {
+            path: path.clone(),
+            source,
+        };
+        let file = self.out.into_inner().map_err(|e| io(e.into_error()))?;
+        file.sync_data().ok();
+        let map = if self.len == 0 {
+            None
+        } else {
+            // SAFETY: the file is private to this import's scratch directory and is never
+            // written again after this point.
+            Some(unsafe { memmap2::Mmap::map(&file) }.map_err(io)?)
+        };
+        Ok(Column {
+            map,
+            len: self.len,
+            _t: PhantomData,
+        })
+    }
+}
+
+/// A read-only, memory-mapped array of `T`.
+pub struct Column<T: Pod> {
+    map: Option<memmap2::Mmap>,
+    len: usize,
+    _t: PhantomData<T>,
+}
+
+impl<T: Pod> std::fmt::Debug for Column<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Column").field("len", &self.len).finish()
+    }
+}
+
+impl<T: Pod> Column<T> {
+    /// Writes `values` into a fresh column (tests and small inputs).
+    pub fn from_slice(dir: &Path, name: &str, values: &[T]) -> Result<Self, ColumnError> {
+        let mut w = ColumnWriter::create(dir, name)?;
+        for v in values {
+            w.push(*v)?;
+        }
+        w.finish()
+    }
+}
+
+impl<T: Pod> std::ops::Deref for Column<T> {
+    type Target = [T];
+    fn deref(&self) -> &[T] {
+        match &self.map {
+            // Mappings are page aligned, so any Pod element type is aligned.
+            Some(m) => &bytemuck::cast_slice(&m[..])[..self.len],
+            None => &[],
+        }
+    }
+}
+
+impl Source {
+    /// Number of input primitives (triangles, points or grid samples).
+    pub fn primitive_count(&self) -> u64 {
+        match self {
+            Source::Mesh(m) => m.triangles.len() as u64,
+            Source::Points(p) => p.positions.len() as u64,
+            Source::Volume(v) => v.values.len() as u64,
+        }
+    }
+
+    /// Short human description, e.g. "mesh: 69451 triangles, 35947 vertices".
+    pub fn describe(&self) -> String {
+        match self {
+            Source::Mesh(m) => format!(
+                "mesh: {} triangles, {} vertices{}{}",
+                m.triangles.len(),
+                m.positions.len(),
+                if m.normals.is_some() { ", normals" } else { "" },
+                if m.colors.is_some() { ", colour" } else { "" }
+            ),
+            Source::Points(p) => format!(
+                "points: {}{}{}",
+                p.positions.len(),
+                if p.normals.is_some() { ", normals" } else { "" },
+                if p.colors.is_some() { ", colour" } else { "" }
+            ),
+            Source::Volume(v) => format!(
+                "volume: {}x{}x{} samples, spacing {:?}",
+                v.dims[0], v.dims[1], v.dims[2], v.spacing
+            ),
+        }
+    }
+}
