@@ -3,7 +3,7 @@
 use crate::treelet::TreeletId;
 
 /// Everything that can be wrong with bytes claiming to be an Arbor format.
-#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+#[derive(Debug, Clone, thiserror::Error, PartialEq, Eq)]
 pub enum ProtoError {
     /// Fewer bytes than the format needs.
     #[error("{what}: truncated, need {need} bytes, have {have}")]

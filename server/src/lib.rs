@@ -1,1 +1,13 @@
-pub fn x(){}
+//! The Arbor server: scan importers, the SVO builder, the sled treelet pool and the CLI.
+//!
+//! * [`import`] reads OBJ, PLY, LAS/LAZ, NRRD and raw volumes strictly into a [`source::Source`]
+//!   of disk-backed columns;
+//! * [`build`] turns a source into treelets (DESIGN §3);
+//! * [`pool`] stores scenes atomically in sled, already compressed, one tree per stream;
+//! * [`verify`] checks every invariant of a stored scene.
+
+pub mod build;
+pub mod import;
+pub mod pool;
+pub mod source;
+pub mod verify;

@@ -1,1 +1,341 @@
-fn main(){}
+//! `arbor-server`: import scans into a treelet pool, inspect and verify it.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{Context, Result, bail};
+use arbor_server::build::{self, BuildOptions, DepthChoice};
+use arbor_server::import::{self, Format, ImportOptions, RawSpec, SampleType};
+use arbor_server::pool::Pool;
+use arbor_server::verify;
+use clap::{Parser, Subcommand};
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "arbor-server",
+    version,
+    about = "Arbor server: build sparse voxel octree treelet pools from scans and serve them",
+    after_help = "Examples:\n  \
+        arbor-server import --db pool --scene bunny --depth auto ../shared/data/meshes/stanford-bunny.obj\n  \
+        arbor-server import --db pool --scene engine --iso 60 ../shared/data/volumes/engine_256x256x128_u8.nrrd\n  \
+        arbor-server list --db pool\n  \
+        arbor-server info --db pool --scene bunny\n  \
+        arbor-server verify --db pool --scene bunny\n  \
+        arbor-server remove --db pool --scene bunny"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Import a scan (OBJ, PLY, LAS/LAZ, NRRD, raw volume) into the pool as a new scene.
+    #[command(after_help = "Examples:\n  \
+        arbor-server import --db pool --scene lucy --treelet-bytes 1024 lucy.ply\n  \
+        arbor-server import --db pool --scene ct --raw-dims 256,256,128 --raw-type u8 --iso 80 ct.raw")]
+    Import {
+        /// Pool directory (created if missing).
+        #[arg(long)]
+        db: PathBuf,
+        /// Scene name: 1-128 characters of A-Z a-z 0-9 . _ -
+        #[arg(long)]
+        scene: String,
+        /// Target depth, or `auto` for the depth at which voxels reach the data's own resolution.
+        #[arg(long, default_value = "auto", value_parser = parse_depth)]
+        depth: DepthChoice,
+        /// Treelet size in bytes of node records (1024..=16384, multiple of 8).
+        #[arg(long, default_value_t = arbor_proto::limits::DEFAULT_TREELET_BYTES)]
+        treelet_bytes: u32,
+        /// Iso threshold for volumes (default: Otsu's threshold of the histogram).
+        #[arg(long)]
+        iso: Option<f32>,
+        /// Input format, when the file extension does not tell.
+        #[arg(long)]
+        format: Option<Format>,
+        /// Raw volume dimensions X,Y,Z.
+        #[arg(long, value_parser = parse_dims)]
+        raw_dims: Option<[u32; 3]>,
+        /// Raw volume sample type: u8, u16 or f32.
+        #[arg(long, default_value = "u8")]
+        raw_type: SampleType,
+        /// Raw volume sample spacing X,Y,Z.
+        #[arg(long, value_parser = parse_spacing, default_value = "1,1,1")]
+        raw_spacing: [f64; 3],
+        /// Raw volume samples are big endian.
+        #[arg(long)]
+        raw_big_endian: bool,
+        /// zstd compression level of stored blocks.
+        #[arg(long, default_value_t = 9, value_parser = clap::value_parser!(i32).range(1..=22))]
+        zstd_level: i32,
+        /// Do not train per-scene zstd dictionaries.
+        #[arg(long)]
+        no_dictionary: bool,
+        /// MiB of pending primitive lists held in memory before spilling to disk.
+        #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..=1_048_576))]
+        memory_budget_mib: u64,
+        /// Scratch directory for the import's temporary files (default: the system temp dir).
+        #[arg(long)]
+        scratch: Option<PathBuf>,
+        /// Replace an existing scene of the same name (atomically).
+        #[arg(long)]
+        replace: bool,
+        /// Hide progress bars.
+        #[arg(long)]
+        quiet: bool,
+        /// Input file.
+        file: PathBuf,
+    },
+    /// List the scenes in a pool.
+    List {
+        #[arg(long)]
+        db: PathBuf,
+    },
+    /// Show a scene's figures: counts, depth, bytes, channels, build time.
+    Info {
+        #[arg(long)]
+        db: PathBuf,
+        #[arg(long)]
+        scene: String,
+    },
+    /// Check every invariant of a scene; exit status 0 only if all hold.
+    Verify {
+        #[arg(long)]
+        db: PathBuf,
+        #[arg(long)]
+        scene: String,
+    },
+    /// Remove a scene.
+    Remove {
+        #[arg(long)]
+        db: PathBuf,
+        #[arg(long)]
+        scene: String,
+    },
+}
+
+fn parse_depth(s: &str) -> Result<DepthChoice, String> {
+    if s.eq_ignore_ascii_case("auto") {
+        return Ok(DepthChoice::Auto);
+    }
+    let d: u8 = s.parse().map_err(|_| format!("'{s}' is neither a depth nor 'auto'"))?;
+    if d > arbor_proto::limits::MAX_DEPTH {
+        return Err(format!("depth {d} exceeds the maximum {}", arbor_proto::limits::MAX_DEPTH));
+    }
+    Ok(DepthChoice::Fixed(d))
+}
+
+fn parse_triple<T: std::str::FromStr>(s: &str) -> Result<[T; 3], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    if parts.len() != 3 {
+        return Err(format!("'{s}': expected three comma-separated values"));
+    }
+    let mut out = Vec::with_capacity(3);
+    for p in parts {
+        out.push(p.parse::<T>().map_err(|_| format!("'{p}' is not a valid number"))?);
+    }
+    out.try_into().map_err(|_| "three values".to_string())
+}
+
+fn parse_dims(s: &str) -> Result<[u32; 3], String> {
+    let d: [u32; 3] = parse_triple(s)?;
+    if d.iter().any(|&v| v == 0) {
+        return Err(format!("'{s}': dimensions must be positive"));
+    }
+    Ok(d)
+}
+
+fn parse_spacing(s: &str) -> Result<[f64; 3], String> {
+    let d: [f64; 3] = parse_triple(s)?;
+    if d.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
+        return Err(format!("'{s}': spacing must be finite and positive"));
+    }
+    Ok(d)
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn open(db: &Path) -> Result<Pool> {
+    Pool::open(db).with_context(|| format!("opening pool {}", db.display()))
+}
+
+fn run(cli: Cli) -> Result<ExitCode> {
+    match cli.command {
+        Command::Import {
+            db,
+            scene,
+            depth,
+            treelet_bytes,
+            iso,
+            format,
+            raw_dims,
+            raw_type,
+            raw_spacing,
+            raw_big_endian,
+            zstd_level,
+            no_dictionary,
+            memory_budget_mib,
+            scratch,
+            replace,
+            quiet,
+            file,
+        } => {
+            arbor_proto::treelet::nodes_for_bytes(treelet_bytes)?;
+            if let Some(i) = iso {
+                if !i.is_finite() {
+                    bail!("--iso {i} is not a finite number");
+                }
+            }
+            let pool = open(&db)?;
+            if !replace && pool.contains(&scene)? {
+                bail!("a scene named {scene:?} already exists (remove it first or pass --replace)");
+            }
+            arbor_proto::scene::validate_scene_name(&scene)?;
+            let scratch = match scratch {
+                Some(dir) => tempfile::Builder::new().prefix("arbor-import-").tempdir_in(dir)?,
+                None => tempfile::Builder::new().prefix("arbor-import-").tempdir()?,
+            };
+            let opts = ImportOptions {
+                format,
+                raw: raw_dims.map(|dims| RawSpec {
+                    dims,
+                    sample: raw_type,
+                    spacing: raw_spacing,
+                    big_endian: raw_big_endian,
+                }),
+            };
+            let source = import::import_file(&file, &opts, scratch.path())
+                .with_context(|| format!("importing {}", file.display()))?;
+            tracing::info!("read {}: {}", file.display(), source.describe());
+            let build_opts = BuildOptions {
+                depth,
+                treelet_bytes,
+                iso,
+                zstd_level,
+                dictionary: !no_dictionary,
+                memory_budget: (memory_budget_mib as usize) << 20,
+                progress: !quiet,
+            };
+            let mut txn = pool.begin_import(&scene, replace)?;
+            let label = file
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            let mut desc = build::build_scene(&source, &scene, &label, &build_opts, scratch.path(), &mut txn)
+                .with_context(|| format!("building scene {scene:?}"))?;
+            desc.stats.peak_rss_bytes = build::peak_rss_bytes();
+            txn.commit(&desc)?;
+            print_info(&desc, Some(pool.disk_bytes()?));
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::List { db } => {
+            let pool = open(&db)?;
+            println!(
+                "{:<24} {:>7} {:>6} {:>10} {:>12} {:>12}  channels",
+                "scene", "kind", "depth", "treelets", "voxels", "bytes"
+            );
+            for d in pool.scenes()? {
+                let bytes = d.stats.node_bytes + d.stats.channel_bytes.iter().sum::<u64>();
+                println!(
+                    "{:<24} {:>7} {:>6} {:>10} {:>12} {:>12}  {}",
+                    d.name,
+                    format!("{:?}", d.source_kind).to_lowercase(),
+                    d.max_depth,
+                    d.treelet_count,
+                    d.stats.voxels,
+                    bytes,
+                    channel_names(&d)
+                );
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Info { db, scene } => {
+            let pool = open(&db)?;
+            let s = pool.scene(&scene)?;
+            print_info(&s.description, Some(pool.disk_bytes()?));
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Verify { db, scene } => {
+            let pool = open(&db)?;
+            let s = pool.scene(&scene)?;
+            let r = verify::verify_scene(&s)?;
+            println!(
+                "{scene}: {} treelets, {} voxels ({} at the target depth)",
+                r.treelets, r.voxels, r.leaf_voxels
+            );
+            if r.is_ok() {
+                println!("ok: every invariant holds");
+                Ok(ExitCode::SUCCESS)
+            } else {
+                for p in &r.problems {
+                    println!("problem: {p}");
+                }
+                println!("FAILED: {} problems", r.problem_count);
+                Ok(ExitCode::from(2))
+            }
+        }
+        Command::Remove { db, scene } => {
+            let pool = open(&db)?;
+            pool.remove(&scene)?;
+            println!("removed {scene}");
+            Ok(ExitCode::SUCCESS)
+        }
+    }
+}
+
+fn channel_names(d: &arbor_proto::SceneDescription) -> String {
+    d.layout.channels().iter().map(|c| c.name()).collect::<Vec<_>>().join(",")
+}
+
+fn print_info(d: &arbor_proto::SceneDescription, disk: Option<u64>) {
+    let s = &d.stats;
+    let pool_bytes = s.node_bytes + s.channel_bytes.iter().sum::<u64>();
+    println!("scene            {}", d.name);
+    println!("source           {}", d.source);
+    println!("kind             {:?}, {} primitives", d.source_kind, d.primitives);
+    println!(
+        "depth            {} ({}), data resolution {:.6}",
+        d.max_depth,
+        match d.build.requested_depth {
+            Some(_) => "fixed",
+            None => "auto",
+        },
+        d.build.data_resolution
+    );
+    println!("root cube        origin {:?}, edge {}", d.origin, d.edge);
+    println!("treelets         {} of {} bytes ({} nodes)", d.treelet_count, d.build.treelet_bytes, d.treelet_nodes);
+    println!("voxels           {} ({} at the target depth)", s.voxels, s.leaf_voxels);
+    println!("channels         {}", channel_names(d));
+    if let Some(iso) = d.build.iso {
+        println!("iso threshold    {iso}");
+    }
+    println!(
+        "bytes            {} compressed ({} nodes + {:?} channels), {} raw, {:.2} bytes/voxel",
+        pool_bytes,
+        s.node_bytes,
+        s.channel_bytes,
+        s.raw_bytes,
+        pool_bytes as f64 / s.voxels.max(1) as f64
+    );
+    println!("compression      zstd level {}, dictionaries {}", d.build.zstd_level, if d.build.dictionary { "yes" } else { "no" });
+    println!("build            {:.2} s, peak RSS {:.1} MiB", s.build_seconds, s.peak_rss_bytes as f64 / (1 << 20) as f64);
+    if let Some(b) = disk {
+        println!("pool on disk     {b} bytes (whole database)");
+    }
+}

@@ -82,7 +82,14 @@ impl<T: Pod> ColumnWriter<T> {
     /// Creates `dir/name.col`.
     pub fn create(dir: &Path, name: &str) -> Result<Self, ColumnError> {
         let path = dir.join(format!("{name}.col"));
-        let file = File::create(&path).map_err(|source| ColumnError::Io {
+        // Read access too: the file is memory-mapped once written.
+        let file = File::options()
+            .create(true)
+            .truncate(true)
+            .read(true)
+            .write(true)
+            .open(&path)
+            .map_err(|source| ColumnError::Io {
             path: path.clone(),
             source,
         })?;

@@ -1,0 +1,660 @@
+//! The generalized builder (DESIGN §3): a build manager drives a [`TreeletBuilder`] chosen by
+//! input kind and an [`AttributeGenerator`] chosen by the channels the source has.
+//!
+//! Three passes, each bounded in memory:
+//! 1. **fill** — treelets are filled breadth-first from a FIFO of jobs (top-down, so every child
+//!    id is higher than its parent's); independent jobs of one batch run in parallel; finished
+//!    treelets are appended to a scratch file of fixed-size records;
+//! 2. **attributes** — records are read back in reverse id order and inner attributes averaged
+//!    bottom-up, a child treelet's root attribute feeding its parent's refinable leaf;
+//! 3. **pack** — optional per-stream zstd dictionaries are trained on evenly spread records, then
+//!    nodes and each attribute channel are compressed in parallel and handed to a [`TreeletSink`]
+//!    (the pool) in id order.
+
+pub mod geometry;
+pub mod pending;
+pub mod points;
+pub mod treelet_builder;
+pub mod triangles;
+pub mod volume;
+
+use std::collections::HashMap;
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::path::Path;
+use std::time::Instant;
+
+use arbor_proto::codec::{self, BlockCompressor, HEADER_BYTES};
+use arbor_proto::treelet::nodes_for_bytes;
+use arbor_proto::{
+    AttributeLayout, BuildParameters, Cell, Node, ProtoError, SceneDescription, SceneStats,
+    SourceKind, Treelet, TreeletId,
+};
+use indicatif::{ProgressBar, ProgressStyle};
+use rayon::prelude::*;
+
+use crate::source::{ColumnError, Source};
+use geometry::{Frame, depth_for_resolution};
+use pending::PendingQueue;
+pub use treelet_builder::{AttributeGenerator, TreeletBuilder, fill_treelet};
+use treelet_builder::{FilledTreelet, TreeletJob};
+
+/// Depth to build to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DepthChoice {
+    /// Exactly this depth.
+    Fixed(u8),
+    /// The depth at which voxels reach the data's own resolution.
+    Auto,
+}
+
+/// Parameters of one build.
+#[derive(Clone, Debug)]
+pub struct BuildOptions {
+    pub depth: DepthChoice,
+    pub treelet_bytes: u32,
+    /// Iso threshold for volumes; `None` picks Otsu's threshold.
+    pub iso: Option<f32>,
+    pub zstd_level: i32,
+    /// Train per-stream zstd dictionaries.
+    pub dictionary: bool,
+    /// Bytes of pending primitive lists kept in memory before spilling to disk.
+    pub memory_budget: usize,
+    /// Draw progress bars on stderr.
+    pub progress: bool,
+}
+
+impl Default for BuildOptions {
+    fn default() -> Self {
+        Self {
+            depth: DepthChoice::Auto,
+            treelet_bytes: arbor_proto::limits::DEFAULT_TREELET_BYTES,
+            iso: None,
+            zstd_level: 9,
+            dictionary: true,
+            memory_budget: 256 << 20,
+            progress: false,
+        }
+    }
+}
+
+/// Errors of a build.
+#[derive(Debug, thiserror::Error)]
+pub enum BuildError {
+    /// Scratch files could not be written or read.
+    #[error("build scratch I/O: {0}")]
+    Io(#[from] std::io::Error),
+    /// A scratch column failed.
+    #[error(transparent)]
+    Column(#[from] ColumnError),
+    /// Encoding or compression failed.
+    #[error("encoding: {0}")]
+    Proto(#[from] ProtoError),
+    /// The input has nothing to build from.
+    #[error("nothing to build: {0}")]
+    Empty(String),
+    /// A coordinate is NaN or infinite.
+    #[error("non-finite coordinate in {what} {index}")]
+    NonFinite { what: &'static str, index: u64 },
+    /// A parameter is out of range.
+    #[error("invalid build parameter: {0}")]
+    Parameter(String),
+    /// More treelets than ids.
+    #[error("scene needs more than {} treelets", arbor_proto::limits::MAX_TREELETS)]
+    TooManyTreelets,
+    /// The treelet sink (the pool) refused a write.
+    #[error("storing treelets: {0}")]
+    Sink(String),
+}
+
+/// Receives the compressed blocks of each treelet, in ascending id order.
+pub trait TreeletSink {
+    /// Called once with the scene's attribute layout before the first `put`.
+    fn start(&mut self, layout: &AttributeLayout) -> Result<(), BuildError>;
+    /// `channels` are in layout order.
+    fn put(&mut self, id: TreeletId, nodes: Vec<u8>, channels: Vec<Vec<u8>>) -> Result<(), BuildError>;
+}
+
+/// Builds `source` into a scene named `name`, handing treelets to `sink`. Returns the scene
+/// description (stats filled in except `peak_rss_bytes`, which the caller measures).
+pub fn build_scene(
+    source: &Source,
+    name: &str,
+    source_label: &str,
+    opts: &BuildOptions,
+    scratch: &Path,
+    sink: &mut dyn TreeletSink,
+) -> Result<SceneDescription, BuildError> {
+    let started = Instant::now();
+    let capacity = nodes_for_bytes(opts.treelet_bytes)?;
+    if let DepthChoice::Fixed(d) = opts.depth {
+        if d > arbor_proto::limits::MAX_DEPTH {
+            return Err(BuildError::Parameter(format!(
+                "depth {d} exceeds the maximum {}",
+                arbor_proto::limits::MAX_DEPTH
+            )));
+        }
+    }
+    if source.primitive_count() == 0 {
+        return Err(BuildError::Empty(source.describe()));
+    }
+    let (min, max) = bounds(source)?;
+    let probe = Frame::around(min, max, 0);
+    let (resolution, kind) = match source {
+        Source::Mesh(m) => (triangles::mean_edge_length(m), SourceKind::Mesh),
+        Source::Points(p) => (points::mean_point_spacing(&p.positions, min, max), SourceKind::Points),
+        Source::Volume(v) => (v.spacing.iter().cloned().fold(f64::INFINITY, f64::min), SourceKind::Volume),
+    };
+    let depth = match opts.depth {
+        DepthChoice::Fixed(d) => d,
+        DepthChoice::Auto => depth_for_resolution(probe.edge, resolution),
+    };
+    let frame = Frame::new(probe.origin, probe.edge, depth);
+    tracing::info!(
+        depth,
+        resolution,
+        edge = frame.edge,
+        "building {} ({})",
+        name,
+        source.describe()
+    );
+
+    let mut iso_used = None;
+    let (layout, fill) = match source {
+        Source::Mesh(m) => {
+            let b = triangles::TriangleBuilder { mesh: m, frame };
+            let a = triangles::MeshAttributes::new(m, frame);
+            let layout = a.layout.clone();
+            (layout, fill_all(&b, &a, capacity, depth, opts, scratch)?)
+        }
+        Source::Points(p) => {
+            let estimated;
+            let normals = match &p.normals {
+                Some(n) => n,
+                None => {
+                    estimated = points::estimate_normals(&p.positions, min, max, scratch)?;
+                    &estimated
+                }
+            };
+            let b = points::PointBuilder { points: p, frame };
+            let a = points::PointAttributes::new(p, normals);
+            let layout = a.layout.clone();
+            (layout, fill_all(&b, &a, capacity, depth, opts, scratch)?)
+        }
+        Source::Volume(v) => {
+            let iso = match opts.iso {
+                Some(i) if i.is_finite() => i,
+                Some(i) => return Err(BuildError::Parameter(format!("iso threshold {i} is not finite"))),
+                None => volume::otsu_threshold(v),
+            };
+            iso_used = Some(iso);
+            let cells = volume::crossing_cells(v, iso, scratch)?;
+            if cells.is_empty() {
+                return Err(BuildError::Empty(format!(
+                    "iso threshold {iso} crosses no cell of the volume (values {}..{})",
+                    v.value_range[0], v.value_range[1]
+                )));
+            }
+            tracing::info!(iso, crossing_cells = cells.len(), "iso surface");
+            let field = volume::Field { vol: v };
+            let b = volume::VolumeBuilder { field, cells: &cells, frame };
+            let a = volume::VolumeAttributes::new(field, frame);
+            let layout = a.layout.clone();
+            (layout, fill_all(&b, &a, capacity, depth, opts, scratch)?)
+        }
+    };
+
+    let records = RecordFile {
+        file: fill.file,
+        capacity,
+        bpv: layout.bytes_per_voxel(),
+    };
+    average_bottom_up(&records, &layout, fill.treelets, depth, opts.progress)?;
+    let mut stats = SceneStats {
+        voxels: fill.used_nodes - u64::from(fill.treelets - 1),
+        leaf_voxels: fill.leaf_voxels,
+        ..SceneStats::default()
+    };
+    let (node_dictionary, channel_dictionaries) = if opts.dictionary {
+        train_dictionaries(&records, &layout, fill.treelets)?
+    } else {
+        (None, vec![None; layout.channels().len()])
+    };
+    pack(
+        &records,
+        &layout,
+        fill.treelets,
+        opts,
+        node_dictionary.as_deref(),
+        &channel_dictionaries,
+        &mut stats,
+        sink,
+    )?;
+    stats.build_seconds = started.elapsed().as_secs_f64();
+    let dictionary = node_dictionary.is_some();
+    Ok(SceneDescription {
+        name: name.to_owned(),
+        origin: frame.origin,
+        edge: frame.edge,
+        treelet_nodes: capacity,
+        max_depth: depth,
+        layout,
+        treelet_count: fill.treelets,
+        root_treelet: TreeletId::ROOT,
+        source_kind: kind,
+        source: format!("{source_label} ({})", source.describe()),
+        primitives: source.primitive_count(),
+        build: BuildParameters {
+            requested_depth: match opts.depth {
+                DepthChoice::Fixed(d) => Some(d),
+                DepthChoice::Auto => None,
+            },
+            data_resolution: resolution,
+            treelet_bytes: opts.treelet_bytes,
+            iso: iso_used,
+            zstd_level: opts.zstd_level,
+            dictionary,
+        },
+        stats,
+        node_dictionary,
+        channel_dictionaries,
+    })
+}
+
+/// Bounding box of the source's geometry; rejects non-finite coordinates.
+fn bounds(source: &Source) -> Result<([f64; 3], [f64; 3]), BuildError> {
+    let mut min = [f64::INFINITY; 3];
+    let mut max = [f64::NEG_INFINITY; 3];
+    let mut add = |p: [f64; 3], what: &'static str, index: usize| {
+        if !p.iter().all(|v| v.is_finite()) {
+            return Err(BuildError::NonFinite {
+                what,
+                index: index as u64,
+            });
+        }
+        for a in 0..3 {
+            min[a] = min[a].min(p[a]);
+            max[a] = max[a].max(p[a]);
+        }
+        Ok(())
+    };
+    match source {
+        Source::Mesh(m) => {
+            // Only vertices that triangles use define the scene.
+            for t in m.triangles.iter() {
+                for &i in t {
+                    add(m.positions[i as usize], "vertex", i as usize)?;
+                }
+            }
+        }
+        Source::Points(p) => {
+            for (i, &q) in p.positions.iter().enumerate() {
+                add(q, "point", i)?;
+            }
+        }
+        Source::Volume(v) => {
+            let far = [0, 1, 2].map(|a| v.origin[a] + f64::from(v.dims[a].max(1) - 1) * v.spacing[a]);
+            add(v.origin, "volume origin", 0)?;
+            add(far, "volume extent", 0)?;
+            if v.dims.iter().any(|&d| d < 2) || v.spacing.iter().any(|&s| !(s > 0.0)) {
+                return Err(BuildError::Empty(format!(
+                    "volume {:?} with spacing {:?} has no cells",
+                    v.dims, v.spacing
+                )));
+            }
+        }
+    }
+    Ok((min, max))
+}
+
+/// Output of the fill pass.
+struct Filled {
+    file: File,
+    treelets: u32,
+    used_nodes: u64,
+    leaf_voxels: u64,
+}
+
+/// Fixed-size scratch records: raw treelet encoding padded to `HEADER + N·8`, then `N × bpv`
+/// attribute bytes.
+struct RecordFile {
+    file: File,
+    capacity: u32,
+    bpv: usize,
+}
+
+impl RecordFile {
+    fn node_bytes(capacity: u32) -> usize {
+        HEADER_BYTES + capacity as usize * 8
+    }
+    fn size(&self) -> usize {
+        Self::node_bytes(self.capacity) + self.capacity as usize * self.bpv
+    }
+    fn read(&self, id: u32, max_depth: u8) -> Result<(Treelet, Vec<u8>), BuildError> {
+        let mut buf = vec![0u8; self.size()];
+        self.file.read_exact_at(&mut buf, u64::from(id) * self.size() as u64)?;
+        let (header, _) = codec::decode_header(&buf)?;
+        let raw_len = HEADER_BYTES + usize::from(header.used_nodes) * 8;
+        let t = codec::decode_treelet(&buf[..raw_len], max_depth)?;
+        let attrs = buf.split_off(Self::node_bytes(self.capacity));
+        Ok((t, attrs))
+    }
+    fn write_attributes(&self, id: u32, attrs: &[u8]) -> Result<(), BuildError> {
+        let at = u64::from(id) * self.size() as u64 + Self::node_bytes(self.capacity) as u64;
+        self.file.write_all_at(attrs, at)?;
+        Ok(())
+    }
+}
+
+fn spinner(enabled: bool, what: &str) -> ProgressBar {
+    if !enabled {
+        return ProgressBar::hidden();
+    }
+    let pb = ProgressBar::new_spinner();
+    pb.set_style(
+        ProgressStyle::with_template("{spinner} {prefix} {msg} [{elapsed_precise}]")
+            .unwrap_or_else(|_| ProgressStyle::default_spinner()),
+    );
+    pb.set_prefix(what.to_owned());
+    pb
+}
+
+fn bar(enabled: bool, what: &str, len: u64) -> ProgressBar {
+    if !enabled {
+        return ProgressBar::hidden();
+    }
+    let pb = ProgressBar::new(len);
+    pb.set_style(
+        ProgressStyle::with_template("{prefix:>10} [{bar:40}] {pos}/{len} treelets [{elapsed_precise}, eta {eta}]")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    pb.set_prefix(what.to_owned());
+    pb
+}
+
+/// Pass 1: fill every treelet, FIFO, in parallel batches.
+fn fill_all(
+    builder: &dyn TreeletBuilder,
+    attributes: &dyn AttributeGenerator,
+    capacity: u32,
+    depth: u8,
+    opts: &BuildOptions,
+    scratch: &Path,
+) -> Result<Filled, BuildError> {
+    let file = File::options()
+        .create(true)
+        .truncate(true)
+        .read(true)
+        .write(true)
+        .open(scratch.join("treelets.records"))?;
+    let records = RecordFile {
+        file,
+        capacity,
+        bpv: attributes.bytes_per_voxel(),
+    };
+    let mut queue = PendingQueue::new(scratch, opts.memory_budget);
+    queue.push(TreeletJob {
+        id: TreeletId::ROOT,
+        parent_id: TreeletId::NONE,
+        parent_leaf_index: 0,
+        parent_leaf_parent_index: 0,
+        child_index_in_parent: 0,
+        root: Cell::ROOT,
+        prims: (0..builder.primitive_count()).collect(),
+    })?;
+    let mut next_id: u64 = 1;
+    let mut written = 0u32;
+    let (mut used_nodes, mut leaf_voxels) = (0u64, 0u64);
+    let pb = spinner(opts.progress, "fill");
+    let batch_target = rayon::current_num_threads() * 4;
+    let mut buf = vec![0u8; records.size()];
+    while !queue.is_empty() {
+        // A batch of independent jobs, bounded by count and by primitive-list bytes.
+        let mut batch = Vec::new();
+        let mut batch_bytes = 0usize;
+        while batch.len() < batch_target && batch_bytes < opts.memory_budget.max(1 << 20) {
+            let Some(job) = queue.pop()? else { break };
+            batch_bytes += job.prims.len() * 4;
+            batch.push(job);
+        }
+        let filled: Vec<FilledTreelet> = batch
+            .into_par_iter()
+            .map(|job| fill_treelet(builder, attributes, job, capacity, depth))
+            .collect();
+        for mut f in filled {
+            let id = f.treelet.header.id;
+            debug_assert_eq!(id.0, written);
+            for leaf in f.pending.drain(..) {
+                if next_id > u64::from(arbor_proto::limits::MAX_TREELETS) {
+                    return Err(BuildError::TooManyTreelets);
+                }
+                let child = TreeletId(next_id as u32);
+                next_id += 1;
+                f.treelet.nodes[usize::from(leaf.local_index)].first_child = child.0;
+                queue.push(TreeletJob {
+                    id: child,
+                    parent_id: id,
+                    parent_leaf_index: leaf.local_index,
+                    parent_leaf_parent_index: leaf.parent_local_index,
+                    child_index_in_parent: leaf.child_index,
+                    root: leaf.cell,
+                    prims: leaf.prims,
+                })?;
+            }
+            used_nodes += u64::from(f.treelet.header.used_nodes);
+            leaf_voxels += f.leaf_voxels;
+            let raw = codec::encode_treelet(&f.treelet);
+            buf.fill(0);
+            buf[..raw.len()].copy_from_slice(&raw);
+            let nb = RecordFile::node_bytes(capacity);
+            buf[nb..].copy_from_slice(&f.attributes);
+            records
+                .file
+                .write_all_at(&buf, u64::from(written) * records.size() as u64)?;
+            written += 1;
+        }
+        pb.set_message(format!(
+            "{written} treelets, {leaf_voxels} leaf voxels, {} queued",
+            queue.len()
+        ));
+        pb.tick();
+    }
+    pb.finish_and_clear();
+    if queue.spilled_bytes > 0 {
+        tracing::info!(spilled_bytes = queue.spilled_bytes, "pending primitive lists spilled to disk");
+    }
+    Ok(Filled {
+        file: records.file,
+        treelets: written,
+        used_nodes,
+        leaf_voxels,
+    })
+}
+
+/// Pass 2: inner attributes as the mean of their children, treelets in reverse id order.
+fn average_bottom_up(
+    records: &RecordFile,
+    layout: &AttributeLayout,
+    count: u32,
+    depth: u8,
+    progress: bool,
+) -> Result<(), BuildError> {
+    let bpv = records.bpv;
+    let mut offsets = Vec::new();
+    let mut at = 0;
+    for c in layout.channels() {
+        offsets.push(at);
+        at += c.size();
+    }
+    // Root attributes of treelets whose parent has not been processed yet.
+    let mut child_roots: HashMap<u32, Vec<u8>> = HashMap::new();
+    let pb = bar(progress, "attributes", u64::from(count));
+    for id in (0..count).rev() {
+        let (t, mut attrs) = records.read(id, depth)?;
+        let places = t.validate(depth)?;
+        for i in (0..t.used().len()).rev() {
+            let n: Node = t.nodes[i];
+            let k = i * bpv;
+            if places[i].is_leaf {
+                if n.first_child != Node::NONE {
+                    let root = child_roots.remove(&n.first_child).ok_or_else(|| {
+                        BuildError::Sink(format!(
+                            "treelet {id} leaf {i}: child treelet {} was never built",
+                            n.first_child
+                        ))
+                    })?;
+                    attrs[k..k + bpv].copy_from_slice(&root);
+                }
+                continue;
+            }
+            let first = i + n.first_child as usize;
+            let kids = n.child_count() as usize;
+            for (ci, c) in layout.channels().iter().enumerate() {
+                let off = offsets[ci];
+                let size = c.size();
+                let mut out = vec![0u8; size];
+                let src = &attrs;
+                c.mean(
+                    (first..first + kids).map(|j| &src[j * bpv + off..j * bpv + off + size]),
+                    &mut out,
+                );
+                attrs[k + off..k + off + size].copy_from_slice(&out);
+            }
+        }
+        if !t.header.parent_id.is_none() {
+            child_roots.insert(id, attrs[..bpv].to_vec());
+        }
+        records.write_attributes(id, &attrs)?;
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    Ok(())
+}
+
+/// Splits a record's attribute bytes into one block per channel (used records only).
+fn channel_blocks(layout: &AttributeLayout, attrs: &[u8], bpv: usize, used: usize) -> Vec<Vec<u8>> {
+    let mut at = 0;
+    layout
+        .channels()
+        .iter()
+        .map(|c| {
+            let size = c.size();
+            let block = (0..used)
+                .flat_map(|i| attrs[i * bpv + at..i * bpv + at + size].iter().copied())
+                .collect();
+            at += size;
+            block
+        })
+        .collect()
+}
+
+/// Dictionary size per stream.
+const DICTIONARY_BYTES: usize = 16 * 1024;
+/// At most this many records are sampled for training.
+const DICTIONARY_SAMPLES: u32 = 4000;
+
+type Dictionaries = (Option<Vec<u8>>, Vec<Option<Vec<u8>>>);
+
+/// Trains one dictionary for the node stream and one per channel on evenly spread records.
+/// Too few treelets to learn from gives no dictionary.
+fn train_dictionaries(records: &RecordFile, layout: &AttributeLayout, count: u32) -> Result<Dictionaries, BuildError> {
+    let none = (None, vec![None; layout.channels().len()]);
+    if count < 32 {
+        return Ok(none);
+    }
+    let step = (count / DICTIONARY_SAMPLES).max(1);
+    let mut nodes = Vec::new();
+    let mut channels: Vec<Vec<Vec<u8>>> = vec![Vec::new(); layout.channels().len()];
+    for id in (0..count).step_by(step as usize) {
+        let (t, attrs) = records.read(id, 31)?;
+        nodes.push(codec::encode_treelet(&t));
+        for (c, b) in channel_blocks(layout, &attrs, records.bpv, t.used().len())
+            .into_iter()
+            .enumerate()
+        {
+            channels[c].push(b);
+        }
+    }
+    let train = |samples: &Vec<Vec<u8>>| match zstd::dict::from_samples(samples, DICTIONARY_BYTES) {
+        Ok(d) => Some(d),
+        Err(e) => {
+            tracing::warn!("dictionary training failed, compressing without: {e}");
+            None
+        }
+    };
+    Ok((train(&nodes), channels.iter().map(train).collect()))
+}
+
+/// Pass 3: compress nodes and channels and hand them to the sink in id order.
+#[allow(clippy::too_many_arguments)]
+fn pack(
+    records: &RecordFile,
+    layout: &AttributeLayout,
+    count: u32,
+    opts: &BuildOptions,
+    node_dict: Option<&[u8]>,
+    channel_dicts: &[Option<Vec<u8>>],
+    stats: &mut SceneStats,
+    sink: &mut dyn TreeletSink,
+) -> Result<(), BuildError> {
+    stats.channel_bytes = vec![0; layout.channels().len()];
+    sink.start(layout)?;
+    let pb = bar(opts.progress, "pack", u64::from(count));
+    const CHUNK: u32 = 256;
+    for start in (0..count).step_by(CHUNK as usize) {
+        let end = (start + CHUNK).min(count);
+        type Packed = (TreeletId, Vec<u8>, Vec<Vec<u8>>, u64);
+        let packed: Vec<Result<Packed, BuildError>> = (start..end)
+            .into_par_iter()
+            .map_init(
+                || {
+                    let n = BlockCompressor::new(opts.zstd_level, node_dict);
+                    let c: Result<Vec<_>, _> = channel_dicts
+                        .iter()
+                        .map(|d| BlockCompressor::new(opts.zstd_level, d.as_deref()))
+                        .collect();
+                    n.and_then(|n| c.map(|c| (n, c)))
+                },
+                |comp, id| {
+                    let (nc, cc) = comp.as_mut().map_err(|e| BuildError::Proto(e.clone()))?;
+                    let (t, attrs) = records.read(id, 31)?;
+                    let raw = codec::encode_treelet(&t);
+                    let blocks = channel_blocks(layout, &attrs, records.bpv, t.used().len());
+                    let raw_bytes = (raw.len() + blocks.iter().map(Vec::len).sum::<usize>()) as u64;
+                    let nodes = nc.compress(&raw)?;
+                    let chans = blocks
+                        .iter()
+                        .zip(cc.iter_mut())
+                        .map(|(b, c)| c.compress(b))
+                        .collect::<Result<Vec<_>, _>>()?;
+                    Ok((TreeletId(id), nodes, chans, raw_bytes))
+                },
+            )
+            .collect();
+        for p in packed {
+            let (id, nodes, chans, raw) = p?;
+            stats.raw_bytes += raw;
+            stats.node_bytes += nodes.len() as u64;
+            for (s, c) in stats.channel_bytes.iter_mut().zip(&chans) {
+                *s += c.len() as u64;
+            }
+            sink.put(id, nodes, chans)?;
+        }
+        pb.set_position(u64::from(end));
+    }
+    pb.finish_and_clear();
+    Ok(())
+}
+
+/// Peak resident set size of this process (Linux `VmHWM`), 0 where unknown.
+pub fn peak_rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|kb| kb.parse::<u64>().ok())
+        })
+        .map_or(0, |kb| kb * 1024)
+}

@@ -1,0 +1,264 @@
+//! Filling one treelet breadth-first (DESIGN §3 step 2), shared by every input kind.
+//!
+//! The input kinds differ only in *which primitives touch which child voxel*; that is the
+//! [`TreeletBuilder`] trait. The fill itself — a queue of pending nodes, dropping empty children,
+//! looking for a queued split that still fits when fewer than 8 records are free, stopping at the
+//! target depth — is [`fill_treelet`].
+
+use std::collections::VecDeque;
+
+use arbor_proto::{Cell, Node, Treelet, TreeletHeader, TreeletId};
+
+/// Classifies primitives against voxels. Implemented per input kind.
+pub trait TreeletBuilder: Sync {
+    /// Number of primitives; ids are `0..count`.
+    fn primitive_count(&self) -> u32;
+    /// Bit `i` set when primitive `prim`, known to touch `cell`, touches child `i` of `cell`.
+    fn child_mask(&self, prim: u32, cell: Cell) -> u8;
+}
+
+/// Computes leaf attributes from the primitives touching a leaf voxel. Implemented per input kind.
+pub trait AttributeGenerator: Sync {
+    /// Bytes per voxel over all channels of the layout, channels concatenated in layout order.
+    fn bytes_per_voxel(&self) -> usize;
+    /// Writes the attributes of a final leaf voxel.
+    fn leaf(&self, cell: Cell, prims: &[u32], out: &mut [u8]);
+}
+
+/// Exact number of nodes strictly below `cell` down to `max_depth`, or `None` once it exceeds
+/// `limit` (the dry run stops there, so its cost is bounded by `limit` node splits).
+fn subtree_size(
+    builder: &dyn TreeletBuilder,
+    cell: Cell,
+    prims: &[u32],
+    max_depth: u8,
+    limit: u64,
+) -> Option<u64> {
+    let mut count = 0u64;
+    let mut stack: Vec<(Cell, Vec<u32>)> = Vec::new();
+    let first = partition(builder, cell, prims);
+    for (i, list) in first.into_iter().enumerate() {
+        if !list.is_empty() {
+            stack.push((cell.child(i as u8), list));
+        }
+    }
+    while let Some((c, list)) = stack.pop() {
+        count += 1;
+        if count > limit {
+            return None;
+        }
+        if c.depth >= max_depth {
+            continue;
+        }
+        for (i, l) in partition(builder, c, &list).into_iter().enumerate() {
+            if !l.is_empty() {
+                stack.push((c.child(i as u8), l));
+            }
+        }
+    }
+    Some(count)
+}
+
+/// A job: fill the treelet whose root voxel is `root` with the primitives touching it.
+#[derive(Debug)]
+pub struct TreeletJob {
+    pub id: TreeletId,
+    pub parent_id: TreeletId,
+    pub parent_leaf_index: u16,
+    pub parent_leaf_parent_index: u16,
+    pub child_index_in_parent: u8,
+    pub root: Cell,
+    pub prims: Vec<u32>,
+}
+
+/// A refinable leaf left for a child treelet; `first_child` is patched once its id is known.
+#[derive(Debug)]
+pub struct PendingLeaf {
+    pub local_index: u16,
+    pub parent_local_index: u16,
+    pub child_index: u8,
+    pub cell: Cell,
+    pub prims: Vec<u32>,
+}
+
+/// A filled treelet: nodes, leaf attributes (inner and refinable leaves still zero) and the
+/// refinable leaves that need child treelets.
+#[derive(Debug)]
+pub struct FilledTreelet {
+    pub treelet: Treelet,
+    /// `capacity × bytes_per_voxel`, node `k` at `k × bytes_per_voxel`.
+    pub attributes: Vec<u8>,
+    pub pending: Vec<PendingLeaf>,
+    /// Final leaves at the target depth.
+    pub leaf_voxels: u64,
+}
+
+struct Pending {
+    /// Space for this node's whole subtree is reserved in the treelet.
+    included: bool,
+    local: u32,
+    parent: u32,
+    child_index: u8,
+    cell: Cell,
+    prims: Vec<u32>,
+}
+
+/// Partitions `prims` of `cell` into its 8 children.
+fn partition(b: &dyn TreeletBuilder, cell: Cell, prims: &[u32]) -> [Vec<u32>; 8] {
+    let mut out: [Vec<u32>; 8] = Default::default();
+    for &p in prims {
+        let mut m = b.child_mask(p, cell);
+        while m != 0 {
+            let i = m.trailing_zeros() as usize;
+            out[i].push(p);
+            m &= m - 1;
+        }
+    }
+    out
+}
+
+/// Fills one treelet of `capacity` records from `job`, never deeper than `max_depth`.
+pub fn fill_treelet(
+    builder: &dyn TreeletBuilder,
+    attributes: &dyn AttributeGenerator,
+    job: TreeletJob,
+    capacity: u32,
+    max_depth: u8,
+) -> FilledTreelet {
+    let bpv = attributes.bytes_per_voxel();
+    let mut nodes = vec![Node::default(); capacity as usize];
+    let mut attrs = vec![0u8; capacity as usize * bpv];
+    let mut pending_leaves = Vec::new();
+    let mut leaf_voxels = 0u64;
+    let mut used = 1u32;
+    let mut reserved = 0u32;
+    let mut queue = VecDeque::new();
+    queue.push_back(Pending {
+        included: false,
+        local: 0,
+        parent: u32::MAX,
+        child_index: 0,
+        cell: job.root,
+        prims: job.prims,
+    });
+
+    // Marks node `p.local` as a leaf in its parent's leaf_mask (the root has no parent; its
+    // leafness is its zero valid_mask).
+    let mark_leaf = |nodes: &mut [Node], p: &Pending| {
+        if p.parent != u32::MAX {
+            nodes[p.parent as usize].leaf_mask |= 1 << p.child_index;
+        }
+    };
+
+    while let Some(p) = queue.pop_front() {
+        let final_leaf = |nodes: &mut Vec<Node>, attrs: &mut Vec<u8>, p: &Pending| {
+            nodes[p.local as usize] = Node::leaf(Node::NONE);
+            mark_leaf(nodes, p);
+            let k = p.local as usize * bpv;
+            attributes.leaf(p.cell, &p.prims, &mut attrs[k..k + bpv]);
+        };
+        if p.cell.depth >= max_depth {
+            final_leaf(&mut nodes, &mut attrs, &p);
+            leaf_voxels += 1;
+            continue;
+        }
+        let free = capacity - used;
+        // Packing (measured in ARCHITECTURE.md): a node whose whole subtree fits the unreserved
+        // space is kept entirely in this treelet and its space reserved, so small subtrees do not
+        // each become a nearly empty treelet of their own. A node whose subtree is smaller than a
+        // treelet but does not fit here is cut whole rather than split into small pieces.
+        let mut included = p.included;
+        let mut cut = false;
+        if !included && p.prims.len() <= 64 * capacity as usize {
+            match subtree_size(builder, p.cell, &p.prims, max_depth, u64::from(capacity)) {
+                Some(s) if s <= u64::from(free.saturating_sub(reserved)) => {
+                    included = true;
+                    reserved += s as u32;
+                }
+                Some(_) if p.local != 0 => cut = true,
+                _ => {}
+            }
+        }
+        let room = if cut {
+            0
+        } else if included {
+            free
+        } else {
+            free.saturating_sub(reserved)
+        };
+        // A split needs at least one free record; without any the node is a refinable leaf.
+        let children = if room > 0 {
+            Some(partition(builder, p.cell, &p.prims))
+        } else {
+            None
+        };
+        let count = children
+            .as_ref()
+            .map_or(u32::MAX, |c| c.iter().filter(|l| !l.is_empty()).count() as u32);
+        if count == 0 {
+            // Rounding left no child touched: the voxel is final at this depth.
+            final_leaf(&mut nodes, &mut attrs, &p);
+            continue;
+        }
+        if count > room {
+            // Does not fit: a refinable leaf, refined by a child treelet.
+            nodes[p.local as usize] = Node::leaf(Node::NONE);
+            mark_leaf(&mut nodes, &p);
+            pending_leaves.push(PendingLeaf {
+                local_index: p.local as u16,
+                parent_local_index: if p.parent == u32::MAX { 0 } else { p.parent as u16 },
+                child_index: p.child_index,
+                cell: p.cell,
+                prims: p.prims,
+            });
+            continue;
+        }
+        if included {
+            reserved = reserved.saturating_sub(count);
+        }
+        let children = children.expect("partitioned above");
+        let mut valid = 0u8;
+        let first = used;
+        for (i, list) in children.into_iter().enumerate() {
+            if list.is_empty() {
+                continue;
+            }
+            valid |= 1 << i;
+            queue.push_back(Pending {
+                included,
+                local: used,
+                parent: p.local,
+                child_index: i as u8,
+                cell: p.cell.child(i as u8),
+                prims: list,
+            });
+            used += 1;
+        }
+        nodes[p.local as usize] = Node {
+            first_child: first - p.local,
+            valid_mask: valid,
+            leaf_mask: 0,
+            spare: 0,
+        };
+    }
+
+    let treelet = Treelet {
+        header: TreeletHeader {
+            id: job.id,
+            parent_id: job.parent_id,
+            parent_leaf_index: job.parent_leaf_index,
+            parent_leaf_parent_index: job.parent_leaf_parent_index,
+            child_index_in_parent: job.child_index_in_parent,
+            root_depth: job.root.depth,
+            root_cell: [job.root.x, job.root.y, job.root.z],
+            used_nodes: used as u16,
+        },
+        nodes,
+    };
+    FilledTreelet {
+        treelet,
+        attributes: attrs,
+        pending: pending_leaves,
+        leaf_voxels,
+    }
+}

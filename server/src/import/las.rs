@@ -1,0 +1,469 @@
+//! LAS and LAZ point clouds (LAS 1.0–1.4, COPC files too) through the `las` crate.
+//!
+//! Positions are the crate's scaled-and-offset `f64` coordinates. Colour is collected as the
+//! file's 16-bit RGB in a first pass while tracking the largest channel value; many writers store
+//! 8-bit values in the 16-bit fields, so if no channel exceeds 255 the values are used as they
+//! are, otherwise they are true 16-bit and shifted down by 8.
+//!
+//! Before handing the file to the crate, the header's offsets and counts are checked against the
+//! file length, so truncated files give a precise error instead of an I/O error deep inside the
+//! decoder (and a bogus EVLR length never becomes a huge allocation).
+
+use std::fs::File;
+use std::io::{BufReader, Read, Seek, SeekFrom};
+use std::panic::{AssertUnwindSafe, catch_unwind};
+use std::path::Path;
+
+use ::las::raw;
+
+use super::{ImportError, names, push, show_bytes, writer};
+use crate::source::{PointSource, Source};
+
+/// Most points decoded per batch.
+const BATCH: u64 = 1 << 16;
+/// Most bytes of decoded records held per batch (records can be up to 64 KiB long).
+const BATCH_BYTES: u64 = 8 << 20;
+/// Size of an EVLR header (reserved, user id, record id, length, description).
+const EVLR_HEADER: u64 = 60;
+
+fn las_err(file: &str, context: impl Into<String>, error: ::las::Error) -> ImportError {
+    ImportError::Las {
+        file: file.to_owned(),
+        context: context.into(),
+        error,
+    }
+}
+
+fn is_eof(e: &::las::Error) -> bool {
+    match e {
+        ::las::Error::Io(io) => io.kind() == std::io::ErrorKind::UnexpectedEof,
+        // The `laz` crate's error type is not re-exported by `las`; its Debug form names the
+        // wrapped I/O error kind.
+        ::las::Error::LasZipError(inner) => {
+            let debug = format!("{inner:?}");
+            debug.starts_with("IoError(") && debug.contains("UnexpectedEof")
+        }
+        _ => false,
+    }
+}
+
+/// Reads `N` bytes at `offset`, or `None` past the end of the file.
+fn read_at<const N: usize>(f: &mut File, offset: u64) -> std::io::Result<Option<[u8; N]>> {
+    let mut b = [0u8; N];
+    f.seek(SeekFrom::Start(offset))?;
+    match f.read_exact(&mut b) {
+        Ok(()) => Ok(Some(b)),
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => Ok(None),
+        Err(e) => Err(e),
+    }
+}
+
+/// Checks the header against the file length; returns the raw header.
+fn precheck(file: &str, f: &mut File, file_len: u64) -> Result<raw::Header, ImportError> {
+    let io = |e| ImportError::io(file, "reading the LAS header", e);
+    let magic = read_at::<4>(f, 0).map_err(io)?;
+    if magic != Some(*b"LASF") {
+        let mut head = [0u8; 4];
+        f.seek(SeekFrom::Start(0)).map_err(io)?;
+        let n = f.read(&mut head).map_err(io)?;
+        return Err(ImportError::BadMagic {
+            file: file.to_owned(),
+            format: "LAS",
+            expected: "LASF".to_owned(),
+            found: show_bytes(&head[..n]),
+        });
+    }
+    f.seek(SeekFrom::Start(0)).map_err(io)?;
+    let header = match raw::Header::read_from(BufReader::new(&mut *f)) {
+        Ok(h) => h,
+        Err(e) if is_eof(&e) => {
+            // Header size field at byte 94, when present.
+            let expected = match read_at::<2>(f, 94).map_err(io)? {
+                Some(b) => u64::from(u16::from_le_bytes(b)),
+                None => 227,
+            };
+            return Err(ImportError::Truncated {
+                file: file.to_owned(),
+                what: "LAS header".to_owned(),
+                expected,
+                got: file_len,
+                unit: "bytes",
+            });
+        }
+        Err(e) => return Err(las_err(file, "reading the LAS header", e)),
+    };
+    let offset = u64::from(header.offset_to_point_data);
+    if offset > file_len {
+        return Err(ImportError::Truncated {
+            file: file.to_owned(),
+            what: format!("LAS header and VLRs (point data should start at byte {offset})"),
+            expected: offset,
+            got: file_len,
+            unit: "bytes",
+        });
+    }
+    if let Some(evlr) = header.evlr
+        && evlr.number_of_evlrs > 0
+    {
+        let start = evlr.start_of_first_evlr;
+        let len = match read_at::<8>(f, start.saturating_add(20)).map_err(io)? {
+            Some(b) if start.saturating_add(EVLR_HEADER) <= file_len => u64::from_le_bytes(b),
+            _ => {
+                return Err(ImportError::Truncated {
+                    file: file.to_owned(),
+                    what: format!("LAS extended VLRs (the first starts at byte {start})"),
+                    expected: start.saturating_add(EVLR_HEADER),
+                    got: file_len,
+                    unit: "bytes",
+                });
+            }
+        };
+        let end = start.saturating_add(EVLR_HEADER).saturating_add(len);
+        if end > file_len {
+            return Err(ImportError::Truncated {
+                file: file.to_owned(),
+                what: format!("LAS extended VLR at byte {start} ({len} bytes of data)"),
+                expected: end,
+                got: file_len,
+                unit: "bytes",
+            });
+        }
+    }
+    if header.point_data_record_format & 0x80 != 0 {
+        check_chunk_table(file, f, file_len, offset)?;
+    }
+    Ok(header)
+}
+
+/// Checks the LAZ chunk table the way the `laz` crate will find it: the offset is the first 8
+/// bytes of the point data, or, when the writer could not fill it in, the last 8 bytes of the
+/// file. A table past the end of the file means the file was cut short; a table claiming more
+/// chunks than the file has bytes is corrupt (and would make the decoder allocate it).
+fn check_chunk_table(
+    file: &str,
+    f: &mut File,
+    file_len: u64,
+    offset: u64,
+) -> Result<(), ImportError> {
+    let io = |e| ImportError::io(file, "reading the LAZ chunk table offset", e);
+    let Some(b) = read_at::<8>(f, offset).map_err(io)? else {
+        return Err(ImportError::Truncated {
+            file: file.to_owned(),
+            what: format!("LAZ data (no chunk table offset at byte {offset})"),
+            expected: offset + 8,
+            got: file_len,
+            unit: "bytes",
+        });
+    };
+    let mut table = i64::from_le_bytes(b);
+    if table <= offset as i64 && file_len >= 8 {
+        if let Some(b) = read_at::<8>(f, file_len - 8).map_err(io)? {
+            table = i64::from_le_bytes(b);
+        }
+        if table <= offset as i64 {
+            // No chunk table at all; the decoder manages without one (or says so).
+            return Ok(());
+        }
+    }
+    let table = table as u64;
+    match read_at::<8>(f, table).map_err(io)? {
+        None => Err(ImportError::Truncated {
+            file: file.to_owned(),
+            what: format!("LAZ data (the chunk table should be at byte {table})"),
+            expected: table.saturating_add(8),
+            got: file_len,
+            unit: "bytes",
+        }),
+        Some(b) => {
+            let chunks = u64::from(u32::from_le_bytes([b[4], b[5], b[6], b[7]]));
+            if chunks > file_len {
+                return Err(ImportError::Corrupt {
+                    file: file.to_owned(),
+                    detail: format!(
+                        "the LAZ chunk table at byte {table} claims {chunks} chunks in a {file_len}-byte file"
+                    ),
+                });
+            }
+            Ok(())
+        }
+    }
+}
+
+pub(super) fn import(path: &Path, file: &str, scratch: &Path) -> Result<Source, ImportError> {
+    let mut f = File::open(path).map_err(|e| ImportError::io(file, "opening the file", e))?;
+    let file_len = f
+        .metadata()
+        .map_err(|e| ImportError::io(file, "reading file metadata", e))?
+        .len();
+    let raw_header = precheck(file, &mut f, file_len)?;
+    f.seek(SeekFrom::Start(0))
+        .map_err(|e| ImportError::io(file, "seeking to the start", e))?;
+
+    let mut reader = ::las::Reader::new(BufReader::with_capacity(1 << 16, f)).map_err(|e| {
+        let context = if is_eof(&e) {
+            "reading the LAS VLRs or the LAZ chunk table (the file ends too early: truncated?)"
+        } else {
+            "reading the LAS header"
+        };
+        las_err(file, context, e)
+    })?;
+    let header = reader.header().clone();
+    let format = *header.point_format();
+    let n = header.number_of_points();
+    tracing::debug!(
+        file,
+        version = %header.version(),
+        format = %format,
+        compressed = format.is_compressed,
+        points = n,
+        "LAS header"
+    );
+    if n == 0 {
+        return Err(ImportError::NoPrimitives {
+            file: file.to_owned(),
+            detail: "the LAS header declares 0 points".to_owned(),
+        });
+    }
+    let offset = u64::from(raw_header.offset_to_point_data);
+    let record_len = u64::from(raw_header.point_data_record_length).max(1);
+    if !format.is_compressed {
+        let available = file_len.saturating_sub(offset);
+        if n.saturating_mul(record_len) > available {
+            return Err(ImportError::Truncated {
+                file: file.to_owned(),
+                what: format!("LAS point data ({record_len}-byte records from byte {offset})"),
+                expected: n,
+                got: available / record_len,
+                unit: "points",
+            });
+        }
+    }
+
+    let mut positions = writer::<[f64; 3]>(file, scratch, names::POSITIONS)?;
+    let rgb16_name = "src_rgb16";
+    let mut rgb16 = if format.has_color {
+        Some(writer::<[u16; 3]>(file, scratch, rgb16_name)?)
+    } else {
+        None
+    };
+    let mut max_channel = 0u16;
+    let mut pd = ::las::PointDataBuilder::new().for_header(&header).build();
+    let batch = (BATCH_BYTES / u64::from(format.len()).max(1)).clamp(1, BATCH);
+    let mut done = 0u64;
+    let kind = if format.is_compressed { "LAZ" } else { "LAS" };
+    while done < n {
+        let want = batch.min(n - done);
+        let got = catch_unwind(AssertUnwindSafe(|| reader.fill_points(want, &mut pd)));
+        let got = match got {
+            Ok(Ok(k)) => k,
+            Ok(Err(e)) if is_eof(&e) => {
+                return Err(ImportError::Truncated {
+                    file: file.to_owned(),
+                    what: format!(
+                        "{kind} point data (the data ends within points {done}..{})",
+                        done + want
+                    ),
+                    expected: n,
+                    got: done,
+                    unit: "points",
+                });
+            }
+            Ok(Err(e)) => {
+                return Err(las_err(
+                    file,
+                    format!("decoding points {done}..{}", done + want),
+                    e,
+                ));
+            }
+            Err(_) => {
+                return Err(ImportError::Corrupt {
+                    file: file.to_owned(),
+                    detail: format!(
+                        "the {kind} decoder failed on points {done}..{} (corrupt or truncated compressed data)",
+                        done + want
+                    ),
+                });
+            }
+        };
+        if got == 0 {
+            return Err(ImportError::Truncated {
+                file: file.to_owned(),
+                what: format!("{kind} point data"),
+                expected: n,
+                got: done,
+                unit: "points",
+            });
+        }
+        for (i, ((x, y), z)) in pd.x().zip(pd.y()).zip(pd.z()).enumerate() {
+            if let Some(value) = [x, y, z].into_iter().find(|c| !c.is_finite()) {
+                return Err(ImportError::NonFinite {
+                    file: file.to_owned(),
+                    line: None,
+                    record: format!(
+                        "point {} (check the header scale and offset)",
+                        done + i as u64
+                    ),
+                    value,
+                });
+            }
+            push(file, &mut positions, [x, y, z])?;
+        }
+        if let (Some(w), Some(rgb)) = (&mut rgb16, pd.rgb()) {
+            for (r, g, b) in rgb {
+                max_channel = max_channel.max(r).max(g).max(b);
+                push(file, w, [r, g, b])?;
+            }
+        }
+        done += got;
+    }
+
+    let col = |e| ImportError::column(file, e);
+    let positions = positions.finish().map_err(col)?;
+    let colors = match rgb16 {
+        None => None,
+        Some(w) => {
+            let rgb16 = w.finish().map_err(col)?;
+            let shift = if is_8bit(max_channel) { 0 } else { 8 };
+            tracing::debug!(
+                file,
+                max_channel,
+                "LAS colour is {}",
+                if shift == 0 {
+                    "8-bit values in 16-bit fields"
+                } else {
+                    "true 16-bit"
+                }
+            );
+            let mut out = writer::<[u8; 3]>(file, scratch, names::COLORS)?;
+            for c in rgb16.iter() {
+                push(file, &mut out, c.map(|v| (v >> shift) as u8))?;
+            }
+            drop(rgb16);
+            let _ = std::fs::remove_file(scratch.join(format!("{rgb16_name}.col")));
+            Some(out.finish().map_err(col)?)
+        }
+    };
+    Ok(Source::Points(PointSource {
+        positions,
+        colors,
+        normals: None,
+    }))
+}
+
+/// Whether a LAS colour column with this largest channel value holds 8-bit values.
+pub(crate) fn is_8bit(max_channel: u16) -> bool {
+    max_channel <= 255
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::import::{ImportOptions, import_file};
+
+    fn data(name: &str) -> std::path::PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../shared/data/points")
+            .join(name)
+    }
+
+    fn points(path: &Path) -> (tempfile::TempDir, PointSource) {
+        let dir = tempfile::tempdir().unwrap();
+        match import_file(path, &ImportOptions::default(), dir.path()) {
+            Ok(Source::Points(p)) => (dir, p),
+            other => panic!("expected points, got {other:?}"),
+        }
+    }
+
+    fn max_channel(path: &Path) -> u16 {
+        let mut r = ::las::Reader::from_path(path).unwrap();
+        let pd = r.read_all().unwrap();
+        pd.rgb()
+            .unwrap()
+            .map(|(r, g, b)| r.max(g).max(b))
+            .max()
+            .unwrap()
+    }
+
+    #[test]
+    fn real_autzen_8bit_in_16bit_fields() {
+        let path = data("autzen_trim.las");
+        assert!(is_8bit(max_channel(&path)));
+        let (_d, p) = points(&path);
+        assert_eq!(p.positions.len(), 110_000);
+        let c = p.colors.expect("autzen has colour");
+        assert_eq!(c.len(), 110_000);
+        // 8-bit values used as they are: the colour column spans a wide range, not just 0..1.
+        assert!(c.iter().flatten().any(|&v| v > 100));
+        // Large projected coordinates survive as f64.
+        assert!(p.positions[0][0].abs() > 100_000.0, "{:?}", p.positions[0]);
+        let mut r = ::las::Reader::from_path(&path).unwrap();
+        let first = r.read_points(1).unwrap();
+        let x0 = first.x().next().unwrap();
+        assert_eq!(p.positions[0][0], x0);
+    }
+
+    #[test]
+    fn real_lion_true_16bit() {
+        let path = data("lion_takanawa.copc.laz");
+        let max = max_channel(&path);
+        assert!(!is_8bit(max), "max channel {max}");
+        let (_d, p) = points(&path);
+        assert_eq!(p.positions.len(), 341_989);
+        let c = p.colors.expect("lion has colour");
+        assert_eq!(c.len(), 341_989);
+        assert!(c.iter().flatten().any(|&v| v > 128));
+    }
+
+    /// A LAS 1.4 file with its EVLR count set to zero.
+    fn without_evlrs(bytes: &[u8]) -> Vec<u8> {
+        let mut b = bytes.to_vec();
+        b[243..247].copy_from_slice(&0u32.to_le_bytes());
+        b
+    }
+
+    #[test]
+    fn errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let bytes = std::fs::read(data("autzen_trim.las")).unwrap();
+        let run = |name: &str, b: &[u8]| {
+            let p = dir.path().join(name);
+            std::fs::write(&p, b).unwrap();
+            match import_file(&p, &ImportOptions::default(), dir.path()) {
+                Err(e) => e.to_string(),
+                Ok(s) => panic!("expected error, got {}", s.describe()),
+            }
+        };
+        let e = run("a.las", &bytes[..300]);
+        assert!(e.contains("truncated LAS header and VLRs"), "{e}");
+        let e = run("b.las", &bytes[..100]);
+        assert!(e.contains("truncated LAS header"), "{e}");
+        let e = run("c.las", &bytes[..bytes.len() - 1000]);
+        assert!(
+            e.contains("truncated LAS point data") && e.contains("expected 110000 points"),
+            "{e}"
+        );
+        let mut bad = bytes.clone();
+        bad[..4].copy_from_slice(b"LASX");
+        let e = run("d.las", &bad[..1000]);
+        assert!(e.contains("bad magic"), "{e}");
+
+        let lion = std::fs::read(data("lion_takanawa.copc.laz")).unwrap();
+        let cut = &lion[..lion.len() * 6 / 10];
+        let e = run("e.laz", cut);
+        assert!(e.contains("truncated LAS extended VLRs"), "{e}");
+        let e = run("f.laz", &without_evlrs(cut));
+        assert!(
+            e.contains("truncated LAZ data (the chunk table should be at byte"),
+            "{e}"
+        );
+        // Cut mid-chunk but with a readable chunk table: the decoder itself runs out of data.
+        let mut streamed = without_evlrs(cut);
+        streamed[941..949].copy_from_slice(&(cut.len() as i64).to_le_bytes());
+        streamed.extend_from_slice(&lion[2_735_575..2_735_635]);
+        let e = run("g.laz", &streamed);
+        assert!(
+            e.contains("truncated LAZ point data") && e.contains("expected 341989 points"),
+            "{e}"
+        );
+    }
+}

@@ -1,0 +1,347 @@
+//! The treelet pool: every scene's treelets in one sled database, already compressed.
+//!
+//! Layout: a `catalogue` tree maps a scene name to its *generation* (a fresh id per import) and
+//! encoded [`SceneDescription`]. A generation `g` owns the trees `g{g}:nodes` and
+//! `g{g}:ch:{channel}`, keyed by big-endian treelet id, so a channel is read without touching the
+//! others. An import writes its generation's trees, flushes them, and only then inserts the
+//! catalogue entry (one atomic sled insert, then flushed): a scene is visible only when complete.
+//! Trees of a generation that no catalogue entry names are leftovers of a killed import; they are
+//! dropped when the pool is opened. sled holds an exclusive lock on the directory, so no live
+//! import can be mistaken for a leftover.
+
+use std::path::Path;
+
+use arbor_proto::scene::validate_scene_name;
+use arbor_proto::{AttributeLayout, Channel, ProtoError, SceneDescription, TreeletId};
+
+use crate::build::{BuildError, TreeletSink};
+
+/// Errors of the pool.
+#[derive(Debug, thiserror::Error)]
+pub enum PoolError {
+    /// sled failed (I/O, corruption, or the directory is locked by another process).
+    #[error("pool database: {0}")]
+    Sled(#[from] sled::Error),
+    /// A stored value does not decode.
+    #[error("pool entry {what}: {source}")]
+    Corrupt {
+        what: String,
+        #[source]
+        source: ProtoError,
+    },
+    /// No scene of that name.
+    #[error("no scene named {0:?} in the pool")]
+    NoSuchScene(String),
+    /// A scene of that name exists and replacing was not asked for.
+    #[error("a scene named {0:?} already exists (remove it first or pass --replace)")]
+    SceneExists(String),
+    /// The scene name is not acceptable.
+    #[error(transparent)]
+    BadName(ProtoError),
+}
+
+const CATALOGUE: &str = "catalogue";
+
+fn nodes_tree(generation: u64) -> String {
+    format!("g{generation}:nodes")
+}
+
+fn channel_tree(generation: u64, c: Channel) -> String {
+    format!("g{generation}:ch:{}", c.name())
+}
+
+fn generation_of(tree_name: &[u8]) -> Option<u64> {
+    let s = std::str::from_utf8(tree_name).ok()?;
+    let rest = s.strip_prefix('g')?;
+    rest.split(':').next()?.parse().ok()
+}
+
+/// An open pool.
+#[derive(Debug, Clone)]
+pub struct Pool {
+    db: sled::Db,
+    catalogue: sled::Tree,
+}
+
+/// A stored scene: its description and the trees holding its blocks.
+#[derive(Debug, Clone)]
+pub struct StoredScene {
+    pub description: SceneDescription,
+    pub generation: u64,
+    nodes: sled::Tree,
+    channels: Vec<(Channel, sled::Tree)>,
+}
+
+impl StoredScene {
+    /// The compressed node block of a treelet.
+    pub fn nodes(&self, id: TreeletId) -> Result<Option<sled::IVec>, PoolError> {
+        Ok(self.nodes.get(id.0.to_be_bytes())?)
+    }
+
+    /// The compressed attribute block of one channel of a treelet; `None` if the scene lacks the
+    /// channel or the treelet.
+    pub fn channel(&self, channel: Channel, id: TreeletId) -> Result<Option<sled::IVec>, PoolError> {
+        match self.channels.iter().find(|(c, _)| *c == channel) {
+            Some((_, t)) => Ok(t.get(id.0.to_be_bytes())?),
+            None => Ok(None),
+        }
+    }
+
+    /// Number of node blocks stored.
+    pub fn stored_treelets(&self) -> usize {
+        self.nodes.len()
+    }
+
+    /// Ids of the stored node blocks, ascending.
+    pub fn stored_ids(&self) -> impl Iterator<Item = Result<TreeletId, PoolError>> + '_ {
+        self.nodes.iter().keys().map(|k| {
+            let k = k?;
+            let id = <[u8; 4]>::try_from(k.as_ref()).map(u32::from_be_bytes).map_err(|_| {
+                PoolError::Corrupt {
+                    what: format!("key {:?}", k.as_ref()),
+                    source: ProtoError::OutOfRange {
+                        what: "treelet key",
+                        detail: "not 4 bytes".into(),
+                    },
+                }
+            })?;
+            Ok(TreeletId(id))
+        })
+    }
+}
+
+impl Pool {
+    /// Opens (creating if needed) the pool in `dir` and drops leftovers of killed imports.
+    pub fn open(dir: &Path) -> Result<Pool, PoolError> {
+        let db = sled::Config::new().path(dir).open()?;
+        let catalogue = db.open_tree(CATALOGUE)?;
+        let pool = Pool { db, catalogue };
+        let cleaned = pool.drop_leftovers()?;
+        if cleaned > 0 {
+            tracing::warn!(trees = cleaned, "dropped leftovers of an interrupted import");
+        }
+        Ok(pool)
+    }
+
+    fn live_generations(&self) -> Result<Vec<u64>, PoolError> {
+        let mut g = Vec::new();
+        for entry in self.catalogue.iter() {
+            let (k, v) = entry?;
+            g.push(decode_entry(&k, &v)?.0);
+        }
+        Ok(g)
+    }
+
+    fn drop_leftovers(&self) -> Result<usize, PoolError> {
+        let live = self.live_generations()?;
+        let mut dropped = 0;
+        for name in self.db.tree_names() {
+            if let Some(g) = generation_of(&name) {
+                if !live.contains(&g) {
+                    self.db.drop_tree(&name)?;
+                    dropped += 1;
+                }
+            }
+        }
+        if dropped > 0 {
+            self.db.flush()?;
+        }
+        Ok(dropped)
+    }
+
+    /// All scenes, by name.
+    pub fn scenes(&self) -> Result<Vec<SceneDescription>, PoolError> {
+        let mut out = Vec::new();
+        for entry in self.catalogue.iter() {
+            let (k, v) = entry?;
+            out.push(decode_entry(&k, &v)?.1);
+        }
+        Ok(out)
+    }
+
+    /// One scene.
+    pub fn scene(&self, name: &str) -> Result<StoredScene, PoolError> {
+        let v = self
+            .catalogue
+            .get(name.as_bytes())?
+            .ok_or_else(|| PoolError::NoSuchScene(name.to_owned()))?;
+        let (generation, description) = decode_entry(name.as_bytes(), &v)?;
+        let nodes = self.db.open_tree(nodes_tree(generation))?;
+        let channels = description
+            .layout
+            .channels()
+            .iter()
+            .map(|&c| Ok((c, self.db.open_tree(channel_tree(generation, c))?)))
+            .collect::<Result<_, PoolError>>()?;
+        Ok(StoredScene {
+            description,
+            generation,
+            nodes,
+            channels,
+        })
+    }
+
+    /// Whether a scene of that name exists.
+    pub fn contains(&self, name: &str) -> Result<bool, PoolError> {
+        Ok(self.catalogue.contains_key(name.as_bytes())?)
+    }
+
+    /// Starts an import. Fails early if the name is taken and `replace` is false.
+    pub fn begin_import(&self, name: &str, replace: bool) -> Result<PoolImport, PoolError> {
+        validate_scene_name(name).map_err(PoolError::BadName)?;
+        if !replace && self.catalogue.contains_key(name.as_bytes())? {
+            return Err(PoolError::SceneExists(name.to_owned()));
+        }
+        let generation = self.db.generate_id()?;
+        let nodes = self.db.open_tree(nodes_tree(generation))?;
+        Ok(PoolImport {
+            pool: self.clone(),
+            name: name.to_owned(),
+            replace,
+            generation,
+            nodes,
+            channels: Vec::new(),
+            committed: false,
+        })
+    }
+
+    /// Removes a scene: the catalogue entry first (atomic), then its trees.
+    pub fn remove(&self, name: &str) -> Result<(), PoolError> {
+        let v = self
+            .catalogue
+            .remove(name.as_bytes())?
+            .ok_or_else(|| PoolError::NoSuchScene(name.to_owned()))?;
+        self.catalogue.flush()?;
+        let (generation, _) = decode_entry(name.as_bytes(), &v)?;
+        self.drop_generation(generation)?;
+        Ok(())
+    }
+
+    fn drop_generation(&self, generation: u64) -> Result<(), PoolError> {
+        for name in self.db.tree_names() {
+            if generation_of(&name) == Some(generation) {
+                self.db.drop_tree(&name)?;
+            }
+        }
+        self.db.flush()?;
+        Ok(())
+    }
+
+    /// Bytes the database occupies on disk.
+    pub fn disk_bytes(&self) -> Result<u64, PoolError> {
+        Ok(self.db.size_on_disk()?)
+    }
+
+    /// Flushes everything to disk.
+    pub fn flush(&self) -> Result<(), PoolError> {
+        self.db.flush()?;
+        Ok(())
+    }
+}
+
+fn decode_entry(key: &[u8], v: &[u8]) -> Result<(u64, SceneDescription), PoolError> {
+    let what = || format!("catalogue {:?}", String::from_utf8_lossy(key));
+    if v.len() < 8 {
+        return Err(PoolError::Corrupt {
+            what: what(),
+            source: ProtoError::Truncated {
+                what: "catalogue entry",
+                need: 8,
+                have: v.len(),
+            },
+        });
+    }
+    let generation = u64::from_be_bytes(v[..8].try_into().expect("8 bytes"));
+    let d = SceneDescription::decode(&v[8..]).map_err(|source| PoolError::Corrupt {
+        what: what(),
+        source,
+    })?;
+    Ok((generation, d))
+}
+
+/// An import in progress. Receives treelets as a [`TreeletSink`]; [`PoolImport::commit`] makes
+/// the scene visible. Dropped without commit, it removes what it wrote.
+#[derive(Debug)]
+pub struct PoolImport {
+    pool: Pool,
+    name: String,
+    replace: bool,
+    generation: u64,
+    nodes: sled::Tree,
+    channels: Vec<sled::Tree>,
+    committed: bool,
+}
+
+impl PoolImport {
+    /// Opens the channel trees for a layout (call before the first `put`).
+    pub fn set_channels(&mut self, channels: &[Channel]) -> Result<(), PoolError> {
+        self.channels = channels
+            .iter()
+            .map(|&c| self.pool.db.open_tree(channel_tree(self.generation, c)))
+            .collect::<Result<_, _>>()?;
+        Ok(())
+    }
+
+    /// Flushes the data, then publishes the catalogue entry atomically.
+    pub fn commit(mut self, description: &SceneDescription) -> Result<(), PoolError> {
+        let encoded = description.encode().map_err(|source| PoolError::Corrupt {
+            what: format!("new scene {:?}", self.name),
+            source,
+        })?;
+        self.pool.db.flush()?;
+        let mut entry = self.generation.to_be_bytes().to_vec();
+        entry.extend_from_slice(&encoded);
+        let previous = if self.replace {
+            self.pool.catalogue.insert(self.name.as_bytes(), entry)?
+        } else {
+            match self.pool.catalogue.compare_and_swap(
+                self.name.as_bytes(),
+                None as Option<&[u8]>,
+                Some(entry),
+            )? {
+                Ok(()) => None,
+                Err(_) => return Err(PoolError::SceneExists(self.name.clone())),
+            }
+        };
+        self.pool.catalogue.flush()?;
+        self.committed = true;
+        if let Some(old) = previous {
+            let (g, _) = decode_entry(self.name.as_bytes(), &old)?;
+            self.pool.drop_generation(g)?;
+        }
+        Ok(())
+    }
+}
+
+impl Drop for PoolImport {
+    fn drop(&mut self) {
+        if !self.committed {
+            if let Err(e) = self.pool.drop_generation(self.generation) {
+                tracing::warn!("could not drop an abandoned import: {e}");
+            }
+        }
+    }
+}
+
+impl TreeletSink for PoolImport {
+    fn start(&mut self, layout: &AttributeLayout) -> Result<(), BuildError> {
+        self.set_channels(layout.channels()).map_err(|e| BuildError::Sink(e.to_string()))
+    }
+
+    fn put(&mut self, id: TreeletId, nodes: Vec<u8>, channels: Vec<Vec<u8>>) -> Result<(), BuildError> {
+        let key = id.0.to_be_bytes();
+        let err = |e: sled::Error| BuildError::Sink(e.to_string());
+        self.nodes.insert(key, nodes).map_err(err)?;
+        if channels.len() != self.channels.len() {
+            return Err(BuildError::Sink(format!(
+                "{} channel blocks for {} channel trees",
+                channels.len(),
+                self.channels.len()
+            )));
+        }
+        for (t, c) in self.channels.iter().zip(channels) {
+            t.insert(key, c).map_err(err)?;
+        }
+        Ok(())
+    }
+}
