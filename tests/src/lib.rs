@@ -1,3 +1,6 @@
-//! Whole-system tests of Arbor; shared test support lives here.
+//! Whole-system tests of Arbor against the real scans in `../shared/data`; shared support lives
+//! here: the bad-input corpus ([`corpus`]) and scene building plus brute-force references
+//! ([`support`]).
 
 pub mod corpus;
+pub mod support;

@@ -1,0 +1,211 @@
+//! Shared support: building real and synthetic scenes into real sled pools, reading their leaf
+//! voxels back, and brute-force reference answers computed without the octree.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+use arbor_proto::{Cell, Node, TreeletId, codec};
+use arbor_server::build::geometry::{Frame, boxes_overlap_open, triangle_touches_box};
+use arbor_server::build::volume::Field;
+use arbor_server::build::{BuildOptions, build_scene};
+use arbor_server::import::{ImportOptions, import_file};
+use arbor_server::pool::{Pool, StoredScene};
+use arbor_server::source::{Column, MeshSource, PointSource, Source};
+use arbor_server::verify::verify_scene;
+use tempfile::TempDir;
+
+/// A real scan under `../shared/data`. Panics loudly if the shared data is missing: these tests
+/// must not pass vacuously.
+pub fn data(rel: &str) -> PathBuf {
+    let p = crate::corpus::data_dir().join(rel);
+    assert!(
+        p.exists(),
+        "real scan {} is missing: the tests need ../shared/data beside the project",
+        p.display()
+    );
+    p
+}
+
+/// The six real scans, with short names.
+pub const SCANS: [(&str, &str); 6] = [
+    ("bunny", "meshes/stanford-bunny.obj"),
+    ("igea", "meshes/igea.ply"),
+    ("lucy", "meshes/lucy-100k.ply"),
+    ("autzen", "points/autzen_trim.las"),
+    ("lion", "points/lion_takanawa.copc.laz"),
+    ("engine", "volumes/engine_256x256x128_u8.nrrd"),
+];
+
+/// A scene built into a real pool on disk, with its source kept for reference checks.
+#[derive(Debug)]
+pub struct Built {
+    pub pool: Pool,
+    pub scene: StoredScene,
+    pub source: Source,
+    pub pool_dir: TempDir,
+    pub scratch: TempDir,
+}
+
+/// Imports a real scan and builds it into a fresh pool.
+pub fn build_file(rel: &str, name: &str, opts: &BuildOptions) -> Built {
+    let scratch = tempfile::tempdir().unwrap();
+    let source = import_file(&data(rel), &ImportOptions::default(), scratch.path())
+        .unwrap_or_else(|e| panic!("importing {rel}: {e}"));
+    build_source(source, scratch, name, opts)
+}
+
+/// Builds a source into a fresh pool.
+pub fn build_source(source: Source, scratch: TempDir, name: &str, opts: &BuildOptions) -> Built {
+    let pool_dir = tempfile::tempdir().unwrap();
+    let pool = Pool::open(pool_dir.path()).unwrap();
+    let mut txn = pool.begin_import(name, false).unwrap();
+    let desc = build_scene(&source, name, name, opts, scratch.path(), &mut txn)
+        .unwrap_or_else(|e| panic!("building {name}: {e}"));
+    txn.commit(&desc).unwrap();
+    let scene = pool.scene(name).unwrap();
+    Built {
+        pool,
+        scene,
+        source,
+        pool_dir,
+        scratch,
+    }
+}
+
+/// Asserts that `verify` finds no problem.
+pub fn assert_verifies(scene: &StoredScene) {
+    let r = verify_scene(scene).unwrap();
+    assert!(
+        r.is_ok(),
+        "{}: {} problems, first: {:?}",
+        scene.description.name,
+        r.problem_count,
+        &r.problems[..r.problems.len().min(5)]
+    );
+    assert_eq!(r.treelets, u64::from(scene.description.treelet_count));
+}
+
+/// Every final leaf voxel (first_child NONE) of a stored scene, at any depth.
+pub fn final_leaves(scene: &StoredScene) -> Vec<Cell> {
+    let d = &scene.description;
+    let mut out = Vec::new();
+    for id in 0..d.treelet_count {
+        let bytes = scene.nodes(TreeletId(id)).unwrap().expect("treelet stored");
+        let t = codec::decode_compressed_treelet(&bytes, d.max_depth, d.node_dictionary.as_deref()).unwrap();
+        let places = t.validate(d.max_depth).unwrap();
+        for (i, p) in places.iter().enumerate() {
+            if p.is_leaf && t.nodes[i].first_child == Node::NONE {
+                out.push(p.cell);
+            }
+        }
+    }
+    out
+}
+
+/// Final leaves at the target depth as integer triples, asserting there are no others and no
+/// duplicates.
+pub fn leaf_cells(scene: &StoredScene) -> BTreeSet<[u32; 3]> {
+    let d = scene.description.max_depth;
+    let leaves = final_leaves(scene);
+    let mut set = BTreeSet::new();
+    for c in &leaves {
+        assert_eq!(c.depth, d, "final leaf above the target depth: {c:?}");
+        assert!(set.insert([c.x, c.y, c.z]), "voxel {c:?} stored twice");
+    }
+    set
+}
+
+/// Brute force, without the octree: every target-depth cell that some primitive touches, found
+/// per primitive by scanning the cells of its bounding box with the same predicate the builder
+/// uses. Also returns how many primitives touch no cell at all (must be 0: coverage).
+pub fn reference_cells(source: &Source, scene: &StoredScene) -> (BTreeSet<[u32; 3]>, u64) {
+    let d = &scene.description;
+    let frame = Frame::new(d.origin, d.edge, d.max_depth);
+    let side = 1u64 << d.max_depth;
+    let mut cells = BTreeSet::new();
+    let mut uncovered = 0u64;
+    // Cell index range touching the closed interval [lo, hi] in leaf units.
+    let range = |lo: f64, hi: f64| {
+        let a = (lo.floor() - 1.0).max(0.0) as u64;
+        let b = (hi.floor() as i64).clamp(0, side as i64 - 1) as u64;
+        a..=b
+    };
+    match source {
+        Source::Mesh(m) => {
+            for t in m.triangles.iter() {
+                let tri = t.map(|i| frame.to_leaf(m.positions[i as usize]));
+                let lo = [0, 1, 2].map(|a| tri[0][a].min(tri[1][a]).min(tri[2][a]));
+                let hi = [0, 1, 2].map(|a| tri[0][a].max(tri[1][a]).max(tri[2][a]));
+                let mut any = false;
+                for x in range(lo[0], hi[0]) {
+                    for y in range(lo[1], hi[1]) {
+                        for z in range(lo[2], hi[2]) {
+                            let min = [x as f64, y as f64, z as f64];
+                            let max = [min[0] + 1.0, min[1] + 1.0, min[2] + 1.0];
+                            if triangle_touches_box(&tri, min, max) {
+                                cells.insert([x as u32, y as u32, z as u32]);
+                                any = true;
+                            }
+                        }
+                    }
+                }
+                uncovered += u64::from(!any);
+            }
+        }
+        Source::Points(p) => {
+            for &q in p.positions.iter() {
+                cells.insert(frame.leaf_cell(q));
+            }
+        }
+        Source::Volume(v) => {
+            let field = Field { vol: v };
+            let iso = d.build.iso.expect("volume scenes record their iso threshold");
+            let [dx, dy, dz] = v.dims;
+            for k in 0..dz - 1 {
+                for j in 0..dy - 1 {
+                    for i in 0..dx - 1 {
+                        if !field.crosses(i, j, k, iso) {
+                            continue;
+                        }
+                        let (min, max) = field.cell_box([i, j, k]);
+                        let (lo, hi) = (frame.to_leaf(min), frame.to_leaf(max));
+                        let mut any = false;
+                        for x in range(lo[0], hi[0]) {
+                            for y in range(lo[1], hi[1]) {
+                                for z in range(lo[2], hi[2]) {
+                                    let cmin = [x as f64, y as f64, z as f64];
+                                    let cmax = [cmin[0] + 1.0, cmin[1] + 1.0, cmin[2] + 1.0];
+                                    if boxes_overlap_open(lo, hi, cmin, cmax) {
+                                        cells.insert([x as u32, y as u32, z as u32]);
+                                        any = true;
+                                    }
+                                }
+                            }
+                        }
+                        uncovered += u64::from(!any);
+                    }
+                }
+            }
+        }
+    }
+    (cells, uncovered)
+}
+
+/// A synthetic point source.
+pub fn points(scratch: &Path, pts: &[[f64; 3]]) -> Source {
+    Source::Points(PointSource {
+        positions: Column::from_slice(scratch, "pos", pts).unwrap(),
+        colors: None,
+        normals: None,
+    })
+}
+
+/// A synthetic triangle mesh.
+pub fn mesh(scratch: &Path, verts: &[[f64; 3]], tris: &[[u32; 3]]) -> Source {
+    Source::Mesh(MeshSource {
+        positions: Column::from_slice(scratch, "pos", verts).unwrap(),
+        normals: None,
+        colors: None,
+        triangles: Column::from_slice(scratch, "tri", tris).unwrap(),
+    })
+}
