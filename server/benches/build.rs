@@ -96,6 +96,9 @@ struct Row {
     channel_bytes: Vec<u64>,
     channel_names: Vec<&'static str>,
     raw_bytes: u64,
+    /// Bytes of the trained dictionaries (stored once in the scene description, not in the
+    /// treelet blocks, so not part of `compressed`).
+    dictionary_bytes: u64,
     build: Duration,
     /// Full import into sled (4 KiB + dictionary only): seconds, bytes on disk.
     pool: Option<(Duration, u64)>,
@@ -298,6 +301,12 @@ fn bench_file(
             channel_bytes: desc.stats.channel_bytes.clone(),
             channel_names: desc.layout.channels().iter().map(|c| c.name()).collect(),
             raw_bytes: desc.stats.raw_bytes,
+            dictionary_bytes: (desc.node_dictionary.as_ref().map_or(0, Vec::len)
+                + desc
+                    .channel_dictionaries
+                    .iter()
+                    .map(|d| d.as_ref().map_or(0, Vec::len))
+                    .sum::<usize>()) as u64,
             build,
             pool,
         };
@@ -434,13 +443,72 @@ fn main() -> BenchResult<()> {
         )?;
     }
 
-    writeln!(out, "\nComparison per file")?;
+    let mut files: Vec<&str> = rows.iter().map(|r| r.file).collect();
+    files.dedup();
+    let get = |f: &str, tb: u32, d: bool| {
+        rows.iter()
+            .find(|r| r.file == f && r.treelet_bytes == tb && r.dictionary == d)
+    };
+    let ratio = |a: u64, b: u64| a as f64 / b as f64;
+
     writeln!(
         out,
-        "{:<7} | {:>14} {:>14} | {:>9} {:>9} {:>8} | {:>8} {:>8} {:>8} | {:>8} {:>8}",
+        "\nDictionary vs no dictionary (ratios dict/nodict, < 1 = dictionaries help)"
+    )?;
+    writeln!(
+        out,
+        "{:<7} | {:>9} {:>9} {:>9} {:>9} {:>11} {:>9} | {:>9} {:>9} {:>9} {:>11}",
         "file",
-        "dict/nodict 1K",
-        "dict/nodict 4K",
+        "B/vox 1K",
+        "nodes 1K",
+        "chans 1K",
+        "dicts B",
+        "+dicts 1K",
+        "time 1K",
+        "B/vox 4K",
+        "nodes 4K",
+        "chans 4K",
+        "+dicts 4K",
+    )?;
+    writeln!(out, "{}", "-".repeat(117))?;
+    for &f in &files {
+        let (Some(a0), Some(a1), Some(b0), Some(b1)) = (
+            get(f, 1024, false),
+            get(f, 1024, true),
+            get(f, 4096, false),
+            get(f, 4096, true),
+        ) else {
+            continue;
+        };
+        let chans = |r: &Row| r.channel_bytes.iter().sum::<u64>();
+        writeln!(
+            out,
+            "{:<7} | {:>9.3} {:>9.3} {:>9.3} {:>9} {:>11.3} {:>9.2} | {:>9.3} {:>9.3} {:>9.3} {:>11.3}",
+            f,
+            a1.bytes_per_voxel() / a0.bytes_per_voxel(),
+            ratio(a1.node_bytes, a0.node_bytes),
+            ratio(chans(a1), chans(a0)),
+            a1.dictionary_bytes,
+            ratio(a1.compressed() + a1.dictionary_bytes, a0.compressed()),
+            a1.secs() / a0.secs(),
+            b1.bytes_per_voxel() / b0.bytes_per_voxel(),
+            ratio(b1.node_bytes, b0.node_bytes),
+            ratio(chans(b1), chans(b0)),
+            ratio(b1.compressed() + b1.dictionary_bytes, b0.compressed()),
+        )?;
+    }
+    writeln!(
+        out,
+        "(nodes/chans: compressed node / channel bytes; dicts B: bytes of the trained dictionaries at 1K, \
+         stored once in the scene description and not counted in B/vox; +dicts: total ratio counting them; \
+         time: build seconds)"
+    )?;
+
+    writeln!(out, "\n1 KiB vs 4 KiB treelets (dictionary variants)")?;
+    writeln!(
+        out,
+        "{:<7} | {:>9} {:>9} {:>8} | {:>8} {:>8} {:>8} | {:>8} {:>8} | {:>8} {:>8}",
+        "file",
         "tl 1K",
         "tl 4K",
         "1K/4K",
@@ -448,30 +516,19 @@ fn main() -> BenchResult<()> {
         "B/vox 4K",
         "1K/4K",
         "fill 1K",
-        "fill 4K"
+        "fill 4K",
+        "s 1K",
+        "s 4K"
     )?;
-    writeln!(out, "{}", "-".repeat(121))?;
-    let mut files: Vec<&str> = rows.iter().map(|r| r.file).collect();
-    files.dedup();
-    for f in files {
-        let get = |tb: u32, d: bool| {
-            rows.iter()
-                .find(|r| r.file == f && r.treelet_bytes == tb && r.dictionary == d)
-        };
-        let (Some(a0), Some(a1), Some(b0), Some(b1)) = (
-            get(1024, false),
-            get(1024, true),
-            get(4096, false),
-            get(4096, true),
-        ) else {
+    writeln!(out, "{}", "-".repeat(104))?;
+    for &f in &files {
+        let (Some(a1), Some(b1)) = (get(f, 1024, true), get(f, 4096, true)) else {
             continue;
         };
         writeln!(
             out,
-            "{:<7} | {:>14.3} {:>14.3} | {:>9} {:>9} {:>8.2} | {:>8.3} {:>8.3} {:>8.3} | {:>7.1}% {:>7.1}%",
+            "{:<7} | {:>9} {:>9} {:>8.2} | {:>8.3} {:>8.3} {:>8.3} | {:>7.1}% {:>7.1}% | {:>8.3} {:>8.3}",
             f,
-            a1.bytes_per_voxel() / a0.bytes_per_voxel(),
-            b1.bytes_per_voxel() / b0.bytes_per_voxel(),
             a1.treelets,
             b1.treelets,
             f64::from(a1.treelets) / f64::from(b1.treelets),
@@ -479,25 +536,24 @@ fn main() -> BenchResult<()> {
             b1.bytes_per_voxel(),
             a1.bytes_per_voxel() / b1.bytes_per_voxel(),
             100.0 * a1.fill(),
-            100.0 * b1.fill()
+            100.0 * b1.fill(),
+            a1.secs(),
+            b1.secs()
         )?;
     }
-    writeln!(
-        out,
-        "(dict/nodict: bytes per voxel with dictionaries over without, < 1 = dictionaries help; \
-         1K/4K columns compare the +dict variants)"
-    )?;
     if !anomalies.is_empty() {
         writeln!(out, "\nAnomalies:")?;
         for a in &anomalies {
             writeln!(out, "  {a}")?;
         }
     }
-    print!("{out}");
+    // Rows without a pool figure end in padding.
+    let out: Vec<&str> = out.lines().map(str::trim_end).collect();
+    println!("{}", out.join("\n"));
 
     let mut csv = String::from(
         "file,treelet_bytes,dictionary,dictionary_used,primitives,depth,treelet_nodes,treelets,voxels,\
-         leaf_voxels,fill,node_bytes,channel_bytes,compressed_bytes,raw_bytes,bytes_per_voxel,build_seconds,\
+         leaf_voxels,fill,node_bytes,channel_bytes,compressed_bytes,raw_bytes,dictionary_bytes,bytes_per_voxel,build_seconds,\
          primitives_per_second,voxels_per_second,pool_seconds,pool_disk_bytes,channels\n",
     );
     for r in &rows {
@@ -507,7 +563,7 @@ fn main() -> BenchResult<()> {
         };
         writeln!(
             csv,
-            "{},{},{},{},{},{},{},{},{},{},{:.6},{},{},{},{},{:.6},{:.6},{:.1},{:.1},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{:.6},{},{},{},{},{},{:.6},{:.6},{:.1},{:.1},{},{},{}",
             r.file,
             r.treelet_bytes,
             r.dictionary,
@@ -523,6 +579,7 @@ fn main() -> BenchResult<()> {
             r.channel_bytes.iter().sum::<u64>(),
             r.compressed(),
             r.raw_bytes,
+            r.dictionary_bytes,
             r.bytes_per_voxel(),
             r.secs(),
             r.primitives as f64 / r.secs(),

@@ -5,7 +5,7 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
 use arbor_proto::{Cell, Node, TreeletId, codec};
-use arbor_server::build::geometry::{Frame, boxes_overlap_open, triangle_touches_box};
+use arbor_server::build::geometry::{Frame, boxes_overlap_open, triangle_touches_cell};
 use arbor_server::build::volume::Field;
 use arbor_server::build::{BuildOptions, build_scene};
 use arbor_server::import::{ImportOptions, import_file};
@@ -124,10 +124,11 @@ pub fn reference_cells(source: &Source, scene: &StoredScene) -> (BTreeSet<[u32; 
     let side = 1u64 << d.max_depth;
     let mut cells = BTreeSet::new();
     let mut uncovered = 0u64;
-    // Cell index range touching the closed interval [lo, hi] in leaf units.
+    // Cell index range that can touch the closed interval [lo, hi] in leaf units (one cell of
+    // slack either side for boundaries and the touch tolerance).
     let range = |lo: f64, hi: f64| {
         let a = (lo.floor() - 1.0).max(0.0) as u64;
-        let b = (hi.floor() as i64).clamp(0, side as i64 - 1) as u64;
+        let b = (hi.floor() as i64 + 1).clamp(0, side as i64 - 1) as u64;
         a..=b
     };
     match source {
@@ -140,9 +141,13 @@ pub fn reference_cells(source: &Source, scene: &StoredScene) -> (BTreeSet<[u32; 
                 for x in range(lo[0], hi[0]) {
                     for y in range(lo[1], hi[1]) {
                         for z in range(lo[2], hi[2]) {
-                            let min = [x as f64, y as f64, z as f64];
-                            let max = [min[0] + 1.0, min[1] + 1.0, min[2] + 1.0];
-                            if triangle_touches_box(&tri, min, max) {
+                            let cell = Cell {
+                                depth: d.max_depth,
+                                x: x as u32,
+                                y: y as u32,
+                                z: z as u32,
+                            };
+                            if triangle_touches_cell(&tri, cell, d.max_depth) {
                                 cells.insert([x as u32, y as u32, z as u32]);
                                 any = true;
                             }
@@ -208,4 +213,20 @@ pub fn mesh(scratch: &Path, verts: &[[f64; 3]], tris: &[[u32; 3]]) -> Source {
         colors: None,
         triangles: Column::from_slice(scratch, "tri", tris).unwrap(),
     })
+}
+
+/// Asserts two cell sets are equal, reporting only their differences.
+pub fn assert_same_cells(what: &str, leaves: &BTreeSet<[u32; 3]>, reference: &BTreeSet<[u32; 3]>) {
+    let extra: Vec<_> = leaves.difference(reference).collect();
+    let missing: Vec<_> = reference.difference(leaves).collect();
+    assert!(
+        extra.is_empty() && missing.is_empty(),
+        "{what}: {} leaves touch no primitive (e.g. {:?}); {} touched cells are not leaves (e.g. {:?}); {} leaves, {} reference cells",
+        extra.len(),
+        &extra[..extra.len().min(5)],
+        missing.len(),
+        &missing[..missing.len().min(5)],
+        leaves.len(),
+        reference.len()
+    );
 }

@@ -2,7 +2,7 @@
 //! brute-force classification of every primitive against every target-depth cell.
 
 use arbor_server::build::{BuildOptions, DepthChoice};
-use arbor_tests::support::{SCANS, assert_verifies, build_file, leaf_cells, reference_cells};
+use arbor_tests::support::{SCANS, assert_same_cells, assert_verifies, build_file, leaf_cells, reference_cells};
 
 fn opts(treelet_bytes: u32, depth: DepthChoice) -> BuildOptions {
     BuildOptions {
@@ -63,14 +63,7 @@ fn geometry_matches_brute_force(index: usize, depth: u8, treelet_bytes: u32) {
     let leaves = leaf_cells(&b.scene);
     let (reference, uncovered) = reference_cells(&b.source, &b.scene);
     assert_eq!(uncovered, 0, "{name}: primitives not covered by any voxel");
-    let extra: Vec<_> = leaves.difference(&reference).take(5).collect();
-    let missing: Vec<_> = reference.difference(&leaves).take(5).collect();
-    assert!(
-        extra.is_empty() && missing.is_empty(),
-        "{name} at depth {depth}: {} leaves touch no primitive (e.g. {extra:?}), {} touched cells missing (e.g. {missing:?})",
-        leaves.difference(&reference).count(),
-        reference.difference(&leaves).count()
-    );
+    assert_same_cells(&format!("{name} at depth {depth}"), &leaves, &reference);
     assert!(leaves.len() > 100, "{name}: suspiciously few leaves ({})", leaves.len());
 }
 

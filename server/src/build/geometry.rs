@@ -4,6 +4,24 @@
 
 use arbor_proto::Cell;
 
+/// Tolerance, in leaf voxels, by which boxes are grown for the triangle test. The separating axis
+/// test rounds differently for a box and for its children (different centres), so a triangle
+/// grazing a parent could miss all eight children by an ulp; growing every box by far more than
+/// the rounding (≤ 2^31 · 2^-52 ≈ 5e-7 leaf units at the deepest level) and far less than a voxel
+/// keeps parent and children consistent.
+pub const TOUCH_TOLERANCE: f64 = 1e-6;
+
+/// Whether a triangle (leaf units) touches the cell's box grown by [`TOUCH_TOLERANCE`]: the
+/// predicate the builder uses and the brute-force tests re-check.
+pub fn triangle_touches_cell(tri: &[[f64; 3]; 3], cell: arbor_proto::Cell, depth: u8) -> bool {
+    let (min, max) = cell.box_at(depth);
+    triangle_touches_box(
+        tri,
+        min.map(|v| v - TOUCH_TOLERANCE),
+        max.map(|v| v + TOUCH_TOLERANCE),
+    )
+}
+
 /// Maps source coordinates into leaf units.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Frame {

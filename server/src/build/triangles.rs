@@ -3,7 +3,7 @@
 
 use arbor_proto::{AttributeLayout, Cell, Channel};
 
-use super::geometry::{Frame, closest_barycentric, cross, triangle_touches_box};
+use super::geometry::{Frame, TOUCH_TOLERANCE, closest_barycentric, cross, triangle_touches_cell};
 use super::treelet_builder::{AttributeGenerator, TreeletBuilder};
 use crate::source::MeshSource;
 
@@ -22,13 +22,6 @@ impl TriangleBuilder<'_> {
     }
 }
 
-/// Whether triangle `tri` (leaf units) touches `cell` — the predicate the builder uses and the
-/// brute-force tests re-check.
-pub fn triangle_touches_cell(tri: &[[f64; 3]; 3], cell: Cell, depth: u8) -> bool {
-    let (min, max) = cell.box_at(depth);
-    triangle_touches_box(tri, min, max)
-}
-
 impl TreeletBuilder for TriangleBuilder<'_> {
     fn primitive_count(&self) -> u32 {
         self.mesh.triangles.len() as u32
@@ -43,12 +36,13 @@ impl TreeletBuilder for TriangleBuilder<'_> {
             (min[1] + max[1]) * 0.5,
             (min[2] + max[2]) * 0.5,
         ];
-        // Candidate halves per axis from the triangle's bounds (closed: touching mid counts).
+        // Candidate halves per axis from the triangle's bounds, with the same tolerance as the
+        // exact test so the prefilter never drops a child that test would accept.
         let mut halves = [[false; 2]; 3];
         for a in 0..3 {
             let lo = tri[0][a].min(tri[1][a]).min(tri[2][a]);
             let hi = tri[0][a].max(tri[1][a]).max(tri[2][a]);
-            halves[a] = [lo <= mid[a], hi >= mid[a]];
+            halves[a] = [lo <= mid[a] + TOUCH_TOLERANCE, hi >= mid[a] - TOUCH_TOLERANCE];
         }
         let mut mask = 0u8;
         for i in 0..8u8 {
