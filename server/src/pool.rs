@@ -227,6 +227,14 @@ impl Pool {
         Ok(())
     }
 
+    /// Generations that have trees on disk (live scenes, or an import in progress).
+    pub fn stored_generations(&self) -> Vec<u64> {
+        let mut g: Vec<u64> = self.db.tree_names().iter().filter_map(|n| generation_of(n)).collect();
+        g.sort_unstable();
+        g.dedup();
+        g
+    }
+
     /// Bytes the database occupies on disk.
     pub fn disk_bytes(&self) -> Result<u64, PoolError> {
         Ok(self.db.size_on_disk()?)
@@ -279,6 +287,14 @@ impl PoolImport {
             .iter()
             .map(|&c| self.pool.db.open_tree(channel_tree(self.generation, c)))
             .collect::<Result<_, _>>()?;
+        Ok(())
+    }
+
+    /// Ends the import as a crash would: what was written stays on disk, unpublished, for the
+    /// next [`Pool::open`] to drop. For recovery tests and tools; normal code drops or commits.
+    pub fn abandon_as_if_crashed(mut self) -> Result<(), PoolError> {
+        self.pool.db.flush()?;
+        self.committed = true;
         Ok(())
     }
 

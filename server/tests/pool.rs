@@ -1,0 +1,233 @@
+//! The sled pool: atomic imports, cleanup of leftovers, replace/remove, channel isolation, and
+//! `verify` catching every kind of damage done to a stored scene.
+
+use std::path::Path;
+
+use arbor_proto::{Channel, TreeletId, codec};
+use arbor_server::build::{BuildOptions, DepthChoice, build_scene};
+use arbor_server::import::{ImportOptions, import_file};
+use arbor_server::pool::{Pool, PoolError};
+use arbor_server::source::Source;
+use arbor_server::verify::verify_scene;
+
+fn bunny(scratch: &Path) -> Source {
+    let path = Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../shared/data/meshes/stanford-bunny.obj"
+    ));
+    assert!(path.exists(), "the real scans in ../shared/data are required");
+    import_file(path, &ImportOptions::default(), scratch).unwrap()
+}
+
+fn opts() -> BuildOptions {
+    BuildOptions {
+        depth: DepthChoice::Fixed(6),
+        treelet_bytes: 1024,
+        ..BuildOptions::default()
+    }
+}
+
+/// Opens a pool, waiting for sled's flusher thread of a just-dropped handle to let go of the lock.
+fn reopen(dir: &Path) -> Pool {
+    for _ in 0..100 {
+        match Pool::open(dir) {
+            Ok(p) => return p,
+            Err(_) => std::thread::sleep(std::time::Duration::from_millis(50)),
+        }
+    }
+    Pool::open(dir).unwrap()
+}
+
+fn import(pool: &Pool, source: &Source, scratch: &Path, name: &str, replace: bool) {
+    let mut txn = pool.begin_import(name, replace).unwrap();
+    let desc = build_scene(source, name, "bunny", &opts(), scratch, &mut txn).unwrap();
+    txn.commit(&desc).unwrap();
+}
+
+#[test]
+fn abandoned_and_crashed_imports_leave_nothing() {
+    let scratch = tempfile::tempdir().unwrap();
+    let source = bunny(scratch.path());
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let pool = Pool::open(dir.path()).unwrap();
+        import(&pool, &source, scratch.path(), "kept", false);
+        // Abandoned: built but dropped without commit.
+        let mut txn = pool.begin_import("abandoned", false).unwrap();
+        build_scene(&source, "abandoned", "bunny", &opts(), scratch.path(), &mut txn).unwrap();
+        drop(txn);
+        assert_eq!(pool.stored_generations().len(), 1);
+        // Crashed: built, flushed, never committed nor cleaned (as after SIGKILL).
+        let mut txn = pool.begin_import("crashed", false).unwrap();
+        build_scene(&source, "crashed", "bunny", &opts(), scratch.path(), &mut txn).unwrap();
+        txn.abandon_as_if_crashed().unwrap();
+        assert_eq!(pool.stored_generations().len(), 2);
+    }
+    let pool = reopen(dir.path());
+    let names: Vec<_> = pool.scenes().unwrap().into_iter().map(|d| d.name).collect();
+    assert_eq!(names, vec!["kept".to_string()]);
+    assert_eq!(
+        pool.stored_generations(),
+        vec![pool.scene("kept").unwrap().generation]
+    );
+    assert!(verify_scene(&pool.scene("kept").unwrap()).unwrap().is_ok());
+}
+
+#[test]
+fn names_replace_and_remove() {
+    let scratch = tempfile::tempdir().unwrap();
+    let source = bunny(scratch.path());
+    let dir = tempfile::tempdir().unwrap();
+    let pool = Pool::open(dir.path()).unwrap();
+    import(&pool, &source, scratch.path(), "a", false);
+    let first = pool.scene("a").unwrap().generation;
+    assert!(matches!(
+        pool.begin_import("a", false),
+        Err(PoolError::SceneExists(_))
+    ));
+    for bad in ["", "../x", ".hidden", "a b", &"x".repeat(200)] {
+        assert!(
+            matches!(pool.begin_import(bad, false), Err(PoolError::BadName(_))),
+            "{bad:?}"
+        );
+    }
+    import(&pool, &source, scratch.path(), "a", true);
+    let second = pool.scene("a").unwrap().generation;
+    assert_ne!(first, second);
+    assert_eq!(
+        pool.stored_generations(),
+        vec![second],
+        "replaced generation not dropped"
+    );
+    pool.remove("a").unwrap();
+    assert!(matches!(pool.scene("a"), Err(PoolError::NoSuchScene(_))));
+    assert!(matches!(pool.remove("a"), Err(PoolError::NoSuchScene(_))));
+    assert!(pool.stored_generations().is_empty());
+}
+
+#[test]
+fn channels_are_stored_apart() {
+    let scratch = tempfile::tempdir().unwrap();
+    let source = bunny(scratch.path());
+    let dir = tempfile::tempdir().unwrap();
+    let pool = Pool::open(dir.path()).unwrap();
+    import(&pool, &source, scratch.path(), "b", false);
+    let s = pool.scene("b").unwrap();
+    // The bunny has no colour: no colour channel is stored, normals are.
+    assert_eq!(s.description.layout.channels(), &[Channel::Normal]);
+    assert!(s.channel(Channel::Color, TreeletId::ROOT).unwrap().is_none());
+    let n = s.channel(Channel::Normal, TreeletId::ROOT).unwrap().unwrap();
+    let d = &s.description;
+    let root = s.nodes(TreeletId::ROOT).unwrap().unwrap();
+    let t = codec::decode_compressed_treelet(&root, 6, d.node_dictionary.as_deref()).unwrap();
+    let block = codec::decode_compressed_attributes(
+        &n,
+        Channel::Normal,
+        t.header.used_nodes,
+        d.channel_dictionary(Channel::Normal),
+    )
+    .unwrap();
+    assert_eq!(block.len(), usize::from(t.header.used_nodes) * 4);
+}
+
+/// Builds a scene, closes the pool, lets `damage` write into sled directly, reopens and verifies.
+fn damaged(damage: impl FnOnce(&sled::Db, u64, &arbor_proto::SceneDescription)) -> Vec<String> {
+    let scratch = tempfile::tempdir().unwrap();
+    let source = bunny(scratch.path());
+    let dir = tempfile::tempdir().unwrap();
+    let (generation, desc) = {
+        let pool = Pool::open(dir.path()).unwrap();
+        import(&pool, &source, scratch.path(), "d", false);
+        let s = pool.scene("d").unwrap();
+        assert!(verify_scene(&s).unwrap().is_ok());
+        (s.generation, s.description.clone())
+    };
+    {
+        let db = (0..100)
+            .find_map(|_| {
+                sled::open(dir.path())
+                    .map_err(|_| std::thread::sleep(std::time::Duration::from_millis(50)))
+                    .ok()
+            })
+            .expect("sled lock released");
+        damage(&db, generation, &desc);
+        db.flush().unwrap();
+    }
+    let pool = reopen(dir.path());
+    let r = verify_scene(&pool.scene("d").unwrap()).unwrap();
+    assert!(!r.is_ok(), "verify missed the damage");
+    r.problems
+}
+
+fn nodes_tree(db: &sled::Db, g: u64) -> sled::Tree {
+    db.open_tree(format!("g{g}:nodes")).unwrap()
+}
+
+#[test]
+fn verify_catches_garbage_blocks() {
+    let p = damaged(|db, g, _| {
+        nodes_tree(db, g)
+            .insert(3u32.to_be_bytes(), vec![0xAB; 40])
+            .unwrap();
+    });
+    assert!(p.iter().any(|p| p.starts_with("treelet 3:")), "{p:?}");
+}
+
+#[test]
+fn verify_catches_missing_subtreelets() {
+    let p = damaged(|db, g, d| {
+        nodes_tree(db, g)
+            .remove((d.treelet_count - 1).to_be_bytes())
+            .unwrap();
+    });
+    assert!(p.iter().any(|p| p.contains("does not exist")), "{p:?}");
+}
+
+#[test]
+fn verify_catches_swapped_treelets() {
+    let p = damaged(|db, g, _| {
+        let t = nodes_tree(db, g);
+        let a = t.get(5u32.to_be_bytes()).unwrap().unwrap();
+        let b = t.get(6u32.to_be_bytes()).unwrap().unwrap();
+        t.insert(5u32.to_be_bytes(), b).unwrap();
+        t.insert(6u32.to_be_bytes(), a).unwrap();
+    });
+    assert!(p.iter().any(|p| p.contains("says it is")), "{p:?}");
+}
+
+#[test]
+fn verify_catches_wrong_links_and_attributes() {
+    // Re-encode treelet 1 claiming another parent leaf, with a valid encoding and dictionary.
+    let p = damaged(|db, g, d| {
+        let t = nodes_tree(db, g);
+        let dict = d.node_dictionary.as_deref();
+        let stored = t.get(1u32.to_be_bytes()).unwrap().unwrap();
+        let mut tr = codec::decode_compressed_treelet(&stored, d.max_depth, dict).unwrap();
+        tr.header.parent_leaf_index ^= 1;
+        let packed = codec::compress(&codec::encode_treelet(&tr), 3, dict).unwrap();
+        t.insert(1u32.to_be_bytes(), packed).unwrap();
+    });
+    assert!(p.iter().any(|p| p.contains("header says parent")), "{p:?}");
+    // Flip an inner node's normal in the root treelet.
+    let p = damaged(|db, g, d| {
+        let c = db.open_tree(format!("g{g}:ch:normal")).unwrap();
+        let dict = d.channel_dictionary(Channel::Normal);
+        let nodes = nodes_tree(db, g).get(0u32.to_be_bytes()).unwrap().unwrap();
+        let tr =
+            codec::decode_compressed_treelet(&nodes, d.max_depth, d.node_dictionary.as_deref())
+                .unwrap();
+        let stored = c.get(0u32.to_be_bytes()).unwrap().unwrap();
+        let mut block = codec::decode_compressed_attributes(
+            &stored,
+            Channel::Normal,
+            tr.header.used_nodes,
+            dict,
+        )
+        .unwrap();
+        block[0] ^= 0x80;
+        block[1] ^= 0x80;
+        c.insert(0u32.to_be_bytes(), codec::compress(&block, 3, dict).unwrap())
+            .unwrap();
+    });
+    assert!(p.iter().any(|p| p.contains("is not the mean")), "{p:?}");
+}
