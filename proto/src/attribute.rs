@@ -113,12 +113,11 @@ impl Channel {
     pub fn within_one_step(self, a: &[u8], b: &[u8]) -> bool {
         match self {
             Channel::Color => (0..3).all(|c| a[c].abs_diff(b[c]) <= 1),
-            Channel::Normal | Channel::Density => a[..self.size()]
-                .chunks(2)
-                .zip(b.chunks(2))
-                .all(|(x, y)| {
+            Channel::Normal | Channel::Density => {
+                a[..self.size()].chunks(2).zip(b.chunks(2)).all(|(x, y)| {
                     u16::from_le_bytes([x[0], x[1]]).abs_diff(u16::from_le_bytes([y[0], y[1]])) <= 1
-                }),
+                })
+            }
         }
     }
 }
@@ -242,7 +241,10 @@ mod tests {
                 / (n.iter().map(|x| x * x).sum::<f32>().sqrt());
             assert!(dot > 0.99999, "{n:?} -> {d:?}");
         }
-        assert_eq!(oct_decode(oct_encode([0.0; 3]).0, oct_encode([0.0; 3]).1)[2], 1.0);
+        assert_eq!(
+            oct_decode(oct_encode([0.0; 3]).0, oct_encode([0.0; 3]).1)[2],
+            1.0
+        );
         let nan = oct_encode([f32::NAN, 0.0, 1.0]);
         assert!(oct_decode(nan.0, nan.1).iter().all(|x| x.is_finite()));
     }

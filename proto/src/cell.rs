@@ -6,7 +6,9 @@ use crate::limits::MAX_DEPTH;
 
 /// A voxel of the octree: depth and integer coordinates in `0..2^depth` per axis. Positions are
 /// kept as integers so that no float drift accumulates with depth (DESIGN §2, §9).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize,
+)]
 pub struct Cell {
     pub depth: u8,
     pub x: u32,

@@ -212,10 +212,12 @@ impl BlockCompressor {
     }
 
     pub fn compress(&mut self, raw: &[u8]) -> Result<Vec<u8>, ProtoError> {
-        self.inner.compress(raw).map_err(|e| ProtoError::Compression {
-            what: "compress",
-            detail: e.to_string(),
-        })
+        self.inner
+            .compress(raw)
+            .map_err(|e| ProtoError::Compression {
+                what: "compress",
+                detail: e.to_string(),
+            })
     }
 }
 
@@ -321,7 +323,15 @@ mod tests {
     fn treelet_round_trip() {
         let t = sample();
         let places = t.validate(7).unwrap();
-        assert_eq!(places[4].cell, Cell { depth: 7, x: 15, y: 125, z: 3 });
+        assert_eq!(
+            places[4].cell,
+            Cell {
+                depth: 7,
+                x: 15,
+                y: 125,
+                z: 3
+            }
+        );
         let raw = encode_treelet(&t);
         assert_eq!(raw.len(), HEADER_BYTES + 5 * 8);
         assert_eq!(decode_treelet(&raw, 7).unwrap(), t);
@@ -364,7 +374,10 @@ mod tests {
             .collect();
         let dict = zstd::dict::from_samples(&samples, 4096).unwrap();
         let packed = compress(&raw, 3, Some(&dict)).unwrap();
-        assert_eq!(decode_compressed_treelet(&packed, 7, Some(&dict)).unwrap(), sample());
+        assert_eq!(
+            decode_compressed_treelet(&packed, 7, Some(&dict)).unwrap(),
+            sample()
+        );
         assert!(decode_compressed_treelet(&packed, 7, None).is_err());
     }
 

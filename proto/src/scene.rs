@@ -97,7 +97,7 @@ impl SceneDescription {
             detail,
         };
         validate_scene_name(&self.name)?;
-        if !(self.edge.is_finite() && self.edge > 0.0) || !self.origin.iter().all(|v| v.is_finite())
+        if !(self.edge.is_finite() && self.edge > 0.0 && self.origin.iter().all(|v| v.is_finite()))
         {
             return Err(bad(format!(
                 "root cube origin {:?} edge {} not finite and positive",
@@ -148,13 +148,11 @@ impl SceneDescription {
                 limit: MAX_SCENE_DESCRIPTION_BYTES,
             });
         }
-        let (s, used): (Self, usize) =
-            bincode::serde::decode_from_slice(bytes, bincode_config()).map_err(|e| {
-                ProtoError::Serialization {
-                    what: "scene description",
-                    detail: e.to_string(),
-                }
-            })?;
+        let (s, used): (Self, usize) = bincode::serde::decode_from_slice(bytes, bincode_config())
+            .map_err(|e| ProtoError::Serialization {
+            what: "scene description",
+            detail: e.to_string(),
+        })?;
         if used != bytes.len() {
             return Err(ProtoError::Serialization {
                 what: "scene description",

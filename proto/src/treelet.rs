@@ -69,7 +69,7 @@ impl TreeletHeader {
 /// Node count `N` for a treelet size in bytes, checked against the limits.
 pub fn nodes_for_bytes(treelet_bytes: u32) -> Result<u32, ProtoError> {
     if !(MIN_TREELET_BYTES..=MAX_TREELET_BYTES).contains(&treelet_bytes)
-        || treelet_bytes % NODE_BYTES != 0
+        || !treelet_bytes.is_multiple_of(NODE_BYTES)
     {
         return Err(ProtoError::OutOfRange {
             what: "treelet size",
@@ -133,7 +133,10 @@ impl Treelet {
         }
         let root = self.header.root_cell();
         if !root.is_valid() || root.depth > max_depth || max_depth > MAX_DEPTH {
-            return Err(bad(0, format!("root cell {root:?} invalid for depth {max_depth}")));
+            return Err(bad(
+                0,
+                format!("root cell {root:?} invalid for depth {max_depth}"),
+            ));
         }
         let mut places = vec![None::<NodePlace>; used as usize];
         places[0] = Some(NodePlace {
@@ -169,7 +172,10 @@ impl Treelet {
                 return Err(bad(i, "leaf_mask not a subset of valid_mask".into()));
             }
             if place.cell.depth >= max_depth {
-                return Err(bad(i, format!("inner node at depth {} ≥ target", place.cell.depth)));
+                return Err(bad(
+                    i,
+                    format!("inner node at depth {} ≥ target", place.cell.depth),
+                ));
             }
             let start = u64::from(i) + u64::from(n.first_child);
             let count = n.child_count();
@@ -199,8 +205,14 @@ impl Treelet {
             next_free += count;
         }
         if next_free != used {
-            return Err(bad(next_free, format!("{} records used but only {next_free} reachable", used)));
+            return Err(bad(
+                next_free,
+                format!("{} records used but only {next_free} reachable", used),
+            ));
         }
-        Ok(places.into_iter().map(|p| p.expect("all places set")).collect())
+        Ok(places
+            .into_iter()
+            .map(|p| p.expect("all places set"))
+            .collect())
     }
 }

@@ -118,9 +118,14 @@ fn parse_depth(s: &str) -> Result<DepthChoice, String> {
     if s.eq_ignore_ascii_case("auto") {
         return Ok(DepthChoice::Auto);
     }
-    let d: u8 = s.parse().map_err(|_| format!("'{s}' is neither a depth nor 'auto'"))?;
+    let d: u8 = s
+        .parse()
+        .map_err(|_| format!("'{s}' is neither a depth nor 'auto'"))?;
     if d > arbor_proto::limits::MAX_DEPTH {
-        return Err(format!("depth {d} exceeds the maximum {}", arbor_proto::limits::MAX_DEPTH));
+        return Err(format!(
+            "depth {d} exceeds the maximum {}",
+            arbor_proto::limits::MAX_DEPTH
+        ));
     }
     Ok(DepthChoice::Fixed(d))
 }
@@ -132,14 +137,17 @@ fn parse_triple<T: std::str::FromStr>(s: &str) -> Result<[T; 3], String> {
     }
     let mut out = Vec::with_capacity(3);
     for p in parts {
-        out.push(p.parse::<T>().map_err(|_| format!("'{p}' is not a valid number"))?);
+        out.push(
+            p.parse::<T>()
+                .map_err(|_| format!("'{p}' is not a valid number"))?,
+        );
     }
     out.try_into().map_err(|_| "three values".to_string())
 }
 
 fn parse_dims(s: &str) -> Result<[u32; 3], String> {
     let d: [u32; 3] = parse_triple(s)?;
-    if d.iter().any(|&v| v == 0) {
+    if d.contains(&0) {
         return Err(format!("'{s}': dimensions must be positive"));
     }
     Ok(d)
@@ -197,10 +205,10 @@ fn run(cli: Cli) -> Result<ExitCode> {
             file,
         } => {
             arbor_proto::treelet::nodes_for_bytes(treelet_bytes)?;
-            if let Some(i) = iso {
-                if !i.is_finite() {
-                    bail!("--iso {i} is not a finite number");
-                }
+            if let Some(i) = iso
+                && !i.is_finite()
+            {
+                bail!("--iso {i} is not a finite number");
             }
             let pool = open(&db)?;
             if !replace && pool.contains(&scene)? {
@@ -208,7 +216,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
             }
             arbor_proto::scene::validate_scene_name(&scene)?;
             let scratch = match scratch {
-                Some(dir) => tempfile::Builder::new().prefix("arbor-import-").tempdir_in(dir)?,
+                Some(dir) => tempfile::Builder::new()
+                    .prefix("arbor-import-")
+                    .tempdir_in(dir)?,
                 None => tempfile::Builder::new().prefix("arbor-import-").tempdir()?,
             };
             let opts = ImportOptions {
@@ -237,8 +247,15 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 .file_name()
                 .map(|n| n.to_string_lossy().into_owned())
                 .unwrap_or_default();
-            let mut desc = build::build_scene(&source, &scene, &label, &build_opts, scratch.path(), &mut txn)
-                .with_context(|| format!("building scene {scene:?}"))?;
+            let mut desc = build::build_scene(
+                &source,
+                &scene,
+                &label,
+                &build_opts,
+                scratch.path(),
+                &mut txn,
+            )
+            .with_context(|| format!("building scene {scene:?}"))?;
             desc.stats.peak_rss_bytes = build::peak_rss_bytes();
             txn.commit(&desc)?;
             print_info(&desc, Some(pool.disk_bytes()?));
@@ -300,7 +317,12 @@ fn run(cli: Cli) -> Result<ExitCode> {
 }
 
 fn channel_names(d: &arbor_proto::SceneDescription) -> String {
-    d.layout.channels().iter().map(|c| c.name()).collect::<Vec<_>>().join(",")
+    d.layout
+        .channels()
+        .iter()
+        .map(|c| c.name())
+        .collect::<Vec<_>>()
+        .join(",")
 }
 
 fn print_info(d: &arbor_proto::SceneDescription, disk: Option<u64>) {
@@ -308,7 +330,10 @@ fn print_info(d: &arbor_proto::SceneDescription, disk: Option<u64>) {
     let pool_bytes = s.node_bytes + s.channel_bytes.iter().sum::<u64>();
     println!("scene            {}", d.name);
     println!("source           {}", d.source);
-    println!("kind             {:?}, {} primitives", d.source_kind, d.primitives);
+    println!(
+        "kind             {:?}, {} primitives",
+        d.source_kind, d.primitives
+    );
     println!(
         "depth            {} ({}), data resolution {:.6}",
         d.max_depth,
@@ -319,8 +344,14 @@ fn print_info(d: &arbor_proto::SceneDescription, disk: Option<u64>) {
         d.build.data_resolution
     );
     println!("root cube        origin {:?}, edge {}", d.origin, d.edge);
-    println!("treelets         {} of {} bytes ({} nodes)", d.treelet_count, d.build.treelet_bytes, d.treelet_nodes);
-    println!("voxels           {} ({} at the target depth)", s.voxels, s.leaf_voxels);
+    println!(
+        "treelets         {} of {} bytes ({} nodes)",
+        d.treelet_count, d.build.treelet_bytes, d.treelet_nodes
+    );
+    println!(
+        "voxels           {} ({} at the target depth)",
+        s.voxels, s.leaf_voxels
+    );
     println!("channels         {}", channel_names(d));
     if let Some(iso) = d.build.iso {
         println!("iso threshold    {iso}");
@@ -333,8 +364,16 @@ fn print_info(d: &arbor_proto::SceneDescription, disk: Option<u64>) {
         s.raw_bytes,
         pool_bytes as f64 / s.voxels.max(1) as f64
     );
-    println!("compression      zstd level {}, dictionaries {}", d.build.zstd_level, if d.build.dictionary { "yes" } else { "no" });
-    println!("build            {:.2} s, peak RSS {:.1} MiB", s.build_seconds, s.peak_rss_bytes as f64 / (1 << 20) as f64);
+    println!(
+        "compression      zstd level {}, dictionaries {}",
+        d.build.zstd_level,
+        if d.build.dictionary { "yes" } else { "no" }
+    );
+    println!(
+        "build            {:.2} s, peak RSS {:.1} MiB",
+        s.build_seconds,
+        s.peak_rss_bytes as f64 / (1 << 20) as f64
+    );
     if let Some(b) = disk {
         println!("pool on disk     {b} bytes (whole database)");
     }

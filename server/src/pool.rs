@@ -80,7 +80,11 @@ impl StoredScene {
 
     /// The compressed attribute block of one channel of a treelet; `None` if the scene lacks the
     /// channel or the treelet.
-    pub fn channel(&self, channel: Channel, id: TreeletId) -> Result<Option<sled::IVec>, PoolError> {
+    pub fn channel(
+        &self,
+        channel: Channel,
+        id: TreeletId,
+    ) -> Result<Option<sled::IVec>, PoolError> {
         match self.channels.iter().find(|(c, _)| *c == channel) {
             Some((_, t)) => Ok(t.get(id.0.to_be_bytes())?),
             None => Ok(None),
@@ -96,15 +100,15 @@ impl StoredScene {
     pub fn stored_ids(&self) -> impl Iterator<Item = Result<TreeletId, PoolError>> + '_ {
         self.nodes.iter().keys().map(|k| {
             let k = k?;
-            let id = <[u8; 4]>::try_from(k.as_ref()).map(u32::from_be_bytes).map_err(|_| {
-                PoolError::Corrupt {
+            let id = <[u8; 4]>::try_from(k.as_ref())
+                .map(u32::from_be_bytes)
+                .map_err(|_| PoolError::Corrupt {
                     what: format!("key {:?}", k.as_ref()),
                     source: ProtoError::OutOfRange {
                         what: "treelet key",
                         detail: "not 4 bytes".into(),
                     },
-                }
-            })?;
+                })?;
             Ok(TreeletId(id))
         })
     }
@@ -118,7 +122,10 @@ impl Pool {
         let pool = Pool { db, catalogue };
         let cleaned = pool.drop_leftovers()?;
         if cleaned > 0 {
-            tracing::warn!(trees = cleaned, "dropped leftovers of an interrupted import");
+            tracing::warn!(
+                trees = cleaned,
+                "dropped leftovers of an interrupted import"
+            );
         }
         Ok(pool)
     }
@@ -136,11 +143,11 @@ impl Pool {
         let live = self.live_generations()?;
         let mut dropped = 0;
         for name in self.db.tree_names() {
-            if let Some(g) = generation_of(&name) {
-                if !live.contains(&g) {
-                    self.db.drop_tree(&name)?;
-                    dropped += 1;
-                }
+            if let Some(g) = generation_of(&name)
+                && !live.contains(&g)
+            {
+                self.db.drop_tree(&name)?;
+                dropped += 1;
             }
         }
         if dropped > 0 {
@@ -229,7 +236,12 @@ impl Pool {
 
     /// Generations that have trees on disk (live scenes, or an import in progress).
     pub fn stored_generations(&self) -> Vec<u64> {
-        let mut g: Vec<u64> = self.db.tree_names().iter().filter_map(|n| generation_of(n)).collect();
+        let mut g: Vec<u64> = self
+            .db
+            .tree_names()
+            .iter()
+            .filter_map(|n| generation_of(n))
+            .collect();
         g.sort_unstable();
         g.dedup();
         g
@@ -331,20 +343,26 @@ impl PoolImport {
 
 impl Drop for PoolImport {
     fn drop(&mut self) {
-        if !self.committed {
-            if let Err(e) = self.pool.drop_generation(self.generation) {
-                tracing::warn!("could not drop an abandoned import: {e}");
-            }
+        if !self.committed
+            && let Err(e) = self.pool.drop_generation(self.generation)
+        {
+            tracing::warn!("could not drop an abandoned import: {e}");
         }
     }
 }
 
 impl TreeletSink for PoolImport {
     fn start(&mut self, layout: &AttributeLayout) -> Result<(), BuildError> {
-        self.set_channels(layout.channels()).map_err(|e| BuildError::Sink(e.to_string()))
+        self.set_channels(layout.channels())
+            .map_err(|e| BuildError::Sink(e.to_string()))
     }
 
-    fn put(&mut self, id: TreeletId, nodes: Vec<u8>, channels: Vec<Vec<u8>>) -> Result<(), BuildError> {
+    fn put(
+        &mut self,
+        id: TreeletId,
+        nodes: Vec<u8>,
+        channels: Vec<Vec<u8>>,
+    ) -> Result<(), BuildError> {
         let key = id.0.to_be_bytes();
         let err = |e: sled::Error| BuildError::Sink(e.to_string());
         self.nodes.insert(key, nodes).map_err(err)?;

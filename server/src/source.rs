@@ -90,9 +90,9 @@ impl<T: Pod> ColumnWriter<T> {
             .write(true)
             .open(&path)
             .map_err(|source| ColumnError::Io {
-            path: path.clone(),
-            source,
-        })?;
+                path: path.clone(),
+                source,
+            })?;
         Ok(Self {
             path,
             out: BufWriter::with_capacity(1 << 20, file),

@@ -69,12 +69,20 @@ pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
     for id in scene.stored_ids() {
         let id = id?;
         if id.0 != expected_next {
-            r.problem(format!("treelet ids not contiguous: expected {expected_next}, found {id}"));
+            r.problem(format!(
+                "treelet ids not contiguous: expected {expected_next}, found {id}"
+            ));
         }
         expected_next = id.0.wrapping_add(1);
         r.treelets += 1;
-        let Some(bytes) = scene.nodes(id)? else { continue };
-        let t = match codec::decode_compressed_treelet(&bytes, d.max_depth, d.node_dictionary.as_deref()) {
+        let Some(bytes) = scene.nodes(id)? else {
+            continue;
+        };
+        let t = match codec::decode_compressed_treelet(
+            &bytes,
+            d.max_depth,
+            d.node_dictionary.as_deref(),
+        ) {
             Ok(t) => t,
             Err(e) => {
                 r.problem(format!("treelet {id}: {e}"));
@@ -82,10 +90,17 @@ pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
             }
         };
         if t.header.id != id {
-            r.problem(format!("treelet stored under {id} says it is {}", t.header.id));
+            r.problem(format!(
+                "treelet stored under {id} says it is {}",
+                t.header.id
+            ));
         }
         if t.capacity() != d.treelet_nodes {
-            r.problem(format!("treelet {id}: capacity {} != scene's {}", t.capacity(), d.treelet_nodes));
+            r.problem(format!(
+                "treelet {id}: capacity {} != scene's {}",
+                t.capacity(),
+                d.treelet_nodes
+            ));
         }
         let places = t.validate(d.max_depth).expect("decode validated");
         let used = t.used().len();
@@ -94,7 +109,12 @@ pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
         let mut attrs: Vec<Vec<u8>> = Vec::new();
         for &c in &channels {
             let block = match scene.channel(c, id)? {
-                Some(b) => codec::decode_compressed_attributes(&b, c, t.header.used_nodes, d.channel_dictionary(c)),
+                Some(b) => codec::decode_compressed_attributes(
+                    &b,
+                    c,
+                    t.header.used_nodes,
+                    d.channel_dictionary(c),
+                ),
                 None => {
                     r.problem(format!("treelet {id}: {} block missing", c.name()));
                     continue;
@@ -112,7 +132,10 @@ pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
             if place.parent != u32::MAX {
                 let pc = places[place.parent as usize].cell;
                 if !pc.contains(&place.cell) || place.cell.depth != pc.depth + 1 {
-                    r.problem(format!("treelet {id} node {i}: voxel {:?} not inside parent {pc:?}", place.cell));
+                    r.problem(format!(
+                        "treelet {id} node {i}: voxel {:?} not inside parent {pc:?}",
+                        place.cell
+                    ));
                 }
             }
             if place.is_leaf {
@@ -123,16 +146,26 @@ pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
                 } else {
                     let child = n.first_child;
                     if child <= id.0 || child >= d.treelet_count {
-                        r.problem(format!("treelet {id} leaf {i}: subtreelet {child} out of range"));
+                        r.problem(format!(
+                            "treelet {id} leaf {i}: subtreelet {child} out of range"
+                        ));
                     }
                     let link = Link {
                         parent: id,
                         leaf: i as u16,
-                        leaf_parent: if place.parent == u32::MAX { 0 } else { place.parent as u16 },
+                        leaf_parent: if place.parent == u32::MAX {
+                            0
+                        } else {
+                            place.parent as u16
+                        },
                         child_index: place.child_index,
                         cell: place.cell,
                         attributes: if attrs_ok {
-                            channels.iter().enumerate().map(|(k, c)| record(&attrs[k], *c, i).to_vec()).collect()
+                            channels
+                                .iter()
+                                .enumerate()
+                                .map(|(k, c)| record(&attrs[k], *c, i).to_vec())
+                                .collect()
                         } else {
                             Vec::new()
                         },
@@ -146,7 +179,10 @@ pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
                 let kids = n.child_count() as usize;
                 for (k, &c) in channels.iter().enumerate() {
                     let mut mean = vec![0u8; c.size()];
-                    c.mean((first..first + kids).map(|j| record(&attrs[k], c, j)), &mut mean);
+                    c.mean(
+                        (first..first + kids).map(|j| record(&attrs[k], c, j)),
+                        &mut mean,
+                    );
                     if !c.within_one_step(&mean, record(&attrs[k], c, i)) {
                         r.problem(format!(
                             "treelet {id} node {i}: {} {:?} is not the mean {:?} of its children",
@@ -161,7 +197,10 @@ pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
     }
     r.voxels = r.node_records.saturating_sub(r.treelets.saturating_sub(1));
     if r.treelets != u64::from(d.treelet_count) {
-        r.problem(format!("{} treelets stored, description says {}", r.treelets, d.treelet_count));
+        r.problem(format!(
+            "{} treelets stored, description says {}",
+            r.treelets, d.treelet_count
+        ));
     }
     for (child, link) in links {
         r.problem(format!(
@@ -170,10 +209,16 @@ pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
         ));
     }
     if d.stats.voxels != 0 && d.stats.voxels != r.voxels {
-        r.problem(format!("{} voxels found, description says {}", r.voxels, d.stats.voxels));
+        r.problem(format!(
+            "{} voxels found, description says {}",
+            r.voxels, d.stats.voxels
+        ));
     }
     if d.stats.leaf_voxels != 0 && d.stats.leaf_voxels != r.leaf_voxels {
-        r.problem(format!("{} leaf voxels found, description says {}", r.leaf_voxels, d.stats.leaf_voxels));
+        r.problem(format!(
+            "{} leaf voxels found, description says {}",
+            r.leaf_voxels, d.stats.leaf_voxels
+        ));
     }
     Ok(r)
 }
@@ -183,17 +228,29 @@ fn record(block: &[u8], c: Channel, i: usize) -> &[u8] {
 }
 
 /// Checks a treelet against the leaf that refers to it (or, for 0, that it is a proper root).
-fn check_link(r: &mut VerifyReport, links: &mut HashMap<u32, Link>, t: &Treelet, attrs: &[Vec<u8>], channels: &[Channel]) {
+fn check_link(
+    r: &mut VerifyReport,
+    links: &mut HashMap<u32, Link>,
+    t: &Treelet,
+    attrs: &[Vec<u8>],
+    channels: &[Channel],
+) {
     let h = &t.header;
     let id = h.id;
     if id == TreeletId::ROOT {
         if !h.parent_id.is_none() || h.root_cell() != Cell::ROOT {
-            r.problem(format!("root treelet has parent {} and root cell {:?}", h.parent_id, h.root_cell()));
+            r.problem(format!(
+                "root treelet has parent {} and root cell {:?}",
+                h.parent_id,
+                h.root_cell()
+            ));
         }
         return;
     }
     let Some(link) = links.remove(&id.0) else {
-        r.problem(format!("treelet {id} is not reachable: no leaf refers to it"));
+        r.problem(format!(
+            "treelet {id} is not reachable: no leaf refers to it"
+        ));
         return;
     };
     if h.parent_id != link.parent
@@ -208,12 +265,19 @@ fn check_link(r: &mut VerifyReport, links: &mut HashMap<u32, Link>, t: &Treelet,
         ));
     }
     if h.root_cell() != link.cell {
-        r.problem(format!("treelet {id}: root cell {:?} != refined leaf's cell {:?}", h.root_cell(), link.cell));
+        r.problem(format!(
+            "treelet {id}: root cell {:?} != refined leaf's cell {:?}",
+            h.root_cell(),
+            link.cell
+        ));
     }
     if attrs.len() == channels.len() && link.attributes.len() == channels.len() {
         for (k, &c) in channels.iter().enumerate() {
             if record(&attrs[k], c, 0) != link.attributes[k].as_slice() {
-                r.problem(format!("treelet {id}: root {} differs from the refined leaf's", c.name()));
+                r.problem(format!(
+                    "treelet {id}: root {} differs from the refined leaf's",
+                    c.name()
+                ));
             }
         }
     }

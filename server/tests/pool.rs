@@ -15,7 +15,10 @@ fn bunny(scratch: &Path) -> Source {
         env!("CARGO_MANIFEST_DIR"),
         "/../../shared/data/meshes/stanford-bunny.obj"
     ));
-    assert!(path.exists(), "the real scans in ../shared/data are required");
+    assert!(
+        path.exists(),
+        "the real scans in ../shared/data are required"
+    );
     import_file(path, &ImportOptions::default(), scratch).unwrap()
 }
 
@@ -54,12 +57,28 @@ fn abandoned_and_crashed_imports_leave_nothing() {
         import(&pool, &source, scratch.path(), "kept", false);
         // Abandoned: built but dropped without commit.
         let mut txn = pool.begin_import("abandoned", false).unwrap();
-        build_scene(&source, "abandoned", "bunny", &opts(), scratch.path(), &mut txn).unwrap();
+        build_scene(
+            &source,
+            "abandoned",
+            "bunny",
+            &opts(),
+            scratch.path(),
+            &mut txn,
+        )
+        .unwrap();
         drop(txn);
         assert_eq!(pool.stored_generations().len(), 1);
         // Crashed: built, flushed, never committed nor cleaned (as after SIGKILL).
         let mut txn = pool.begin_import("crashed", false).unwrap();
-        build_scene(&source, "crashed", "bunny", &opts(), scratch.path(), &mut txn).unwrap();
+        build_scene(
+            &source,
+            "crashed",
+            "bunny",
+            &opts(),
+            scratch.path(),
+            &mut txn,
+        )
+        .unwrap();
         txn.abandon_as_if_crashed().unwrap();
         assert_eq!(pool.stored_generations().len(), 2);
     }
@@ -115,8 +134,15 @@ fn channels_are_stored_apart() {
     let s = pool.scene("b").unwrap();
     // The bunny has no colour: no colour channel is stored, normals are.
     assert_eq!(s.description.layout.channels(), &[Channel::Normal]);
-    assert!(s.channel(Channel::Color, TreeletId::ROOT).unwrap().is_none());
-    let n = s.channel(Channel::Normal, TreeletId::ROOT).unwrap().unwrap();
+    assert!(
+        s.channel(Channel::Color, TreeletId::ROOT)
+            .unwrap()
+            .is_none()
+    );
+    let n = s
+        .channel(Channel::Normal, TreeletId::ROOT)
+        .unwrap()
+        .unwrap();
     let d = &s.description;
     let root = s.nodes(TreeletId::ROOT).unwrap().unwrap();
     let t = codec::decode_compressed_treelet(&root, 6, d.node_dictionary.as_deref()).unwrap();
@@ -226,8 +252,11 @@ fn verify_catches_wrong_links_and_attributes() {
         .unwrap();
         block[0] ^= 0x80;
         block[1] ^= 0x80;
-        c.insert(0u32.to_be_bytes(), codec::compress(&block, 3, dict).unwrap())
-            .unwrap();
+        c.insert(
+            0u32.to_be_bytes(),
+            codec::compress(&block, 3, dict).unwrap(),
+        )
+        .unwrap();
     });
     assert!(p.iter().any(|p| p.contains("is not the mean")), "{p:?}");
 }

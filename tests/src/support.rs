@@ -91,7 +91,8 @@ pub fn final_leaves(scene: &StoredScene) -> Vec<Cell> {
     let mut out = Vec::new();
     for id in 0..d.treelet_count {
         let bytes = scene.nodes(TreeletId(id)).unwrap().expect("treelet stored");
-        let t = codec::decode_compressed_treelet(&bytes, d.max_depth, d.node_dictionary.as_deref()).unwrap();
+        let t = codec::decode_compressed_treelet(&bytes, d.max_depth, d.node_dictionary.as_deref())
+            .unwrap();
         let places = t.validate(d.max_depth).unwrap();
         for (i, p) in places.iter().enumerate() {
             if p.is_leaf && t.nodes[i].first_child == Node::NONE {
@@ -164,7 +165,10 @@ pub fn reference_cells(source: &Source, scene: &StoredScene) -> (BTreeSet<[u32; 
         }
         Source::Volume(v) => {
             let field = Field { vol: v };
-            let iso = d.build.iso.expect("volume scenes record their iso threshold");
+            let iso = d
+                .build
+                .iso
+                .expect("volume scenes record their iso threshold");
             let [dx, dy, dz] = v.dims;
             for k in 0..dz - 1 {
                 for j in 0..dy - 1 {

@@ -9,7 +9,8 @@ use arbor_proto::limits::MAX_DEPTH;
 use arbor_server::build::{BuildError, BuildOptions, DepthChoice, build_scene};
 use arbor_server::pool::Pool;
 use arbor_tests::support::{
-    assert_same_cells, assert_verifies, build_source, final_leaves, leaf_cells, mesh, points, reference_cells,
+    assert_same_cells, assert_verifies, build_source, final_leaves, leaf_cells, mesh, points,
+    reference_cells,
 };
 
 fn fixed(depth: u8, treelet_bytes: u32) -> BuildOptions {
@@ -86,16 +87,35 @@ fn degenerate_and_sliver_triangles_are_exact() {
 fn non_finite_coordinates_are_rejected_with_a_clear_error() {
     for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
         let scratch = tempfile::tempdir().unwrap();
-        let source = points(scratch.path(), &[[0.0, 0.0, 0.0], [1.0, bad, 0.0], [2.0, 2.0, 2.0]]);
+        let source = points(
+            scratch.path(),
+            &[[0.0, 0.0, 0.0], [1.0, bad, 0.0], [2.0, 2.0, 2.0]],
+        );
         let pool_dir = tempfile::tempdir().unwrap();
         let pool = Pool::open(pool_dir.path()).unwrap();
         let mut txn = pool.begin_import("bad", false).unwrap();
-        let err = build_scene(&source, "bad", "bad", &BuildOptions::default(), scratch.path(), &mut txn)
-            .unwrap_err();
-        assert!(matches!(err, BuildError::NonFinite { index: 1, .. }), "{err}");
-        assert!(err.to_string().contains("non-finite coordinate in point 1"), "{err}");
+        let err = build_scene(
+            &source,
+            "bad",
+            "bad",
+            &BuildOptions::default(),
+            scratch.path(),
+            &mut txn,
+        )
+        .unwrap_err();
+        assert!(
+            matches!(err, BuildError::NonFinite { index: 1, .. }),
+            "{err}"
+        );
+        assert!(
+            err.to_string().contains("non-finite coordinate in point 1"),
+            "{err}"
+        );
         drop(txn);
-        assert!(pool.scenes().unwrap().is_empty(), "a failed build left a scene");
+        assert!(
+            pool.scenes().unwrap().is_empty(),
+            "a failed build left a scene"
+        );
     }
 }
 
@@ -105,7 +125,13 @@ fn projected_coordinates_keep_millimetres() {
     // collapse onto a few positions; here each lands in its own millimetre voxel.
     let scratch = tempfile::tempdir().unwrap();
     let pts: Vec<[f64; 3]> = (0..1024)
-        .map(|i| [512_345.0 + f64::from(i) * 0.001, 5_012_345.5 + f64::from(i % 7) * 0.001, 127.25])
+        .map(|i| {
+            [
+                512_345.0 + f64::from(i) * 0.001,
+                5_012_345.5 + f64::from(i % 7) * 0.001,
+                127.25,
+            ]
+        })
         .collect();
     let source = points(scratch.path(), &pts);
     let b = build_source(source, scratch, "utm", &BuildOptions::default());
@@ -114,7 +140,11 @@ fn projected_coordinates_keep_millimetres() {
     // Every point's nearest neighbour is √2 mm away (1 mm in x and in y); auto depth reaches
     // that: 1.023 m / 2^10 < √2 mm < 1.023 m / 2^9.
     let spacing = 0.001 * 2f64.sqrt();
-    assert!((d.build.data_resolution - spacing).abs() < 1e-9, "{}", d.build.data_resolution);
+    assert!(
+        (d.build.data_resolution - spacing).abs() < 1e-9,
+        "{}",
+        d.build.data_resolution
+    );
     assert_eq!(d.max_depth, 10);
     assert_eq!(d.origin[0], 512_345.0);
     let leaves = leaf_cells(&b.scene);
@@ -150,7 +180,12 @@ fn depth_twenty_and_beyond_on_tiny_inputs() {
         assert_same_cells(&format!("triangles at depth {depth}"), &leaves, &reference);
 
         let scratch = tempfile::tempdir().unwrap();
-        let pts = [[0.0, 0.0, 0.0], [1e-7, 2e-7, 0.0], [1.0, 1.0, 1.0], [0.5, 0.5 + 1e-9, 0.5]];
+        let pts = [
+            [0.0, 0.0, 0.0],
+            [1e-7, 2e-7, 0.0],
+            [1.0, 1.0, 1.0],
+            [0.5, 0.5 + 1e-9, 0.5],
+        ];
         let source = points(scratch.path(), &pts);
         let b = build_source(source, scratch, "deep-pts", &fixed(depth, 1024));
         assert_eq!(b.scene.description.max_depth, depth);
@@ -181,7 +216,10 @@ fn one_point_scene() {
     let source = points(scratch.path(), &[[3.5, -2.0, 1e6]]);
     let b = build_source(source, scratch, "one-point-deep", &fixed(12, 1024));
     assert_verifies(&b.scene);
-    assert_eq!(b.scene.description.stats.voxels, 13, "a chain of 12 single children");
+    assert_eq!(
+        b.scene.description.stats.voxels, 13,
+        "a chain of 12 single children"
+    );
     assert_eq!(leaf_cells(&b.scene).len(), 1);
 }
 
@@ -212,9 +250,27 @@ fn absurd_parameters_are_rejected() {
     let pool = Pool::open(pool_dir.path()).unwrap();
     let mut txn = pool.begin_import("p", false).unwrap();
     for (opts, msg) in [
-        (BuildOptions { treelet_bytes: 100, ..BuildOptions::default() }, "treelet size"),
-        (BuildOptions { treelet_bytes: 1 << 20, ..BuildOptions::default() }, "treelet size"),
-        (BuildOptions { depth: DepthChoice::Fixed(40), ..BuildOptions::default() }, "depth 40"),
+        (
+            BuildOptions {
+                treelet_bytes: 100,
+                ..BuildOptions::default()
+            },
+            "treelet size",
+        ),
+        (
+            BuildOptions {
+                treelet_bytes: 1 << 20,
+                ..BuildOptions::default()
+            },
+            "treelet size",
+        ),
+        (
+            BuildOptions {
+                depth: DepthChoice::Fixed(40),
+                ..BuildOptions::default()
+            },
+            "depth 40",
+        ),
     ] {
         let err = build_scene(&source, "p", "p", &opts, scratch.path(), &mut txn).unwrap_err();
         assert!(err.to_string().contains(msg), "{err}");

@@ -2,7 +2,9 @@
 //! brute-force classification of every primitive against every target-depth cell.
 
 use arbor_server::build::{BuildOptions, DepthChoice};
-use arbor_tests::support::{SCANS, assert_same_cells, assert_verifies, build_file, leaf_cells, reference_cells};
+use arbor_tests::support::{
+    SCANS, assert_same_cells, assert_verifies, build_file, leaf_cells, reference_cells,
+};
 
 fn opts(treelet_bytes: u32, depth: DepthChoice) -> BuildOptions {
     BuildOptions {
@@ -18,13 +20,22 @@ fn import_and_verify(index: usize) {
         let b = build_file(rel, name, &opts(tb, DepthChoice::Auto));
         let d = &b.scene.description;
         assert_eq!(d.treelet_nodes, tb / 8);
-        assert!(d.treelet_count > 1, "{name}: a real scan needs more than one treelet");
+        assert!(
+            d.treelet_count > 1,
+            "{name}: a real scan needs more than one treelet"
+        );
         assert!(d.stats.leaf_voxels > 0);
         assert_verifies(&b.scene);
         // Auto depth stops at the data's own resolution: one level less would be coarser than it.
         let voxel = d.voxel_size(d.max_depth);
-        assert!(voxel <= d.build.data_resolution * (1.0 + 1e-9), "{name}: voxel {voxel} coarser than data");
-        assert!(voxel * 2.0 > d.build.data_resolution, "{name}: depth beyond the data's detail");
+        assert!(
+            voxel <= d.build.data_resolution * (1.0 + 1e-9),
+            "{name}: voxel {voxel} coarser than data"
+        );
+        assert!(
+            voxel * 2.0 > d.build.data_resolution,
+            "{name}: depth beyond the data's detail"
+        );
     }
 }
 
@@ -64,7 +75,11 @@ fn geometry_matches_brute_force(index: usize, depth: u8, treelet_bytes: u32) {
     let (reference, uncovered) = reference_cells(&b.source, &b.scene);
     assert_eq!(uncovered, 0, "{name}: primitives not covered by any voxel");
     assert_same_cells(&format!("{name} at depth {depth}"), &leaves, &reference);
-    assert!(leaves.len() > 100, "{name}: suspiciously few leaves ({})", leaves.len());
+    assert!(
+        leaves.len() > 100,
+        "{name}: suspiciously few leaves ({})",
+        leaves.len()
+    );
 }
 
 #[test]

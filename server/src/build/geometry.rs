@@ -39,7 +39,10 @@ impl Frame {
         let extent = (0..3).map(|i| max[i] - min[i]).fold(0.0f64, f64::max);
         // A tiny relative pad keeps the maximum inside the last cell after rounding.
         let mut edge = extent * (1.0 + 1e-9);
-        let magnitude = min.iter().chain(max.iter()).fold(0.0f64, |m, v| m.max(v.abs()));
+        let magnitude = min
+            .iter()
+            .chain(max.iter())
+            .fold(0.0f64, |m, v| m.max(v.abs()));
         let floor = (magnitude * 1e-12).max(f64::MIN_POSITIVE);
         if !(edge > floor) {
             edge = if extent > 0.0 { extent * 2.0 } else { 1.0 };
@@ -201,7 +204,7 @@ pub fn closest_barycentric(p: [f64; 3], t: &[[f64; 3]; 3]) -> [f64; 3] {
 
 /// Depth at which voxels reach `resolution` (the data's own detail), clamped to the limits.
 pub fn depth_for_resolution(edge: f64, resolution: f64) -> u8 {
-    if !(resolution.is_finite() && resolution > 0.0) || !(edge > 0.0) {
+    if !(resolution.is_finite() && resolution > 0.0 && edge > 0.0) {
         return 0;
     }
     let levels = (edge / resolution).log2().ceil();
@@ -217,21 +220,57 @@ mod tests {
         let min = [0.0; 3];
         let max = [1.0; 3];
         // Inside.
-        assert!(triangle_touches_box(&[[0.1, 0.1, 0.1], [0.5, 0.1, 0.1], [0.1, 0.5, 0.1]], min, max));
+        assert!(triangle_touches_box(
+            &[[0.1, 0.1, 0.1], [0.5, 0.1, 0.1], [0.1, 0.5, 0.1]],
+            min,
+            max
+        ));
         // Lying exactly on a face counts (closed box).
-        assert!(triangle_touches_box(&[[1.0, 0.2, 0.2], [1.0, 0.8, 0.2], [1.0, 0.2, 0.8]], min, max));
+        assert!(triangle_touches_box(
+            &[[1.0, 0.2, 0.2], [1.0, 0.8, 0.2], [1.0, 0.2, 0.8]],
+            min,
+            max
+        ));
         // Touching only a corner.
-        assert!(triangle_touches_box(&[[1.0, 1.0, 1.0], [2.0, 1.0, 1.0], [1.0, 2.0, 1.0]], min, max));
+        assert!(triangle_touches_box(
+            &[[1.0, 1.0, 1.0], [2.0, 1.0, 1.0], [1.0, 2.0, 1.0]],
+            min,
+            max
+        ));
         // Near miss across the diagonal: the plane x+y+z = 3.01 misses the box.
-        assert!(!triangle_touches_box(&[[3.01, 0.0, 0.0], [0.0, 3.01, 0.0], [0.0, 0.0, 3.01]], min, max));
-        assert!(triangle_touches_box(&[[3.0, 0.0, 0.0], [0.0, 3.0, 0.0], [0.0, 0.0, 3.0]], min, max));
+        assert!(!triangle_touches_box(
+            &[[3.01, 0.0, 0.0], [0.0, 3.01, 0.0], [0.0, 0.0, 3.01]],
+            min,
+            max
+        ));
+        assert!(triangle_touches_box(
+            &[[3.0, 0.0, 0.0], [0.0, 3.0, 0.0], [0.0, 0.0, 3.0]],
+            min,
+            max
+        ));
         // Big triangle whose corners are all outside but which cuts through the box.
-        assert!(triangle_touches_box(&[[-10.0, -10.0, 0.5], [10.0, -10.0, 0.5], [0.0, 20.0, 0.5]], min, max));
+        assert!(triangle_touches_box(
+            &[[-10.0, -10.0, 0.5], [10.0, -10.0, 0.5], [0.0, 20.0, 0.5]],
+            min,
+            max
+        ));
         // Degenerate: a segment through the box and a point outside it.
-        assert!(triangle_touches_box(&[[-1.0, 0.5, 0.5], [2.0, 0.5, 0.5], [2.0, 0.5, 0.5]], min, max));
+        assert!(triangle_touches_box(
+            &[[-1.0, 0.5, 0.5], [2.0, 0.5, 0.5], [2.0, 0.5, 0.5]],
+            min,
+            max
+        ));
         assert!(!triangle_touches_box(&[[1.5, 0.5, 0.5]; 3], min, max));
         // Sliver along the box edge diagonal, just outside.
-        assert!(!triangle_touches_box(&[[1.0 + 1e-9, -1.0, 0.0], [1.0 + 1e-9, 2.0, 0.0], [1.0 + 2e-9, 2.0, 0.0]], min, max));
+        assert!(!triangle_touches_box(
+            &[
+                [1.0 + 1e-9, -1.0, 0.0],
+                [1.0 + 1e-9, 2.0, 0.0],
+                [1.0 + 2e-9, 2.0, 0.0]
+            ],
+            min,
+            max
+        ));
     }
 
     #[test]
@@ -245,7 +284,7 @@ mod tests {
     fn huge_coordinates_keep_millimetres() {
         // A 1 km cube at UTM-like coordinates, depth 20 (~1 mm voxels).
         let f = Frame::new([500_000.0, 5_000_000.0, 0.0], 1024.0, 20);
-        let p = [500_512.3456, 5_000_000.0015, 0.0005];
+        let p = [500_512.345_6, 5_000_000.001_5, 0.000_5];
         let c = f.leaf_cell(p);
         assert_eq!(c, [524_641, 1, 0]);
     }

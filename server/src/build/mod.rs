@@ -112,7 +112,12 @@ pub trait TreeletSink {
     /// Called once with the scene's attribute layout before the first `put`.
     fn start(&mut self, layout: &AttributeLayout) -> Result<(), BuildError>;
     /// `channels` are in layout order.
-    fn put(&mut self, id: TreeletId, nodes: Vec<u8>, channels: Vec<Vec<u8>>) -> Result<(), BuildError>;
+    fn put(
+        &mut self,
+        id: TreeletId,
+        nodes: Vec<u8>,
+        channels: Vec<Vec<u8>>,
+    ) -> Result<(), BuildError>;
 }
 
 /// Builds `source` into a scene named `name`, handing treelets to `sink`. Returns the scene
@@ -127,13 +132,13 @@ pub fn build_scene(
 ) -> Result<SceneDescription, BuildError> {
     let started = Instant::now();
     let capacity = nodes_for_bytes(opts.treelet_bytes)?;
-    if let DepthChoice::Fixed(d) = opts.depth {
-        if d > arbor_proto::limits::MAX_DEPTH {
-            return Err(BuildError::Parameter(format!(
-                "depth {d} exceeds the maximum {}",
-                arbor_proto::limits::MAX_DEPTH
-            )));
-        }
+    if let DepthChoice::Fixed(d) = opts.depth
+        && d > arbor_proto::limits::MAX_DEPTH
+    {
+        return Err(BuildError::Parameter(format!(
+            "depth {d} exceeds the maximum {}",
+            arbor_proto::limits::MAX_DEPTH
+        )));
     }
     if source.primitive_count() == 0 {
         return Err(BuildError::Empty(source.describe()));
@@ -142,8 +147,14 @@ pub fn build_scene(
     let probe = Frame::around(min, max, 0);
     let (resolution, kind) = match source {
         Source::Mesh(m) => (triangles::mean_edge_length(m), SourceKind::Mesh),
-        Source::Points(p) => (points::mean_point_spacing(&p.positions, min, max), SourceKind::Points),
-        Source::Volume(v) => (v.spacing.iter().cloned().fold(f64::INFINITY, f64::min), SourceKind::Volume),
+        Source::Points(p) => (
+            points::mean_point_spacing(&p.positions, min, max),
+            SourceKind::Points,
+        ),
+        Source::Volume(v) => (
+            v.spacing.iter().cloned().fold(f64::INFINITY, f64::min),
+            SourceKind::Volume,
+        ),
     };
     let depth = match opts.depth {
         DepthChoice::Fixed(d) => d,
@@ -184,7 +195,11 @@ pub fn build_scene(
         Source::Volume(v) => {
             let iso = match opts.iso {
                 Some(i) if i.is_finite() => i,
-                Some(i) => return Err(BuildError::Parameter(format!("iso threshold {i} is not finite"))),
+                Some(i) => {
+                    return Err(BuildError::Parameter(format!(
+                        "iso threshold {i} is not finite"
+                    )));
+                }
                 None => volume::otsu_threshold(v),
             };
             iso_used = Some(iso);
@@ -197,7 +212,11 @@ pub fn build_scene(
             }
             tracing::info!(iso, crossing_cells = cells.len(), "iso surface");
             let field = volume::Field { vol: v };
-            let b = volume::VolumeBuilder { field, cells: &cells, frame };
+            let b = volume::VolumeBuilder {
+                field,
+                cells: &cells,
+                frame,
+            };
             let a = volume::VolumeAttributes::new(field, frame);
             let layout = a.layout.clone();
             (layout, fill_all(&b, &a, capacity, depth, opts, scratch)?)
@@ -293,7 +312,8 @@ fn bounds(source: &Source) -> Result<([f64; 3], [f64; 3]), BuildError> {
             }
         }
         Source::Volume(v) => {
-            let far = [0, 1, 2].map(|a| v.origin[a] + f64::from(v.dims[a].max(1) - 1) * v.spacing[a]);
+            let far =
+                [0, 1, 2].map(|a| v.origin[a] + f64::from(v.dims[a].max(1) - 1) * v.spacing[a]);
             add(v.origin, "volume origin", 0)?;
             add(far, "volume extent", 0)?;
             if v.dims.iter().any(|&d| d < 2) || v.spacing.iter().any(|&s| !(s > 0.0)) {
@@ -332,7 +352,8 @@ impl RecordFile {
     }
     fn read(&self, id: u32, max_depth: u8) -> Result<(Treelet, Vec<u8>), BuildError> {
         let mut buf = vec![0u8; self.size()];
-        self.file.read_exact_at(&mut buf, u64::from(id) * self.size() as u64)?;
+        self.file
+            .read_exact_at(&mut buf, u64::from(id) * self.size() as u64)?;
         let (header, _) = codec::decode_header(&buf)?;
         let raw_len = HEADER_BYTES + usize::from(header.used_nodes) * 8;
         let t = codec::decode_treelet(&buf[..raw_len], max_depth)?;
@@ -365,8 +386,10 @@ fn bar(enabled: bool, what: &str, len: u64) -> ProgressBar {
     }
     let pb = ProgressBar::new(len);
     pb.set_style(
-        ProgressStyle::with_template("{prefix:>10} [{bar:40}] {pos}/{len} treelets [{elapsed_precise}, eta {eta}]")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template(
+            "{prefix:>10} [{bar:40}] {pos}/{len} treelets [{elapsed_precise}, eta {eta}]",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     pb.set_prefix(what.to_owned());
     pb
@@ -461,7 +484,10 @@ fn fill_all(
     }
     pb.finish_and_clear();
     if queue.spilled_bytes > 0 {
-        tracing::info!(spilled_bytes = queue.spilled_bytes, "pending primitive lists spilled to disk");
+        tracing::info!(
+            spilled_bytes = queue.spilled_bytes,
+            "pending primitive lists spilled to disk"
+        );
     }
     Ok(Filled {
         file: records.file,
@@ -559,7 +585,11 @@ type Dictionaries = (Option<Vec<u8>>, Vec<Option<Vec<u8>>>);
 /// none: measured on the six real scans (`cargo bench --bench build`) a channel dictionary saved
 /// at most 5 % and sometimes grew the stream, while node dictionaries save 22–35 %.
 /// Too few treelets to learn from gives no dictionary.
-fn train_dictionaries(records: &RecordFile, layout: &AttributeLayout, count: u32) -> Result<Dictionaries, BuildError> {
+fn train_dictionaries(
+    records: &RecordFile,
+    layout: &AttributeLayout,
+    count: u32,
+) -> Result<Dictionaries, BuildError> {
     let channels = vec![None; layout.channels().len()];
     if count < 32 {
         return Ok((None, channels));

@@ -62,7 +62,11 @@ impl AttributeGenerator for PointAttributes<'_> {
         for &p in prims {
             let v = self.normals[p as usize];
             // Estimated normals have no consistent sign everywhere: align with the first.
-            let s = if n[0] * v[0] + n[1] * v[1] + n[2] * v[2] < 0.0 { -1.0 } else { 1.0 };
+            let s = if n[0] * v[0] + n[1] * v[1] + n[2] * v[2] < 0.0 {
+                -1.0
+            } else {
+                1.0
+            };
             for a in 0..3 {
                 n[a] += s * v[a];
             }
@@ -129,7 +133,7 @@ impl<'a> Grid<'a> {
             for dy in -1..=1 {
                 for dz in -1..=1 {
                     let cc = [c[0] + dx, c[1] + dy, c[2] + dz];
-                    if cc.iter().any(|&v| v < 0 || v >= 1 << 21) {
+                    if cc.iter().any(|v| !(0..1 << 21).contains(v)) {
                         continue;
                     }
                     let k = self.key(cc);
@@ -152,7 +156,10 @@ fn dist2(a: [f64; 3], b: [f64; 3]) -> f64 {
 
 /// Grid cell size giving about `per_cell` points per occupied cell for a surface-like cloud.
 fn grid_cell(pos: &[[f64; 3]], min: [f64; 3], max: [f64; 3], per_cell: f64) -> f64 {
-    let ext = (0..3).map(|a| max[a] - min[a]).fold(0.0f64, f64::max).max(1e-300);
+    let ext = (0..3)
+        .map(|a| max[a] - min[a])
+        .fold(0.0f64, f64::max)
+        .max(1e-300);
     // A surface of extent `ext` holds n points: spacing ≈ ext / sqrt(n).
     let spacing = ext / (pos.len() as f64).sqrt().max(1.0);
     (spacing * per_cell.sqrt()).max(ext / (1 << 20) as f64)
@@ -178,7 +185,11 @@ pub fn mean_point_spacing(pos: &[[f64; 3]], min: [f64; 3], max: [f64; 3]) -> f64
                     }
                 }
             });
-            if best.is_finite() { (best.sqrt(), 1u64) } else { (0.0, 0) }
+            if best.is_finite() {
+                (best.sqrt(), 1u64)
+            } else {
+                (0.0, 0)
+            }
         })
         .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
     if n == 0 { 0.0 } else { sum / n as f64 }
@@ -224,7 +235,9 @@ pub fn estimate_normals(
 /// Smallest-eigenvalue eigenvector of the covariance of `pts` around their mean (+Z when fewer
 /// than 3 points or degenerate).
 fn pca_normal(origin: [f64; 3], pts: impl Iterator<Item = [f64; 3]>) -> [f64; 3] {
-    let rel: Vec<[f64; 3]> = pts.map(|p| [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]]).collect();
+    let rel: Vec<[f64; 3]> = pts
+        .map(|p| [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]])
+        .collect();
     if rel.len() < 3 {
         return [0.0, 0.0, 1.0];
     }
@@ -243,6 +256,7 @@ fn pca_normal(origin: [f64; 3], pts: impl Iterator<Item = [f64; 3]>) -> [f64; 3]
 }
 
 /// Smallest eigenvector of a symmetric 3×3 matrix by Jacobi rotations.
+#[allow(clippy::needless_range_loop)] // index form mirrors the textbook rotation formulas
 fn smallest_eigenvector(mut a: [[f64; 3]; 3]) -> [f64; 3] {
     let scale = a.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
     if !(scale > 0.0) || !scale.is_finite() {
@@ -292,10 +306,16 @@ fn smallest_eigenvector(mut a: [[f64; 3]; 3]) -> [f64; 3] {
             row[q] = s * vp + c * vq;
         }
     }
-    let k = (0..3).min_by(|&i, &j| a[i][i].total_cmp(&a[j][j])).unwrap_or(2);
+    let k = (0..3)
+        .min_by(|&i, &j| a[i][i].total_cmp(&a[j][j]))
+        .unwrap_or(2);
     let n = [v[0][k], v[1][k], v[2][k]];
     let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-    if len > 0.0 { n.map(|x| x / len) } else { [0.0, 0.0, 1.0] }
+    if len > 0.0 {
+        n.map(|x| x / len)
+    } else {
+        [0.0, 0.0, 1.0]
+    }
 }
 
 #[cfg(test)]
@@ -305,7 +325,13 @@ mod tests {
     #[test]
     fn pca_of_a_plane_is_its_normal() {
         let pts: Vec<[f64; 3]> = (0..25)
-            .map(|i| [f64::from(i % 5), f64::from(i / 5), 0.3 * f64::from(i % 5) + 7.0])
+            .map(|i| {
+                [
+                    f64::from(i % 5),
+                    f64::from(i / 5),
+                    0.3 * f64::from(i % 5) + 7.0,
+                ]
+            })
             .collect();
         let n = pca_normal([0.0; 3], pts.into_iter());
         // Plane z = 0.3 x + 7 has normal ∝ (-0.3, 0, 1).

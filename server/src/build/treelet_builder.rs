@@ -192,9 +192,9 @@ pub fn fill_treelet(
         } else {
             None
         };
-        let count = children
-            .as_ref()
-            .map_or(u32::MAX, |c| c.iter().filter(|l| !l.is_empty()).count() as u32);
+        let count = children.as_ref().map_or(u32::MAX, |c| {
+            c.iter().filter(|l| !l.is_empty()).count() as u32
+        });
         if count == 0 {
             // Rounding left no child touched: the voxel is final at this depth.
             final_leaf(&mut nodes, &mut attrs, &p);
@@ -206,7 +206,11 @@ pub fn fill_treelet(
             mark_leaf(&mut nodes, &p);
             pending_leaves.push(PendingLeaf {
                 local_index: p.local as u16,
-                parent_local_index: if p.parent == u32::MAX { 0 } else { p.parent as u16 },
+                parent_local_index: if p.parent == u32::MAX {
+                    0
+                } else {
+                    p.parent as u16
+                },
                 child_index: p.child_index,
                 cell: p.cell,
                 prims: p.prims,

@@ -42,11 +42,18 @@ impl TreeletBuilder for TriangleBuilder<'_> {
         for a in 0..3 {
             let lo = tri[0][a].min(tri[1][a]).min(tri[2][a]);
             let hi = tri[0][a].max(tri[1][a]).max(tri[2][a]);
-            halves[a] = [lo <= mid[a] + TOUCH_TOLERANCE, hi >= mid[a] - TOUCH_TOLERANCE];
+            halves[a] = [
+                lo <= mid[a] + TOUCH_TOLERANCE,
+                hi >= mid[a] - TOUCH_TOLERANCE,
+            ];
         }
         let mut mask = 0u8;
         for i in 0..8u8 {
-            let (bx, by, bz) = (usize::from(i >> 2 & 1), usize::from(i >> 1 & 1), usize::from(i & 1));
+            let (bx, by, bz) = (
+                usize::from(i >> 2 & 1),
+                usize::from(i >> 1 & 1),
+                usize::from(i & 1),
+            );
             if !(halves[0][bx] && halves[1][by] && halves[2][bz]) {
                 continue;
             }
@@ -155,7 +162,10 @@ pub fn mean_edge_length(mesh: &MeshSource) -> f64 {
     for t in mesh.triangles.iter() {
         let p = t.map(|i| mesh.positions[i as usize]);
         for (a, b) in [(0, 1), (1, 2), (2, 0)] {
-            let d = ((p[a][0] - p[b][0]).powi(2) + (p[a][1] - p[b][1]).powi(2) + (p[a][2] - p[b][2]).powi(2)).sqrt();
+            let d = ((p[a][0] - p[b][0]).powi(2)
+                + (p[a][1] - p[b][1]).powi(2)
+                + (p[a][2] - p[b][2]).powi(2))
+            .sqrt();
             if d > 0.0 {
                 sum += d;
                 n += 1;

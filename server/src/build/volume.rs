@@ -109,11 +109,17 @@ pub fn otsu_threshold(vol: &VolumeSource) -> f32 {
     let span = (hi - lo).max(f32::MIN_POSITIVE);
     let mut h = vec![0u64; bins];
     for &v in vol.values.iter() {
-        let b = (((v - lo) / span) * (bins as f32 - 1.0)).round().clamp(0.0, bins as f32 - 1.0);
+        let b = (((v - lo) / span) * (bins as f32 - 1.0))
+            .round()
+            .clamp(0.0, bins as f32 - 1.0);
         h[b as usize] += 1;
     }
     let total: u64 = h.iter().sum();
-    let sum_all: f64 = h.iter().enumerate().map(|(i, &c)| i as f64 * c as f64).sum();
+    let sum_all: f64 = h
+        .iter()
+        .enumerate()
+        .map(|(i, &c)| i as f64 * c as f64)
+        .sum();
     let (mut w0, mut sum0, mut best, mut best_t) = (0u64, 0.0f64, -1.0f64, 0usize);
     for (t, &c) in h.iter().enumerate() {
         w0 += c;
@@ -145,7 +151,9 @@ pub struct VolumeBuilder<'a> {
 impl VolumeBuilder<'_> {
     /// Grid cell `prim` as a box in leaf units.
     pub fn prim_box(&self, prim: u32) -> ([f64; 3], [f64; 3]) {
-        let (min, max) = self.field.cell_box(self.field.cell_of(self.cells[prim as usize]));
+        let (min, max) = self
+            .field
+            .cell_box(self.field.cell_of(self.cells[prim as usize]));
         (self.frame.to_leaf(min), self.frame.to_leaf(max))
     }
 }
@@ -200,7 +208,8 @@ impl AttributeGenerator for VolumeAttributes<'_> {
             let mut q = g;
             p[a] += 0.5;
             q[a] -= 0.5;
-            grad[a] = (self.field.trilinear(p) - self.field.trilinear(q)) / self.field.vol.spacing[a];
+            grad[a] =
+                (self.field.trilinear(p) - self.field.trilinear(q)) / self.field.vol.spacing[a];
         }
         // Surfaces face from dense material towards empty space.
         let normal = grad.map(|v| -v as f32);

@@ -1,0 +1,306 @@
+//! The `arbor-server` binary, run as a user would: import/list/info/verify/remove on a real scan,
+//! every bad input of the corpus through the CLI (clear message, non-zero exit, no panic, pool
+//! untouched), and imports killed with SIGKILL at many points (scene absent or complete).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use arbor_server::pool::Pool;
+
+#[path = "../../tests/src/corpus.rs"]
+mod corpus;
+
+fn bin() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_arbor-server"));
+    c.env("RUST_LOG", "warn");
+    c
+}
+
+fn data(rel: &str) -> PathBuf {
+    let p = corpus::data_dir().join(rel);
+    assert!(p.exists(), "real scan {} missing", p.display());
+    p
+}
+
+fn run(args: &[&str]) -> Output {
+    bin().args(args).output().expect("running arbor-server")
+}
+
+fn text(o: &Output) -> (String, String) {
+    (
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+fn ok(args: &[&str]) -> String {
+    let o = run(args);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{args:?} failed: {err}\n{out}");
+    out
+}
+
+fn db_arg(dir: &Path) -> String {
+    dir.to_str().unwrap().to_owned()
+}
+
+#[test]
+fn import_list_info_verify_remove() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = db_arg(dir.path());
+    let bunny = data("meshes/stanford-bunny.obj");
+    let bunny = bunny.to_str().unwrap();
+    let out = ok(&["import", "--db", &db, "--scene", "bunny", "--quiet", bunny]);
+    assert!(out.contains("69451 primitives"), "{out}");
+    assert!(out.contains("(auto)"), "{out}");
+    let list = ok(&["list", "--db", &db]);
+    assert!(
+        list.lines()
+            .any(|l| l.starts_with("bunny ") && l.contains("mesh") && l.contains("normal")),
+        "{list}"
+    );
+    let info = ok(&["info", "--db", &db, "--scene", "bunny"]);
+    for field in [
+        "treelets",
+        "voxels",
+        "bytes/voxel",
+        "build",
+        "peak RSS",
+        "channels         normal",
+    ] {
+        assert!(info.contains(field), "info lacks {field}: {info}");
+    }
+    let v = ok(&["verify", "--db", &db, "--scene", "bunny"]);
+    assert!(v.contains("ok: every invariant holds"), "{v}");
+    // A second import of the same name is refused, --replace is accepted.
+    let o = run(&["import", "--db", &db, "--scene", "bunny", "--quiet", bunny]);
+    assert!(!o.status.success());
+    assert!(text(&o).1.contains("already exists"), "{}", text(&o).1);
+    ok(&[
+        "import",
+        "--db",
+        &db,
+        "--scene",
+        "bunny",
+        "--quiet",
+        "--replace",
+        "--treelet-bytes",
+        "1024",
+        bunny,
+    ]);
+    assert!(ok(&["info", "--db", &db, "--scene", "bunny"]).contains("of 1024 bytes"));
+    ok(&["remove", "--db", &db, "--scene", "bunny"]);
+    let o = run(&["info", "--db", &db, "--scene", "bunny"]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).1.contains("no scene named \"bunny\""),
+        "{}",
+        text(&o).1
+    );
+}
+
+#[test]
+fn help_has_examples_and_bad_parameters_are_named() {
+    let h = ok(&["--help"]);
+    assert!(h.contains("Examples:") && h.contains("import --db"), "{h}");
+    let h = ok(&["import", "--help"]);
+    assert!(h.contains("--depth") && h.contains("Examples:"), "{h}");
+    let dir = tempfile::tempdir().unwrap();
+    let db = db_arg(dir.path());
+    let bunny = data("meshes/stanford-bunny.obj");
+    for (args, needle) in [
+        (vec!["--depth", "99"], "depth 99 exceeds"),
+        (vec!["--depth", "deep"], "neither a depth nor 'auto'"),
+        (vec!["--treelet-bytes", "100"], "treelet size"),
+        (vec!["--treelet-bytes", "1000000"], "treelet size"),
+        (vec!["--iso", "NaN"], "not a finite number"),
+        (vec!["--raw-dims", "0,1,2"], "dimensions must be positive"),
+        (vec!["--zstd-level", "99"], "zstd-level"),
+    ] {
+        let mut a = vec!["import", "--db", &db, "--scene", "x", "--quiet"];
+        a.extend(args.iter());
+        a.push(bunny.to_str().unwrap());
+        let o = run(&a);
+        let (_, err) = text(&o);
+        assert!(!o.status.success(), "{args:?} accepted");
+        assert!(err.contains(needle), "{args:?}: {err}");
+        assert!(!err.contains("panicked"), "{err}");
+    }
+    let o = run(&[
+        "import",
+        "--db",
+        &db,
+        "--scene",
+        "../evil",
+        "--quiet",
+        bunny.to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    assert!(text(&o).1.contains("scene name"), "{}", text(&o).1);
+}
+
+#[test]
+fn bad_inputs_fail_cleanly_and_leave_the_pool_untouched() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = db_arg(dir.path());
+    let bunny = data("meshes/stanford-bunny.obj");
+    ok(&[
+        "import",
+        "--db",
+        &db,
+        "--scene",
+        "good",
+        "--quiet",
+        "--depth",
+        "5",
+        bunny.to_str().unwrap(),
+    ]);
+    let before = ok(&["list", "--db", &db]);
+    let files = tempfile::tempdir().unwrap();
+    let cases = corpus::bad_inputs();
+    assert!(cases.len() >= 20);
+    let mut failures = Vec::new();
+    for case in &cases {
+        let path = files.path().join(&case.file_name);
+        std::fs::write(&path, &case.bytes).unwrap();
+        let mut args: Vec<String> = ["import", "--db", &db, "--scene", "bad", "--quiet"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        if let Some(r) = &case.raw {
+            args.push(format!(
+                "--raw-dims={},{},{}",
+                r.dims[0], r.dims[1], r.dims[2]
+            ));
+            args.push(format!("--raw-type={}", r.sample.name()));
+            args.push(format!(
+                "--raw-spacing={},{},{}",
+                r.spacing[0], r.spacing[1], r.spacing[2]
+            ));
+            if r.big_endian {
+                args.push("--raw-big-endian".into());
+            }
+        }
+        args.push(path.to_str().unwrap().to_owned());
+        let o = bin().args(&args).output().unwrap();
+        let (_, err) = text(&o);
+        if o.status.success() {
+            failures.push(format!("{}: accepted", case.name));
+        } else if o.status.code() != Some(1) {
+            failures.push(format!(
+                "{}: exit {:?} (killed or panicked?)",
+                case.name, o.status
+            ));
+        } else if err.contains("panicked") {
+            failures.push(format!("{}: panicked: {err}", case.name));
+        } else if !err.to_lowercase().contains(&case.expect.to_lowercase()) {
+            failures.push(format!(
+                "{}: message lacks {:?}: {err}",
+                case.name, case.expect
+            ));
+        }
+    }
+    assert!(
+        failures.is_empty(),
+        "{} of {} cases:\n{}",
+        failures.len(),
+        cases.len(),
+        failures.join("\n")
+    );
+    assert_eq!(
+        ok(&["list", "--db", &db]),
+        before,
+        "a failed import changed the pool"
+    );
+    assert!(ok(&["verify", "--db", &db, "--scene", "good"]).contains("ok"));
+    let pool = Pool::open(dir.path()).unwrap();
+    assert_eq!(
+        pool.stored_generations().len(),
+        1,
+        "a failed import left trees behind"
+    );
+}
+
+#[test]
+fn sigkill_mid_import_leaves_no_half_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = db_arg(dir.path());
+    let bunny = data("meshes/stanford-bunny.obj");
+    ok(&[
+        "import",
+        "--db",
+        &db,
+        "--scene",
+        "good",
+        "--quiet",
+        "--depth",
+        "5",
+        bunny.to_str().unwrap(),
+    ]);
+    let lion = data("points/lion_takanawa.copc.laz");
+    let import = |name: &str| {
+        bin()
+            .args([
+                "import",
+                "--db",
+                &db,
+                "--scene",
+                name,
+                "--quiet",
+                "--treelet-bytes",
+                "1024",
+            ])
+            .arg(&lion)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap()
+    };
+    // How long a whole import takes here, to spread the kills over it.
+    let t = Instant::now();
+    assert!(import("timing").wait().unwrap().success());
+    let full = t.elapsed();
+    ok(&["remove", "--db", &db, "--scene", "timing"]);
+    let mut killed_mid_way = 0;
+    for k in 0..8u32 {
+        let name = format!("killed{k}");
+        let mut child = import(&name);
+        std::thread::sleep(full.mul_f64(f64::from(k) / 8.0 + 0.02));
+        if child.try_wait().unwrap().is_none() {
+            killed_mid_way += 1;
+        }
+        child.kill().unwrap(); // SIGKILL
+        child.wait().unwrap();
+        let list = ok(&["list", "--db", &db]);
+        assert!(list.contains("good "), "{list}");
+        for line in list.lines().skip(1) {
+            let scene = line.split_whitespace().next().unwrap();
+            let v = ok(&["verify", "--db", &db, "--scene", scene]);
+            assert!(
+                v.contains("ok: every invariant holds"),
+                "{scene} after kill {k}: {v}"
+            );
+        }
+        if list.contains(&format!("{name} ")) {
+            ok(&["remove", "--db", &db, "--scene", &name]);
+        }
+    }
+    assert!(
+        killed_mid_way >= 4,
+        "only {killed_mid_way} kills landed during an import"
+    );
+    // Reopened after the kills: only the surviving scene's trees remain on disk.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let pool = loop {
+        match Pool::open(dir.path()) {
+            Ok(p) => break p,
+            Err(e) if Instant::now() > deadline => panic!("{e}"),
+            Err(_) => std::thread::sleep(Duration::from_millis(50)),
+        }
+    };
+    assert_eq!(
+        pool.stored_generations(),
+        vec![pool.scene("good").unwrap().generation]
+    );
+}
