@@ -264,19 +264,34 @@ fn run(cli: Cli) -> Result<ExitCode> {
         Command::List { db } => {
             let pool = open(&db)?;
             println!(
-                "{:<24} {:>7} {:>6} {:>10} {:>12} {:>12}  channels",
-                "scene", "kind", "depth", "treelets", "voxels", "bytes"
+                "{:<20} {:>6} {:>9} {:>5} {:>6} {:>9} {:>10} {:>11} {:>6} {:>8} {:>8}  channels",
+                "scene",
+                "kind",
+                "prims",
+                "depth",
+                "tl KiB",
+                "treelets",
+                "voxels",
+                "pool bytes",
+                "B/vox",
+                "build s",
+                "RSS MiB"
             );
             for d in pool.scenes()? {
                 let bytes = d.stats.node_bytes + d.stats.channel_bytes.iter().sum::<u64>();
                 println!(
-                    "{:<24} {:>7} {:>6} {:>10} {:>12} {:>12}  {}",
+                    "{:<20} {:>6} {:>9} {:>5} {:>6} {:>9} {:>10} {:>11} {:>6.2} {:>8.2} {:>8.1}  {}",
                     d.name,
                     format!("{:?}", d.source_kind).to_lowercase(),
+                    d.primitives,
                     d.max_depth,
+                    d.build.treelet_bytes / 1024,
                     d.treelet_count,
                     d.stats.voxels,
                     bytes,
+                    bytes as f64 / d.stats.voxels.max(1) as f64,
+                    d.stats.build_seconds,
+                    d.stats.peak_rss_bytes as f64 / f64::from(1 << 20),
                     channel_names(&d)
                 );
             }
