@@ -109,6 +109,26 @@ impl Channel {
         self.encode(&sum, out);
     }
 
+    /// Stable one-byte id of the channel on the wire (`wire` frames and treelet messages):
+    /// colour 0, normal 1, density 2. Never renumbered; new channels take new ids.
+    pub const fn id(self) -> u8 {
+        match self {
+            Channel::Color => 0,
+            Channel::Normal => 1,
+            Channel::Density => 2,
+        }
+    }
+
+    /// Inverse of [`Channel::id`]; `None` for an id this build does not know.
+    pub const fn from_id(id: u8) -> Option<Channel> {
+        match id {
+            0 => Some(Channel::Color),
+            1 => Some(Channel::Normal),
+            2 => Some(Channel::Density),
+            _ => None,
+        }
+    }
+
     /// Whether two records differ by at most one quantization step per component.
     pub fn within_one_step(self, a: &[u8], b: &[u8]) -> bool {
         match self {
@@ -264,6 +284,14 @@ mod tests {
         assert_eq!(l.channels(), &[Channel::Color, Channel::Normal]);
         assert_eq!(l.bytes_per_voxel(), 7);
         assert!(l.validate().is_ok());
+    }
+
+    #[test]
+    fn channel_ids_round_trip() {
+        for c in Channel::ALL {
+            assert_eq!(Channel::from_id(c.id()), Some(c));
+        }
+        assert!((3..=u8::MAX).all(|id| Channel::from_id(id).is_none()));
     }
 
     proptest! {

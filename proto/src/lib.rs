@@ -3,17 +3,21 @@
 //! This crate owns every format that crosses a boundary: the 64-bit [`Node`] and the fixed-size
 //! [`Treelet`] (DESIGN §2), exact integer cell coordinates ([`Cell`]), the [`SceneDescription`] with
 //! its [`AttributeLayout`], the binary encoding of treelets and attribute blocks with zstd
-//! compression ([`codec`]), and the explicit [`limits`]. Server and client both depend on it, so a
+//! compression ([`codec`]), the explicit [`limits`], and the network protocol: its vocabulary
+//! ([`wire`]: ALPN, control frames, error codes) and byte layout ([`frame`]: bounded frame
+//! decoding, treelet messages). Server and client both depend on it, so a
 //! format change is made once, here, and round-trip tests keep both sides honest.
 
 pub mod attribute;
 pub mod cell;
 pub mod codec;
 pub mod error;
+pub mod frame;
 pub mod limits;
 pub mod node;
 pub mod scene;
 pub mod treelet;
+pub mod wire;
 
 pub use attribute::{AttributeLayout, Channel};
 pub use cell::Cell;

@@ -23,3 +23,40 @@ pub const MAX_DICTIONARY_BYTES: usize = 1 << 20;
 pub const MAX_SCENE_DESCRIPTION_BYTES: usize = 8 << 20;
 /// Longest scene name.
 pub const MAX_SCENE_NAME: usize = 128;
+
+// ---- network protocol (`wire`, `frame`) ----
+//
+// Frame lengths below are *payload* lengths: the value of a control frame's `u32` length prefix,
+// which counts neither the prefix itself nor the frame-type byte
+// ([`FRAME_HEADER_BYTES`]).
+
+/// Bytes in front of every control-frame payload: `u32` payload length + `u8` frame type.
+pub const FRAME_HEADER_BYTES: usize = 5;
+/// Largest payload of every control frame except `SceneInfo` — in particular of everything a
+/// client sends. A `RequestList` of [`MAX_REQUEST_ITEMS`] items takes 12 + 8 × 65,536 bytes
+/// (512 KiB), half of this.
+pub const MAX_FRAME_BYTES: usize = 1 << 20;
+/// Largest payload of any control frame: `SceneInfo`, whose payload is exactly an encoded
+/// scene description (which may embed zstd dictionaries), so the limit is
+/// [`MAX_SCENE_DESCRIPTION_BYTES`]; the frame header comes on top. Only a client ever has to
+/// accept a frame this large; a server decodes client frames with [`MAX_FRAME_BYTES`].
+pub const MAX_CONTROL_FRAME_BYTES: usize = MAX_SCENE_DESCRIPTION_BYTES;
+/// Most `(treelet, priority)` items in one request list.
+pub const MAX_REQUEST_ITEMS: usize = 65_536;
+/// Longest access token in a `Hello`, in bytes of UTF-8.
+pub const MAX_TOKEN_BYTES: usize = 4096;
+/// Longest human-readable message of an `Error` frame, in bytes of UTF-8.
+pub const MAX_MESSAGE_BYTES: usize = 1024;
+/// Header of a treelet message with the most channels: id, used nodes, channel count,
+/// [`MAX_CHANNELS`] × (channel id, block length), node block length.
+pub const MAX_TREELET_MESSAGE_HEADER: usize = 4 + 2 + 1 + MAX_CHANNELS * 5 + 4;
+/// Largest treelet message: its header, a node block and [`MAX_CHANNELS`] channel blocks, each
+/// at most [`MAX_COMPRESSED_BLOCK`].
+pub const MAX_TREELET_MESSAGE_BYTES: usize =
+    MAX_TREELET_MESSAGE_HEADER + (1 + MAX_CHANNELS) * MAX_COMPRESSED_BLOCK;
+
+const _: () = assert!(12 + 8 * MAX_REQUEST_ITEMS <= MAX_FRAME_BYTES);
+const _: () =
+    assert!(2 + 2 + MAX_SCENE_NAME + 1 + MAX_CHANNELS + 2 + MAX_TOKEN_BYTES <= MAX_FRAME_BYTES);
+const _: () = assert!(MAX_FRAME_BYTES <= MAX_CONTROL_FRAME_BYTES);
+const _: () = assert!(MAX_CONTROL_FRAME_BYTES <= u32::MAX as usize);

@@ -47,6 +47,10 @@ pub struct SceneStats {
     /// Uncompressed bytes (nodes + attributes) of the used records.
     pub raw_bytes: u64,
     pub build_seconds: f64,
+    /// Bytes of primitive id lists written to the builder's spill file.
+    pub spilled_bytes: u64,
+    /// Most bytes of primitive id lists the builder held in memory at once (≤ its budget).
+    pub peak_list_bytes: u64,
     /// Peak resident set of the importing process.
     pub peak_rss_bytes: u64,
 }

@@ -106,3 +106,54 @@ fn lion_geometry_is_exact() {
 fn engine_geometry_is_exact() {
     geometry_matches_brute_force(5, 6, 4096);
 }
+
+/// The memory budget bounds the builder's id lists and changes nothing in the result: a budget
+/// far below the lists' size spills to disk and yields the very same scene, byte for byte.
+#[test]
+fn tiny_memory_budget_builds_the_same_scene() {
+    for (index, treelet_bytes) in [(4, 1024), (1, 4096)] {
+        let (name, rel) = SCANS[index];
+        let roomy = build_file(rel, name, &opts(treelet_bytes, DepthChoice::Auto));
+        let budget = 64 << 10;
+        let tight = build_file(
+            rel,
+            name,
+            &BuildOptions {
+                memory_budget: budget,
+                ..opts(treelet_bytes, DepthChoice::Auto)
+            },
+        );
+        let (a, b) = (&roomy.scene.description, &tight.scene.description);
+        assert_eq!(
+            a.stats.spilled_bytes, 0,
+            "{name}: the default budget should not spill"
+        );
+        assert!(
+            b.stats.spilled_bytes > 1 << 20,
+            "{name}: spilled only {}",
+            b.stats.spilled_bytes
+        );
+        assert!(
+            b.stats.peak_list_bytes <= budget as u64,
+            "{name}: peak {} over the budget {budget}",
+            b.stats.peak_list_bytes
+        );
+        assert!(
+            a.stats.peak_list_bytes > budget as u64,
+            "{name}: test budget not tight"
+        );
+        assert_eq!(a.treelet_count, b.treelet_count);
+        assert_eq!(a.stats.voxels, b.stats.voxels);
+        assert_eq!(a.stats.node_bytes, b.stats.node_bytes);
+        assert_eq!(a.stats.channel_bytes, b.stats.channel_bytes);
+        for id in 0..a.treelet_count {
+            let id = arbor_proto::TreeletId(id);
+            assert_eq!(
+                roomy.scene.nodes(id).unwrap(),
+                tight.scene.nodes(id).unwrap(),
+                "{name} treelet {id}"
+            );
+        }
+        assert_verifies(&tight.scene);
+    }
+}

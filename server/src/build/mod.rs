@@ -12,6 +12,7 @@
 //!    (the pool) in id order.
 
 pub mod geometry;
+pub mod idlist;
 pub mod pending;
 pub mod points;
 pub mod treelet_builder;
@@ -35,6 +36,7 @@ use rayon::prelude::*;
 
 use crate::source::{ColumnError, Source};
 use geometry::{Frame, depth_for_resolution};
+use idlist::{Budget, IdList, Lists, SpillFile};
 use pending::PendingQueue;
 pub use treelet_builder::{AttributeGenerator, TreeletBuilder, fill_treelet};
 use treelet_builder::{FilledTreelet, TreeletJob};
@@ -58,7 +60,7 @@ pub struct BuildOptions {
     pub zstd_level: i32,
     /// Train per-stream zstd dictionaries.
     pub dictionary: bool,
-    /// Bytes of pending primitive lists kept in memory before spilling to disk.
+    /// Bytes of primitive id lists held in memory; beyond it lists stream through a spill file.
     pub memory_budget: usize,
     /// Draw progress bars on stderr.
     pub progress: bool,
@@ -232,6 +234,8 @@ pub fn build_scene(
     let mut stats = SceneStats {
         voxels: fill.used_nodes - u64::from(fill.treelets - 1),
         leaf_voxels: fill.leaf_voxels,
+        spilled_bytes: fill.spilled_bytes,
+        peak_list_bytes: fill.peak_list_bytes,
         ..SceneStats::default()
     };
     let (node_dictionary, channel_dictionaries) = if opts.dictionary {
@@ -333,6 +337,8 @@ struct Filled {
     treelets: u32,
     used_nodes: u64,
     leaf_voxels: u64,
+    spilled_bytes: u64,
+    peak_list_bytes: u64,
 }
 
 /// Fixed-size scratch records: raw treelet encoding padded to `HEADER + N·8`, then `N × bpv`
@@ -415,7 +421,11 @@ fn fill_all(
         capacity,
         bpv: attributes.bytes_per_voxel(),
     };
-    let mut queue = PendingQueue::new(scratch, opts.memory_budget);
+    let lists = Lists {
+        budget: Budget::new(opts.memory_budget),
+        spill: SpillFile::create(scratch)?,
+    };
+    let mut queue = PendingQueue::new(&lists);
     queue.push(TreeletJob {
         id: TreeletId::ROOT,
         parent_id: TreeletId::NONE,
@@ -423,7 +433,7 @@ fn fill_all(
         parent_leaf_parent_index: 0,
         child_index_in_parent: 0,
         root: Cell::ROOT,
-        prims: (0..builder.primitive_count()).collect(),
+        prims: IdList::Range(0..builder.primitive_count()),
     })?;
     let mut next_id: u64 = 1;
     let mut written = 0u32;
@@ -437,14 +447,15 @@ fn fill_all(
         let mut batch_bytes = 0usize;
         while batch.len() < batch_target && batch_bytes < opts.memory_budget.max(1 << 20) {
             let Some(job) = queue.pop()? else { break };
-            batch_bytes += job.prims.len() * 4;
+            batch_bytes += job.prims.memory_bytes();
             batch.push(job);
         }
-        let filled: Vec<FilledTreelet> = batch
+        let filled: Vec<std::io::Result<FilledTreelet>> = batch
             .into_par_iter()
-            .map(|job| fill_treelet(builder, attributes, job, capacity, depth))
+            .map(|job| fill_treelet(builder, attributes, job, capacity, depth, &lists))
             .collect();
-        for mut f in filled {
+        for f in filled {
+            let mut f = f?;
             let id = f.treelet.header.id;
             debug_assert_eq!(id.0, written);
             for leaf in f.pending.drain(..) {
@@ -483,10 +494,12 @@ fn fill_all(
         pb.tick();
     }
     pb.finish_and_clear();
-    if queue.spilled_bytes > 0 {
+    let spilled_bytes = lists.spill.bytes_written();
+    if spilled_bytes > 0 {
         tracing::info!(
-            spilled_bytes = queue.spilled_bytes,
-            "pending primitive lists spilled to disk"
+            spilled_bytes,
+            budget = opts.memory_budget,
+            "primitive lists spilled to disk"
         );
     }
     Ok(Filled {
@@ -494,6 +507,8 @@ fn fill_all(
         treelets: written,
         used_nodes,
         leaf_voxels,
+        spilled_bytes,
+        peak_list_bytes: lists.budget.peak() as u64,
     })
 }
 

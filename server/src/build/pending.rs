@@ -1,59 +1,25 @@
-//! The FIFO of treelets still to build, with their primitive lists. Lists are kept in memory up
-//! to a byte budget; beyond it they are spilled to a scratch file and read back when their turn
-//! comes, so the builder's working set stays bounded however large the input.
+//! The FIFO of treelets still to build. Their primitive lists are [`IdList`]s under the build's
+//! memory budget: a job queued while the budget is more than half used has its list moved to the
+//! spill file, and a spilled list is brought back into memory when its job is taken, if the
+//! budget has room then. So queued work never crowds out the lists of the treelets being filled.
 
 use std::collections::VecDeque;
-use std::fs::File;
-use std::io::{BufWriter, Seek, SeekFrom, Write};
-use std::os::unix::fs::FileExt;
-use std::path::{Path, PathBuf};
 
+use super::idlist::Lists;
 use super::treelet_builder::TreeletJob;
 
-enum Prims {
-    Memory(Vec<u32>),
-    Spilled { offset: u64, len: u32 },
-}
-
-struct Queued {
-    job: TreeletJob,
-    prims: Prims,
-}
-
-/// FIFO of [`TreeletJob`]s whose primitive lists spill to disk beyond `budget` bytes.
+/// FIFO of [`TreeletJob`]s whose primitive lists spill to disk under memory pressure.
+#[derive(Debug)]
 pub struct PendingQueue {
-    queue: VecDeque<Queued>,
-    in_memory: usize,
-    budget: usize,
-    spill_path: PathBuf,
-    spill: Option<BufWriter<File>>,
-    spill_reader: Option<File>,
-    spill_len: u64,
-    /// Bytes written to the spill file over the whole build.
-    pub spilled_bytes: u64,
-}
-
-impl std::fmt::Debug for PendingQueue {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("PendingQueue")
-            .field("len", &self.queue.len())
-            .field("in_memory", &self.in_memory)
-            .field("spilled_bytes", &self.spilled_bytes)
-            .finish()
-    }
+    queue: VecDeque<TreeletJob>,
+    lists: Lists,
 }
 
 impl PendingQueue {
-    pub fn new(scratch: &Path, budget: usize) -> Self {
+    pub fn new(lists: &Lists) -> Self {
         Self {
             queue: VecDeque::new(),
-            in_memory: 0,
-            budget,
-            spill_path: scratch.join("pending.spill"),
-            spill: None,
-            spill_reader: None,
-            spill_len: 0,
-            spilled_bytes: 0,
+            lists: lists.clone(),
         }
     }
 
@@ -65,72 +31,23 @@ impl PendingQueue {
         self.queue.is_empty()
     }
 
-    /// Bytes of primitive lists currently held in memory.
-    pub fn bytes_in_memory(&self) -> usize {
-        self.in_memory
-    }
-
     pub fn push(&mut self, mut job: TreeletJob) -> std::io::Result<()> {
-        let list = std::mem::take(&mut job.prims);
-        let bytes = list.len() * 4;
-        let prims = if self.in_memory + bytes <= self.budget {
-            self.in_memory += bytes;
-            Prims::Memory(list)
-        } else {
-            if self.spill.is_none() {
-                let f = File::options()
-                    .create(true)
-                    .truncate(true)
-                    .read(true)
-                    .write(true)
-                    .open(&self.spill_path)?;
-                self.spill_reader = Some(f.try_clone()?);
-                self.spill = Some(BufWriter::with_capacity(1 << 20, f));
-            }
-            let w = self.spill.as_mut().expect("opened above");
-            let offset = self.spill_len;
-            w.write_all(bytemuck::cast_slice(&list))?;
-            self.spill_len += bytes as u64;
-            self.spilled_bytes += bytes as u64;
-            Prims::Spilled {
-                offset,
-                len: list.len() as u32,
-            }
-        };
-        self.queue.push_back(Queued { job, prims });
+        let budget = &self.lists.budget;
+        if job.prims.memory_bytes() > 0 && budget.used() > budget.limit() / 2 {
+            let prims = std::mem::replace(&mut job.prims, super::idlist::IdList::Range(0..0));
+            job.prims = prims.spill(&self.lists)?;
+        }
+        self.queue.push_back(job);
         Ok(())
     }
 
-    /// Takes the next job with its primitive list loaded.
+    /// Takes the next job, its list loaded into memory when the budget allows.
     pub fn pop(&mut self) -> std::io::Result<Option<TreeletJob>> {
-        let Some(q) = self.queue.pop_front() else {
+        let Some(mut job) = self.queue.pop_front() else {
             return Ok(None);
         };
-        let mut job = q.job;
-        job.prims = match q.prims {
-            Prims::Memory(v) => {
-                self.in_memory -= v.len() * 4;
-                v
-            }
-            Prims::Spilled { offset, len } => {
-                if let Some(w) = self.spill.as_mut() {
-                    w.flush()?;
-                }
-                let mut v = vec![0u32; len as usize];
-                let reader = self.spill_reader.as_ref().expect("spill file open");
-                reader.read_exact_at(bytemuck::cast_slice_mut(&mut v), offset)?;
-                v
-            }
-        };
-        if self.queue.is_empty() {
-            // Everything spilled has been read back: start the file over.
-            if let Some(w) = self.spill.as_mut() {
-                w.flush()?;
-                w.get_mut().set_len(0)?;
-                w.get_mut().seek(SeekFrom::Start(0))?;
-            }
-            self.spill_len = 0;
-        }
+        let prims = std::mem::replace(&mut job.prims, super::idlist::IdList::Range(0..0));
+        job.prims = prims.load(&self.lists)?;
         Ok(Some(job))
     }
 }
@@ -138,9 +55,14 @@ impl PendingQueue {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::build::idlist::{Budget, IdList, ListWriter, SpillFile};
     use arbor_proto::{Cell, TreeletId};
 
-    fn job(i: u32, n: u32) -> TreeletJob {
+    fn job(lists: &Lists, i: u32, n: u32) -> TreeletJob {
+        let mut w = ListWriter::new(lists);
+        for p in i..i + n {
+            w.push(p);
+        }
         TreeletJob {
             id: TreeletId(i),
             parent_id: TreeletId::NONE,
@@ -148,27 +70,37 @@ mod tests {
             parent_leaf_parent_index: 0,
             child_index_in_parent: 0,
             root: Cell::ROOT,
-            prims: (i..i + n).collect(),
+            prims: w.finish().unwrap(),
         }
     }
 
     #[test]
-    fn spills_beyond_budget_and_keeps_order() {
+    fn spills_under_pressure_and_keeps_order() {
         let dir = tempfile::tempdir().unwrap();
-        let mut q = PendingQueue::new(dir.path(), 4 * 100);
+        let lists = Lists {
+            budget: Budget::new(1 << 20),
+            spill: SpillFile::create(dir.path()).unwrap(),
+        };
+        let mut q = PendingQueue::new(&lists);
         for i in 0..10 {
-            q.push(job(i, 60)).unwrap();
-            assert!(q.bytes_in_memory() <= 400);
+            q.push(job(&lists, i * 100_000, 60_000)).unwrap();
+            assert!(lists.budget.used() <= lists.budget.limit());
         }
-        assert!(q.spilled_bytes > 0);
+        assert!(lists.spill.bytes_written() > 0, "nothing spilled");
         for i in 0..10 {
             let j = q.pop().unwrap().unwrap();
-            assert_eq!(j.id, TreeletId(i));
-            assert_eq!(j.prims, (i..i + 60).collect::<Vec<_>>());
+            assert_eq!(j.id, TreeletId(i * 100_000));
+            let mut got = Vec::new();
+            j.prims
+                .for_each_chunk(|c| got.extend_from_slice(c))
+                .unwrap();
+            assert_eq!(got, (i * 100_000..i * 100_000 + 60_000).collect::<Vec<_>>());
+            assert!(
+                matches!(j.prims, IdList::Memory { .. }),
+                "loaded back when room"
+            );
         }
         assert!(q.pop().unwrap().is_none());
-        // Reusable after draining.
-        q.push(job(50, 200)).unwrap();
-        assert_eq!(q.pop().unwrap().unwrap().prims.len(), 200);
+        assert_eq!(lists.budget.used(), 0);
     }
 }

@@ -9,6 +9,13 @@ use std::collections::VecDeque;
 
 use arbor_proto::{Cell, Node, Treelet, TreeletHeader, TreeletId};
 
+use super::idlist::{IdList, ListWriter, Lists};
+
+/// Leaf attributes of a voxel touched by more primitives than this are computed from the first
+/// this many (an unbiased enough sample for a mean, and a bound on memory for degenerate inputs
+/// such as millions of identical points).
+const MAX_LEAF_SAMPLE: usize = 1 << 20;
+
 /// Classifies primitives against voxels. Implemented per input kind.
 pub trait TreeletBuilder: Sync {
     /// Number of primitives; ids are `0..count`.
@@ -68,7 +75,7 @@ pub struct TreeletJob {
     pub parent_leaf_parent_index: u16,
     pub child_index_in_parent: u8,
     pub root: Cell,
-    pub prims: Vec<u32>,
+    pub prims: IdList,
 }
 
 /// A refinable leaf left for a child treelet; `first_child` is patched once its id is known.
@@ -78,7 +85,7 @@ pub struct PendingLeaf {
     pub parent_local_index: u16,
     pub child_index: u8,
     pub cell: Cell,
-    pub prims: Vec<u32>,
+    pub prims: IdList,
 }
 
 /// A filled treelet: nodes, leaf attributes (inner and refinable leaves still zero) and the
@@ -100,10 +107,35 @@ struct Pending {
     parent: u32,
     child_index: u8,
     cell: Cell,
-    prims: Vec<u32>,
+    prims: IdList,
 }
 
-/// Partitions `prims` of `cell` into its 8 children.
+/// Partitions `prims` of `cell` into its 8 children, keeping the lists within the budget.
+fn partition_list(
+    b: &dyn TreeletBuilder,
+    cell: Cell,
+    prims: &IdList,
+    lists: &Lists,
+) -> std::io::Result<[IdList; 8]> {
+    let mut out: [ListWriter; 8] = std::array::from_fn(|_| ListWriter::new(lists));
+    prims.for_each_chunk(|chunk| {
+        for &p in chunk {
+            let mut m = b.child_mask(p, cell);
+            while m != 0 {
+                let i = m.trailing_zeros() as usize;
+                out[i].push(p);
+                m &= m - 1;
+            }
+        }
+    })?;
+    let mut lists_out = Vec::with_capacity(8);
+    for w in out {
+        lists_out.push(w.finish()?);
+    }
+    Ok(lists_out.try_into().expect("eight lists"))
+}
+
+/// Partitions an in-memory slice (the bounded dry run of [`subtree_size`]).
 fn partition(b: &dyn TreeletBuilder, cell: Cell, prims: &[u32]) -> [Vec<u32>; 8] {
     let mut out: [Vec<u32>; 8] = Default::default();
     for &p in prims {
@@ -124,7 +156,8 @@ pub fn fill_treelet(
     job: TreeletJob,
     capacity: u32,
     max_depth: u8,
-) -> FilledTreelet {
+    lists: &Lists,
+) -> std::io::Result<FilledTreelet> {
     let bpv = attributes.bytes_per_voxel();
     let mut nodes = vec![Node::default(); capacity as usize];
     let mut attrs = vec![0u8; capacity as usize * bpv];
@@ -155,10 +188,15 @@ pub fn fill_treelet(
             nodes[p.local as usize] = Node::leaf(Node::NONE);
             mark_leaf(nodes, p);
             let k = p.local as usize * bpv;
-            attributes.leaf(p.cell, &p.prims, &mut attrs[k..k + bpv]);
+            let out = &mut attrs[k..k + bpv];
+            match p.prims.as_slice() {
+                Some(s) => attributes.leaf(p.cell, &s[..s.len().min(MAX_LEAF_SAMPLE)], out),
+                None => attributes.leaf(p.cell, &p.prims.prefix(MAX_LEAF_SAMPLE)?, out),
+            }
+            Ok::<(), std::io::Error>(())
         };
         if p.cell.depth >= max_depth {
-            final_leaf(&mut nodes, &mut attrs, &p);
+            final_leaf(&mut nodes, &mut attrs, &p)?;
             leaf_voxels += 1;
             continue;
         }
@@ -169,8 +207,18 @@ pub fn fill_treelet(
         // treelet but does not fit here is cut whole rather than split into small pieces.
         let mut included = p.included;
         let mut cut = false;
-        if !included && p.prims.len() <= 64 * capacity as usize {
-            match subtree_size(builder, p.cell, &p.prims, max_depth, u64::from(capacity)) {
+        // Only lists of up to 64·N ids get the dry run (bounded work); a spilled one is read back
+        // for it, so the result never depends on the memory budget.
+        let small = if !included && p.prims.len() <= 64 * u64::from(capacity) {
+            Some(match p.prims.as_slice() {
+                Some(s) => std::borrow::Cow::Borrowed(s),
+                None => std::borrow::Cow::Owned(p.prims.prefix(p.prims.len() as usize)?),
+            })
+        } else {
+            None
+        };
+        if let Some(prims) = small {
+            match subtree_size(builder, p.cell, &prims, max_depth, u64::from(capacity)) {
                 Some(s) if s <= u64::from(free.saturating_sub(reserved)) => {
                     included = true;
                     reserved += s as u32;
@@ -188,7 +236,7 @@ pub fn fill_treelet(
         };
         // A split needs at least one free record; without any the node is a refinable leaf.
         let children = if room > 0 {
-            Some(partition(builder, p.cell, &p.prims))
+            Some(partition_list(builder, p.cell, &p.prims, lists)?)
         } else {
             None
         };
@@ -197,7 +245,7 @@ pub fn fill_treelet(
         });
         if count == 0 {
             // Rounding left no child touched: the voxel is final at this depth.
-            final_leaf(&mut nodes, &mut attrs, &p);
+            final_leaf(&mut nodes, &mut attrs, &p)?;
             continue;
         }
         if count > room {
@@ -259,10 +307,10 @@ pub fn fill_treelet(
         },
         nodes,
     };
-    FilledTreelet {
+    Ok(FilledTreelet {
         treelet,
         attributes: attrs,
         pending: pending_leaves,
         leaf_voxels,
-    }
+    })
 }

@@ -1,0 +1,271 @@
+//! The Arbor network protocol's vocabulary (DESIGN §6): ALPN, version, control frames and error
+//! codes. The byte layout and its checks live in [`crate::frame`].
+//!
+//! A connection is QUIC with ALPN [`ALPN`]. The client opens one bidirectional **control
+//! stream** and sends [`Frame::Hello`]; the server answers [`Frame::SceneInfo`] or
+//! [`Frame::Error`] (then closes the connection with the same [`ErrorCode`]). From then on the
+//! client sends a [`Frame::RequestList`] whenever its wishes change (every cycle); each list
+//! **replaces** the previous one. Treelets come back on server-opened unidirectional streams as
+//! treelet messages ([`crate::frame::encode_treelet_message`]). Either side may end with
+//! [`Frame::Goodbye`] before closing.
+//!
+//! # Request-list semantics
+//!
+//! * Items are `(treelet id, priority)`; a higher priority is served first, ties by lower id.
+//!   Priorities are any finite `f32` (the client's log-domain screen-space error may be negative);
+//!   NaN and infinities are rejected by the decoder.
+//! * An id may appear more than once; the server treats it as one request with the **largest** of
+//!   its priorities. The decoder keeps the list exactly as sent; the collapse happens in the
+//!   server's scheduler.
+//! * A list whose `seq` is not larger than the last accepted one is stale and ignored (QUIC keeps
+//!   one stream's frames in order, so this only guards against client bugs and future
+//!   multi-stream clients).
+
+use std::fmt;
+
+use crate::attribute::Channel;
+use crate::scene::SceneDescription;
+use crate::treelet::TreeletId;
+
+/// QUIC ALPN of this protocol. A connection that negotiates anything else is refused by the TLS
+/// handshake.
+pub const ALPN: &[u8] = b"arbor/1";
+
+/// Version carried in [`Frame::Hello`]. A server answers any other version with
+/// [`ErrorCode::UnsupportedVersion`].
+pub const PROTOCOL_VERSION: u16 = 1;
+
+/// Why a connection, a stream or a request ended. Sent in [`Frame::Error`] and
+/// [`Frame::Goodbye`], and used unchanged as the QUIC application close code (and stream reset
+/// code), so a client sees the same number whichever way the news reaches it.
+///
+/// The numbers are part of the protocol and never reused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[repr(u32)]
+pub enum ErrorCode {
+    /// Orderly end; nothing went wrong.
+    NoError = 0,
+    /// The peer broke the protocol: garbage bytes, a malformed or unexpected frame, a field out of
+    /// range, a frame other than `Hello` first.
+    ProtocolViolation = 1,
+    /// A control frame announced a payload over the limit
+    /// ([`crate::limits::MAX_FRAME_BYTES`] for client frames).
+    FrameTooLarge = 2,
+    /// A request list over [`crate::limits::MAX_REQUEST_ITEMS`] items.
+    ListTooLong = 3,
+    /// The scene named in `Hello` does not exist (or its name is not a valid scene name).
+    UnknownScene = 4,
+    /// The access token is missing or wrong for the scene.
+    Unauthorized = 5,
+    /// The client speaks a protocol version this server does not.
+    UnsupportedVersion = 6,
+    /// `Hello` asked for more channels than [`crate::limits::MAX_CHANNELS`].
+    TooManyChannels = 7,
+    /// `Hello` asked for a channel that does not exist or that the scene does not store.
+    UnknownChannel = 8,
+    /// The server is at its connection cap; try again later.
+    ServerBusy = 9,
+    /// The server is shutting down; reconnect later (possibly to another replica).
+    ShuttingDown = 10,
+    /// The client did not read its treelet streams and exceeded its memory bound on the server.
+    SlowReader = 11,
+    /// The server failed internally (pool read error, bug). Not the client's fault.
+    Internal = 12,
+    /// A request list named a treelet id the scene does not have.
+    UnknownTreelet = 13,
+}
+
+impl ErrorCode {
+    /// Every code, in numeric order.
+    pub const ALL: [ErrorCode; 14] = [
+        ErrorCode::NoError,
+        ErrorCode::ProtocolViolation,
+        ErrorCode::FrameTooLarge,
+        ErrorCode::ListTooLong,
+        ErrorCode::UnknownScene,
+        ErrorCode::Unauthorized,
+        ErrorCode::UnsupportedVersion,
+        ErrorCode::TooManyChannels,
+        ErrorCode::UnknownChannel,
+        ErrorCode::ServerBusy,
+        ErrorCode::ShuttingDown,
+        ErrorCode::SlowReader,
+        ErrorCode::Internal,
+        ErrorCode::UnknownTreelet,
+    ];
+
+    /// The code's number on the wire.
+    pub const fn to_u32(self) -> u32 {
+        self as u32
+    }
+
+    /// The code of a number, `None` for a number this build does not know.
+    pub fn from_u32(code: u32) -> Option<ErrorCode> {
+        ErrorCode::ALL.get(usize::try_from(code).ok()?).copied()
+    }
+
+    /// Stable snake_case name, for logs and metric labels.
+    pub const fn name(self) -> &'static str {
+        match self {
+            ErrorCode::NoError => "no_error",
+            ErrorCode::ProtocolViolation => "protocol_violation",
+            ErrorCode::FrameTooLarge => "frame_too_large",
+            ErrorCode::ListTooLong => "list_too_long",
+            ErrorCode::UnknownScene => "unknown_scene",
+            ErrorCode::Unauthorized => "unauthorized",
+            ErrorCode::UnsupportedVersion => "unsupported_version",
+            ErrorCode::TooManyChannels => "too_many_channels",
+            ErrorCode::UnknownChannel => "unknown_channel",
+            ErrorCode::ServerBusy => "server_busy",
+            ErrorCode::ShuttingDown => "shutting_down",
+            ErrorCode::SlowReader => "slow_reader",
+            ErrorCode::Internal => "internal",
+            ErrorCode::UnknownTreelet => "unknown_treelet",
+        }
+    }
+}
+
+impl fmt::Display for ErrorCode {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{} ({})", self.name(), self.to_u32())
+    }
+}
+
+/// The one-byte type of a control frame. The numbers are part of the protocol.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[repr(u8)]
+pub enum FrameType {
+    Hello = 1,
+    SceneInfo = 2,
+    RequestList = 3,
+    Error = 4,
+    Goodbye = 5,
+}
+
+impl FrameType {
+    /// The type of a frame-type byte, `None` for an unknown one.
+    pub const fn from_u8(b: u8) -> Option<FrameType> {
+        match b {
+            1 => Some(FrameType::Hello),
+            2 => Some(FrameType::SceneInfo),
+            3 => Some(FrameType::RequestList),
+            4 => Some(FrameType::Error),
+            5 => Some(FrameType::Goodbye),
+            _ => None,
+        }
+    }
+
+    /// Largest payload of a frame of this type: [`crate::limits::MAX_CONTROL_FRAME_BYTES`] for
+    /// `SceneInfo`, [`crate::limits::MAX_FRAME_BYTES`] for every other type.
+    pub const fn max_payload(self) -> usize {
+        match self {
+            FrameType::SceneInfo => crate::limits::MAX_CONTROL_FRAME_BYTES,
+            _ => crate::limits::MAX_FRAME_BYTES,
+        }
+    }
+}
+
+/// One control-stream frame.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Frame {
+    /// Client → server, first frame. Layout: `u16 version`, `u16 len + scene name`,
+    /// `u8 count + channel ids`, `u16 len + token`.
+    Hello {
+        /// Must be [`PROTOCOL_VERSION`].
+        version: u16,
+        /// Scene name (checked with [`crate::scene::validate_scene_name`]).
+        scene: String,
+        /// Channels the client draws; each at most once, at most
+        /// [`crate::limits::MAX_CHANNELS`]. Only these are sent.
+        channels: Vec<Channel>,
+        /// Access token for the scene (empty when the scene needs none), at most
+        /// [`crate::limits::MAX_TOKEN_BYTES`].
+        token: String,
+    },
+    /// Server → client answer to `Hello`: the scene as stored. Payload: the bytes of
+    /// [`SceneDescription::encode`].
+    SceneInfo { description: Box<SceneDescription> },
+    /// Client → server: the treelets it wants now, replacing the previous list. Layout:
+    /// `u64 seq`, `u32 count`, `count × (u32 id, f32 priority)`.
+    RequestList {
+        /// Increases with every list the client sends.
+        seq: u64,
+        /// `(treelet, priority)`, at most [`crate::limits::MAX_REQUEST_ITEMS`], priorities
+        /// finite; see the module docs for duplicates.
+        items: Vec<(TreeletId, f32)>,
+    },
+    /// Either direction: what went wrong, just before the connection is closed with `code`.
+    /// Layout: `u32 code`, `u16 len + message` (at most [`crate::limits::MAX_MESSAGE_BYTES`]).
+    Error { code: ErrorCode, message: String },
+    /// Either direction: orderly end. Layout: `u32 code`.
+    Goodbye { code: ErrorCode },
+}
+
+impl Frame {
+    /// This frame's type.
+    pub fn frame_type(&self) -> FrameType {
+        match self {
+            Frame::Hello { .. } => FrameType::Hello,
+            Frame::SceneInfo { .. } => FrameType::SceneInfo,
+            Frame::RequestList { .. } => FrameType::RequestList,
+            Frame::Error { .. } => FrameType::Error,
+            Frame::Goodbye { .. } => FrameType::Goodbye,
+        }
+    }
+
+    /// An `Error` frame whose message is cut (at a character boundary) to
+    /// [`crate::limits::MAX_MESSAGE_BYTES`], so that any error text can be sent.
+    pub fn error(code: ErrorCode, message: impl Into<String>) -> Frame {
+        let mut message = message.into();
+        if message.len() > crate::limits::MAX_MESSAGE_BYTES {
+            let mut cut = crate::limits::MAX_MESSAGE_BYTES;
+            while !message.is_char_boundary(cut) {
+                cut -= 1;
+            }
+            message.truncate(cut);
+        }
+        Frame::Error { code, message }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn error_codes_round_trip_and_are_dense() {
+        for (i, c) in ErrorCode::ALL.iter().enumerate() {
+            assert_eq!(c.to_u32() as usize, i);
+            assert_eq!(ErrorCode::from_u32(c.to_u32()), Some(*c));
+        }
+        assert_eq!(ErrorCode::from_u32(ErrorCode::ALL.len() as u32), None);
+        assert_eq!(ErrorCode::from_u32(u32::MAX), None);
+        assert_eq!(ErrorCode::SlowReader.to_string(), "slow_reader (11)");
+    }
+
+    #[test]
+    fn frame_types_round_trip() {
+        for t in [
+            FrameType::Hello,
+            FrameType::SceneInfo,
+            FrameType::RequestList,
+            FrameType::Error,
+            FrameType::Goodbye,
+        ] {
+            assert_eq!(FrameType::from_u8(t as u8), Some(t));
+        }
+        assert_eq!(FrameType::from_u8(0), None);
+        assert_eq!(FrameType::from_u8(6), None);
+    }
+
+    #[test]
+    fn error_frame_message_is_cut_at_a_char_boundary() {
+        let long = "é".repeat(crate::limits::MAX_MESSAGE_BYTES);
+        let Frame::Error { message, .. } = Frame::error(ErrorCode::Internal, long) else {
+            unreachable!()
+        };
+        assert!(message.len() <= crate::limits::MAX_MESSAGE_BYTES);
+        assert!(message.len() >= crate::limits::MAX_MESSAGE_BYTES - 1);
+        assert!(message.chars().all(|c| c == 'é'));
+    }
+}
