@@ -4,7 +4,7 @@
 //! # Control frames
 //!
 //! `[u32 LE payload length][u8 frame type][payload]`, the payloads described on
-//! [`Frame`](crate::wire::Frame): hand-written little endian, strings as `u16` length + UTF-8,
+//! [`Frame`]: hand-written little endian, strings as `u16` length + UTF-8,
 //! except `SceneInfo`, whose payload is [`SceneDescription::encode`]'s bytes.
 //!
 //! Reading is two steps, as in mini-redis: [`check`] says whether a whole frame sits at the start
@@ -189,11 +189,9 @@ pub fn check_with_limit(buf: &[u8], max_payload: usize) -> Result<Option<usize>,
 pub fn parse(frame: &[u8]) -> Result<Frame, FrameError> {
     let total = check(frame)?.ok_or(FrameError::Truncated {
         what: "frame",
-        need: frame
-            .first_chunk::<4>()
-            .map_or(FRAME_HEADER_BYTES, |l| {
-                FRAME_HEADER_BYTES + u32::from_le_bytes(*l) as usize
-            }),
+        need: frame.first_chunk::<4>().map_or(FRAME_HEADER_BYTES, |l| {
+            FRAME_HEADER_BYTES + u32::from_le_bytes(*l) as usize
+        }),
         have: frame.len(),
     })?;
     if total != frame.len() {
@@ -345,7 +343,9 @@ pub fn encode(frame: &Frame) -> Result<Vec<u8>, FrameError> {
             put_string(&mut out, "access token", token, MAX_TOKEN_BYTES)?;
         }
         Frame::SceneInfo { description } => {
-            description.validate().map_err(FrameError::SceneDescription)?;
+            description
+                .validate()
+                .map_err(FrameError::SceneDescription)?;
             out.extend_from_slice(&description.encode().map_err(FrameError::SceneDescription)?);
         }
         Frame::RequestList { seq, items } => {
@@ -551,7 +551,10 @@ impl FrameDecoder {
 
     /// The next whole frame, `Ok(None)` if more bytes are needed, or the error that ends the
     /// stream. Over-limit lengths and unknown types are reported as soon as their bytes are in.
-    #[allow(clippy::should_implement_trait)]
+    #[allow(
+        clippy::should_implement_trait,
+        reason = "fallible and poisoning: not an Iterator"
+    )]
     pub fn next(&mut self) -> Result<Option<Frame>, FrameError> {
         if let Some(e) = &self.failed {
             return Err(e.clone());

@@ -51,8 +51,10 @@ pub struct SceneStats {
     pub spilled_bytes: u64,
     /// Most bytes of primitive id lists the builder held in memory at once (≤ its budget).
     pub peak_list_bytes: u64,
-    /// Peak resident set of the importing process.
+    /// Peak resident set of the importing process (includes mapped source pages).
     pub peak_rss_bytes: u64,
+    /// Peak anonymous resident memory of the importing process (what it held itself).
+    pub peak_anon_bytes: u64,
 }
 
 /// A scene as stored in the pool and announced to clients.

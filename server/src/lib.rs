@@ -4,10 +4,13 @@
 //!   of disk-backed columns;
 //! * [`build`] turns a source into treelets (DESIGN §3);
 //! * [`pool`] stores scenes atomically in sled, already compressed, one tree per stream;
-//! * [`verify`] checks every invariant of a stored scene.
+//! * [`verify`] checks every invariant of a stored scene;
+//! * [`memory`] measures the import's peak memory for its report.
 
 pub mod build;
 pub mod import;
+pub mod memory;
 pub mod pool;
+pub mod service;
 pub mod source;
 pub mod verify;

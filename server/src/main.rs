@@ -230,6 +230,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     big_endian: raw_big_endian,
                 }),
             };
+            let sampler = arbor_server::memory::AnonPeakSampler::start();
             let source = import::import_file(&file, &opts, scratch.path())
                 .with_context(|| format!("importing {}", file.display()))?;
             tracing::info!("read {}: {}", file.display(), source.describe());
@@ -256,7 +257,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 &mut txn,
             )
             .with_context(|| format!("building scene {scene:?}"))?;
-            desc.stats.peak_rss_bytes = build::peak_rss_bytes();
+            desc.stats.peak_rss_bytes = arbor_server::memory::peak_rss_bytes();
+            desc.stats.peak_anon_bytes = sampler.finish();
             txn.commit(&desc)?;
             print_info(&desc, Some(pool.disk_bytes()?));
             Ok(ExitCode::SUCCESS)
@@ -384,10 +386,14 @@ fn print_info(d: &arbor_proto::SceneDescription, disk: Option<u64>) {
         d.build.zstd_level,
         if d.build.dictionary { "yes" } else { "no" }
     );
+    let mib = |b: u64| b as f64 / f64::from(1 << 20);
     println!(
-        "build            {:.2} s, peak RSS {:.1} MiB",
+        "build            {:.2} s, peak RSS {:.1} MiB ({:.1} MiB anonymous), id lists peak {:.1} MiB, spilled {:.1} MiB",
         s.build_seconds,
-        s.peak_rss_bytes as f64 / (1 << 20) as f64
+        mib(s.peak_rss_bytes),
+        mib(s.peak_anon_bytes),
+        mib(s.peak_list_bytes),
+        mib(s.spilled_bytes)
     );
     if let Some(b) = disk {
         println!("pool on disk     {b} bytes (whole database)");

@@ -42,6 +42,9 @@ pub enum PoolError {
 
 const CATALOGUE: &str = "catalogue";
 
+/// sled page cache size.
+pub const POOL_CACHE_BYTES: u64 = 128 << 20;
+
 fn nodes_tree(generation: u64) -> String {
     format!("g{generation}:nodes")
 }
@@ -117,7 +120,12 @@ impl StoredScene {
 impl Pool {
     /// Opens (creating if needed) the pool in `dir` and drops leftovers of killed imports.
     pub fn open(dir: &Path) -> Result<Pool, PoolError> {
-        let db = sled::Config::new().path(dir).open()?;
+        // sled's page cache defaults to 1 GiB of anonymous memory; blocks are small and read
+        // once per request, so a modest cache keeps imports and the server lean.
+        let db = sled::Config::new()
+            .path(dir)
+            .cache_capacity(POOL_CACHE_BYTES)
+            .open()?;
         let catalogue = db.open_tree(CATALOGUE)?;
         let pool = Pool { db, catalogue };
         let cleaned = pool.drop_leftovers()?;

@@ -144,6 +144,88 @@ impl<T: Pod> ColumnWriter<T> {
     }
 }
 
+/// A writable, memory-mapped array of `len` zeroed `T`s in a scratch file, for outputs written
+/// in random order (e.g. one normal per point, computed region by region).
+pub struct ColumnMut<T: Pod> {
+    path: PathBuf,
+    map: Option<memmap2::MmapMut>,
+    len: usize,
+    _t: PhantomData<T>,
+}
+
+impl<T: Pod> std::fmt::Debug for ColumnMut<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ColumnMut").field("len", &self.len).finish()
+    }
+}
+
+impl<T: Pod> ColumnMut<T> {
+    pub fn create(dir: &Path, name: &str, len: usize) -> Result<Self, ColumnError> {
+        let path = dir.join(format!("{name}.col"));
+        let io = |source| ColumnError::Io {
+            path: path.clone(),
+            source,
+        };
+        let file = File::options()
+            .create(true)
+            .truncate(true)
+            .read(true)
+            .write(true)
+            .open(&path)
+            .map_err(io)?;
+        let bytes = (len * std::mem::size_of::<T>()) as u64;
+        file.set_len(bytes).map_err(io)?;
+        let map = if len == 0 {
+            None
+        } else {
+            // SAFETY: the file is private to this import's scratch directory.
+            Some(unsafe { memmap2::MmapMut::map_mut(&file) }.map_err(io)?)
+        };
+        Ok(Self {
+            path,
+            map,
+            len,
+            _t: PhantomData,
+        })
+    }
+
+    /// Flushes and turns the mapping read-only.
+    pub fn finish(self) -> Result<Column<T>, ColumnError> {
+        let path = self.path;
+        let map = match self.map {
+            Some(m) => Some(m.make_read_only().map_err(|source| ColumnError::Io {
+                path: path.clone(),
+                source,
+            })?),
+            None => None,
+        };
+        Ok(Column {
+            map,
+            len: self.len,
+            _t: PhantomData,
+        })
+    }
+}
+
+impl<T: Pod> std::ops::Deref for ColumnMut<T> {
+    type Target = [T];
+    fn deref(&self) -> &[T] {
+        match &self.map {
+            Some(m) => &bytemuck::cast_slice(&m[..])[..self.len],
+            None => &[],
+        }
+    }
+}
+
+impl<T: Pod> std::ops::DerefMut for ColumnMut<T> {
+    fn deref_mut(&mut self) -> &mut [T] {
+        match &mut self.map {
+            Some(m) => &mut bytemuck::cast_slice_mut(&mut m[..])[..self.len],
+            None => &mut [],
+        }
+    }
+}
+
 /// A read-only, memory-mapped array of `T`.
 pub struct Column<T: Pod> {
     map: Option<memmap2::Mmap>,

@@ -3,4 +3,5 @@
 //! ([`support`]).
 
 pub mod corpus;
+pub mod link;
 pub mod support;

@@ -150,7 +150,7 @@ pub fn build_scene(
     let (resolution, kind) = match source {
         Source::Mesh(m) => (triangles::mean_edge_length(m), SourceKind::Mesh),
         Source::Points(p) => (
-            points::mean_point_spacing(&p.positions, min, max),
+            points::mean_point_spacing(&p.positions, min, max, opts.memory_budget, scratch)?,
             SourceKind::Points,
         ),
         Source::Volume(v) => (
@@ -185,7 +185,13 @@ pub fn build_scene(
             let normals = match &p.normals {
                 Some(n) => n,
                 None => {
-                    estimated = points::estimate_normals(&p.positions, min, max, scratch)?;
+                    estimated = points::estimate_normals(
+                        &p.positions,
+                        min,
+                        max,
+                        opts.memory_budget,
+                        scratch,
+                    )?;
                     &estimated
                 }
             };
@@ -684,17 +690,4 @@ fn pack(
     }
     pb.finish_and_clear();
     Ok(())
-}
-
-/// Peak resident set size of this process (Linux `VmHWM`), 0 where unknown.
-pub fn peak_rss_bytes() -> u64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|kb| kb.parse::<u64>().ok())
-        })
-        .map_or(0, |kb| kb * 1024)
 }

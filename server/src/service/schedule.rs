@@ -1,0 +1,1306 @@
+//! Which treelet to send next, to whom: the service's scheduling core, with no I/O.
+//!
+//! A [`Scheduler`] holds every connection's latest request list and the treelets it has in
+//! flight. The service feeds it events and polls it:
+//!
+//! * [`Scheduler::handle_request_list`] — a `RequestList` arrived. It **replaces** the
+//!   connection's previous list; a list whose `seq` is not above the last accepted one is stale
+//!   and ignored.
+//! * [`Scheduler::poll_transmit`] — the next `(connection, treelet)` to start sending, or `None`.
+//!   The treelet enters the connection's in-flight window at once.
+//! * [`Scheduler::handle_sent`] — all its bytes were handed to the transport (still in flight).
+//! * [`Scheduler::handle_delivered`] — the peer acknowledged it: it leaves the window.
+//! * [`Scheduler::handle_cancelled`] — its stream was reset or failed: it leaves the window and is
+//!   queued again if the current list still wants it.
+//!
+//! # Per-connection queue
+//!
+//! The queue is *the latest list minus the treelets in flight*, highest priority first, ties by
+//! lower id (deterministic). Lists are replaced wholesale, so on arrival the list is cleaned (ids
+//! [`TreeletId::NONE`] and non-finite priorities dropped — the wire decoder already rejects them),
+//! duplicates are collapsed to their **largest** priority, it is sorted once, cut to the
+//! `max_queue` highest-priority items, and treelets in flight are left out. Sending then walks a
+//! cursor down the sorted vector. A treelet whose transfer is cancelled while the current list
+//! still wants it goes into a small retry heap that is merged with the cursor by rank.
+//!
+//! Complexity, for a list of `n` items, `w` in flight, `c` connections: a list costs
+//! O(n log n) (dedup sort, rank sort, id sort, a merge with the previous list) and O(n) memory
+//! (16 + 8 bytes per item); `poll_transmit` is O(1) amortized plus O(log r) for `r` retried
+//! treelets; `handle_sent`/`handle_delivered` are O(1) expected (hash maps); `handle_cancelled`
+//! is O(log n) (binary search of the list by id); `remove_connection` is O(c) (ring cleanup).
+//!
+//! # What is never sent
+//!
+//! * A treelet in flight is never started again while it is in flight, whatever the lists say.
+//! * A treelet not in the connection's current list is never started. After a replacement list,
+//!   treelets of the old list that the new one lacks can still *arrive* only if they were already
+//!   in flight; [`ListOutcome::Applied::obsolete_in_flight`] names them so the service may reset
+//!   their streams.
+//! * **Re-requests.** A treelet started under the current list is not started again under that
+//!   list (the cursor has passed it) unless its transfer was cancelled. A *new* list may request
+//!   a delivered treelet again — the client may have evicted it — and it is then sent again,
+//!   except within the connection's `redelivery_guard` after its delivery: a client builds each
+//!   list before it has seen the treelets already on their way, so lists arriving up to about one
+//!   round trip (plus one client cycle) after a delivery still name it. The service sets the
+//!   guard from its RTT estimate; `Duration::ZERO` turns it off.
+//!
+//! # In-flight window
+//!
+//! A connection may have at most `window` treelets in flight (started and not yet delivered or
+//! cancelled). Everything in flight is committed: a new list takes effect after at most `window`
+//! more treelets. Sizing the window to the bandwidth-delay product keeps the link busy while
+//! making that about one round trip; see [`window_for`].
+//!
+//! # Fairness
+//!
+//! Connections that have something to send *and* window room form a ring; `poll_transmit` serves
+//! them round-robin, one treelet per turn, so a connection with a 100,000-item list and one with
+//! 10 items alternate. (Turns are per treelet, not per byte: treelets are 1–16 KiB and compress to
+//! similar sizes within a scene, so per-treelet turns are close to byte-fair.) A server-wide cap
+//! on treelets in flight ([`SchedulerConfig::max_in_flight`]) makes the service's send capacity
+//! the shared resource that the ring divides.
+
+use std::cmp::Ordering;
+use std::collections::hash_map::Entry;
+use std::collections::{BinaryHeap, HashMap, VecDeque};
+use std::fmt;
+use std::time::{Duration, Instant};
+
+use arbor_proto::TreeletId;
+use arbor_proto::limits::MAX_REQUEST_ITEMS;
+
+/// A connection, as the service numbers them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct ConnectionId(pub u64);
+
+impl fmt::Display for ConnectionId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "#{}", self.0)
+    }
+}
+
+/// Mistakes of the caller (the service), never of a client.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ScheduleError {
+    /// The connection was never added or was removed.
+    #[error("connection {0} is not known to the scheduler")]
+    UnknownConnection(ConnectionId),
+    /// [`Scheduler::add_connection`] with an id already present.
+    #[error("connection {0} is already known to the scheduler")]
+    DuplicateConnection(ConnectionId),
+}
+
+/// Server-wide settings.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SchedulerConfig {
+    /// Most treelets in flight over all connections; `poll_transmit` returns `None` at the cap.
+    pub max_in_flight: usize,
+}
+
+impl Default for SchedulerConfig {
+    fn default() -> Self {
+        Self {
+            max_in_flight: usize::MAX,
+        }
+    }
+}
+
+/// Per-connection settings.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ConnectionConfig {
+    /// Most treelets in flight on this connection ([`window_for`]). 0 pauses the connection.
+    pub window: usize,
+    /// Most items kept from one list: a longer list is cut to its `max_queue` highest-priority
+    /// items (after collapsing duplicates). Bounds the connection's memory.
+    pub max_queue: usize,
+    /// A treelet delivered less than this before a list arrives is not sent again for that list
+    /// (see the module docs). About one RTT plus one client cycle.
+    pub redelivery_guard: Duration,
+}
+
+impl Default for ConnectionConfig {
+    fn default() -> Self {
+        Self {
+            window: 16,
+            max_queue: MAX_REQUEST_ITEMS,
+            redelivery_guard: Duration::from_millis(100),
+        }
+    }
+}
+
+/// A connection's counters and current state, for metrics and the admin API.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ConnectionStats {
+    /// Lists applied (not counting stale ones).
+    pub lists_received: u64,
+    /// Lists ignored because their `seq` was not above the last applied one.
+    pub lists_stale: u64,
+    /// Items in applied lists, as received (before collapsing duplicates and truncation).
+    pub items_received: u64,
+    /// Items dropped from applied lists: invalid, duplicate, or beyond `max_queue`.
+    pub items_dropped: u64,
+    /// Treelets handed out by `poll_transmit`.
+    pub treelets_started: u64,
+    /// Treelets reported by `handle_sent`.
+    pub treelets_sent: u64,
+    /// Treelets reported by `handle_delivered`.
+    pub treelets_delivered: u64,
+    /// Treelets reported by `handle_cancelled`.
+    pub treelets_cancelled: u64,
+    /// Treelets waiting to be started now.
+    pub queue_depth: usize,
+    /// Treelets in flight now.
+    pub in_flight: usize,
+    /// The window now.
+    pub window: usize,
+    /// `seq` of the list in force.
+    pub last_seq: Option<u64>,
+}
+
+/// What [`Scheduler::handle_request_list`] did with a list.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum ListOutcome {
+    /// Ignored: `seq` was not above `last_seq`.
+    Stale { last_seq: u64 },
+    /// The list replaced the previous one.
+    Applied {
+        /// Treelets queued to be sent (list minus in flight and recently delivered).
+        queued: usize,
+        /// Items dropped: invalid, duplicate, or beyond `max_queue`.
+        dropped: usize,
+        /// Treelets in flight that the new list no longer names, ascending; they may still
+        /// arrive unless the service cancels them.
+        obsolete_in_flight: Vec<TreeletId>,
+    },
+}
+
+/// In-flight window for a link: enough treelets to fill the bandwidth-delay product, so the link
+/// stays busy, and no more, so that a new list takes effect within about one round trip:
+///
+/// `window ≈ clamp(⌈bandwidth × rtt / treelet_bytes⌉, min, max)`
+///
+/// `treelet_bytes` is the mean bytes sent per treelet (compressed nodes + requested channels).
+/// Unknown or nonsensical inputs (zero, negative, NaN bandwidth, zero treelet size) give `min`.
+pub fn window_for(
+    bandwidth_bytes_per_s: f64,
+    rtt: Duration,
+    treelet_bytes: usize,
+    min: usize,
+    max: usize,
+) -> usize {
+    let max = max.max(min);
+    if !(bandwidth_bytes_per_s.is_finite() && bandwidth_bytes_per_s > 0.0) || treelet_bytes == 0 {
+        return min;
+    }
+    let w = (bandwidth_bytes_per_s * rtt.as_secs_f64() / treelet_bytes as f64).ceil();
+    // Non-negative here; `as` saturates (+∞ included).
+    (w as usize).clamp(min, max)
+}
+
+/// Send order: higher priority first, then lower id.
+fn rank(a: &(TreeletId, f32), b: &(TreeletId, f32)) -> Ordering {
+    b.1.total_cmp(&a.1).then(a.0.cmp(&b.0))
+}
+
+/// A retried treelet; the heap's maximum is the one to send first.
+#[derive(Clone, Copy, Debug)]
+struct Retry(TreeletId, f32);
+
+impl PartialEq for Retry {
+    fn eq(&self, other: &Self) -> bool {
+        self.cmp(other) == Ordering::Equal
+    }
+}
+impl Eq for Retry {}
+impl PartialOrd for Retry {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for Retry {
+    fn cmp(&self, other: &Self) -> Ordering {
+        rank(&(other.0, other.1), &(self.0, self.1))
+    }
+}
+
+/// One item of the current list, in the by-id index.
+#[derive(Clone, Copy, Debug)]
+struct Wanted {
+    id: TreeletId,
+    priority: f32,
+    /// Since when the client has asked for it in an unbroken run of lists.
+    since: Instant,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Flight {
+    /// When the client first asked for it (see [`Wanted::since`]).
+    since: Instant,
+    sent: bool,
+}
+
+#[derive(Debug)]
+struct Conn {
+    config: ConnectionConfig,
+    /// The current list, collapsed and truncated, sorted by id.
+    by_id: Vec<Wanted>,
+    /// The current list's sendable items in send order; `queue[cursor..]` are still to start.
+    queue: Vec<(TreeletId, f32)>,
+    cursor: usize,
+    /// Cancelled treelets the current list still wants.
+    retry: BinaryHeap<Retry>,
+    in_flight: HashMap<TreeletId, Flight>,
+    /// Deliveries within the redelivery guard, oldest first, and the latest time per id.
+    recent: VecDeque<(Instant, TreeletId)>,
+    recent_at: HashMap<TreeletId, Instant>,
+    in_ring: bool,
+    stats: ConnectionStats,
+}
+
+impl Conn {
+    fn new(config: ConnectionConfig) -> Self {
+        Self {
+            config,
+            by_id: Vec::new(),
+            queue: Vec::new(),
+            cursor: 0,
+            retry: BinaryHeap::new(),
+            in_flight: HashMap::new(),
+            recent: VecDeque::new(),
+            recent_at: HashMap::new(),
+            in_ring: false,
+            stats: ConnectionStats::default(),
+        }
+    }
+
+    fn queue_depth(&self) -> usize {
+        self.queue.len() - self.cursor + self.retry.len()
+    }
+
+    fn has_work(&self) -> bool {
+        self.cursor < self.queue.len() || !self.retry.is_empty()
+    }
+
+    fn eligible(&self) -> bool {
+        self.has_work() && self.in_flight.len() < self.config.window
+    }
+
+    /// Takes the best of the cursor and the retry heap.
+    fn pop(&mut self) -> Option<(TreeletId, f32)> {
+        let head = self.queue.get(self.cursor).copied();
+        let retry = self.retry.peek().map(|r| (r.0, r.1));
+        match (head, retry) {
+            (Some(h), Some(r)) if rank(&r, &h) == Ordering::Less => {
+                self.retry.pop();
+                Some(r)
+            }
+            (Some(h), _) => {
+                self.cursor += 1;
+                Some(h)
+            }
+            (None, Some(r)) => {
+                self.retry.pop();
+                Some(r)
+            }
+            (None, None) => None,
+        }
+    }
+
+    fn wanted(&self, id: TreeletId) -> Option<&Wanted> {
+        self.by_id
+            .binary_search_by_key(&id, |w| w.id)
+            .ok()
+            .map(|i| &self.by_id[i])
+    }
+
+    /// Forgets deliveries older than the guard (and keeps the record bounded however `now`
+    /// moves).
+    fn prune_recent(&mut self, now: Instant) {
+        let guard = self.config.redelivery_guard;
+        let cap = self
+            .config
+            .max_queue
+            .max(self.config.window)
+            .saturating_mul(4);
+        while let Some(&(t, id)) = self.recent.front() {
+            if now.saturating_duration_since(t) < guard && self.recent.len() <= cap {
+                break;
+            }
+            self.recent.pop_front();
+            if self.recent_at.get(&id) == Some(&t) {
+                self.recent_at.remove(&id);
+            }
+        }
+    }
+
+    fn recently_delivered(&self, id: TreeletId, now: Instant) -> bool {
+        self.recent_at
+            .get(&id)
+            .is_some_and(|&t| now.saturating_duration_since(t) < self.config.redelivery_guard)
+    }
+
+    fn snapshot(&self) -> ConnectionStats {
+        ConnectionStats {
+            queue_depth: self.queue_depth(),
+            in_flight: self.in_flight.len(),
+            window: self.config.window,
+            ..self.stats.clone()
+        }
+    }
+}
+
+/// The scheduling state of every connection. See the module docs.
+#[derive(Debug)]
+pub struct Scheduler {
+    config: SchedulerConfig,
+    conns: HashMap<ConnectionId, Conn>,
+    /// Connections that have work and window room, in round-robin order.
+    ring: VecDeque<ConnectionId>,
+    total_in_flight: usize,
+}
+
+impl Default for Scheduler {
+    fn default() -> Self {
+        Self::new(SchedulerConfig::default())
+    }
+}
+
+impl Scheduler {
+    pub fn new(config: SchedulerConfig) -> Self {
+        Self {
+            config,
+            conns: HashMap::new(),
+            ring: VecDeque::new(),
+            total_in_flight: 0,
+        }
+    }
+
+    /// Registers a connection with an empty list.
+    pub fn add_connection(
+        &mut self,
+        id: ConnectionId,
+        config: ConnectionConfig,
+    ) -> Result<(), ScheduleError> {
+        match self.conns.entry(id) {
+            Entry::Occupied(_) => Err(ScheduleError::DuplicateConnection(id)),
+            Entry::Vacant(v) => {
+                v.insert(Conn::new(config));
+                Ok(())
+            }
+        }
+    }
+
+    /// Forgets a connection and everything it had in flight; returns its final counters.
+    pub fn remove_connection(&mut self, id: ConnectionId) -> Option<ConnectionStats> {
+        let conn = self.conns.remove(&id)?;
+        self.total_in_flight -= conn.in_flight.len();
+        if conn.in_ring {
+            self.ring.retain(|&c| c != id);
+        }
+        Some(conn.snapshot())
+    }
+
+    /// Connections known, in no particular order.
+    pub fn connections(&self) -> impl Iterator<Item = ConnectionId> + '_ {
+        self.conns.keys().copied()
+    }
+
+    /// Number of connections.
+    pub fn len(&self) -> usize {
+        self.conns.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.conns.is_empty()
+    }
+
+    /// Treelets in flight over all connections.
+    pub fn total_in_flight(&self) -> usize {
+        self.total_in_flight
+    }
+
+    /// A connection's counters and state.
+    pub fn stats(&self, id: ConnectionId) -> Option<ConnectionStats> {
+        self.conns.get(&id).map(Conn::snapshot)
+    }
+
+    /// Changes a connection's window (e.g. from a new RTT or bandwidth estimate). Shrinking it
+    /// below the treelets in flight stops new starts until enough are delivered.
+    pub fn set_window(&mut self, id: ConnectionId, window: usize) -> Result<(), ScheduleError> {
+        let conn = self
+            .conns
+            .get_mut(&id)
+            .ok_or(ScheduleError::UnknownConnection(id))?;
+        conn.config.window = window;
+        self.wake(id);
+        Ok(())
+    }
+
+    /// Changes a connection's redelivery guard (from a new RTT estimate).
+    pub fn set_redelivery_guard(
+        &mut self,
+        id: ConnectionId,
+        guard: Duration,
+    ) -> Result<(), ScheduleError> {
+        let conn = self
+            .conns
+            .get_mut(&id)
+            .ok_or(ScheduleError::UnknownConnection(id))?;
+        conn.config.redelivery_guard = guard;
+        Ok(())
+    }
+
+    /// A request list arrived at `now`. It replaces the connection's list unless `seq` is not
+    /// above the last applied one.
+    pub fn handle_request_list(
+        &mut self,
+        id: ConnectionId,
+        seq: u64,
+        mut items: Vec<(TreeletId, f32)>,
+        now: Instant,
+    ) -> Result<ListOutcome, ScheduleError> {
+        let conn = self
+            .conns
+            .get_mut(&id)
+            .ok_or(ScheduleError::UnknownConnection(id))?;
+        if let Some(last_seq) = conn.stats.last_seq
+            && seq <= last_seq
+        {
+            conn.stats.lists_stale += 1;
+            return Ok(ListOutcome::Stale { last_seq });
+        }
+        conn.stats.last_seq = Some(seq);
+        conn.stats.lists_received += 1;
+        let received = items.len();
+        conn.stats.items_received += received as u64;
+
+        // Clean, collapse duplicates to their largest priority, rank, truncate.
+        items.retain(|&(t, p)| !t.is_none() && p.is_finite());
+        items.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.total_cmp(&a.1)));
+        items.dedup_by_key(|x| x.0);
+        items.sort_unstable_by(rank);
+        items.truncate(conn.config.max_queue);
+        let dropped = received - items.len();
+        conn.stats.items_dropped += dropped as u64;
+
+        // The by-id index, carrying over since when each item has been wanted.
+        let mut by_id: Vec<Wanted> = items
+            .iter()
+            .map(|&(id, priority)| Wanted {
+                id,
+                priority,
+                since: now,
+            })
+            .collect();
+        by_id.sort_unstable_by_key(|w| w.id);
+        let mut old = conn.by_id.iter().peekable();
+        for w in &mut by_id {
+            while old.next_if(|o| o.id < w.id).is_some() {}
+            if let Some(o) = old.next_if(|o| o.id == w.id) {
+                w.since = o.since;
+            }
+        }
+        conn.by_id = by_id;
+
+        let mut obsolete_in_flight: Vec<TreeletId> = conn
+            .in_flight
+            .keys()
+            .copied()
+            .filter(|&t| conn.wanted(t).is_none())
+            .collect();
+        obsolete_in_flight.sort_unstable();
+
+        conn.prune_recent(now);
+        items
+            .retain(|&(t, _)| !conn.in_flight.contains_key(&t) && !conn.recently_delivered(t, now));
+        conn.queue = items;
+        conn.cursor = 0;
+        conn.retry.clear();
+        let queued = conn.queue.len();
+        self.wake(id);
+        Ok(ListOutcome::Applied {
+            queued,
+            dropped,
+            obsolete_in_flight,
+        })
+    }
+
+    /// The next treelet to start sending, and to whom; it is in flight from now on. `None` when
+    /// no connection has both something to send and window room, or at the server-wide cap.
+    pub fn poll_transmit(&mut self, now: Instant) -> Option<(ConnectionId, TreeletId)> {
+        if self.total_in_flight >= self.config.max_in_flight {
+            return None;
+        }
+        while let Some(id) = self.ring.pop_front() {
+            let Some(conn) = self.conns.get_mut(&id) else {
+                continue;
+            };
+            conn.in_ring = false;
+            if !conn.eligible() {
+                continue;
+            }
+            let Some((treelet, _)) = conn.pop() else {
+                continue;
+            };
+            let since = conn.wanted(treelet).map_or(now, |w| w.since);
+            conn.in_flight
+                .insert(treelet, Flight { since, sent: false });
+            conn.stats.treelets_started += 1;
+            self.total_in_flight += 1;
+            self.wake(id);
+            return Some((id, treelet));
+        }
+        None
+    }
+
+    /// All bytes of `treelet` were handed to the transport at `now`; it stays in flight until
+    /// delivered. Returns the time since the client first asked for it (request-to-send
+    /// latency), or `None` if it was not in flight or already reported sent.
+    pub fn handle_sent(
+        &mut self,
+        id: ConnectionId,
+        treelet: TreeletId,
+        now: Instant,
+    ) -> Option<Duration> {
+        let conn = self.conns.get_mut(&id)?;
+        let flight = conn.in_flight.get_mut(&treelet)?;
+        if flight.sent {
+            return None;
+        }
+        flight.sent = true;
+        conn.stats.treelets_sent += 1;
+        Some(now.saturating_duration_since(flight.since))
+    }
+
+    /// The peer acknowledged `treelet` at `now`: it leaves the window. Returns the time since the
+    /// client first asked for it, or `None` if it was not in flight.
+    pub fn handle_delivered(
+        &mut self,
+        id: ConnectionId,
+        treelet: TreeletId,
+        now: Instant,
+    ) -> Option<Duration> {
+        let conn = self.conns.get_mut(&id)?;
+        let flight = conn.in_flight.remove(&treelet)?;
+        self.total_in_flight -= 1;
+        conn.stats.treelets_delivered += 1;
+        if !conn.config.redelivery_guard.is_zero() {
+            conn.recent.push_back((now, treelet));
+            conn.recent_at.insert(treelet, now);
+            conn.prune_recent(now);
+        }
+        self.wake(id);
+        Some(now.saturating_duration_since(flight.since))
+    }
+
+    /// The transfer of `treelet` was cancelled (stream reset, write failed): it leaves the window
+    /// and, if the current list still names it, is queued again. Returns whether it was in
+    /// flight.
+    pub fn handle_cancelled(&mut self, id: ConnectionId, treelet: TreeletId) -> bool {
+        let Some(conn) = self.conns.get_mut(&id) else {
+            return false;
+        };
+        if conn.in_flight.remove(&treelet).is_none() {
+            return false;
+        }
+        self.total_in_flight -= 1;
+        conn.stats.treelets_cancelled += 1;
+        if let Some(w) = conn.wanted(treelet) {
+            conn.retry.push(Retry(w.id, w.priority));
+        }
+        self.wake(id);
+        true
+    }
+
+    /// Puts a connection in the ring if it can send and is not there yet.
+    fn wake(&mut self, id: ConnectionId) {
+        if let Some(conn) = self.conns.get_mut(&id)
+            && !conn.in_ring
+            && conn.eligible()
+        {
+            conn.in_ring = true;
+            self.ring.push_back(id);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+    use std::collections::{HashMap as Map, HashSet};
+
+    const A: ConnectionId = ConnectionId(1);
+    const B: ConnectionId = ConnectionId(2);
+
+    fn t(i: u32) -> TreeletId {
+        TreeletId(i)
+    }
+
+    fn cfg(window: usize) -> ConnectionConfig {
+        ConnectionConfig {
+            window,
+            max_queue: MAX_REQUEST_ITEMS,
+            redelivery_guard: Duration::ZERO,
+        }
+    }
+
+    fn list(items: &[(u32, f32)]) -> Vec<(TreeletId, f32)> {
+        items.iter().map(|&(i, p)| (t(i), p)).collect()
+    }
+
+    /// Polls until `None`, returning the treelets started (all for one connection).
+    fn drain(s: &mut Scheduler, now: Instant) -> Vec<(ConnectionId, u32)> {
+        std::iter::from_fn(|| s.poll_transmit(now))
+            .map(|(c, x)| (c, x.0))
+            .collect()
+    }
+
+    fn one(conn: ConnectionId, window: usize) -> Scheduler {
+        let mut s = Scheduler::default();
+        s.add_connection(conn, cfg(window)).unwrap();
+        s
+    }
+
+    #[test]
+    fn highest_priority_first_ties_by_lower_id() {
+        let now = Instant::now();
+        let mut s = one(A, 100);
+        s.handle_request_list(
+            A,
+            1,
+            list(&[(5, 1.0), (3, 2.0), (9, 2.0), (1, -1.0), (2, 0.0), (7, 2.0)]),
+            now,
+        )
+        .unwrap();
+        let got: Vec<u32> = drain(&mut s, now).into_iter().map(|x| x.1).collect();
+        assert_eq!(got, vec![3, 7, 9, 5, 2, 1]);
+    }
+
+    #[test]
+    fn duplicates_collapse_to_the_largest_priority_and_bad_items_are_dropped() {
+        let now = Instant::now();
+        let mut s = one(A, 100);
+        let out = s
+            .handle_request_list(
+                A,
+                1,
+                list(&[
+                    (1, 1.0),
+                    (2, 5.0),
+                    (1, 9.0),
+                    (1, 3.0),
+                    (3, f32::NAN),
+                    (u32::MAX, 1.0),
+                ]),
+                now,
+            )
+            .unwrap();
+        assert_eq!(
+            out,
+            ListOutcome::Applied {
+                queued: 2,
+                dropped: 4,
+                obsolete_in_flight: vec![]
+            }
+        );
+        let got: Vec<u32> = drain(&mut s, now).into_iter().map(|x| x.1).collect();
+        assert_eq!(got, vec![1, 2]);
+    }
+
+    #[test]
+    fn window_bounds_in_flight_and_delivery_reopens_it() {
+        let now = Instant::now();
+        let mut s = one(A, 3);
+        s.handle_request_list(A, 1, (0..10).map(|i| (t(i), -(i as f32))).collect(), now)
+            .unwrap();
+        assert_eq!(drain(&mut s, now), vec![(A, 0), (A, 1), (A, 2)]);
+        assert_eq!(s.stats(A).unwrap().in_flight, 3);
+        assert_eq!(s.stats(A).unwrap().queue_depth, 7);
+        // Sent is not delivered: the window stays full.
+        assert!(s.handle_sent(A, t(1), now).is_some());
+        assert!(s.handle_sent(A, t(1), now).is_none(), "reported once");
+        assert_eq!(s.poll_transmit(now), None);
+        assert!(s.handle_delivered(A, t(1), now).is_some());
+        assert!(s.handle_delivered(A, t(1), now).is_none());
+        assert_eq!(drain(&mut s, now), vec![(A, 3)]);
+        // Shrinking the window below what is in flight stops starts until enough leave.
+        s.set_window(A, 1).unwrap();
+        for x in [0, 2] {
+            assert_eq!(s.poll_transmit(now), None);
+            s.handle_delivered(A, t(x), now);
+        }
+        assert_eq!(s.poll_transmit(now), None);
+        s.handle_delivered(A, t(3), now);
+        assert_eq!(drain(&mut s, now), vec![(A, 4)]);
+        // A window of 0 pauses the connection.
+        s.set_window(A, 0).unwrap();
+        s.handle_delivered(A, t(4), now);
+        assert_eq!(s.poll_transmit(now), None);
+        s.set_window(A, 2).unwrap();
+        assert_eq!(drain(&mut s, now), vec![(A, 5), (A, 6)]);
+    }
+
+    #[test]
+    fn replacement_list_never_starts_treelets_it_dropped() {
+        let now = Instant::now();
+        let mut s = one(A, 4);
+        s.handle_request_list(
+            A,
+            1,
+            (0..100).map(|i| (t(i), 100.0 - i as f32)).collect(),
+            now,
+        )
+        .unwrap();
+        assert_eq!(drain(&mut s, now).len(), 4); // 0..4 in flight
+        // The new list keeps 2 and 50..60, drops the rest of the old list.
+        let new: Vec<_> = std::iter::once((t(2), 1.0))
+            .chain((50..60).map(|i| (t(i), i as f32)))
+            .collect();
+        let out = s.handle_request_list(A, 2, new, now).unwrap();
+        assert_eq!(
+            out,
+            ListOutcome::Applied {
+                queued: 10,
+                dropped: 0,
+                obsolete_in_flight: vec![t(0), t(1), t(3)]
+            }
+        );
+        let mut started = vec![];
+        for round in 0..100u32 {
+            for (c, x) in drain(&mut s, now) {
+                assert_eq!(c, A);
+                started.push(x);
+            }
+            // Deliver everything in flight, old and new.
+            for x in 0..100 {
+                s.handle_delivered(A, t(x), now + Duration::from_millis(round.into()));
+            }
+        }
+        // Only the new list's treelets were started, highest first; 2 was in flight and is not
+        // started again.
+        assert_eq!(started, (50..60).rev().collect::<Vec<_>>());
+        assert_eq!(s.stats(A).unwrap().queue_depth, 0);
+    }
+
+    #[test]
+    fn in_flight_treelets_are_never_duplicated() {
+        let now = Instant::now();
+        let mut s = one(A, 10);
+        s.handle_request_list(A, 1, list(&[(1, 3.0), (2, 2.0), (3, 1.0)]), now)
+            .unwrap();
+        assert_eq!(s.poll_transmit(now), Some((A, t(1))));
+        // The client asks again (it has not received 1 yet) with 1 now lower.
+        s.handle_request_list(A, 2, list(&[(3, 5.0), (1, 4.0), (2, 0.5)]), now)
+            .unwrap();
+        assert_eq!(drain(&mut s, now), vec![(A, 3), (A, 2)]);
+        // Cancelled while still wanted: queued again, in rank order with the rest.
+        s.handle_request_list(A, 3, list(&[(1, 4.0), (4, 4.5), (5, 3.0)]), now)
+            .unwrap();
+        assert!(s.handle_cancelled(A, t(1)));
+        assert!(!s.handle_cancelled(A, t(1)));
+        assert_eq!(drain(&mut s, now), vec![(A, 4), (A, 1), (A, 5)]);
+        // Cancelled and no longer wanted: gone.
+        s.handle_request_list(A, 4, list(&[(9, 1.0)]), now).unwrap();
+        assert!(s.handle_cancelled(A, t(5)));
+        assert_eq!(drain(&mut s, now), vec![(A, 9)]);
+        let st = s.stats(A).unwrap();
+        assert_eq!(st.treelets_started, 7);
+        assert_eq!(st.treelets_cancelled, 2);
+    }
+
+    #[test]
+    fn delivered_treelets_are_not_resent_under_the_same_list_but_a_new_list_may_ask_again() {
+        let now = Instant::now();
+        let mut s = one(A, 10);
+        s.handle_request_list(A, 1, list(&[(1, 1.0), (2, 1.0)]), now)
+            .unwrap();
+        assert_eq!(drain(&mut s, now).len(), 2);
+        s.handle_delivered(A, t(1), now);
+        s.handle_delivered(A, t(2), now);
+        assert_eq!(s.poll_transmit(now), None, "same list: not again");
+        // Guard off: a new list naming 1 gets it again (the client evicted it).
+        s.handle_request_list(A, 2, list(&[(1, 1.0)]), now).unwrap();
+        assert_eq!(drain(&mut s, now), vec![(A, 1)]);
+    }
+
+    #[test]
+    fn redelivery_guard_covers_lists_built_before_the_client_saw_the_treelet() {
+        let t0 = Instant::now();
+        let ms = |m: u64| t0 + Duration::from_millis(m);
+        let mut s = Scheduler::default();
+        s.add_connection(
+            A,
+            ConnectionConfig {
+                redelivery_guard: Duration::from_millis(100),
+                ..cfg(10)
+            },
+        )
+        .unwrap();
+        s.handle_request_list(A, 1, list(&[(1, 1.0), (2, 1.0)]), ms(0))
+            .unwrap();
+        assert_eq!(drain(&mut s, ms(0)).len(), 2);
+        s.handle_delivered(A, t(1), ms(10));
+        s.handle_delivered(A, t(2), ms(10));
+        // Lists built before the client saw them still name them: not resent within the guard.
+        let out = s
+            .handle_request_list(A, 2, list(&[(1, 1.0), (2, 1.0), (3, 0.0)]), ms(50))
+            .unwrap();
+        assert!(matches!(out, ListOutcome::Applied { queued: 1, .. }));
+        assert_eq!(drain(&mut s, ms(50)), vec![(A, 3)]);
+        // Well after the guard, a list naming 1 means the client wants it again.
+        s.handle_request_list(A, 3, list(&[(1, 1.0)]), ms(200))
+            .unwrap();
+        assert_eq!(drain(&mut s, ms(200)), vec![(A, 1)]);
+        assert!(s.conns[&A].recent.len() <= 1, "old deliveries forgotten");
+    }
+
+    #[test]
+    fn stale_lists_are_ignored() {
+        let now = Instant::now();
+        let mut s = one(A, 10);
+        s.handle_request_list(A, 5, list(&[(1, 1.0)]), now).unwrap();
+        for seq in [5, 4, 0] {
+            assert_eq!(
+                s.handle_request_list(A, seq, list(&[(2, 1.0)]), now),
+                Ok(ListOutcome::Stale { last_seq: 5 })
+            );
+        }
+        assert_eq!(drain(&mut s, now), vec![(A, 1)]);
+        let st = s.stats(A).unwrap();
+        assert_eq!((st.lists_received, st.lists_stale), (1, 3));
+        assert_eq!(st.last_seq, Some(5));
+        // The first list may have any seq, 0 included.
+        s.add_connection(B, cfg(1)).unwrap();
+        assert!(matches!(
+            s.handle_request_list(B, 0, list(&[(1, 1.0)]), now),
+            Ok(ListOutcome::Applied { .. })
+        ));
+    }
+
+    #[test]
+    fn a_huge_list_does_not_starve_a_small_one() {
+        let now = Instant::now();
+        let mut s = Scheduler::new(SchedulerConfig { max_in_flight: 2 });
+        let big = ConnectionConfig {
+            max_queue: 100_000,
+            ..cfg(1000)
+        };
+        s.add_connection(A, big).unwrap();
+        s.add_connection(B, cfg(1000)).unwrap();
+        s.handle_request_list(A, 1, (0..100_000).map(|i| (t(i), 1.0)).collect(), now)
+            .unwrap();
+        s.handle_request_list(B, 1, (0..10).map(|i| (t(i), 0.0)).collect(), now)
+            .unwrap();
+        let mut order = vec![];
+        for _ in 0..40 {
+            let (c, x) = s.poll_transmit(now).unwrap();
+            order.push(c);
+            s.handle_delivered(c, x, now);
+        }
+        // B's ten treelets all go within the first twenty sends, alternating with A.
+        let b_positions: Vec<usize> = order
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| **c == B)
+            .map(|(i, _)| i)
+            .collect();
+        assert_eq!(b_positions.len(), 10);
+        assert!(b_positions.iter().all(|&i| i < 20), "{order:?}");
+        assert_eq!(s.stats(B).unwrap().queue_depth, 0);
+        assert_eq!(s.stats(A).unwrap().queue_depth, 100_000 - 30);
+    }
+
+    #[test]
+    fn round_robin_fills_windows_evenly() {
+        let now = Instant::now();
+        let mut s = Scheduler::default();
+        for c in 0..4 {
+            s.add_connection(ConnectionId(c), cfg(3)).unwrap();
+            s.handle_request_list(
+                ConnectionId(c),
+                1,
+                (0..50).map(|i| (t(i), 0.0)).collect(),
+                now,
+            )
+            .unwrap();
+        }
+        let got = drain(&mut s, now);
+        assert_eq!(got.len(), 12);
+        // Each round serves every connection once before any gets a second turn.
+        for round in got.chunks(4) {
+            let cs: HashSet<_> = round.iter().map(|x| x.0).collect();
+            assert_eq!(cs.len(), 4);
+        }
+        assert_eq!(s.total_in_flight(), 12);
+    }
+
+    #[test]
+    fn global_cap_limits_in_flight_over_all_connections() {
+        let now = Instant::now();
+        let mut s = Scheduler::new(SchedulerConfig { max_in_flight: 5 });
+        s.add_connection(A, cfg(10)).unwrap();
+        s.add_connection(B, cfg(10)).unwrap();
+        for c in [A, B] {
+            s.handle_request_list(c, 1, (0..20).map(|i| (t(i), 0.0)).collect(), now)
+                .unwrap();
+        }
+        assert_eq!(drain(&mut s, now).len(), 5);
+        s.handle_delivered(A, t(0), now);
+        assert_eq!(drain(&mut s, now).len(), 1);
+    }
+
+    #[test]
+    fn removal_frees_the_window_and_the_ring() {
+        let now = Instant::now();
+        let mut s = Scheduler::new(SchedulerConfig { max_in_flight: 4 });
+        s.add_connection(A, cfg(4)).unwrap();
+        s.add_connection(B, cfg(4)).unwrap();
+        s.handle_request_list(A, 1, (0..10).map(|i| (t(i), 0.0)).collect(), now)
+            .unwrap();
+        assert_eq!(drain(&mut s, now).len(), 4);
+        s.handle_request_list(B, 1, (0..10).map(|i| (t(i), 0.0)).collect(), now)
+            .unwrap();
+        assert_eq!(s.poll_transmit(now), None, "at the global cap");
+        let last = s.remove_connection(A).unwrap();
+        assert_eq!((last.in_flight, last.treelets_started), (4, 4));
+        assert_eq!(s.remove_connection(A), None);
+        assert_eq!(s.total_in_flight(), 0);
+        assert!(drain(&mut s, now).iter().all(|x| x.0 == B));
+        // Events for a removed connection are ignored; a re-added id starts afresh.
+        assert_eq!(s.handle_delivered(A, t(0), now), None);
+        assert!(!s.handle_cancelled(A, t(0)));
+        assert_eq!(
+            s.handle_request_list(A, 2, vec![], now),
+            Err(ScheduleError::UnknownConnection(A))
+        );
+        assert_eq!(
+            s.add_connection(B, cfg(1)),
+            Err(ScheduleError::DuplicateConnection(B))
+        );
+        s.add_connection(A, cfg(1)).unwrap();
+        assert_eq!(
+            s.stats(A).unwrap(),
+            ConnectionStats {
+                window: 1,
+                ..ConnectionStats::default()
+            }
+        );
+        assert_eq!(s.len(), 2);
+        assert!(s.ring.iter().filter(|&&c| c == A).count() <= 1);
+    }
+
+    #[test]
+    fn stats_count_everything() {
+        let t0 = Instant::now();
+        let mut s = Scheduler::default();
+        s.add_connection(
+            A,
+            ConnectionConfig {
+                max_queue: 3,
+                ..cfg(2)
+            },
+        )
+        .unwrap();
+        let out = s
+            .handle_request_list(
+                A,
+                1,
+                list(&[(1, 1.0), (2, 2.0), (3, 3.0), (4, 4.0), (4, 0.0)]),
+                t0,
+            )
+            .unwrap();
+        // Truncated to the three highest-priority distinct items: 4, 3, 2.
+        assert!(matches!(
+            out,
+            ListOutcome::Applied {
+                queued: 3,
+                dropped: 2,
+                ..
+            }
+        ));
+        assert_eq!(drain(&mut s, t0), vec![(A, 4), (A, 3)]);
+        let later = t0 + Duration::from_millis(30);
+        assert_eq!(
+            s.handle_sent(A, t(4), later),
+            Some(Duration::from_millis(30))
+        );
+        assert_eq!(
+            s.handle_delivered(A, t(4), later + Duration::from_millis(5)),
+            Some(Duration::from_millis(35))
+        );
+        // A second list that keeps 3 keeps its request time.
+        s.handle_request_list(A, 2, list(&[(3, 1.0), (7, 1.0)]), later)
+            .unwrap();
+        assert_eq!(
+            s.handle_delivered(A, t(3), later + Duration::from_millis(10)),
+            Some(Duration::from_millis(40))
+        );
+        assert_eq!(
+            s.stats(A).unwrap(),
+            ConnectionStats {
+                lists_received: 2,
+                lists_stale: 0,
+                items_received: 7,
+                items_dropped: 2,
+                treelets_started: 2,
+                treelets_sent: 1,
+                treelets_delivered: 2,
+                treelets_cancelled: 0,
+                queue_depth: 1,
+                in_flight: 0,
+                window: 2,
+                last_seq: Some(2),
+            }
+        );
+        assert_eq!(s.stats(B), None);
+    }
+
+    #[test]
+    fn window_formula() {
+        let rtt = Duration::from_millis(50);
+        // 100 Mbit/s × 50 ms = 625 kB; 4 KiB treelets → 153.
+        assert_eq!(window_for(12.5e6, rtt, 4096, 4, 1024), 153);
+        assert_eq!(window_for(12.5e6, rtt, 4096, 4, 100), 100);
+        assert_eq!(window_for(1e3, rtt, 4096, 4, 100), 4);
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            assert_eq!(window_for(bad, rtt, 4096, 4, 100), 4);
+        }
+        assert_eq!(window_for(1e9, rtt, 0, 4, 100), 4);
+        assert_eq!(window_for(1e300, Duration::MAX, 1, 4, 100), 100);
+        assert_eq!(window_for(1e9, rtt, 4096, 8, 2), 8, "min wins over max");
+    }
+
+    // ---- property test: random interleavings against a model ----
+
+    #[derive(Clone, Debug)]
+    enum Op {
+        List {
+            conn: u64,
+            seq: u64,
+            items: Vec<(u32, i8)>,
+        },
+        Poll,
+        Sent {
+            conn: u64,
+            pick: usize,
+        },
+        Delivered {
+            conn: u64,
+            pick: usize,
+        },
+        Cancelled {
+            conn: u64,
+            pick: usize,
+        },
+        Window {
+            conn: u64,
+            window: usize,
+        },
+        Remove {
+            conn: u64,
+        },
+        Add {
+            conn: u64,
+            window: usize,
+        },
+        Advance {
+            ms: u64,
+        },
+    }
+
+    fn op() -> impl Strategy<Value = Op> {
+        let conn = 0u64..3;
+        prop_oneof![
+            3 => (conn.clone(), 0u64..12, proptest::collection::vec((0u32..24, -3i8..4), 0..20))
+                .prop_map(|(conn, seq, items)| Op::List { conn, seq, items }),
+            8 => Just(Op::Poll),
+            2 => (conn.clone(), any::<usize>()).prop_map(|(conn, pick)| Op::Sent { conn, pick }),
+            4 => (conn.clone(), any::<usize>()).prop_map(|(conn, pick)| Op::Delivered { conn, pick }),
+            1 => (conn.clone(), any::<usize>()).prop_map(|(conn, pick)| Op::Cancelled { conn, pick }),
+            1 => (conn.clone(), 0usize..5).prop_map(|(conn, window)| Op::Window { conn, window }),
+            1 => conn.clone().prop_map(|conn| Op::Remove { conn }),
+            1 => (conn, 0usize..5).prop_map(|(conn, window)| Op::Add { conn, window }),
+            1 => (0u64..80).prop_map(|ms| Op::Advance { ms }),
+        ]
+    }
+
+    #[derive(Default)]
+    struct Model {
+        window: usize,
+        last_seq: Option<u64>,
+        current: Map<u32, f32>,
+        in_flight: HashSet<u32>,
+        /// Not to be started under the current list: recently delivered at list time, or
+        /// delivered since.
+        blocked: HashSet<u32>,
+        delivered_at: Map<u32, Instant>,
+    }
+
+    impl Model {
+        fn queue(&self) -> Vec<(TreeletId, f32)> {
+            let mut q: Vec<_> = self
+                .current
+                .iter()
+                .filter(|(id, _)| !self.in_flight.contains(id) && !self.blocked.contains(id))
+                .map(|(&id, &p)| (t(id), p))
+                .collect();
+            q.sort_by(rank);
+            q
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 400, ..ProptestConfig::default() })]
+
+        #[test]
+        fn random_interleavings_keep_the_invariants(
+            ops in proptest::collection::vec(op(), 1..200),
+            max_in_flight in 1usize..8,
+            guard_ms in prop_oneof![Just(0u64), 1u64..60],
+        ) {
+            let guard = Duration::from_millis(guard_ms);
+            let t0 = Instant::now();
+            let mut now = t0;
+            let mut s = Scheduler::new(SchedulerConfig { max_in_flight });
+            let mut model: Map<u64, Model> = Map::new();
+            let conf = |window| ConnectionConfig { window, max_queue: 1000, redelivery_guard: guard };
+            for c in 0..2u64 {
+                s.add_connection(ConnectionId(c), conf(2)).unwrap();
+                model.insert(c, Model { window: 2, ..Model::default() });
+            }
+            let pick = |m: &Model, pick: usize| -> u32 {
+                let mut v: Vec<u32> = m.in_flight.iter().copied().collect();
+                v.sort_unstable();
+                if v.is_empty() { 1000 } else { v[pick % v.len()] }
+            };
+            for op in ops {
+                match op {
+                    Op::List { conn, seq, items } => {
+                        let r = s.handle_request_list(
+                            ConnectionId(conn),
+                            seq,
+                            items.iter().map(|&(i, p)| (t(i), f32::from(p))).collect(),
+                            now,
+                        );
+                        let Some(m) = model.get_mut(&conn) else {
+                            prop_assert!(r.is_err());
+                            continue;
+                        };
+                        let r = r.unwrap();
+                        if m.last_seq.is_some_and(|l| seq <= l) {
+                            prop_assert_eq!(r, ListOutcome::Stale { last_seq: m.last_seq.unwrap() });
+                            continue;
+                        }
+                        m.last_seq = Some(seq);
+                        m.current.clear();
+                        for &(i, p) in &items {
+                            let e = m.current.entry(i).or_insert(f32::from(p));
+                            *e = e.max(f32::from(p));
+                        }
+                        m.blocked = m
+                            .delivered_at
+                            .iter()
+                            .filter(|&(id, &at)| now.saturating_duration_since(at) < guard
+                                && !m.in_flight.contains(id))
+                            .map(|(&id, _)| id)
+                            .collect();
+                        let mut obsolete: Vec<_> = m
+                            .in_flight
+                            .iter()
+                            .filter(|id| !m.current.contains_key(id))
+                            .map(|&id| t(id))
+                            .collect();
+                        obsolete.sort_unstable();
+                        let ListOutcome::Applied { queued, obsolete_in_flight, .. } = r else {
+                            return Err(TestCaseError::fail("list not applied"));
+                        };
+                        prop_assert_eq!(queued, m.queue().len());
+                        prop_assert_eq!(obsolete_in_flight, obsolete);
+                    }
+                    Op::Poll => {
+                        let total: usize = model.values().map(|m| m.in_flight.len()).sum();
+                        prop_assert_eq!(s.total_in_flight(), total);
+                        match s.poll_transmit(now) {
+                            Some((c, x)) => {
+                                prop_assert!(total < max_in_flight, "global cap");
+                                let m = model.get_mut(&c.0).unwrap();
+                                prop_assert!(m.in_flight.len() < m.window, "window exceeded");
+                                prop_assert!(m.current.contains_key(&x.0), "not in the current list");
+                                prop_assert!(!m.in_flight.contains(&x.0), "in flight twice");
+                                prop_assert!(!m.blocked.contains(&x.0), "resent under the same list");
+                                let best = m.queue()[0];
+                                prop_assert_eq!(best.0, x, "not the highest-ranked");
+                                m.in_flight.insert(x.0);
+                            }
+                            None => {
+                                for m in model.values() {
+                                    prop_assert!(
+                                        total >= max_in_flight
+                                            || m.in_flight.len() >= m.window
+                                            || m.queue().is_empty(),
+                                        "idle with work and room"
+                                    );
+                                }
+                            }
+                        }
+                    }
+                    Op::Sent { conn, pick: p } => {
+                        let x = model.get(&conn).map_or(1000, |m| pick(m, p));
+                        let r = s.handle_sent(ConnectionId(conn), t(x), now);
+                        let was = model.get(&conn).is_some_and(|m| m.in_flight.contains(&x));
+                        prop_assert!(r.is_none() || was);
+                    }
+                    Op::Delivered { conn, pick: p } => {
+                        let Some(m) = model.get_mut(&conn) else {
+                            prop_assert!(s.handle_delivered(ConnectionId(conn), t(0), now).is_none());
+                            continue;
+                        };
+                        let x = pick(m, p);
+                        let r = s.handle_delivered(ConnectionId(conn), t(x), now);
+                        prop_assert_eq!(r.is_some(), m.in_flight.remove(&x));
+                        if r.is_some() {
+                            m.blocked.insert(x);
+                            m.delivered_at.insert(x, now);
+                        }
+                    }
+                    Op::Cancelled { conn, pick: p } => {
+                        let Some(m) = model.get_mut(&conn) else {
+                            prop_assert!(!s.handle_cancelled(ConnectionId(conn), t(0)));
+                            continue;
+                        };
+                        let x = pick(m, p);
+                        prop_assert_eq!(s.handle_cancelled(ConnectionId(conn), t(x)), m.in_flight.remove(&x));
+                    }
+                    Op::Window { conn, window } => {
+                        let r = s.set_window(ConnectionId(conn), window);
+                        match model.get_mut(&conn) {
+                            Some(m) => { r.unwrap(); m.window = window; }
+                            None => prop_assert!(r.is_err()),
+                        }
+                    }
+                    Op::Remove { conn } => {
+                        let r = s.remove_connection(ConnectionId(conn));
+                        prop_assert_eq!(r.is_some(), model.remove(&conn).is_some());
+                    }
+                    Op::Add { conn, window } => {
+                        let r = s.add_connection(ConnectionId(conn), conf(window));
+                        if let std::collections::hash_map::Entry::Vacant(v) = model.entry(conn) {
+                            r.unwrap();
+                            v.insert(Model { window, ..Model::default() });
+                        } else {
+                            prop_assert!(r.is_err());
+                        }
+                    }
+                    Op::Advance { ms } => now += Duration::from_millis(ms),
+                }
+                for (&c, m) in &model {
+                    let st = s.stats(ConnectionId(c)).unwrap();
+                    prop_assert_eq!(st.in_flight, m.in_flight.len());
+                    prop_assert_eq!(st.queue_depth, m.queue().len());
+                    prop_assert_eq!(st.window, m.window);
+                }
+            }
+        }
+    }
+}
