@@ -7,6 +7,7 @@
 //! * [`verify`] checks every invariant of a stored scene;
 //! * [`memory`] measures the import's peak memory for its report.
 
+pub mod admin;
 pub mod build;
 pub mod import;
 pub mod memory;

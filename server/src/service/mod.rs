@@ -8,3 +8,4 @@
 //! * The networked parts (QUIC with quinn, the control stream, treelet streams, the admin API)
 //!   drive it and are built on top.
 pub mod schedule;
+pub mod state;

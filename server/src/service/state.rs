@@ -1,0 +1,326 @@
+//! What the running service knows about itself, shared between the QUIC side (which updates it)
+//! and the admin API (which reports it): Prometheus-style metrics, live sessions, readiness.
+//!
+//! Counters are atomics so the per-treelet path never takes a lock for them; the session table
+//! is a mutex-guarded map touched once per request list and once per treelet.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::net::SocketAddr;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, SystemTime};
+
+use arbor_proto::Channel;
+use arbor_proto::wire::ErrorCode;
+use serde::Serialize;
+
+/// Upper bounds (seconds) of the request-to-send latency histogram buckets.
+pub const LATENCY_BUCKETS: [f64; 14] = [
+    0.000_5, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0,
+];
+
+/// A Prometheus histogram with fixed buckets.
+#[derive(Debug)]
+pub struct Histogram {
+    buckets: [AtomicU64; LATENCY_BUCKETS.len()],
+    count: AtomicU64,
+    /// Sum in microseconds (atomics hold integers).
+    sum_micros: AtomicU64,
+}
+
+impl Default for Histogram {
+    fn default() -> Self {
+        Self {
+            buckets: std::array::from_fn(|_| AtomicU64::new(0)),
+            count: AtomicU64::new(0),
+            sum_micros: AtomicU64::new(0),
+        }
+    }
+}
+
+impl Histogram {
+    pub fn observe(&self, d: Duration) {
+        let s = d.as_secs_f64();
+        for (b, le) in self.buckets.iter().zip(LATENCY_BUCKETS) {
+            if s <= le {
+                b.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+        self.count.fetch_add(1, Ordering::Relaxed);
+        self.sum_micros
+            .fetch_add(d.as_micros().min(u128::from(u64::MAX)) as u64, Ordering::Relaxed);
+    }
+
+    pub fn count(&self) -> u64 {
+        self.count.load(Ordering::Relaxed)
+    }
+}
+
+/// Service-wide counters.
+#[derive(Debug, Default)]
+pub struct Metrics {
+    pub connections_accepted: AtomicU64,
+    pub connections_rejected: AtomicU64,
+    pub connections_open: AtomicU64,
+    pub request_lists: AtomicU64,
+    pub request_items: AtomicU64,
+    pub treelets_sent: AtomicU64,
+    pub treelet_bytes_sent: AtomicU64,
+    pub treelets_cancelled: AtomicU64,
+    /// Request-to-send latency: from the first list naming a treelet to its stream finishing.
+    pub request_to_send: Histogram,
+    errors: [AtomicU64; ErrorCode::ALL.len()],
+}
+
+impl Metrics {
+    /// Counts an error of `code` (a connection closed or a stream reset with it).
+    pub fn error(&self, code: ErrorCode) {
+        if let Some(i) = ErrorCode::ALL.iter().position(|c| *c == code) {
+            self.errors[i].fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    pub fn errors(&self, code: ErrorCode) -> u64 {
+        ErrorCode::ALL
+            .iter()
+            .position(|c| *c == code)
+            .map_or(0, |i| self.errors[i].load(Ordering::Relaxed))
+    }
+}
+
+/// One live connection, as the admin API shows it.
+#[derive(Debug, Clone, Serialize)]
+pub struct SessionInfo {
+    pub id: u64,
+    pub peer: SocketAddr,
+    /// Empty until the client's `Hello` was accepted.
+    pub scene: String,
+    pub channels: Vec<&'static str>,
+    /// Seconds since the Unix epoch.
+    pub connected_at: f64,
+    pub request_lists: u64,
+    pub treelets_sent: u64,
+    pub bytes_sent: u64,
+    pub queue_depth: u64,
+    pub in_flight: u64,
+}
+
+impl SessionInfo {
+    pub fn new(id: u64, peer: SocketAddr) -> Self {
+        Self {
+            id,
+            peer,
+            scene: String::new(),
+            channels: Vec::new(),
+            connected_at: SystemTime::now()
+                .duration_since(SystemTime::UNIX_EPOCH)
+                .map_or(0.0, |d| d.as_secs_f64()),
+            request_lists: 0,
+            treelets_sent: 0,
+            bytes_sent: 0,
+            queue_depth: 0,
+            in_flight: 0,
+        }
+    }
+
+    pub fn set_channels(&mut self, channels: &[Channel]) {
+        self.channels = channels.iter().map(|c| c.name()).collect();
+    }
+}
+
+/// Everything shared by the service's tasks and the admin API.
+#[derive(Debug, Default)]
+pub struct ServiceState {
+    pub metrics: Metrics,
+    sessions: Mutex<BTreeMap<u64, SessionInfo>>,
+    ready: AtomicBool,
+    shutting_down: AtomicBool,
+    /// SHA-256 of the server certificate (DER), lowercase hex.
+    pub fingerprint: String,
+}
+
+impl ServiceState {
+    pub fn new(fingerprint: String) -> Self {
+        Self {
+            fingerprint,
+            ..Self::default()
+        }
+    }
+
+    /// Ready: the pool is open, the QUIC endpoint is bound and shutdown has not begun.
+    pub fn is_ready(&self) -> bool {
+        self.ready.load(Ordering::Acquire) && !self.is_shutting_down()
+    }
+
+    pub fn set_ready(&self, ready: bool) {
+        self.ready.store(ready, Ordering::Release);
+    }
+
+    pub fn is_shutting_down(&self) -> bool {
+        self.shutting_down.load(Ordering::Acquire)
+    }
+
+    pub fn begin_shutdown(&self) {
+        self.shutting_down.store(true, Ordering::Release);
+    }
+
+    pub fn add_session(&self, info: SessionInfo) {
+        self.lock().insert(info.id, info);
+    }
+
+    pub fn update_session(&self, id: u64, f: impl FnOnce(&mut SessionInfo)) {
+        if let Some(s) = self.lock().get_mut(&id) {
+            f(s);
+        }
+    }
+
+    pub fn remove_session(&self, id: u64) -> Option<SessionInfo> {
+        self.lock().remove(&id)
+    }
+
+    pub fn sessions(&self) -> Vec<SessionInfo> {
+        self.lock().values().cloned().collect()
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, BTreeMap<u64, SessionInfo>> {
+        // A panic while holding the lock cannot leave the map inconsistent (single inserts and
+        // removals), so a poisoned lock is still usable.
+        self.sessions.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The metrics in Prometheus text exposition format (version 0.0.4).
+    pub fn render_prometheus(&self) -> String {
+        let m = &self.metrics;
+        let mut out = String::new();
+        let mut counter = |name: &str, help: &str, v: u64| {
+            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
+        };
+        let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        counter(
+            "arbor_connections_accepted_total",
+            "QUIC connections accepted.",
+            load(&m.connections_accepted),
+        );
+        counter(
+            "arbor_connections_rejected_total",
+            "QUIC connections refused (cap, shutdown).",
+            load(&m.connections_rejected),
+        );
+        counter(
+            "arbor_request_lists_total",
+            "Request lists received.",
+            load(&m.request_lists),
+        );
+        counter(
+            "arbor_request_items_total",
+            "Items in request lists received.",
+            load(&m.request_items),
+        );
+        counter(
+            "arbor_treelets_sent_total",
+            "Treelets sent completely.",
+            load(&m.treelets_sent),
+        );
+        counter(
+            "arbor_treelet_bytes_sent_total",
+            "Bytes of treelet messages sent.",
+            load(&m.treelet_bytes_sent),
+        );
+        counter(
+            "arbor_treelets_cancelled_total",
+            "Treelet streams reset because the client no longer wanted them.",
+            load(&m.treelets_cancelled),
+        );
+        let sessions = self.sessions();
+        let queued: u64 = sessions.iter().map(|s| s.queue_depth).sum();
+        let in_flight: u64 = sessions.iter().map(|s| s.in_flight).sum();
+        let _ = writeln!(
+            out,
+            "# HELP arbor_connections_open Connections open now.\n# TYPE arbor_connections_open gauge\narbor_connections_open {}",
+            load(&m.connections_open)
+        );
+        let _ = writeln!(
+            out,
+            "# HELP arbor_queue_depth Treelets queued to send, over all connections.\n# TYPE arbor_queue_depth gauge\narbor_queue_depth {queued}"
+        );
+        let _ = writeln!(
+            out,
+            "# HELP arbor_in_flight Treelets in flight, over all connections.\n# TYPE arbor_in_flight gauge\narbor_in_flight {in_flight}"
+        );
+        let _ = writeln!(
+            out,
+            "# HELP arbor_errors_total Connections closed or streams reset, by error code.\n# TYPE arbor_errors_total counter"
+        );
+        for code in ErrorCode::ALL {
+            let _ = writeln!(
+                out,
+                "arbor_errors_total{{kind=\"{}\"}} {}",
+                code.name(),
+                m.errors(code)
+            );
+        }
+        let h = &m.request_to_send;
+        let _ = writeln!(
+            out,
+            "# HELP arbor_request_to_send_seconds From the first request list naming a treelet to its stream finishing.\n# TYPE arbor_request_to_send_seconds histogram"
+        );
+        for (b, le) in h.buckets.iter().zip(LATENCY_BUCKETS) {
+            let _ = writeln!(
+                out,
+                "arbor_request_to_send_seconds_bucket{{le=\"{le}\"}} {}",
+                load(b)
+            );
+        }
+        let _ = writeln!(
+            out,
+            "arbor_request_to_send_seconds_bucket{{le=\"+Inf\"}} {}\narbor_request_to_send_seconds_sum {}\narbor_request_to_send_seconds_count {}",
+            h.count(),
+            load(&h.sum_micros) as f64 / 1e6,
+            h.count()
+        );
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn prometheus_text_has_every_family_once() {
+        let s = ServiceState::new("ab".into());
+        s.metrics.treelets_sent.fetch_add(3, Ordering::Relaxed);
+        s.metrics.error(ErrorCode::FrameTooLarge);
+        s.metrics.request_to_send.observe(Duration::from_millis(3));
+        s.add_session(SessionInfo::new(7, "127.0.0.1:1".parse().unwrap()));
+        s.update_session(7, |x| x.queue_depth = 5);
+        let t = s.render_prometheus();
+        assert!(t.contains("arbor_treelets_sent_total 3\n"), "{t}");
+        assert!(t.contains("arbor_errors_total{kind=\"frame_too_large\"} 1\n"), "{t}");
+        assert!(t.contains("arbor_queue_depth 5\n"), "{t}");
+        assert!(t.contains("arbor_request_to_send_seconds_bucket{le=\"0.005\"} 1\n"), "{t}");
+        assert!(t.contains("arbor_request_to_send_seconds_bucket{le=\"0.002\"} 0\n"), "{t}");
+        assert!(t.contains("arbor_request_to_send_seconds_count 1\n"), "{t}");
+        for family in t.lines().filter(|l| l.starts_with("# TYPE")) {
+            let name = family.split_whitespace().nth(2).unwrap();
+            assert_eq!(
+                t.matches(&format!("# TYPE {name} ")).count(),
+                1,
+                "{name} declared twice"
+            );
+        }
+        assert_eq!(s.remove_session(7).map(|x| x.queue_depth), Some(5));
+        assert!(s.sessions().is_empty());
+    }
+
+    #[test]
+    fn readiness_follows_shutdown() {
+        let s = ServiceState::default();
+        assert!(!s.is_ready());
+        s.set_ready(true);
+        assert!(s.is_ready());
+        s.begin_shutdown();
+        assert!(!s.is_ready());
+    }
+}
