@@ -6,5 +6,12 @@
 //! references, and headless runs with error-against-time reports. The foundation issue only
 //! fixes the formats it will read; they live in [`arbor_proto`], re-exported here so client code
 //! names one crate.
+//!
+//! [`net`] is the connection to a treelet server (DESIGN §6): `quic://HOST:PORT/SCENE` URLs, a
+//! pinned certificate fingerprint or a CA, `Hello`, request lists, treelets received as events
+//! with decoded headers and per-treelet latency, bounded buffering with backpressure, and
+//! reconnects with backoff, all in a background task that never blocks the caller.
+
+pub mod net;
 
 pub use arbor_proto as proto;

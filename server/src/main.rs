@@ -1,5 +1,7 @@
-//! `arbor-server`: import scans into a treelet pool, inspect and verify it.
+//! `arbor-server`: import scans into a treelet pool, inspect and verify it, serve it.
 
+use std::io::Write as _;
+use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -7,6 +9,7 @@ use anyhow::{Context, Result, bail};
 use arbor_server::build::{self, BuildOptions, DepthChoice};
 use arbor_server::import::{self, Format, ImportOptions, RawSpec, SampleType};
 use arbor_server::pool::Pool;
+use arbor_server::service::{AdminTokenOrigin, ConfigOverrides, ServeConfig};
 use arbor_server::verify;
 use clap::{Parser, Subcommand};
 
@@ -21,7 +24,8 @@ use clap::{Parser, Subcommand};
         arbor-server list --db pool\n  \
         arbor-server info --db pool --scene bunny\n  \
         arbor-server verify --db pool --scene bunny\n  \
-        arbor-server remove --db pool --scene bunny"
+        arbor-server remove --db pool --scene bunny\n  \
+        arbor-server serve --db pool --listen 0.0.0.0:4433"
 )]
 struct Cli {
     #[command(subcommand)]
@@ -112,6 +116,46 @@ enum Command {
         #[arg(long)]
         scene: String,
     },
+    /// Serve the pool's scenes to clients over QUIC, with an admin HTTP API.
+    ///
+    /// Once serving, prints one line each on stdout: `quic ADDR`, `admin ADDR` (or
+    /// `admin off`), `fingerprint HEX` (SHA-256 of the certificate, what clients pin) and
+    /// `admin-token-file PATH` (or `admin-token config` when the token is set in the config).
+    /// Stops gracefully on SIGINT or SIGTERM (in-flight treelets may finish for
+    /// `shutdown_grace_ms`, clients get `Goodbye` and close code ShuttingDown) and exits 0.
+    #[command(after_help = "Examples:\n  \
+        arbor-server serve --db pool\n  \
+        arbor-server serve --db pool --listen 0.0.0.0:4433 --admin 127.0.0.1:9090\n  \
+        arbor-server serve --db pool --listen 127.0.0.1:0 --admin off --data-dir state\n  \
+        arbor-server serve --config /etc/arbor/serve.toml\n\n\
+        Without --config every scene is public (development). The config file's keys are \
+        documented in deploy/ and docs/config-schema.md; command-line flags override them.")]
+    Serve {
+        /// Pool directory (overrides `db` in the config).
+        #[arg(long)]
+        db: Option<PathBuf>,
+        /// QUIC (UDP) listen address [default: 127.0.0.1:4433].
+        #[arg(long)]
+        listen: Option<SocketAddr>,
+        /// Admin HTTP listen address, or `off` [default: 127.0.0.1:9090].
+        #[arg(long, value_parser = parse_admin)]
+        admin: Option<AdminArg>,
+        /// TOML configuration file.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Directory for the self-signed certificate and the generated admin token
+        /// [default: the pool directory].
+        #[arg(long)]
+        data_dir: Option<PathBuf>,
+    },
+}
+
+/// `--admin ADDR|off`.
+#[derive(Clone, Debug)]
+struct AdminArg(Option<SocketAddr>);
+
+fn parse_admin(s: &str) -> Result<AdminArg, String> {
+    arbor_server::service::config::parse_admin_listen(s).map(AdminArg)
 }
 
 fn parse_depth(s: &str) -> Result<DepthChoice, String> {
@@ -231,8 +275,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 }),
             };
             let sampler = arbor_server::memory::AnonPeakSampler::start();
-            let source = import::import_file(&file, &opts, scratch.path())
-                .with_context(|| format!("importing {}", file.display()))?;
+            // Import errors name the file and the place themselves.
+            let source = import::import_file(&file, &opts, scratch.path())?;
             tracing::info!("read {}: {}", file.display(), source.describe());
             let build_opts = BuildOptions {
                 depth,
@@ -330,7 +374,67 @@ fn run(cli: Cli) -> Result<ExitCode> {
             println!("removed {scene}");
             Ok(ExitCode::SUCCESS)
         }
+        Command::Serve {
+            db,
+            listen,
+            admin,
+            config,
+            data_dir,
+        } => {
+            let overrides = ConfigOverrides {
+                db,
+                listen,
+                admin_listen: admin.map(|a| a.0),
+                data_dir,
+            };
+            let config = ServeConfig::load(config.as_deref(), &overrides)?;
+            let rt = tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .thread_name("arbor-serve")
+                .build()
+                .context("starting the tokio runtime")?;
+            let result = rt.block_on(serve(config));
+            rt.shutdown_timeout(std::time::Duration::from_secs(1));
+            result?;
+            Ok(ExitCode::SUCCESS)
+        }
     }
+}
+
+/// Runs the service until SIGINT or SIGTERM, then shuts it down gracefully.
+async fn serve(config: ServeConfig) -> Result<()> {
+    use tokio::signal::unix::{SignalKind, signal};
+    // Handlers first, so a signal that arrives right after the addresses are printed is not lost.
+    let mut term = signal(SignalKind::terminate()).context("installing the SIGTERM handler")?;
+    let mut int = signal(SignalKind::interrupt()).context("installing the SIGINT handler")?;
+    let server = arbor_server::service::start(config).await?;
+    {
+        let mut out = std::io::stdout().lock();
+        writeln!(out, "quic {}", server.quic_addr)?;
+        match server.admin_addr {
+            Some(a) => writeln!(out, "admin {a}")?,
+            None => writeln!(out, "admin off")?,
+        }
+        writeln!(out, "fingerprint {}", server.fingerprint)?;
+        match &server.admin_token_origin {
+            AdminTokenOrigin::Config => writeln!(out, "admin-token config")?,
+            AdminTokenOrigin::File(p) | AdminTokenOrigin::Generated { path: p, .. } => {
+                writeln!(out, "admin-token-file {}", p.display())?
+            }
+        }
+        out.flush()?;
+    }
+    let trigger = server.shutdown_trigger();
+    let mut stopped = std::pin::pin!(server.wait());
+    let signal = tokio::select! {
+        _ = term.recv() => "SIGTERM",
+        _ = int.recv() => "SIGINT",
+        () = &mut stopped => bail!("the service stopped on its own"),
+    };
+    tracing::info!("{signal}: shutting down gracefully");
+    trigger.trigger();
+    stopped.await;
+    Ok(())
 }
 
 fn channel_names(d: &arbor_proto::SceneDescription) -> String {

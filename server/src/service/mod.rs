@@ -5,7 +5,21 @@
 //!   or cancelled) and asked what to do next (`poll_transmit`), with time passed in. It decides,
 //!   for every connection, which treelets to send in which order, how many may be in flight, and
 //!   which connection goes next; it is unit- and property-tested without sockets.
-//! * The networked parts (QUIC with quinn, the control stream, treelet streams, the admin API)
-//!   drive it and are built on top.
+//! * [`config`]: `ServeConfig` from TOML + CLI overrides, validation, scene access.
+//! * [`tls`]: the certificate (self-signed on first start, or given) and its fingerprint.
+//! * [`server`]: [`start`] → [`RunningServer`]: QUIC endpoint, connection cap, dispatcher, admin
+//!   listener, graceful shutdown; [`connection`]: one client; [`shutdown`]: the broadcast and
+//!   drop-to-finish plumbing; [`treelets`]: treelet messages from the pool.
+//! * [`state`]: metrics, sessions and readiness shared with the admin API.
+pub mod config;
+pub mod connection;
 pub mod schedule;
+pub mod server;
+pub mod shutdown;
 pub mod state;
+pub mod tls;
+pub mod treelets;
+
+pub use config::{ConfigError, ConfigOverrides, ServeConfig};
+pub use server::{AdminTokenOrigin, RunningServer, ServeError, start};
+pub use shutdown::ShutdownTrigger;

@@ -48,8 +48,10 @@ impl Histogram {
             }
         }
         self.count.fetch_add(1, Ordering::Relaxed);
-        self.sum_micros
-            .fetch_add(d.as_micros().min(u128::from(u64::MAX)) as u64, Ordering::Relaxed);
+        self.sum_micros.fetch_add(
+            d.as_micros().min(u128::from(u64::MAX)) as u64,
+            Ordering::Relaxed,
+        );
     }
 
     pub fn count(&self) -> u64 {
@@ -194,7 +196,10 @@ impl ServiceState {
         let m = &self.metrics;
         let mut out = String::new();
         let mut counter = |name: &str, help: &str, v: u64| {
-            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
+            let _ = writeln!(
+                out,
+                "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}"
+            );
         };
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
         counter(
@@ -297,10 +302,19 @@ mod tests {
         s.update_session(7, |x| x.queue_depth = 5);
         let t = s.render_prometheus();
         assert!(t.contains("arbor_treelets_sent_total 3\n"), "{t}");
-        assert!(t.contains("arbor_errors_total{kind=\"frame_too_large\"} 1\n"), "{t}");
+        assert!(
+            t.contains("arbor_errors_total{kind=\"frame_too_large\"} 1\n"),
+            "{t}"
+        );
         assert!(t.contains("arbor_queue_depth 5\n"), "{t}");
-        assert!(t.contains("arbor_request_to_send_seconds_bucket{le=\"0.005\"} 1\n"), "{t}");
-        assert!(t.contains("arbor_request_to_send_seconds_bucket{le=\"0.002\"} 0\n"), "{t}");
+        assert!(
+            t.contains("arbor_request_to_send_seconds_bucket{le=\"0.005\"} 1\n"),
+            "{t}"
+        );
+        assert!(
+            t.contains("arbor_request_to_send_seconds_bucket{le=\"0.002\"} 0\n"),
+            "{t}"
+        );
         assert!(t.contains("arbor_request_to_send_seconds_count 1\n"), "{t}");
         for family in t.lines().filter(|l| l.starts_with("# TYPE")) {
             let name = family.split_whitespace().nth(2).unwrap();

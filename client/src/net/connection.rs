@@ -1,0 +1,573 @@
+//! The connection task: connect, say `Hello`, then send request lists, read treelet streams
+//! and control frames concurrently until the connection ends; reconnect with backoff unless the
+//! end is final.
+
+use std::net::{Ipv4Addr, Ipv6Addr, SocketAddr};
+use std::sync::Arc;
+use std::time::Instant;
+
+use arbor_proto::frame::{FrameDecoder, encode};
+use arbor_proto::wire::{ErrorCode, Frame};
+use arbor_proto::{SceneDescription, TreeletId};
+use bytes::{Buf, Bytes};
+use quinn::{ConnectError, Connection, ConnectionError, Endpoint, RecvStream, SendStream, VarInt};
+use tokio::sync::{mpsc, watch};
+use tokio::task::JoinSet;
+use tokio::time::timeout;
+
+use super::backoff::Jitter;
+use super::config::ClientConfig;
+use super::event::ClientEvent;
+use super::shared::{Queued, Shared};
+use super::stream::{LocalClose, StreamContext, close_locally, read_stream};
+use super::transport::{CLOSE_TIMEOUT, HANDSHAKE_TIMEOUT, HELLO_TIMEOUT};
+
+/// The latest request list, shared between the handle and the task.
+pub(crate) type RequestList = Arc<Vec<(TreeletId, f32)>>;
+
+/// Whether a close code means reconnecting cannot help (the configuration is wrong): the scene,
+/// the token, the protocol version or the channels. Every other code, and a connection lost
+/// without a code, leads to a reconnect with backoff.
+pub fn is_final_code(code: ErrorCode) -> bool {
+    matches!(
+        code,
+        ErrorCode::Unauthorized
+            | ErrorCode::UnknownScene
+            | ErrorCode::UnsupportedVersion
+            | ErrorCode::UnknownChannel
+            | ErrorCode::TooManyChannels
+    )
+}
+
+/// How one connection (or attempt) ended.
+#[derive(Debug)]
+struct Ending {
+    code: Option<ErrorCode>,
+    reason: String,
+    retry: bool,
+    connected: bool,
+}
+
+enum Outcome {
+    Ended(Ending),
+    /// The caller closed the client.
+    Shutdown,
+}
+
+fn failed(reason: String, retry: bool) -> Outcome {
+    Outcome::Ended(Ending {
+        code: None,
+        reason,
+        retry,
+        connected: false,
+    })
+}
+
+/// Resolves once the caller asked to close (or dropped the handle).
+async fn shutdown_requested(rx: &mut watch::Receiver<bool>) {
+    let _ = rx.wait_for(|&stop| stop).await;
+}
+
+pub(crate) struct Task {
+    pub config: ClientConfig,
+    pub quinn_config: quinn::ClientConfig,
+    /// The encoded `Hello` frame.
+    pub hello: Vec<u8>,
+    pub shared: Arc<Shared>,
+    pub events: mpsc::UnboundedSender<Queued>,
+    pub lists: watch::Receiver<Option<RequestList>>,
+    pub shutdown: watch::Receiver<bool>,
+    pub jitter: Jitter,
+    /// Index of the resolved address to try next; kept while connections succeed.
+    pub next_addr: usize,
+}
+
+impl Task {
+    pub async fn run(mut self) {
+        let mut endpoint: Option<Endpoint> = None;
+        let mut attempt = 0u32;
+        let mut next_seq = 1u64;
+        loop {
+            let ending = match self.session(&mut endpoint, &mut next_seq).await {
+                Outcome::Shutdown => break,
+                Outcome::Ended(e) => e,
+            };
+            if ending.connected {
+                attempt = 0;
+            }
+            let reconnect_in = ending.retry.then(|| {
+                let d = self.config.backoff.delay(attempt, &mut self.jitter);
+                attempt = attempt.saturating_add(1);
+                d
+            });
+            {
+                let mut s = self.shared.stats();
+                s.disconnects += 1;
+                if ending.code.is_some() {
+                    s.last_close_code = ending.code;
+                }
+            }
+            tracing::info!(
+                url = %self.config.url,
+                code = ?ending.code,
+                reason = %ending.reason,
+                ?reconnect_in,
+                "disconnected"
+            );
+            let _ = self.events.send(Queued::plain(ClientEvent::Disconnected {
+                code: ending.code,
+                reason: ending.reason,
+                reconnect_in,
+            }));
+            let Some(delay) = reconnect_in else { break };
+            tokio::select! {
+                _ = tokio::time::sleep(delay) => {}
+                _ = shutdown_requested(&mut self.shutdown) => break,
+            }
+        }
+        if let Some(ep) = endpoint {
+            ep.close(VarInt::from_u32(ErrorCode::NoError.to_u32()), b"");
+            let _ = timeout(CLOSE_TIMEOUT, ep.wait_idle()).await;
+        }
+    }
+
+    /// One connection attempt and, if it succeeds, the connection's life.
+    async fn session(&mut self, endpoint: &mut Option<Endpoint>, next_seq: &mut u64) -> Outcome {
+        let url = &self.config.url;
+        let resolved = tokio::select! {
+            r = tokio::net::lookup_host((url.host.as_str(), url.port)) => r,
+            _ = shutdown_requested(&mut self.shutdown) => return Outcome::Shutdown,
+        };
+        let addrs: Vec<SocketAddr> = match resolved {
+            Ok(a) => a.collect(),
+            Err(e) => return failed(format!("cannot resolve {}: {e}", url.host), true),
+        };
+        if addrs.is_empty() {
+            return failed(format!("{} has no address", url.host), true);
+        }
+        // Each failed attempt moves on to the host's next address.
+        let addr = addrs[self.next_addr % addrs.len()];
+        self.next_addr = self.next_addr.wrapping_add(1);
+        let ep = match endpoint_for(endpoint, addr) {
+            Ok(ep) => ep,
+            Err(e) => return failed(format!("cannot open a UDP socket: {e}"), true),
+        };
+        let connecting = match ep.connect_with(self.quinn_config.clone(), addr, &url.host) {
+            Ok(c) => c,
+            Err(ConnectError::InvalidServerName(name)) => {
+                return failed(format!("{name:?} is not a valid TLS server name"), false);
+            }
+            Err(e) => return failed(format!("cannot connect to {addr}: {e}"), true),
+        };
+        let conn = tokio::select! {
+            r = timeout(HANDSHAKE_TIMEOUT, connecting) => match r {
+                Ok(Ok(conn)) => conn,
+                Ok(Err(e)) => {
+                    return Outcome::Ended(ending_from(e, &LocalClose::default(), None, false));
+                }
+                Err(_) => {
+                    return failed(
+                        format!("no QUIC handshake with {addr} within {HANDSHAKE_TIMEOUT:?}"),
+                        true,
+                    );
+                }
+            },
+            _ = shutdown_requested(&mut self.shutdown) => return Outcome::Shutdown,
+        };
+        tracing::debug!(%addr, "QUIC connection established");
+
+        let local_close = LocalClose::default();
+        let mut remote: Option<(ErrorCode, String)> = None;
+        let setup = tokio::select! {
+            r = setup(&conn, &self.hello) => r,
+            _ = shutdown_requested(&mut self.shutdown) => {
+                close_gracefully(&conn, None).await;
+                return Outcome::Shutdown;
+            }
+        };
+        let (mut send, mut control, scene) = match setup {
+            Ok(ok) => ok,
+            Err(SetupError::Refused(code, message)) => {
+                remote = Some((code, message));
+                let err = wait_closed(&conn, &local_close, true).await;
+                return Outcome::Ended(ending_from(err, &local_close, remote, false));
+            }
+            Err(SetupError::Violation(reason)) => {
+                close_locally(&conn, &local_close, ErrorCode::ProtocolViolation, reason);
+                return Outcome::Ended(ending_from(conn.closed().await, &local_close, None, false));
+            }
+            Err(SetupError::Ended) => {
+                let err = wait_closed(&conn, &local_close, false).await;
+                return Outcome::Ended(ending_from(err, &local_close, None, false));
+            }
+        };
+
+        // Connected: stay with this address next time.
+        self.next_addr = self.next_addr.wrapping_sub(1);
+        if scene.name != url.scene {
+            tracing::warn!(asked = %url.scene, got = %scene.name, "server named the scene differently");
+        }
+        self.shared.set_scene(scene.clone());
+        self.shared.stats().connects += 1;
+        tracing::info!(url = %url, treelets = scene.treelet_count, "connected");
+        let _ = self
+            .events
+            .send(Queued::plain(ClientEvent::Connected(scene.clone())));
+
+        let ctx = Arc::new(StreamContext {
+            shared: self.shared.clone(),
+            events: self.events.clone(),
+            conn: conn.clone(),
+            local_close: local_close.clone(),
+            channels: self.config.channels.clone(),
+            treelet_count: scene.treelet_count,
+            treelet_nodes: scene.treelet_nodes,
+        });
+        let mut readers = JoinSet::new();
+        let stopped = tokio::select! {
+            why = send_lists(&mut send, &mut self.lists, &self.shared, &scene, next_seq) => Some(why),
+            end = read_control(&mut control, &mut remote) => match end {
+                ControlEnd::Violation(reason) => {
+                    close_locally(&conn, &local_close, ErrorCode::ProtocolViolation, reason.clone());
+                    Some(reason)
+                }
+                ControlEnd::Ended(why) => Some(why),
+            },
+            err = accept_streams(&conn, &mut readers, ctx) => Some(err.to_string()),
+            _ = shutdown_requested(&mut self.shutdown) => None,
+        };
+        let Some(why) = stopped else {
+            close_gracefully(&conn, Some(&mut send)).await;
+            readers.shutdown().await;
+            return Outcome::Shutdown;
+        };
+        tracing::debug!(%why, "connection ending");
+        let err = wait_closed(&conn, &local_close, remote.is_some()).await;
+        // No treelet event may follow the Disconnected event.
+        readers.shutdown().await;
+        Outcome::Ended(ending_from(err, &local_close, remote, true))
+    }
+}
+
+/// The client endpoint for `addr`'s address family, reused while the family stays the same.
+fn endpoint_for(slot: &mut Option<Endpoint>, addr: SocketAddr) -> std::io::Result<Endpoint> {
+    if let Some(ep) = slot
+        && ep.local_addr()?.is_ipv6() == addr.is_ipv6()
+    {
+        return Ok(ep.clone());
+    }
+    let bind: SocketAddr = if addr.is_ipv6() {
+        (Ipv6Addr::UNSPECIFIED, 0).into()
+    } else {
+        (Ipv4Addr::UNSPECIFIED, 0).into()
+    };
+    let ep = Endpoint::client(bind)?;
+    if let Some(old) = slot.replace(ep.clone()) {
+        old.close(VarInt::from_u32(ErrorCode::NoError.to_u32()), b"");
+    }
+    Ok(ep)
+}
+
+/// The server's control stream: bytes in, frames out.
+struct Control {
+    recv: RecvStream,
+    decoder: FrameDecoder,
+    pending: Bytes,
+}
+
+enum ControlEnd {
+    /// The server sent something it must not.
+    Violation(String),
+    /// The stream finished or the connection is going away.
+    Ended(String),
+}
+
+impl Control {
+    fn new(recv: RecvStream) -> Self {
+        Self {
+            recv,
+            decoder: FrameDecoder::for_client(),
+            pending: Bytes::new(),
+        }
+    }
+
+    async fn next_frame(&mut self) -> Result<Frame, ControlEnd> {
+        loop {
+            match self.decoder.next() {
+                Ok(Some(frame)) => return Ok(frame),
+                Ok(None) => {}
+                Err(e) => return Err(ControlEnd::Violation(format!("control stream: {e}"))),
+            }
+            if self.pending.is_empty() {
+                match self.recv.read_chunk(64 * 1024, true).await {
+                    Ok(Some(chunk)) => self.pending = chunk.bytes,
+                    Ok(None) => return Err(ControlEnd::Ended("control stream finished".into())),
+                    Err(e) => return Err(ControlEnd::Ended(format!("control stream: {e}"))),
+                }
+            }
+            // The decoder holds at most one maximal frame, so when it takes nothing it has a
+            // whole frame (or an error) for the next turn.
+            let n = self.decoder.push(&self.pending);
+            self.pending.advance(n);
+        }
+    }
+}
+
+enum SetupError {
+    /// The server answered `Hello` with an `Error` frame.
+    Refused(ErrorCode, String),
+    Violation(String),
+    /// The connection went away.
+    Ended,
+}
+
+/// Opens the control stream, sends `Hello` and waits for `SceneInfo`.
+async fn setup(
+    conn: &Connection,
+    hello: &[u8],
+) -> Result<(SendStream, Control, Arc<SceneDescription>), SetupError> {
+    let (mut send, recv) = conn.open_bi().await.map_err(|_| SetupError::Ended)?;
+    send.write_all(hello).await.map_err(|_| SetupError::Ended)?;
+    let mut control = Control::new(recv);
+    let frame = match timeout(HELLO_TIMEOUT, control.next_frame()).await {
+        Ok(Ok(frame)) => frame,
+        Ok(Err(ControlEnd::Violation(reason))) => return Err(SetupError::Violation(reason)),
+        Ok(Err(ControlEnd::Ended(_))) => return Err(SetupError::Ended),
+        Err(_) => {
+            return Err(SetupError::Violation(format!(
+                "no answer to Hello within {HELLO_TIMEOUT:?}"
+            )));
+        }
+    };
+    match frame {
+        Frame::SceneInfo { description } => Ok((send, control, Arc::from(description))),
+        Frame::Error { code, message } => Err(SetupError::Refused(code, message)),
+        Frame::Goodbye { code } => Err(SetupError::Refused(code, "server said goodbye".into())),
+        other => Err(SetupError::Violation(format!(
+            "expected SceneInfo, got a {:?} frame",
+            other.frame_type()
+        ))),
+    }
+}
+
+/// Sends the latest request list now and whenever it changes. Returns only when writing fails.
+async fn send_lists(
+    send: &mut SendStream,
+    lists: &mut watch::Receiver<Option<RequestList>>,
+    shared: &Shared,
+    scene: &SceneDescription,
+    next_seq: &mut u64,
+) -> String {
+    // A new connection gets the latest list at once.
+    lists.mark_changed();
+    loop {
+        if lists.changed().await.is_err() {
+            // The handle is gone; the shutdown signal ends the session.
+            std::future::pending::<()>().await;
+        }
+        let latest = lists.borrow_and_update().clone();
+        let Some(list) = latest else { continue };
+        let items: Vec<(TreeletId, f32)> = list
+            .iter()
+            .copied()
+            .filter(|(id, _)| id.0 < scene.treelet_count)
+            .collect();
+        if items.len() < list.len() {
+            tracing::warn!(
+                dropped = list.len() - items.len(),
+                treelets = scene.treelet_count,
+                "request list names treelets the scene does not have; not sending them"
+            );
+        }
+        let seq = *next_seq;
+        *next_seq += 1;
+        let ids: Vec<TreeletId> = items.iter().map(|i| i.0).collect();
+        let bytes = match encode(&Frame::RequestList { seq, items }) {
+            Ok(b) => b,
+            Err(e) => {
+                // `request` validated the list, so this is a bug; skip the list, keep going.
+                tracing::error!(error = %e, "cannot encode a request list");
+                continue;
+            }
+        };
+        shared.latency().list_sent(ids, Instant::now());
+        if let Err(e) = send.write_all(&bytes).await {
+            return format!("writing request list {seq}: {e}");
+        }
+        shared.stats().lists_sent += 1;
+        tracing::trace!(seq, "request list sent");
+    }
+}
+
+/// Reads control frames after `SceneInfo`: `Error` and `Goodbye` are remembered (the close
+/// follows); anything else is a violation.
+async fn read_control(
+    control: &mut Control,
+    remote: &mut Option<(ErrorCode, String)>,
+) -> ControlEnd {
+    loop {
+        match control.next_frame().await {
+            Ok(Frame::Error { code, message }) => {
+                tracing::info!(%code, %message, "server sent an error");
+                *remote = Some((code, message));
+            }
+            Ok(Frame::Goodbye { code }) => {
+                tracing::info!(%code, "server said goodbye");
+                remote.get_or_insert((code, "server said goodbye".into()));
+            }
+            Ok(other) => {
+                return ControlEnd::Violation(format!(
+                    "unexpected {:?} frame from the server",
+                    other.frame_type()
+                ));
+            }
+            Err(end) => return end,
+        }
+    }
+}
+
+/// Accepts treelet streams while the buffer has room, one reader task each.
+async fn accept_streams(
+    conn: &Connection,
+    readers: &mut JoinSet<()>,
+    ctx: Arc<StreamContext>,
+) -> ConnectionError {
+    loop {
+        // Backpressure: no new stream while the caller's buffer is full.
+        ctx.shared.wait_for_room().await;
+        match conn.accept_uni().await {
+            Ok(recv) => {
+                readers.spawn(read_stream(recv, ctx.clone()));
+            }
+            Err(e) => return e,
+        }
+        while readers.try_join_next().is_some() {}
+    }
+}
+
+/// Waits for the connection to close. A server that said why (`Error`, `Goodbye`) or ended
+/// the control stream gets [`CLOSE_TIMEOUT`] to close it; then the client closes.
+async fn wait_closed(conn: &Connection, local: &LocalClose, said_why: bool) -> ConnectionError {
+    if let Ok(err) = timeout(CLOSE_TIMEOUT, conn.closed()).await {
+        return err;
+    }
+    let (code, reason) = if said_why {
+        (
+            ErrorCode::NoError,
+            "server did not close after its last frame",
+        )
+    } else {
+        (
+            ErrorCode::ProtocolViolation,
+            "server ended the control stream without closing",
+        )
+    };
+    close_locally(conn, local, code, reason.into());
+    conn.closed().await
+}
+
+/// The caller closes: `Goodbye`, finish the control stream, wait (bounded) until the server
+/// has it — a close discards stream data not yet delivered — and close with `NoError`.
+async fn close_gracefully(conn: &Connection, send: Option<&mut SendStream>) {
+    if let Some(send) = send {
+        let goodbye = encode(&Frame::Goodbye {
+            code: ErrorCode::NoError,
+        });
+        let _ = timeout(CLOSE_TIMEOUT, async {
+            if let Ok(bytes) = goodbye {
+                send.write_all(&bytes).await.ok()?;
+            }
+            send.finish().ok()?;
+            send.stopped().await.ok()
+        })
+        .await;
+    }
+    conn.close(
+        VarInt::from_u32(ErrorCode::NoError.to_u32()),
+        b"client closed",
+    );
+}
+
+/// Turns how a connection closed into the caller's terms.
+fn ending_from(
+    err: ConnectionError,
+    local: &LocalClose,
+    remote: Option<(ErrorCode, String)>,
+    connected: bool,
+) -> Ending {
+    let local = local.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let remote_code = remote.as_ref().map(|r| r.0);
+    let is_crypto = |code: u64| (0x100..0x200).contains(&code);
+    let (code, reason, mut retry) = match err {
+        ConnectionError::ApplicationClosed(close) => {
+            let number = close.error_code.into_inner();
+            let code = u32::try_from(number).ok().and_then(ErrorCode::from_u32);
+            let mut text = String::from_utf8_lossy(&close.reason).into_owned();
+            if let Some((_, message)) = &remote {
+                if text.is_empty() || text == *message {
+                    text = message.clone();
+                } else {
+                    text = format!("{text} ({message})");
+                }
+            }
+            let name = code.map_or_else(|| format!("unknown code {number}"), |c| c.to_string());
+            (
+                code,
+                format!("server closed the connection: {name}: {text}"),
+                true,
+            )
+        }
+        ConnectionError::LocallyClosed => match local {
+            Some((code, why)) => (
+                Some(code),
+                format!("client closed the connection: {code}: {why}"),
+                true,
+            ),
+            None => (None, "connection closed by the client".into(), true),
+        },
+        ConnectionError::TimedOut => (
+            remote_code,
+            "connection timed out: no answer from the server".into(),
+            true,
+        ),
+        ConnectionError::Reset => (
+            remote_code,
+            "connection reset by the server (it may have restarted)".into(),
+            true,
+        ),
+        ConnectionError::TransportError(e) => {
+            let crypto = is_crypto(e.code.into());
+            let what = if crypto {
+                "TLS handshake failed"
+            } else {
+                "transport error"
+            };
+            (None, format!("{what}: {e}"), !crypto)
+        }
+        ConnectionError::ConnectionClosed(close) => {
+            let crypto = is_crypto(close.error_code.into());
+            let what = if crypto {
+                "server refused the TLS handshake"
+            } else {
+                "server aborted the connection"
+            };
+            (None, format!("{what}: {close}"), !crypto)
+        }
+        ConnectionError::VersionMismatch => (
+            None,
+            "server supports no QUIC version this client speaks".into(),
+            false,
+        ),
+        ConnectionError::CidsExhausted => (None, "connection ids exhausted".into(), true),
+    };
+    let code = code.or(remote_code);
+    if code.is_some_and(is_final_code) {
+        retry = false;
+    }
+    Ending {
+        code,
+        reason,
+        retry,
+        connected,
+    }
+}

@@ -1,0 +1,216 @@
+//! State shared by the caller's handle and the connection task: counters, the current scene,
+//! the received-bytes budget (backpressure) and request times (latency).
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use arbor_proto::{SceneDescription, TreeletId};
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+
+use super::event::{ClientEvent, ClientStats};
+
+/// An event on its way to the caller, with the budget its treelet bytes hold until taken.
+#[derive(Debug)]
+pub(crate) struct Queued {
+    pub event: ClientEvent,
+    pub _lease: Option<BufferLease>,
+}
+
+impl Queued {
+    pub fn plain(event: ClientEvent) -> Self {
+        Self {
+            event,
+            _lease: None,
+        }
+    }
+}
+
+#[derive(Debug)]
+pub(crate) struct Shared {
+    stats: Mutex<ClientStats>,
+    scene: Mutex<Option<Arc<SceneDescription>>>,
+    latency: Mutex<LatencyTracker>,
+    /// One permit per buffered byte, `capacity` in all.
+    budget: Arc<Semaphore>,
+    capacity: usize,
+}
+
+impl Shared {
+    pub fn new(max_buffered_bytes: usize) -> Self {
+        let capacity = max_buffered_bytes.clamp(1, u32::MAX as usize);
+        Self {
+            stats: Mutex::default(),
+            scene: Mutex::default(),
+            latency: Mutex::default(),
+            budget: Arc::new(Semaphore::new(capacity)),
+            capacity,
+        }
+    }
+
+    /// The counters, for updating. Never held across an await.
+    pub fn stats(&self) -> MutexGuard<'_, ClientStats> {
+        lock(&self.stats)
+    }
+
+    pub fn scene(&self) -> Option<Arc<SceneDescription>> {
+        lock(&self.scene).clone()
+    }
+
+    pub fn set_scene(&self, scene: Arc<SceneDescription>) {
+        *lock(&self.scene) = Some(scene);
+    }
+
+    pub fn latency(&self) -> MutexGuard<'_, LatencyTracker> {
+        lock(&self.latency)
+    }
+
+    /// Waits until some budget is free: the stream acceptor's gate, so that no new stream is
+    /// taken while the buffer is full.
+    pub async fn wait_for_room(&self) {
+        // The semaphore is fair: this waits behind readers waiting for their messages' bytes.
+        drop(
+            self.budget
+                .acquire()
+                .await
+                .expect("the budget is never closed"),
+        );
+    }
+
+    /// Takes `bytes` of budget for a message about to be read (all of it for a message larger
+    /// than the whole budget), waiting while the buffer is full.
+    pub async fn reserve(self: &Arc<Self>, bytes: usize) -> BufferLease {
+        let permits = bytes.min(self.capacity) as u32;
+        let permit = self
+            .budget
+            .clone()
+            .acquire_many_owned(permits)
+            .await
+            .expect("the budget is never closed");
+        {
+            let mut s = self.stats();
+            s.buffered_bytes += bytes;
+            s.peak_buffered_bytes = s.peak_buffered_bytes.max(s.buffered_bytes);
+        }
+        BufferLease {
+            shared: self.clone(),
+            _permit: permit,
+            bytes,
+        }
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // The data behind these locks stays consistent even if a holder panicked.
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Budget held by buffered treelet bytes; given back when dropped (the caller took the event,
+/// or the read was abandoned).
+pub(crate) struct BufferLease {
+    shared: Arc<Shared>,
+    _permit: OwnedSemaphorePermit,
+    bytes: usize,
+}
+
+impl std::fmt::Debug for BufferLease {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "BufferLease({} bytes)", self.bytes)
+    }
+}
+
+impl Drop for BufferLease {
+    fn drop(&mut self) {
+        let mut s = self.shared.stats();
+        s.buffered_bytes -= self.bytes;
+    }
+}
+
+/// When each wanted treelet was first named by a list sent, so its latency can be reported on
+/// arrival. Holds the ids of the latest list and of the one before it (whose treelets may still
+/// be in flight), so it never grows beyond two lists.
+#[derive(Debug, Default)]
+pub(crate) struct LatencyTracker {
+    current: HashMap<TreeletId, Instant>,
+    previous: HashMap<TreeletId, Instant>,
+}
+
+impl LatencyTracker {
+    /// A list naming `ids` was sent at `now`.
+    pub fn list_sent(&mut self, ids: impl IntoIterator<Item = TreeletId>, now: Instant) {
+        let mut next = HashMap::new();
+        for id in ids {
+            if next.contains_key(&id) {
+                continue;
+            }
+            let first = self
+                .current
+                .remove(&id)
+                .or_else(|| self.previous.remove(&id))
+                .unwrap_or(now);
+            next.insert(id, first);
+        }
+        self.previous = std::mem::replace(&mut self.current, next);
+    }
+
+    /// Treelet `id` arrived at `now`: its latency, zero if no list named it.
+    pub fn arrived(&mut self, id: TreeletId, now: Instant) -> Duration {
+        self.current
+            .remove(&id)
+            .or_else(|| self.previous.remove(&id))
+            .map_or(Duration::ZERO, |t| now.saturating_duration_since(t))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn latency_counts_from_the_first_list_naming_a_treelet() {
+        let t0 = Instant::now();
+        let ms = Duration::from_millis;
+        let mut l = LatencyTracker::default();
+        l.list_sent([TreeletId(1), TreeletId(2), TreeletId(2)], t0);
+        l.list_sent([TreeletId(2), TreeletId(3)], t0 + ms(10));
+        // 2 keeps its first time; 1 (dropped from the list) is still known, 3 is new.
+        assert_eq!(l.arrived(TreeletId(2), t0 + ms(30)), ms(30));
+        assert_eq!(l.arrived(TreeletId(1), t0 + ms(30)), ms(30));
+        assert_eq!(l.arrived(TreeletId(3), t0 + ms(30)), ms(20));
+        // Arrived treelets are forgotten; unknown ones get zero.
+        assert_eq!(l.arrived(TreeletId(2), t0 + ms(40)), Duration::ZERO);
+        l.list_sent([TreeletId(4)], t0 + ms(50));
+        l.list_sent([TreeletId(5)], t0 + ms(60));
+        l.list_sent([TreeletId(6)], t0 + ms(70));
+        // Two lists later, 4 is forgotten: the tracker holds at most two lists.
+        assert_eq!(l.arrived(TreeletId(4), t0 + ms(80)), Duration::ZERO);
+        assert_eq!(l.arrived(TreeletId(5), t0 + ms(80)), ms(20));
+    }
+
+    #[tokio::test]
+    async fn budget_is_given_back_when_leases_drop() {
+        let s = Arc::new(Shared::new(100));
+        let a = s.reserve(60).await;
+        let b = s.reserve(40).await;
+        assert_eq!(s.stats().buffered_bytes, 100);
+        // Full: a third reservation waits.
+        let pending = tokio::time::timeout(Duration::from_millis(50), s.reserve(1)).await;
+        assert!(pending.is_err());
+        drop(a);
+        assert_eq!(s.stats().buffered_bytes, 40);
+        // Larger than the budget: waits until all of it is free, then takes it alone.
+        let big = tokio::spawn({
+            let s = s.clone();
+            async move { s.reserve(500).await }
+        });
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        assert!(!big.is_finished());
+        drop(b);
+        let c = big.await.unwrap();
+        assert_eq!(s.stats().buffered_bytes, 500);
+        assert_eq!(s.stats().peak_buffered_bytes, 500);
+        drop(c);
+        assert_eq!(s.stats().buffered_bytes, 0);
+        s.wait_for_room().await;
+    }
+}

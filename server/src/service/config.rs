@@ -1,0 +1,874 @@
+//! `arbor-server serve` configuration: a TOML file (every key optional) with CLI overrides.
+//!
+//! ```toml
+//! db = "/var/lib/arbor/pool"            # pool directory (CLI --db)
+//! data_dir = "/var/lib/arbor/state"     # cert.pem + key.pem + admin-token live here; default: db (CLI --data-dir)
+//! listen = "0.0.0.0:4433"               # QUIC, UDP (CLI --listen); default 127.0.0.1:4433
+//! admin_listen = "127.0.0.1:9090"       # admin HTTP (CLI --admin); "off" disables
+//! admin_token_file = "/etc/arbor/admin-token"   # or admin_token = "..."; neither: generated into <data_dir>/admin-token
+//! cert = "/etc/arbor/tls/fullchain.pem" # optional PEM chain + key instead of the self-signed pair
+//! key = "/etc/arbor/tls/key.pem"
+//! max_connections = 256
+//! idle_timeout_ms = 30000
+//! hello_timeout_ms = 5000
+//! max_connection_memory = 67108864
+//! window_min = 8
+//! window_max = 256
+//! slow_reader_timeout_ms = 10000
+//! shutdown_grace_ms = 5000
+//! default_access = "token"              # scenes without a [scenes.NAME] entry: "token" or "public"
+//!
+//! [scenes.bunny]
+//! tokens = ["change-me"]                # or token_files = ["/etc/arbor/bunny.token"]
+//! [scenes.lion]
+//! access = "public"
+//! ```
+//!
+//! Without a config file `default_access` is `public` (a development setup; a warning is logged
+//! when `listen` is not a loopback address). With a file it defaults to `token`, so a scene
+//! nobody configured cannot be opened at all.
+//!
+//! Parsing rejects unknown keys and names the offending key in every error; [`ServeConfig::validate`]
+//! checks the values. Access tokens are compared in constant time (an HMAC under a per-process
+//! random key, verified with `ring::hmac::verify`), so response time does not reveal how much of
+//! a guessed token was right.
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+use std::time::Duration;
+
+use arbor_proto::limits::{MAX_FRAME_BYTES, MAX_REQUEST_ITEMS, MAX_TOKEN_BYTES};
+use arbor_proto::scene::validate_scene_name;
+use arbor_proto::wire::ErrorCode;
+use serde::Deserialize;
+
+/// Default QUIC listen address.
+pub const DEFAULT_LISTEN: &str = "127.0.0.1:4433";
+/// Default admin listen address.
+pub const DEFAULT_ADMIN_LISTEN: &str = "127.0.0.1:9090";
+/// Smallest accepted `max_connection_memory`: one maximal control frame in the decoder, a
+/// maximal request list in the scheduler, and room for receive and send buffers.
+pub const MIN_CONNECTION_MEMORY: u64 = 8 << 20;
+
+/// What is wrong with a configuration. Every variant names the key it is about.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The config file (or a file it names) could not be read.
+    #[error("`{key}`: cannot read {}: {source}", path.display())]
+    Read {
+        key: String,
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The config file is not valid TOML, has an unknown key, or a value of the wrong type.
+    #[error("{}: key `{key}`: {message}", path.display())]
+    Parse {
+        path: PathBuf,
+        /// Dotted key the error is about (`scenes.bunny.tokens`), or `?` when the parser could
+        /// not place it.
+        key: String,
+        message: String,
+    },
+    /// A value is out of range or contradicts another.
+    #[error("key `{key}`: {reason}")]
+    Invalid { key: String, reason: String },
+}
+
+fn invalid(key: impl Into<String>, reason: impl Into<String>) -> ConfigError {
+    ConfigError::Invalid {
+        key: key.into(),
+        reason: reason.into(),
+    }
+}
+
+/// Who may open a scene.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Access {
+    /// Anyone; the token in `Hello` is ignored.
+    Public,
+    /// Only with one of the scene's tokens.
+    Token,
+}
+
+/// Access rule of one scene, tokens resolved (token files read).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum SceneAccess {
+    Public,
+    /// Any of these tokens opens the scene.
+    Tokens(Vec<String>),
+}
+
+/// Where the admin bearer token comes from.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum AdminTokenSource {
+    /// `admin_token` in the config (or set by a program).
+    Inline(String),
+    /// `admin_token_file`: read at start, surrounding whitespace trimmed.
+    File(PathBuf),
+    /// Neither: generated into `<data_dir>/admin-token` (mode 0600) on first start, reused after.
+    Generated,
+}
+
+/// TLS identity source.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum TlsSource {
+    /// A self-signed pair created in the data dir on first start and reused after.
+    SelfSigned,
+    /// A PEM certificate chain and its private key.
+    Files { cert: PathBuf, key: PathBuf },
+}
+
+/// The complete, validated configuration of `arbor-server serve`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ServeConfig {
+    /// Pool directory.
+    pub db: PathBuf,
+    /// Where the self-signed pair and the generated admin token are kept; `None`: `db`.
+    pub data_dir: Option<PathBuf>,
+    /// QUIC (UDP) listen address.
+    pub listen: SocketAddr,
+    /// Admin HTTP listen address; `None`: no admin API.
+    pub admin_listen: Option<SocketAddr>,
+    pub admin_token: AdminTokenSource,
+    /// A low-privilege token that opens only the admin API's `/readyz` (for orchestrator
+    /// readiness probes, which cannot read secrets); `None`: `/readyz` needs the admin token.
+    pub probe_token: Option<String>,
+    pub tls: TlsSource,
+    /// Connections served at once; more are refused with `ServerBusy`.
+    pub max_connections: usize,
+    pub idle_timeout_ms: u64,
+    /// Time a client has from the start of the handshake to a complete `Hello`.
+    pub hello_timeout_ms: u64,
+    /// Per-connection memory bound in bytes (see [`ServeConfig::memory_plan`]).
+    pub max_connection_memory: u64,
+    /// Bounds of the per-connection in-flight window (treelets).
+    pub window_min: usize,
+    pub window_max: usize,
+    /// A connection with treelets in flight and no progress on any of them for this long is
+    /// closed with `SlowReader`.
+    pub slow_reader_timeout_ms: u64,
+    /// How long shutdown lets in-flight treelet streams finish.
+    pub shutdown_grace_ms: u64,
+    /// Rule for scenes without an entry in `scenes`.
+    pub default_access: Access,
+    /// Per-scene rules.
+    pub scenes: BTreeMap<String, SceneAccess>,
+}
+
+/// Values given on the command line; each replaces the file's value.
+#[derive(Clone, Debug, Default)]
+pub struct ConfigOverrides {
+    pub db: Option<PathBuf>,
+    pub listen: Option<SocketAddr>,
+    /// `Some(None)`: `--admin off`.
+    pub admin_listen: Option<Option<SocketAddr>>,
+    pub data_dir: Option<PathBuf>,
+}
+
+/// How [`ServeConfig::max_connection_memory`] is divided (bytes).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MemoryPlan {
+    /// Control-frame decoder buffer: one maximal client frame (fixed by the protocol).
+    pub decoder: u64,
+    /// Scheduler state for the longest request list (fixed by the protocol).
+    pub request_list: u64,
+    /// QUIC connection- and stream-level receive window (what the client may send unread).
+    pub receive_window: u64,
+    /// QUIC send window: unacknowledged treelet bytes buffered for this connection.
+    pub send_window: u64,
+}
+
+/// Parses `off` or a socket address.
+pub fn parse_admin_listen(s: &str) -> Result<Option<SocketAddr>, String> {
+    if s.eq_ignore_ascii_case("off") {
+        return Ok(None);
+    }
+    s.parse()
+        .map(Some)
+        .map_err(|_| format!("'{s}' is neither an address like 127.0.0.1:9090 nor \"off\""))
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FileConfig {
+    db: Option<PathBuf>,
+    data_dir: Option<PathBuf>,
+    listen: Option<SocketAddr>,
+    admin_listen: Option<String>,
+    admin_token: Option<String>,
+    admin_token_file: Option<PathBuf>,
+    probe_token: Option<String>,
+    cert: Option<PathBuf>,
+    key: Option<PathBuf>,
+    max_connections: Option<usize>,
+    idle_timeout_ms: Option<u64>,
+    hello_timeout_ms: Option<u64>,
+    max_connection_memory: Option<u64>,
+    window_min: Option<usize>,
+    window_max: Option<usize>,
+    slow_reader_timeout_ms: Option<u64>,
+    shutdown_grace_ms: Option<u64>,
+    default_access: Option<Access>,
+    #[serde(default)]
+    scenes: BTreeMap<String, SceneFile>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SceneFile {
+    access: Option<Access>,
+    tokens: Option<Vec<String>>,
+    token_files: Option<Vec<PathBuf>>,
+}
+
+/// The dotted key whose line holds byte `offset` of `src` (the parser's error span), for
+/// messages: the text before `=` on that line (or the nearest line above with one, for values
+/// spanning lines), prefixed by the table header above it.
+fn key_at(src: &str, offset: usize) -> Option<String> {
+    let offset = offset.min(src.len());
+    let upto = src.get(..offset)?;
+    let line_start = upto.rfind('\n').map_or(0, |i| i + 1);
+    let mut lines_above: Vec<&str> = src[..line_start].lines().collect();
+    let this_line = src[line_start..].lines().next().unwrap_or("");
+    let clean = |k: &str| {
+        k.trim()
+            .split('.')
+            .map(|p| p.trim().trim_matches('"').trim_matches('\''))
+            .collect::<Vec<_>>()
+            .join(".")
+    };
+    let header = |l: &str| {
+        let t = l.trim();
+        (t.starts_with('[') && !t.contains('='))
+            .then(|| clean(t.trim_start_matches('[').trim_end_matches(']')))
+    };
+    if let Some(h) = header(this_line) {
+        return Some(h);
+    }
+    let mut key = this_line.split_once('=').map(|(k, _)| clean(k));
+    while key.is_none() {
+        let l = lines_above.pop()?;
+        if header(l).is_some() {
+            lines_above.push(l);
+            break;
+        }
+        key = l.split_once('=').map(|(k, _)| clean(k));
+    }
+    let key = key?;
+    let table = lines_above.iter().rev().find_map(|l| header(l));
+    Some(match table {
+        Some(t) if !t.is_empty() => format!("{t}.{key}"),
+        _ => key,
+    })
+}
+
+/// Reads a token file: surrounding whitespace trimmed, must not be empty.
+fn read_token_file(key: &str, path: &Path) -> Result<String, ConfigError> {
+    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        key: key.to_owned(),
+        path: path.to_owned(),
+        source,
+    })?;
+    let t = text.trim();
+    if t.is_empty() {
+        return Err(invalid(
+            key,
+            format!("token file {} is empty", path.display()),
+        ));
+    }
+    Ok(t.to_owned())
+}
+
+impl ServeConfig {
+    /// The built-in defaults for a pool, as without a config file (`default_access` public).
+    pub fn new(db: impl Into<PathBuf>) -> ServeConfig {
+        ServeConfig {
+            db: db.into(),
+            data_dir: None,
+            listen: DEFAULT_LISTEN.parse().expect("valid default"),
+            admin_listen: Some(DEFAULT_ADMIN_LISTEN.parse().expect("valid default")),
+            admin_token: AdminTokenSource::Generated,
+            probe_token: None,
+            tls: TlsSource::SelfSigned,
+            max_connections: 256,
+            idle_timeout_ms: 30_000,
+            hello_timeout_ms: 5_000,
+            max_connection_memory: 64 << 20,
+            window_min: 8,
+            window_max: 256,
+            slow_reader_timeout_ms: 10_000,
+            shutdown_grace_ms: 5_000,
+            default_access: Access::Public,
+            scenes: BTreeMap::new(),
+        }
+    }
+
+    /// Parses a config file's text; `path` only names it in errors. Token files it names are
+    /// read. The result is validated.
+    pub fn from_toml(
+        text: &str,
+        path: &Path,
+        overrides: &ConfigOverrides,
+    ) -> Result<ServeConfig, ConfigError> {
+        let file: FileConfig = toml::from_str(text).map_err(|e| {
+            let key = e
+                .span()
+                .and_then(|s| key_at(text, s.start))
+                .unwrap_or_else(|| "?".into());
+            ConfigError::Parse {
+                path: path.to_owned(),
+                key,
+                message: e.message().trim().to_owned(),
+            }
+        })?;
+        Self::resolve(Some(file), overrides)
+    }
+
+    /// Loads the configuration: the file if given (else the defaults), then the overrides.
+    pub fn load(
+        file: Option<&Path>,
+        overrides: &ConfigOverrides,
+    ) -> Result<ServeConfig, ConfigError> {
+        match file {
+            Some(path) => {
+                let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+                    key: "--config".into(),
+                    path: path.to_owned(),
+                    source,
+                })?;
+                Self::from_toml(&text, path, overrides)
+            }
+            None => Self::resolve(None, overrides),
+        }
+    }
+
+    fn resolve(
+        file: Option<FileConfig>,
+        overrides: &ConfigOverrides,
+    ) -> Result<ServeConfig, ConfigError> {
+        let have_file = file.is_some();
+        let f = file.unwrap_or_default();
+        let db = overrides
+            .db
+            .clone()
+            .or(f.db)
+            .ok_or_else(|| invalid("db", "no pool directory: pass --db or set `db`"))?;
+        let mut c = ServeConfig::new(db);
+        c.data_dir = overrides.data_dir.clone().or(f.data_dir);
+        if let Some(l) = overrides.listen.or(f.listen) {
+            c.listen = l;
+        }
+        c.admin_listen = match (&overrides.admin_listen, &f.admin_listen) {
+            (Some(a), _) => *a,
+            (None, Some(s)) => parse_admin_listen(s).map_err(|r| invalid("admin_listen", r))?,
+            (None, None) => c.admin_listen,
+        };
+        c.admin_token = match (f.admin_token, f.admin_token_file) {
+            (Some(_), Some(_)) => {
+                return Err(invalid(
+                    "admin_token",
+                    "set either admin_token or admin_token_file, not both",
+                ));
+            }
+            (Some(t), None) => AdminTokenSource::Inline(t),
+            (None, Some(p)) => AdminTokenSource::File(p),
+            (None, None) => AdminTokenSource::Generated,
+        };
+        c.probe_token = f.probe_token;
+        c.tls = match (f.cert, f.key) {
+            (Some(cert), Some(key)) => TlsSource::Files { cert, key },
+            (None, None) => TlsSource::SelfSigned,
+            (Some(_), None) => return Err(invalid("key", "`cert` is set but `key` is not")),
+            (None, Some(_)) => return Err(invalid("cert", "`key` is set but `cert` is not")),
+        };
+        macro_rules! take {
+            ($($field:ident),*) => { $( if let Some(v) = f.$field { c.$field = v; } )* };
+        }
+        take!(
+            max_connections,
+            idle_timeout_ms,
+            hello_timeout_ms,
+            max_connection_memory,
+            window_min,
+            window_max,
+            slow_reader_timeout_ms,
+            shutdown_grace_ms
+        );
+        c.default_access = f.default_access.unwrap_or(if have_file {
+            Access::Token
+        } else {
+            Access::Public
+        });
+        for (name, s) in f.scenes {
+            let key = format!("scenes.{name}");
+            let has_tokens = s.tokens.is_some() || s.token_files.is_some();
+            let access = s.access.unwrap_or(Access::Token);
+            let rule = match access {
+                Access::Public if has_tokens => {
+                    return Err(invalid(
+                        key,
+                        "access = \"public\" together with tokens; remove one",
+                    ));
+                }
+                Access::Public => SceneAccess::Public,
+                Access::Token => {
+                    let mut tokens = s.tokens.unwrap_or_default();
+                    for p in s.token_files.unwrap_or_default() {
+                        tokens.push(read_token_file(&format!("{key}.token_files"), &p)?);
+                    }
+                    SceneAccess::Tokens(tokens)
+                }
+            };
+            c.scenes.insert(name, rule);
+        }
+        c.validate()?;
+        Ok(c)
+    }
+
+    /// Checks every value: non-zero limits, `window_min ≤ window_max`, memory bound large
+    /// enough, valid scene names, non-empty tokens within the protocol's limit, a token-access
+    /// scene with at least one token, admin token file readable and non-empty.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let nonzero = |key: &str, v: u64| {
+            if v == 0 {
+                Err(invalid(key, "must be greater than 0"))
+            } else {
+                Ok(())
+            }
+        };
+        nonzero("max_connections", self.max_connections as u64)?;
+        nonzero("idle_timeout_ms", self.idle_timeout_ms)?;
+        nonzero("hello_timeout_ms", self.hello_timeout_ms)?;
+        nonzero("window_min", self.window_min as u64)?;
+        nonzero("window_max", self.window_max as u64)?;
+        nonzero("slow_reader_timeout_ms", self.slow_reader_timeout_ms)?;
+        // QUIC idle timeouts are varints of milliseconds.
+        if self.idle_timeout_ms >= 1 << 62 {
+            return Err(invalid("idle_timeout_ms", "too large"));
+        }
+        if self.window_min > self.window_max {
+            return Err(invalid(
+                "window_min",
+                format!(
+                    "window_min {} exceeds window_max {}",
+                    self.window_min, self.window_max
+                ),
+            ));
+        }
+        if self.window_max > MAX_REQUEST_ITEMS {
+            return Err(invalid(
+                "window_max",
+                format!("at most {MAX_REQUEST_ITEMS} (the longest request list)"),
+            ));
+        }
+        if self.max_connection_memory < MIN_CONNECTION_MEMORY {
+            return Err(invalid(
+                "max_connection_memory",
+                format!(
+                    "{} bytes is below the minimum of {MIN_CONNECTION_MEMORY} (one maximal frame, \
+                     one maximal request list and QUIC buffers)",
+                    self.max_connection_memory
+                ),
+            ));
+        }
+        if let AdminTokenSource::Inline(t) = &self.admin_token
+            && t.trim().is_empty()
+        {
+            return Err(invalid("admin_token", "must not be empty"));
+        }
+        if let AdminTokenSource::File(p) = &self.admin_token {
+            read_token_file("admin_token_file", p)?;
+        }
+        if let Some(t) = &self.probe_token
+            && t.trim().is_empty()
+        {
+            return Err(invalid("probe_token", "must not be empty"));
+        }
+        for (name, rule) in &self.scenes {
+            let key = format!("scenes.{name}");
+            validate_scene_name(name).map_err(|e| invalid(&key, e.to_string()))?;
+            if let SceneAccess::Tokens(tokens) = rule {
+                if tokens.is_empty() {
+                    return Err(invalid(
+                        format!("{key}.tokens"),
+                        "no tokens: give `tokens` or `token_files`, or set access = \"public\"",
+                    ));
+                }
+                for t in tokens {
+                    if t.is_empty() {
+                        return Err(invalid(format!("{key}.tokens"), "empty token"));
+                    }
+                    if t.len() > MAX_TOKEN_BYTES {
+                        return Err(invalid(
+                            format!("{key}.tokens"),
+                            format!("token longer than {MAX_TOKEN_BYTES} bytes"),
+                        ));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The directory holding the self-signed pair and the generated admin token.
+    pub fn data_dir(&self) -> &Path {
+        self.data_dir.as_deref().unwrap_or(&self.db)
+    }
+
+    pub fn idle_timeout(&self) -> Duration {
+        Duration::from_millis(self.idle_timeout_ms)
+    }
+
+    pub fn hello_timeout(&self) -> Duration {
+        Duration::from_millis(self.hello_timeout_ms)
+    }
+
+    pub fn slow_reader_timeout(&self) -> Duration {
+        Duration::from_millis(self.slow_reader_timeout_ms)
+    }
+
+    pub fn shutdown_grace(&self) -> Duration {
+        Duration::from_millis(self.shutdown_grace_ms)
+    }
+
+    /// Divides `max_connection_memory` among a connection's buffers: the decoder (one maximal
+    /// frame) and the scheduler's copy of a maximal request list are fixed by the protocol; the
+    /// receive window gets an eighth of the rest (at most 2 MiB: the client only sends control
+    /// frames), the send window everything else.
+    pub fn memory_plan(&self) -> MemoryPlan {
+        let decoder = (MAX_FRAME_BYTES + arbor_proto::limits::FRAME_HEADER_BYTES) as u64;
+        // Scheduler: by-id index (16 B) + send queue (8 B) + hash/heap overhead per item.
+        let request_list = MAX_REQUEST_ITEMS as u64 * 48;
+        let rest = self
+            .max_connection_memory
+            .saturating_sub(decoder + request_list);
+        let receive_window = (rest / 8).clamp(64 << 10, 2 << 20);
+        let send_window = rest.saturating_sub(receive_window).max(256 << 10);
+        MemoryPlan {
+            decoder,
+            request_list,
+            receive_window,
+            send_window,
+        }
+    }
+
+    /// Whether `token` opens `scene`. `exists` says whether the pool has the scene.
+    ///
+    /// Unknown scene → [`ErrorCode::UnknownScene`] (checked first); a scene that needs a token
+    /// and did not get a matching one → [`ErrorCode::Unauthorized`]. Tokens are compared in
+    /// constant time; every configured token of the scene is compared, whatever matched.
+    pub fn access(
+        &self,
+        scene: &str,
+        token: &str,
+        exists: impl FnOnce(&str) -> bool,
+    ) -> Result<(), ErrorCode> {
+        if validate_scene_name(scene).is_err() || !exists(scene) {
+            return Err(ErrorCode::UnknownScene);
+        }
+        match self.scenes.get(scene) {
+            Some(SceneAccess::Public) => Ok(()),
+            Some(SceneAccess::Tokens(tokens)) => {
+                let presented = ring::hmac::sign(token_key(), token.as_bytes());
+                let mut ok = false;
+                for t in tokens {
+                    ok |= ring::hmac::verify(token_key(), t.as_bytes(), presented.as_ref()).is_ok();
+                }
+                if ok {
+                    Ok(())
+                } else {
+                    Err(ErrorCode::Unauthorized)
+                }
+            }
+            None => match self.default_access {
+                Access::Public => Ok(()),
+                Access::Token => Err(ErrorCode::Unauthorized),
+            },
+        }
+    }
+}
+
+/// Per-process random HMAC key for token comparison.
+fn token_key() -> &'static ring::hmac::Key {
+    static KEY: OnceLock<ring::hmac::Key> = OnceLock::new();
+    KEY.get_or_init(|| {
+        let rng = ring::rand::SystemRandom::new();
+        ring::hmac::Key::generate(ring::hmac::HMAC_SHA256, &rng).unwrap_or_else(|_| {
+            // The system RNG failing is not recoverable in any useful way; a fixed key keeps
+            // the comparison constant-time (its secrecy is not what makes it so).
+            ring::hmac::Key::new(ring::hmac::HMAC_SHA256, b"arbor token comparison")
+        })
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> Result<ServeConfig, ConfigError> {
+        ServeConfig::from_toml(text, Path::new("test.toml"), &ConfigOverrides::default())
+    }
+
+    fn err(text: &str) -> String {
+        parse(text).unwrap_err().to_string()
+    }
+
+    #[test]
+    fn the_documented_example_parses() {
+        let dir = tempfile::tempdir().unwrap();
+        let tf = dir.path().join("bunny.token");
+        std::fs::write(&tf, "from-file\n").unwrap();
+        let text = format!(
+            r#"
+db = "/var/lib/arbor/pool"
+data_dir = "/var/lib/arbor/state"
+listen = "0.0.0.0:4433"
+admin_listen = "127.0.0.1:9090"
+admin_token = "admin-secret"
+cert = "/etc/arbor/tls/fullchain.pem"
+key = "/etc/arbor/tls/key.pem"
+max_connections = 256
+idle_timeout_ms = 30000
+hello_timeout_ms = 5000
+max_connection_memory = 67108864
+window_min = 8
+window_max = 256
+slow_reader_timeout_ms = 10000
+shutdown_grace_ms = 5000
+default_access = "token"
+
+[scenes.bunny]
+tokens = ["change-me"]
+token_files = ["{}"]
+[scenes.lion]
+access = "public"
+"#,
+            tf.display()
+        );
+        let c = parse(&text).unwrap();
+        assert_eq!(c.db, Path::new("/var/lib/arbor/pool"));
+        assert_eq!(c.data_dir(), Path::new("/var/lib/arbor/state"));
+        assert_eq!(c.listen, "0.0.0.0:4433".parse().unwrap());
+        assert_eq!(c.admin_listen, Some("127.0.0.1:9090".parse().unwrap()));
+        assert_eq!(
+            c.admin_token,
+            AdminTokenSource::Inline("admin-secret".into())
+        );
+        assert!(matches!(c.tls, TlsSource::Files { .. }));
+        assert_eq!(c.default_access, Access::Token);
+        assert_eq!(
+            c.scenes["bunny"],
+            SceneAccess::Tokens(vec!["change-me".into(), "from-file".into()])
+        );
+        assert_eq!(c.scenes["lion"], SceneAccess::Public);
+    }
+
+    #[test]
+    fn defaults_and_overrides() {
+        let c = ServeConfig::load(
+            None,
+            &ConfigOverrides {
+                db: Some("pool".into()),
+                ..ConfigOverrides::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(c, ServeConfig::new("pool"));
+        assert_eq!(c.data_dir(), Path::new("pool"));
+        assert_eq!(c.default_access, Access::Public, "no file: public");
+        // A file without default_access: token.
+        assert_eq!(parse("db = \"p\"").unwrap().default_access, Access::Token);
+        let o = ConfigOverrides {
+            db: Some("cli-db".into()),
+            listen: Some("127.0.0.1:1".parse().unwrap()),
+            admin_listen: Some(None),
+            data_dir: Some("cli-data".into()),
+        };
+        let c = ServeConfig::from_toml(
+            "db = \"file-db\"\nlisten = \"0.0.0.0:5\"\nadmin_listen = \"127.0.0.1:6\"\ndata_dir = \"d\"",
+            Path::new("x"),
+            &o,
+        )
+        .unwrap();
+        assert_eq!(c.db, Path::new("cli-db"));
+        assert_eq!(c.listen, "127.0.0.1:1".parse().unwrap());
+        assert_eq!(c.admin_listen, None);
+        assert_eq!(c.data_dir(), Path::new("cli-data"));
+        assert_eq!(
+            parse("db = \"p\"\nadmin_listen = \"off\"")
+                .unwrap()
+                .admin_listen,
+            None
+        );
+        let e = ServeConfig::load(None, &ConfigOverrides::default()).unwrap_err();
+        assert!(e.to_string().contains("`db`"), "{e}");
+    }
+
+    #[test]
+    fn parse_errors_name_the_key() {
+        let e = err("db = \"p\"\nmax_connections = \"many\"\n");
+        assert!(e.contains("key `max_connections`"), "{e}");
+        let e = err("db = \"p\"\nwindow_max = -3\n");
+        assert!(e.contains("key `window_max`"), "{e}");
+        let e = err("db = \"p\"\nlisten = \"not an address\"\n");
+        assert!(e.contains("key `listen`"), "{e}");
+        let e = err("db = \"p\"\n[scenes.bunny]\ntokens = [\n  \"a\",\n  3,\n]\n");
+        assert!(e.contains("key `scenes.bunny.tokens`"), "{e}");
+        let e = err("db = \"p\"\n[scenes.bunny]\naccess = \"sometimes\"\n");
+        assert!(e.contains("key `scenes.bunny.access`"), "{e}");
+        let e = err("db = \"p\"\ndefault_access = \"maybe\"\n");
+        assert!(e.contains("default_access"), "{e}");
+        // Syntax errors still say where.
+        let e = err("db = \"p\"\nmax_connections = \n");
+        assert!(e.contains("max_connections"), "{e}");
+    }
+
+    #[test]
+    fn unknown_keys_are_rejected() {
+        let e = err("db = \"p\"\nmax_conections = 3\n");
+        assert!(e.contains("max_conections"), "{e}");
+        assert!(e.contains("unknown field"), "{e}");
+        let e = err("db = \"p\"\n[scenes.bunny]\ntoken = \"x\"\n");
+        assert!(e.contains("scenes.bunny") && e.contains("token"), "{e}");
+        assert!(e.contains("unknown field"), "{e}");
+    }
+
+    #[test]
+    fn invalid_values_are_rejected() {
+        for (text, key) in [
+            ("max_connections = 0", "max_connections"),
+            ("idle_timeout_ms = 0", "idle_timeout_ms"),
+            ("hello_timeout_ms = 0", "hello_timeout_ms"),
+            ("slow_reader_timeout_ms = 0", "slow_reader_timeout_ms"),
+            ("window_min = 0", "window_min"),
+            ("window_min = 10\nwindow_max = 9", "window_min"),
+            ("window_max = 1000000", "window_max"),
+            ("max_connection_memory = 1000", "max_connection_memory"),
+            ("admin_listen = \"nowhere\"", "admin_listen"),
+            ("admin_token = \"  \"", "admin_token"),
+            (
+                "admin_token = \"a\"\nadmin_token_file = \"b\"",
+                "admin_token",
+            ),
+            (
+                "admin_token_file = \"/nonexistent/token\"",
+                "admin_token_file",
+            ),
+            ("cert = \"c.pem\"", "key"),
+            ("key = \"k.pem\"", "cert"),
+            ("[scenes.bunny]\ntokens = []", "scenes.bunny.tokens"),
+            ("[scenes.bunny]\ntokens = [\"\"]", "scenes.bunny.tokens"),
+            ("[scenes.bunny]", "scenes.bunny.tokens"),
+            (
+                "[scenes.bunny]\naccess = \"public\"\ntokens = [\"x\"]",
+                "scenes.bunny",
+            ),
+            (
+                "[scenes.bunny]\ntoken_files = [\"/nonexistent/t\"]",
+                "scenes.bunny.token_files",
+            ),
+            ("[scenes.\"../x\"]\naccess = \"public\"", "scenes.../x"),
+        ] {
+            let e = err(&format!("db = \"p\"\n{text}\n"));
+            assert!(e.contains(&format!("`{key}`")), "{text}: {e}");
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let empty = dir.path().join("empty");
+        std::fs::write(&empty, "\n  \n").unwrap();
+        let e = err(&format!(
+            "db = \"p\"\n[scenes.b]\ntoken_files = [\"{}\"]\n",
+            empty.display()
+        ));
+        assert!(e.contains("is empty"), "{e}");
+        // Grace 0 is allowed: stop at once.
+        assert_eq!(
+            parse("db = \"p\"\nshutdown_grace_ms = 0")
+                .unwrap()
+                .shutdown_grace_ms,
+            0
+        );
+    }
+
+    #[test]
+    fn access_rules() {
+        let mut c = ServeConfig::new("p");
+        c.default_access = Access::Token;
+        c.scenes.insert(
+            "bunny".into(),
+            SceneAccess::Tokens(vec!["s3cret".into(), "other".into()]),
+        );
+        c.scenes.insert("lion".into(), SceneAccess::Public);
+        let pool = ["bunny", "lion", "igea"];
+        let exists = |s: &str| pool.contains(&s);
+        assert_eq!(c.access("bunny", "s3cret", exists), Ok(()));
+        assert_eq!(c.access("bunny", "other", exists), Ok(()));
+        assert_eq!(
+            c.access("bunny", "s3cre", exists),
+            Err(ErrorCode::Unauthorized)
+        );
+        assert_eq!(
+            c.access("bunny", "s3cret!", exists),
+            Err(ErrorCode::Unauthorized)
+        );
+        assert_eq!(c.access("bunny", "", exists), Err(ErrorCode::Unauthorized));
+        assert_eq!(c.access("lion", "", exists), Ok(()));
+        assert_eq!(c.access("lion", "anything", exists), Ok(()));
+        // Not configured: the default rule.
+        assert_eq!(
+            c.access("igea", "s3cret", exists),
+            Err(ErrorCode::Unauthorized)
+        );
+        c.default_access = Access::Public;
+        assert_eq!(c.access("igea", "", exists), Ok(()));
+        // Not in the pool: unknown, whatever the token.
+        assert_eq!(
+            c.access("dragon", "s3cret", exists),
+            Err(ErrorCode::UnknownScene)
+        );
+        assert_eq!(
+            c.access("../etc", "", |_| true),
+            Err(ErrorCode::UnknownScene)
+        );
+        // A configured scene that the pool lacks is unknown too.
+        c.scenes.insert("gone".into(), SceneAccess::Public);
+        assert_eq!(c.access("gone", "", exists), Err(ErrorCode::UnknownScene));
+    }
+
+    #[test]
+    fn memory_plan_fits_the_bound() {
+        for m in [MIN_CONNECTION_MEMORY, 64 << 20, 1 << 30] {
+            let mut c = ServeConfig::new("p");
+            c.max_connection_memory = m;
+            let p = c.memory_plan();
+            assert!(
+                p.decoder + p.request_list + p.receive_window + p.send_window <= m,
+                "{p:?}"
+            );
+            assert!(p.receive_window >= 64 << 10 && p.receive_window <= 2 << 20);
+            assert!(p.send_window >= 256 << 10);
+        }
+    }
+
+    #[test]
+    fn key_at_finds_keys() {
+        let src = "a = 1\n[t.u]\nb = [\n 1,\n 2]\nc=3\n";
+        assert_eq!(key_at(src, 2).as_deref(), Some("a"));
+        assert_eq!(
+            key_at(src, src.find("2]").unwrap()).as_deref(),
+            Some("t.u.b")
+        );
+        assert_eq!(
+            key_at(src, src.find("c=").unwrap()).as_deref(),
+            Some("t.u.c")
+        );
+        assert_eq!(
+            key_at(src, src.find("[t").unwrap() + 1).as_deref(),
+            Some("t.u")
+        );
+        assert_eq!(key_at(src, 10_000).as_deref(), Some("t.u.c"));
+    }
+}

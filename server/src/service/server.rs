@@ -1,0 +1,588 @@
+//! The treelet service: QUIC endpoint, accept loop with a connection cap, the dispatcher that
+//! drives the shared [`Scheduler`], the admin listener, and graceful shutdown.
+//!
+//! # Tasks
+//!
+//! * **Supervisor** (one): accepts connections. Within the cap (a semaphore of
+//!   `max_connections` permits, held by each connection task until it ends) it spawns a
+//!   connection task ([`super::connection`]); beyond it, or once shutdown began, it completes the
+//!   handshake only to close the connection with `ServerBusy` / `ShuttingDown` (so the client
+//!   sees an application code; at most [`MAX_REFUSALS`] such handshakes at once, beyond that
+//!   quinn refuses at the transport level). Refusals count in `connections_rejected`.
+//! * **Dispatcher** (one): waits on a [`Notify`], then calls [`Scheduler::poll_transmit`] until
+//!   `None` and hands each `(connection, treelet)` to that connection's task through an
+//!   unbounded channel — never blocking on any connection (the scheduler's window bounds what
+//!   each channel can hold).
+//! * **Connection tasks** (one per connection) and their **treelet stream tasks** (one per
+//!   treelet in flight).
+//! * **Admin**: `axum::serve` with graceful shutdown on the same broadcast.
+//!
+//! # Why a slow reader cannot starve anyone
+//!
+//! A connection whose client stops reading stalls its own stream tasks (flow control and the
+//! client's stream limit block `open_uni`/`write`); those tasks hold only that connection's
+//! in-flight slots. The scheduler's server-wide cap is set to
+//! `max_connections × window_max`, i.e. the sum of the largest windows every connection can
+//! have, so the cap never binds before each connection's own window does: slots held by a
+//! stalled connection are never slots another connection needed. The cap remains a memory
+//! bound. The stalled connection is closed with `SlowReader` after `slow_reader_timeout_ms`
+//! without progress on any of its streams, which frees its slots.
+//!
+//! # Shutdown
+//!
+//! [`RunningServer::shutdown`] (or SIGTERM/SIGINT in the CLI): readiness goes false, the accept
+//! loop stops (newcomers are refused with `ShuttingDown`), the dispatcher stops starting
+//! treelets; each connection lets its in-flight streams finish until `shutdown_grace_ms`,
+//! resets what is left, sends `Goodbye { ShuttingDown }` on its control stream and closes with
+//! `ShuttingDown`. The supervisor waits for every connection task (drop-to-finish channel), then
+//! `endpoint.wait_idle()` for at most [`WAIT_IDLE_BOUND`], and the admin server for at most
+//! 300 ms. Total: at most grace + 1.3 s (grace + 0.1 s when every client acknowledges at once).
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::Duration;
+
+use arbor_proto::TreeletId;
+use arbor_proto::wire::ErrorCode;
+use tokio::sync::{Notify, Semaphore, mpsc};
+use tokio::task::JoinHandle;
+
+use super::config::{AdminTokenSource, ConfigError, ServeConfig};
+use super::connection;
+use super::schedule::{ConnectionId, Scheduler, SchedulerConfig};
+use super::shutdown::{self, Shutdown, ShutdownTrigger};
+use super::state::ServiceState;
+use super::tls::{self, IdentityOrigin, TlsError};
+use super::treelets::ServedScene;
+use crate::admin::{AdminContext, router};
+use crate::pool::{Pool, PoolError, StoredScene};
+
+/// Most handshakes completed at once only to refuse the connection with an application code.
+pub const MAX_REFUSALS: usize = 32;
+/// How long `shutdown` waits for the endpoint to drain after closing every connection.
+pub const WAIT_IDLE_BOUND: Duration = Duration::from_millis(500);
+/// How long a closing connection waits for its last control frame (`Error`, `Goodbye`) to be
+/// acknowledged before closing, so the frame is not discarded by the close.
+pub const CLOSE_FLUSH: Duration = Duration::from_millis(300);
+/// File holding the generated admin token in the data dir.
+pub const ADMIN_TOKEN_FILE: &str = "admin-token";
+
+/// Why the service could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    /// The configuration is invalid.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// The pool directory does not exist (serving never creates a pool; `import` does).
+    #[error("no pool at {} (create one with `arbor-server import`)", path.display())]
+    NoPool { path: PathBuf },
+    /// The pool could not be opened (missing, corrupt, or locked by another process: sled
+    /// allows one server per pool directory).
+    #[error("opening pool {}: {source}", path.display())]
+    Pool {
+        path: PathBuf,
+        #[source]
+        source: PoolError,
+    },
+    /// The TLS identity could not be loaded or created.
+    #[error(transparent)]
+    Tls(#[from] TlsError),
+    /// The admin token file could not be read or created, or is empty.
+    #[error("admin token {}: {reason}", path.display())]
+    AdminToken { path: PathBuf, reason: String },
+    /// A listener could not be bound.
+    #[error("binding the {what} listener on {addr}: {source}")]
+    Bind {
+        what: &'static str,
+        addr: SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// Where the admin token came from, for the operator.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum AdminTokenOrigin {
+    /// `admin_token` in the configuration.
+    Config,
+    /// `admin_token_file`.
+    File(PathBuf),
+    /// Generated into the data dir now (`created`) or on an earlier start.
+    Generated { path: PathBuf, created: bool },
+}
+
+/// A started service. Dropping it without [`RunningServer::shutdown`] leaves the tasks
+/// running until the runtime ends.
+#[derive(Debug)]
+pub struct RunningServer {
+    /// The bound QUIC (UDP) address.
+    pub quic_addr: SocketAddr,
+    /// The bound admin HTTP address; `None` when disabled.
+    pub admin_addr: Option<SocketAddr>,
+    /// SHA-256 of the server certificate, lowercase hex: what clients pin.
+    pub fingerprint: String,
+    /// Bearer token of the admin API.
+    pub admin_token: String,
+    pub admin_token_origin: AdminTokenOrigin,
+    /// Where the TLS identity came from.
+    pub tls_origin: IdentityOrigin,
+    /// Metrics, sessions and readiness.
+    pub state: Arc<ServiceState>,
+    pool: Pool,
+    trigger: ShutdownTrigger,
+    task: JoinHandle<()>,
+}
+
+impl RunningServer {
+    /// The pool being served (read-only use).
+    pub fn pool(&self) -> &Pool {
+        &self.pool
+    }
+
+    /// A handle that starts graceful shutdown from elsewhere (e.g. a signal handler).
+    pub fn shutdown_trigger(&self) -> ShutdownTrigger {
+        self.trigger.clone()
+    }
+
+    /// Graceful shutdown, as on SIGTERM; returns when the service has stopped (within the grace
+    /// plus 1.3 s).
+    pub async fn shutdown(self) {
+        self.trigger.trigger();
+        self.wait().await;
+    }
+
+    /// Waits until the service stops (after a trigger from [`RunningServer::shutdown_trigger`]).
+    pub async fn wait(self) {
+        if let Err(e) = self.task.await {
+            tracing::error!("the service supervisor failed: {e}");
+        }
+    }
+}
+
+/// The scheduler and the routes to each connection's task, under one lock. Lock order: this
+/// lock is never held across an `.await` nor while taking the session lock.
+#[derive(Debug)]
+pub(crate) struct Core {
+    pub sched: Scheduler,
+    pub routes: HashMap<ConnectionId, mpsc::UnboundedSender<TreeletId>>,
+}
+
+/// Everything the service's tasks share.
+#[derive(Debug)]
+pub(crate) struct Shared {
+    pub config: ServeConfig,
+    pub pool: Pool,
+    pub state: Arc<ServiceState>,
+    core: Mutex<Core>,
+    /// Wakes the dispatcher: a list arrived, a treelet left the window, a window changed.
+    pub wake: Notify,
+    scenes: Mutex<HashMap<String, Arc<ServedScene>>>,
+    next_id: AtomicU64,
+}
+
+impl Shared {
+    pub(crate) fn core(&self) -> MutexGuard<'_, Core> {
+        // Every critical section leaves the scheduler consistent or panics inside the
+        // scheduler itself (a bug); continuing with a poisoned lock is the better failure.
+        self.core.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    pub(crate) fn next_connection_id(&self) -> ConnectionId {
+        ConnectionId(self.next_id.fetch_add(1, Ordering::Relaxed))
+    }
+
+    /// The served form of a stored scene, shared by its connections (rebuilt when the scene's
+    /// generation changed, i.e. it was re-imported).
+    pub(crate) fn served_scene(&self, stored: StoredScene) -> Arc<ServedScene> {
+        let mut scenes = self.scenes.lock().unwrap_or_else(|p| p.into_inner());
+        let name = stored.description.name.clone();
+        if let Some(s) = scenes.get(&name)
+            && s.stored.generation == stored.generation
+        {
+            return s.clone();
+        }
+        let s = Arc::new(ServedScene::new(stored));
+        scenes.insert(name, s.clone());
+        s
+    }
+}
+
+fn transport_config(config: &ServeConfig) -> quinn::TransportConfig {
+    let plan = config.memory_plan();
+    let varint = |v: u64| quinn::VarInt::from_u64(v).unwrap_or(quinn::VarInt::MAX);
+    let mut t = quinn::TransportConfig::default();
+    t.max_concurrent_bidi_streams(1u32.into())
+        .max_concurrent_uni_streams(0u32.into())
+        .stream_receive_window(varint(plan.receive_window))
+        .receive_window(varint(plan.receive_window))
+        .send_window(plan.send_window)
+        .max_idle_timeout(quinn::IdleTimeout::try_from(config.idle_timeout()).ok())
+        .datagram_receive_buffer_size(None);
+    t
+}
+
+fn read_token(path: &Path) -> Result<String, ServeError> {
+    let err = |reason: String| ServeError::AdminToken {
+        path: path.to_owned(),
+        reason,
+    };
+    let t = std::fs::read_to_string(path).map_err(|e| err(e.to_string()))?;
+    let t = t.trim();
+    if t.is_empty() {
+        return Err(err("empty".into()));
+    }
+    Ok(t.to_owned())
+}
+
+fn admin_token(config: &ServeConfig) -> Result<(String, AdminTokenOrigin), ServeError> {
+    match &config.admin_token {
+        AdminTokenSource::Inline(t) => Ok((t.trim().to_owned(), AdminTokenOrigin::Config)),
+        AdminTokenSource::File(p) => Ok((read_token(p)?, AdminTokenOrigin::File(p.clone()))),
+        AdminTokenSource::Generated => {
+            let path = config.data_dir().join(ADMIN_TOKEN_FILE);
+            if path.exists() {
+                return Ok((
+                    read_token(&path)?,
+                    AdminTokenOrigin::Generated {
+                        path,
+                        created: false,
+                    },
+                ));
+            }
+            let err = |reason: String| ServeError::AdminToken {
+                path: path.clone(),
+                reason,
+            };
+            let mut bytes = [0u8; 32];
+            ring::rand::SecureRandom::fill(&ring::rand::SystemRandom::new(), &mut bytes)
+                .map_err(|_| err("the system random generator failed".into()))?;
+            let token: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+            std::fs::create_dir_all(config.data_dir()).map_err(|e| err(e.to_string()))?;
+            use std::io::Write as _;
+            use std::os::unix::fs::OpenOptionsExt as _;
+            let mut f = std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .mode(0o600)
+                .open(&path)
+                .map_err(|e| err(e.to_string()))?;
+            f.write_all(format!("{token}\n").as_bytes())
+                .and_then(|()| f.sync_all())
+                .map_err(|e| err(e.to_string()))?;
+            Ok((
+                token,
+                AdminTokenOrigin::Generated {
+                    path,
+                    created: true,
+                },
+            ))
+        }
+    }
+}
+
+/// How long `start` waits for the pool's lock: a pool handle dropped just before in the same
+/// process (an import, a test) lets go of sled's directory lock only when sled's flusher thread
+/// notices. A lock held longer belongs to another live process (one server per pool).
+pub const POOL_LOCK_WAIT: Duration = Duration::from_secs(2);
+
+async fn open_pool(db: &Path) -> Result<Pool, ServeError> {
+    let t0 = std::time::Instant::now();
+    loop {
+        match Pool::open(db) {
+            Ok(p) => return Ok(p),
+            Err(PoolError::Sled(sled::Error::Io(e)))
+                if e.to_string().contains("could not acquire lock")
+                    && t0.elapsed() < POOL_LOCK_WAIT =>
+            {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            Err(source) => {
+                return Err(ServeError::Pool {
+                    path: db.to_owned(),
+                    source,
+                });
+            }
+        }
+    }
+}
+
+/// Starts the service: opens the pool, loads or creates the TLS identity, binds QUIC and (unless
+/// off) the admin listener, and spawns the tasks on the current tokio runtime.
+pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
+    let probe_token = config.probe_token.clone();
+    config.validate()?;
+    tls::install_crypto_provider();
+    if !config.db.is_dir() {
+        return Err(ServeError::NoPool {
+            path: config.db.clone(),
+        });
+    }
+    let pool = open_pool(&config.db).await?;
+    match pool.scenes() {
+        Ok(s) if s.is_empty() => {
+            tracing::warn!(db = %config.db.display(), "the pool holds no scenes")
+        }
+        Ok(s) => tracing::info!(
+            scenes = ?s.iter().map(|d| d.name.as_str()).collect::<Vec<_>>(),
+            "pool opened"
+        ),
+        Err(source) => {
+            return Err(ServeError::Pool {
+                path: config.db.clone(),
+                source,
+            });
+        }
+    }
+    let identity = tls::load_or_create(&config.tls, config.data_dir())?;
+    let (admin_token, admin_token_origin) = admin_token(&config)?;
+    let server_config = tls::quic_server_config(&identity, transport_config(&config))?;
+    let endpoint = quinn::Endpoint::server(server_config, config.listen).map_err(|source| {
+        ServeError::Bind {
+            what: "QUIC",
+            addr: config.listen,
+            source,
+        }
+    })?;
+    let bind_err = |what, addr| move |source| ServeError::Bind { what, addr, source };
+    let quic_addr = endpoint
+        .local_addr()
+        .map_err(bind_err("QUIC", config.listen))?;
+    let admin_listener = match config.admin_listen {
+        Some(addr) => Some(
+            tokio::net::TcpListener::bind(addr)
+                .await
+                .map_err(bind_err("admin", addr))?,
+        ),
+        None => None,
+    };
+    let admin_addr = match &admin_listener {
+        Some(l) => Some(
+            l.local_addr()
+                .map_err(bind_err("admin", config.admin_listen.unwrap_or(quic_addr)))?,
+        ),
+        None => None,
+    };
+    if !config.listen.ip().is_loopback() && config.default_access == super::config::Access::Public {
+        tracing::warn!(
+            listen = %config.listen,
+            "scenes without a [scenes.NAME] entry are public and the service listens beyond loopback"
+        );
+    }
+
+    let state = Arc::new(ServiceState::new(identity.fingerprint.clone()));
+    let (trigger, shutdown) = shutdown::channel(config.shutdown_grace());
+    let max_in_flight = config.max_connections.saturating_mul(config.window_max);
+    let shared = Arc::new(Shared {
+        pool: pool.clone(),
+        state: state.clone(),
+        core: Mutex::new(Core {
+            sched: Scheduler::new(SchedulerConfig { max_in_flight }),
+            routes: HashMap::new(),
+        }),
+        wake: Notify::new(),
+        scenes: Mutex::new(HashMap::new()),
+        next_id: AtomicU64::new(1),
+        config,
+    });
+
+    let admin_task = admin_listener.map(|listener| {
+        let app = router(AdminContext {
+            state: state.clone(),
+            pool: pool.clone(),
+            token: admin_token.clone(),
+            probe_token: probe_token.clone(),
+        });
+        let mut s = shutdown.clone();
+        tokio::spawn(async move {
+            let served = axum::serve(listener, app)
+                .with_graceful_shutdown(async move {
+                    s.recv().await;
+                })
+                .await;
+            if let Err(e) = served {
+                tracing::error!("admin API failed: {e}");
+            }
+        })
+    });
+    let dispatcher = tokio::spawn(dispatch(shared.clone(), shutdown.clone()));
+    state.set_ready(true);
+    tracing::info!(
+        quic = %quic_addr,
+        admin = ?admin_addr,
+        fingerprint = %identity.fingerprint,
+        db = %shared.config.db.display(),
+        "serving"
+    );
+    let task = tokio::spawn(supervise(
+        shared, endpoint, shutdown, dispatcher, admin_task,
+    ));
+    Ok(RunningServer {
+        quic_addr,
+        admin_addr,
+        fingerprint: identity.fingerprint,
+        admin_token,
+        admin_token_origin,
+        tls_origin: identity.origin,
+        state,
+        pool,
+        trigger,
+        task,
+    })
+}
+
+/// Hands every treelet the scheduler releases to its connection's task.
+async fn dispatch(shared: Arc<Shared>, mut shutdown: Shutdown) {
+    loop {
+        tokio::select! {
+            _ = shared.wake.notified() => {}
+            _ = shutdown.recv() => return,
+        }
+        let now = std::time::Instant::now();
+        let mut core = shared.core();
+        let Core { sched, routes } = &mut *core;
+        while let Some((c, t)) = sched.poll_transmit(now) {
+            let routed = routes.get(&c).is_some_and(|tx| tx.send(t).is_ok());
+            if !routed {
+                // The connection is ending: forget it, or its treelets would be offered forever.
+                sched.remove_connection(c);
+                routes.remove(&c);
+            }
+        }
+    }
+}
+
+/// Completes a handshake only to close the connection with `code`.
+async fn refuse(incoming: quinn::Incoming, code: ErrorCode, shared: Arc<Shared>) {
+    let peer = incoming.remote_address();
+    let Ok(connecting) = incoming.accept() else {
+        return;
+    };
+    match tokio::time::timeout(shared.config.hello_timeout(), connecting).await {
+        Ok(Ok(conn)) => {
+            conn.close(
+                quinn::VarInt::from_u32(code.to_u32()),
+                code.name().as_bytes(),
+            );
+            shared.state.metrics.error(code);
+            tracing::info!(%peer, %code, "connection refused");
+        }
+        Ok(Err(e)) => tracing::debug!(%peer, "refused connection's handshake failed: {e}"),
+        Err(_) => tracing::debug!(%peer, "refused connection's handshake timed out"),
+    }
+}
+
+fn spawn_refusal(
+    incoming: quinn::Incoming,
+    code: ErrorCode,
+    shared: &Arc<Shared>,
+    refusals: &Arc<Semaphore>,
+) {
+    shared
+        .state
+        .metrics
+        .connections_rejected
+        .fetch_add(1, Ordering::Relaxed);
+    match refusals.clone().try_acquire_owned() {
+        Ok(permit) => {
+            let shared = shared.clone();
+            tokio::spawn(async move {
+                refuse(incoming, code, shared).await;
+                drop(permit);
+            });
+        }
+        Err(_) => incoming.refuse(),
+    }
+}
+
+async fn supervise(
+    shared: Arc<Shared>,
+    endpoint: quinn::Endpoint,
+    mut shutdown: Shutdown,
+    dispatcher: JoinHandle<()>,
+    admin: Option<JoinHandle<()>>,
+) {
+    let permits = Arc::new(Semaphore::new(shared.config.max_connections));
+    let refusals = Arc::new(Semaphore::new(MAX_REFUSALS));
+    let (done_tx, mut done_rx) = shutdown::done_channel();
+    let deadline = loop {
+        tokio::select! {
+            incoming = endpoint.accept() => {
+                let Some(incoming) = incoming else {
+                    tracing::error!("the QUIC endpoint stopped accepting");
+                    break std::time::Instant::now();
+                };
+                match permits.clone().try_acquire_owned() {
+                    Ok(permit) => {
+                        let task = connection::run(
+                            shared.clone(),
+                            incoming,
+                            shutdown.clone(),
+                            done_tx.clone(),
+                        );
+                        tokio::spawn(async move {
+                            task.await;
+                            drop(permit);
+                        });
+                    }
+                    Err(_) => spawn_refusal(incoming, ErrorCode::ServerBusy, &shared, &refusals),
+                }
+            }
+            deadline = shutdown.recv() => break deadline,
+        }
+    };
+
+    tracing::info!(
+        grace_ms = shared.config.shutdown_grace_ms,
+        connections = shared
+            .state
+            .metrics
+            .connections_open
+            .load(Ordering::Relaxed),
+        "shutting down"
+    );
+    shared.state.begin_shutdown();
+    shared.state.set_ready(false);
+    // Keep answering newcomers, with ShuttingDown, while the connections drain.
+    let refuser = {
+        let endpoint = endpoint.clone();
+        let shared = shared.clone();
+        tokio::spawn(async move {
+            while let Some(incoming) = endpoint.accept().await {
+                spawn_refusal(incoming, ErrorCode::ShuttingDown, &shared, &refusals);
+            }
+        })
+    };
+    drop(done_tx);
+    let bound = tokio::time::Instant::from_std(deadline) + CLOSE_FLUSH + Duration::from_millis(200);
+    if tokio::time::timeout_at(bound, done_rx.recv())
+        .await
+        .is_err()
+    {
+        tracing::warn!("connections still open after the grace; closing them");
+    }
+    refuser.abort();
+    endpoint.close(
+        quinn::VarInt::from_u32(ErrorCode::ShuttingDown.to_u32()),
+        ErrorCode::ShuttingDown.name().as_bytes(),
+    );
+    if tokio::time::timeout(WAIT_IDLE_BOUND, endpoint.wait_idle())
+        .await
+        .is_err()
+    {
+        tracing::debug!("endpoint not idle within {WAIT_IDLE_BOUND:?}");
+    }
+    dispatcher.abort();
+    if let Some(admin) = admin {
+        let abort = admin.abort_handle();
+        if tokio::time::timeout(Duration::from_millis(300), admin)
+            .await
+            .is_err()
+        {
+            abort.abort();
+        }
+    }
+    tracing::info!("stopped");
+}

@@ -1,0 +1,217 @@
+//! The real `arbor-server serve` binary: prints its addresses, fingerprint and admin token file,
+//! serves a raw client, and on SIGTERM says goodbye to it (close code ShuttingDown) and exits 0
+//! within the grace bound; restarted on the same data dir it keeps its certificate.
+
+mod common;
+
+use std::io::{BufRead as _, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use arbor_proto::Channel;
+use arbor_proto::wire::{ErrorCode, Frame};
+use common::*;
+
+const BIN: &str = env!("CARGO_BIN_EXE_arbor-server");
+
+struct Serving {
+    child: Child,
+    quic: std::net::SocketAddr,
+    admin: String,
+    fingerprint: String,
+    token_file: String,
+}
+
+impl Drop for Serving {
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+}
+
+fn serve(dir: &Path, config: &Path) -> Serving {
+    let mut child = Command::new(BIN)
+        .args(["serve", "--db"])
+        .arg(dir.join("pool"))
+        .args([
+            "--listen",
+            "127.0.0.1:0",
+            "--admin",
+            "127.0.0.1:0",
+            "--config",
+        ])
+        .arg(config)
+        .arg("--data-dir")
+        .arg(dir.join("state"))
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines() {
+            let Ok(line) = line else { break };
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let mut fields = std::collections::HashMap::new();
+    while fields.len() < 4 {
+        let line = rx
+            .recv_timeout(Duration::from_secs(20))
+            .expect("serve did not print its four lines");
+        let (k, v) = line.split_once(' ').expect("`key value` lines");
+        fields.insert(k.to_owned(), v.to_owned());
+    }
+    Serving {
+        child,
+        quic: fields["quic"].parse().unwrap(),
+        admin: fields["admin"].clone(),
+        fingerprint: fields["fingerprint"].clone(),
+        token_file: fields["admin-token-file"].clone(),
+    }
+}
+
+fn signal(child: &Child, sig: &str) {
+    let ok = Command::new("kill")
+        .args([sig, &child.id().to_string()])
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "kill {sig}");
+}
+
+fn wait_exit(child: &mut Child, within: Duration) -> std::process::ExitStatus {
+    let t0 = Instant::now();
+    loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            return s;
+        }
+        assert!(t0.elapsed() < within, "still running after {within:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_closes_clients_with_shutting_down_and_exits_0() {
+    let dir = tempfile::tempdir().unwrap();
+    let status = Command::new(BIN)
+        .args([
+            "import",
+            "--quiet",
+            "--depth",
+            "6",
+            "--treelet-bytes",
+            "1024",
+            "--scene",
+        ])
+        .arg(SCENE)
+        .arg("--db")
+        .arg(dir.path().join("pool"))
+        .arg(bunny_path())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let config = dir.path().join("serve.toml");
+    std::fs::write(
+        &config,
+        format!("shutdown_grace_ms = 1000\n[scenes.{SCENE}]\ntokens = [\"{TOKEN}\"]\n"),
+    )
+    .unwrap();
+
+    let mut s = serve(dir.path(), &config);
+    assert_eq!(s.fingerprint.len(), 64);
+    assert!(s.admin.starts_with("127.0.0.1:"), "{}", s.admin);
+    let token_file = Path::new(&s.token_file);
+    assert!(token_file.starts_with(dir.path().join("state")));
+    {
+        use std::os::unix::fs::PermissionsExt as _;
+        let mode = std::fs::metadata(token_file).unwrap().permissions().mode();
+        assert_eq!(mode & 0o777, 0o600);
+        let key = dir.path().join("state/key.pem");
+        let mode = std::fs::metadata(key).unwrap().permissions().mode();
+        assert_eq!(mode & 0o777, 0o600);
+    }
+
+    let client = connect(s.quic, &s.fingerprint).await;
+    let (mut control, info) = hello(&client.conn, SCENE, &[Channel::Normal], TOKEN).await;
+    let d = info.unwrap();
+    round(&client, &mut control, 1, &all_ids(&d)).await.unwrap();
+
+    let t0 = Instant::now();
+    signal(&s.child, "-TERM");
+    let goodbye = tokio::time::timeout(Duration::from_secs(5), control.read()).await;
+    assert_eq!(
+        goodbye.unwrap(),
+        Some(Frame::Goodbye {
+            code: ErrorCode::ShuttingDown
+        })
+    );
+    assert_eq!(
+        close_code(&client.conn, Duration::from_secs(5)).await,
+        code(ErrorCode::ShuttingDown)
+    );
+    let status = wait_exit(
+        &mut s.child,
+        Duration::from_secs(1) + Duration::from_secs(3),
+    );
+    assert_eq!(status.code(), Some(0), "{status}");
+    eprintln!("SIGTERM → exit 0 in {:?}", t0.elapsed());
+
+    // Same data dir: the certificate and the admin token are reused; SIGINT also ends cleanly.
+    let mut again = serve(dir.path(), &config);
+    assert_eq!(again.fingerprint, s.fingerprint);
+    assert_eq!(again.token_file, s.token_file);
+    let client = connect(again.quic, &again.fingerprint).await;
+    let (_c, info) = hello(&client.conn, SCENE, &[], TOKEN).await;
+    info.unwrap();
+    signal(&again.child, "-INT");
+    assert_eq!(
+        close_code(&client.conn, Duration::from_secs(5)).await,
+        code(ErrorCode::ShuttingDown)
+    );
+    let status = wait_exit(&mut again.child, Duration::from_secs(4));
+    assert_eq!(status.code(), Some(0), "{status}");
+}
+
+#[test]
+fn serve_help_has_examples_and_bad_config_is_named() {
+    let out = Command::new(BIN)
+        .args(["serve", "--help"])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let help = String::from_utf8_lossy(&out.stdout);
+    assert!(help.contains("Examples:"), "{help}");
+    assert!(help.contains("--admin"), "{help}");
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("bad.toml");
+    std::fs::write(&config, "db = \"x\"\nmax_connections = \"lots\"\n").unwrap();
+    let out = Command::new(BIN)
+        .args(["serve", "--config"])
+        .arg(&config)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("max_connections"), "{err}");
+    // Serving never creates a pool.
+    let missing = dir.path().join("no-pool");
+    let out = Command::new(BIN)
+        .args(["serve", "--listen", "127.0.0.1:0", "--admin", "off", "--db"])
+        .arg(&missing)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no pool"));
+    assert!(!missing.exists());
+}

@@ -1,0 +1,598 @@
+//! The QUIC treelet service over loopback with a real bunny pool and a raw quinn client:
+//! exact delivery byte for byte, hostile clients ending only their own connection with the
+//! matching close code while a well-behaved client keeps its rate, the connection cap, and
+//! graceful shutdown.
+
+mod common;
+
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+use arbor_proto::frame::{self, decode_treelet_message};
+use arbor_proto::limits::{MAX_FRAME_BYTES, MAX_REQUEST_ITEMS};
+use arbor_proto::wire::{ErrorCode, Frame};
+use arbor_proto::{Channel, TreeletId, codec};
+use common::*;
+
+const LONG: Duration = Duration::from_secs(10);
+
+/// Median of a few full rounds of the well-behaved client (fresh list each time, past the
+/// redelivery guard).
+async fn rounds(
+    good: &Client,
+    control: &mut Control,
+    seq: &mut u64,
+    ids: &[TreeletId],
+    n: usize,
+) -> Duration {
+    let mut t = Vec::new();
+    for _ in 0..n {
+        tokio::time::sleep(Duration::from_millis(150)).await;
+        *seq += 1;
+        t.push(round(good, control, *seq, ids).await.unwrap());
+    }
+    t.sort();
+    t[t.len() / 2]
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_list_arrives_exactly_and_byte_identical_to_the_pool() {
+    let tp = TestPool::new();
+    let t0 = Instant::now();
+    let server = start(tp.config()).await;
+    let started = t0.elapsed();
+    let stored = server.pool().scene(SCENE).unwrap();
+    let d = stored.description.clone();
+    assert_eq!(server.fingerprint.len(), 64);
+
+    let t0 = Instant::now();
+    let client = connect(server.quic_addr, &server.fingerprint).await;
+    let handshake = t0.elapsed();
+    let (mut control, info) = hello(&client.conn, SCENE, &[Channel::Normal], TOKEN).await;
+    let hello_done = t0.elapsed();
+    assert_eq!(info.unwrap(), d, "SceneInfo is the stored description");
+
+    // A list of N treelets, shuffled priorities, with a duplicate: exactly N distinct arrive.
+    let n = (d.treelet_count as usize).min(200);
+    assert!(
+        n >= 20,
+        "the bunny at depth 6 has {} treelets",
+        d.treelet_count
+    );
+    let mut items: Vec<(TreeletId, f32)> = (0..n as u32)
+        .map(|i| (TreeletId(i), ((i * 7919) % 1000) as f32))
+        .collect();
+    items.push((TreeletId(3), -5.0));
+    let t1 = Instant::now();
+    control.send(&Frame::RequestList { seq: 1, items }).await;
+    let got = receive(&client.conn, n, LONG).await.unwrap();
+    let elapsed = t1.elapsed();
+    let mut ids: Vec<u32> = got.iter().map(|(t, _)| t.0).collect();
+    ids.sort_unstable();
+    assert_eq!(ids, (0..n as u32).collect::<Vec<_>>());
+    // Nothing else comes.
+    assert!(
+        tokio::time::timeout(Duration::from_millis(300), client.conn.accept_uni())
+            .await
+            .is_err(),
+        "an extra stream arrived"
+    );
+    let dict = d.node_dictionary.as_deref();
+    for (id, bytes) in &got {
+        let m = decode_treelet_message(bytes).unwrap();
+        assert_eq!(
+            m.nodes,
+            &stored.nodes(*id).unwrap().unwrap()[..],
+            "node block of {id:?}"
+        );
+        assert_eq!(m.channels.len(), 1);
+        assert_eq!(m.channels[0].0, Channel::Normal);
+        assert_eq!(
+            m.channels[0].1,
+            &stored.channel(Channel::Normal, *id).unwrap().unwrap()[..]
+        );
+        let t = codec::decode_compressed_treelet(m.nodes, d.max_depth, dict).unwrap();
+        assert_eq!(t.header.id, *id);
+        assert_eq!(m.used_nodes, t.header.used_nodes);
+    }
+    let bytes: usize = got.iter().map(|g| g.1.len()).sum();
+    eprintln!(
+        "start {started:?}; handshake {handshake:?}; hello→SceneInfo {:?}; {n} treelets ({bytes} B) in {elapsed:?}: {:.0} treelets/s",
+        hello_done - handshake,
+        n as f64 / elapsed.as_secs_f64()
+    );
+
+    // The session shows up with its counters; the metrics count what was sent.
+    let s = server.state.sessions();
+    assert_eq!(s.len(), 1);
+    assert_eq!(s[0].scene, SCENE);
+    assert_eq!(s[0].channels, vec!["normal"]);
+    assert_eq!(s[0].request_lists, 1);
+    assert_eq!(s[0].treelets_sent, n as u64);
+    assert_eq!(s[0].bytes_sent, bytes as u64);
+    let m = &server.state.metrics;
+    assert_eq!(m.treelets_sent.load(Ordering::Relaxed), n as u64);
+    assert_eq!(m.treelet_bytes_sent.load(Ordering::Relaxed), bytes as u64);
+    assert_eq!(m.request_lists.load(Ordering::Relaxed), 1);
+    assert_eq!(m.request_items.load(Ordering::Relaxed), n as u64 + 1);
+    assert_eq!(m.request_to_send.count(), n as u64);
+
+    // A client asking for no channels receives node blocks only.
+    let bare = connect(server.quic_addr, &server.fingerprint).await;
+    let (mut c2, info) = hello(&bare.conn, SCENE, &[], TOKEN).await;
+    info.unwrap();
+    c2.send(&Frame::RequestList {
+        seq: 7,
+        items: vec![(TreeletId(0), 1.0), (TreeletId(1), 0.5)],
+    })
+    .await;
+    for (id, bytes) in receive(&bare.conn, 2, LONG).await.unwrap() {
+        let m = decode_treelet_message(&bytes).unwrap();
+        assert!(m.channels.is_empty());
+        assert_eq!(m.nodes, &stored.nodes(id).unwrap().unwrap()[..]);
+    }
+
+    // A replacement list takes effect: the new treelets arrive.
+    tokio::time::sleep(Duration::from_millis(150)).await;
+    let fresh: Vec<TreeletId> = (n as u32..d.treelet_count.min(n as u32 + 10))
+        .map(TreeletId)
+        .collect();
+    if !fresh.is_empty() {
+        round(&client, &mut control, 2, &fresh).await.unwrap();
+    }
+    server.shutdown().await;
+}
+
+/// Connects a hostile client with `opts`, says Hello (unless `hello` is false) and returns it.
+async fn hostile(
+    server: &arbor_server::service::RunningServer,
+    hello_ok: bool,
+) -> (Client, Control) {
+    let c = connect(server.quic_addr, &server.fingerprint).await;
+    if hello_ok {
+        let (control, info) = hello(&c.conn, SCENE, &[Channel::Normal], TOKEN).await;
+        info.unwrap();
+        (c, control)
+    } else {
+        let control = Control::open(&c.conn).await;
+        (c, control)
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn hostile_clients_end_only_their_own_connection() {
+    let tp = TestPool::new();
+    let server = start(tp.config()).await;
+    let d = server.pool().scene(SCENE).unwrap().description;
+    let ids = all_ids(&d);
+    let good = connect(server.quic_addr, &server.fingerprint).await;
+    let (mut gc, info) = hello(&good.conn, SCENE, &[Channel::Normal], TOKEN).await;
+    info.unwrap();
+    let mut seq = 0;
+    let alone = rounds(&good, &mut gc, &mut seq, &ids, 5).await;
+    let rate_alone = ids.len() as f64 / alone.as_secs_f64();
+    eprintln!(
+        "good client alone: {} treelets in {alone:?} ({rate_alone:.0}/s)",
+        ids.len()
+    );
+    // Generous: a loaded 2-core machine runs the hostile clients, the server and the good
+    // client at once.
+    let bound = alone * 10 + Duration::from_millis(500);
+
+    let garbage: Vec<u8> = {
+        let mut g = vec![0x10, 0, 0, 0, 0xEE];
+        g.extend_from_slice(b"this is not an arbor frame at all");
+        g
+    };
+    let mut over = Vec::new();
+    over.extend_from_slice(&(MAX_FRAME_BYTES as u32 + 1).to_le_bytes());
+    over.push(3);
+    over.extend_from_slice(&[0u8; 1000]);
+    let long_list = {
+        let count = MAX_REQUEST_ITEMS as u32 + 1;
+        let mut p = 1u64.to_le_bytes().to_vec();
+        p.extend_from_slice(&count.to_le_bytes());
+        for i in 0..count {
+            p.extend_from_slice(&(i % d.treelet_count).to_le_bytes());
+            p.extend_from_slice(&1.0f32.to_le_bytes());
+        }
+        let mut f = (p.len() as u32).to_le_bytes().to_vec();
+        f.push(3);
+        f.extend_from_slice(&p);
+        assert!(p.len() <= MAX_FRAME_BYTES);
+        f
+    };
+    let unknown_treelet = frame::encode(&Frame::RequestList {
+        seq: 1,
+        items: vec![(TreeletId(0), 1.0), (TreeletId(d.treelet_count), 2.0)],
+    })
+    .unwrap();
+
+    // (name, say Hello first, bytes to send, expected code)
+    let cases: Vec<(&str, bool, Vec<u8>, ErrorCode)> = vec![
+        (
+            "garbage instead of Hello",
+            false,
+            garbage.clone(),
+            ErrorCode::ProtocolViolation,
+        ),
+        (
+            "garbage after Hello",
+            true,
+            garbage,
+            ErrorCode::ProtocolViolation,
+        ),
+        (
+            "frame over the size limit",
+            true,
+            over,
+            ErrorCode::FrameTooLarge,
+        ),
+        (
+            "list over the length limit",
+            true,
+            long_list,
+            ErrorCode::ListTooLong,
+        ),
+        (
+            "unknown treelet id",
+            true,
+            unknown_treelet,
+            ErrorCode::UnknownTreelet,
+        ),
+        (
+            "second Hello",
+            true,
+            frame::encode(&hello_frame(SCENE, &[], TOKEN)).unwrap(),
+            ErrorCode::ProtocolViolation,
+        ),
+        (
+            "unknown scene",
+            false,
+            frame::encode(&hello_frame("dragon", &[], TOKEN)).unwrap(),
+            ErrorCode::UnknownScene,
+        ),
+        (
+            "wrong token",
+            false,
+            frame::encode(&hello_frame(SCENE, &[], "guess")).unwrap(),
+            ErrorCode::Unauthorized,
+        ),
+        (
+            "channel the scene lacks",
+            false,
+            frame::encode(&hello_frame(SCENE, &[Channel::Color], TOKEN)).unwrap(),
+            ErrorCode::UnknownChannel,
+        ),
+        (
+            "unsupported version",
+            false,
+            {
+                let mut p = 9u16.to_le_bytes().to_vec();
+                p.extend_from_slice(b"future");
+                let mut f = (p.len() as u32).to_le_bytes().to_vec();
+                f.push(1);
+                f.extend_from_slice(&p);
+                f
+            },
+            ErrorCode::UnsupportedVersion,
+        ),
+    ];
+    for (name, say_hello, bytes, expected) in cases {
+        let (h, mut hc) = hostile(&server, say_hello).await;
+        let attack = async {
+            hc.send_raw(&bytes).await;
+            // Where the server answers with an Error frame, it carries the same code.
+            let frame = tokio::time::timeout(Duration::from_secs(5), hc.read()).await;
+            let got = close_code(&h.conn, LONG).await;
+            (frame, got)
+        };
+        // Past the redelivery guard of the previous round, then both at once.
+        tokio::time::sleep(Duration::from_millis(150)).await;
+        seq += 1;
+        let (res, during) = tokio::join!(attack, round(&good, &mut gc, seq, &ids));
+        let (frame, got) = res;
+        assert_eq!(got, code(expected), "{name}");
+        // The server's Error frame, with the same code, arrives before the close.
+        match frame {
+            Ok(Some(Frame::Error { code: c, .. })) => assert_eq!(c, expected, "{name}"),
+            other => panic!("{name}: expected an Error frame, got {other:?}"),
+        }
+        let during = during.unwrap_or_else(|e| panic!("{name}: good client: {e}"));
+        assert!(
+            during <= bound,
+            "{name}: the good client's round took {during:?} (alone {alone:?})"
+        );
+        eprintln!("{name}: closed with {expected}; good client's round {during:?}");
+        assert!(
+            server.state.metrics.errors(expected) >= 1,
+            "{name}: not counted"
+        );
+    }
+
+    // No Hello at all: closed when the hello timeout passes.
+    let (h, _hc) = hostile(&server, false).await;
+    let t0 = Instant::now();
+    assert_eq!(
+        close_code(&h.conn, LONG).await,
+        code(ErrorCode::ProtocolViolation),
+        "silent client"
+    );
+    assert!(
+        t0.elapsed() >= Duration::from_millis(1500),
+        "{:?}",
+        t0.elapsed()
+    );
+
+    // Wrong ALPN: the TLS handshake itself fails (no_application_protocol, QUIC 0x178).
+    let opts = ClientOptions {
+        alpn: b"h3".to_vec(),
+        ..ClientOptions::default()
+    };
+    tokio::time::sleep(Duration::from_millis(150)).await;
+    seq += 1;
+    let (alpn, during) = tokio::join!(
+        connect_with(server.quic_addr, &server.fingerprint, opts),
+        round(&good, &mut gc, seq, &ids)
+    );
+    match alpn {
+        Err(quinn::ConnectionError::ConnectionClosed(c)) => {
+            assert_eq!(u64::from(c.error_code), 0x178, "{c}");
+        }
+        Err(e) => panic!("wrong ALPN ended otherwise: {e}"),
+        Ok(_) => panic!("a client with ALPN h3 was accepted"),
+    }
+    assert!(during.unwrap() <= bound);
+
+    // A wrong fingerprint is refused by our own client (pinning works).
+    assert!(
+        connect_with(server.quic_addr, &"0".repeat(64), ClientOptions::default())
+            .await
+            .is_err()
+    );
+
+    // A client that never reads its streams: its own window stalls; it is closed with
+    // SlowReader after the timeout while the good client keeps its rate meanwhile.
+    let mut transport = quinn::TransportConfig::default();
+    transport.max_concurrent_uni_streams(2u32.into());
+    let slow = connect_with(
+        server.quic_addr,
+        &server.fingerprint,
+        ClientOptions {
+            transport,
+            ..ClientOptions::default()
+        },
+    )
+    .await
+    .unwrap();
+    let (mut sc, info) = hello(&slow.conn, SCENE, &[Channel::Normal], TOKEN).await;
+    info.unwrap();
+    let t0 = Instant::now();
+    sc.send(&Frame::RequestList {
+        seq: 1,
+        items: ids.iter().map(|&t| (t, 1.0)).collect(),
+    })
+    .await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let stalled = server
+        .state
+        .sessions()
+        .into_iter()
+        .find(|s| s.request_lists == 1 && s.treelets_sent < ids.len() as u64);
+    assert!(stalled.is_some(), "the slow reader is not stalled");
+    let during = rounds(&good, &mut gc, &mut seq, &ids, 3).await;
+    eprintln!("during a stalled slow reader: good client's round {during:?}");
+    assert!(during <= bound, "{during:?} vs alone {alone:?}");
+    assert_eq!(
+        close_code(&slow.conn, LONG).await,
+        code(ErrorCode::SlowReader)
+    );
+    let took = t0.elapsed();
+    assert!(
+        took >= Duration::from_millis(1500) && took < Duration::from_millis(6000),
+        "SlowReader after {took:?}"
+    );
+
+    // The good client is still connected and served after all of it.
+    assert!(good.conn.close_reason().is_none());
+    let after = rounds(&good, &mut gc, &mut seq, &ids, 3).await;
+    assert!(after <= bound, "{after:?}");
+    assert_eq!(server.state.sessions().len(), 1);
+    let m = &server.state.metrics;
+    assert_eq!(m.errors(ErrorCode::SlowReader), 1);
+    assert_eq!(m.errors(ErrorCode::ProtocolViolation), 4);
+    server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_connection_cap_refuses_with_server_busy() {
+    let tp = TestPool::new();
+    let mut config = tp.config();
+    config.max_connections = 2;
+    let server = start(config).await;
+    let a = connect(server.quic_addr, &server.fingerprint).await;
+    let b = connect(server.quic_addr, &server.fingerprint).await;
+    let (_ca, ia) = hello(&a.conn, SCENE, &[], TOKEN).await;
+    ia.unwrap();
+    let third = connect_with(
+        server.quic_addr,
+        &server.fingerprint,
+        ClientOptions::default(),
+    )
+    .await;
+    let got = match third {
+        Ok(c) => close_code(&c.conn, LONG).await,
+        Err(quinn::ConnectionError::ApplicationClosed(c)) => Ok(c.error_code.into_inner()),
+        Err(e) => Err(e.to_string()),
+    };
+    assert_eq!(got, code(ErrorCode::ServerBusy));
+    assert_eq!(
+        server
+            .state
+            .metrics
+            .connections_rejected
+            .load(Ordering::Relaxed),
+        1
+    );
+    // A freed slot is usable again.
+    b.conn.close(0u32.into(), b"bye");
+    drop(b);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let c = connect(server.quic_addr, &server.fingerprint).await;
+    let (_cc, ic) = hello(&c.conn, SCENE, &[], TOKEN).await;
+    ic.unwrap();
+    assert!(a.conn.close_reason().is_none());
+    server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_says_goodbye_and_returns_within_the_grace() {
+    let tp = TestPool::new();
+    let mut config = tp.config();
+    // Longer than the drain: the stalled client must meet the shutdown, not the watchdog.
+    config.slow_reader_timeout_ms = 10_000;
+    let grace = Duration::from_millis(config.shutdown_grace_ms);
+    let server = start(config).await;
+    let d = server.pool().scene(SCENE).unwrap().description;
+    let state = server.state.clone();
+    assert!(state.is_ready());
+
+    // A reading client.
+    let reader = connect(server.quic_addr, &server.fingerprint).await;
+    let (mut rc, info) = hello(&reader.conn, SCENE, &[Channel::Normal], TOKEN).await;
+    info.unwrap();
+    round(&reader, &mut rc, 1, &all_ids(&d)).await.unwrap();
+    // A client whose streams stall, so the drain lasts the whole grace.
+    let mut transport = quinn::TransportConfig::default();
+    transport.max_concurrent_uni_streams(1u32.into());
+    let stuck = connect_with(
+        server.quic_addr,
+        &server.fingerprint,
+        ClientOptions {
+            transport,
+            ..ClientOptions::default()
+        },
+    )
+    .await
+    .unwrap();
+    let (mut sc, info) = hello(&stuck.conn, SCENE, &[Channel::Normal], TOKEN).await;
+    info.unwrap();
+    sc.send(&Frame::RequestList {
+        seq: 1,
+        items: all_ids(&d).into_iter().map(|t| (t, 1.0)).collect(),
+    })
+    .await;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+
+    let trigger = server.shutdown_trigger();
+    let addr = server.quic_addr;
+    let fp = server.fingerprint.clone();
+    let t0 = Instant::now();
+    trigger.trigger();
+    let stopping = tokio::spawn(server.wait());
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    assert!(!state.is_ready(), "readiness goes false at once");
+    // A newcomer during the drain is refused with ShuttingDown.
+    let late = match connect_with(addr, &fp, ClientOptions::default()).await {
+        Ok(c) => close_code(&c.conn, LONG).await,
+        Err(quinn::ConnectionError::ApplicationClosed(c)) => Ok(c.error_code.into_inner()),
+        Err(e) => Err(e.to_string()),
+    };
+    assert_eq!(late, code(ErrorCode::ShuttingDown), "newcomer");
+
+    // Both clients get Goodbye { ShuttingDown } and the close code.
+    assert_eq!(
+        tokio::time::timeout(LONG, rc.read()).await.unwrap(),
+        Some(Frame::Goodbye {
+            code: ErrorCode::ShuttingDown
+        })
+    );
+    assert_eq!(
+        close_code(&reader.conn, LONG).await,
+        code(ErrorCode::ShuttingDown)
+    );
+    assert_eq!(
+        close_code(&stuck.conn, LONG).await,
+        code(ErrorCode::ShuttingDown)
+    );
+    tokio::time::timeout(grace + Duration::from_secs(2), stopping)
+        .await
+        .expect("shutdown within grace + 2 s")
+        .unwrap();
+    let took = t0.elapsed();
+    eprintln!("shutdown with a stalled client took {took:?} (grace {grace:?})");
+    assert!(took >= grace, "the stalled streams had the grace: {took:?}");
+    assert!(took <= grace + Duration::from_secs(2));
+    assert!(state.metrics.errors(ErrorCode::ShuttingDown) >= 3);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_replacement_list_cancels_obsolete_treelets_in_flight() {
+    let tp = TestPool::new();
+    let server = start(tp.config()).await;
+    let d = server.pool().scene(SCENE).unwrap().description;
+    // One stream credit and not reading yet: the first treelet's stream is opened, the rest of
+    // the window waits in flight for a credit.
+    let mut transport = quinn::TransportConfig::default();
+    transport.max_concurrent_uni_streams(1u32.into());
+    let client = connect_with(
+        server.quic_addr,
+        &server.fingerprint,
+        ClientOptions {
+            transport,
+            ..ClientOptions::default()
+        },
+    )
+    .await
+    .unwrap();
+    let (mut control, info) = hello(&client.conn, SCENE, &[Channel::Normal], TOKEN).await;
+    info.unwrap();
+    let old: Vec<TreeletId> = (0..100).map(TreeletId).collect();
+    control
+        .send(&Frame::RequestList {
+            seq: 1,
+            items: old.iter().map(|&t| (t, 1000.0 - t.0 as f32)).collect(),
+        })
+        .await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let in_flight = server.state.sessions()[0].in_flight;
+    assert!(in_flight >= 2, "in flight: {in_flight}");
+    let new: Vec<TreeletId> = (d.treelet_count - 10..d.treelet_count)
+        .map(TreeletId)
+        .collect();
+    control
+        .send(&Frame::RequestList {
+            seq: 2,
+            items: new.iter().map(|&t| (t, 1.0)).collect(),
+        })
+        .await;
+    let t0 = Instant::now();
+    while server
+        .state
+        .metrics
+        .treelets_cancelled
+        .load(Ordering::Relaxed)
+        < in_flight - 1
+    {
+        assert!(t0.elapsed() < LONG, "obsolete treelets not cancelled");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    // Reading now: the one stream already sent, then exactly the new list.
+    let got = receive(&client.conn, new.len() + 1, LONG).await.unwrap();
+    let mut ids: Vec<u32> = got.iter().map(|g| g.0.0).collect();
+    ids.sort_unstable();
+    let mut want: Vec<u32> = new.iter().map(|t| t.0).collect();
+    want.insert(0, 0);
+    assert_eq!(
+        ids, want,
+        "only the new list (and the one stream already sent)"
+    );
+    assert!(
+        tokio::time::timeout(Duration::from_millis(300), client.conn.accept_uni())
+            .await
+            .is_err(),
+        "an obsolete treelet arrived"
+    );
+    assert!(client.conn.close_reason().is_none());
+    server.shutdown().await;
+}
