@@ -34,16 +34,14 @@ impl Drop for Serving {
 }
 
 fn serve(dir: &Path, config: &Path) -> Serving {
+    serve_on(dir, config, "127.0.0.1:0")
+}
+
+fn serve_on(dir: &Path, config: &Path, listen: &str) -> Serving {
     let mut child = Command::new(BIN)
         .args(["serve", "--db"])
         .arg(dir.join("pool"))
-        .args([
-            "--listen",
-            "127.0.0.1:0",
-            "--admin",
-            "127.0.0.1:0",
-            "--config",
-        ])
+        .args(["--listen", listen, "--admin", "127.0.0.1:0", "--config"])
         .arg(config)
         .arg("--data-dir")
         .arg(dir.join("state"))
@@ -99,8 +97,9 @@ fn wait_exit(child: &mut Child, within: Duration) -> std::process::ExitStatus {
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn sigterm_closes_clients_with_shutting_down_and_exits_0() {
+/// A pool with the bunny (depth 6, 1 KiB treelets) imported by the real binary, and a config
+/// protecting it with `TOKEN`.
+fn bunny_pool_and_config() -> (tempfile::TempDir, std::path::PathBuf) {
     let dir = tempfile::tempdir().unwrap();
     let status = Command::new(BIN)
         .args([
@@ -128,6 +127,12 @@ async fn sigterm_closes_clients_with_shutting_down_and_exits_0() {
     )
     .unwrap();
 
+    (dir, config)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_closes_clients_with_shutting_down_and_exits_0() {
+    let (dir, config) = bunny_pool_and_config();
     let mut s = serve(dir.path(), &config);
     assert_eq!(s.fingerprint.len(), 64);
     assert!(s.admin.starts_with("127.0.0.1:"), "{}", s.admin);
@@ -214,4 +219,142 @@ fn serve_help_has_examples_and_bad_config_is_named() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("no pool"));
     assert!(!missing.exists());
+}
+
+/// One `GET` over HTTP/1.1 with a bearer token; the body.
+fn http_get(addr: &str, path: &str, token: &str) -> String {
+    use std::io::{Read as _, Write as _};
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    write!(
+        s,
+        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nAuthorization: Bearer {token}\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut reply = String::new();
+    s.read_to_string(&mut reply).unwrap();
+    assert!(reply.starts_with("HTTP/1.1 200"), "{reply}");
+    reply.split_once("\r\n\r\n").unwrap().1.to_owned()
+}
+
+/// The value of an unlabelled sample in Prometheus text.
+fn sample(metrics: &str, name: &str) -> f64 {
+    metrics
+        .lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse().ok())
+        .unwrap_or_else(|| panic!("{name} missing from /metrics"))
+}
+
+async fn next(c: &mut arbor_client::net::TreeletClient) -> arbor_client::net::ClientEvent {
+    tokio::time::timeout(Duration::from_secs(30), c.next_event())
+        .await
+        .expect("no client event in time")
+        .expect("the client ended")
+}
+
+/// Receives `n` distinct treelets.
+async fn receive(
+    c: &mut arbor_client::net::TreeletClient,
+    n: usize,
+) -> std::collections::BTreeSet<u32> {
+    let mut ids = std::collections::BTreeSet::new();
+    while ids.len() < n {
+        match next(c).await {
+            arbor_client::net::ClientEvent::Treelet(t) => {
+                ids.insert(t.id.0);
+            }
+            other => panic!("expected treelets, got {other:?}"),
+        }
+    }
+    ids
+}
+
+/// The real client library against the real binary: treelets arrive, `/metrics` counts exactly
+/// that traffic, SIGTERM reaches the client as ShuttingDown with a reconnect scheduled, and when
+/// the server is back on the same port the client reconnects by itself, re-sends its latest
+/// list and receives it again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_client_reconnects_when_the_server_is_back_and_metrics_count_the_traffic() {
+    use arbor_client::net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
+    let (dir, config) = bunny_pool_and_config();
+    let port = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let listen = format!("127.0.0.1:{port}");
+    let mut first = serve_on(dir.path(), &config, &listen);
+    let url = ServerUrl {
+        host: "127.0.0.1".into(),
+        port,
+        scene: SCENE.into(),
+    };
+    let mut client = TreeletClient::start(
+        ClientConfig::new(url, Trust::Fingerprint(first.fingerprint.clone()))
+            .with_token(TOKEN)
+            .with_channels([Channel::Normal]),
+    )
+    .unwrap();
+    let scene = match next(&mut client).await {
+        ClientEvent::Connected(d) => d,
+        other => panic!("expected Connected, got {other:?}"),
+    };
+    let n = 40.min(scene.treelet_count) as usize;
+    let list: Vec<_> = (0..n as u32)
+        .map(|i| (arbor_proto::TreeletId(i), (n as u32 - i) as f32))
+        .collect();
+    client.request(list).unwrap();
+    assert_eq!(receive(&mut client, n).await.len(), n);
+
+    let token = std::fs::read_to_string(&first.token_file).unwrap();
+    let metrics = http_get(&first.admin, "/metrics", token.trim());
+    assert_eq!(
+        sample(&metrics, "arbor_treelets_sent_total"),
+        n as f64,
+        "{metrics}"
+    );
+    assert_eq!(sample(&metrics, "arbor_request_lists_total"), 1.0);
+    assert_eq!(sample(&metrics, "arbor_request_items_total"), n as f64);
+    assert_eq!(sample(&metrics, "arbor_connections_accepted_total"), 1.0);
+    assert_eq!(sample(&metrics, "arbor_connections_open"), 1.0);
+    assert_eq!(
+        sample(&metrics, "arbor_request_to_send_seconds_count"),
+        n as f64
+    );
+
+    signal(&first.child, "-TERM");
+    match next(&mut client).await {
+        ClientEvent::Disconnected {
+            code, reconnect_in, ..
+        } => {
+            assert_eq!(code, Some(ErrorCode::ShuttingDown));
+            assert!(reconnect_in.is_some(), "ShuttingDown must not be final");
+        }
+        other => panic!("expected Disconnected, got {other:?}"),
+    }
+    assert_eq!(
+        wait_exit(&mut first.child, Duration::from_secs(5)).code(),
+        Some(0)
+    );
+
+    // Back on the same port with the same certificate: the client reconnects on its own and
+    // re-sends its latest list.
+    let mut second = serve_on(dir.path(), &config, &listen);
+    assert_eq!(second.fingerprint, first.fingerprint);
+    loop {
+        match next(&mut client).await {
+            ClientEvent::Connected(_) => break,
+            ClientEvent::Disconnected { reconnect_in, .. } => {
+                assert!(reconnect_in.is_some(), "gave up reconnecting")
+            }
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    assert_eq!(receive(&mut client, n).await.len(), n);
+    assert!(client.stats().connects >= 2);
+    client.close().await;
+    signal(&second.child, "-TERM");
+    assert_eq!(
+        wait_exit(&mut second.child, Duration::from_secs(5)).code(),
+        Some(0)
+    );
 }
