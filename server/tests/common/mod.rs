@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use arbor_client::net::tls::{PinnedCertVerifier, parse_fingerprint};
 use arbor_proto::frame::{self, FrameDecoder};
 use arbor_proto::limits::MAX_TREELET_MESSAGE_BYTES;
 use arbor_proto::wire::{ALPN, ErrorCode, Frame, PROTOCOL_VERSION};
@@ -17,10 +18,6 @@ use arbor_server::import::{ImportOptions, import_file};
 use arbor_server::pool::Pool;
 use arbor_server::service::config::SceneAccess;
 use arbor_server::service::{RunningServer, ServeConfig};
-use rustls::client::danger::{HandshakeSignatureValid, ServerCertVerified, ServerCertVerifier};
-use rustls::crypto::CryptoProvider;
-use rustls::pki_types::{CertificateDer, ServerName, UnixTime};
-use rustls::{DigitallySignedStruct, SignatureScheme};
 
 pub const SCENE: &str = "bunny";
 pub const TOKEN: &str = "bunny-token";
@@ -119,67 +116,6 @@ pub fn sha256_hex(der: &[u8]) -> String {
         .collect()
 }
 
-/// Accepts exactly the certificate whose SHA-256 is `fingerprint`; handshake signatures are
-/// still verified.
-#[derive(Debug)]
-pub struct PinnedVerifier {
-    fingerprint: String,
-    provider: Arc<CryptoProvider>,
-}
-
-impl ServerCertVerifier for PinnedVerifier {
-    fn verify_server_cert(
-        &self,
-        end_entity: &CertificateDer<'_>,
-        _intermediates: &[CertificateDer<'_>],
-        _server_name: &ServerName<'_>,
-        _ocsp: &[u8],
-        _now: UnixTime,
-    ) -> Result<ServerCertVerified, rustls::Error> {
-        if sha256_hex(end_entity) == self.fingerprint {
-            Ok(ServerCertVerified::assertion())
-        } else {
-            Err(rustls::Error::InvalidCertificate(
-                rustls::CertificateError::ApplicationVerificationFailure,
-            ))
-        }
-    }
-
-    fn verify_tls12_signature(
-        &self,
-        message: &[u8],
-        cert: &CertificateDer<'_>,
-        dss: &DigitallySignedStruct,
-    ) -> Result<HandshakeSignatureValid, rustls::Error> {
-        rustls::crypto::verify_tls12_signature(
-            message,
-            cert,
-            dss,
-            &self.provider.signature_verification_algorithms,
-        )
-    }
-
-    fn verify_tls13_signature(
-        &self,
-        message: &[u8],
-        cert: &CertificateDer<'_>,
-        dss: &DigitallySignedStruct,
-    ) -> Result<HandshakeSignatureValid, rustls::Error> {
-        rustls::crypto::verify_tls13_signature(
-            message,
-            cert,
-            dss,
-            &self.provider.signature_verification_algorithms,
-        )
-    }
-
-    fn supported_verify_schemes(&self) -> Vec<SignatureScheme> {
-        self.provider
-            .signature_verification_algorithms
-            .supported_schemes()
-    }
-}
-
 /// How a test client connects.
 pub struct ClientOptions {
     pub alpn: Vec<u8>,
@@ -209,10 +145,12 @@ pub fn client_config(fingerprint: &str, opts: ClientOptions) -> quinn::ClientCon
         .with_protocol_versions(&[&rustls::version::TLS13])
         .unwrap()
         .dangerous()
-        .with_custom_certificate_verifier(Arc::new(PinnedVerifier {
-            fingerprint: fingerprint.to_owned(),
-            provider,
-        }))
+        // The client library's pinning verifier: accepts exactly the leaf with this SHA-256 and
+        // still checks handshake signatures.
+        .with_custom_certificate_verifier(Arc::new(PinnedCertVerifier::new(
+            parse_fingerprint(fingerprint).expect("a valid fingerprint"),
+            &provider,
+        )))
         .with_no_client_auth();
     tls.alpn_protocols = vec![opts.alpn];
     let crypto = quinn::crypto::rustls::QuicClientConfig::try_from(tls).unwrap();
