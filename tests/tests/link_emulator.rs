@@ -228,10 +228,16 @@ async fn lossy_run(seed: u64) -> (Vec<u32>, Vec<u32>, LinkStats) {
         &link,
         || async {
             let s = link.stats();
+            // Every packet that came in is accounted for, in both directions.
+            let settled = |d: &arbor_tests::link::DirectionStats| {
+                d.queued_bytes == 0
+                    && d.packets_forwarded + d.dropped_queue + d.dropped_loss + d.send_errors
+                        == d.packets_in
+            };
             total_in(&s) == u64::from(COUNT)
-                && s.upstream.queued_bytes == 0
+                && settled(&s.upstream)
+                && settled(&s.downstream)
                 && s.downstream.packets_in == s.upstream.packets_forwarded
-                && s.downstream.queued_bytes == 0
                 && back.lock().unwrap().len() as u64 == s.downstream.packets_forwarded
         },
     )
@@ -353,9 +359,14 @@ async fn queue_overflow_drops_at_the_tail() {
         &link,
         || async {
             let s = link.stats();
+            let up = &s.upstream;
+            // Every packet that came in is accounted for (a packet just taken off the queue is
+            // neither queued nor counted as forwarded yet).
             total_in(&s) == u64::from(COUNT)
-                && s.upstream.queued_bytes == 0
-                && sink.count() as u64 == s.upstream.packets_forwarded
+                && up.queued_bytes == 0
+                && up.packets_forwarded + up.dropped_queue + up.dropped_loss + up.send_errors
+                    == u64::from(COUNT)
+                && sink.count() as u64 == up.packets_forwarded
         },
     )
     .await;
@@ -372,6 +383,7 @@ async fn queue_overflow_drops_at_the_tail() {
     );
     assert_eq!(up.packets_forwarded + up.dropped_queue, u64::from(COUNT));
     assert_eq!(up.dropped_loss, 0);
+    assert_eq!(up.send_errors, 0);
     assert!(
         up.peak_queued_bytes <= QUEUE as u64,
         "buffer exceeded: {up:?}"
