@@ -667,6 +667,49 @@ access = "public"
         assert_eq!(c.scenes["lion"], SceneAccess::Public);
     }
 
+    /// The example configs shipped in deploy/ (systemd/host, container image, Kubernetes
+    /// ConfigMap) parse with the implemented schema, so they cannot drift from it.
+    #[test]
+    fn shipped_example_configs_parse() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        // Secret files live on the target host (/run/credentials, /etc/arbor): point every
+        // absolute path at one readable token file here.
+        let dir = tempfile::tempdir().unwrap();
+        let token = dir.path().join("token");
+        std::fs::write(&token, "t0ken\n").unwrap();
+        let parse = |text: &str, path: &Path| {
+            let mut local = String::new();
+            let mut rest = text;
+            while let Some(i) = rest.find("\"/") {
+                local.push_str(&rest[..=i]);
+                let end = rest[i + 1..].find('"').map_or(rest.len(), |e| i + 1 + e);
+                local.push_str(token.to_str().unwrap());
+                rest = &rest[end..];
+            }
+            local.push_str(rest);
+            ServeConfig::from_toml(&local, path, &ConfigOverrides::default())
+                .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        };
+        for rel in ["deploy/arbor.toml", "deploy/container/arbor.toml"] {
+            let p = root.join(rel);
+            parse(&std::fs::read_to_string(&p).unwrap(), &p);
+        }
+        let p = root.join("deploy/kubernetes/configmap.yaml");
+        let cm = std::fs::read_to_string(&p).unwrap();
+        let (_, rest) = cm.split_once("arbor.toml: |").expect("an arbor.toml key");
+        let body: Vec<&str> = rest
+            .lines()
+            .skip(1)
+            .take_while(|l| l.starts_with("    ") || l.trim().is_empty())
+            .map(|l| l.get(4..).unwrap_or(""))
+            .collect();
+        let c = parse(&body.join("\n"), &p);
+        assert!(
+            c.probe_token.is_some(),
+            "the ConfigMap sets the probe token"
+        );
+    }
+
     #[test]
     fn defaults_and_overrides() {
         let c = ServeConfig::load(
