@@ -10,7 +10,7 @@ use crate::attribute::Channel;
 use crate::error::ProtoError;
 use crate::limits::{MAX_COMPRESSED_BLOCK, MAX_TREELET_BYTES, NODE_BYTES};
 use crate::node::Node;
-use crate::treelet::{Treelet, TreeletHeader, TreeletId};
+use crate::treelet::{NodePlace, Treelet, TreeletHeader, TreeletId};
 
 /// "ATRL" little endian.
 pub const TREELET_MAGIC: u32 = u32::from_le_bytes(*b"ATRL");
@@ -136,6 +136,15 @@ pub fn decode_header(bytes: &[u8]) -> Result<(TreeletHeader, u32), ProtoError> {
 
 /// Decodes and validates an uncompressed treelet. `max_depth` is the scene's target depth.
 pub fn decode_treelet(bytes: &[u8], max_depth: u8) -> Result<Treelet, ProtoError> {
+    decode_treelet_with_places(bytes, max_depth).map(|(t, _)| t)
+}
+
+/// [`decode_treelet`], also returning every node's place, found by the validation walk (so
+/// callers that need cells or leafness do not walk the tree a second time).
+pub fn decode_treelet_with_places(
+    bytes: &[u8],
+    max_depth: u8,
+) -> Result<(Treelet, Vec<NodePlace>), ProtoError> {
     let (header, capacity) = decode_header(bytes)?;
     let need = HEADER_BYTES + usize::from(header.used_nodes) * NODE_BYTES as usize;
     if bytes.len() != need {
@@ -167,8 +176,8 @@ pub fn decode_treelet(bytes: &[u8], max_depth: u8) -> Result<Treelet, ProtoError
         };
     }
     let t = Treelet { header, nodes };
-    t.validate(max_depth)?;
-    Ok(t)
+    let places = t.validate(max_depth)?;
+    Ok((t, places))
 }
 
 /// Compresses `raw` with zstd at `level`, with an optional dictionary.
@@ -255,8 +264,17 @@ pub fn decode_compressed_treelet(
     max_depth: u8,
     dictionary: Option<&[u8]>,
 ) -> Result<Treelet, ProtoError> {
+    decode_compressed_treelet_with_places(bytes, max_depth, dictionary).map(|(t, _)| t)
+}
+
+/// [`decode_compressed_treelet`], also returning every node's place.
+pub fn decode_compressed_treelet_with_places(
+    bytes: &[u8],
+    max_depth: u8,
+    dictionary: Option<&[u8]>,
+) -> Result<(Treelet, Vec<NodePlace>), ProtoError> {
     let raw = decompress(bytes, MAX_RAW_TREELET, dictionary)?;
-    decode_treelet(&raw, max_depth)
+    decode_treelet_with_places(&raw, max_depth)
 }
 
 /// Decompresses an attribute block of `channel` for a treelet with `used_nodes` records and
@@ -335,6 +353,10 @@ mod tests {
         let raw = encode_treelet(&t);
         assert_eq!(raw.len(), HEADER_BYTES + 5 * 8);
         assert_eq!(decode_treelet(&raw, 7).unwrap(), t);
+        assert_eq!(
+            decode_treelet_with_places(&raw, 7).unwrap(),
+            (t.clone(), places)
+        );
         let packed = compress(&raw, 3, None).unwrap();
         assert_eq!(decode_compressed_treelet(&packed, 7, None).unwrap(), t);
     }

@@ -91,9 +91,12 @@ pub fn final_leaves(scene: &StoredScene) -> Vec<Cell> {
     let mut out = Vec::new();
     for id in 0..d.treelet_count {
         let bytes = scene.nodes(TreeletId(id)).unwrap().expect("treelet stored");
-        let t = codec::decode_compressed_treelet(&bytes, d.max_depth, d.node_dictionary.as_deref())
-            .unwrap();
-        let places = t.validate(d.max_depth).unwrap();
+        let (t, places) = codec::decode_compressed_treelet_with_places(
+            &bytes,
+            d.max_depth,
+            d.node_dictionary.as_deref(),
+        )
+        .unwrap();
         for (i, p) in places.iter().enumerate() {
             if p.is_leaf && t.nodes[i].first_child == Node::NONE {
                 out.push(p.cell);

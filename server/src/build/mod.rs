@@ -26,7 +26,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use arbor_proto::codec::{self, BlockCompressor, HEADER_BYTES};
-use arbor_proto::treelet::nodes_for_bytes;
+use arbor_proto::treelet::{NodePlace, nodes_for_bytes};
 use arbor_proto::{
     AttributeLayout, BuildParameters, Cell, Node, ProtoError, SceneDescription, SceneStats,
     SourceKind, Treelet, TreeletId,
@@ -363,14 +363,21 @@ impl RecordFile {
         Self::node_bytes(self.capacity) + self.capacity as usize * self.bpv
     }
     fn read(&self, id: u32, max_depth: u8) -> Result<(Treelet, Vec<u8>), BuildError> {
+        self.read_with_places(id, max_depth).map(|(t, _, a)| (t, a))
+    }
+    fn read_with_places(
+        &self,
+        id: u32,
+        max_depth: u8,
+    ) -> Result<(Treelet, Vec<NodePlace>, Vec<u8>), BuildError> {
         let mut buf = vec![0u8; self.size()];
         self.file
             .read_exact_at(&mut buf, u64::from(id) * self.size() as u64)?;
         let (header, _) = codec::decode_header(&buf)?;
         let raw_len = HEADER_BYTES + usize::from(header.used_nodes) * 8;
-        let t = codec::decode_treelet(&buf[..raw_len], max_depth)?;
+        let (t, places) = codec::decode_treelet_with_places(&buf[..raw_len], max_depth)?;
         let attrs = buf.split_off(Self::node_bytes(self.capacity));
-        Ok((t, attrs))
+        Ok((t, places, attrs))
     }
     fn write_attributes(&self, id: u32, attrs: &[u8]) -> Result<(), BuildError> {
         let at = u64::from(id) * self.size() as u64 + Self::node_bytes(self.capacity) as u64;
@@ -537,8 +544,7 @@ fn average_bottom_up(
     let mut child_roots: HashMap<u32, Vec<u8>> = HashMap::new();
     let pb = bar(progress, "attributes", u64::from(count));
     for id in (0..count).rev() {
-        let (t, mut attrs) = records.read(id, depth)?;
-        let places = t.validate(depth)?;
+        let (t, places, mut attrs) = records.read_with_places(id, depth)?;
         for i in (0..t.used().len()).rev() {
             let n: Node = t.nodes[i];
             let k = i * bpv;
