@@ -12,6 +12,18 @@
 //! with decoded headers and per-treelet latency, bounded buffering with backpressure, and
 //! reconnects with backoff, all in a background task that never blocks the caller.
 
+pub mod analysis;
+pub mod camera;
+pub mod chart;
+pub mod image;
+pub mod incore;
 pub mod net;
+pub mod presort;
+pub mod render;
+pub mod report;
+pub mod run;
+pub mod slots;
+pub mod trace;
+pub mod upload;
 
 pub use arbor_proto as proto;
