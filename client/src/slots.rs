@@ -651,6 +651,9 @@ impl SlotBuffer {
         self.index_insert(h.id, slot);
         self.mark_dirty(slot);
         self.mark_dirty(site / n);
+        if let Some((leaf_parent, _)) = leaf_bit {
+            self.mark_dirty(leaf_parent / n);
+        }
         self.loaded_this_cycle += 1;
         self.stats.inserted += 1;
         InsertOutcome::Inserted { slot, evicted }
@@ -720,12 +723,33 @@ impl SlotBuffer {
         }
     }
 
-    /// Where the record of local node `leaf` of the treelet in `slot` is reached by a traversal,
-    /// and the leaf bit saying it is a leaf: `(global index, Some((global index of the leaf's
-    /// parent, child index)))`, or `None` for the bit when the record is the scene root (whose
-    /// leafness is its own `valid_mask == 0`). A treelet's root record is reached at the leaf
-    /// it patched in its parent, not at its own node 0 — so a leaf that is a treelet's root
-    /// (a child root without children, copied verbatim) is found by going up.
+    /// Global index where a traversal meets node `local` of the treelet in `slot`. Node `k ≥ 1`
+    /// sits at `slot·N + k`, but a treelet's root record is met at the leaf it patched in its
+    /// parent, never at its own node 0 (which only keeps a copy) — and if that leaf is itself the
+    /// parent's root (a child root without children, copied verbatim), one level further up.
+    fn record_at(&self, mut slot: u32, local: u16) -> u32 {
+        let n = self.config.treelet_nodes;
+        if local != 0 {
+            return slot * n + u32::from(local);
+        }
+        loop {
+            if slot == 0 {
+                return 0;
+            }
+            let r = &self.records[slot as usize];
+            if r.parent_leaf_index != 0 {
+                return r.parent * n + u32::from(r.parent_leaf_index);
+            }
+            slot = r.parent;
+        }
+    }
+
+    /// Where a child of the treelet in `slot` refining its leaf `leaf` (child `child` of node
+    /// `leaf_parent`) patches: `(global index of the leaf record, Some((global index of the
+    /// record holding its leaf bit, child index)))`, the bit `None` when the leaf is the scene
+    /// root (whose leafness is its own `valid_mask == 0`). Both records are found where a
+    /// traversal meets them ([`record_at`](Self::record_at)): the leaf bit of a leaf whose parent
+    /// is the treelet's root lives in the root's patched copy in the grandparent.
     fn site(
         &self,
         mut slot: u32,
@@ -733,18 +757,19 @@ impl SlotBuffer {
         mut leaf_parent: u16,
         mut child: u8,
     ) -> (u32, Option<(u32, u8)>) {
-        let n = self.config.treelet_nodes;
         loop {
             if leaf != 0 {
                 return (
-                    slot * n + u32::from(leaf),
-                    Some((slot * n + u32::from(leaf_parent), child)),
+                    self.record_at(slot, leaf),
+                    Some((self.record_at(slot, leaf_parent), child)),
                 );
             }
+            // The leaf is the treelet's root: it is met, with its leaf bit, where that root
+            // patched its own parent.
             if slot == 0 {
                 return (0, None);
             }
-            let r = self.records[slot as usize];
+            let r = &self.records[slot as usize];
             (slot, leaf, leaf_parent, child) = (
                 r.parent,
                 r.parent_leaf_index,
@@ -828,10 +853,12 @@ impl SlotBuffer {
             r.child_index_in_parent,
         );
         self.nodes[site as usize] = r.replaced;
+        let n = self.config.treelet_nodes;
         if let Some((leaf_parent, child)) = bit {
             self.nodes[leaf_parent as usize].leaf_mask |= 1 << child;
+            self.mark_dirty(leaf_parent / n);
         }
-        self.mark_dirty(site / self.config.treelet_nodes);
+        self.mark_dirty(site / n);
         self.unlink(victim);
         // Free the subtree depth-first through the child links, no stack needed: descend to a
         // slot without children, free it, continue at its parent.
@@ -935,5 +962,583 @@ impl SlotBuffer {
             }
         }
         self.index[hole] = NO_SLOT;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use arbor_proto::codec::{compress, encode_treelet};
+    use arbor_proto::{AttributeLayout, BuildParameters, SceneStats, SourceKind, TreeletHeader};
+    use bytes::Bytes;
+
+    const N: u32 = 16;
+    const NONE: u32 = Node::NONE;
+
+    fn header(id: u32, parent: Option<(u32, u16, u16, u8)>, used: u16) -> TreeletHeader {
+        let (parent_id, leaf, leaf_parent, child) = parent.unwrap_or((NONE, 0, 0, 0));
+        TreeletHeader {
+            id: TreeletId(id),
+            parent_id: TreeletId(parent_id),
+            parent_leaf_index: leaf,
+            parent_leaf_parent_index: leaf_parent,
+            child_index_in_parent: child,
+            root_depth: u8::from(parent.is_some()),
+            root_cell: [0, 0, 0],
+            used_nodes: used,
+        }
+    }
+
+    fn finish(header: TreeletHeader, nodes: Vec<Node>, n: u32) -> DecodedTreelet {
+        let mut all = nodes;
+        all.resize(n as usize, Node::default());
+        let treelet = Treelet { header, nodes: all };
+        treelet.validate(20).expect("test treelet is well formed");
+        let used = usize::from(header.used_nodes);
+        DecodedTreelet {
+            treelet,
+            attributes: vec![(Channel::Color, vec![header.id.0 as u8; used * 3])],
+        }
+    }
+
+    /// Treelet `id` refining leaf `leaf` (child `leaf − 1` of node 0) of treelet `parent`; its
+    /// root has one leaf child per entry of `leaves` (child indices 0..), refined by that id.
+    fn treelet_n(id: u32, parent: Option<(u32, u16)>, leaves: &[u32], n: u32) -> DecodedTreelet {
+        let mut nodes = vec![Node {
+            first_child: 1,
+            valid_mask: ((1u16 << leaves.len()) - 1) as u8,
+            leaf_mask: ((1u16 << leaves.len()) - 1) as u8,
+            spare: 0,
+        }];
+        nodes.extend(leaves.iter().map(|&l| Node::leaf(l)));
+        let parent = parent.map(|(p, leaf)| (p, leaf, 0, (leaf - 1) as u8));
+        finish(header(id, parent, nodes.len() as u16), nodes, n)
+    }
+
+    fn treelet(id: u32, parent: Option<(u32, u16)>, leaves: &[u32]) -> DecodedTreelet {
+        treelet_n(id, parent, leaves, N)
+    }
+
+    /// Treelet `id` whose root is itself a leaf refined by `sub`, refining `parent`'s leaf
+    /// given as (parent, leaf, leaf's parent, child index).
+    fn leaf_root(id: u32, parent: Option<(u32, u16, u16, u8)>, sub: u32) -> DecodedTreelet {
+        finish(header(id, parent, 1), vec![Node::leaf(sub)], N)
+    }
+
+    fn config(slots: u64, load_limit: u32) -> SlotConfig {
+        SlotConfig {
+            budget_bytes: slots * SlotBuffer::slot_bytes(N, &[Channel::Color]),
+            treelet_nodes: N,
+            channels: vec![Channel::Color],
+            visibility_max: 1,
+            load_limit,
+        }
+    }
+
+    fn buffer(slots: u64, root: DecodedTreelet) -> SlotBuffer {
+        SlotBuffer::new(config(slots, u32::MAX), root).unwrap()
+    }
+
+    fn inserted(b: &mut SlotBuffer, t: DecodedTreelet) -> (u32, u32) {
+        match b.insert(t) {
+            InsertOutcome::Inserted { slot, evicted } => (slot, evicted),
+            other => panic!("expected an insert, got {other:?}"),
+        }
+    }
+
+    /// Global indices a traversal from the root reaches.
+    fn reached(view: &IncoreView<'_>) -> Vec<u32> {
+        let mut out = vec![0];
+        let mut stack = vec![(0u32, view.nodes[0].valid_mask == 0)];
+        while let Some((i, leaf)) = stack.pop() {
+            if leaf {
+                continue;
+            }
+            let n = view.nodes[i as usize];
+            let base = i.wrapping_add(n.first_child);
+            for (ci, k) in n.children() {
+                out.push(base + k);
+                stack.push((base + k, n.leaf_mask & (1 << ci) != 0));
+            }
+        }
+        out.sort_unstable();
+        out
+    }
+
+    #[test]
+    fn insert_patches_the_leaf_to_point_at_node_one() {
+        let mut b = buffer(4, treelet(0, None, &[1, 2, NONE]));
+        assert_eq!(b.take_dirty(), vec![0]);
+        assert_eq!(
+            b.insert(treelet(1, Some((0, 1)), &[NONE, NONE])),
+            InsertOutcome::Inserted {
+                slot: 1,
+                evicted: 0
+            }
+        );
+        let v = b.view();
+        assert_eq!(
+            v.nodes[1],
+            Node {
+                first_child: N,
+                valid_mask: 0b11,
+                leaf_mask: 0b11,
+                spare: 0
+            }
+        );
+        assert_eq!(v.nodes[0].leaf_mask, 0b110, "leaf bit of child 0 cleared");
+        assert_eq!(reached(&v), vec![0, 1, 2, 3, N + 1, N + 2]);
+        assert_eq!(b.take_dirty(), vec![0, 1]);
+        assert!(b.take_dirty().is_empty());
+        assert_eq!(b.slot_of(TreeletId(1)), Some(1));
+        assert_eq!(b.treelet_in(1), Some(TreeletId(1)));
+        assert_eq!(b.parent_slot(1), Some(0));
+        assert_eq!(b.parent_slot(0), None);
+        assert_eq!(b.used_slots(), 2);
+    }
+
+    #[test]
+    fn attributes_are_copied_and_the_rest_zeroed() {
+        let mut b = buffer(2, treelet(0, None, &[1]));
+        inserted(&mut b, treelet(1, Some((0, 1)), &[NONE, NONE, NONE]));
+        let v = b.view();
+        assert!(v.normal.is_none() && v.density.is_none());
+        let color = v.color.unwrap();
+        assert_eq!(color.len(), 2 * N as usize * 3);
+        assert_eq!(v.attribute(Channel::Color, N + 3), Some(&[1u8, 1, 1][..]));
+        assert_eq!(v.attribute(Channel::Color, N + 4), Some(&[0u8, 0, 0][..]));
+        assert_eq!(v.attribute(Channel::Color, 1), Some(&[0u8, 0, 0][..]));
+    }
+
+    #[test]
+    fn child_in_a_lower_slot_gets_a_wrapping_offset() {
+        let mut b = buffer(3, treelet(0, None, &[1, 2]));
+        inserted(&mut b, treelet(1, Some((0, 1)), &[NONE]));
+        assert_eq!(inserted(&mut b, treelet(2, Some((0, 2)), &[3])), (2, 0));
+        b.begin_cycle();
+        b.take_dirty();
+        // Slot 1 (treelet 1) is the only candidate: treelet 2 is the new one's parent.
+        assert_eq!(inserted(&mut b, treelet(3, Some((2, 1)), &[NONE])), (1, 1));
+        let site = 2 * N + 1;
+        let fc = b.view().nodes[site as usize].first_child;
+        assert!(fc > u32::MAX / 2, "offset wraps: {fc:#x}");
+        assert_eq!(site.wrapping_add(fc), N + 1);
+        // Treelet 1's leaf is restored with its leaf bit.
+        assert_eq!(b.view().nodes[1], Node::leaf(1));
+        assert_eq!(b.view().nodes[0].leaf_mask & 1, 1);
+        assert_eq!(b.view().nodes[0].leaf_mask & 2, 0);
+        assert_eq!(b.take_dirty(), vec![0, 1, 2]);
+        assert_eq!(reached(&b.view()), vec![0, 1, 2, N + 1, 2 * N + 1]);
+    }
+
+    #[test]
+    fn eviction_restores_the_leaf_and_frees_descendants() {
+        let mut b = buffer(4, treelet(0, None, &[1, 2]));
+        let original_root = b.view().nodes[0];
+        inserted(&mut b, treelet(1, Some((0, 1)), &[3]));
+        inserted(&mut b, treelet(3, Some((1, 1)), &[NONE]));
+        inserted(&mut b, treelet(2, Some((0, 2)), &[4]));
+        assert_eq!(b.used_slots(), 4);
+        // Treelet 3 (slot 2) was seen later than treelet 1 (slot 1).
+        b.begin_cycle();
+        b.mark_visible(2);
+        b.begin_cycle();
+        assert_eq!(b.visibility(2), 0);
+        assert_eq!(
+            b.insert(treelet(4, Some((2, 1)), &[NONE])),
+            InsertOutcome::Inserted {
+                slot: 1,
+                evicted: 2
+            }
+        );
+        assert!(!b.is_resident(TreeletId(1)) && !b.is_resident(TreeletId(3)));
+        assert_eq!(b.slot_of(TreeletId(4)), Some(1));
+        assert_eq!(b.view().nodes[1], Node::leaf(1));
+        assert_eq!(
+            b.view().nodes[0],
+            Node {
+                leaf_mask: 0b01,
+                ..original_root
+            }
+        );
+        assert_eq!(b.stats().evicted, 2);
+        assert_eq!(b.used_slots(), 3);
+        assert_eq!(b.treelet_in(2), None);
+        assert_eq!(reached(&b.view()), vec![0, 1, 2, N + 1, 3 * N + 1]);
+    }
+
+    #[test]
+    fn parent_and_ancestors_are_never_evicted_for_their_child() {
+        let mut b = buffer(3, treelet(0, None, &[1]));
+        inserted(&mut b, treelet(1, Some((0, 1)), &[2]));
+        inserted(&mut b, treelet(2, Some((1, 1)), &[3]));
+        b.begin_cycle();
+        b.take_dirty();
+        assert_eq!(
+            b.insert(treelet(3, Some((2, 1)), &[NONE])),
+            InsertOutcome::NoRoom
+        );
+        assert_eq!(b.stats().no_room, 1);
+        assert!(b.take_dirty().is_empty(), "nothing changed");
+
+        // The least recently visible slot is an ancestor: the next candidate goes instead.
+        let mut b = buffer(4, treelet(0, None, &[1, 5]));
+        inserted(&mut b, treelet(1, Some((0, 1)), &[2]));
+        inserted(&mut b, treelet(2, Some((1, 1)), &[3]));
+        inserted(&mut b, treelet(5, Some((0, 2)), &[NONE]));
+        b.begin_cycle();
+        b.mark_visible(3);
+        b.begin_cycle();
+        assert_eq!(inserted(&mut b, treelet(3, Some((2, 1)), &[NONE])), (3, 1));
+        assert!(!b.is_resident(TreeletId(5)));
+        assert!(b.is_resident(TreeletId(1)) && b.is_resident(TreeletId(2)));
+    }
+
+    #[test]
+    fn visible_treelets_and_children_of_visible_parents_stay() {
+        let mut b = buffer(3, treelet(0, None, &[1, 5]));
+        inserted(&mut b, treelet(1, Some((0, 1)), &[NONE]));
+        inserted(&mut b, treelet(5, Some((0, 2)), &[6]));
+        // New treelets start fully visible.
+        assert_eq!(b.visibility(1), 1);
+        assert_eq!(
+            b.insert(treelet(6, Some((5, 1)), &[NONE])),
+            InsertOutcome::NoRoom
+        );
+        b.begin_cycle();
+        b.mark_visible(0);
+        // Treelet 1 is invisible but its parent (the root) is visible.
+        assert_eq!(
+            b.insert(treelet(6, Some((5, 1)), &[NONE])),
+            InsertOutcome::NoRoom
+        );
+        b.begin_cycle();
+        assert_eq!(inserted(&mut b, treelet(6, Some((5, 1)), &[NONE])), (1, 1));
+        assert_eq!(b.stats().no_room, 2);
+    }
+
+    #[test]
+    fn load_limit_refuses_until_the_next_cycle() {
+        let mut b = SlotBuffer::new(config(4, 1), treelet(0, None, &[1, 2])).unwrap();
+        inserted(&mut b, treelet(1, Some((0, 1)), &[NONE]));
+        assert_eq!(
+            b.insert(treelet(2, Some((0, 2)), &[NONE])),
+            InsertOutcome::LoadLimit
+        );
+        assert!(!b.is_resident(TreeletId(2)));
+        assert_eq!(b.stats().load_limited, 1);
+        b.begin_cycle();
+        inserted(&mut b, treelet(2, Some((0, 2)), &[NONE]));
+    }
+
+    #[test]
+    fn orphans_duplicates_and_mismatched_headers_are_dropped() {
+        let mut b = buffer(4, treelet(0, None, &[1, 2]));
+        b.take_dirty();
+        assert_eq!(
+            b.insert(treelet(3, Some((1, 1)), &[NONE])),
+            InsertOutcome::ParentMissing
+        );
+        assert_eq!(b.stats().orphans, 1);
+        assert!(b.take_dirty().is_empty());
+        inserted(&mut b, treelet(1, Some((0, 1)), &[3]));
+        assert_eq!(
+            b.insert(treelet(1, Some((0, 1)), &[3])),
+            InsertOutcome::AlreadyResident
+        );
+        assert_eq!(
+            b.insert(treelet(0, None, &[1, 2])),
+            InsertOutcome::AlreadyResident
+        );
+        assert_eq!(b.stats().duplicates, 2);
+        // Treelet 7 claims leaf 2 of the root, which is refined by treelet 2.
+        assert_eq!(
+            b.insert(treelet(7, Some((0, 2)), &[NONE])),
+            InsertOutcome::ParentMissing
+        );
+        // Leaf index beyond N.
+        let mut bad = treelet(8, Some((0, 1)), &[NONE]);
+        bad.treelet.header.parent_leaf_index = N as u16;
+        assert_eq!(b.insert(bad), InsertOutcome::ParentMissing);
+        assert_eq!(b.stats().mismatched, 2);
+        assert_eq!(b.stats().orphans, 3);
+        assert_eq!(b.stats().inserted, 2);
+    }
+
+    #[test]
+    fn budget_too_small_and_bad_roots_are_errors() {
+        let one = SlotBuffer::slot_bytes(N, &[Channel::Color]);
+        let mut cfg = config(1, 1);
+        cfg.budget_bytes = one - 1;
+        let e = SlotBuffer::new(cfg.clone(), treelet(0, None, &[NONE])).unwrap_err();
+        assert!(matches!(e, SlotError::BudgetTooSmall { .. }));
+        let msg = e.to_string();
+        assert!(
+            msg.contains(&format!("minimum budget is {one} bytes")),
+            "{msg}"
+        );
+
+        cfg.budget_bytes = one;
+        let mut b = SlotBuffer::new(cfg.clone(), treelet(0, None, &[1])).unwrap();
+        assert_eq!(b.capacity(), 1);
+        assert_eq!(
+            b.insert(treelet(1, Some((0, 1)), &[NONE])),
+            InsertOutcome::NoRoom
+        );
+
+        let e = SlotBuffer::new(cfg.clone(), treelet(1, Some((0, 1)), &[NONE])).unwrap_err();
+        assert!(matches!(e, SlotError::NotRoot { .. }), "{e}");
+        let mut twice = cfg.clone();
+        twice.channels = vec![Channel::Color, Channel::Color];
+        twice.budget_bytes = 10 * one;
+        let e = SlotBuffer::new(twice, treelet(0, None, &[NONE])).unwrap_err();
+        assert!(
+            matches!(e, SlotError::DuplicateChannel(Channel::Color)),
+            "{e}"
+        );
+        let mut normal = cfg;
+        normal.channels = vec![Channel::Normal];
+        normal.budget_bytes = 10 * one;
+        let e = SlotBuffer::new(normal, treelet(0, None, &[NONE])).unwrap_err();
+        assert!(matches!(e, SlotError::MissingChannel { .. }), "{e}");
+    }
+
+    #[test]
+    fn capacity_times_slot_bytes_stays_within_the_budget() {
+        let one = SlotBuffer::slot_bytes(N, &[Channel::Color]);
+        let mut cfg = config(1, 1);
+        cfg.budget_bytes = 10 * one + one / 2;
+        let b = SlotBuffer::new(cfg.clone(), treelet(0, None, &[NONE])).unwrap();
+        assert_eq!(b.capacity(), 10);
+        assert!(u64::from(b.capacity()) * one <= cfg.budget_bytes);
+        // What the buffer allocates per slot is what slot_bytes counts.
+        let allocated = b.nodes.capacity() * 8
+            + b.attributes
+                .iter()
+                .map(|(_, v)| v.capacity())
+                .sum::<usize>()
+            + b.records.capacity() * std::mem::size_of::<SlotRecord>()
+            + (b.index.capacity() + b.dirty.capacity() + b.capacity as usize) * 4;
+        assert!(allocated as u64 <= u64::from(b.capacity()) * one);
+        let big = SlotBuffer::slot_bytes(512, &[Channel::Color, Channel::Normal]);
+        println!(
+            "slot bytes, N = 512, colour + normal: {big} ({} data + {BOOKKEEPING_BYTES} bookkeeping)",
+            SlotBuffer::slot_data_bytes(512, &[Channel::Color, Channel::Normal])
+        );
+        assert_eq!(big, 512 * (8 + 3 + 4) + BOOKKEEPING_BYTES);
+    }
+
+    #[test]
+    fn root_leaf_refined_by_an_inner_child_becomes_inner() {
+        let mut b = buffer(2, leaf_root(0, None, 1));
+        assert_eq!(reached(&b.view()), vec![0]);
+        inserted(
+            &mut b,
+            treelet(1, Some((0, 1)), &[NONE, NONE]).with_site(0, 0, 0),
+        );
+        let v = b.view();
+        assert_eq!(v.nodes[0].first_child, N + 1);
+        assert_eq!(v.nodes[0].valid_mask, 0b11);
+        assert_eq!(reached(&v), vec![0, N + 1, N + 2]);
+    }
+
+    #[test]
+    fn child_root_without_children_stays_a_leaf() {
+        let mut b = buffer(4, treelet(0, None, &[1, 2]));
+        // Treelet 1's root is a leaf refined by treelet 3: copied verbatim, leaf bit kept.
+        inserted(&mut b, leaf_root(1, Some((0, 1, 0, 0)), 3));
+        assert_eq!(b.view().nodes[1], Node::leaf(3));
+        assert_eq!(b.view().nodes[0].leaf_mask, 0b11);
+        assert_eq!(reached(&b.view()), vec![0, 1, 2]);
+        b.take_dirty();
+        // Treelet 3 refines treelet 1's root, which a traversal meets at the root's leaf 1.
+        let (slot3, _) = inserted(&mut b, treelet(3, Some((1, 1)), &[NONE]).with_site(0, 0, 0));
+        assert_eq!(slot3, 2);
+        let v = b.view();
+        assert_eq!(1u32.wrapping_add(v.nodes[1].first_child), 2 * N + 1);
+        assert_eq!(v.nodes[0].leaf_mask, 0b10);
+        assert_eq!(reached(&v), vec![0, 1, 2, 2 * N + 1]);
+        assert_eq!(b.take_dirty(), vec![0, 2]);
+        inserted(&mut b, treelet(2, Some((0, 2)), &[4]));
+        // Evict treelet 3 alone (treelet 1 was seen later): the verbatim leaf comes back.
+        b.begin_cycle();
+        b.mark_visible(1);
+        b.begin_cycle();
+        assert_eq!(inserted(&mut b, treelet(4, Some((2, 1)), &[9])), (2, 1));
+        assert_eq!(b.view().nodes[1], Node::leaf(3));
+        assert_eq!(b.view().nodes[0].leaf_mask & 1, 1);
+        // Then treelet 1 itself: the root's original leaf comes back.
+        b.begin_cycle();
+        b.mark_visible(2);
+        b.begin_cycle();
+        assert_eq!(
+            b.insert(treelet(9, Some((4, 1)), &[NONE])),
+            InsertOutcome::Inserted {
+                slot: 1,
+                evicted: 1
+            }
+        );
+        assert_eq!(b.view().nodes[1], Node::leaf(1));
+        assert_eq!(b.view().nodes[0].leaf_mask & 1, 1);
+    }
+
+    impl DecodedTreelet {
+        /// Re-aims the header at (leaf, leaf's parent, child index) in the same parent.
+        fn with_site(mut self, leaf: u16, leaf_parent: u16, child: u8) -> Self {
+            let h = &mut self.treelet.header;
+            h.parent_leaf_index = leaf;
+            h.parent_leaf_parent_index = leaf_parent;
+            h.child_index_in_parent = child;
+            self
+        }
+    }
+
+    #[test]
+    fn take_dirty_is_sorted_and_clears() {
+        let mut b = buffer(5, treelet(0, None, &[1, 2, 3]));
+        inserted(&mut b, treelet(3, Some((0, 3)), &[NONE]));
+        inserted(&mut b, treelet(2, Some((0, 2)), &[NONE]));
+        inserted(&mut b, treelet(1, Some((0, 1)), &[NONE]));
+        assert_eq!(b.take_dirty(), vec![0, 1, 2, 3]);
+        assert!(b.take_dirty().is_empty());
+    }
+
+    #[test]
+    fn fully_resident_holds_every_treelet() {
+        let scene = scene(N, 4);
+        let ts = vec![
+            treelet(3, Some((1, 1)), &[NONE]),
+            treelet(2, Some((0, 2)), &[NONE, NONE]),
+            treelet(0, None, &[1, 2]),
+            treelet(1, Some((0, 1)), &[3]),
+        ];
+        let used: u32 = ts
+            .iter()
+            .map(|t| u32::from(t.treelet.header.used_nodes))
+            .sum();
+        let b = SlotBuffer::fully_resident(&scene, &[Channel::Color], ts.clone()).unwrap();
+        assert_eq!(b.capacity(), 4);
+        assert_eq!(b.used_slots(), 4);
+        assert_eq!(reached(&b.view()).len() as u32, used - 3);
+        let e =
+            SlotBuffer::fully_resident(&scene, &[Channel::Color], ts[..3].to_vec()).unwrap_err();
+        assert!(matches!(e, SlotError::Incomplete { .. }), "{e}");
+        let mut orphan = ts.clone();
+        orphan[0] = treelet(3, Some((2, 1)), &[NONE]);
+        let e = SlotBuffer::fully_resident(&scene, &[Channel::Color], orphan).unwrap_err();
+        assert!(matches!(e, SlotError::NotPlaced { .. }), "{e}");
+    }
+
+    fn scene(n: u32, count: u32) -> SceneDescription {
+        SceneDescription {
+            name: "unit".into(),
+            origin: [0.0; 3],
+            edge: 1.0,
+            treelet_nodes: n,
+            max_depth: 12,
+            layout: AttributeLayout::new([Channel::Color, Channel::Normal]),
+            treelet_count: count,
+            root_treelet: TreeletId::ROOT,
+            source_kind: SourceKind::Points,
+            source: "synthetic".into(),
+            primitives: 1,
+            build: BuildParameters {
+                requested_depth: None,
+                data_resolution: 0.01,
+                treelet_bytes: n * 8,
+                iso: None,
+                zstd_level: 3,
+                dictionary: false,
+            },
+            stats: SceneStats::default(),
+            node_dictionary: None,
+            channel_dictionaries: vec![None, None],
+        }
+    }
+
+    fn blocks(t: &Treelet, color_len: usize) -> (Vec<u8>, Vec<u8>, Vec<u8>) {
+        let nodes = compress(&encode_treelet(t), 3, None).unwrap();
+        let color = compress(&vec![7u8; color_len], 3, None).unwrap();
+        let normal = compress(&vec![9u8; usize::from(t.header.used_nodes) * 4], 3, None).unwrap();
+        (nodes, color, normal)
+    }
+
+    #[test]
+    fn decode_checks_blocks_against_message_and_scene() {
+        const M: u32 = 128;
+        let scene = scene(M, 2);
+        let t = treelet_n(1, Some((0, 1)), &[NONE, NONE], M).treelet;
+        let used = usize::from(t.header.used_nodes);
+        let (nodes, color, normal) = blocks(&t, used * 3);
+        let received = ReceivedTreelet {
+            id: TreeletId(1),
+            used_nodes: t.header.used_nodes,
+            nodes: Bytes::from(nodes.clone()),
+            channels: vec![
+                (Channel::Color, Bytes::from(color.clone())),
+                (Channel::Normal, Bytes::from(normal.clone())),
+            ],
+            latency: std::time::Duration::ZERO,
+            wire_bytes: 0,
+        };
+        // Extra channels are ignored.
+        let d = DecodedTreelet::decode(&received, &scene, &[Channel::Color]).unwrap();
+        assert_eq!(d.treelet, t);
+        assert_eq!(d.attributes, vec![(Channel::Color, vec![7u8; used * 3])]);
+
+        let mut wrong_used = received.clone();
+        wrong_used.used_nodes += 1;
+        let e = DecodedTreelet::decode(&wrong_used, &scene, &[Channel::Color]).unwrap_err();
+        assert!(matches!(e, SlotError::UsedNodesMismatch { .. }), "{e}");
+
+        let mut wrong_id = received.clone();
+        wrong_id.id = TreeletId(2);
+        let e = DecodedTreelet::decode(&wrong_id, &scene, &[Channel::Color]).unwrap_err();
+        assert!(matches!(e, SlotError::IdMismatch { .. }), "{e}");
+
+        let e = DecodedTreelet::decode(&received, &scene, &[Channel::Density]).unwrap_err();
+        assert!(matches!(e, SlotError::MissingChannel { .. }), "{e}");
+
+        let garbage = [1u8, 2, 3, 4];
+        let e = DecodedTreelet::from_blocks(TreeletId(1), &garbage, &[], &scene, &[]).unwrap_err();
+        assert!(matches!(e, SlotError::Decode { .. }), "{e}");
+
+        // A tree whose leaf mask names a child that does not exist.
+        let mut bad = t.clone();
+        bad.nodes[0].leaf_mask |= 0b1000_0000;
+        let (bad_nodes, _, _) = blocks(&bad, 0);
+        let e =
+            DecodedTreelet::from_blocks(TreeletId(1), &bad_nodes, &[], &scene, &[]).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                SlotError::Decode {
+                    source: ProtoError::MalformedTreelet { .. },
+                    ..
+                }
+            ),
+            "{e}"
+        );
+
+        // An attribute block of the wrong length.
+        let (_, short, _) = blocks(&t, used * 3 - 1);
+        let e = DecodedTreelet::from_blocks(
+            TreeletId(1),
+            &nodes,
+            &[(Channel::Color, &short)],
+            &scene,
+            &[Channel::Color],
+        )
+        .unwrap_err();
+        assert!(matches!(e, SlotError::Decode { .. }), "{e}");
+
+        // A treelet of another size than the scene's.
+        let other = scene_with_nodes(256);
+        let e = DecodedTreelet::from_blocks(TreeletId(1), &nodes, &[], &other, &[]).unwrap_err();
+        assert!(matches!(e, SlotError::WrongNodeCount { .. }), "{e}");
+    }
+
+    fn scene_with_nodes(n: u32) -> SceneDescription {
+        scene(n, 2)
     }
 }

@@ -85,3 +85,55 @@ impl UploadPlan {
         self.ranges.is_empty()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn covers(ranges: &[Range<u32>], dirty: &[u32]) {
+        assert!(
+            ranges.windows(2).all(|w| w[0].end < w[1].start),
+            "{ranges:?}"
+        );
+        for d in dirty {
+            assert!(
+                ranges.iter().any(|r| r.contains(d)),
+                "{d} not in {ranges:?}"
+            );
+        }
+        for r in ranges {
+            assert!(
+                dirty.contains(&r.start) && dirty.contains(&(r.end - 1)),
+                "{r:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn fill_zero_is_one_range_and_fill_one_contiguous_runs() {
+        let dirty = [2, 3, 4, 8, 10, 11, 30];
+        assert_eq!(merge_ranges(&dirty, 0.0), vec![2..31]);
+        assert_eq!(merge_ranges(&dirty, 1.0), vec![2..5, 8..9, 10..12, 30..31]);
+        assert_eq!(merge_ranges(&dirty, f32::NAN), merge_ranges(&dirty, 1.0));
+        // 2..5 (3/3), +8 → 4/7 < 0.6: new range; 8, +10 → 2/3, +11 → 3/4, +30 → 4/23: new.
+        assert_eq!(merge_ranges(&dirty, 0.6), vec![2..5, 8..12, 30..31]);
+        for f in [0.0, 0.3, 0.6, 0.9, 1.0] {
+            covers(&merge_ranges(&dirty, f), &dirty);
+        }
+    }
+
+    #[test]
+    fn empty_single_and_duplicates() {
+        assert!(merge_ranges(&[], 0.6).is_empty());
+        assert_eq!(merge_ranges(&[7], 0.6), vec![7..8]);
+        assert_eq!(merge_ranges(&[7, 7, 8], 1.0), vec![7..9]);
+    }
+
+    #[test]
+    fn plan_counts_slots_and_bytes() {
+        let p = UploadPlan::new(&[1, 2, 5], 1.0, 100);
+        assert_eq!(p.ranges, vec![1..3, 5..6]);
+        assert_eq!((p.slots, p.bytes), (3, 300));
+        assert!(UploadPlan::new(&[], 0.6, 100).is_empty());
+    }
+}
