@@ -316,10 +316,11 @@ fn degenerate_sibling_orders() {
         edge: 2.0,
         max_depth: 2,
     };
-    // Child 0 (x<1) holds a far voxel along +y; child 4 (x≥1) a near one; the ray runs in
-    // x = 1 along +y.
+    // Children 0 (x ≤ 1) and 4 (x ≥ 1) span the same y and z; the ray runs along +y in the
+    // plane x = 1 between them, so both are entered at t = 1 and child 0 is visited first,
+    // but its voxel is farther (y from 0.5) than child 4's (y from 0).
     let c = |x, y, z| Cell { depth: 2, x, y, z };
-    let r = Reference::new([c(1, 3, 0), c(2, 0, 0)]);
+    let r = Reference::new([c(1, 1, 0), c(2, 0, 0)]);
     let b = single(&leaf_cells(&r), 128, 2);
     let ray = Ray {
         origin: DVec3::new(1.0, -1.0, 0.25),
