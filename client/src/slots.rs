@@ -1,1 +1,939 @@
-//! (being written)
+//! The incore slot buffer (DESIGN §5, "Incore update"): which treelet sits in which slot, the
+//! patched node records the ray caster walks, and the eviction policy that keeps the buffer
+//! within a fixed memory budget.
+//!
+//! It owns the incore octree: `capacity × N` node records plus one attribute array per held
+//! channel, allocated once in [`SlotBuffer::new`] and never grown, and all per-slot bookkeeping
+//! (resident tree, visibility ages, the records patched leaves replaced, the dirty set). It is a
+//! plain data structure in the quinn-proto style: no I/O, no GPU, no clock. The network hands it
+//! decoded treelets, the presort pass tells it what is visible, and the upload step takes the
+//! dirty slots ([`crate::upload`]); that is what makes every rule here unit-testable and lets
+//! the model test in `arbor-tests` drive it with random step sequences.
+//!
+//! Layout and patching: node `k` of slot `s` has the global index `s·N + k` (see
+//! [`IncoreView`]). Inserting a child treelet overwrites the refinable leaf it refines in its
+//! parent with the child's root record, its `first_child` made relative to that leaf's own
+//! global index and pointing at the child's node 1; the leaf bit in the leaf's parent is cleared.
+//! The child's own node 0 is never reached by a traversal: its root lives at the patched leaf.
+
+use std::fmt;
+
+use arbor_proto::codec;
+use arbor_proto::{Channel, Node, ProtoError, SceneDescription, Treelet, TreeletId};
+
+use crate::incore::IncoreView;
+use crate::net::ReceivedTreelet;
+
+/// "No slot" in the bookkeeping links.
+const NO_SLOT: u32 = u32::MAX;
+/// Bookkeeping flag: the slot must be uploaded again.
+const DIRTY: u8 = 1;
+/// Bookkeeping flag, set only during an eviction scan: the slot is the new treelet's parent or
+/// one of its ancestors and must not be evicted to make room for it.
+const PROTECTED: u8 = 2;
+
+/// What the slot buffer is asked to hold.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SlotConfig {
+    /// Bytes the buffer may allocate for its slots, bookkeeping included (see
+    /// [`SlotBuffer::slot_bytes`]).
+    pub budget_bytes: u64,
+    /// `N`, node records per treelet (the scene's).
+    pub treelet_nodes: u32,
+    /// Attribute channels held beside the nodes, each at most once.
+    pub channels: Vec<Channel>,
+    /// Visibility a slot gets when seen (n², the feedback ratio squared): the number of cycles
+    /// it stays protected from eviction after it was last seen.
+    pub visibility_max: u16,
+    /// Treelets inserted per cycle at most (copy and upload cost per frame).
+    pub load_limit: u32,
+}
+
+/// Errors of decoding treelets for the buffer and of building it.
+#[derive(Debug, thiserror::Error)]
+pub enum SlotError {
+    /// The node or an attribute block failed to decompress, decode or validate.
+    #[error("treelet {id}: {source}")]
+    Decode {
+        id: TreeletId,
+        #[source]
+        source: ProtoError,
+    },
+    /// The node block's header names another treelet than the message or the caller.
+    #[error("treelet {expected}: the node block is treelet {found}")]
+    IdMismatch {
+        expected: TreeletId,
+        found: TreeletId,
+    },
+    /// The message announced a different number of used node records than the block holds.
+    #[error("treelet {id}: message announced {announced} used nodes, the block has {found}")]
+    UsedNodesMismatch {
+        id: TreeletId,
+        announced: u16,
+        found: u16,
+    },
+    /// The treelet's capacity is not the scene's or buffer's `N`.
+    #[error("treelet {id}: {found} node records, expected {expected}")]
+    WrongNodeCount {
+        id: TreeletId,
+        found: u32,
+        expected: u32,
+    },
+    /// A channel the client holds is missing from the treelet, or has the wrong length.
+    #[error("treelet {id}: channel {channel:?} missing or not {expected} bytes")]
+    MissingChannel {
+        id: TreeletId,
+        channel: Channel,
+        expected: usize,
+    },
+    /// The configuration names a channel twice.
+    #[error("channel {0:?} listed twice in the slot configuration")]
+    DuplicateChannel(Channel),
+    /// `N` is too small to hold a root and its children.
+    #[error("treelets of {0} node records cannot be held: at least 2 are needed")]
+    TreeletTooSmall(u32),
+    /// The budget does not hold a single slot.
+    #[error(
+        "slot budget of {budget} bytes holds no slot: the minimum budget is {slot_bytes} bytes \
+         (one slot of {treelet_nodes} nodes with its attributes and bookkeeping)"
+    )]
+    BudgetTooSmall {
+        budget: u64,
+        slot_bytes: u64,
+        treelet_nodes: u32,
+    },
+    /// Slot 0 must hold the scene's root treelet.
+    #[error("the root slot needs treelet 0 with no parent, got treelet {id} (parent {parent})")]
+    NotRoot { id: TreeletId, parent: TreeletId },
+    /// [`SlotBuffer::fully_resident`] was given a different number of treelets than the scene
+    /// has.
+    #[error("a fully resident buffer needs all {expected} treelets, got {found}")]
+    Incomplete { expected: u32, found: u32 },
+    /// [`SlotBuffer::fully_resident`] could not place a treelet.
+    #[error("treelet {id} could not be placed: {outcome:?}")]
+    NotPlaced {
+        id: TreeletId,
+        outcome: InsertOutcome,
+    },
+}
+
+/// A treelet decompressed, decoded and validated, with the attribute channels the client holds.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct DecodedTreelet {
+    pub treelet: Treelet,
+    /// One entry per wanted channel, in the order asked for; each `used_nodes × size` bytes.
+    pub attributes: Vec<(Channel, Vec<u8>)>,
+}
+
+impl DecodedTreelet {
+    /// Decodes a treelet as it arrived from the network: decompresses with the scene's
+    /// dictionaries, validates the tree against the scene's depth, and checks that the message's
+    /// id and used-node count agree with the block and that every wanted channel is present with
+    /// the right length (channels not wanted are ignored).
+    pub fn decode(
+        received: &ReceivedTreelet,
+        scene: &SceneDescription,
+        channels: &[Channel],
+    ) -> Result<Self, SlotError> {
+        let blocks: Vec<(Channel, &[u8])> = received
+            .channels
+            .iter()
+            .map(|(c, b)| (*c, b.as_ref()))
+            .collect();
+        let decoded = Self::from_blocks(received.id, &received.nodes, &blocks, scene, channels)?;
+        let found = decoded.treelet.header.used_nodes;
+        if found != received.used_nodes {
+            return Err(SlotError::UsedNodesMismatch {
+                id: received.id,
+                announced: received.used_nodes,
+                found,
+            });
+        }
+        Ok(decoded)
+    }
+
+    /// Decodes a treelet from its compressed blocks as stored (pool, cache, tests): `nodes` is
+    /// the node block, `channels` the attribute blocks on hand, `wanted` the channels to keep.
+    pub fn from_blocks(
+        id: TreeletId,
+        nodes: &[u8],
+        channels: &[(Channel, &[u8])],
+        scene: &SceneDescription,
+        wanted: &[Channel],
+    ) -> Result<Self, SlotError> {
+        let treelet = codec::decode_compressed_treelet(
+            nodes,
+            scene.max_depth,
+            scene.node_dictionary.as_deref(),
+        )
+        .map_err(|source| SlotError::Decode { id, source })?;
+        if treelet.header.id != id {
+            return Err(SlotError::IdMismatch {
+                expected: id,
+                found: treelet.header.id,
+            });
+        }
+        if treelet.capacity() != scene.treelet_nodes {
+            return Err(SlotError::WrongNodeCount {
+                id,
+                found: treelet.capacity(),
+                expected: scene.treelet_nodes,
+            });
+        }
+        let used = treelet.header.used_nodes;
+        let mut attributes = Vec::with_capacity(wanted.len());
+        for &channel in wanted {
+            let expected = usize::from(used) * channel.size();
+            let Some((_, block)) = channels.iter().find(|(c, _)| *c == channel) else {
+                return Err(SlotError::MissingChannel {
+                    id,
+                    channel,
+                    expected,
+                });
+            };
+            let raw = codec::decode_compressed_attributes(
+                block,
+                channel,
+                used,
+                scene.channel_dictionary(channel),
+            )
+            .map_err(|source| SlotError::Decode { id, source })?;
+            attributes.push((channel, raw));
+        }
+        Ok(Self {
+            treelet,
+            attributes,
+        })
+    }
+
+    pub fn id(&self) -> TreeletId {
+        self.treelet.header.id
+    }
+}
+
+/// What [`SlotBuffer::insert`] did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum InsertOutcome {
+    /// The treelet now sits in `slot`; `evicted` treelets (descendants included) made room.
+    Inserted { slot: u32, evicted: u32 },
+    /// The treelet was resident already; nothing changed.
+    AlreadyResident,
+    /// The parent is not resident (or, resident, has no refinable leaf for this treelet where
+    /// its header says): nothing to attach it to, the treelet is dropped.
+    ParentMissing,
+    /// No slot was free and none could be evicted.
+    NoRoom,
+    /// This cycle's load limit is reached; nothing changed.
+    LoadLimit,
+}
+
+/// Cumulative counters of a [`SlotBuffer`].
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct SlotStats {
+    /// Treelets inserted (the root included).
+    pub inserted: u64,
+    /// Treelets evicted, descendants freed with an evicted treelet included.
+    pub evicted: u64,
+    /// Treelets dropped because their parent was not resident.
+    pub orphans: u64,
+    /// Of those, treelets whose resident parent had no matching refinable leaf (a header that
+    /// does not fit the parent: another scene's treelet or a corrupt one).
+    pub mismatched: u64,
+    /// Treelets dropped because no slot was free and none could be evicted.
+    pub no_room: u64,
+    /// Treelets that were resident already.
+    pub duplicates: u64,
+    /// Treelets refused because the cycle's load limit was reached.
+    pub load_limited: u64,
+}
+
+/// Per-slot bookkeeping. Its size is part of [`SlotBuffer::slot_bytes`].
+#[derive(Clone, Copy, Debug)]
+struct SlotRecord {
+    /// [`TreeletId::NONE`] when the slot is free.
+    treelet: TreeletId,
+    /// Slot of the parent treelet; [`NO_SLOT`] for slot 0 and free slots.
+    parent: u32,
+    /// Resident children, as an intrusive doubly linked list (bounded: no allocation).
+    first_child: u32,
+    next_sibling: u32,
+    prev_sibling: u32,
+    /// The leaf record this treelet's root replaced in its parent, restored on eviction.
+    replaced: Node,
+    /// Cycle in which the slot was last marked visible.
+    last_visible: u64,
+    /// Cycles of protection left; 0 = invisible.
+    visibility: u16,
+    parent_leaf_index: u16,
+    parent_leaf_parent_index: u16,
+    child_index_in_parent: u8,
+    flags: u8,
+}
+
+impl SlotRecord {
+    const FREE: SlotRecord = SlotRecord {
+        treelet: TreeletId::NONE,
+        parent: NO_SLOT,
+        first_child: NO_SLOT,
+        next_sibling: NO_SLOT,
+        prev_sibling: NO_SLOT,
+        replaced: Node {
+            first_child: 0,
+            valid_mask: 0,
+            leaf_mask: 0,
+            spare: 0,
+        },
+        last_visible: 0,
+        visibility: 0,
+        parent_leaf_index: 0,
+        parent_leaf_parent_index: 0,
+        child_index_in_parent: 0,
+        flags: 0,
+    };
+
+    fn is_free(&self) -> bool {
+        self.treelet.is_none()
+    }
+}
+
+/// Per slot besides the record: two id-index entries (the index is kept at most half full),
+/// one free-list entry and one dirty-list entry, all `u32`.
+const INDEX_ENTRIES_PER_SLOT: u64 = 2;
+const BOOKKEEPING_BYTES: u64 =
+    std::mem::size_of::<SlotRecord>() as u64 + INDEX_ENTRIES_PER_SLOT * 4 + 4 + 4;
+
+/// The incore slot buffer. See the module docs.
+pub struct SlotBuffer {
+    config: SlotConfig,
+    capacity: u32,
+    /// `capacity × N` node records, slot-major.
+    nodes: Vec<Node>,
+    /// Per held channel, `capacity × N × size` bytes, in config order.
+    attributes: Vec<(Channel, Vec<u8>)>,
+    records: Vec<SlotRecord>,
+    /// Open-addressing (linear probing) map treelet id → slot: entries are slots, [`NO_SLOT`]
+    /// empty; a fixed `2 × capacity` entries so it never grows and probes stay short.
+    index: Vec<u32>,
+    /// Free slots, popped from the end (so low slots fill first after `new`).
+    free: Vec<u32>,
+    /// Dirty slots, unsorted, each once (the record's [`DIRTY`] flag dedupes).
+    dirty: Vec<u32>,
+    cycle: u64,
+    loaded_this_cycle: u32,
+    stats: SlotStats,
+}
+
+impl fmt::Debug for SlotBuffer {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("SlotBuffer")
+            .field("config", &self.config)
+            .field("capacity", &self.capacity)
+            .field("used_slots", &self.used_slots())
+            .field("cycle", &self.cycle)
+            .field("stats", &self.stats)
+            .finish_non_exhaustive()
+    }
+}
+
+impl SlotBuffer {
+    /// Bytes one slot costs: its `N` node records, its attribute records, and the per-slot
+    /// bookkeeping (slot record with the saved leaf record, id-index entries, free- and
+    /// dirty-list entries). `capacity × slot_bytes` is everything the buffer allocates that
+    /// scales with its size.
+    pub fn slot_bytes(treelet_nodes: u32, channels: &[Channel]) -> u64 {
+        Self::slot_data_bytes(treelet_nodes, channels) + BOOKKEEPING_BYTES
+    }
+
+    /// Bytes of one slot that are uploaded: node records and attributes, no bookkeeping.
+    pub fn slot_data_bytes(treelet_nodes: u32, channels: &[Channel]) -> u64 {
+        let per_node = std::mem::size_of::<Node>() as u64
+            + channels.iter().map(|c| c.size() as u64).sum::<u64>();
+        u64::from(treelet_nodes) * per_node
+    }
+
+    /// A buffer of `budget / slot_bytes` slots (capped so that every global node index fits a
+    /// `u32` below [`Node::NONE`]), all allocated now, with `root` in slot 0 for good.
+    pub fn new(config: SlotConfig, root: DecodedTreelet) -> Result<Self, SlotError> {
+        let n = config.treelet_nodes;
+        if n < 2 {
+            return Err(SlotError::TreeletTooSmall(n));
+        }
+        for (i, c) in config.channels.iter().enumerate() {
+            if config.channels[..i].contains(c) {
+                return Err(SlotError::DuplicateChannel(*c));
+            }
+        }
+        let slot_bytes = Self::slot_bytes(n, &config.channels);
+        let addressable = u64::from((Node::NONE - 1) / n);
+        let capacity = (config.budget_bytes / slot_bytes).min(addressable) as u32;
+        if capacity == 0 {
+            return Err(SlotError::BudgetTooSmall {
+                budget: config.budget_bytes,
+                slot_bytes,
+                treelet_nodes: n,
+            });
+        }
+        let h = root.treelet.header;
+        if h.id != TreeletId::ROOT || !h.parent_id.is_none() {
+            return Err(SlotError::NotRoot {
+                id: h.id,
+                parent: h.parent_id,
+            });
+        }
+        let records = capacity as usize * n as usize;
+        let attributes = config
+            .channels
+            .iter()
+            .map(|&c| (c, vec![0u8; records * c.size()]))
+            .collect();
+        let mut buffer = Self {
+            capacity,
+            nodes: vec![Node::default(); records],
+            attributes,
+            records: vec![SlotRecord::FREE; capacity as usize],
+            index: vec![NO_SLOT; capacity as usize * INDEX_ENTRIES_PER_SLOT as usize],
+            free: (1..capacity).rev().collect(),
+            dirty: Vec::with_capacity(capacity as usize),
+            cycle: 0,
+            loaded_this_cycle: 0,
+            stats: SlotStats::default(),
+            config,
+        };
+        buffer.check_fits(&root)?;
+        buffer.fill_slot(0, &root);
+        buffer.records[0] = SlotRecord {
+            treelet: TreeletId::ROOT,
+            visibility: buffer.config.visibility_max,
+            ..SlotRecord::FREE
+        };
+        buffer.index_insert(TreeletId::ROOT, 0);
+        buffer.mark_dirty(0);
+        buffer.stats.inserted = 1;
+        Ok(buffer)
+    }
+
+    /// A buffer holding a whole scene: one slot per treelet, each inserted in id order (so every
+    /// parent is resident before its children), no load limit. Errors if the treelets are not
+    /// exactly the scene's or one could not be placed.
+    pub fn fully_resident(
+        scene: &SceneDescription,
+        channels: &[Channel],
+        treelets: impl IntoIterator<Item = DecodedTreelet>,
+    ) -> Result<Self, SlotError> {
+        let mut all: Vec<DecodedTreelet> = treelets.into_iter().collect();
+        if all.len() != scene.treelet_count as usize {
+            return Err(SlotError::Incomplete {
+                expected: scene.treelet_count,
+                found: all.len() as u32,
+            });
+        }
+        all.sort_by_key(DecodedTreelet::id);
+        let mut rest = all.into_iter();
+        let root = rest.next().ok_or(SlotError::Incomplete {
+            expected: scene.treelet_count,
+            found: 0,
+        })?;
+        let config = SlotConfig {
+            budget_bytes: u64::from(scene.treelet_count)
+                * Self::slot_bytes(scene.treelet_nodes, channels),
+            treelet_nodes: scene.treelet_nodes,
+            channels: channels.to_vec(),
+            // Nothing is ever evicted (every treelet has its slot), so visibility is moot.
+            visibility_max: 1,
+            load_limit: u32::MAX,
+        };
+        let mut buffer = Self::new(config, root)?;
+        for t in rest {
+            let id = t.id();
+            match buffer.insert(t) {
+                InsertOutcome::Inserted { .. } => {}
+                outcome => return Err(SlotError::NotPlaced { id, outcome }),
+            }
+        }
+        Ok(buffer)
+    }
+
+    /// The incore octree as the ray caster reads it.
+    pub fn view(&self) -> IncoreView<'_> {
+        let channel = |c: Channel| {
+            self.attributes
+                .iter()
+                .find(|(k, _)| *k == c)
+                .map(|(_, v)| v.as_slice())
+        };
+        IncoreView {
+            nodes: &self.nodes,
+            treelet_nodes: self.config.treelet_nodes,
+            color: channel(Channel::Color),
+            normal: channel(Channel::Normal),
+            density: channel(Channel::Density),
+        }
+    }
+
+    pub fn capacity(&self) -> u32 {
+        self.capacity
+    }
+
+    /// Slots holding a treelet (the root's included).
+    pub fn used_slots(&self) -> u32 {
+        self.capacity - self.free.len() as u32
+    }
+
+    pub fn config(&self) -> &SlotConfig {
+        &self.config
+    }
+
+    /// The current cycle (number of [`begin_cycle`](Self::begin_cycle) calls).
+    pub fn cycle(&self) -> u64 {
+        self.cycle
+    }
+
+    /// The treelet in `slot`, if any.
+    pub fn treelet_in(&self, slot: u32) -> Option<TreeletId> {
+        let r = self.records.get(slot as usize)?;
+        (!r.is_free()).then_some(r.treelet)
+    }
+
+    /// The slot holding treelet `id`, if resident.
+    pub fn slot_of(&self, id: TreeletId) -> Option<u32> {
+        if id.is_none() {
+            return None;
+        }
+        let mut at = self.home(id);
+        loop {
+            let slot = self.index[at];
+            if slot == NO_SLOT {
+                return None;
+            }
+            if self.records[slot as usize].treelet == id {
+                return Some(slot);
+            }
+            at = (at + 1) % self.index.len();
+        }
+    }
+
+    /// The slot of the parent of the treelet in `slot`; `None` for slot 0 and free slots.
+    pub fn parent_slot(&self, slot: u32) -> Option<u32> {
+        let p = self.records.get(slot as usize)?.parent;
+        (p != NO_SLOT).then_some(p)
+    }
+
+    pub fn is_resident(&self, id: TreeletId) -> bool {
+        self.slot_of(id).is_some()
+    }
+
+    /// Visibility left in `slot` (0 = invisible), for diagnostics and tests.
+    pub fn visibility(&self, slot: u32) -> u16 {
+        self.records[slot as usize].visibility
+    }
+
+    /// Starts a cycle: every slot's visibility ages by one, the load counter resets.
+    pub fn begin_cycle(&mut self) {
+        for r in &mut self.records {
+            r.visibility = r.visibility.saturating_sub(1);
+        }
+        self.loaded_this_cycle = 0;
+        self.cycle += 1;
+    }
+
+    /// Marks `slot` seen this cycle. The caller passes the ancestors of every seen slot too
+    /// (presort's visible set does). Free slots are ignored: a stale feedback entry may name a
+    /// slot evicted since.
+    ///
+    /// # Panics
+    /// If `slot ≥ capacity`.
+    pub fn mark_visible(&mut self, slot: u32) {
+        assert!(
+            slot < self.capacity,
+            "slot {slot} ≥ capacity {}",
+            self.capacity
+        );
+        let max = self.config.visibility_max;
+        let cycle = self.cycle;
+        let r = &mut self.records[slot as usize];
+        if !r.is_free() {
+            r.visibility = max;
+            r.last_visible = cycle;
+        }
+    }
+
+    /// Inserts a treelet (DESIGN §5): refused with nothing changed when the cycle's load limit is
+    /// reached, the treelet is resident already or its parent is not resident; otherwise copied
+    /// into a free slot (evicting if none is free) and patched into its parent.
+    ///
+    /// # Panics
+    /// If the treelet does not fit this buffer (another `N`, a held channel missing or of the
+    /// wrong length): [`DecodedTreelet::decode`] with the buffer's channels guarantees it.
+    pub fn insert(&mut self, t: DecodedTreelet) -> InsertOutcome {
+        if let Err(e) = self.check_fits(&t) {
+            panic!("treelet does not fit the slot buffer: {e}");
+        }
+        if self.loaded_this_cycle >= self.config.load_limit {
+            self.stats.load_limited += 1;
+            return InsertOutcome::LoadLimit;
+        }
+        let h = t.treelet.header;
+        if self.is_resident(h.id) {
+            self.stats.duplicates += 1;
+            return InsertOutcome::AlreadyResident;
+        }
+        let Some(parent) = self.slot_of(h.parent_id) else {
+            self.stats.orphans += 1;
+            return InsertOutcome::ParentMissing;
+        };
+        let Some((site, leaf_bit)) = self.checked_site(
+            parent,
+            h.parent_leaf_index,
+            h.parent_leaf_parent_index,
+            h.child_index_in_parent,
+            h.id,
+        ) else {
+            self.stats.orphans += 1;
+            self.stats.mismatched += 1;
+            return InsertOutcome::ParentMissing;
+        };
+        let mut evicted = 0;
+        let slot = match self.free.pop() {
+            Some(s) => s,
+            None => match self.eviction_candidate(parent) {
+                Some(victim) => {
+                    evicted = self.evict(victim);
+                    self.free.pop().expect("eviction freed a slot")
+                }
+                None => {
+                    self.stats.no_room += 1;
+                    return InsertOutcome::NoRoom;
+                }
+            },
+        };
+        self.fill_slot(slot, &t);
+        let n = self.config.treelet_nodes;
+        let root = t.treelet.nodes[0];
+        let replaced = self.nodes[site as usize];
+        // A child root with children becomes an inner node at the leaf's place: point it at the
+        // child's node 1 (the root's children always start there, breadth-first) relative to the
+        // leaf's own global index, wrapping when the child sits in a lower slot, and clear the
+        // leaf bit. A child root without children is itself a leaf: copied verbatim, its
+        // `first_child` keeps its leaf meaning (NONE or the subtreelet id) and the leaf bit stays
+        // set, so the caster still sees a leaf there, now refined by that subtreelet id.
+        self.nodes[site as usize] = if root.valid_mask == 0 {
+            root
+        } else {
+            if let Some((leaf_parent, child)) = leaf_bit {
+                self.nodes[leaf_parent as usize].leaf_mask &= !(1 << child);
+            }
+            Node {
+                first_child: (slot * n + 1).wrapping_sub(site),
+                ..root
+            }
+        };
+        // A new treelet was just requested for a visible leaf, so it starts fully visible: it is
+        // not evicted again before the caster has had a chance to see it.
+        self.records[slot as usize] = SlotRecord {
+            treelet: h.id,
+            parent,
+            first_child: NO_SLOT,
+            next_sibling: self.records[parent as usize].first_child,
+            prev_sibling: NO_SLOT,
+            replaced,
+            last_visible: self.cycle,
+            visibility: self.config.visibility_max,
+            parent_leaf_index: h.parent_leaf_index,
+            parent_leaf_parent_index: h.parent_leaf_parent_index,
+            child_index_in_parent: h.child_index_in_parent,
+            flags: 0,
+        };
+        let old_first = self.records[parent as usize].first_child;
+        if old_first != NO_SLOT {
+            self.records[old_first as usize].prev_sibling = slot;
+        }
+        self.records[parent as usize].first_child = slot;
+        self.index_insert(h.id, slot);
+        self.mark_dirty(slot);
+        self.mark_dirty(site / n);
+        self.loaded_this_cycle += 1;
+        self.stats.inserted += 1;
+        InsertOutcome::Inserted { slot, evicted }
+    }
+
+    /// The dirty slots, sorted; the dirty set is cleared.
+    pub fn take_dirty(&mut self) -> Vec<u32> {
+        for &s in &self.dirty {
+            self.records[s as usize].flags &= !DIRTY;
+        }
+        self.dirty.sort_unstable();
+        let out = self.dirty.clone();
+        self.dirty.clear();
+        out
+    }
+
+    pub fn stats(&self) -> &SlotStats {
+        &self.stats
+    }
+
+    /// Checks `t` has this buffer's `N` and every held channel with the right length.
+    fn check_fits(&self, t: &DecodedTreelet) -> Result<(), SlotError> {
+        let id = t.id();
+        let n = self.config.treelet_nodes;
+        if t.treelet.capacity() != n {
+            return Err(SlotError::WrongNodeCount {
+                id,
+                found: t.treelet.capacity(),
+                expected: n,
+            });
+        }
+        let used = usize::from(t.treelet.header.used_nodes);
+        for &channel in &self.config.channels {
+            let expected = used * channel.size();
+            let ok = t
+                .attributes
+                .iter()
+                .any(|(c, v)| *c == channel && v.len() == expected);
+            if !ok {
+                return Err(SlotError::MissingChannel {
+                    id,
+                    channel,
+                    expected,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Copies all `N` node records and the attributes into `slot`, zeroing the unused attribute
+    /// space (so an upload never carries a previous tenant's bytes).
+    fn fill_slot(&mut self, slot: u32, t: &DecodedTreelet) {
+        let n = self.config.treelet_nodes as usize;
+        let s = slot as usize;
+        self.nodes[s * n..(s + 1) * n].copy_from_slice(&t.treelet.nodes);
+        for (channel, dst) in &mut self.attributes {
+            let size = channel.size();
+            let src = &t
+                .attributes
+                .iter()
+                .find(|(c, _)| c == channel)
+                .expect("checked by check_fits")
+                .1;
+            let area = &mut dst[s * n * size..(s + 1) * n * size];
+            area[..src.len()].copy_from_slice(src);
+            area[src.len()..].fill(0);
+        }
+    }
+
+    /// Where the record of local node `leaf` of the treelet in `slot` is reached by a traversal,
+    /// and the leaf bit saying it is a leaf: `(global index, Some((global index of the leaf's
+    /// parent, child index)))`, or `None` for the bit when the record is the scene root (whose
+    /// leafness is its own `valid_mask == 0`). A treelet's root record is reached at the leaf
+    /// it patched in its parent, not at its own node 0 — so a leaf that is a treelet's root
+    /// (a child root without children, copied verbatim) is found by going up.
+    fn site(
+        &self,
+        mut slot: u32,
+        mut leaf: u16,
+        mut leaf_parent: u16,
+        mut child: u8,
+    ) -> (u32, Option<(u32, u8)>) {
+        let n = self.config.treelet_nodes;
+        loop {
+            if leaf != 0 {
+                return (
+                    slot * n + u32::from(leaf),
+                    Some((slot * n + u32::from(leaf_parent), child)),
+                );
+            }
+            if slot == 0 {
+                return (0, None);
+            }
+            let r = self.records[slot as usize];
+            (slot, leaf, leaf_parent, child) = (
+                r.parent,
+                r.parent_leaf_index,
+                r.parent_leaf_parent_index,
+                r.child_index_in_parent,
+            );
+        }
+    }
+
+    /// [`site`](Self::site) for a new child `id`, checked against what the parent holds there: a
+    /// leaf refined by `id`, marked a leaf in a parent that has it as child `child`. `None` if the
+    /// header does not fit the parent (indices out of range or another record there).
+    fn checked_site(
+        &self,
+        parent: u32,
+        leaf: u16,
+        leaf_parent: u16,
+        child: u8,
+        id: TreeletId,
+    ) -> Option<(u32, Option<(u32, u8)>)> {
+        let n = self.config.treelet_nodes;
+        if u32::from(leaf) >= n || u32::from(leaf_parent) >= n || child >= 8 {
+            return None;
+        }
+        let (site, bit) = self.site(parent, leaf, leaf_parent, child);
+        let record = self.nodes[site as usize];
+        if record.valid_mask != 0 || record.first_child != id.0 {
+            return None;
+        }
+        if let Some((lp, ci)) = bit {
+            let p = self.nodes[lp as usize];
+            let pos = p.child_slot(ci)?;
+            if p.leaf_mask & (1 << ci) == 0
+                || lp.wrapping_add(p.first_child).wrapping_add(pos) != site
+            {
+                return None;
+            }
+        }
+        Some((site, bit))
+    }
+
+    /// The slot to evict to make room for a child of `parent`: a slot other than 0 whose
+    /// treelet and parent are both invisible (a visible parent would show the restored coarse
+    /// leaf at silhouettes and flicker), not `parent` or one of its ancestors, least recently
+    /// visible first, ties to the lower slot.
+    fn eviction_candidate(&mut self, parent: u32) -> Option<u32> {
+        let mut s = parent;
+        while s != NO_SLOT {
+            self.records[s as usize].flags |= PROTECTED;
+            s = self.records[s as usize].parent;
+        }
+        let mut best: Option<(u64, u32)> = None;
+        for (slot, r) in self.records.iter().enumerate().skip(1) {
+            if r.is_free() || r.visibility != 0 || r.flags & PROTECTED != 0 {
+                continue;
+            }
+            if self.records[r.parent as usize].visibility != 0 {
+                continue;
+            }
+            let key = (r.last_visible, slot as u32);
+            if best.is_none_or(|b| key < b) {
+                best = Some(key);
+            }
+        }
+        let mut s = parent;
+        while s != NO_SLOT {
+            self.records[s as usize].flags &= !PROTECTED;
+            s = self.records[s as usize].parent;
+        }
+        best.map(|(_, slot)| slot)
+    }
+
+    /// Evicts the treelet in `victim` with all its resident descendants; restores the leaf its
+    /// root replaced in its parent and sets the leaf bit again. Returns the treelets freed.
+    fn evict(&mut self, victim: u32) -> u32 {
+        let r = self.records[victim as usize];
+        let (site, bit) = self.site(
+            r.parent,
+            r.parent_leaf_index,
+            r.parent_leaf_parent_index,
+            r.child_index_in_parent,
+        );
+        self.nodes[site as usize] = r.replaced;
+        if let Some((leaf_parent, child)) = bit {
+            self.nodes[leaf_parent as usize].leaf_mask |= 1 << child;
+        }
+        self.mark_dirty(site / self.config.treelet_nodes);
+        self.unlink(victim);
+        // Free the subtree depth-first through the child links, no stack needed: descend to a
+        // slot without children, free it, continue at its parent.
+        let mut freed = 0;
+        let mut s = victim;
+        loop {
+            let child = self.records[s as usize].first_child;
+            if child != NO_SLOT {
+                s = child;
+                continue;
+            }
+            let up = self.records[s as usize].parent;
+            if s != victim {
+                self.unlink(s);
+            }
+            self.free_slot(s);
+            freed += 1;
+            if s == victim {
+                break;
+            }
+            s = up;
+        }
+        self.stats.evicted += u64::from(freed);
+        freed
+    }
+
+    /// Removes `slot` from its parent's child list.
+    fn unlink(&mut self, slot: u32) {
+        let r = self.records[slot as usize];
+        if r.prev_sibling != NO_SLOT {
+            self.records[r.prev_sibling as usize].next_sibling = r.next_sibling;
+        } else {
+            self.records[r.parent as usize].first_child = r.next_sibling;
+        }
+        if r.next_sibling != NO_SLOT {
+            self.records[r.next_sibling as usize].prev_sibling = r.prev_sibling;
+        }
+    }
+
+    fn free_slot(&mut self, slot: u32) {
+        let id = self.records[slot as usize].treelet;
+        self.index_remove(id);
+        // A freed slot needs no upload: nothing reaches it until a new treelet is copied in,
+        // which marks it dirty again. Its DIRTY flag stays consistent with the dirty list.
+        let flags = self.records[slot as usize].flags;
+        self.records[slot as usize] = SlotRecord {
+            flags,
+            ..SlotRecord::FREE
+        };
+        self.free.push(slot);
+    }
+
+    fn mark_dirty(&mut self, slot: u32) {
+        let r = &mut self.records[slot as usize];
+        if r.flags & DIRTY == 0 {
+            r.flags |= DIRTY;
+            self.dirty.push(slot);
+        }
+    }
+
+    /// Home position of `id` in the index (Fibonacci hashing, multiply-shift to the range).
+    fn home(&self, id: TreeletId) -> usize {
+        let h = id.0.wrapping_mul(0x9E37_79B9);
+        ((u64::from(h) * self.index.len() as u64) >> 32) as usize
+    }
+
+    fn index_insert(&mut self, id: TreeletId, slot: u32) {
+        let mut at = self.home(id);
+        while self.index[at] != NO_SLOT {
+            at = (at + 1) % self.index.len();
+        }
+        self.index[at] = slot;
+    }
+
+    /// Removes `id` with backward-shift deletion, so no tombstones accumulate and lookups stay
+    /// short however many inserts and evictions happen.
+    fn index_remove(&mut self, id: TreeletId) {
+        let len = self.index.len();
+        let mut hole = self.home(id);
+        while self.records[self.index[hole] as usize].treelet != id {
+            hole = (hole + 1) % len;
+        }
+        let mut j = hole;
+        loop {
+            j = (j + 1) % len;
+            let slot = self.index[j];
+            if slot == NO_SLOT {
+                break;
+            }
+            let home = self.home(self.records[slot as usize].treelet);
+            // The entry at j may move into the hole unless its home lies cyclically in
+            // (hole, j]: then moving it would put it before its home.
+            let stays = if hole <= j {
+                hole < home && home <= j
+            } else {
+                hole < home || home <= j
+            };
+            if !stays {
+                self.index[hole] = slot;
+                hole = j;
+            }
+        }
+        self.index[hole] = NO_SLOT;
+    }
+}
