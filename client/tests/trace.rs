@@ -70,9 +70,7 @@ fn check(b: &Buffer, r: &Reference, frame: &SceneFrame, ray: &Ray, lod: &Lod) ->
             assert!(h.error.is_finite() && h.entry_axis < 3 && h.entry_sign.abs() == 1);
             true
         }
-        _ => panic!(
-            "hit/miss disagree for {ray:?}: trace {got:?}, brute force {want:?}"
-        ),
+        _ => panic!("hit/miss disagree for {ray:?}: trace {got:?}, brute force {want:?}"),
     }
 }
 
@@ -226,7 +224,13 @@ fn axis_parallel_rays_on_cell_boundaries() {
                 for s in [-1.0, 1.0] {
                     let mut d = DVec3::ZERO;
                     d[a] = s;
-                    hits += usize::from(check(&b, &r, &frame, &Ray { origin: o, dir: d }, &lod(NO_LOD, 3)));
+                    hits += usize::from(check(
+                        &b,
+                        &r,
+                        &frame,
+                        &Ray { origin: o, dir: d },
+                        &lod(NO_LOD, 3),
+                    ));
                     n += 1;
                 }
             }
@@ -256,8 +260,16 @@ fn rays_parallel_to_coordinate_planes_on_boundaries() {
                 }
             }
         }
-        let Some(dir) = d.try_normalize() else { continue };
-        hits += usize::from(check(&b, &r, &frame, &Ray { origin: o, dir }, &lod(NO_LOD, 3)));
+        let Some(dir) = d.try_normalize() else {
+            continue;
+        };
+        hits += usize::from(check(
+            &b,
+            &r,
+            &frame,
+            &Ray { origin: o, dir },
+            &lod(NO_LOD, 3),
+        ));
     }
     assert!(hits > 1000, "{hits}");
 }
@@ -298,10 +310,18 @@ fn rays_through_cell_edges_and_corners() {
             // Lattice point to lattice point.
             let o = lattice(&mut rng, -3, 12);
             let t = lattice(&mut rng, 0, 9);
-            let Some(dir) = (t - o).try_normalize() else { continue };
+            let Some(dir) = (t - o).try_normalize() else {
+                continue;
+            };
             (o, dir)
         };
-        hits += usize::from(check(&b, &r, &frame, &Ray { origin: o, dir }, &lod(NO_LOD, 3)));
+        hits += usize::from(check(
+            &b,
+            &r,
+            &frame,
+            &Ray { origin: o, dir },
+            &lod(NO_LOD, 3),
+        ));
     }
     assert!(hits > 1000, "{hits}");
 }
@@ -538,8 +558,7 @@ fn two_slots_with_a_patched_child() {
             z: (refined.z << 4) | c.z,
         })
         .collect();
-    let (t1, p1) =
-        synth::build_treelet(1, refined, &child_leaves, &BTreeMap::new(), n, max_depth);
+    let (t1, p1) = synth::build_treelet(1, refined, &child_leaves, &BTreeMap::new(), n, max_depth);
     let mut b = Buffer::new(n, 2);
     b.put(0, &t0, p0);
     b.put(1, &t1, p1);
@@ -627,8 +646,8 @@ fn three_slots_with_a_child_in_a_lower_slot() {
     b.put(1, &tb, pb);
     b.patch(0, a_cell, 2);
     b.patch(2, b_cell, 1);
-    let patched = b.nodes[(2 * n) as usize
-        + b.places[2].iter().position(|p| p.cell == b_cell).unwrap()];
+    let patched =
+        b.nodes[(2 * n) as usize + b.places[2].iter().position(|p| p.cell == b_cell).unwrap()];
     assert!(
         patched.first_child > u32::MAX / 2,
         "offset {} should be negative",
@@ -689,8 +708,14 @@ fn bad_rays_and_garbage_buffers_never_panic() {
     };
     for bad in [
         SceneFrame { edge: 0.0, ..frame },
-        SceneFrame { edge: f64::NAN, ..frame },
-        SceneFrame { edge: -1.0, ..frame },
+        SceneFrame {
+            edge: f64::NAN,
+            ..frame
+        },
+        SceneFrame {
+            edge: -1.0,
+            ..frame
+        },
         SceneFrame {
             origin: [f64::INFINITY, 0.0, 0.0],
             ..frame
@@ -759,7 +784,10 @@ fn screen_error_is_always_finite() {
             for c in vals {
                 for d in vals {
                     let e = screen_error(a, b, c, d);
-                    assert!(e.is_finite() && e.abs() <= MAX_SCREEN_ERROR, "{a} {b} {c} {d}");
+                    assert!(
+                        e.is_finite() && e.abs() <= MAX_SCREEN_ERROR,
+                        "{a} {b} {c} {d}"
+                    );
                 }
             }
         }

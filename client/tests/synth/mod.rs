@@ -53,7 +53,11 @@ pub fn build_treelet(
             queue.push_back(c.child(i));
         }
     }
-    assert!(order.len() <= n as usize, "{} nodes do not fit in {n}", order.len());
+    assert!(
+        order.len() <= n as usize,
+        "{} nodes do not fit in {n}",
+        order.len()
+    );
     let mut nodes = vec![Node::default(); n as usize];
     for (k, c) in order.iter().enumerate() {
         let ch = children(c);
@@ -78,7 +82,11 @@ pub fn build_treelet(
     }
     let header = TreeletHeader {
         id: TreeletId(id),
-        parent_id: if id == 0 { TreeletId::NONE } else { TreeletId(0) },
+        parent_id: if id == 0 {
+            TreeletId::NONE
+        } else {
+            TreeletId(0)
+        },
         parent_leaf_index: 0,
         parent_leaf_parent_index: 0,
         child_index_in_parent: 0,
