@@ -87,10 +87,10 @@ fn entry(frame: &SceneFrame, cell: &Cell, ray: &Ray) -> Option<f64> {
     let size = frame.edge / 2f64.powi(i32::from(cell.depth));
     let c = [cell.x, cell.y, cell.z];
     let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
-    for a in 0..3 {
+    for (a, &ca) in c.iter().enumerate() {
         let rel = frame.origin[a] - ray.origin[a];
-        let lo = rel + f64::from(c[a]) * size;
-        let hi = rel + (f64::from(c[a]) + 1.0) * size;
+        let lo = rel + f64::from(ca) * size;
+        let hi = rel + (f64::from(ca) + 1.0) * size;
         if ray.dir[a] == 0.0 {
             if lo > 0.0 || hi < 0.0 {
                 return None;
