@@ -802,3 +802,38 @@ fn screen_error_is_always_finite() {
         assert!((e - f - 1.0).abs() < 1e-4);
     }
 }
+
+/// Coordinates that are often exactly on the grid (integers, halves) and otherwise arbitrary.
+fn coordinate() -> impl proptest::strategy::Strategy<Value = f64> {
+    use proptest::prelude::*;
+    prop_oneof![
+        (-4i32..13).prop_map(f64::from),
+        (-8i32..26).prop_map(|k| f64::from(k) * 0.5),
+        -20.0..28.0f64,
+    ]
+}
+
+/// Direction components: often exactly zero (axis- and plane-parallel rays).
+fn component() -> impl proptest::strategy::Strategy<Value = f64> {
+    use proptest::prelude::*;
+    prop_oneof![Just(0.0), Just(1.0), Just(-1.0), -1.0..1.0f64]
+}
+
+proptest::proptest! {
+    #![proptest_config(proptest::prelude::ProptestConfig::with_cases(2000))]
+
+    #[test]
+    fn proptest_rays_match_brute_force(
+        o in [coordinate(), coordinate(), coordinate()],
+        d in [component(), component(), component()],
+        pa in proptest::prop_oneof![proptest::strategy::Just(0.0), 0.0..0.2f64],
+    ) {
+        use std::sync::OnceLock;
+        static SCENE: OnceLock<(Buffer, Reference, SceneFrame)> = OnceLock::new();
+        let (b, r, frame) = SCENE.get_or_init(|| grid_scene(120, 160));
+        if let Some(dir) = DVec3::from_array(d).try_normalize() {
+            let ray = Ray { origin: DVec3::from_array(o), dir };
+            check(b, r, frame, &ray, &lod(pa, 3));
+        }
+    }
+}
