@@ -166,7 +166,9 @@ pub enum CameraPath {
 
 /// A camera path the command line could not read.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("camera path {input:?}: {reason} (expected static, orbit:DEG, fly-in:CYCLES or jump:EVERY)")]
+#[error(
+    "camera path {input:?}: {reason} (expected static, orbit:DEG, fly-in:CYCLES or jump:EVERY)"
+)]
 pub struct ParsePathError {
     pub input: String,
     pub reason: String,
@@ -356,7 +358,14 @@ mod tests {
             Err(CameraError::NotFinite { .. })
         ));
         assert!(matches!(
-            Camera::look_at(p, DVec3::new(f64::INFINITY, 0.0, 0.0), DVec3::Z, fov, 64, 64),
+            Camera::look_at(
+                p,
+                DVec3::new(f64::INFINITY, 0.0, 0.0),
+                DVec3::Z,
+                fov,
+                64,
+                64
+            ),
             Err(CameraError::NotFinite { .. })
         ));
         assert!(matches!(
@@ -412,8 +421,18 @@ mod tests {
             assert_eq!(s.parse::<CameraPath>().unwrap(), p);
         }
         for s in [
-            "", "orbit", "orbit:", "orbit:x", "orbit:inf", "fly-in:0", "fly-in:-3", "jump:",
-            "jump:1.5", "static:1", "spin:3", "Static",
+            "",
+            "orbit",
+            "orbit:",
+            "orbit:x",
+            "orbit:inf",
+            "fly-in:0",
+            "fly-in:-3",
+            "jump:",
+            "jump:1.5",
+            "static:1",
+            "spin:3",
+            "Static",
         ] {
             let e = CameraPath::parse(s).unwrap_err();
             assert!(e.to_string().contains("expected static"), "{e}");

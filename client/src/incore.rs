@@ -76,10 +76,6 @@ impl SceneFrame {
     /// Centre of the root cube.
     pub fn centre(&self) -> [f64; 3] {
         let h = self.edge * 0.5;
-        [
-            self.origin[0] + h,
-            self.origin[1] + h,
-            self.origin[2] + h,
-        ]
+        [self.origin[0] + h, self.origin[1] + h, self.origin[2] + h]
     }
 }
