@@ -1,0 +1,336 @@
+//! `arbor-client`: headless runs against a treelet server, with images, error-against-time
+//! reports and charts; reference images of the fully resident scene.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{Context, Result, bail};
+use arbor_client::analysis::{AnalysisConfig, DEFAULT_FEEDBACK_RATIO};
+use arbor_client::camera::CameraPath;
+use arbor_client::image::Image;
+use arbor_client::net::{ClientConfig, Trust, parse_server_url};
+use arbor_client::presort::PriorityPolicy;
+use arbor_client::proto::Channel;
+use arbor_client::render::Light;
+use arbor_client::run::{
+    CoreConfig, DEFAULT_LOAD_LIMIT, DEFAULT_MAX_REQUESTS, FetchedScene, HeadlessConfig, fetch_all,
+    reference_image, run_headless,
+};
+use arbor_client::upload::DEFAULT_FILL_RATIO;
+use clap::{Args, Parser, Subcommand};
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "arbor-client",
+    version,
+    about = "Arbor client: stream a scene from a treelet server, render it headless, report \
+             error against run time",
+    after_help = "Examples:\n  \
+        arbor-client reference --server quic://127.0.0.1:4433/lion --cert-fingerprint HEX \\\n      \
+            --size 512x512 --out ref.png\n  \
+        arbor-client render --server quic://127.0.0.1:4433/lion --cert-fingerprint HEX \\\n      \
+            --cycles 400 --size 512x512 --budget-mib 4 --out lion.png --report run.csv \\\n      \
+            --chart run-chart.png --reference ref.png\n  \
+        arbor-client render --server quic://127.0.0.1:4433/lion --cert-fingerprint HEX \\\n      \
+            --camera-path orbit:2 --cycles 300 --budget-mib 2 --out orbit.png --report orbit.csv"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Stream and render a camera path headless; write the last frame, the per-cycle report and
+    /// its chart.
+    Render(RenderArgs),
+    /// Fetch the whole scene and render what a camera sees with everything resident.
+    Reference(ReferenceArgs),
+}
+
+#[derive(Args, Debug)]
+struct Connection {
+    /// `quic://HOST:PORT/SCENE`.
+    #[arg(long)]
+    server: String,
+    /// SHA-256 fingerprint of the server certificate (printed by `arbor-server serve`).
+    #[arg(long, conflicts_with = "ca")]
+    cert_fingerprint: Option<String>,
+    /// PEM file with CA certificates to verify the server against instead.
+    #[arg(long)]
+    ca: Option<PathBuf>,
+    /// Access token for scenes that need one.
+    #[arg(long)]
+    token: Option<String>,
+    /// Channels to draw (those the scene lacks are left out): comma-separated of color,
+    /// normal, density.
+    #[arg(long, default_value = "color,normal,density")]
+    channels: String,
+    /// Seconds to wait for the server.
+    #[arg(long, default_value_t = 20.0)]
+    connect_timeout: f64,
+}
+
+#[derive(Args, Debug)]
+struct View {
+    /// static, orbit:DEG_PER_CYCLE, fly-in:CYCLES or jump:EVERY.
+    #[arg(long, default_value = "static")]
+    camera_path: String,
+    /// Seed of the camera path's viewpoint.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Frame size WxH.
+    #[arg(long, default_value = "512x512")]
+    size: String,
+    /// Scales the pixel footprint of the LOD test (>1 coarser).
+    #[arg(long, default_value_t = 1.0)]
+    lod_bias: f64,
+}
+
+#[derive(Args, Debug)]
+struct RenderArgs {
+    #[command(flatten)]
+    connection: Connection,
+    #[command(flatten)]
+    view: View,
+    /// Cycles to run (an upper bound with --until-converged).
+    #[arg(long, default_value_t = 300)]
+    cycles: u32,
+    /// Slot buffer memory budget in MiB.
+    #[arg(long, default_value_t = 64.0)]
+    budget_mib: f64,
+    /// Feedback buffer is 1/n of the frame per axis.
+    #[arg(long, default_value_t = DEFAULT_FEEDBACK_RATIO)]
+    feedback_ratio: u32,
+    /// Request priority: error-pixels (default) or max-error (the thesis's).
+    #[arg(long, default_value = "error-pixels")]
+    policy: String,
+    /// Cap on the request list.
+    #[arg(long, default_value_t = DEFAULT_MAX_REQUESTS)]
+    max_requests: usize,
+    /// Treelets inserted per cycle at most.
+    #[arg(long, default_value_t = DEFAULT_LOAD_LIMIT)]
+    load_limit: u32,
+    /// Upload range fill ratio.
+    #[arg(long, default_value_t = DEFAULT_FILL_RATIO)]
+    fill_ratio: f32,
+    /// A cycle lasts at least this many milliseconds (frame-rate cap).
+    #[arg(long, default_value_t = 16.0)]
+    cycle_ms: f64,
+    /// Render only every k-th cycle (the last is always rendered).
+    #[arg(long, default_value_t = 1)]
+    render_every: u32,
+    /// Stop once the view has converged (static camera).
+    #[arg(long)]
+    until_converged: bool,
+    /// The last frame, PNG.
+    #[arg(long)]
+    out: PathBuf,
+    /// The per-cycle report, CSV.
+    #[arg(long)]
+    report: Option<PathBuf>,
+    /// Error and traffic against time, PNG.
+    #[arg(long)]
+    chart: Option<PathBuf>,
+    /// Reference image (from `arbor-client reference`) for image RMSE per cycle.
+    #[arg(long)]
+    reference: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+struct ReferenceArgs {
+    #[command(flatten)]
+    connection: Connection,
+    #[command(flatten)]
+    view: View,
+    /// Which cycle of the camera path to render.
+    #[arg(long, default_value_t = 0)]
+    cycle: u32,
+    /// The image, PNG.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+fn main() {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    if let Err(e) = run(Cli::parse()) {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .context("starting the tokio runtime")?;
+    match cli.command {
+        Command::Render(a) => render(a, runtime.handle()),
+        Command::Reference(a) => reference(a, runtime.handle()),
+    }
+}
+
+fn client_config(c: &Connection) -> Result<ClientConfig> {
+    let url = parse_server_url(&c.server)?;
+    let trust = match (&c.cert_fingerprint, &c.ca) {
+        (Some(fp), None) => Trust::Fingerprint(fp.clone()),
+        (None, Some(path)) => Trust::CaPem(
+            std::fs::read(path).with_context(|| format!("reading CA file {}", path.display()))?,
+        ),
+        _ => bail!("give the server's --cert-fingerprint or a --ca file"),
+    };
+    let mut config = ClientConfig::new(url, trust);
+    if let Some(t) = &c.token {
+        config = config.with_token(t.clone());
+    }
+    Ok(config)
+}
+
+fn channels(text: &str) -> Result<Vec<Channel>> {
+    text.split(',')
+        .filter(|s| !s.is_empty())
+        .map(|s| {
+            Channel::ALL
+                .into_iter()
+                .find(|c| c.name() == s.trim())
+                .with_context(|| format!("unknown channel {s:?} (color, normal, density)"))
+        })
+        .collect()
+}
+
+fn size(text: &str) -> Result<(u32, u32)> {
+    let (w, h) = text
+        .split_once(['x', 'X'])
+        .with_context(|| format!("size {text:?} is not WxH"))?;
+    let w: u32 = w.parse().with_context(|| format!("width in {text:?}"))?;
+    let h: u32 = h.parse().with_context(|| format!("height in {text:?}"))?;
+    if w == 0 || h == 0 || w > 16384 || h > 16384 {
+        bail!("size {w}x{h} must be within 1..=16384 per axis");
+    }
+    Ok((w, h))
+}
+
+fn timeout(seconds: f64) -> Result<Duration> {
+    Duration::try_from_secs_f64(seconds)
+        .ok()
+        .filter(|d| !d.is_zero())
+        .with_context(|| format!("timeout {seconds} s must be positive and finite"))
+}
+
+fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
+    let (width, height) = size(&a.view.size)?;
+    let camera_path = CameraPath::parse(&a.view.camera_path)?;
+    let policy = PriorityPolicy::parse(&a.policy)
+        .with_context(|| format!("policy {:?} (error-pixels or max-error)", a.policy))?;
+    if !(a.budget_mib.is_finite() && a.budget_mib > 0.0 && a.budget_mib <= 1024.0 * 1024.0) {
+        bail!("budget {} MiB must be in (0, 1 TiB]", a.budget_mib);
+    }
+    let min_cycle = Duration::try_from_secs_f64(a.cycle_ms / 1e3)
+        .with_context(|| format!("cycle time {} ms", a.cycle_ms))?;
+    let reference = a
+        .reference
+        .as_deref()
+        .map(Image::load_png)
+        .transpose()
+        .context("loading the reference image")?;
+    let config = HeadlessConfig {
+        client: client_config(&a.connection)?,
+        core: CoreConfig {
+            analysis: AnalysisConfig {
+                ratio: a.feedback_ratio,
+                lod_bias: a.view.lod_bias,
+            },
+            policy,
+            max_requests: a.max_requests,
+            budget_bytes: (a.budget_mib * 1024.0 * 1024.0) as u64,
+            load_limit: a.load_limit,
+            fill_ratio: a.fill_ratio,
+            channels: channels(&a.connection.channels)?,
+            light: Light::default(),
+        },
+        camera_path,
+        seed: a.view.seed,
+        width,
+        height,
+        cycles: a.cycles,
+        min_cycle,
+        connect_timeout: timeout(a.connection.connect_timeout)?,
+        reference,
+        until_converged: a.until_converged,
+        render_every: a.render_every,
+    };
+    let run = run_headless(config, runtime)?;
+    run.image
+        .save_png(&a.out)
+        .with_context(|| format!("writing {}", a.out.display()))?;
+    if let Some(path) = &a.report {
+        run.report
+            .write_csv(path)
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
+    if let Some(path) = &a.chart {
+        let title = format!(
+            "{} — {} — {}×{}, {:.1} MiB budget",
+            run.scene.name, run.report.meta.camera_path, width, height, a.budget_mib
+        );
+        arbor_client::chart::draw(&run.report, path, &title)
+            .with_context(|| format!("drawing {}", path.display()))?;
+    }
+    println!("{}", run.report.summary());
+    println!(
+        "slots: peak {} of {} ({} B each, {:.2} MiB)",
+        run.peak_slots,
+        run.capacity,
+        run.slot_bytes,
+        (u64::from(run.capacity) * run.slot_bytes) as f64 / (1024.0 * 1024.0)
+    );
+    match run.converged_at {
+        Some(c) => println!("converged at cycle {c}"),
+        None => println!("not converged"),
+    }
+    Ok(())
+}
+
+fn reference(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
+    let (width, height) = size(&a.view.size)?;
+    let camera_path = CameraPath::parse(&a.view.camera_path)?;
+    let FetchedScene {
+        scene,
+        channels,
+        treelets,
+    } = fetch_all(
+        &client_config(&a.connection)?,
+        &channels(&a.connection.channels)?,
+        timeout(a.connection.connect_timeout)?,
+        runtime,
+    )?;
+    let frame = arbor_client::incore::SceneFrame::of(&scene);
+    let camera = camera_path.camera(a.cycle, &frame, a.view.seed, width, height);
+    let image = reference_image(
+        &scene,
+        &channels,
+        treelets,
+        &camera,
+        a.view.lod_bias,
+        &Light::default(),
+    )?;
+    image
+        .save_png(&a.out)
+        .with_context(|| format!("writing {}", a.out.display()))?;
+    println!(
+        "reference of {} ({} treelets) at cycle {} of {}: {} covered pixels → {}",
+        scene.name,
+        scene.treelet_count,
+        a.cycle,
+        a.view.camera_path,
+        image.coverage(),
+        a.out.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,270 @@
+//! CPU phases of one client cycle, on a real scan: the analysis twin (128×128 feedback of a
+//! 1024² frame), presort (both priority policies, 1,000+ distinct requests), the slot update
+//! (ageing, visibility, 256 insertions into a full buffer with evictions) and the upload range
+//! merge (fill ratio 0, 0.6 and 1).
+//!
+//! `cargo bench -p arbor-tests --bench cycle` (release). Prints a table; no assertion on time.
+
+use std::time::{Duration, Instant};
+
+use arbor_client::analysis::{AnalysisConfig, Feedback, analyse};
+use arbor_client::camera::CameraPath;
+use arbor_client::incore::SceneFrame;
+use arbor_client::presort::{Presort, PriorityPolicy};
+use arbor_client::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
+use arbor_client::upload::merge_ranges;
+use arbor_proto::{Channel, TreeletId};
+use arbor_server::build::BuildOptions;
+use arbor_tests::support::build_file;
+
+const FRAME: u32 = 1024;
+const RATIO: u32 = 8;
+const REPS: u32 = 20;
+
+fn best<T>(reps: u32, mut f: impl FnMut() -> T) -> (Duration, T) {
+    let mut best = Duration::MAX;
+    let mut last = None;
+    for _ in 0..reps {
+        let t = Instant::now();
+        let out = f();
+        best = best.min(t.elapsed());
+        last = Some(out);
+    }
+    (best, last.unwrap())
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+fn main() {
+    let built = build_file(
+        "points/lion_takanawa.copc.laz",
+        "lion",
+        &BuildOptions {
+            treelet_bytes: 1024,
+            ..BuildOptions::default()
+        },
+    );
+    let d = built.scene.description.clone();
+    let channels = d.layout.channels().to_vec();
+    let treelets: Vec<DecodedTreelet> = (0..d.treelet_count)
+        .map(|i| {
+            let id = TreeletId(i);
+            let nodes = built.scene.nodes(id).unwrap().unwrap();
+            let blocks: Vec<_> = channels
+                .iter()
+                .map(|&c| (c, built.scene.channel(c, id).unwrap().unwrap()))
+                .collect();
+            let refs: Vec<(Channel, &[u8])> =
+                blocks.iter().map(|(c, b)| (*c, b.as_ref())).collect();
+            DecodedTreelet::from_blocks(id, &nodes, &refs, &d, &channels).unwrap()
+        })
+        .collect();
+    let frame = SceneFrame::of(&d);
+    let camera = CameraPath::Static.camera(0, &frame, 7, FRAME, FRAME);
+    let config = AnalysisConfig {
+        ratio: RATIO,
+        lod_bias: 1.0,
+    };
+    println!(
+        "lion, 1 KiB treelets ({} treelets, depth {}), frame {FRAME}², feedback {}², best of {REPS}",
+        d.treelet_count,
+        d.max_depth,
+        FRAME / RATIO
+    );
+
+    // Grow the resident set level by level until the view asks for 1,000+ treelets.
+    let slot_bytes = SlotBuffer::slot_bytes(d.treelet_nodes, &channels);
+    let capacity = d.treelet_count / 2;
+    let new_buffer = || {
+        SlotBuffer::new(
+            SlotConfig {
+                budget_bytes: u64::from(capacity) * slot_bytes,
+                treelet_nodes: d.treelet_nodes,
+                channels: channels.clone(),
+                visibility_max: (RATIO * RATIO) as u16,
+                load_limit: u32::MAX,
+            },
+            treelets[0].clone(),
+        )
+        .unwrap()
+    };
+    let mut slots = new_buffer();
+    let mut feedback = Feedback::default();
+    let mut presort = Presort::new(PriorityPolicy::ErrorTimesPixels, 65_536);
+    let mut depth = 0;
+    let mut requests;
+    loop {
+        analyse(&slots.view(), &frame, &camera, &config, 0, &mut feedback);
+        let all: Vec<_> = (0..u64::from(RATIO * RATIO))
+            .flat_map(|c| {
+                let mut f = Feedback::default();
+                analyse(&slots.view(), &frame, &camera, &config, c, &mut f);
+                f.samples
+            })
+            .collect();
+        requests = presort
+            .run(
+                &all,
+                d.treelet_nodes,
+                slots.capacity(),
+                |s| slots.parent_slot(s),
+                |_| false,
+            )
+            .distinct_requests;
+        if requests >= 1000 || depth > d.max_depth {
+            break;
+        }
+        depth += 1;
+        for t in treelets
+            .iter()
+            .filter(|t| t.treelet.header.root_depth == depth)
+        {
+            slots.insert(t.clone());
+        }
+    }
+    println!(
+        "resident: treelets with root depth ≤ {depth}: {} slots of {}; one full jitter round asks \
+         for {requests} distinct treelets",
+        slots.used_slots(),
+        slots.capacity()
+    );
+
+    let (t_analysis, _) = best(REPS, || {
+        analyse(&slots.view(), &frame, &camera, &config, 5, &mut feedback);
+    });
+    let hits = feedback.samples.iter().filter(|s| s.is_hit()).count();
+    // Presort over a whole round of samples so the list has 1,000+ entries, then per cycle.
+    let round: Vec<_> = (0..u64::from(RATIO * RATIO))
+        .flat_map(|c| {
+            let mut f = Feedback::default();
+            analyse(&slots.view(), &frame, &camera, &config, c, &mut f);
+            f.samples
+        })
+        .collect();
+    println!("\n{:<44} {:>10}", "phase", "ms");
+    println!(
+        "{:<44} {:>10.3}",
+        format!("analysis twin ({}² samples, {hits} hits)", FRAME / RATIO),
+        ms(t_analysis)
+    );
+    for policy in [PriorityPolicy::MaxError, PriorityPolicy::ErrorTimesPixels] {
+        let mut p = Presort::new(policy, 65_536);
+        let (t, out) = best(REPS, || {
+            p.run(
+                &feedback.samples,
+                d.treelet_nodes,
+                slots.capacity(),
+                |s| slots.parent_slot(s),
+                |_| false,
+            )
+        });
+        let (t_round, out_round) = best(REPS, || {
+            p.run(
+                &round,
+                d.treelet_nodes,
+                slots.capacity(),
+                |s| slots.parent_slot(s),
+                |_| false,
+            )
+        });
+        println!(
+            "{:<44} {:>10.3}",
+            format!(
+                "presort {} (1 cycle, {} requests)",
+                policy.name(),
+                out.requests.len()
+            ),
+            ms(t)
+        );
+        println!(
+            "{:<44} {:>10.3}",
+            format!(
+                "presort {} ({} samples, {} requests)",
+                policy.name(),
+                round.len(),
+                out_round.requests.len()
+            ),
+            ms(t_round)
+        );
+    }
+
+    // Slot update: fill a small buffer, then insert 256 more (each needing an eviction).
+    let small_capacity = 2048.min(d.treelet_count / 2);
+    let small = || {
+        let mut s = SlotBuffer::new(
+            SlotConfig {
+                budget_bytes: u64::from(small_capacity) * slot_bytes,
+                treelet_nodes: d.treelet_nodes,
+                channels: channels.clone(),
+                visibility_max: (RATIO * RATIO) as u16,
+                load_limit: u32::MAX,
+            },
+            treelets[0].clone(),
+        )
+        .unwrap();
+        let mut next = 1;
+        while s.used_slots() < s.capacity() && next < treelets.len() {
+            s.insert(treelets[next].clone());
+            next += 1;
+        }
+        for _ in 0..=RATIO * RATIO {
+            s.begin_cycle();
+        }
+        let _ = s.take_dirty();
+        (s, next)
+    };
+    let mut t_update = Duration::MAX;
+    let mut t_merge = [Duration::MAX; 3];
+    let mut ranges = [0usize; 3];
+    let mut stats = (0u32, 0u32, 0usize);
+    for _ in 0..5 {
+        let (mut s, next) = small();
+        let batch: Vec<_> = treelets[next..].iter().take(4096).cloned().collect();
+        let visible: Vec<u32> = (0..s.capacity()).step_by(7).collect();
+        let t = Instant::now();
+        s.begin_cycle();
+        for &v in &visible {
+            s.mark_visible(v);
+        }
+        let mut inserted = 0u32;
+        let mut evicted = 0u32;
+        for t in batch {
+            if inserted == 256 {
+                break;
+            }
+            if let InsertOutcome::Inserted { evicted: e, .. } = s.insert(t) {
+                inserted += 1;
+                evicted += e;
+            }
+        }
+        let dirty = s.take_dirty();
+        t_update = t_update.min(t.elapsed());
+        stats = (inserted, evicted, dirty.len());
+        for (k, fill) in [0.0f32, 0.6, 1.0].into_iter().enumerate() {
+            let t = Instant::now();
+            let r = merge_ranges(&dirty, fill);
+            t_merge[k] = t_merge[k].min(t.elapsed());
+            ranges[k] = r.len();
+        }
+    }
+    println!(
+        "{:<44} {:>10.3}",
+        format!(
+            "slot update ({} inserted, {} evicted, {} slots)",
+            stats.0, stats.1, small_capacity
+        ),
+        ms(t_update)
+    );
+    for (k, fill) in [0.0f32, 0.6, 1.0].into_iter().enumerate() {
+        println!(
+            "{:<44} {:>10.4}",
+            format!(
+                "range merge fill {fill} ({} dirty → {} ranges)",
+                stats.2, ranges[k]
+            ),
+            ms(t_merge[k])
+        );
+    }
+}
