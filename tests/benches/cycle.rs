@@ -13,9 +13,8 @@ use arbor_client::incore::SceneFrame;
 use arbor_client::presort::{Presort, PriorityPolicy};
 use arbor_client::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
 use arbor_client::upload::merge_ranges;
-use arbor_proto::{Channel, TreeletId};
 use arbor_server::build::BuildOptions;
-use arbor_tests::support::build_file;
+use arbor_tests::support::{build_file, decoded_treelets};
 
 const FRAME: u32 = 1024;
 const RATIO: u32 = 8;
@@ -48,19 +47,7 @@ fn main() {
     );
     let d = built.scene.description.clone();
     let channels = d.layout.channels().to_vec();
-    let treelets: Vec<DecodedTreelet> = (0..d.treelet_count)
-        .map(|i| {
-            let id = TreeletId(i);
-            let nodes = built.scene.nodes(id).unwrap().unwrap();
-            let blocks: Vec<_> = channels
-                .iter()
-                .map(|&c| (c, built.scene.channel(c, id).unwrap().unwrap()))
-                .collect();
-            let refs: Vec<(Channel, &[u8])> =
-                blocks.iter().map(|(c, b)| (*c, b.as_ref())).collect();
-            DecodedTreelet::from_blocks(id, &nodes, &refs, &d, &channels).unwrap()
-        })
-        .collect();
+    let treelets: Vec<DecodedTreelet> = decoded_treelets(&built.scene);
     let frame = SceneFrame::of(&d);
     let camera = CameraPath::Static.camera(0, &frame, 7, FRAME, FRAME);
     let config = AnalysisConfig {

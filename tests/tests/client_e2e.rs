@@ -26,13 +26,12 @@ use arbor_client::render::{Light, render};
 use arbor_client::run::{CoreConfig, HeadlessConfig, HeadlessRun, run_headless_observed};
 use arbor_client::slots::{DecodedTreelet, SlotBuffer};
 use arbor_client::trace::{Lod, trace};
-use arbor_proto::{Channel, SceneDescription, TreeletId};
+use arbor_proto::SceneDescription;
 use arbor_server::build::BuildOptions;
-use arbor_server::pool::StoredScene;
 use arbor_server::service::config::{AdminTokenSource, SceneAccess};
 use arbor_server::service::{RunningServer, ServeConfig, start};
 use arbor_tests::link::{LinkConfig, LinkEmulator};
-use arbor_tests::support::{Built, build_file};
+use arbor_tests::support::{Built, build_file, decoded_treelets};
 use tempfile::TempDir;
 
 const TOKEN: &str = "client-e2e";
@@ -49,24 +48,6 @@ struct Served {
     _data_dir: TempDir,
 }
 
-fn all_treelets(stored: &StoredScene) -> Vec<DecodedTreelet> {
-    let d = &stored.description;
-    let channels = d.layout.channels().to_vec();
-    (0..d.treelet_count)
-        .map(|i| {
-            let id = TreeletId(i);
-            let nodes = stored.nodes(id).unwrap().expect("node block");
-            let blocks: Vec<_> = channels
-                .iter()
-                .map(|&c| (c, stored.channel(c, id).unwrap().expect("channel block")))
-                .collect();
-            let refs: Vec<(Channel, &[u8])> =
-                blocks.iter().map(|(c, b)| (*c, b.as_ref())).collect();
-            DecodedTreelet::from_blocks(id, &nodes, &refs, d, &channels).unwrap()
-        })
-        .collect()
-}
-
 async fn serve(rel: &str, name: &str, treelet_bytes: u32) -> Served {
     let rel = rel.to_owned();
     let name_owned = name.to_owned();
@@ -79,7 +60,7 @@ async fn serve(rel: &str, name: &str, treelet_bytes: u32) -> Served {
                 ..BuildOptions::default()
             },
         );
-        let treelets = all_treelets(&built.scene);
+        let treelets = decoded_treelets(&built.scene);
         (built, treelets)
     })
     .await

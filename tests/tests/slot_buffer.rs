@@ -9,7 +9,7 @@ use arbor_client::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig}
 use arbor_client::upload::{DEFAULT_FILL_RATIO, UploadPlan, merge_ranges};
 use arbor_proto::{Channel, Node, SceneDescription, TreeletId};
 use arbor_server::build::{BuildOptions, DepthChoice};
-use arbor_tests::support::{SCANS, build_file};
+use arbor_tests::support::{SCANS, build_file, decoded_treelets};
 use proptest::prelude::*;
 use proptest::sample::Index;
 
@@ -37,21 +37,7 @@ impl Scan {
         let built = build_file(rel, name, &opts);
         let scene = built.scene.description.clone();
         let channels = scene.layout.channels().to_vec();
-        let mut treelets = Vec::new();
-        for id in 0..scene.treelet_count {
-            let id = TreeletId(id);
-            let nodes = built.scene.nodes(id).unwrap().unwrap();
-            let blocks: Vec<(Channel, Vec<u8>)> = channels
-                .iter()
-                .map(|&c| (c, built.scene.channel(c, id).unwrap().unwrap().to_vec()))
-                .collect();
-            let refs: Vec<(Channel, &[u8])> =
-                blocks.iter().map(|(c, b)| (*c, b.as_slice())).collect();
-            treelets.push(
-                DecodedTreelet::from_blocks(id, &nodes, &refs, &scene, &channels)
-                    .unwrap_or_else(|e| panic!("{name}: {e}")),
-            );
-        }
+        let treelets = decoded_treelets(&built.scene);
         let leaf = treelets
             .iter()
             .map(|t| {

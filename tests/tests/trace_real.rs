@@ -16,27 +16,8 @@ use arbor_client::proto::{Cell, Node, TreeletId};
 use arbor_client::slots::{DecodedTreelet, SlotBuffer};
 use arbor_client::trace::{Lod, Ray, trace};
 use arbor_server::build::{BuildOptions, DepthChoice};
-use arbor_tests::support::{Built, SCANS, build_file, final_leaves};
+use arbor_tests::support::{SCANS, build_file, decoded_treelets, final_leaves};
 use glam::DVec3;
-
-/// Every treelet of a built scene, decoded with all of the scene's channels, in id order.
-fn decoded(b: &Built) -> Vec<DecodedTreelet> {
-    let d = &b.scene.description;
-    let channels = d.layout.channels().to_vec();
-    (0..d.treelet_count)
-        .map(|id| {
-            let id = TreeletId(id);
-            let nodes = b.scene.nodes(id).unwrap().expect("node block stored");
-            let blocks: Vec<(_, _)> = channels
-                .iter()
-                .map(|&c| (c, b.scene.channel(c, id).unwrap().expect("channel stored")))
-                .collect();
-            let refs: Vec<_> = blocks.iter().map(|(c, v)| (*c, v.as_ref())).collect();
-            DecodedTreelet::from_blocks(id, &nodes, &refs, d, &channels)
-                .unwrap_or_else(|e| panic!("decoding treelet {id}: {e}"))
-        })
-        .collect()
-}
 
 /// The reference assembly: treelet `i` in slot `i`, patched in id order (parents first). A
 /// treelet's root is reached at the record it patched in its parent (`live[slot]`), so that
@@ -175,7 +156,7 @@ fn scan(name: &str, depth: u8, assembly: Assembly) {
     );
     let d = &b.scene.description;
     assert!(d.treelet_count > 1, "{name}: needs patched child treelets");
-    let treelets = decoded(&b);
+    let treelets = decoded_treelets(&b.scene);
     let reference_nodes = assemble(&treelets, d.treelet_nodes);
     let slot_buffer;
     let view = match assembly {
@@ -322,7 +303,7 @@ fn slot_buffer_reaches_the_same_octree() {
         },
     );
     let d = &b.scene.description;
-    let treelets = decoded(&b);
+    let treelets = decoded_treelets(&b.scene);
     let nodes = assemble(&treelets, d.treelet_nodes);
     let reference = reachable(&IncoreView {
         nodes: &nodes,
