@@ -13,6 +13,7 @@
 //! reconnects with backoff, all in a background task that never blocks the caller.
 
 pub mod analysis;
+pub mod backend;
 pub mod camera;
 pub mod chart;
 pub mod image;

@@ -20,7 +20,8 @@ use std::time::{Duration, Instant};
 use arbor_proto::{Channel, SceneDescription, TreeletId};
 use thiserror::Error;
 
-use crate::analysis::{AnalysisConfig, Feedback, analyse};
+use crate::analysis::{AnalysisConfig, Feedback};
+use crate::backend::{Backend, CpuBackend};
 use crate::camera::{Camera, CameraPath};
 use crate::image::Image;
 use crate::incore::SceneFrame;
@@ -169,19 +170,43 @@ pub struct ClientCore {
     backlog_ids: HashSet<TreeletId>,
     backlog_dropped: u32,
     cycle: u64,
+    backend: Box<dyn Backend>,
 }
 
 impl ClientCore {
-    /// A core holding only the root treelet.
+    /// A core holding only the root treelet, running its passes on the CPU twins.
     pub fn new(
         scene: Arc<SceneDescription>,
         config: CoreConfig,
         root: DecodedTreelet,
     ) -> Result<Self, RunError> {
+        Self::with_backend(scene, config, root, Box::new(CpuBackend))
+    }
+
+    /// A core holding only the root treelet, running its passes on `backend`.
+    pub fn with_backend(
+        scene: Arc<SceneDescription>,
+        config: CoreConfig,
+        root: DecodedTreelet,
+        backend: Box<dyn Backend>,
+    ) -> Result<Self, RunError> {
         config.validate()?;
+        let max_slots = backend.max_slots(scene.treelet_nodes, &config.channels);
+        let slot_bytes = SlotBuffer::slot_bytes(scene.treelet_nodes, &config.channels);
+        let budget_bytes = config
+            .budget_bytes
+            .min(u64::from(max_slots).saturating_mul(slot_bytes));
+        if budget_bytes < config.budget_bytes {
+            tracing::warn!(
+                "the {} backend holds at most {max_slots} slots: budget lowered from {} to {} bytes",
+                backend.name(),
+                config.budget_bytes,
+                budget_bytes
+            );
+        }
         let slots = SlotBuffer::new(
             SlotConfig {
-                budget_bytes: config.budget_bytes,
+                budget_bytes,
                 treelet_nodes: scene.treelet_nodes,
                 channels: config.channels.clone(),
                 visibility_max: (config.analysis.ratio * config.analysis.ratio)
@@ -201,6 +226,7 @@ impl ClientCore {
             backlog_ids: HashSet::new(),
             backlog_dropped: 0,
             cycle: 0,
+            backend,
         })
     }
 
@@ -257,8 +283,8 @@ impl ClientCore {
     /// request list to send.
     pub fn plan(&mut self, camera: &Camera) -> Plan {
         let t0 = Instant::now();
-        analyse(
-            &self.slots.view(),
+        self.backend.analyse(
+            &self.slots,
             &self.frame,
             camera,
             &self.config.analysis,
@@ -332,6 +358,7 @@ impl ClientCore {
             self.config.fill_ratio,
             SlotBuffer::slot_data_bytes(self.scene.treelet_nodes, &self.config.channels),
         );
+        self.backend.upload(&self.slots, &upload);
         Integration {
             inserted,
             evicted,
@@ -342,15 +369,20 @@ impl ClientCore {
         }
     }
 
-    /// The CPU reference image of what is resident, seen from `camera`.
-    pub fn render(&self, camera: &Camera) -> Image {
-        render(
-            &self.slots.view(),
+    /// The image of what is resident, seen from `camera`.
+    pub fn render(&mut self, camera: &Camera) -> Image {
+        self.backend.render(
+            &self.slots,
             &self.frame,
             camera,
             self.config.analysis.lod_bias,
             &self.config.light,
         )
+    }
+
+    /// Which backend runs the passes.
+    pub fn backend_name(&self) -> String {
+        self.backend.name()
     }
 }
 

@@ -1,0 +1,88 @@
+//! Where the per-cycle GPU stages run: the analysis pass, the slot upload and the render pass
+//! (DESIGN §5). [`ClientCore`](crate::run::ClientCore) drives a [`Backend`] and never knows
+//! which one it has.
+//!
+//! [`CpuBackend`] runs the CPU twins (the reference every GPU stage is tested against); the
+//! wgpu backend (`crate::gpu`) runs the WGSL passes. A backend may return the analysis of an
+//! earlier cycle (the GPU one returns the previous cycle's read-back so the frame never waits
+//! on it); the core only needs the freshest complete feedback.
+
+use crate::analysis::{AnalysisConfig, Feedback, analyse};
+use crate::camera::Camera;
+use crate::image::Image;
+use crate::incore::SceneFrame;
+use crate::render::{Light, render};
+use crate::slots::SlotBuffer;
+use crate::upload::UploadPlan;
+
+/// The GPU-side stages of a cycle.
+pub trait Backend: std::fmt::Debug + Send {
+    /// For people and reports: `cpu` or the adapter's name and backend.
+    fn name(&self) -> String;
+
+    /// The most slots of `treelet_nodes` records (plus `channels`) this backend can hold; the
+    /// core shrinks its budget to it (a GPU binding may cover only so many bytes).
+    fn max_slots(&self, _treelet_nodes: u32, _channels: &[arbor_proto::Channel]) -> u32 {
+        u32::MAX
+    }
+
+    /// Runs the analysis pass of `cycle` and leaves in `out` the most recent complete feedback
+    /// (this cycle's, or an earlier one's for a pipelined backend; empty before the first).
+    fn analyse(
+        &mut self,
+        slots: &SlotBuffer,
+        frame: &SceneFrame,
+        camera: &Camera,
+        config: &AnalysisConfig,
+        cycle: u64,
+        out: &mut Feedback,
+    );
+
+    /// Copies the slot ranges of `plan` from `slots` to wherever the passes read them.
+    fn upload(&mut self, slots: &SlotBuffer, plan: &UploadPlan);
+
+    /// Renders what is resident as seen from `camera`.
+    fn render(
+        &mut self,
+        slots: &SlotBuffer,
+        frame: &SceneFrame,
+        camera: &Camera,
+        lod_bias: f64,
+        light: &Light,
+    ) -> Image;
+}
+
+/// The CPU twins: they read the slot buffer in place, so upload is a no-op.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct CpuBackend;
+
+impl Backend for CpuBackend {
+    fn name(&self) -> String {
+        "cpu".into()
+    }
+
+    fn analyse(
+        &mut self,
+        slots: &SlotBuffer,
+        frame: &SceneFrame,
+        camera: &Camera,
+        config: &AnalysisConfig,
+        cycle: u64,
+        out: &mut Feedback,
+    ) {
+        analyse(&slots.view(), frame, camera, config, cycle, out);
+    }
+
+    fn upload(&mut self, _slots: &SlotBuffer, _plan: &UploadPlan) {}
+
+    fn render(
+        &mut self,
+        slots: &SlotBuffer,
+        frame: &SceneFrame,
+        camera: &Camera,
+        lod_bias: f64,
+        light: &Light,
+    ) -> Image {
+        render(&slots.view(), frame, camera, lod_bias, light)
+    }
+}
