@@ -41,7 +41,25 @@ pub trait Backend: std::fmt::Debug + Send {
     /// Copies the slot ranges of `plan` from `slots` to wherever the passes read them.
     fn upload(&mut self, slots: &SlotBuffer, plan: &UploadPlan);
 
-    /// Renders what is resident as seen from `camera`.
+    /// Renders into the backend's own target without reading it back (the window viewer draws
+    /// that target); `false` if the backend has no such target (the CPU one).
+    fn render_in_place(
+        &mut self,
+        _slots: &SlotBuffer,
+        _frame: &SceneFrame,
+        _camera: &Camera,
+        _lod_bias: f64,
+        _light: &Light,
+    ) -> bool {
+        false
+    }
+
+    /// The target [`render_in_place`](Self::render_in_place) drew into, if any.
+    fn target_view(&self) -> Option<&wgpu::TextureView> {
+        None
+    }
+
+    /// Renders what is resident as seen from `camera`, read back.
     fn render(
         &mut self,
         slots: &SlotBuffer,

@@ -380,6 +380,22 @@ impl ClientCore {
         )
     }
 
+    /// Renders into the backend's own target (see [`Backend::render_in_place`]).
+    pub fn render_in_place(&mut self, camera: &Camera) -> bool {
+        self.backend.render_in_place(
+            &self.slots,
+            &self.frame,
+            camera,
+            self.config.analysis.lod_bias,
+            &self.config.light,
+        )
+    }
+
+    /// The backend running the passes.
+    pub fn backend(&self) -> &dyn Backend {
+        self.backend.as_ref()
+    }
+
     /// Which backend runs the passes.
     pub fn backend_name(&self) -> String {
         self.backend.name()
