@@ -7,15 +7,14 @@ use std::time::Duration;
 use anyhow::{Context, Result, bail};
 use arbor_client::analysis::{AnalysisConfig, DEFAULT_FEEDBACK_RATIO};
 use arbor_client::camera::CameraPath;
+use arbor_client::headless::{HeadlessConfig, run_headless};
 use arbor_client::image::Image;
 use arbor_client::net::{ClientConfig, Trust, parse_server_url};
 use arbor_client::presort::PriorityPolicy;
 use arbor_client::proto::Channel;
 use arbor_client::render::Light;
-use arbor_client::run::{
-    CoreConfig, DEFAULT_LOAD_LIMIT, DEFAULT_MAX_REQUESTS, FetchedScene, HeadlessConfig, fetch_all,
-    reference_image, run_headless,
-};
+use arbor_client::run::{CoreConfig, DEFAULT_LOAD_LIMIT, DEFAULT_MAX_REQUESTS};
+use arbor_client::session::{FetchedScene, fetch_all, reference_image};
 use arbor_client::upload::DEFAULT_FILL_RATIO;
 use clap::{Args, Parser, Subcommand};
 

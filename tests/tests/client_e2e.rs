@@ -18,12 +18,14 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use arbor_client::analysis::AnalysisConfig;
+use arbor_client::backend::CpuBackend;
 use arbor_client::camera::CameraPath;
+use arbor_client::headless::{HeadlessConfig, HeadlessRun, run_headless_with};
 use arbor_client::image::Image;
 use arbor_client::incore::SceneFrame;
 use arbor_client::net::{ClientConfig, ServerUrl, Trust};
 use arbor_client::render::{Light, render};
-use arbor_client::run::{CoreConfig, HeadlessConfig, HeadlessRun, run_headless_observed};
+use arbor_client::run::CoreConfig;
 use arbor_client::slots::{DecodedTreelet, SlotBuffer};
 use arbor_client::trace::{Lod, trace};
 use arbor_proto::SceneDescription;
@@ -201,10 +203,12 @@ async fn converge(served: &Arc<Served>, addr: SocketAddr, what: &str) -> Headles
     cfg.until_converged = true;
     let handle = tokio::runtime::Handle::current();
     let t0 = Instant::now();
-    let run = tokio::task::spawn_blocking(move || run_headless_observed(cfg, &handle, |_| {}))
-        .await
-        .unwrap()
-        .unwrap_or_else(|e| panic!("{what}: run failed: {e}"));
+    let run = tokio::task::spawn_blocking(move || {
+        run_headless_with(cfg, &handle, Box::new(CpuBackend), |_| {})
+    })
+    .await
+    .unwrap()
+    .unwrap_or_else(|e| panic!("{what}: run failed: {e}"));
     let records = &run.report.records;
     let last = records.last().unwrap();
     eprintln!(
@@ -293,7 +297,7 @@ async fn orbiting_camera_stays_in_budget_and_never_shows_holes() {
     let check = served.clone();
     let (run, holes_checked) = tokio::task::spawn_blocking(move || {
         let mut checked = 0u32;
-        let run = run_headless_observed(cfg, &handle, |v| {
+        let run = run_headless_with(cfg, &handle, Box::new(CpuBackend), |v| {
             let slots = v.slots;
             assert!(slots.used_slots() <= slots.capacity());
             assert!(u64::from(slots.capacity()) * slot_bytes <= budget);
