@@ -31,15 +31,13 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::{FontStyle, register_font};
 
+use crate::assets::FONT;
 use crate::report::{CycleRecord, RunReport};
 
 /// Width of the chart, pixels.
 pub const WIDTH: u32 = 1200;
 /// Height of the chart, pixels.
 pub const HEIGHT: u32 = 800;
-
-/// DejaVu Sans (Bitstream Vera licence, see `client/assets/README.md`).
-static FONT: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
 
 /// Largest magnitude an axis range may reach; plotters' tick computation needs finite spans.
 const RANGE_LIMIT: f64 = 1e12;

@@ -13,6 +13,7 @@
 //! reconnects with backoff, all in a background task that never blocks the caller.
 
 pub mod analysis;
+mod assets;
 pub mod backend;
 pub mod camera;
 pub mod chart;
@@ -28,5 +29,6 @@ pub mod session;
 pub mod slots;
 pub mod trace;
 pub mod upload;
+pub mod viewer;
 
 pub use arbor_proto as proto;

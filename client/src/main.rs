@@ -1,5 +1,5 @@
 //! `arbor-client`: headless runs against a treelet server, with images, error-against-time
-//! reports and charts; reference images of the fully resident scene.
+//! reports and charts; reference images of the fully resident scene; the window viewer.
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -14,8 +14,10 @@ use arbor_client::presort::PriorityPolicy;
 use arbor_client::proto::Channel;
 use arbor_client::render::Light;
 use arbor_client::run::{CoreConfig, DEFAULT_LOAD_LIMIT, DEFAULT_MAX_REQUESTS};
+use arbor_client::session::SessionConfig;
 use arbor_client::session::{FetchedScene, fetch_all, reference_image};
 use arbor_client::upload::DEFAULT_FILL_RATIO;
+use arbor_client::viewer::{BackendChoice, Outcome, ViewerConfig};
 use clap::{Args, Parser, Subcommand};
 
 #[derive(Parser, Debug)]
@@ -45,7 +47,22 @@ enum Command {
     Render(RenderArgs),
     /// Fetch the whole scene and render what a camera sees with everything resident.
     Reference(ReferenceArgs),
+    /// Open a window and stream, render and explore the scene interactively.
+    #[command(after_help = VIEW_HELP)]
+    View(ViewArgs),
 }
+
+const VIEW_HELP: &str = "Controls:\n  \
+    orbit mode (start): left-drag turns about the scene centre, wheel zooms\n  \
+    fly mode: W/S forward/back, A/D left/right, E/Q up/down, right-drag looks\n  \
+    Tab switches mode, H toggles the overlay, F12 or P saves a screenshot, R writes the report,\n  \
+    Esc quits\n\n\
+Examples:\n  \
+    arbor-client view --server quic://127.0.0.1:4433/lion --cert-fingerprint HEX\n  \
+    arbor-client view --server quic://127.0.0.1:4433/lion --cert-fingerprint HEX \\\n      \
+        --size 1280x720 --budget-mib 16 --backend cpu --report view.csv\n  \
+    arbor-client view --server quic://127.0.0.1:4433/lion --cert-fingerprint HEX \\\n      \
+        --size 256x192 --screenshot shot.png --exit-after-converged --timeout-s 60";
 
 #[derive(Args, Debug)]
 struct Connection {
@@ -137,6 +154,50 @@ struct RenderArgs {
 }
 
 #[derive(Args, Debug)]
+struct ViewArgs {
+    #[command(flatten)]
+    connection: Connection,
+    /// Seed of the start viewpoint (the `static` camera path's, so a headless render of the
+    /// same camera is well defined).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Window size WxH (frames follow the window).
+    #[arg(long, default_value = "1024x768")]
+    size: String,
+    /// Scales the pixel footprint of the LOD test (>1 coarser).
+    #[arg(long, default_value_t = 1.0)]
+    lod_bias: f64,
+    /// Slot buffer memory budget in MiB.
+    #[arg(long, default_value_t = 64.0)]
+    budget_mib: f64,
+    /// Feedback buffer is 1/n of the frame per axis.
+    #[arg(long, default_value_t = DEFAULT_FEEDBACK_RATIO)]
+    feedback_ratio: u32,
+    /// Renderer: auto, gpu or cpu (CPU frames uploaded to the window).
+    #[arg(long, default_value = "auto")]
+    backend: String,
+    /// Start with the statistics overlay hidden (H toggles it).
+    #[arg(long)]
+    no_overlay: bool,
+    /// Written once the view has converged, if the camera was never moved (PNG).
+    #[arg(long)]
+    screenshot: Option<PathBuf>,
+    /// The per-cycle report (CSV, written by R and at exit; the chart goes beside it).
+    #[arg(long)]
+    report: Option<PathBuf>,
+    /// Exit with status 0 once the view has converged.
+    #[arg(long)]
+    exit_after_converged: bool,
+    /// With --exit-after-converged: keep drawing after convergence until standard input is
+    /// closed (lets a test capture the window first).
+    #[arg(long, requires = "exit_after_converged")]
+    hold_until_stdin_eof: bool,
+    /// Exit with status 1 if the view has not converged after this many seconds.
+    #[arg(long)]
+    timeout_s: Option<f64>,
+}
+
+#[derive(Args, Debug)]
 struct ReferenceArgs {
     #[command(flatten)]
     connection: Connection,
@@ -172,6 +233,7 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Render(a) => render(a, runtime.handle()),
         Command::Reference(a) => reference(a, runtime.handle()),
+        Command::View(a) => view(a, runtime.handle()),
     }
 }
 
@@ -220,6 +282,51 @@ fn timeout(seconds: f64) -> Result<Duration> {
         .ok()
         .filter(|d| !d.is_zero())
         .with_context(|| format!("timeout {seconds} s must be positive and finite"))
+}
+
+fn budget_bytes(mib: f64) -> Result<u64> {
+    if !(mib.is_finite() && mib > 0.0 && mib <= 1024.0 * 1024.0) {
+        bail!("budget {mib} MiB must be in (0, 1 TiB]");
+    }
+    Ok((mib * 1024.0 * 1024.0) as u64)
+}
+
+fn view(a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
+    let (width, height) = size(&a.size)?;
+    let backend = BackendChoice::parse(&a.backend)
+        .with_context(|| format!("backend {:?} (auto, gpu or cpu)", a.backend))?;
+    let config = ViewerConfig {
+        session: SessionConfig {
+            client: client_config(&a.connection)?,
+            core: CoreConfig {
+                analysis: AnalysisConfig {
+                    ratio: a.feedback_ratio,
+                    lod_bias: a.lod_bias,
+                },
+                budget_bytes: budget_bytes(a.budget_mib)?,
+                channels: channels(&a.connection.channels)?,
+                ..CoreConfig::default()
+            },
+            connect_timeout: timeout(a.connection.connect_timeout)?,
+        },
+        seed: a.seed,
+        width,
+        height,
+        backend,
+        overlay: !a.no_overlay,
+        screenshot: a.screenshot,
+        report: a.report,
+        exit_after_converged: a.exit_after_converged,
+        hold_until_stdin_eof: a.hold_until_stdin_eof,
+        timeout: a.timeout_s.map(timeout).transpose()?,
+    };
+    match arbor_client::viewer::run(config, runtime)? {
+        Outcome::TimedOut { after, cycles } => bail!(
+            "the view did not converge within {:.1} s ({cycles} cycles)",
+            after.as_secs_f64()
+        ),
+        Outcome::Converged { .. } | Outcome::Closed { .. } => Ok(()),
+    }
 }
 
 fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {

@@ -1,0 +1,146 @@
+//! The window viewer (`arbor-client view`): one [`Session`](crate::session::Session) stepped once
+//! per redraw of a winit window, its frame drawn to a wgpu surface with the statistics overlay.
+//!
+//! The viewer owns the clock of an interactive run, the way [`crate::headless`] owns it for a
+//! scripted one: every redraw it moves the camera from the input ([`controls`]), steps the
+//! session (which never waits on the network, so frames keep coming while treelets stream),
+//! draws the frame and the overlay ([`overlay`]) with the blit pass ([`blit`]) and presents. It
+//! keeps a [`RunReport`](crate::report::RunReport) of every cycle, like a headless run.
+//!
+//! Where the frame comes from ([`BackendChoice`]):
+//! * **cpu** — the CPU twins render an [`Image`](crate::image::Image) each cycle and the
+//!   viewer uploads it into its own `rgba8unorm` texture. Needs a wgpu device only for the
+//!   blit, and is the fallback wherever the GPU renderer cannot run.
+//! * **gpu** — the wgpu renderer draws in place into its own target texture, which the blit
+//!   samples directly (no read-back). It is not part of this build yet: asking for it is an
+//!   error and `auto` picks cpu.
+//!
+//! For automated runs: `--screenshot` is written when the view converges with the camera never
+//! moved, `converged at cycle N` is printed then, `--exit-after-converged` ends the run there
+//! (after standard input closes, with `--hold-until-stdin-eof`, so a test can capture the
+//! window first) and `--timeout-s` fails a run that does not converge in time.
+
+pub mod blit;
+pub mod controls;
+pub mod overlay;
+mod window;
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use crate::run::RunError;
+use crate::session::SessionConfig;
+
+pub use window::run;
+
+/// Which renderer draws the frames.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum BackendChoice {
+    /// The GPU renderer when this build and the adapter support it, else the CPU one.
+    #[default]
+    Auto,
+    /// The GPU renderer or an error.
+    Gpu,
+    /// The CPU renderer, uploaded each frame.
+    Cpu,
+}
+
+impl BackendChoice {
+    /// Reads `auto`, `gpu` or `cpu`.
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "auto" => Some(Self::Auto),
+            "gpu" => Some(Self::Gpu),
+            "cpu" => Some(Self::Cpu),
+            _ => None,
+        }
+    }
+}
+
+/// A viewer run.
+#[derive(Clone, Debug)]
+pub struct ViewerConfig {
+    pub session: SessionConfig,
+    /// Seed of the start camera ([`CameraPath::Static`](crate::camera::CameraPath::Static)).
+    pub seed: u64,
+    /// Window inner size, pixels; frames follow the window's size.
+    pub width: u32,
+    pub height: u32,
+    pub backend: BackendChoice,
+    /// Draw the statistics overlay (`H` toggles).
+    pub overlay: bool,
+    /// Written once the view converges with the camera never moved.
+    pub screenshot: Option<PathBuf>,
+    /// The run report (CSV) written by `R` and at exit; the chart goes beside it.
+    pub report: Option<PathBuf>,
+    /// Exit (successfully) once the view has converged.
+    pub exit_after_converged: bool,
+    /// With `exit_after_converged`: keep drawing after convergence until standard input
+    /// reaches end of file.
+    pub hold_until_stdin_eof: bool,
+    /// Fail if the view has not converged this long after the start.
+    pub timeout: Option<Duration>,
+}
+
+/// How a viewer run ended.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Outcome {
+    /// The user closed the window or pressed Escape.
+    Closed { converged_at: Option<u32> },
+    /// `exit_after_converged` and the view converged at this cycle.
+    Converged { cycle: u32 },
+    /// The timeout passed before convergence.
+    TimedOut { after: Duration, cycles: u32 },
+}
+
+/// Why the viewer stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum ViewerError {
+    #[error("window system: {0}")]
+    Window(String),
+    #[error("GPU: {0}")]
+    Gpu(String),
+    #[error(transparent)]
+    Session(#[from] RunError),
+    #[error("{0}")]
+    Output(String),
+}
+
+impl From<winit::error::EventLoopError> for ViewerError {
+    fn from(e: winit::error::EventLoopError) -> Self {
+        Self::Window(e.to_string())
+    }
+}
+
+/// The chart path that goes with a report path: `run.csv` → `run-chart.png`.
+pub fn chart_path(report: &std::path::Path) -> PathBuf {
+    let stem = report
+        .file_stem()
+        .map_or_else(|| "report".into(), |s| s.to_string_lossy().into_owned());
+    report.with_file_name(format!("{stem}-chart.png"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backend_choice_parses() {
+        assert_eq!(BackendChoice::parse("auto"), Some(BackendChoice::Auto));
+        assert_eq!(BackendChoice::parse("gpu"), Some(BackendChoice::Gpu));
+        assert_eq!(BackendChoice::parse("cpu"), Some(BackendChoice::Cpu));
+        assert_eq!(BackendChoice::parse("GPU"), None);
+    }
+
+    #[test]
+    fn chart_goes_beside_the_report() {
+        assert_eq!(
+            chart_path(std::path::Path::new("/tmp/x/run.csv")),
+            PathBuf::from("/tmp/x/run-chart.png")
+        );
+        assert_eq!(
+            chart_path(std::path::Path::new("run")),
+            PathBuf::from("run-chart.png")
+        );
+    }
+}
