@@ -1,0 +1,482 @@
+//! The window viewer end to end: the real `arbor-client view` binary in a real X server (Xvfb),
+//! streaming a real scan from the real server over loopback QUIC, compared with the headless
+//! CPU render of the same camera.
+//!
+//! * **Launch.** Xvfb (`:N`, the first free display from 90, 1024×768×24) with a fresh 0700
+//!   `XDG_RUNTIME_DIR`; a missing Xvfb or `xwd` fails the test with what to install (never a
+//!   skip). The binary is built by running `cargo build -p arbor-client --bin arbor-client` for
+//!   this test binary's own profile and target directory: Cargo builds a dependency's library
+//!   but not its binaries for another package's tests (`CARGO_BIN_EXE_*` exists only inside the
+//!   package), and `cargo nextest` / `cargo test -p arbor-tests` may run without a workspace
+//!   build, so a path guessed under `target/` could be missing or stale. The nested build is a
+//!   no-op when the binary is fresh.
+//! * **What is captured.** The viewer runs `--size 256x192 --no-overlay --exit-after-converged
+//!   --hold-until-stdin-eof --screenshot … --report …` and prints its X window id and
+//!   `converged at cycle N`. Then the test grabs the window's content from the X server with
+//!   `xwd -id`, parses the XWD (big-endian header, 32-bit TrueColor pixels) and closes the
+//!   viewer's standard input, which makes it exit 0.
+//! * **Acceptance.** The window equals the reference — the CPU renderer on the fully resident
+//!   scene with `CameraPath::Static`'s camera for the same seed — composited over the viewer's
+//!   background where the reference has alpha 0, within [`TOLERANCE`]: a channel difference up
+//!   to [`TOLERANCE`] counts as equal, at most [`MAX_DIFFERING_SHARE`] of the pixels may differ
+//!   by more (the GPU renderer's f32 against the CPU's f64 at voxel edges). The screenshot
+//!   (the frame texture read back) is held to the same. The CPU backend is exact (0). The run
+//!   report must show many frames drawn while treelets were still arriving.
+
+use std::io::{BufRead, BufReader, Read};
+use std::os::unix::fs::PermissionsExt;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use arbor_client::camera::CameraPath;
+use arbor_client::image::Image;
+use arbor_client::incore::SceneFrame;
+use arbor_client::render::Light;
+use arbor_client::report::RunReport;
+use arbor_client::session::reference_image;
+use arbor_client::viewer::blit::BACKGROUND;
+use arbor_server::build::BuildOptions;
+use arbor_server::service::config::{AdminTokenSource, SceneAccess};
+use arbor_server::service::{ServeConfig, start};
+use arbor_tests::support::{Built, build_file, decoded_treelets};
+
+const TOKEN: &str = "viewer-xvfb";
+const SIZE: (u32, u32) = (256, 192);
+const SEED: u64 = 7;
+/// A channel difference up to this counts as equal.
+const TOLERANCE: u8 = 2;
+/// Largest share of pixels allowed to differ by more than [`TOLERANCE`].
+const MAX_DIFFERING_SHARE: f64 = 0.005;
+/// How long the viewer may take to converge.
+const CONVERGE_TIMEOUT: Duration = Duration::from_secs(240);
+
+/// A child process killed (by its own id) when dropped.
+struct Reaped(Child);
+
+impl Drop for Reaped {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn require_tool(name: &str, probe: &[&str], package: &str) {
+    match Command::new(name)
+        .args(probe)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+    {
+        Ok(_) => {}
+        Err(e) => panic!(
+            "`{name}` cannot be run ({e}): the viewer test needs it — install the Debian package \
+             `{package}` (scripts/test does)"
+        ),
+    }
+}
+
+/// Starts Xvfb on the first free display from :90; returns it and the display name.
+fn start_xvfb() -> (Reaped, String) {
+    require_tool("Xvfb", &["-help"], "xvfb");
+    for n in 90..190 {
+        let socket = PathBuf::from(format!("/tmp/.X11-unix/X{n}"));
+        if socket.exists() || Path::new(&format!("/tmp/.X{n}-lock")).exists() {
+            continue;
+        }
+        let child = Command::new("Xvfb")
+            .args([
+                &format!(":{n}"),
+                "-screen",
+                "0",
+                "1024x768x24",
+                "-nolisten",
+                "tcp",
+            ])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("spawning Xvfb");
+        let mut xvfb = Reaped(child);
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while Instant::now() < deadline {
+            if socket.exists() {
+                return (xvfb, format!(":{n}"));
+            }
+            if xvfb.0.try_wait().unwrap().is_some() {
+                break; // Lost a race for this display: try the next.
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+    panic!("could not start Xvfb on any display :90..:189");
+}
+
+/// Builds `arbor-client` for this test binary's profile and target directory; returns its path.
+fn arbor_client_binary() -> PathBuf {
+    let exe = std::env::current_exe().unwrap();
+    // target/<profile dir>/deps/<test binary>
+    let profile_dir = exe.parent().and_then(Path::parent).unwrap().to_owned();
+    let target_dir = profile_dir.parent().unwrap();
+    let profile = match profile_dir.file_name().unwrap().to_str().unwrap() {
+        "debug" => "dev".to_owned(),
+        other => other.to_owned(),
+    };
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR")).join("../Cargo.toml");
+    let status = Command::new(env!("CARGO"))
+        .args([
+            "build",
+            "--quiet",
+            "-p",
+            "arbor-client",
+            "--bin",
+            "arbor-client",
+        ])
+        .arg("--profile")
+        .arg(&profile)
+        .arg("--manifest-path")
+        .arg(&manifest)
+        .arg("--target-dir")
+        .arg(target_dir)
+        .status()
+        .expect("running cargo build for arbor-client");
+    assert!(status.success(), "cargo build of arbor-client failed");
+    let bin = profile_dir.join("arbor-client");
+    assert!(bin.exists(), "{} was not built", bin.display());
+    bin
+}
+
+/// An XWD dump of a 24/32-bit TrueColor window: `width × height` RGB pixels.
+struct Xwd {
+    width: u32,
+    height: u32,
+    rgb: Vec<[u8; 3]>,
+}
+
+/// Parses the XWD format (X11 `XWDFileHeader`: 25 big-endian `u32`s, the window name, the
+/// colormap entries of 12 bytes each, then the pixels) for what Xvfb's 24-bit TrueColor
+/// screens give: ZPixmap, 32 bits per pixel, 8-bit channel masks.
+fn parse_xwd(data: &[u8]) -> Xwd {
+    let field = |i: usize| u32::from_be_bytes(data[i * 4..i * 4 + 4].try_into().unwrap());
+    assert!(data.len() >= 100, "XWD shorter than its header");
+    let header_size = field(0) as usize;
+    assert_eq!(field(1), 7, "XWD file version");
+    assert_eq!(field(2), 2, "XWD pixmap format (ZPixmap)");
+    let (width, height) = (field(4), field(5));
+    let byte_order = field(7);
+    assert_eq!(field(11), 32, "bits per pixel");
+    let bytes_per_line = field(12) as usize;
+    assert!(
+        matches!(field(13), 4 | 5),
+        "visual class (TrueColor or DirectColor)"
+    );
+    let masks = [field(14), field(15), field(16)];
+    let ncolors = field(19) as usize;
+    let start = header_size + ncolors * 12;
+    assert!(
+        data.len() >= start + bytes_per_line * height as usize,
+        "XWD pixel data truncated"
+    );
+    let mut rgb = Vec::with_capacity((width * height) as usize);
+    for y in 0..height as usize {
+        for x in 0..width as usize {
+            let o = start + y * bytes_per_line + x * 4;
+            let b: [u8; 4] = data[o..o + 4].try_into().unwrap();
+            let p = if byte_order == 0 {
+                u32::from_le_bytes(b)
+            } else {
+                u32::from_be_bytes(b)
+            };
+            rgb.push(masks.map(|m| ((p & m) >> m.trailing_zeros()) as u8));
+        }
+    }
+    Xwd { width, height, rgb }
+}
+
+/// How far a picture is from the reference.
+#[derive(Debug)]
+struct Difference {
+    max: u8,
+    mean: f64,
+    /// Share of pixels with a channel more than [`TOLERANCE`] off.
+    differing_share: f64,
+}
+
+/// Compares `pixels(x, y)` (RGB) with the reference composited over the viewer's background.
+fn compare(reference: &Image, pixels: impl Fn(u32, u32) -> [u8; 3]) -> Difference {
+    let (mut max, mut sum, mut differing) = (0u8, 0u64, 0u64);
+    for y in 0..reference.height {
+        for x in 0..reference.width {
+            let r = reference.get(x, y).unwrap();
+            let a = u32::from(r[3]);
+            let want: [u8; 3] = std::array::from_fn(|k| {
+                ((u32::from(r[k]) * a + u32::from(BACKGROUND[k]) * (255 - a) + 127) / 255) as u8
+            });
+            let got = pixels(x, y);
+            let d = (0..3).map(|k| want[k].abs_diff(got[k])).max().unwrap();
+            max = max.max(d);
+            sum += u64::from(d);
+            differing += u64::from(d > TOLERANCE);
+        }
+    }
+    let n = f64::from(reference.width * reference.height);
+    Difference {
+        max,
+        mean: sum as f64 / n,
+        differing_share: differing as f64 / n,
+    }
+}
+
+fn assert_within(what: &str, d: &Difference) {
+    eprintln!(
+        "{what}: max channel difference {}, mean {:.4}, {:.3} % of pixels more than {TOLERANCE} \
+         off (allowed {:.1} %)",
+        d.max,
+        d.mean,
+        d.differing_share * 100.0,
+        MAX_DIFFERING_SHARE * 100.0
+    );
+    assert!(
+        d.differing_share <= MAX_DIFFERING_SHARE,
+        "{what} differs from the headless reference: {d:?}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
+    require_tool("xwd", &["-help"], "x11-apps");
+    let bin = tokio::task::spawn_blocking(arbor_client_binary)
+        .await
+        .unwrap();
+
+    // The scene: lion with 1 KiB treelets, served by the real server in-process.
+    let (built, treelets) = tokio::task::spawn_blocking(|| {
+        let built = build_file(
+            "points/lion_takanawa.copc.laz",
+            "lion",
+            &BuildOptions {
+                treelet_bytes: 1024,
+                ..BuildOptions::default()
+            },
+        );
+        let treelets = decoded_treelets(&built.scene);
+        (built, treelets)
+    })
+    .await
+    .unwrap();
+    let Built {
+        pool,
+        scene,
+        pool_dir,
+        source,
+        scratch,
+    } = built;
+    let description = scene.description.clone();
+    drop((pool, scene, source, scratch));
+    let data_dir = tempfile::tempdir().unwrap();
+    let mut cfg = ServeConfig::new(pool_dir.path());
+    cfg.listen = "127.0.0.1:0".parse().unwrap();
+    cfg.admin_listen = None;
+    cfg.data_dir = Some(data_dir.path().to_owned());
+    cfg.admin_token = AdminTokenSource::Inline("admin-viewer-xvfb".into());
+    cfg.scenes
+        .insert("lion".into(), SceneAccess::Tokens(vec![TOKEN.into()]));
+    let server = start(cfg).await.unwrap();
+
+    // The reference: the same camera with every treelet resident, on the CPU.
+    let frame = SceneFrame::of(&description);
+    let camera = CameraPath::Static.camera(0, &frame, SEED, SIZE.0, SIZE.1);
+    let reference = reference_image(
+        &description,
+        description.layout.channels(),
+        treelets,
+        &camera,
+        1.0,
+        &Light::default(),
+    )
+    .unwrap();
+    assert!(
+        reference.coverage() > u64::from(SIZE.0 * SIZE.1 / 20),
+        "the reference view shows too little of the scene ({} px)",
+        reference.coverage()
+    );
+
+    let out = tempfile::tempdir().unwrap();
+    let shot = out.path().join("shot.png");
+    let report_path = out.path().join("view.csv");
+    let url = format!("quic://{}/lion", server.quic_addr);
+    let fingerprint = server.fingerprint.clone();
+    let (shot2, report2) = (shot.clone(), report_path.clone());
+    let (window, viewer_stdout, elapsed) =
+        tokio::task::spawn_blocking(move || run_viewer(&bin, &url, &fingerprint, &shot2, &report2))
+            .await
+            .unwrap();
+    eprintln!("viewer output:\n{viewer_stdout}");
+
+    // The window as the X server shows it.
+    assert_eq!(
+        (window.width, window.height),
+        SIZE,
+        "window size in the X server"
+    );
+    let d = compare(&reference, |x, y| window.rgb[(y * SIZE.0 + x) as usize]);
+    assert_within("window (xwd)", &d);
+
+    // The screenshot: the frame texture read back.
+    let screenshot = Image::load_png(&shot).unwrap();
+    assert_eq!((screenshot.width, screenshot.height), SIZE);
+    assert_eq!(
+        screenshot.coverage(),
+        reference.coverage(),
+        "covered pixels of the screenshot"
+    );
+    let d = compare(&reference, |x, y| {
+        let p = screenshot.get(x, y).unwrap();
+        let a = u32::from(p[3]);
+        std::array::from_fn(|k| {
+            ((u32::from(p[k]) * a + u32::from(BACKGROUND[k]) * (255 - a) + 127) / 255) as u8
+        })
+    });
+    assert_within("screenshot (frame texture)", &d);
+
+    // Many frames while streaming: the report has a record per frame.
+    let report = RunReport::read_csv(&report_path).unwrap();
+    let records = &report.records;
+    let inserting: Vec<u32> = records
+        .iter()
+        .filter(|r| r.treelets_inserted > 0)
+        .map(|r| r.cycle)
+        .collect();
+    let (first, last) = (inserting[0], *inserting.last().unwrap());
+    let span = records.last().unwrap().time_s - records[0].time_s;
+    eprintln!(
+        "{} frames in {span:.2} s ({:.1} fps, {elapsed:.1} s with connecting); treelets \
+         inserted in {} cycles between cycle {first} and {last}",
+        records.len(),
+        (records.len() - 1) as f64 / span.max(1e-9),
+        inserting.len()
+    );
+    assert!(records.len() >= 40, "only {} frames drawn", records.len());
+    assert!(
+        inserting.len() >= 3 && last - first >= 10,
+        "treelets should arrive over many frames: {inserting:?}"
+    );
+    assert!(records.iter().all(|r| r.slots_used <= r.slots_total));
+    assert!(records.last().unwrap().error.max == 0.0);
+    assert!(arbor_client::viewer::chart_path(&report_path).exists());
+    server.shutdown().await;
+}
+
+/// Runs the viewer until it converges, grabs its window, lets it exit; returns the window
+/// content, the viewer's standard output and how long it ran.
+fn run_viewer(
+    bin: &Path,
+    url: &str,
+    fingerprint: &str,
+    shot: &Path,
+    report: &Path,
+) -> (Xwd, String, f64) {
+    let (_xvfb, display) = start_xvfb();
+    let runtime_dir = tempfile::tempdir().unwrap();
+    std::fs::set_permissions(runtime_dir.path(), std::fs::Permissions::from_mode(0o700)).unwrap();
+    let started = Instant::now();
+    let mut viewer = Reaped(
+        Command::new(bin)
+            .args(["view", "--server", url, "--cert-fingerprint", fingerprint])
+            .args(["--token", TOKEN, "--size", "256x192", "--seed", "7"])
+            .args(["--feedback-ratio", "4", "--backend", "auto", "--no-overlay"])
+            .arg("--screenshot")
+            .arg(shot)
+            .arg("--report")
+            .arg(report)
+            .args(["--exit-after-converged", "--hold-until-stdin-eof"])
+            .args(["--timeout-s", &CONVERGE_TIMEOUT.as_secs().to_string()])
+            .env("DISPLAY", &display)
+            .env_remove("WAYLAND_DISPLAY")
+            .env("XDG_RUNTIME_DIR", runtime_dir.path())
+            .env("RUST_LOG", "warn")
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("launching arbor-client view"),
+    );
+    let stdin = viewer.0.stdin.take().unwrap();
+    let stdout = viewer.0.stdout.take().unwrap();
+    let mut stderr = viewer.0.stderr.take().unwrap();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines() {
+            let Ok(line) = line else { break };
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let stderr_text = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = stderr.read_to_string(&mut s);
+        s
+    });
+    let mut output = String::new();
+    let mut window_id = None;
+    let deadline = Instant::now() + CONVERGE_TIMEOUT + Duration::from_secs(60);
+    loop {
+        let wait = deadline.saturating_duration_since(Instant::now());
+        match rx.recv_timeout(wait) {
+            Ok(line) => {
+                output.push_str(&line);
+                output.push('\n');
+                if let Some(rest) = line.strip_prefix("window 0x") {
+                    let hex = rest.split_whitespace().next().unwrap();
+                    window_id = Some(u64::from_str_radix(hex, 16).unwrap());
+                }
+                if line.starts_with("converged at cycle") {
+                    break;
+                }
+            }
+            Err(_) => {
+                let _ = viewer.0.kill();
+                panic!(
+                    "the viewer did not report convergence (exit {:?}).\nstdout:\n{output}\n\
+                     stderr:\n{}",
+                    viewer.0.wait().ok(),
+                    stderr_text.join().unwrap()
+                );
+            }
+        }
+    }
+    let id = window_id.expect("the viewer printed no window id");
+    // The converged frame has been presented; later frames are the same picture.
+    std::thread::sleep(Duration::from_millis(300));
+    let xwd = Command::new("xwd")
+        .args(["-silent", "-display", &display, "-id", &format!("0x{id:x}")])
+        .output()
+        .expect("running xwd");
+    assert!(
+        xwd.status.success(),
+        "xwd failed: {}",
+        String::from_utf8_lossy(&xwd.stderr)
+    );
+    drop(stdin);
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let status = loop {
+        if let Some(s) = viewer.0.try_wait().unwrap() {
+            break s;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the viewer did not exit after stdin closed"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let elapsed = started.elapsed().as_secs_f64();
+    output.extend(rx.try_iter().map(|l| l + "\n"));
+    let stderr = stderr_text.join().unwrap();
+    assert!(
+        status.success(),
+        "the viewer exited with {status}\nstdout:\n{output}\nstderr:\n{stderr}"
+    );
+    (parse_xwd(&xwd.stdout), output, elapsed)
+}
