@@ -274,7 +274,18 @@ async fn static_camera_converges_exactly_over_the_emulated_wan() {
         "nothing can arrive before one round trip (50 ms), got {:.3} s",
         first_insert.time_s
     );
-    eprintln!("{}", run.report.summary());
+    // The run's report and chart, kept for people to look at.
+    let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("client-e2e");
+    std::fs::create_dir_all(&out).unwrap();
+    run.report.write_csv(&out.join("wan.csv")).unwrap();
+    arbor_client::chart::draw(
+        &run.report,
+        &out.join("wan-chart.png"),
+        "lion over 25 ms / 100 Mbit/s, static camera",
+    )
+    .unwrap();
+    run.image.save_png(out.join("wan.png")).unwrap();
+    eprintln!("{}\nreport, chart and image in {}", run.report.summary(), out.display());
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
