@@ -197,20 +197,20 @@ impl Blit {
     }
 
     /// Records the pass drawing `frame` (and the overlay, when `show_overlay`) to `target`, a
-    /// `surface`-sized view of the surface format.
+    /// view of a surface texture of the surface format.
     pub fn draw(
         &self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
         encoder: &mut wgpu::CommandEncoder,
         target: &wgpu::TextureView,
-        surface: (u32, u32),
         frame: &wgpu::TextureView,
         show_overlay: bool,
     ) {
         let frame_size = frame.texture().size();
+        let surface = target.texture().size();
         let params = Params::new(
-            surface,
+            (surface.width, surface.height),
             (frame_size.width, frame_size.height),
             show_overlay.then_some(self.overlay_size),
             self.decode_srgb,

@@ -534,7 +534,6 @@ impl Running {
             &self.gpu.queue,
             &mut encoder,
             &target,
-            (self.surface_config.width, self.surface_config.height),
             frame,
             self.show_overlay,
         );
