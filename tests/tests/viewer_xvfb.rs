@@ -34,7 +34,7 @@ use arbor_client::camera::CameraPath;
 use arbor_client::image::Image;
 use arbor_client::incore::SceneFrame;
 use arbor_client::render::Light;
-use arbor_client::report::RunReport;
+use arbor_client::report::{CycleRecord, RunReport};
 use arbor_client::session::reference_image;
 use arbor_client::viewer::blit::BACKGROUND;
 use arbor_server::build::BuildOptions;
@@ -356,6 +356,18 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
         records.len(),
         (records.len() - 1) as f64 / span.max(1e-9),
         inserting.len()
+    );
+    let mean =
+        |f: fn(&CycleRecord) -> f64| records.iter().map(f).sum::<f64>() / records.len() as f64;
+    eprintln!(
+        "mean per frame: analysis {:.2} ms, presort {:.2}, integrate {:.2}, upload {:.2}, render \
+         {:.2}; frame interval {:.2} ms",
+        mean(|r| r.analysis_ms),
+        mean(|r| r.presort_ms),
+        mean(|r| r.integrate_ms),
+        mean(|r| r.upload_ms),
+        mean(|r| r.render_ms),
+        span * 1e3 / (records.len() - 1) as f64
     );
     assert!(records.len() >= 40, "only {} frames drawn", records.len());
     assert!(
