@@ -22,7 +22,11 @@
 //!   by more (the GPU renderer's f32 against the CPU's f64 at voxel edges). The screenshot
 //!   (the frame texture read back) is held to the same. The CPU backend is exact (0). The run
 //!   report must show many frames drawn while treelets were still arriving.
+//! * **Overlay.** A second run in the same X server keeps the statistics overlay on: outside
+//!   its panel the window is still the reference within the same tolerance; inside, the panel
+//!   darkens the frame and carries text.
 
+use std::ffi::OsString;
 use std::io::{BufRead, BufReader, Read};
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
@@ -36,7 +40,8 @@ use arbor_client::incore::SceneFrame;
 use arbor_client::render::Light;
 use arbor_client::report::{CycleRecord, RunReport};
 use arbor_client::session::reference_image;
-use arbor_client::viewer::blit::BACKGROUND;
+use arbor_client::viewer::blit::{BACKGROUND, OVERLAY_MARGIN};
+use arbor_client::viewer::overlay::Overlay;
 use arbor_server::build::BuildOptions;
 use arbor_server::service::config::{AdminTokenSource, SceneAccess};
 use arbor_server::service::{ServeConfig, start};
@@ -203,11 +208,20 @@ struct Difference {
     differing_share: f64,
 }
 
-/// Compares `pixels(x, y)` (RGB) with the reference composited over the viewer's background.
-fn compare(reference: &Image, pixels: impl Fn(u32, u32) -> [u8; 3]) -> Difference {
-    let (mut max, mut sum, mut differing) = (0u8, 0u64, 0u64);
+/// Compares `pixels(x, y)` (RGB) with the reference composited over the viewer's background,
+/// where `include(x, y)`.
+fn compare(
+    reference: &Image,
+    include: impl Fn(u32, u32) -> bool,
+    pixels: impl Fn(u32, u32) -> [u8; 3],
+) -> Difference {
+    let (mut max, mut sum, mut differing, mut n) = (0u8, 0u64, 0u64, 0u64);
     for y in 0..reference.height {
         for x in 0..reference.width {
+            if !include(x, y) {
+                continue;
+            }
+            n += 1;
             let r = reference.get(x, y).unwrap();
             let a = u32::from(r[3]);
             let want: [u8; 3] = std::array::from_fn(|k| {
@@ -220,7 +234,7 @@ fn compare(reference: &Image, pixels: impl Fn(u32, u32) -> [u8; 3]) -> Differenc
             differing += u64::from(d > TOLERANCE);
         }
     }
-    let n = f64::from(reference.width * reference.height);
+    let n = n.max(1) as f64;
     Difference {
         max,
         mean: sum as f64 / n,
@@ -307,9 +321,40 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     let report_path = out.path().join("view.csv");
     let url = format!("quic://{}/lion", server.quic_addr);
     let fingerprint = server.fingerprint.clone();
-    let (shot2, report2) = (shot.clone(), report_path.clone());
+    let (xvfb, display) = tokio::task::spawn_blocking(start_xvfb).await.unwrap();
+    let common: Vec<OsString> = [
+        "view",
+        "--server",
+        &url,
+        "--cert-fingerprint",
+        &fingerprint,
+        "--token",
+        TOKEN,
+        "--size",
+        "256x192",
+        "--seed",
+        &SEED.to_string(),
+        "--feedback-ratio",
+        "4",
+        "--backend",
+        "auto",
+        "--exit-after-converged",
+        "--hold-until-stdin-eof",
+        "--timeout-s",
+        &CONVERGE_TIMEOUT.as_secs().to_string(),
+    ]
+    .map(OsString::from)
+    .into();
+    let mut args = common.clone();
+    args.extend([
+        "--no-overlay".into(),
+        "--screenshot".into(),
+        shot.clone().into(),
+    ]);
+    args.extend(["--report".into(), report_path.clone().into()]);
+    let (bin2, display2) = (bin.clone(), display.clone());
     let (window, viewer_stdout, elapsed) =
-        tokio::task::spawn_blocking(move || run_viewer(&bin, &url, &fingerprint, &shot2, &report2))
+        tokio::task::spawn_blocking(move || run_viewer(&bin2, &display2, &args))
             .await
             .unwrap();
     eprintln!("viewer output:\n{viewer_stdout}");
@@ -320,7 +365,11 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
         SIZE,
         "window size in the X server"
     );
-    let d = compare(&reference, |x, y| window.rgb[(y * SIZE.0 + x) as usize]);
+    let d = compare(
+        &reference,
+        |_, _| true,
+        |x, y| window.rgb[(y * SIZE.0 + x) as usize],
+    );
     assert_within("window (xwd)", &d);
 
     // The screenshot: the frame texture read back.
@@ -331,13 +380,17 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
         reference.coverage(),
         "covered pixels of the screenshot"
     );
-    let d = compare(&reference, |x, y| {
-        let p = screenshot.get(x, y).unwrap();
-        let a = u32::from(p[3]);
-        std::array::from_fn(|k| {
-            ((u32::from(p[k]) * a + u32::from(BACKGROUND[k]) * (255 - a) + 127) / 255) as u8
-        })
-    });
+    let d = compare(
+        &reference,
+        |_, _| true,
+        |x, y| {
+            let p = screenshot.get(x, y).unwrap();
+            let a = u32::from(p[3]);
+            std::array::from_fn(|k| {
+                ((u32::from(p[k]) * a + u32::from(BACKGROUND[k]) * (255 - a) + 127) / 255) as u8
+            })
+        },
+    );
     assert_within("screenshot (frame texture)", &d);
 
     // Many frames while streaming: the report has a record per frame.
@@ -377,34 +430,49 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     assert!(records.iter().all(|r| r.slots_used <= r.slots_total));
     assert!(records.last().unwrap().error.max == 0.0);
     assert!(arbor_client::viewer::chart_path(&report_path).exists());
+
+    // Again with the overlay: the panel covers the top-left corner with text, the rest of the
+    // window is still the reference.
+    let (window, viewer_stdout, _) =
+        tokio::task::spawn_blocking(move || run_viewer(&bin, &display, &common))
+            .await
+            .unwrap();
+    drop(xvfb);
+    eprintln!("viewer output with the overlay:\n{viewer_stdout}");
+    let (pw, ph) = Overlay::new().panel_size();
+    let m = OVERLAY_MARGIN;
+    let in_panel = move |x: u32, y: u32| x >= m && x < m + pw && y >= m && y < m + ph;
+    let pixel = |x: u32, y: u32| window.rgb[(y * SIZE.0 + x) as usize];
+    let d = compare(&reference, |x, y| !in_panel(x, y), pixel);
+    assert_within("window with the overlay, outside the panel", &d);
+    let panel = compare(&reference, in_panel, pixel);
+    let text = (0..SIZE.1)
+        .flat_map(|y| (0..SIZE.0).map(move |x| (x, y)))
+        .filter(|&(x, y)| in_panel(x, y) && pixel(x, y).iter().all(|&c| c >= 200))
+        .count();
+    eprintln!(
+        "overlay panel: {:.1} % of its pixels differ from the frame, {text} text pixels",
+        panel.differing_share * 100.0
+    );
+    assert!(
+        panel.differing_share > 0.9,
+        "the panel was not drawn: {panel:?}"
+    );
+    assert!(text > 300, "no text in the panel ({text} bright pixels)");
     server.shutdown().await;
 }
 
-/// Runs the viewer until it converges, grabs its window, lets it exit; returns the window
-/// content, the viewer's standard output and how long it ran.
-fn run_viewer(
-    bin: &Path,
-    url: &str,
-    fingerprint: &str,
-    shot: &Path,
-    report: &Path,
-) -> (Xwd, String, f64) {
-    let (_xvfb, display) = start_xvfb();
+/// Runs `bin` with `args` on `display` until it prints that it converged, grabs its window, then
+/// closes its standard input and checks it exits 0; returns the window content, the viewer's
+/// standard output and how long it ran.
+fn run_viewer(bin: &Path, display: &str, args: &[OsString]) -> (Xwd, String, f64) {
     let runtime_dir = tempfile::tempdir().unwrap();
     std::fs::set_permissions(runtime_dir.path(), std::fs::Permissions::from_mode(0o700)).unwrap();
     let started = Instant::now();
     let mut viewer = Reaped(
         Command::new(bin)
-            .args(["view", "--server", url, "--cert-fingerprint", fingerprint])
-            .args(["--token", TOKEN, "--size", "256x192", "--seed", "7"])
-            .args(["--feedback-ratio", "4", "--backend", "auto", "--no-overlay"])
-            .arg("--screenshot")
-            .arg(shot)
-            .arg("--report")
-            .arg(report)
-            .args(["--exit-after-converged", "--hold-until-stdin-eof"])
-            .args(["--timeout-s", &CONVERGE_TIMEOUT.as_secs().to_string()])
-            .env("DISPLAY", &display)
+            .args(args)
+            .env("DISPLAY", display)
             .env_remove("WAYLAND_DISPLAY")
             .env("XDG_RUNTIME_DIR", runtime_dir.path())
             .env("RUST_LOG", "warn")
@@ -463,7 +531,7 @@ fn run_viewer(
     // The converged frame has been presented; later frames are the same picture.
     std::thread::sleep(Duration::from_millis(300));
     let xwd = Command::new("xwd")
-        .args(["-silent", "-display", &display, "-id", &format!("0x{id:x}")])
+        .args(["-silent", "-display", display, "-id", &format!("0x{id:x}")])
         .output()
         .expect("running xwd");
     assert!(
