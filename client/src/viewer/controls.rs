@@ -323,12 +323,12 @@ mod tests {
         assert!(close((moved.position - centre()).length(), d0));
         let to_centre = (centre() - moved.position).normalize();
         assert!(moved.forward.dot(to_centre) > 1.0 - 1e-12);
-        // 40 px right turned the azimuth by 40 · ROTATE_PER_PIXEL (leftwards), 20 px up lowered
-        // the elevation by 20 · ROTATE_PER_PIXEL.
+        // 40 px right turned the azimuth by 40 · ROTATE_PER_PIXEL (leftwards), 10 px up lowered
+        // the elevation by 10 · ROTATE_PER_PIXEL.
         let (a0, e0) = angles((start.position - centre()).normalize());
         let (a1, e1) = angles((moved.position - centre()).normalize());
         assert!(close(a0 - a1, 40.0 * ROTATE_PER_PIXEL), "{a0} {a1}");
-        assert!(close(e0 - e1, 20.0 * ROTATE_PER_PIXEL), "{e0} {e1}");
+        assert!(close(e0 - e1, 10.0 * ROTATE_PER_PIXEL), "{e0} {e1}");
     }
 
     #[test]
