@@ -285,7 +285,11 @@ async fn static_camera_converges_exactly_over_the_emulated_wan() {
     )
     .unwrap();
     run.image.save_png(out.join("wan.png")).unwrap();
-    eprintln!("{}\nreport, chart and image in {}", run.report.summary(), out.display());
+    eprintln!(
+        "{}\nreport, chart and image in {}",
+        run.report.summary(),
+        out.display()
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
