@@ -363,7 +363,9 @@ fn probe_scene(
             None => std::thread::sleep(Duration::from_millis(2)),
         }
     };
-    runtime.block_on(probe.close());
+    // Dropping closes in the background: the session does not wait for the probe's goodbye.
+    let _guard = runtime.enter();
+    drop(probe);
     result
 }
 
