@@ -163,10 +163,8 @@ fn cycles(
                 .camera_path
                 .camera(cycle, &frame, config.seed, config.width, config.height);
         let last = cycle + 1 == config.cycles;
-        // Whether this cycle ends the run is only known after it; render every cycle that
-        // might be the last one the caller keeps.
-        let render = last || config.until_converged || cycle % config.render_every == 0;
-        let step = session.step(
+        let render = last || cycle % config.render_every == 0;
+        let mut step = session.step(
             &camera,
             if render {
                 RenderMode::Image
@@ -175,17 +173,29 @@ fn cycles(
             },
             config.reference.as_ref(),
         )?;
+        let stop = last || (step.converged_now && config.until_converged);
+        if stop && step.image.is_none() {
+            // The run ends here: draw this cycle's frame after all.
+            let i = session.render(&camera);
+            if let Some(r) = &config.reference {
+                step.record.image_rmse =
+                    Some(i.rmse(r).map_err(|e| RunError::Reference(e.to_string()))?);
+                step.record.differing_share = Some(i.differing_share(r));
+            }
+            step.image = Some(i);
+        }
+        let rendered = step.image.is_some();
         if let Some(i) = step.image {
             image = i;
         }
         observer(&CycleView {
             record: &step.record,
             camera: &camera,
-            image: render.then_some(&image),
+            image: rendered.then_some(&image),
             slots: session.core().slots(),
         });
         report.records.push(step.record);
-        if last || (step.converged_now && config.until_converged) {
+        if stop {
             break;
         }
         if let Some(rest) = config.min_cycle.checked_sub(cycle_start.elapsed()) {

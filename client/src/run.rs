@@ -34,6 +34,8 @@ use crate::upload::{DEFAULT_FILL_RATIO, UploadPlan};
 
 /// Default per-cycle load limit (treelets inserted per cycle).
 pub const DEFAULT_LOAD_LIMIT: u32 = 256;
+/// Requests sent even when the slot buffer has no room (it still learns what it misses).
+pub const MIN_REQUESTS: usize = 16;
 /// Default cap on the request list.
 pub const DEFAULT_MAX_REQUESTS: usize = 4096;
 
@@ -306,6 +308,11 @@ impl ClientCore {
         for &s in &sorted.visible_slots {
             self.slots.mark_visible(s);
         }
+        // Ask for no more than could be inserted (a few always, so a full buffer still learns
+        // what it is missing): with an oversubscribed budget the rest would only be dropped.
+        let room = (self.slots.room() as usize).saturating_sub(self.backlog.len());
+        let mut requests = sorted.requests;
+        requests.truncate(room.max(MIN_REQUESTS));
         let presort = t1.elapsed();
         let errors: Vec<f32> = self
             .feedback
@@ -317,7 +324,7 @@ impl ClientCore {
         let ratio = f64::from(self.config.analysis.ratio);
         self.cycle += 1;
         Plan {
-            requests: sorted.requests.iter().map(|r| (r.id, r.priority)).collect(),
+            requests: requests.iter().map(|r| (r.id, r.priority)).collect(),
             distinct_requests: sorted.distinct_requests,
             samples: errors.len() as u32,
             error: ErrorSummary::from_samples(&errors, ratio * ratio),

@@ -260,6 +260,12 @@ impl Session {
         })
     }
 
+    /// Renders (and reads back) the current view outside a step, e.g. the frame of the cycle
+    /// that turned out to be the last.
+    pub fn render(&mut self, camera: &Camera) -> Image {
+        self.core.render(camera)
+    }
+
     /// Closes the connection gracefully.
     pub fn close(self, runtime: &tokio::runtime::Handle) -> ClientStats {
         let stats = self.client.stats();
@@ -357,7 +363,9 @@ fn probe_scene(
             None => std::thread::sleep(Duration::from_millis(2)),
         }
     };
-    runtime.block_on(probe.close());
+    // Dropping closes in the background: the session does not wait for the probe's goodbye.
+    let _guard = runtime.enter();
+    drop(probe);
     result
 }
 

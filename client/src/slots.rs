@@ -527,6 +527,21 @@ impl SlotBuffer {
         self.records[slot as usize].visibility
     }
 
+    /// Slots an insertion could use now: free ones plus those eviction may take (a treelet
+    /// and its parent both invisible). The core caps its request list to this, so an
+    /// oversubscribed buffer does not ask for treelets it would have to drop.
+    pub fn room(&self) -> u32 {
+        let evictable = self
+            .records
+            .iter()
+            .skip(1)
+            .filter(|r| {
+                !r.is_free() && r.visibility == 0 && self.records[r.parent as usize].visibility == 0
+            })
+            .count() as u32;
+        self.free.len() as u32 + evictable
+    }
+
     /// Starts a cycle: every slot's visibility ages by one, the load counter resets.
     pub fn begin_cycle(&mut self) {
         for r in &mut self.records {
