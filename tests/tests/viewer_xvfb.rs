@@ -28,6 +28,8 @@
 //! * **Overlay.** The second run, in the same X server, keeps the statistics overlay on: outside
 //!   its panel the window is still the reference within the same tolerance; inside, the panel
 //!   darkens the frame and carries text.
+//! * **Timeout.** A third run with `--timeout-s 1` cannot converge in time and must exit 1 with
+//!   a message saying so.
 
 use std::ffi::OsString;
 use std::io::{BufRead, BufReader, Read};
@@ -461,11 +463,11 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     // covers the top-left corner with text, the rest of the window is still the reference.
     let mut args = common;
     args.extend(["--backend".into(), "cpu".into()]);
+    let (bin2, display2) = (bin.clone(), display.clone());
     let (window, viewer_stdout, _) =
-        tokio::task::spawn_blocking(move || run_viewer(&bin, &display, &args))
+        tokio::task::spawn_blocking(move || run_viewer(&bin2, &display2, &args))
             .await
             .unwrap();
-    drop(xvfb);
     eprintln!("viewer output with the overlay:\n{viewer_stdout}");
     let (pw, ph) = Overlay::new().panel_size();
     let m = OVERLAY_MARGIN;
@@ -487,6 +489,58 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
         "the panel was not drawn: {panel:?}"
     );
     assert!(text > 300, "no text in the panel ({text} bright pixels)");
+
+    // A view that cannot converge in time fails with a message and status 1.
+    let args: Vec<OsString> = [
+        "view",
+        "--server",
+        &url,
+        "--cert-fingerprint",
+        &fingerprint,
+        "--token",
+        TOKEN,
+        "--size",
+        "256x192",
+        "--exit-after-converged",
+        "--timeout-s",
+        "1",
+    ]
+    .map(OsString::from)
+    .into();
+    let (code, stderr) = tokio::task::spawn_blocking(move || {
+        let runtime_dir = tempfile::tempdir().unwrap();
+        let mut viewer = Reaped(
+            Command::new(&bin)
+                .args(&args)
+                .env("DISPLAY", &display)
+                .env_remove("WAYLAND_DISPLAY")
+                .env("XDG_RUNTIME_DIR", runtime_dir.path())
+                .env("RUST_LOG", "error")
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .stderr(Stdio::piped())
+                .spawn()
+                .expect("launching arbor-client view"),
+        );
+        let mut stderr = String::new();
+        viewer
+            .0
+            .stderr
+            .take()
+            .unwrap()
+            .read_to_string(&mut stderr)
+            .unwrap();
+        (viewer.0.wait().unwrap().code(), stderr)
+    })
+    .await
+    .unwrap();
+    drop(xvfb);
+    eprintln!(
+        "viewer with a 1 s timeout: exit {code:?}, {}",
+        stderr.trim()
+    );
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(stderr.contains("did not converge within 1.0 s"), "{stderr}");
     server.shutdown().await;
 }
 
