@@ -16,6 +16,7 @@ pub mod analysis;
 pub mod backend;
 pub mod camera;
 pub mod chart;
+pub mod gpu;
 pub mod image;
 pub mod incore;
 pub mod net;
