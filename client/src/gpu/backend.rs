@@ -162,7 +162,10 @@ fn read_mapped(device: &wgpu::Device, buffer: &wgpu::Buffer, len: u64) -> Vec<u8
     let state = Arc::new(AtomicU8::new(MAP_PENDING));
     let s = state.clone();
     slice.map_async(wgpu::MapMode::Read, move |r| {
-        s.store(if r.is_ok() { MAP_READY } else { MAP_FAILED }, Ordering::Release);
+        s.store(
+            if r.is_ok() { MAP_READY } else { MAP_FAILED },
+            Ordering::Release,
+        );
     });
     device
         .poll(wgpu::PollType::wait_indefinitely())
@@ -289,7 +292,8 @@ impl GpuBackend {
         let mut arrays: Vec<(&wgpu::Buffer, &[u8], u64)> =
             vec![(&store.nodes, node_bytes, std::mem::size_of::<Node>() as u64)];
         for &c in &store.channels {
-            if let (Some(buffer), Some(data)) = (&store.attributes[channel_slot(c)], view.channel(c))
+            if let (Some(buffer), Some(data)) =
+                (&store.attributes[channel_slot(c)], view.channel(c))
             {
                 arrays.push((buffer, data, c.size() as u64));
             }
@@ -439,9 +443,10 @@ impl GpuBackend {
         out.height = size.1;
         out.offset = offset;
         out.samples.clear();
-        out.samples.extend_from_slice(bytemuck::cast_slice::<u8, FeedbackSample>(
-            &bytes[..count * std::mem::size_of::<FeedbackSample>()],
-        ));
+        out.samples
+            .extend_from_slice(bytemuck::cast_slice::<u8, FeedbackSample>(
+                &bytes[..count * std::mem::size_of::<FeedbackSample>()],
+            ));
     }
 
     /// The analysis pass of `cycle`, waiting for its result (not pipelined): what
@@ -650,9 +655,7 @@ impl GpuBackend {
         let store = self.store.as_ref()?;
         let buffer = store.attributes[channel_slot(channel)].as_ref()?;
         let mut bytes = self.read_back(buffer);
-        bytes.truncate(
-            store.capacity as usize * store.treelet_nodes as usize * channel.size(),
-        );
+        bytes.truncate(store.capacity as usize * store.treelet_nodes as usize * channel.size());
         Some(bytes)
     }
 
@@ -723,7 +726,10 @@ impl Backend for GpuBackend {
         s.state.store(MAP_PENDING, Ordering::Release);
         let state = s.state.clone();
         s.buffer.slice(..).map_async(wgpu::MapMode::Read, move |r| {
-            state.store(if r.is_ok() { MAP_READY } else { MAP_FAILED }, Ordering::Release);
+            state.store(
+                if r.is_ok() { MAP_READY } else { MAP_FAILED },
+                Ordering::Release,
+            );
         });
         let _ = self.ctx.device.poll(wgpu::PollType::Poll);
     }

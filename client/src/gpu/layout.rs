@@ -148,7 +148,12 @@ impl FrameUniform {
             0.0,
         ];
         u.image = [camera.width, camera.height, 0, 0];
-        u.sampling = [1, 0, 0, u32::from(lod.max_depth.min(arbor_proto::limits::MAX_DEPTH))];
+        u.sampling = [
+            1,
+            0,
+            0,
+            u32::from(lod.max_depth.min(arbor_proto::limits::MAX_DEPTH)),
+        ];
         let mut flags = 0;
         if valid {
             flags |= FLAG_VALID;
