@@ -96,6 +96,26 @@ struct FeedbackBuffers {
     blocking: wgpu::Buffer,
 }
 
+/// Timestamp queries around the two passes (when the device has `TIMESTAMP_QUERY`).
+#[derive(Debug)]
+struct Timestamps {
+    /// Begin and end of the analysis pass (0, 1) and of the render pass (2, 3).
+    set: wgpu::QuerySet,
+    /// Resolved ticks: analysis at 0, render at [`wgpu::QUERY_RESOLVE_BUFFER_ALIGNMENT`].
+    resolve: wgpu::Buffer,
+    /// Nanoseconds per tick.
+    period: f32,
+}
+
+/// GPU time of the last analysis and render passes, from timestamp queries.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PassTimes {
+    /// Milliseconds of the last analysis pass (0 if none ran since timing was enabled).
+    pub analysis_ms: f64,
+    /// Milliseconds of the last render pass (0 if none ran since timing was enabled).
+    pub render_ms: f64,
+}
+
 #[derive(Debug)]
 struct Target {
     size: (u32, u32),
@@ -115,6 +135,7 @@ pub struct GpuBackend {
     feedback: Option<FeedbackBuffers>,
     target: Option<Target>,
     serial: u64,
+    timestamps: Option<Timestamps>,
     /// Upload counters.
     pub stats: UploadStats,
 }
@@ -200,9 +221,65 @@ impl GpuBackend {
             feedback: None,
             target: None,
             serial: 0,
+            timestamps: None,
             stats: UploadStats::default(),
             ctx,
         }
+    }
+
+    /// Turns on timestamp queries around both passes if the device supports them (the
+    /// benchmark's GPU timings); returns whether it did.
+    pub fn enable_pass_timing(&mut self) -> bool {
+        if !self
+            .ctx
+            .device
+            .features()
+            .contains(wgpu::Features::TIMESTAMP_QUERY)
+        {
+            return false;
+        }
+        let device = &self.ctx.device;
+        let set = device.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("pass timestamps"),
+            ty: wgpu::QueryType::Timestamp,
+            count: 4,
+        });
+        let resolve = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("pass timestamps"),
+            size: 2 * wgpu::QUERY_RESOLVE_BUFFER_ALIGNMENT,
+            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        self.timestamps = Some(Timestamps {
+            set,
+            resolve,
+            period: self.ctx.queue.get_timestamp_period(),
+        });
+        true
+    }
+
+    /// GPU times of the last passes (waits for the GPU); `None` unless
+    /// [`enable_pass_timing`](GpuBackend::enable_pass_timing) succeeded.
+    pub fn pass_times(&self) -> Option<PassTimes> {
+        let ts = self.timestamps.as_ref()?;
+        let bytes = self.read_back(&ts.resolve);
+        let tick = |at: usize| u64::from_le_bytes(bytes[at..at + 8].try_into().expect("8 bytes"));
+        let ms = |base: usize| {
+            let (a, b) = (tick(base), tick(base + 8));
+            b.saturating_sub(a) as f64 * f64::from(ts.period) * 1e-6
+        };
+        Some(PassTimes {
+            analysis_ms: ms(0),
+            render_ms: ms(wgpu::QUERY_RESOLVE_BUFFER_ALIGNMENT as usize),
+        })
+    }
+
+    /// Waits until the GPU has finished everything submitted (benchmarks).
+    pub fn finish(&self) {
+        self.ctx
+            .device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .expect("waiting for the GPU");
     }
 
     /// The device this backend runs on.
@@ -426,11 +503,20 @@ impl GpuBackend {
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some(shaders::ANALYSIS_ENTRY),
-                timestamp_writes: None,
+                timestamp_writes: self.timestamps.as_ref().map(|t| {
+                    wgpu::ComputePassTimestampWrites {
+                        query_set: &t.set,
+                        beginning_of_pass_write_index: Some(0),
+                        end_of_pass_write_index: Some(1),
+                    }
+                }),
             });
             pass.set_pipeline(&self.analysis);
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(size.0.div_ceil(8), size.1.div_ceil(8), 1);
+        }
+        if let Some(t) = &self.timestamps {
+            enc.resolve_query_set(&t.set, 0..2, &t.resolve, 0);
         }
         enc.copy_buffer_to_buffer(&fb.storage, 0, staging, 0, fb.storage.size());
         self.ctx.queue.submit([enc.finish()]);
@@ -607,11 +693,25 @@ impl GpuBackend {
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some(shaders::RENDER_ENTRY),
-                timestamp_writes: None,
+                timestamp_writes: self.timestamps.as_ref().map(|t| {
+                    wgpu::ComputePassTimestampWrites {
+                        query_set: &t.set,
+                        beginning_of_pass_write_index: Some(2),
+                        end_of_pass_write_index: Some(3),
+                    }
+                }),
             });
             pass.set_pipeline(&self.render);
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(size.0.div_ceil(8), size.1.div_ceil(8), 1);
+        }
+        if let Some(t) = &self.timestamps {
+            enc.resolve_query_set(
+                &t.set,
+                2..4,
+                &t.resolve,
+                wgpu::QUERY_RESOLVE_BUFFER_ALIGNMENT,
+            );
         }
         if let Some((buffer, row)) = readback {
             enc.copy_texture_to_buffer(

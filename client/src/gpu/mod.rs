@@ -14,7 +14,7 @@ pub mod backend;
 pub mod context;
 pub mod layout;
 
-pub use backend::{GpuBackend, UploadStats};
+pub use backend::{GpuBackend, PassTimes, UploadStats};
 pub use context::{GpuContext, GpuError};
 pub use layout::FrameUniform;
 
