@@ -59,7 +59,7 @@ fn mixed_scene(seed: u64) -> (Buffer, Reference, SceneFrame) {
 fn paint(b: &mut Buffer) {
     b.paint(|c| {
         [
-            (c.x.wrapping_mul(53) ^ u32::from(c.depth) * 31) as u8,
+            (c.x.wrapping_mul(53) ^ (u32::from(c.depth) * 31)) as u8,
             (c.y.wrapping_mul(97) + 40) as u8,
             (c.z.wrapping_mul(29) + 200) as u8,
         ]

@@ -201,7 +201,7 @@ fn uploads_keep_the_gpu_buffer_equal_to_the_slot_buffer() {
                 .filter(|&s| slots.treelet_in(s).is_some())
                 .collect();
             for &slot in &resident {
-                if rng.next_u64() % 8 == 0 {
+                if rng.next_u64().is_multiple_of(8) {
                     let mut x = Some(slot);
                     while let Some(y) = x {
                         slots.mark_visible(y);

@@ -289,7 +289,9 @@ impl GpuBackend {
 
     /// Largest bytes one storage binding (and one buffer) may hold on this device.
     pub fn max_binding_bytes(&self) -> u64 {
-        u64::from(self.ctx.limits.max_storage_buffer_binding_size)
+        self.ctx
+            .limits
+            .max_storage_buffer_binding_size
             .min(self.ctx.limits.max_buffer_size)
     }
 
@@ -403,7 +405,8 @@ impl GpuBackend {
 
     fn upload_all(&mut self, view: &IncoreView<'_>) {
         let slots = self.store.as_ref().map_or(0, |s| s.capacity);
-        self.write_ranges(view, &[0..slots]);
+        let everything = std::iter::once(0..slots).collect::<Vec<_>>();
+        self.write_ranges(view, &everything);
         self.stats.full_uploads += 1;
     }
 
@@ -577,10 +580,8 @@ impl GpuBackend {
         let mut newest: Option<usize> = None;
         for (i, s) in fb.staging.iter().enumerate() {
             match s.state.load(Ordering::Acquire) {
-                MAP_READY => {
-                    if newest.is_none_or(|n| fb.staging[n].serial < s.serial) {
-                        newest = Some(i);
-                    }
+                MAP_READY if newest.is_none_or(|n| fb.staging[n].serial < s.serial) => {
+                    newest = Some(i);
                 }
                 MAP_FAILED => s.state.store(MAP_IDLE, Ordering::Release),
                 _ => {}
