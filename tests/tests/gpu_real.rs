@@ -16,11 +16,13 @@ mod gpu_compare;
 
 use std::collections::BTreeMap;
 
+use arbor_client::analysis::{AnalysisConfig, Feedback};
 use arbor_client::backend::Backend;
 use arbor_client::camera::{Camera, DEFAULT_DISTANCE_FACTOR, DEFAULT_FOV_Y, SplitMix64, WORLD_UP};
 use arbor_client::gpu::GpuBackend;
 use arbor_client::incore::SceneFrame;
 use arbor_client::proto::{Channel, SceneDescription};
+use arbor_client::render::Light;
 use arbor_client::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
 use arbor_client::upload::{DEFAULT_FILL_RATIO, UploadPlan};
 use arbor_server::build::{BuildOptions, DepthChoice};
@@ -267,4 +269,69 @@ fn uploads_keep_the_gpu_buffer_equal_to_the_slot_buffer() {
             "fill {fill}: {calls} calls, {bytes} bytes for {dirty} dirty bytes over 13 cycles"
         );
     }
+}
+
+/// The [`Backend`] methods the client core calls: the first upload allocates and uploads
+/// everything, `analyse` hands back the *previous* cycle's feedback (pipelined, never waiting;
+/// here the test waits between cycles so it has completed), `render` and `render_in_place`.
+#[test]
+fn backend_trait_pipelines_feedback_by_one_cycle() {
+    let ctx = gpu()
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .context()
+        .clone();
+    let scan = load("lion", 8);
+    let channels = scan.scene.layout.channels().to_vec();
+    let frame = SceneFrame::of(&scan.scene);
+    let slots = partial(&scan, &channels, scan.treelets.len() / 2);
+    let mut backend = GpuBackend::new(ctx.clone());
+    let mut reference = GpuBackend::new(ctx);
+    let max = backend.max_slots(scan.scene.treelet_nodes, &channels);
+    println!(
+        "max slots of N = {}: {max} ({} bytes per binding)",
+        scan.scene.treelet_nodes,
+        backend.max_binding_bytes()
+    );
+    assert_eq!(
+        u64::from(max),
+        backend.max_binding_bytes() / (u64::from(scan.scene.treelet_nodes) * 8)
+    );
+    let config = AnalysisConfig {
+        ratio: 8,
+        lod_bias: 1.0,
+    };
+    let cams = cameras(&frame, 5);
+    let mut out = Feedback::default();
+    backend.analyse(&slots, &frame, &cams[0], &config, 0, &mut out);
+    assert!(
+        out.samples.is_empty(),
+        "no feedback before the first read-back"
+    );
+    assert_eq!(backend.stats.full_uploads, 1);
+    for cycle in 1..5u64 {
+        backend.finish();
+        let cam = &cams[cycle as usize % cams.len()];
+        backend.analyse(&slots, &frame, cam, &config, cycle, &mut out);
+        let prev = &cams[(cycle - 1) as usize % cams.len()];
+        let mut expected = Feedback::default();
+        reference.analyse_blocking(&slots, &frame, prev, &config, cycle - 1, &mut expected);
+        assert_eq!(
+            out,
+            expected,
+            "cycle {cycle} returns cycle {}'s feedback",
+            cycle - 1
+        );
+        assert!(out.samples.iter().any(|s| s.is_hit()));
+    }
+    let light = Light::default();
+    let image = backend.render(&slots, &frame, &cams[0], 1.0, &light);
+    assert_eq!(
+        image,
+        reference.render(&slots, &frame, &cams[0], 1.0, &light)
+    );
+    assert!(image.coverage() > 0);
+    assert!(backend.render_in_place(&slots, &frame, &cams[1], 1.0, &light));
+    assert!(backend.target_view().is_some());
+    assert_eq!(backend.stats.full_uploads, 1);
 }
