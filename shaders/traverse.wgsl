@@ -29,8 +29,11 @@
 // (2^-24 units). Rays that the CPU twin finds tied between two voxels within those errors
 // (rays through voxel edges and corners, grazing silhouettes) may pick the other voxel here;
 // the tests measure how often. Limits: the camera must lie within 2^61 units (2^30 root
-// edges) of the root, else the frame is marked invalid and every ray misses; `t` is output in
-// world units as `t_units · (edge / 2^31)`, which is exact up to one rounding.
+// edges) of the root, else the frame is marked invalid and every ray misses; the pixel angle
+// (times the LOD bias) must stay well above 2^-24 rad ≈ 6e-8 — below it neither an f32 ray
+// direction nor a face coordinate at the distance where such a pixel still spans a voxel
+// resolves the pixel (a whole scene framed from 10^6 edges away; `gpu_twin` measures it);
+// `t` is output in world units as `t_units · (edge / 2^31)`, exact up to one rounding.
 //
 // Sizes in units are exact powers of two (`2^(31 − d)`), so the LOD test
 // `size ≤ t · pixel_angle · lod_bias` and the screen error
@@ -155,6 +158,14 @@ fn face(f: u32, a: u32) -> f32 {
 
 // Step 2: slab test of the camera-relative box `[lo, hi]` along `dir`.
 fn slab(lo: vec3<f32>, hi: vec3<f32>, dir: vec3<f32>) -> Slab {
+    return slab_with(lo, hi, lo / dir, hi / dir, dir);
+}
+
+// `slab` with the face distances `t_lo = lo / dir`, `t_hi = hi / dir` given: the children of
+// one node share their faces, so the traversal divides 9 face coordinates per node instead of
+// 6 per child (the same quotients, so the same results). Components where `dir` is 0 are not
+// read.
+fn slab_with(lo: vec3<f32>, hi: vec3<f32>, t_lo: vec3<f32>, t_hi: vec3<f32>, dir: vec3<f32>) -> Slab {
     var t_enter = -BIG;
     var t_exit = BIG;
     var entry_axis = 0u;
@@ -172,12 +183,12 @@ fn slab(lo: vec3<f32>, hi: vec3<f32>, dir: vec3<f32>) -> Slab {
         var far: f32;
         var sign: f32;
         if d > 0.0 {
-            near = lo[a] / d;
-            far = hi[a] / d;
+            near = t_lo[a];
+            far = t_hi[a];
             sign = -1.0;
         } else {
-            near = hi[a] / d;
-            far = lo[a] / d;
+            near = t_hi[a];
+            far = t_lo[a];
             sign = 1.0;
         }
         if near > t_enter {
@@ -290,6 +301,9 @@ fn trace(ray: Ray) -> Hit {
         let ms = MAX_DEPTH - child_depth;
         let mc = cell * 2u + vec3<u32>(1u);
         let mid = vec3<f32>(face(mc.x << ms, 0u), face(mc.y << ms, 1u), face(mc.z << ms, 2u));
+        let t_lo = lo / dir;
+        let t_mid = mid / dir;
+        let t_hi = hi / dir;
 
         // Pick the nearest remaining child that is hit and could beat the best hit.
         var remaining = mask;
@@ -304,7 +318,13 @@ fn trace(ray: Ray) -> Hit {
             }
             let bits = vec3<u32>((i >> 2u) & 1u, (i >> 1u) & 1u, i & 1u);
             let upper = bits == vec3<u32>(1u);
-            let s = slab(select(lo, mid, upper), select(mid, hi, upper), dir);
+            let s = slab_with(
+                select(lo, mid, upper),
+                select(mid, hi, upper),
+                select(t_lo, t_mid, upper),
+                select(t_mid, t_hi, upper),
+                dir,
+            );
             if !s.hit {
                 remaining &= ~(1u << i);
                 continue;
