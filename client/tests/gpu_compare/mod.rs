@@ -11,9 +11,9 @@
 //! traversal of the GPU's f32 ray ([`gpu_ray`]).
 //!
 //! - Against B (same ray, f32 arithmetic only): `|Δt| ≤ T_REL·t + T_ABS·edge` (measured at most
-//!   1.7e-7·t on the real scans, 1.1e-7·t on the synthetic ones: two or three f32 roundings) and `|Δerror| ≤ E_ABS` levels (measured 3.8e-6:
-//!   f32 `log2` of a ~30-level quantity); the pixel colour within `CHANNEL_SAME` of B's shading
-//!   (measured 0).
+//!   1.7e-7·t on the real scans, 1.1e-7·t on the synthetic ones: two or three f32 roundings)
+//!   and `|Δerror| ≤ E_ABS` levels (measured 3.8e-6: f32 `log2` of a ~30-level quantity); the
+//!   pixel colour within `CHANNEL_SAME` of B's shading (measured 0).
 //! - Against A where the node agrees: `|Δt|/t ≤ T_REL_RAY` (measured 1.9e-5) and
 //!   `|Δerror| ≤ E_ABS_RAY` (measured 2.9e-5, both from the cameras 1e-9 edges off a face,
 //!   looking along it). Larger than against B because the f32 direction is off by up to
