@@ -11,7 +11,8 @@
 //! traversal of the GPU's f32 ray ([`gpu_ray`]).
 //!
 //! - Against B (same ray, f32 arithmetic only): `|Δt| ≤ T_REL·t + T_ABS·edge` (measured at most
-//!   1.7e-7·t on the real scans, 1.1e-7·t on the synthetic ones: two or three f32 roundings)
+//!   1.7e-7·t with lavapipe's Vulkan backend, 2.7e-7·t with its GL backend: two or three f32
+//!   roundings, GPU division being allowed 2.5 ulps)
 //!   and `|Δerror| ≤ E_ABS` levels (measured 3.8e-6: f32 `log2` of a ~30-level quantity); the
 //!   pixel colour within `CHANNEL_SAME` of B's shading (measured 0).
 //! - Against A where the node agrees: `|Δt|/t ≤ T_REL_RAY` (measured 1.9e-5) and
@@ -55,8 +56,9 @@ pub fn gpu() -> &'static Mutex<GpuBackend> {
     })
 }
 
-/// Relative tolerance of `t` against the CPU on the same ray (measured 1.7e-7).
-pub const T_REL: f64 = 2.5e-7;
+/// Relative tolerance of `t` against the CPU on the same ray (measured 1.7e-7 on Vulkan,
+/// 2.7e-7 on GL).
+pub const T_REL: f64 = 5e-7;
 /// Absolute tolerance of `t`, in root edges (the camera fraction is rounded to 2^-24 units).
 pub const T_ABS: f64 = 1e-9;
 /// Tolerance of the screen error against the CPU on the same ray, in levels (measured 3.8e-6).
