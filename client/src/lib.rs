@@ -7,6 +7,9 @@
 //! fixes the formats it will read; they live in [`arbor_proto`], re-exported here so client code
 //! names one crate.
 //!
+//! [`gpu`] runs the analysis pass, the slot upload and the render pass on wgpu (WGSL twins of
+//! [`trace`], [`analysis`] and [`render`]); [`backend::CpuBackend`] runs the CPU twins.
+//!
 //! [`net`] is the connection to a treelet server (DESIGN §6): `quic://HOST:PORT/SCENE` URLs, a
 //! pinned certificate fingerprint or a CA, `Hello`, request lists, treelets received as events
 //! with decoded headers and per-treelet latency, bounded buffering with backpressure, and
@@ -17,6 +20,7 @@ mod assets;
 pub mod backend;
 pub mod camera;
 pub mod chart;
+pub mod gpu;
 pub mod headless;
 pub mod image;
 pub mod incore;
