@@ -11,9 +11,10 @@
 //! * **cpu** — the CPU twins render an [`Image`](crate::image::Image) each cycle and the
 //!   viewer uploads it into its own `rgba8unorm` texture. Needs a wgpu device only for the
 //!   blit, and is the fallback wherever the GPU renderer cannot run.
-//! * **gpu** — the wgpu renderer draws in place into its own target texture, which the blit
-//!   samples directly (no read-back). It is not part of this build yet: asking for it is an
-//!   error and `auto` picks cpu.
+//! * **gpu** (and **auto**) — the wgpu renderer ([`GpuBackend`](crate::gpu::GpuBackend)) draws
+//!   in place into its own target texture, which the blit samples directly (no read-back). It
+//!   shares the window's [`GpuContext`](crate::gpu::GpuContext), opened on the instance that
+//!   made the surface.
 //!
 //! For automated runs: `--screenshot` is written when the view converges with the camera never
 //! moved, `converged at cycle N` is printed then, `--exit-after-converged` ends the run there
@@ -36,7 +37,7 @@ pub use window::run;
 /// Which renderer draws the frames.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum BackendChoice {
-    /// The GPU renderer when this build and the adapter support it, else the CPU one.
+    /// The GPU renderer (the window's adapter draws anyway).
     #[default]
     Auto,
     /// The GPU renderer or an error.

@@ -15,6 +15,7 @@ use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
 use crate::backend::{Backend, CpuBackend};
+use crate::gpu::{GpuBackend, GpuContext};
 use crate::image::Image;
 use crate::report::{RunMeta, RunReport};
 use crate::session::{RenderMode, Session};
@@ -105,22 +106,11 @@ struct App {
     outcome: Option<Outcome>,
 }
 
-/// The device and queue the viewer draws with (and, for the GPU renderer, renders with).
-struct WindowGpu {
-    adapter: wgpu::Adapter,
-    device: wgpu::Device,
-    queue: wgpu::Queue,
-}
-
 /// Where each cycle's frame comes from.
 enum FrameSource {
     /// A CPU [`Image`] uploaded into the viewer's own texture.
     Upload(FrameTexture),
     /// The backend's own target ([`Backend::target_view`]).
-    #[expect(
-        dead_code,
-        reason = "made by the GPU renderer, which is not in this build yet"
-    )]
     InPlace,
 }
 
@@ -136,7 +126,8 @@ struct Running {
     surface: wgpu::Surface<'static>,
     window: Arc<Window>,
     surface_config: wgpu::SurfaceConfiguration,
-    gpu: WindowGpu,
+    /// The device the blit draws with, shared with the GPU renderer.
+    gpu: Arc<GpuContext>,
     blit: Blit,
     source: FrameSource,
     session: Session,
@@ -227,34 +218,18 @@ impl App {
                 .create_window(attributes)
                 .map_err(|e| ViewerError::Window(e.to_string()))?,
         );
-        let instance =
-            wgpu::Instance::new(wgpu::InstanceDescriptor::new_with_display_handle_from_env(
-                Box::new(event_loop.owned_display_handle()),
-            ));
+        let desc = wgpu::InstanceDescriptor::new_with_display_handle_from_env(Box::new(
+            event_loop.owned_display_handle(),
+        ));
+        let backends = desc.backends;
+        let instance = wgpu::Instance::new(desc);
         let surface = instance
             .create_surface(window.clone())
             .map_err(|e| ViewerError::Gpu(format!("creating the window surface: {e}")))?;
-        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
-            power_preference: wgpu::PowerPreference::HighPerformance,
-            force_fallback_adapter: false,
-            compatible_surface: Some(&surface),
-            apply_limit_buckets: false,
-        }))
-        .map_err(|e| ViewerError::Gpu(format!("no adapter can draw to this window: {e}")))?;
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("arbor viewer"),
-            required_features: wgpu::Features::empty(),
-            required_limits: adapter.limits(),
-            experimental_features: wgpu::ExperimentalFeatures::default(),
-            memory_hints: wgpu::MemoryHints::Performance,
-            trace: wgpu::Trace::Off,
-        }))
-        .map_err(|e| ViewerError::Gpu(format!("creating the device: {e}")))?;
-        let gpu = WindowGpu {
-            adapter,
-            device,
-            queue,
-        };
+        let gpu = Arc::new(
+            GpuContext::with_instance(instance, backends, Some(&surface))
+                .map_err(|e| ViewerError::Gpu(e.to_string()))?,
+        );
         let caps = surface.get_capabilities(&gpu.adapter);
         let (format, decode_srgb) = choose_surface_format(&caps.formats)
             .ok_or_else(|| ViewerError::Gpu("the surface offers no format".into()))?;
@@ -275,7 +250,7 @@ impl App {
         let blit = Blit::new(&gpu.device, format, decode_srgb, overlay.panel_size());
 
         let (backend, source) =
-            self.make_backend(&gpu, (surface_config.width, surface_config.height))?;
+            self.make_backend(&gpu, (surface_config.width, surface_config.height));
         let session = Session::connect(self.config.session.clone(), &self.runtime, backend)?;
         let backend = session.core().backend_name();
         let frame = *session.core().frame();
@@ -296,13 +271,12 @@ impl App {
             records: Vec::new(),
         };
         println!(
-            "window 0x{:x} {}x{} surface {:?}{} backend {backend} adapter {}",
+            "window 0x{:x} {}x{} surface {:?}{} backend {backend}",
             u64::from(window.id()),
             surface_config.width,
             surface_config.height,
             format,
             if decode_srgb { " (decoding sRGB)" } else { "" },
-            gpu.adapter.get_info().name,
         );
         let now = Instant::now();
         Ok(Running {
@@ -333,17 +307,17 @@ impl App {
     /// The renderer for the configured [`BackendChoice`], and where its frames are read.
     fn make_backend(
         &self,
-        gpu: &WindowGpu,
+        gpu: &Arc<GpuContext>,
         size: (u32, u32),
-    ) -> Result<(Box<dyn Backend>, FrameSource), ViewerError> {
+    ) -> (Box<dyn Backend>, FrameSource) {
         match self.config.backend {
-            BackendChoice::Gpu => Err(ViewerError::Gpu(
-                "this build has no GPU renderer yet; use --backend cpu (or auto)".into(),
-            )),
-            BackendChoice::Auto | BackendChoice::Cpu => Ok((
+            BackendChoice::Gpu | BackendChoice::Auto => {
+                (Box::new(GpuBackend::new(gpu.clone())), FrameSource::InPlace)
+            }
+            BackendChoice::Cpu => (
                 Box::new(CpuBackend),
                 FrameSource::Upload(FrameTexture::new(&gpu.device, size.0, size.1)),
-            )),
+            ),
         }
     }
 
