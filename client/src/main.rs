@@ -173,7 +173,8 @@ struct ViewArgs {
     /// Feedback buffer is 1/n of the frame per axis.
     #[arg(long, default_value_t = DEFAULT_FEEDBACK_RATIO)]
     feedback_ratio: u32,
-    /// Renderer: auto, gpu or cpu (CPU frames uploaded to the window).
+    /// Renderer: gpu (wgpu, in place), cpu (CPU frames uploaded to the window) or auto (gpu on
+    /// a hardware adapter, cpu on a software one such as lavapipe).
     #[arg(long, default_value = "auto")]
     backend: String,
     /// Start with the statistics overlay hidden (H toggles it).

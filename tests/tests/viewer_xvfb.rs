@@ -22,9 +22,9 @@
 //!   by more (the GPU renderer's f32 against the CPU's f64 at voxel edges). The screenshot
 //!   (the frame texture read back) is held to the same. The CPU backend is exact (0). The run
 //!   report must show many frames drawn while treelets were still arriving.
-//! * **Backends.** The first run uses `--backend auto` (the GPU renderer where the build has
-//!   it), the second `--backend cpu` (CPU frames uploaded each cycle), so both frame paths
-//!   reach the window.
+//! * **Backends.** The first run uses `--backend gpu` (the wgpu renderer, drawn in place and
+//!   sampled by the blit), the second `--backend cpu` (CPU frames uploaded each cycle), so both
+//!   frame paths reach the window.
 //! * **Overlay.** The second run, in the same X server, keeps the statistics overlay on: outside
 //!   its panel the window is still the reference within the same tolerance; inside, the panel
 //!   darkens the frame and carries text.

@@ -310,11 +310,13 @@ impl App {
         gpu: &Arc<GpuContext>,
         size: (u32, u32),
     ) -> (Box<dyn Backend>, FrameSource) {
+        let software = gpu.info.device_type == wgpu::DeviceType::Cpu;
         match self.config.backend {
-            BackendChoice::Gpu | BackendChoice::Auto => {
+            BackendChoice::Gpu => (Box::new(GpuBackend::new(gpu.clone())), FrameSource::InPlace),
+            BackendChoice::Auto if !software => {
                 (Box::new(GpuBackend::new(gpu.clone())), FrameSource::InPlace)
             }
-            BackendChoice::Cpu => (
+            BackendChoice::Auto | BackendChoice::Cpu => (
                 Box::new(CpuBackend),
                 FrameSource::Upload(FrameTexture::new(&gpu.device, size.0, size.1)),
             ),
