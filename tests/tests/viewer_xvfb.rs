@@ -373,6 +373,8 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     .into();
     let mut args = common.clone();
     args.extend([
+        "--backend".into(),
+        "gpu".into(),
         "--no-overlay".into(),
         "--screenshot".into(),
         shot.clone().into(),

@@ -16,8 +16,8 @@
 //!   window's [`GpuContext`](crate::gpu::GpuContext), opened on the instance that made the
 //!   surface.
 //! * **auto** — gpu on a hardware adapter, cpu on a software one (Mesa's lavapipe): on the
-//!   2-core build machine the CPU twins drew a 256×192 view in 57–99 ms a frame, lavapipe in
-//!   ~130 ms.
+//!   2-core build machine (sharing it with compiles) a 256×192 frame took 41–99 ms with the CPU
+//!   twins and 84–133 ms on lavapipe, in the same runs of `tests/tests/viewer_xvfb.rs`.
 //!
 //! For automated runs: `--screenshot` is written when the view converges with the camera never
 //! moved, `converged at cycle N` is printed then, `--exit-after-converged` ends the run there
