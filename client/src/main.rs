@@ -6,8 +6,9 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use arbor_client::analysis::{AnalysisConfig, DEFAULT_FEEDBACK_RATIO};
+use arbor_client::backend::{Backend, BackendChoice, create_backend};
 use arbor_client::camera::CameraPath;
-use arbor_client::headless::{HeadlessConfig, run_headless};
+use arbor_client::headless::{HeadlessConfig, run_headless_with};
 use arbor_client::image::Image;
 use arbor_client::net::{ClientConfig, Trust, parse_server_url};
 use arbor_client::presort::PriorityPolicy;
@@ -101,6 +102,10 @@ struct View {
     /// Scales the pixel footprint of the LOD test (>1 coarser).
     #[arg(long, default_value_t = 1.0)]
     lod_bias: f64,
+    /// Where the analysis and render passes run: auto (the GPU when an adapter exists, software
+    /// ones included; else the CPU reference, said on stderr), gpu, or cpu.
+    #[arg(long, default_value = "auto")]
+    backend: String,
 }
 
 #[derive(Args, Debug)]
@@ -372,7 +377,8 @@ fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         until_converged: a.until_converged,
         render_every: a.render_every,
     };
-    let run = run_headless(config, runtime)?;
+    let backend = backend(&a.view.backend)?;
+    let run = run_headless_with(config, runtime, backend, |_| {})?;
     run.image
         .save_png(&a.out)
         .with_context(|| format!("writing {}", a.out.display()))?;
@@ -389,6 +395,7 @@ fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         arbor_client::chart::draw(&run.report, path, &title)
             .with_context(|| format!("drawing {}", path.display()))?;
     }
+    println!("backend: {}", run.backend);
     println!("{}", run.report.summary());
     println!(
         "slots: peak {} of {} ({} B each, {:.2} MiB)",
@@ -419,6 +426,7 @@ fn reference(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
     )?;
     let frame = arbor_client::incore::SceneFrame::of(&scene);
     let camera = camera_path.camera(a.cycle, &frame, a.view.seed, width, height);
+    let mut backend = backend(&a.view.backend)?;
     let image = reference_image(
         &scene,
         &channels,
@@ -426,18 +434,32 @@ fn reference(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         &camera,
         a.view.lod_bias,
         &Light::default(),
+        backend.as_mut(),
     )?;
     image
         .save_png(&a.out)
         .with_context(|| format!("writing {}", a.out.display()))?;
     println!(
-        "reference of {} ({} treelets) at cycle {} of {}: {} covered pixels → {}",
+        "reference of {} ({} treelets) on {} at cycle {} of {}: {} covered pixels → {}",
         scene.name,
         scene.treelet_count,
+        backend.name(),
         a.cycle,
         a.view.camera_path,
         image.coverage(),
         a.out.display()
     );
     Ok(())
+}
+
+/// Makes the backend `--backend` names, saying on stderr when `auto` falls back to the CPU.
+fn backend(text: &str) -> Result<Box<dyn Backend>> {
+    let choice = BackendChoice::parse(text)
+        .with_context(|| format!("backend {text:?} (auto, gpu or cpu)"))?;
+    let chosen = create_backend(choice).context("opening the GPU")?;
+    if let Some(reason) = &chosen.fallback {
+        eprintln!("note: no GPU adapter, falling back to the CPU reference renderer: {reason}");
+    }
+    eprintln!("backend: {}", chosen.backend.name());
+    Ok(chosen.backend)
 }

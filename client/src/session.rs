@@ -16,10 +16,11 @@ use crate::camera::Camera;
 use crate::image::Image;
 use crate::incore::SceneFrame;
 use crate::net::{ClientConfig, ClientEvent, ClientStats, TreeletClient};
-use crate::render::{Light, render};
+use crate::render::Light;
 use crate::report::CycleRecord;
 use crate::run::{ClientCore, CoreConfig, RunError};
 use crate::slots::{DecodedTreelet, SlotBuffer};
+use crate::upload::UploadPlan;
 
 /// How a session connects.
 #[derive(Clone, Debug)]
@@ -510,7 +511,8 @@ fn fetch_batches(
     Ok(got.into_iter().flatten().collect())
 }
 
-/// The CPU reference image: what `camera` sees with the whole scene resident.
+/// The reference image: what `camera` sees with the whole scene resident, rendered by
+/// `backend` (the CPU twin or the GPU, so a run is compared with its own arithmetic).
 pub fn reference_image(
     scene: &SceneDescription,
     channels: &[Channel],
@@ -518,13 +520,17 @@ pub fn reference_image(
     camera: &Camera,
     lod_bias: f64,
     light: &Light,
+    backend: &mut dyn Backend,
 ) -> Result<Image, RunError> {
     let slots = SlotBuffer::fully_resident(scene, channels, treelets)?;
-    Ok(render(
-        &slots.view(),
-        &SceneFrame::of(scene),
-        camera,
-        lod_bias,
-        light,
-    ))
+    let dirty = (0..slots.capacity()).collect::<Vec<_>>();
+    backend.upload(
+        &slots,
+        &UploadPlan::new(
+            &dirty,
+            0.0,
+            SlotBuffer::slot_data_bytes(scene.treelet_nodes, channels),
+        ),
+    );
+    Ok(backend.render(&slots, &SceneFrame::of(scene), camera, lod_bias, light))
 }

@@ -680,6 +680,9 @@ impl SlotBuffer {
             self.records[s as usize].flags &= !DIRTY;
         }
         self.dirty.sort_unstable();
+        // A slot dirtied, freed (its record reset, flag included) and dirtied again within one
+        // cycle is listed twice: report it once.
+        self.dirty.dedup();
         let out = self.dirty.clone();
         self.dirty.clear();
         out
@@ -1416,6 +1419,25 @@ mod tests {
         inserted(&mut b, treelet(1, Some((0, 1)), &[NONE]));
         assert_eq!(b.take_dirty(), vec![0, 1, 2, 3]);
         assert!(b.take_dirty().is_empty());
+    }
+
+    #[test]
+    fn a_slot_dirtied_freed_and_refilled_in_one_cycle_is_reported_once() {
+        let mut b = buffer(2, treelet(0, None, &[1, 2]));
+        let _ = b.take_dirty();
+        inserted(&mut b, treelet(1, Some((0, 1)), &[NONE]));
+        // Treelet 1 and the root age out unseen; treelet 2 then takes slot 1 in the same cycle.
+        for _ in 0..=u32::from(b.config().visibility_max) {
+            b.begin_cycle();
+        }
+        assert_eq!(
+            b.insert(treelet(2, Some((0, 2)), &[NONE])),
+            InsertOutcome::Inserted {
+                slot: 1,
+                evicted: 1
+            }
+        );
+        assert_eq!(b.take_dirty(), vec![0, 1]);
     }
 
     #[test]

@@ -4,4 +4,5 @@
 
 pub mod corpus;
 pub mod link;
+pub mod streaming;
 pub mod support;

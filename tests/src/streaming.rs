@@ -1,0 +1,258 @@
+//! Streaming end to end, shared by the CPU and GPU tests: a real scan built into a real pool and
+//! served by the real server, headless runs against it, and the reference of the fully resident
+//! scene rendered by the same backend.
+
+use std::collections::HashSet;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use arbor_client::analysis::AnalysisConfig;
+use arbor_client::backend::Backend;
+use arbor_client::camera::CameraPath;
+use arbor_client::headless::{HeadlessConfig, HeadlessRun, run_headless_with};
+use arbor_client::image::Image;
+use arbor_client::incore::SceneFrame;
+use arbor_client::net::{ClientConfig, ServerUrl, Trust};
+use arbor_client::render::Light;
+use arbor_client::run::CoreConfig;
+use arbor_client::slots::{DecodedTreelet, SlotBuffer};
+use arbor_client::trace::{Lod, trace};
+use arbor_client::upload::UploadPlan;
+use arbor_proto::SceneDescription;
+use arbor_server::build::BuildOptions;
+use arbor_server::service::config::{AdminTokenSource, SceneAccess};
+use arbor_server::service::{RunningServer, ServeConfig, start};
+use tempfile::TempDir;
+
+use crate::support::{Built, build_file, decoded_treelets};
+
+pub const TOKEN: &str = "client-e2e";
+pub const SIZE: (u32, u32) = (96, 96);
+/// Feedback ratio of these runs: 4 → every pixel sampled once per 16 cycles.
+pub const RATIO: u32 = 4;
+
+/// A scene served over loopback QUIC by the real server.
+#[derive(Debug)]
+pub struct Served {
+    pub server: RunningServer,
+    pub scene: SceneDescription,
+    /// Every treelet, decoded from the pool with all the scene's channels.
+    pub treelets: Vec<DecodedTreelet>,
+    _pool_dir: TempDir,
+    _data_dir: TempDir,
+}
+
+/// Builds a real scan (`treelet_bytes` treelets) into a fresh pool and serves it.
+pub async fn serve(rel: &str, name: &str, treelet_bytes: u32) -> Served {
+    let rel = rel.to_owned();
+    let name_owned = name.to_owned();
+    let (built, treelets) = tokio::task::spawn_blocking(move || {
+        let built = build_file(
+            &rel,
+            &name_owned,
+            &BuildOptions {
+                treelet_bytes,
+                ..BuildOptions::default()
+            },
+        );
+        let treelets = decoded_treelets(&built.scene);
+        (built, treelets)
+    })
+    .await
+    .unwrap();
+    let Built {
+        pool,
+        scene,
+        pool_dir,
+        source,
+        scratch,
+    } = built;
+    let description = scene.description.clone();
+    drop((pool, scene, source, scratch));
+    let data_dir = tempfile::tempdir().unwrap();
+    let mut cfg = ServeConfig::new(pool_dir.path());
+    cfg.listen = "127.0.0.1:0".parse().unwrap();
+    cfg.admin_listen = None;
+    cfg.data_dir = Some(data_dir.path().to_owned());
+    cfg.admin_token = AdminTokenSource::Inline("admin-client-e2e".into());
+    cfg.scenes
+        .insert(name.into(), SceneAccess::Tokens(vec![TOKEN.into()]));
+    let server = start(cfg).await.unwrap();
+    Served {
+        server,
+        scene: description,
+        treelets,
+        _pool_dir: pool_dir,
+        _data_dir: data_dir,
+    }
+}
+
+/// A headless configuration for a run against `served` through `addr`.
+pub fn headless(
+    addr: SocketAddr,
+    served: &Served,
+    path: CameraPath,
+    budget_bytes: u64,
+) -> HeadlessConfig {
+    let url = ServerUrl {
+        host: addr.ip().to_string(),
+        port: addr.port(),
+        scene: served.scene.name.clone(),
+    };
+    HeadlessConfig {
+        client: ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
+            .with_token(TOKEN),
+        core: CoreConfig {
+            analysis: AnalysisConfig {
+                ratio: RATIO,
+                lod_bias: 1.0,
+            },
+            budget_bytes,
+            ..CoreConfig::default()
+        },
+        camera_path: path,
+        seed: 7,
+        width: SIZE.0,
+        height: SIZE.1,
+        cycles: 800,
+        min_cycle: Duration::from_millis(4),
+        connect_timeout: Duration::from_secs(30),
+        reference: None,
+        until_converged: false,
+        render_every: 1,
+    }
+}
+
+/// The fully resident buffer of the scene, with all its channels.
+pub fn full(served: &Served) -> SlotBuffer {
+    SlotBuffer::fully_resident(
+        &served.scene,
+        served.scene.layout.channels(),
+        served.treelets.iter().cloned(),
+    )
+    .unwrap()
+}
+
+/// What `path` at `cycle` sees with everything resident, rendered by `backend`.
+pub fn reference(
+    served: &Served,
+    full: &SlotBuffer,
+    path: &CameraPath,
+    cycle: u32,
+    backend: &mut dyn Backend,
+) -> Image {
+    let frame = SceneFrame::of(&served.scene);
+    let camera = path.camera(cycle, &frame, 7, SIZE.0, SIZE.1);
+    let all: Vec<u32> = (0..full.capacity()).collect();
+    let bytes =
+        SlotBuffer::slot_data_bytes(served.scene.treelet_nodes, served.scene.layout.channels());
+    backend.upload(full, &UploadPlan::new(&all, 0.0, bytes));
+    backend.render(full, &frame, &camera, 1.0, &Light::default())
+}
+
+/// Treelets the view of `path` at `cycle` needs resident: those holding every pixel's hit in
+/// the fully resident tree, and their ancestors.
+pub fn needed_treelets(served: &Served, full: &SlotBuffer, path: &CameraPath, cycle: u32) -> u32 {
+    let frame = SceneFrame::of(&served.scene);
+    let camera = path.camera(cycle, &frame, 7, SIZE.0, SIZE.1);
+    let lod = Lod {
+        pixel_angle: camera.pixel_angle(),
+        lod_bias: 1.0,
+        max_depth: frame.max_depth,
+    };
+    let mut slots = HashSet::new();
+    for y in 0..SIZE.1 {
+        for x in 0..SIZE.0 {
+            let ray = camera.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
+            if let Some(h) = trace(&full.view(), &frame, &ray, &lod) {
+                let mut s = Some(h.node / served.scene.treelet_nodes);
+                while let Some(slot) = s {
+                    if !slots.insert(slot) {
+                        break;
+                    }
+                    s = full.parent_slot(slot);
+                }
+            }
+        }
+    }
+    slots.len() as u32
+}
+
+/// Bytes of slot buffer the whole scene would take.
+pub fn scene_bytes(served: &Served) -> u64 {
+    u64::from(served.scene.treelet_count)
+        * SlotBuffer::slot_bytes(served.scene.treelet_nodes, served.scene.layout.channels())
+}
+
+/// Runs a static-camera session on the backend `make` creates (inside the run's thread) to
+/// convergence, and checks it against the reference rendered by `reference_backend`.
+pub async fn converge(
+    served: &Arc<Served>,
+    addr: SocketAddr,
+    what: &str,
+    reference_backend: &mut dyn Backend,
+    make: impl FnOnce() -> Box<dyn Backend> + Send + 'static,
+) -> HeadlessRun {
+    let full = full(served);
+    let reference = reference(served, &full, &CameraPath::Static, 0, reference_backend);
+    assert!(
+        reference.coverage() > (SIZE.0 * SIZE.1 / 20) as u64,
+        "{what}: the reference view shows too little of the scene ({} px)",
+        reference.coverage()
+    );
+    // What this view needs and half as much again for treelets in flight and on their way
+    // out, far below the whole scene.
+    let needed = needed_treelets(served, &full, &CameraPath::Static, 0);
+    let slot_bytes =
+        SlotBuffer::slot_bytes(served.scene.treelet_nodes, served.scene.layout.channels());
+    let budget = u64::from(needed + needed / 2) * slot_bytes;
+    assert!(
+        budget * 2 <= scene_bytes(served),
+        "{what}: the view needs {needed} of {} treelets, not far below the scene",
+        served.scene.treelet_count
+    );
+    let mut cfg = headless(addr, served, CameraPath::Static, budget);
+    cfg.reference = Some(reference.clone());
+    cfg.until_converged = true;
+    let handle = tokio::runtime::Handle::current();
+    let t0 = Instant::now();
+    let run = tokio::task::spawn_blocking(move || run_headless_with(cfg, &handle, make(), |_| {}))
+        .await
+        .unwrap()
+        .unwrap_or_else(|e| panic!("{what}: run failed: {e}"));
+    let records = &run.report.records;
+    let last = records.last().unwrap();
+    eprintln!(
+        "{what}: {} treelets, view needs {needed}, budget {} slots; converged at {:?} after \
+         {:.2} s ({} cycles), peak {} slots, {} treelets / {} B received",
+        served.scene.treelet_count,
+        run.capacity,
+        run.converged_at,
+        t0.elapsed().as_secs_f64(),
+        records.len(),
+        run.peak_slots,
+        run.client.treelets_received,
+        run.client.bytes_received,
+    );
+    let converged = run
+        .converged_at
+        .unwrap_or_else(|| panic!("{what}: did not converge in {} cycles", records.len()));
+    assert_eq!(last.image_rmse, Some(0.0), "{what}: final image RMSE");
+    assert_eq!(last.differing_share, Some(0.0), "{what}: differing pixels");
+    assert_eq!(run.image, reference, "{what}: final image differs");
+    // Error against time: positive at first, zero from the convergence round on.
+    // (A pipelined backend's first feedback arrives a cycle late.)
+    assert!(
+        records.iter().take(3).any(|r| r.error.max > 0.0),
+        "{what}: the root alone should be coarser than a pixel"
+    );
+    assert!(records[0].image_rmse.unwrap() > 0.0);
+    let round_start = (converged + 1 - RATIO * RATIO) as usize;
+    assert!(
+        records[round_start..].iter().all(|r| r.error.max == 0.0),
+        "{what}: error not zero over the final round"
+    );
+    assert!(run.peak_slots <= run.capacity);
+    run
+}
