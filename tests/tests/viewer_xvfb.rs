@@ -39,6 +39,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
+use arbor_client::backend::CpuBackend;
 use arbor_client::camera::CameraPath;
 use arbor_client::image::Image;
 use arbor_client::incore::SceneFrame;
@@ -336,6 +337,7 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
         &camera,
         1.0,
         &Light::default(),
+        &mut CpuBackend,
     )
     .unwrap();
     assert!(
