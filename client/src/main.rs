@@ -18,7 +18,7 @@ use arbor_client::run::{CoreConfig, DEFAULT_LOAD_LIMIT, DEFAULT_MAX_REQUESTS};
 use arbor_client::session::SessionConfig;
 use arbor_client::session::{FetchedScene, fetch_all, reference_image};
 use arbor_client::upload::DEFAULT_FILL_RATIO;
-use arbor_client::viewer::{BackendChoice, Outcome, ViewerConfig};
+use arbor_client::viewer::{Outcome, ViewerConfig};
 use clap::{Args, Parser, Subcommand};
 
 #[derive(Parser, Debug)]
@@ -178,8 +178,8 @@ struct ViewArgs {
     /// Feedback buffer is 1/n of the frame per axis.
     #[arg(long, default_value_t = DEFAULT_FEEDBACK_RATIO)]
     feedback_ratio: u32,
-    /// Renderer: gpu (wgpu, in place), cpu (CPU frames uploaded to the window) or auto (gpu on
-    /// a hardware adapter, cpu on a software one such as lavapipe).
+    /// Renderer: gpu (wgpu, drawn in place), cpu (CPU frames uploaded to the window) or auto
+    /// (gpu: the window needs an adapter anyway).
     #[arg(long, default_value = "auto")]
     backend: String,
     /// Start with the statistics overlay hidden (H toggles it).

@@ -15,9 +15,10 @@
 //!   its own target texture, which the blit samples directly (no read-back). It shares the
 //!   window's [`GpuContext`](crate::gpu::GpuContext), opened on the instance that made the
 //!   surface.
-//! * **auto** — gpu on a hardware adapter, cpu on a software one (Mesa's lavapipe): on the
-//!   2-core build machine (sharing it with compiles) a 256×192 frame took 41–99 ms with the CPU
-//!   twins and 84–133 ms on lavapipe, in the same runs of `tests/tests/viewer_xvfb.rs`.
+//! * **auto** — gpu, as for headless runs (the window needs an adapter anyway, software ones
+//!   such as Mesa's lavapipe included). On the 2-core build machine, shared with compiles, a
+//!   256×192 frame took 41–99 ms with the CPU twins and 84–133 ms on lavapipe in the runs of
+//!   `tests/tests/viewer_xvfb.rs`: `--backend cpu` is the faster choice there.
 //!
 //! For automated runs: `--screenshot` is written when the view converges with the camera never
 //! moved, `converged at cycle N` is printed then, `--exit-after-converged` ends the run there
@@ -32,34 +33,11 @@ mod window;
 use std::path::PathBuf;
 use std::time::Duration;
 
+use crate::backend::BackendChoice;
 use crate::run::RunError;
 use crate::session::SessionConfig;
 
 pub use window::run;
-
-/// Which renderer draws the frames.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum BackendChoice {
-    /// The GPU renderer on a hardware adapter, the CPU one on a software adapter.
-    #[default]
-    Auto,
-    /// The GPU renderer or an error.
-    Gpu,
-    /// The CPU renderer, uploaded each frame.
-    Cpu,
-}
-
-impl BackendChoice {
-    /// Reads `auto`, `gpu` or `cpu`.
-    pub fn parse(s: &str) -> Option<Self> {
-        match s {
-            "auto" => Some(Self::Auto),
-            "gpu" => Some(Self::Gpu),
-            "cpu" => Some(Self::Cpu),
-            _ => None,
-        }
-    }
-}
 
 /// A viewer run.
 #[derive(Clone, Debug)]
@@ -127,14 +105,6 @@ pub fn chart_path(report: &std::path::Path) -> PathBuf {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn backend_choice_parses() {
-        assert_eq!(BackendChoice::parse("auto"), Some(BackendChoice::Auto));
-        assert_eq!(BackendChoice::parse("gpu"), Some(BackendChoice::Gpu));
-        assert_eq!(BackendChoice::parse("cpu"), Some(BackendChoice::Cpu));
-        assert_eq!(BackendChoice::parse("GPU"), None);
-    }
 
     #[test]
     fn chart_goes_beside_the_report() {

@@ -310,13 +310,11 @@ impl App {
         gpu: &Arc<GpuContext>,
         size: (u32, u32),
     ) -> (Box<dyn Backend>, FrameSource) {
-        let software = gpu.info.device_type == wgpu::DeviceType::Cpu;
         match self.config.backend {
-            BackendChoice::Gpu => (Box::new(GpuBackend::new(gpu.clone())), FrameSource::InPlace),
-            BackendChoice::Auto if !software => {
+            BackendChoice::Gpu | BackendChoice::Auto => {
                 (Box::new(GpuBackend::new(gpu.clone())), FrameSource::InPlace)
             }
-            BackendChoice::Auto | BackendChoice::Cpu => (
+            BackendChoice::Cpu => (
                 Box::new(CpuBackend),
                 FrameSource::Upload(FrameTexture::new(&gpu.device, size.0, size.1)),
             ),
