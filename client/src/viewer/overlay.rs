@@ -191,7 +191,7 @@ impl OverlayStats {
                 Some(c) => format!("cycle {}  converged at {c}", r.cycle),
                 None => format!("cycle {}  streaming", r.cycle),
             },
-            "F12/P shot  R report  Esc quit".into(),
+            "F12/P shot  R report  H overlay  Esc quit".into(),
         ]
     }
 }
