@@ -460,6 +460,5 @@ fn backend(text: &str) -> Result<Box<dyn Backend>> {
     if let Some(reason) = &chosen.fallback {
         eprintln!("note: no GPU adapter, falling back to the CPU reference renderer: {reason}");
     }
-    eprintln!("backend: {}", chosen.backend.name());
     Ok(chosen.backend)
 }

@@ -433,7 +433,7 @@ impl RunReport {
             evictions: sum(|r| r.evictions.into()),
             dropped: sum(|r| r.dropped.into()),
             upload_bytes: sum(|r| r.upload_bytes),
-            error_zero: first(|r| r.error.max == 0.0),
+            error_zero: first(|r| r.samples > 0 && r.error.max == 0.0),
             image_exact: first(|r| r.image_rmse == Some(0.0)),
             final_error: last.map(|r| r.error).unwrap_or_default(),
             final_image_rmse: last.and_then(|r| r.image_rmse),
@@ -474,8 +474,8 @@ pub struct RunSummary {
     pub dropped: u64,
     /// Σ bytes uploaded.
     pub upload_bytes: u64,
-    /// First record whose `error.max` is 0: nothing the feedback saw was refinable. This is
-    /// taken literally, so a cycle with no samples at all (error 0 by definition) counts.
+    /// First record with samples whose `error.max` is 0: nothing the feedback saw was
+    /// refinable. A cycle without samples (a pipelined backend's first) does not count.
     pub error_zero: Option<Reached>,
     /// First record whose `image_rmse` is exactly 0 (identical to the reference image).
     pub image_exact: Option<Reached>,
