@@ -59,7 +59,7 @@ const VIEW_HELP: &str = "Controls:\n  \
     Tab switches mode, H toggles the overlay, F12 or P saves a screenshot, R writes the report,\n  \
     Esc quits\n\n\
 Examples:\n  \
-    arbor-client view --server quic://127.0.0.1:4433/lion --cert-fingerprint HEX\n  \
+    arbor-client view quic://127.0.0.1:4433/lion --cert-fingerprint HEX\n  \
     arbor-client view --server quic://127.0.0.1:4433/lion --cert-fingerprint HEX \\\n      \
         --size 1280x720 --budget-mib 16 --backend cpu --report view.csv\n  \
     arbor-client view --server quic://127.0.0.1:4433/lion --cert-fingerprint HEX \\\n      \
@@ -68,8 +68,8 @@ Examples:\n  \
 #[derive(Args, Debug)]
 struct Connection {
     /// `quic://HOST:PORT/SCENE`.
-    #[arg(long)]
-    server: String,
+    #[arg(long, value_name = "quic://HOST:PORT/SCENE")]
+    server: Option<String>,
     /// SHA-256 fingerprint of the server certificate (printed by `arbor-server serve`).
     #[arg(long, conflicts_with = "ca")]
     cert_fingerprint: Option<String>,
@@ -160,6 +160,9 @@ struct RenderArgs {
 
 #[derive(Args, Debug)]
 struct ViewArgs {
+    /// `quic://HOST:PORT/SCENE` (or give it with --server).
+    #[arg(value_name = "URL", conflicts_with = "server")]
+    url: Option<String>,
     #[command(flatten)]
     connection: Connection,
     /// Seed of the start viewpoint (the `static` camera path's, so a headless render of the
@@ -244,7 +247,11 @@ fn run(cli: Cli) -> Result<()> {
 }
 
 fn client_config(c: &Connection) -> Result<ClientConfig> {
-    let url = parse_server_url(&c.server)?;
+    let server = c
+        .server
+        .as_deref()
+        .context("give the server as quic://HOST:PORT/SCENE (--server)")?;
+    let url = parse_server_url(server)?;
     let trust = match (&c.cert_fingerprint, &c.ca) {
         (Some(fp), None) => Trust::Fingerprint(fp.clone()),
         (None, Some(path)) => Trust::CaPem(
@@ -297,7 +304,10 @@ fn budget_bytes(mib: f64) -> Result<u64> {
     Ok((mib * 1024.0 * 1024.0) as u64)
 }
 
-fn view(a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
+fn view(mut a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
+    if let Some(url) = a.url.take() {
+        a.connection.server = Some(url);
+    }
     let (width, height) = size(&a.size)?;
     let backend = BackendChoice::parse(&a.backend)
         .with_context(|| format!("backend {:?} (auto, gpu or cpu)", a.backend))?;

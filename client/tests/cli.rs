@@ -131,6 +131,45 @@ fn an_unreachable_server_times_out_with_a_message() {
 }
 
 #[test]
+fn view_takes_the_url_as_an_argument_or_with_server() {
+    // Both spellings get past argument parsing (to the window system or the connection, which
+    // fail here with their own message); giving both is a usage error.
+    for args in [
+        vec!["view", "quic://127.0.0.1:9/s"],
+        vec!["view", "--server", "quic://127.0.0.1:9/s"],
+    ] {
+        let mut args = args;
+        args.extend([
+            "--cert-fingerprint",
+            FP,
+            "--connect-timeout",
+            "1",
+            "--backend",
+            "cpu",
+        ]);
+        let (code, stderr) = run(&args);
+        assert_eq!(code, 1, "{args:?}\n{stderr}");
+        assert!(
+            !stderr.contains("Usage")
+                && (stderr.contains("SceneInfo") || stderr.contains("DISPLAY")),
+            "{args:?}: {stderr}"
+        );
+    }
+    let (code, stderr) = run(&[
+        "view",
+        "quic://127.0.0.1:9/s",
+        "--server",
+        "quic://127.0.0.1:9/s",
+        "--cert-fingerprint",
+        FP,
+    ]);
+    assert_eq!(code, 2, "{stderr}");
+    let (code, stderr) = run(&["view", "--cert-fingerprint", FP]);
+    assert_eq!(code, 1, "{stderr}");
+    assert!(stderr.contains("quic://HOST:PORT/SCENE"), "{stderr}");
+}
+
+#[test]
 fn help_has_examples() {
     let out = Command::new(env!("CARGO_BIN_EXE_arbor-client"))
         .arg("--help")
