@@ -12,7 +12,7 @@ use crate::image::Image;
 use crate::net::{ClientConfig, ClientStats};
 use crate::report::{CycleRecord, RunMeta, RunReport};
 use crate::run::{CoreConfig, RunError};
-use crate::session::{RenderMode, Session, SessionConfig};
+use crate::session::{RenderMode, Session, SessionConfig, compare};
 use crate::slots::SlotBuffer;
 
 /// A headless run: connection, camera path, cycle count and outputs.
@@ -178,9 +178,7 @@ fn cycles(
             // The run ends here: draw this cycle's frame after all.
             let i = session.render(&camera);
             if let Some(r) = &config.reference {
-                step.record.image_rmse =
-                    Some(i.rmse(r).map_err(|e| RunError::Reference(e.to_string()))?);
-                step.record.differing_share = Some(i.differing_share(r));
+                (step.record.image_rmse, step.record.differing_share) = compare(&i, r)?;
             }
             step.image = Some(i);
         }

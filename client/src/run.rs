@@ -339,24 +339,24 @@ impl ClientCore {
         let mut inserted = 0;
         let mut evicted = 0;
         let mut dropped = std::mem::take(&mut self.backlog_dropped);
-        let mut kept = VecDeque::new();
-        while let Some(t) = self.backlog.pop_front() {
-            let id = t.treelet.header.id;
-            match self.slots.insert(t.clone()) {
+        // Only as many as the load limit allows leave the backlog; the rest wait, in order.
+        while self.slots.loads_left() > 0 {
+            let Some(t) = self.backlog.pop_front() else {
+                break;
+            };
+            self.backlog_ids.remove(&t.treelet.header.id);
+            match self.slots.insert(t) {
                 InsertOutcome::Inserted { evicted: e, .. } => {
                     inserted += 1;
                     evicted += e;
                 }
                 InsertOutcome::AlreadyResident => {}
-                InsertOutcome::ParentMissing | InsertOutcome::NoRoom => dropped += 1,
-                InsertOutcome::LoadLimit => {
-                    kept.push_back(t);
-                    continue;
+                // The load limit was checked above; count it with the drops if it still hit.
+                InsertOutcome::ParentMissing | InsertOutcome::NoRoom | InsertOutcome::LoadLimit => {
+                    dropped += 1
                 }
             }
-            self.backlog_ids.remove(&id);
         }
-        self.backlog = kept;
         let integrate = t0.elapsed();
         let t1 = Instant::now();
         let dirty = self.slots.take_dirty();

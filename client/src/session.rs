@@ -213,10 +213,7 @@ impl Session {
         };
         let render_time = t_render.elapsed();
         let (image_rmse, differing_share) = match (reference, &image) {
-            (Some(r), Some(i)) => (
-                Some(i.rmse(r).map_err(|e| RunError::Reference(e.to_string()))?),
-                Some(i.differing_share(r)),
-            ),
+            (Some(r), Some(i)) => compare(i, r)?,
             _ => (None, None),
         };
         let stats = self.client.stats();
@@ -273,6 +270,18 @@ impl Session {
         runtime.block_on(self.client.close());
         stats
     }
+}
+
+/// Image RMSE and differing share of `image` against `reference`, as the report records them.
+pub fn compare(image: &Image, reference: &Image) -> Result<(Option<f64>, Option<f64>), RunError> {
+    Ok((
+        Some(
+            image
+                .rmse(reference)
+                .map_err(|e| RunError::Reference(e.to_string()))?,
+        ),
+        Some(image.differing_share(reference)),
+    ))
 }
 
 fn ms(d: Duration) -> f64 {
@@ -477,8 +486,8 @@ fn fetch_batches(
             .collect();
         client.request(list)?;
         let mut deadline = Instant::now() + timeout;
-        let mut pending: Vec<u32> = (start..end).collect();
-        while !pending.is_empty() {
+        let mut missing = end - start;
+        while missing > 0 {
             let drained = drain_events(client, scene, channels)?;
             if drained.undecodable > 0 {
                 return Err(RunError::Refused(format!(
@@ -499,11 +508,13 @@ fn fetch_batches(
             for t in drained.treelets {
                 let i = t.treelet.header.id.0 as usize;
                 if i < got.len() && got[i].is_none() {
+                    if (start..end).contains(&(i as u32)) {
+                        missing -= 1;
+                    }
                     got[i] = Some(t);
                     have += 1;
                 }
             }
-            pending.retain(|&i| got[i as usize].is_none());
         }
         tracing::info!("fetched {have} of {count} treelets");
         start = end;
@@ -523,14 +534,29 @@ pub fn reference_image(
     backend: &mut dyn Backend,
 ) -> Result<Image, RunError> {
     let slots = SlotBuffer::fully_resident(scene, channels, treelets)?;
-    let dirty = (0..slots.capacity()).collect::<Vec<_>>();
-    backend.upload(
+    Ok(render_resident(
         &slots,
-        &UploadPlan::new(
-            &dirty,
-            0.0,
-            SlotBuffer::slot_data_bytes(scene.treelet_nodes, channels),
-        ),
-    );
-    Ok(backend.render(&slots, &SceneFrame::of(scene), camera, lod_bias, light))
+        &SceneFrame::of(scene),
+        camera,
+        lod_bias,
+        light,
+        backend,
+    ))
+}
+
+/// Uploads every slot of `slots` to `backend` and renders them: the image of a buffer that was
+/// filled outside a run (a fully resident scene).
+pub fn render_resident(
+    slots: &SlotBuffer,
+    frame: &SceneFrame,
+    camera: &Camera,
+    lod_bias: f64,
+    light: &Light,
+    backend: &mut dyn Backend,
+) -> Image {
+    let config = slots.config();
+    let all: Vec<u32> = (0..slots.capacity()).collect();
+    let bytes = SlotBuffer::slot_data_bytes(config.treelet_nodes, &config.channels);
+    backend.upload(slots, &UploadPlan::new(&all, 0.0, bytes));
+    backend.render(slots, frame, camera, lod_bias, light)
 }

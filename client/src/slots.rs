@@ -527,6 +527,13 @@ impl SlotBuffer {
         self.records[slot as usize].visibility
     }
 
+    /// Insertions the per-cycle load limit still allows this cycle.
+    pub fn loads_left(&self) -> u32 {
+        self.config
+            .load_limit
+            .saturating_sub(self.loaded_this_cycle)
+    }
+
     /// Slots an insertion could use now: free ones plus those eviction may take (a treelet
     /// and its parent both invisible). The core caps its request list to this, so an
     /// oversubscribed buffer does not ask for treelets it would have to drop.

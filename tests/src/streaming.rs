@@ -16,9 +16,9 @@ use arbor_client::incore::SceneFrame;
 use arbor_client::net::{ClientConfig, ServerUrl, Trust};
 use arbor_client::render::Light;
 use arbor_client::run::CoreConfig;
+use arbor_client::session::render_resident;
 use arbor_client::slots::{DecodedTreelet, SlotBuffer};
 use arbor_client::trace::{Lod, trace};
-use arbor_client::upload::UploadPlan;
 use arbor_proto::SceneDescription;
 use arbor_server::build::BuildOptions;
 use arbor_server::service::config::{AdminTokenSource, SceneAccess};
@@ -144,11 +144,7 @@ pub fn reference(
 ) -> Image {
     let frame = SceneFrame::of(&served.scene);
     let camera = path.camera(cycle, &frame, 7, SIZE.0, SIZE.1);
-    let all: Vec<u32> = (0..full.capacity()).collect();
-    let bytes =
-        SlotBuffer::slot_data_bytes(served.scene.treelet_nodes, served.scene.layout.channels());
-    backend.upload(full, &UploadPlan::new(&all, 0.0, bytes));
-    backend.render(full, &frame, &camera, 1.0, &Light::default())
+    render_resident(full, &frame, &camera, 1.0, &Light::default(), backend)
 }
 
 /// Treelets the view of `path` at `cycle` needs resident: those holding every pixel's hit in

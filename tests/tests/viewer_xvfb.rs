@@ -48,12 +48,8 @@ use arbor_client::report::{CycleRecord, RunReport};
 use arbor_client::session::reference_image;
 use arbor_client::viewer::blit::{BACKGROUND, OVERLAY_MARGIN};
 use arbor_client::viewer::overlay::Overlay;
-use arbor_server::build::BuildOptions;
-use arbor_server::service::config::{AdminTokenSource, SceneAccess};
-use arbor_server::service::{ServeConfig, start};
-use arbor_tests::support::{Built, build_file, decoded_treelets};
+use arbor_tests::streaming::{TOKEN, serve};
 
-const TOKEN: &str = "viewer-xvfb";
 const SIZE: (u32, u32) = (256, 192);
 const SEED: u64 = 7;
 /// A channel difference up to this counts as equal.
@@ -294,46 +290,15 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
         .unwrap();
 
     // The scene: lion with 1 KiB treelets, served by the real server in-process.
-    let (built, treelets) = tokio::task::spawn_blocking(|| {
-        let built = build_file(
-            "points/lion_takanawa.copc.laz",
-            "lion",
-            &BuildOptions {
-                treelet_bytes: 1024,
-                ..BuildOptions::default()
-            },
-        );
-        let treelets = decoded_treelets(&built.scene);
-        (built, treelets)
-    })
-    .await
-    .unwrap();
-    let Built {
-        pool,
-        scene,
-        pool_dir,
-        source,
-        scratch,
-    } = built;
-    let description = scene.description.clone();
-    drop((pool, scene, source, scratch));
-    let data_dir = tempfile::tempdir().unwrap();
-    let mut cfg = ServeConfig::new(pool_dir.path());
-    cfg.listen = "127.0.0.1:0".parse().unwrap();
-    cfg.admin_listen = None;
-    cfg.data_dir = Some(data_dir.path().to_owned());
-    cfg.admin_token = AdminTokenSource::Inline("admin-viewer-xvfb".into());
-    cfg.scenes
-        .insert("lion".into(), SceneAccess::Tokens(vec![TOKEN.into()]));
-    let server = start(cfg).await.unwrap();
-
+    let served = serve("points/lion_takanawa.copc.laz", "lion", 1024).await;
+    let description = served.scene.clone();
     // The reference: the same camera with every treelet resident, on the CPU.
     let frame = SceneFrame::of(&description);
     let camera = CameraPath::Static.camera(0, &frame, SEED, SIZE.0, SIZE.1);
     let reference = reference_image(
         &description,
         description.layout.channels(),
-        treelets,
+        served.treelets.clone(),
         &camera,
         1.0,
         &Light::default(),
@@ -349,8 +314,8 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     let out = tempfile::tempdir().unwrap();
     let shot = out.path().join("shot.png");
     let report_path = out.path().join("view.csv");
-    let url = format!("quic://{}/lion", server.quic_addr);
-    let fingerprint = server.fingerprint.clone();
+    let url = format!("quic://{}/lion", served.server.quic_addr);
+    let fingerprint = served.server.fingerprint.clone();
     let (xvfb, display) = tokio::task::spawn_blocking(start_xvfb).await.unwrap();
     let common: Vec<OsString> = [
         "view",
@@ -545,7 +510,7 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     );
     assert_eq!(code, Some(1), "{stderr}");
     assert!(stderr.contains("did not converge within 1.0 s"), "{stderr}");
-    server.shutdown().await;
+    served.server.shutdown().await;
 }
 
 /// Runs `bin` with `args` on `display` until it prints that it converged, grabs its window, then
