@@ -5,20 +5,21 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
-use arbor_client::analysis::{AnalysisConfig, DEFAULT_FEEDBACK_RATIO};
-use arbor_client::backend::{Backend, BackendChoice, create_backend};
-use arbor_client::camera::CameraPath;
-use arbor_client::headless::{HeadlessConfig, run_headless_with};
-use arbor_client::image::Image;
-use arbor_client::net::{ClientConfig, Trust, parse_server_url};
-use arbor_client::presort::PriorityPolicy;
-use arbor_client::proto::Channel;
-use arbor_client::render::Light;
-use arbor_client::run::{CoreConfig, DEFAULT_LOAD_LIMIT, DEFAULT_MAX_REQUESTS};
-use arbor_client::session::SessionConfig;
-use arbor_client::session::{FetchedScene, fetch_all, reference_image};
-use arbor_client::upload::DEFAULT_FILL_RATIO;
-use arbor_client::viewer::{Outcome, ViewerConfig};
+use arbor_client_core::analysis::{AnalysisConfig, DEFAULT_FEEDBACK_RATIO};
+use arbor_client_core::backend::Backend;
+use arbor_client_core::camera::CameraPath;
+use arbor_client_core::cycle::{CoreConfig, DEFAULT_LOAD_LIMIT, DEFAULT_MAX_REQUESTS};
+use arbor_client_core::image::Image;
+use arbor_client_core::presort::PriorityPolicy;
+use arbor_client_core::render::Light;
+use arbor_client_core::upload::DEFAULT_FILL_RATIO;
+use arbor_client_gpu::{BackendChoice, create_backend};
+use arbor_client_net::{ClientConfig, Trust, parse_server_url};
+use arbor_client_session::headless::{HeadlessConfig, run_headless_with};
+use arbor_client_session::session::SessionConfig;
+use arbor_client_session::session::{FetchedScene, fetch_all, reference_image};
+use arbor_client_viewer::{Outcome, ViewerConfig};
+use arbor_proto::Channel;
 use clap::{Args, Parser, Subcommand};
 
 #[derive(Parser, Debug)]
@@ -336,7 +337,7 @@ fn view(mut a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         hold_until_stdin_eof: a.hold_until_stdin_eof,
         timeout: a.timeout_s.map(timeout).transpose()?,
     };
-    match arbor_client::viewer::run(config, runtime)? {
+    match arbor_client_viewer::run(config, runtime)? {
         Outcome::TimedOut { after, cycles } => bail!(
             "the view did not converge within {:.1} s ({cycles} cycles)",
             after.as_secs_f64()
@@ -402,7 +403,7 @@ fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
             "{} — {} — {}×{}, {:.1} MiB budget",
             run.scene.name, run.report.meta.camera_path, width, height, a.budget_mib
         );
-        arbor_client::chart::draw(&run.report, path, &title)
+        arbor_client_report::chart::draw(&run.report, path, &title)
             .with_context(|| format!("drawing {}", path.display()))?;
     }
     println!("backend: {}", run.backend);
@@ -434,7 +435,7 @@ fn reference(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         timeout(a.connection.connect_timeout)?,
         runtime,
     )?;
-    let frame = arbor_client::incore::SceneFrame::of(&scene);
+    let frame = arbor_client_core::incore::SceneFrame::of(&scene);
     let camera = camera_path.camera(a.cycle, &frame, a.view.seed, width, height);
     let mut backend = backend(&a.view.backend)?;
     let image = reference_image(

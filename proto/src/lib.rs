@@ -5,7 +5,7 @@
 //! its [`AttributeLayout`], the binary encoding of treelets and attribute blocks with zstd
 //! compression ([`codec`]), the explicit [`limits`], and the network protocol: its vocabulary
 //! ([`wire`]: ALPN, control frames, error codes) and byte layout ([`frame`]: bounded frame
-//! decoding, treelet messages). Server and client both depend on it, so a
+//! decoding, treelet messages), and the one small seeded generator ([`rng`]). Server and client both depend on it, so a
 //! format change is made once, here, and round-trip tests keep both sides honest.
 
 pub mod attribute;
@@ -15,6 +15,7 @@ pub mod error;
 pub mod frame;
 pub mod limits;
 pub mod node;
+pub mod rng;
 pub mod scene;
 pub mod treelet;
 pub mod wire;

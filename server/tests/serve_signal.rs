@@ -244,7 +244,7 @@ fn sample(metrics: &str, name: &str) -> f64 {
         .unwrap_or_else(|| panic!("{name} missing from /metrics"))
 }
 
-async fn next(c: &mut arbor_client::net::TreeletClient) -> arbor_client::net::ClientEvent {
+async fn next(c: &mut arbor_client_net::TreeletClient) -> arbor_client_net::ClientEvent {
     tokio::time::timeout(Duration::from_secs(30), c.next_event())
         .await
         .expect("no client event in time")
@@ -253,13 +253,13 @@ async fn next(c: &mut arbor_client::net::TreeletClient) -> arbor_client::net::Cl
 
 /// Receives `n` distinct treelets.
 async fn receive(
-    c: &mut arbor_client::net::TreeletClient,
+    c: &mut arbor_client_net::TreeletClient,
     n: usize,
 ) -> std::collections::BTreeSet<u32> {
     let mut ids = std::collections::BTreeSet::new();
     while ids.len() < n {
         match next(c).await {
-            arbor_client::net::ClientEvent::Treelet(t) => {
+            arbor_client_net::ClientEvent::Treelet(t) => {
                 ids.insert(t.id.0);
             }
             other => panic!("expected treelets, got {other:?}"),
@@ -274,7 +274,7 @@ async fn receive(
 /// list and receives it again.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_client_reconnects_when_the_server_is_back_and_metrics_count_the_traffic() {
-    use arbor_client::net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
+    use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
     let (dir, config) = bunny_pool_and_config();
     let port = std::net::UdpSocket::bind("127.0.0.1:0")
         .unwrap()

@@ -7,12 +7,12 @@
 
 use std::time::{Duration, Instant};
 
-use arbor_client::analysis::{AnalysisConfig, Feedback, analyse};
-use arbor_client::camera::CameraPath;
-use arbor_client::incore::SceneFrame;
-use arbor_client::presort::{Presort, PriorityPolicy};
-use arbor_client::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
-use arbor_client::upload::merge_ranges;
+use arbor_client_core::analysis::{AnalysisConfig, Feedback, analyse};
+use arbor_client_core::camera::CameraPath;
+use arbor_client_core::incore::SceneFrame;
+use arbor_client_core::presort::{Presort, PriorityPolicy};
+use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
+use arbor_client_core::upload::merge_ranges;
 use arbor_server::build::BuildOptions;
 use arbor_tests::support::{build_file, decoded_treelets};
 

@@ -11,14 +11,14 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use arbor_client::analysis::{AnalysisConfig, Feedback, analyse};
-use arbor_client::backend::Backend;
-use arbor_client::camera::CameraPath;
-use arbor_client::gpu::{GpuBackend, GpuContext};
-use arbor_client::incore::SceneFrame;
-use arbor_client::render::{Light, render};
-use arbor_client::slots::SlotBuffer;
-use arbor_client::upload::{DEFAULT_FILL_RATIO, UploadPlan};
+use arbor_client_core::analysis::{AnalysisConfig, Feedback, analyse};
+use arbor_client_core::backend::{Backend, PassInput};
+use arbor_client_core::camera::CameraPath;
+use arbor_client_core::incore::SceneFrame;
+use arbor_client_core::render::{Light, render};
+use arbor_client_core::slots::SlotBuffer;
+use arbor_client_core::upload::{DEFAULT_FILL_RATIO, UploadPlan};
+use arbor_client_gpu::{GpuBackend, GpuContext};
 use arbor_server::build::BuildOptions;
 use arbor_tests::support::{build_file, decoded_treelets};
 
@@ -143,11 +143,19 @@ fn main() {
         );
     }
     let rays = u64::from(FRAME) * u64::from(FRAME);
+    let analysis = AnalysisConfig::default();
+    let input = PassInput {
+        slots: &slots,
+        frame: &frame,
+        camera: &camera,
+        analysis: &analysis,
+        light: &light,
+    };
     row(
         "render in place",
         rays,
         measure(|| {
-            gpu.render_in_place(&slots, &frame, &camera, 1.0, &light);
+            gpu.render_in_place(&input);
             gpu.finish();
             gpu.pass_times().map(|t| t.render_ms)
         }),
@@ -156,7 +164,7 @@ fn main() {
         "render with read-back to an image",
         rays,
         measure(|| {
-            gpu.render(&slots, &frame, &camera, 1.0, &light);
+            gpu.render(&input);
             gpu.pass_times().map(|t| t.render_ms)
         }),
     );

@@ -13,7 +13,7 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use arbor_client::net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
+use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
 use arbor_proto::{SceneDescription, TreeletId};
 use arbor_server::build::{BuildOptions, build_scene};
 use arbor_server::import::{ImportOptions, import_file};

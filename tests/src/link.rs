@@ -31,6 +31,7 @@
 //! Timer granularity: tokio's timer has a 1 ms resolution and never fires early, so every packet
 //! arrives no earlier than the model says and typically up to about 1 ms later.
 
+use arbor_proto::rng::SplitMix64;
 use std::collections::{HashMap, VecDeque};
 use std::io;
 use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
@@ -186,25 +187,6 @@ struct Queued {
     dest: SocketAddr,
 }
 
-/// The splitmix64 generator: tiny, fast and good enough for drawing losses.
-#[derive(Debug, Clone)]
-struct SplitMix64(u64);
-
-impl SplitMix64 {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in `[0, 1)`.
-    fn next_f64(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
-    }
-}
-
 /// Mutable state of one direction.
 #[derive(Debug)]
 struct PipeState {
@@ -246,7 +228,7 @@ impl Pipe {
 
     fn rng(seed: u64, salt: u64) -> SplitMix64 {
         // Mix once so that nearby seeds give unrelated streams.
-        SplitMix64(SplitMix64(seed ^ salt).next_u64())
+        SplitMix64::new(SplitMix64::new(seed ^ salt).next_u64())
     }
 
     fn lock(&self) -> MutexGuard<'_, PipeState> {
@@ -580,7 +562,7 @@ mod tests {
 
     #[test]
     fn splitmix_is_uniform_enough() {
-        let mut r = SplitMix64(42);
+        let mut r = SplitMix64::new(42);
         let n = 100_000;
         let below = (0..n).filter(|_| r.next_f64() < 0.3).count();
         let frac = below as f64 / n as f64;

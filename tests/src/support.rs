@@ -240,7 +240,7 @@ pub fn assert_same_cells(what: &str, leaves: &BTreeSet<[u32; 3]>, reference: &BT
 
 /// Every treelet of a stored scene, decoded with all of the scene's channels, in id order —
 /// what a client holding the whole scene holds.
-pub fn decoded_treelets(scene: &StoredScene) -> Vec<arbor_client::slots::DecodedTreelet> {
+pub fn decoded_treelets(scene: &StoredScene) -> Vec<arbor_client_core::slots::DecodedTreelet> {
     let d = &scene.description;
     let channels = d.layout.channels().to_vec();
     (0..d.treelet_count)
@@ -252,7 +252,7 @@ pub fn decoded_treelets(scene: &StoredScene) -> Vec<arbor_client::slots::Decoded
                 .map(|&c| (c, scene.channel(c, id).unwrap().expect("channel stored")))
                 .collect();
             let refs: Vec<_> = blocks.iter().map(|(c, v)| (*c, v.as_ref())).collect();
-            arbor_client::slots::DecodedTreelet::from_blocks(id, &nodes, &refs, d, &channels)
+            arbor_client_core::slots::DecodedTreelet::from_blocks(id, &nodes, &refs, d, &channels)
                 .unwrap_or_else(|e| panic!("decoding treelet {id}: {e}"))
         })
         .collect()

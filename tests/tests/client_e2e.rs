@@ -1,6 +1,6 @@
 //! The client streaming core end to end: real scans built into real sled pools, served by the
 //! real server over loopback QUIC (and over the link emulator), streamed and rendered by the
-//! real headless client (`arbor_client::headless`) on the CPU twins; the helpers are in
+//! real headless client (`arbor_client_session::headless`) on the CPU twins; the helpers are in
 //! `arbor_tests::streaming` (`gpu_e2e.rs` runs the same on the GPU backend).
 //!
 //! * **Static camera, budget far below the scene** (1.5× the treelets the view needs: 18–34 %
@@ -16,10 +16,10 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use arbor_client::backend::CpuBackend;
-use arbor_client::camera::CameraPath;
-use arbor_client::headless::run_headless_with;
-use arbor_client::slots::SlotBuffer;
+use arbor_client_core::backend::CpuBackend;
+use arbor_client_core::camera::CameraPath;
+use arbor_client_core::slots::SlotBuffer;
+use arbor_client_session::headless::run_headless_with;
 use arbor_tests::link::{LinkConfig, LinkEmulator};
 use arbor_tests::streaming::{converge, full, headless, needed_treelets, reference, serve};
 
@@ -67,7 +67,7 @@ async fn static_camera_converges_exactly_over_the_emulated_wan() {
     let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("client-e2e");
     std::fs::create_dir_all(&out).unwrap();
     run.report.write_csv(&out.join("wan.csv")).unwrap();
-    arbor_client::chart::draw(
+    arbor_client_report::chart::draw(
         &run.report,
         &out.join("wan-chart.png"),
         "lion over 25 ms / 100 Mbit/s, static camera",

@@ -6,7 +6,7 @@
 
 use std::sync::Arc;
 
-use arbor_client::gpu::{GpuBackend, GpuContext};
+use arbor_client_gpu::{GpuBackend, GpuContext};
 use arbor_tests::streaming::{converge, serve};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

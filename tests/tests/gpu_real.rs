@@ -11,20 +11,22 @@
 //! Needs a wgpu adapter (lavapipe will do) and fails, never skips, without one. Run the `gpu_*`
 //! test binaries one at a time: lavapipe uses every core.
 
-#[path = "../../client/tests/gpu_compare/mod.rs"]
+#[path = "../../client/gpu/tests/gpu_compare/mod.rs"]
 mod gpu_compare;
 
 use std::collections::BTreeMap;
 
-use arbor_client::analysis::{AnalysisConfig, Feedback};
-use arbor_client::backend::Backend;
-use arbor_client::camera::{Camera, DEFAULT_DISTANCE_FACTOR, DEFAULT_FOV_Y, SplitMix64, WORLD_UP};
-use arbor_client::gpu::GpuBackend;
-use arbor_client::incore::SceneFrame;
-use arbor_client::proto::{Channel, SceneDescription};
-use arbor_client::render::Light;
-use arbor_client::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
-use arbor_client::upload::{DEFAULT_FILL_RATIO, UploadPlan};
+use arbor_client_core::analysis::{AnalysisConfig, Feedback};
+use arbor_client_core::backend::{Backend, PassInput};
+use arbor_client_core::camera::{
+    Camera, DEFAULT_DISTANCE_FACTOR, DEFAULT_FOV_Y, SplitMix64, WORLD_UP,
+};
+use arbor_client_core::incore::SceneFrame;
+use arbor_client_core::render::Light;
+use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
+use arbor_client_core::upload::{DEFAULT_FILL_RATIO, UploadPlan};
+use arbor_client_gpu::GpuBackend;
+use arbor_proto::{Channel, SceneDescription};
 use arbor_server::build::{BuildOptions, DepthChoice};
 use arbor_tests::support::{SCANS, build_file, decoded_treelets};
 use glam::DVec3;
@@ -302,8 +304,16 @@ fn backend_trait_pipelines_feedback_by_one_cycle() {
         lod_bias: 1.0,
     };
     let cams = cameras(&frame, 5);
+    let light = Light::default();
+    let input = |camera| PassInput {
+        slots: &slots,
+        frame: &frame,
+        camera,
+        analysis: &config,
+        light: &light,
+    };
     let mut out = Feedback::default();
-    backend.analyse(&slots, &frame, &cams[0], &config, 0, &mut out);
+    backend.analyse(&input(&cams[0]), 0, &mut out);
     assert!(
         out.samples.is_empty(),
         "no feedback before the first read-back"
@@ -312,7 +322,7 @@ fn backend_trait_pipelines_feedback_by_one_cycle() {
     for cycle in 1..5u64 {
         backend.finish();
         let cam = &cams[cycle as usize % cams.len()];
-        backend.analyse(&slots, &frame, cam, &config, cycle, &mut out);
+        backend.analyse(&input(cam), cycle, &mut out);
         let prev = &cams[(cycle - 1) as usize % cams.len()];
         let mut expected = Feedback::default();
         reference.analyse_blocking(&slots, &frame, prev, &config, cycle - 1, &mut expected);
@@ -324,14 +334,10 @@ fn backend_trait_pipelines_feedback_by_one_cycle() {
         );
         assert!(out.samples.iter().any(|s| s.is_hit()));
     }
-    let light = Light::default();
-    let image = backend.render(&slots, &frame, &cams[0], 1.0, &light);
-    assert_eq!(
-        image,
-        reference.render(&slots, &frame, &cams[0], 1.0, &light)
-    );
+    let image = backend.render(&input(&cams[0]));
+    assert_eq!(image, reference.render(&input(&cams[0])));
     assert!(image.coverage() > 0);
-    assert!(backend.render_in_place(&slots, &frame, &cams[1], 1.0, &light));
+    assert!(backend.render_in_place(&input(&cams[1])));
     assert!(backend.target_view().is_some());
     assert_eq!(backend.stats.full_uploads, 1);
 }

@@ -1,5 +1,5 @@
 //! The treelet service end to end: the real server (`arbor_server::service::start`) serving a
-//! real pool built from a real scan, and the real client (`arbor_client::net`), over loopback
+//! real pool built from a real scan, and the real client (`arbor_client_net`), over loopback
 //! QUIC and over the link emulator.
 //!
 //! One pool is built (autzen, 1 KiB treelets) and one server started; the scenarios run one
@@ -18,7 +18,7 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use arbor_client::net::{
+use arbor_client_net::{
     ClientConfig, ClientEvent, ReceivedTreelet, ServerUrl, TreeletClient, Trust,
 };
 use arbor_proto::codec;
@@ -141,22 +141,9 @@ async fn quiet_for(client: &mut TreeletClient, d: Duration) {
     }
 }
 
-/// A deterministic shuffle of `0..n` (SplitMix64-driven Fisher–Yates).
+/// A deterministic shuffle of `0..n`.
 fn shuffled(n: u32, seed: u64) -> Vec<u32> {
-    let mut state = seed;
-    let mut next = move || {
-        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    };
-    let mut v: Vec<u32> = (0..n).collect();
-    for i in (1..v.len()).rev() {
-        let j = (next() % (i as u64 + 1)) as usize;
-        v.swap(i, j);
-    }
-    v
+    arbor_proto::rng::SplitMix64::new(seed).shuffled(n)
 }
 
 /// Rank of each id in the server's order: priority descending, ties by lower id.

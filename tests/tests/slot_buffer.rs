@@ -5,8 +5,8 @@
 
 use std::sync::LazyLock;
 
-use arbor_client::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
-use arbor_client::upload::{DEFAULT_FILL_RATIO, UploadPlan, merge_ranges};
+use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
+use arbor_client_core::upload::{DEFAULT_FILL_RATIO, UploadPlan, merge_ranges};
 use arbor_proto::{Channel, Node, SceneDescription, TreeletId};
 use arbor_server::build::{BuildOptions, DepthChoice};
 use arbor_tests::support::{SCANS, build_file, decoded_treelets};

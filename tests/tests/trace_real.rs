@@ -10,11 +10,11 @@
 
 use std::collections::BTreeMap;
 
-use arbor_client::camera::SplitMix64;
-use arbor_client::incore::{IncoreView, SceneFrame};
-use arbor_client::proto::{Cell, Node, TreeletId};
-use arbor_client::slots::{DecodedTreelet, SlotBuffer};
-use arbor_client::trace::{Lod, Ray, trace};
+use arbor_client_core::camera::SplitMix64;
+use arbor_client_core::incore::{IncoreView, SceneFrame};
+use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
+use arbor_client_core::traverse::{Lod, Ray, trace};
+use arbor_proto::{Cell, Node, TreeletId};
 use arbor_server::build::{BuildOptions, DepthChoice};
 use arbor_tests::support::{SCANS, build_file, decoded_treelets, final_leaves};
 use glam::DVec3;

@@ -39,15 +39,15 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use arbor_client::backend::CpuBackend;
-use arbor_client::camera::CameraPath;
-use arbor_client::image::Image;
-use arbor_client::incore::SceneFrame;
-use arbor_client::render::Light;
-use arbor_client::report::{CycleRecord, RunReport};
-use arbor_client::session::reference_image;
-use arbor_client::viewer::blit::{BACKGROUND, OVERLAY_MARGIN};
-use arbor_client::viewer::overlay::Overlay;
+use arbor_client_core::backend::CpuBackend;
+use arbor_client_core::camera::CameraPath;
+use arbor_client_core::image::Image;
+use arbor_client_core::incore::SceneFrame;
+use arbor_client_core::render::Light;
+use arbor_client_report::{CycleRecord, RunReport};
+use arbor_client_session::session::reference_image;
+use arbor_client_viewer::blit::{BACKGROUND, OVERLAY_MARGIN};
+use arbor_client_viewer::overlay::Overlay;
 use arbor_tests::streaming::{TOKEN, serve};
 
 const SIZE: (u32, u32) = (256, 192);
@@ -426,7 +426,7 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     );
     assert!(records.iter().all(|r| r.slots_used <= r.slots_total));
     assert!(records.last().unwrap().error.max == 0.0);
-    assert!(arbor_client::viewer::chart_path(&report_path).exists());
+    assert!(arbor_client_viewer::chart_path(&report_path).exists());
 
     // Again with the overlay, on the CPU renderer (frames uploaded each cycle): the panel
     // covers the top-left corner with text, the rest of the window is still the reference.

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use arbor_client::net::tls::{PinnedCertVerifier, parse_fingerprint};
+use arbor_client_net::tls::{PinnedCertVerifier, parse_fingerprint};
 use arbor_proto::frame::{self, FrameDecoder};
 use arbor_proto::limits::MAX_TREELET_MESSAGE_BYTES;
 use arbor_proto::wire::{ALPN, ErrorCode, Frame, PROTOCOL_VERSION};

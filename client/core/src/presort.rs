@@ -1,0 +1,264 @@
+//! Presort (DESIGN §5): from one cycle's feedback samples, the set of *visible* treelets and
+//! the *request list*, de-duplicated and sorted by priority.
+//!
+//! A plain data structure with no I/O, no GPU and no slot buffer: the caller passes a lookup
+//! from slot to `(treelet, parent slot)`, so presort is tested on its own and runs the same
+//! behind the CPU and the GPU analysis pass.
+//!
+//! * **Visible**: the slot of every hit node and all its ancestor slots up to the root. The slot
+//!   buffer refreshes their visibility, so a treelet the camera sees is never evicted, and
+//!   neither is any treelet on its path to the root.
+//! * **Requests**: the subtreelets of hit leaves whose voxel is coarser than a pixel (`error >
+//!   0`). Each keeps the largest error any sample saw and the number of samples that saw it.
+//!   Priorities are computed by the selected [`PriorityPolicy`]; the list is sorted highest
+//!   first (ties by lower id, the server's own tie rule), then capped.
+
+use std::collections::HashMap;
+
+use arbor_proto::TreeletId;
+
+use crate::analysis::FeedbackSample;
+
+/// How a request's priority is computed from what the feedback saw.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum PriorityPolicy {
+    /// The largest screen-space error any sample saw (the thesis's rule).
+    MaxError,
+    /// Largest error × samples that saw it: a treelet covering many pixels matters more.
+    /// Arbor's default.
+    #[default]
+    ErrorTimesPixels,
+}
+
+impl PriorityPolicy {
+    /// Parses `max-error` or `error-pixels` (the CLI spelling).
+    pub fn parse(text: &str) -> Option<Self> {
+        match text {
+            "max-error" => Some(Self::MaxError),
+            "error-pixels" => Some(Self::ErrorTimesPixels),
+            _ => None,
+        }
+    }
+
+    /// The command-line spelling.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::MaxError => "max-error",
+            Self::ErrorTimesPixels => "error-pixels",
+        }
+    }
+}
+
+/// One de-duplicated request.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RequestItem {
+    /// The treelet that refines what the samples hit.
+    pub id: TreeletId,
+    /// Largest screen-space error (octree levels) of any sample that hit the refinable leaf.
+    pub error: f32,
+    /// Samples that hit it.
+    pub samples: u32,
+    /// What the list is sorted by (see [`PriorityPolicy`]); finite and > 0.
+    pub priority: f32,
+}
+
+/// The result of one presort.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Presorted {
+    /// Slots of hit treelets and all their ancestors, ascending, each once.
+    pub visible_slots: Vec<u32>,
+    /// Highest priority first, at most the cap.
+    pub requests: Vec<RequestItem>,
+    /// Distinct refinable treelets seen before the cap cut the list.
+    pub distinct_requests: usize,
+}
+
+/// Reusable presort state: the maps are kept between cycles so a cycle allocates nothing once
+/// warm.
+#[derive(Debug, Default)]
+pub struct Presort {
+    policy: PriorityPolicy,
+    max_requests: usize,
+    seen_slots: Vec<bool>,
+    requests: HashMap<TreeletId, (f32, u32)>,
+}
+
+impl Presort {
+    /// `max_requests` caps the list (at least 1).
+    pub fn new(policy: PriorityPolicy, max_requests: usize) -> Self {
+        Self {
+            policy,
+            max_requests: max_requests.max(1),
+            seen_slots: Vec::new(),
+            requests: HashMap::new(),
+        }
+    }
+
+    /// The ranking policy.
+    pub fn policy(&self) -> PriorityPolicy {
+        self.policy
+    }
+
+    /// Runs presort over `samples`. `treelet_nodes` is `N`; `parent_slot(slot)` gives the slot
+    /// of a slot's parent treelet (`None` for the root slot); `skip(id)` says a subtreelet must
+    /// not be requested (already resident or waiting to be inserted).
+    pub fn run(
+        &mut self,
+        samples: &[FeedbackSample],
+        treelet_nodes: u32,
+        slot_count: u32,
+        parent_slot: impl Fn(u32) -> Option<u32>,
+        skip: impl Fn(TreeletId) -> bool,
+    ) -> Presorted {
+        self.seen_slots.clear();
+        self.seen_slots.resize(slot_count as usize, false);
+        self.requests.clear();
+        let mut visible = Vec::new();
+        for s in samples.iter().filter(|s| s.is_hit()) {
+            let mut slot = s.node / treelet_nodes;
+            // Walk up until a slot already marked: its ancestors are marked too.
+            while let Some(seen) = self.seen_slots.get_mut(slot as usize) {
+                if *seen {
+                    break;
+                }
+                *seen = true;
+                visible.push(slot);
+                match parent_slot(slot) {
+                    Some(p) => slot = p,
+                    None => break,
+                }
+            }
+            if s.wants_refinement() && !skip(TreeletId(s.subtreelet)) {
+                let e = self
+                    .requests
+                    .entry(TreeletId(s.subtreelet))
+                    .or_insert((s.error, 0));
+                e.0 = e.0.max(s.error);
+                e.1 += 1;
+            }
+        }
+        visible.sort_unstable();
+        let policy = self.policy;
+        let mut requests: Vec<RequestItem> = self
+            .requests
+            .iter()
+            .map(|(&id, &(error, samples))| RequestItem {
+                id,
+                error,
+                samples,
+                priority: match policy {
+                    PriorityPolicy::MaxError => error,
+                    PriorityPolicy::ErrorTimesPixels => error * samples as f32,
+                },
+            })
+            .collect();
+        let distinct_requests = requests.len();
+        requests.sort_unstable_by(|a, b| {
+            b.priority
+                .total_cmp(&a.priority)
+                .then_with(|| a.id.cmp(&b.id))
+        });
+        requests.truncate(self.max_requests);
+        Presorted {
+            visible_slots: visible,
+            requests,
+            distinct_requests,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn hit(node: u32, sub: u32, error: f32) -> FeedbackSample {
+        FeedbackSample {
+            node,
+            subtreelet: sub,
+            error,
+            t: 1.0,
+        }
+    }
+
+    /// Slots 0 ← 1 ← 2, 0 ← 3 (parent links).
+    fn parent(slot: u32) -> Option<u32> {
+        match slot {
+            0 => None,
+            1 => Some(0),
+            2 => Some(1),
+            3 => Some(0),
+            _ => panic!("no slot {slot}"),
+        }
+    }
+
+    #[test]
+    fn visible_slots_include_ancestors_once() {
+        let n = 16;
+        let samples = [
+            hit(2 * n + 5, u32::MAX, -1.0),
+            hit(2 * n + 6, u32::MAX, -1.0),
+            FeedbackSample::MISS,
+        ];
+        let mut p = Presort::new(PriorityPolicy::MaxError, 10);
+        let out = p.run(&samples, n, 4, parent, |_| false);
+        assert_eq!(out.visible_slots, vec![0, 1, 2]);
+        assert!(out.requests.is_empty());
+        let out = p.run(&[hit(3 * n, 7, 0.5)], n, 4, parent, |_| false);
+        assert_eq!(out.visible_slots, vec![0, 3]);
+    }
+
+    #[test]
+    fn requests_keep_max_error_and_count_samples() {
+        let samples = [
+            hit(1, 9, 1.0),
+            hit(2, 9, 3.0),
+            hit(3, 4, 2.0),
+            hit(4, 4, 0.0),
+        ];
+        let mut p = Presort::new(PriorityPolicy::MaxError, 10);
+        let out = p.run(&samples, 16, 4, parent, |_| false);
+        assert_eq!(out.requests.len(), 2, "error 0 is not a request");
+        assert_eq!(out.requests[0].id, TreeletId(9));
+        assert_eq!(out.requests[0].error, 3.0);
+        assert_eq!(out.requests[0].samples, 2);
+        assert_eq!(out.requests[1].samples, 1);
+    }
+
+    #[test]
+    fn policies_order_differently_and_cap_applies() {
+        // Treelet 5: one sample at error 3. Treelet 6: four samples at error 1.
+        let mut samples = vec![hit(1, 5, 3.0)];
+        samples.extend((0..4).map(|i| hit(2 + i, 6, 1.0)));
+        let mut thesis = Presort::new(PriorityPolicy::MaxError, 10);
+        let ids: Vec<_> = thesis
+            .run(&samples, 16, 4, parent, |_| false)
+            .requests
+            .iter()
+            .map(|r| r.id.0)
+            .collect();
+        assert_eq!(ids, vec![5, 6]);
+        let mut arbor = Presort::new(PriorityPolicy::ErrorTimesPixels, 1);
+        let out = arbor.run(&samples, 16, 4, parent, |_| false);
+        assert_eq!(out.requests.len(), 1);
+        assert_eq!(out.requests[0].id, TreeletId(6));
+        assert_eq!(out.requests[0].priority, 4.0);
+        assert_eq!(out.distinct_requests, 2);
+    }
+
+    #[test]
+    fn ties_break_by_lower_id_and_skip_filters() {
+        let samples = [hit(1, 8, 2.0), hit(2, 3, 2.0), hit(3, 5, 2.0)];
+        let mut p = Presort::new(PriorityPolicy::MaxError, 10);
+        let out = p.run(&samples, 16, 4, parent, |id| id == TreeletId(5));
+        let ids: Vec<_> = out.requests.iter().map(|r| r.id.0).collect();
+        assert_eq!(ids, vec![3, 8]);
+    }
+
+    #[test]
+    fn nodes_outside_the_slot_range_are_ignored_not_panicking() {
+        let mut p = Presort::new(PriorityPolicy::MaxError, 10);
+        let out = p.run(&[hit(1000, 2, 1.0)], 16, 4, parent, |_| false);
+        assert!(out.visible_slots.is_empty());
+        assert_eq!(out.requests.len(), 1);
+    }
+}

@@ -1,0 +1,66 @@
+//! Which backend a run uses: the GPU when asked for or when `auto` finds an adapter, else the
+//! CPU twins of `arbor-client-core`, saying why.
+
+use std::sync::Arc;
+
+use arbor_client_core::backend::{Backend, CpuBackend};
+
+use crate::{GpuBackend, GpuContext, GpuError};
+
+/// Which backend a run asks for.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum BackendChoice {
+    /// The GPU when an adapter exists (software ones such as lavapipe included), else the CPU
+    /// twins — saying so.
+    #[default]
+    Auto,
+    /// The GPU or an error.
+    Gpu,
+    /// The CPU twins.
+    Cpu,
+}
+
+impl BackendChoice {
+    /// Parses `auto`, `gpu` or `cpu` (the CLI spelling).
+    pub fn parse(text: &str) -> Option<Self> {
+        match text {
+            "auto" => Some(Self::Auto),
+            "gpu" => Some(Self::Gpu),
+            "cpu" => Some(Self::Cpu),
+            _ => None,
+        }
+    }
+}
+
+/// A backend made for a run, and why it is not the GPU one when [`BackendChoice::Auto`] fell
+/// back.
+#[derive(Debug)]
+pub struct ChosenBackend {
+    pub backend: Box<dyn Backend>,
+    /// `Some(reason)` when `Auto` found no usable adapter and runs on the CPU twins.
+    pub fallback: Option<String>,
+}
+
+/// Makes the backend `choice` asks for.
+pub fn create_backend(choice: BackendChoice) -> Result<ChosenBackend, GpuError> {
+    match choice {
+        BackendChoice::Cpu => Ok(ChosenBackend {
+            backend: Box::new(CpuBackend),
+            fallback: None,
+        }),
+        BackendChoice::Gpu => Ok(ChosenBackend {
+            backend: Box::new(GpuBackend::new(Arc::new(GpuContext::new(None)?))),
+            fallback: None,
+        }),
+        BackendChoice::Auto => match GpuContext::new(None) {
+            Ok(ctx) => Ok(ChosenBackend {
+                backend: Box::new(GpuBackend::new(Arc::new(ctx))),
+                fallback: None,
+            }),
+            Err(e) => Ok(ChosenBackend {
+                backend: Box::new(CpuBackend),
+                fallback: Some(e.to_string()),
+            }),
+        },
+    }
+}

@@ -1,0 +1,54 @@
+//! The client's connection to a treelet server (DESIGN §6, issue 3 item 5).
+//!
+//! ```no_run
+//! # async fn demo() -> Result<(), arbor_client_net::ClientError> {
+//! use arbor_client_net::{ClientConfig, ClientEvent, TreeletClient, Trust, parse_server_url};
+//! use arbor_proto::{Channel, TreeletId};
+//!
+//! let url = parse_server_url("quic://viewer.example:4433/lion")?;
+//! let trust = Trust::Fingerprint("…64 hex digits printed by the server…".into());
+//! let config = ClientConfig::new(url, trust)
+//!     .with_token("secret")
+//!     .with_channels([Channel::Color]);
+//! let mut client = TreeletClient::start(config)?;
+//! client.request(vec![(TreeletId::ROOT, 10.0)])?;
+//! while let Some(event) = client.next_event().await {
+//!     match event {
+//!         ClientEvent::Connected(scene) => println!("{} treelets", scene.treelet_count),
+//!         ClientEvent::Treelet(t) => println!("treelet {} after {:?}", t.id, t.latency),
+//!         ClientEvent::Disconnected { reason, reconnect_in, .. } => {
+//!             println!("{reason}; again in {reconnect_in:?}")
+//!         }
+//!     }
+//! }
+//! # Ok(()) }
+//! ```
+//!
+//! * [`url`]: `quic://HOST:PORT/SCENE` ([`parse_server_url`]).
+//! * [`tls`]: trusting the server by pinned certificate fingerprint or by CA ([`Trust`]).
+//! * [`transport`]: QUIC transport parameters and timeouts.
+//! * [`backoff`]: reconnect delays ([`Backoff`]).
+//! * [`TreeletClient`]: the handle; a background task owns the connection, reconnects, sends
+//!   request lists and reads treelet streams (validating every message, only the channels asked
+//!   for, within a byte bound that pushes back on the server when the caller falls behind).
+
+pub mod backoff;
+mod client;
+mod config;
+mod connection;
+mod error;
+mod event;
+mod shared;
+mod stream;
+pub mod tls;
+pub mod transport;
+pub mod url;
+
+pub use backoff::{Backoff, Jitter};
+pub use client::TreeletClient;
+pub use config::{ClientConfig, DEFAULT_MAX_BUFFERED_BYTES};
+pub use connection::is_final_code;
+pub use error::ClientError;
+pub use event::{ClientEvent, ClientStats, ReceivedTreelet};
+pub use tls::{Trust, certificate_fingerprint};
+pub use url::{ServerUrl, parse_server_url};

@@ -1,0 +1,550 @@
+//! Charts of a run: error and traffic against run time, as a PNG.
+//!
+//! This module owns the picture of a [`RunReport`]; it reads nothing but the report, so a chart
+//! can be drawn during a run, after it, or from a CSV file read back with
+//! [`RunReport::read_csv`]. One image, [`WIDTH`]×[`HEIGHT`] pixels, two panels sharing the
+//! x axis (run time, s):
+//!
+//! * top: screen-space error mean, p95 and max (octree levels, left axis) and, when any record
+//!   has one, image RMSE against the reference (right axis);
+//! * bottom: received traffic in MB/s (10⁶ bytes per second: the cycle's `bytes_received`
+//!   divided by the time since the previous record, or since the run started for the first; a
+//!   record whose time did not advance uses the sum of its phase durations instead, and is left
+//!   out when that is 0 too),
+//!   and slots used and slots total (right axis).
+//!
+//! Text is drawn by plotters' `ab_glyph` backend, which has no system font lookup: the DejaVu
+//! Sans font in `client/assets/` is compiled in and registered on first use. The picture is
+//! rendered into an in-memory RGB buffer and encoded with the `image` crate (plotters' own
+//! `bitmap_encoder` would pull in an older `image`).
+//!
+//! Degenerate reports never panic: values that are not finite are left out of the series,
+//! empty or zero-width axis ranges are widened, and values and ranges are clipped to ±10¹². An empty
+//! report still gives an `Ok` chart with empty axes and a "no cycles recorded" note; a
+//! one-record report shows its values as single points.
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use plotters::style::{FontStyle, register_font};
+
+use crate::assets::FONT;
+use crate::{CycleRecord, RunReport};
+
+/// Width of the chart, pixels.
+pub const WIDTH: u32 = 1200;
+/// Height of the chart, pixels.
+pub const HEIGHT: u32 = 800;
+
+/// Largest magnitude an axis range may reach; plotters' tick computation needs finite spans.
+const RANGE_LIMIT: f64 = 1e12;
+
+/// Width of the right axis area of both panels, kept even when the top one has no right axis so
+/// that the panels' x axes line up.
+const RIGHT_AXIS: u32 = 80;
+
+/// Series drawn with markers too when a report has fewer records than this.
+const MARKER_BELOW: usize = 30;
+
+/// Why a chart could not be drawn.
+#[derive(Debug, thiserror::Error)]
+pub enum ChartError {
+    /// The embedded font was rejected by plotters' font loader.
+    #[error("the embedded chart font could not be registered")]
+    Font,
+    /// plotters failed while drawing into the in-memory buffer.
+    #[error("drawing the chart: {0}")]
+    Draw(String),
+    /// The PNG could not be encoded or written.
+    #[error("{}: {source}", path.display())]
+    Write {
+        /// The output file.
+        path: PathBuf,
+        /// The underlying error (encoding or I/O).
+        #[source]
+        source: ::image::ImageError,
+    },
+}
+
+fn draw_err(e: impl std::fmt::Display) -> ChartError {
+    ChartError::Draw(e.to_string())
+}
+
+/// Registers the embedded font under plotters' `sans-serif` family, once per process.
+fn ensure_font() -> Result<(), ChartError> {
+    static REGISTERED: OnceLock<bool> = OnceLock::new();
+    let ok =
+        *REGISTERED.get_or_init(|| register_font("sans-serif", FontStyle::Normal, FONT).is_ok());
+    if ok { Ok(()) } else { Err(ChartError::Font) }
+}
+
+/// Draws `report` as a [`WIDTH`]×[`HEIGHT`] PNG at `path` (replacing it) with `title` on top.
+///
+/// Returns `Ok` for every report, including an empty one (empty axes and a note); errors are
+/// only the font, drawing or writing the file.
+pub fn draw(report: &RunReport, path: &Path, title: &str) -> Result<(), ChartError> {
+    let buf = render_rgb(report, title)?;
+    ::image::save_buffer_with_format(
+        path,
+        &buf,
+        WIDTH,
+        HEIGHT,
+        ::image::ExtendedColorType::Rgb8,
+        ::image::ImageFormat::Png,
+    )
+    .map_err(|source| ChartError::Write {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// Renders the chart into a packed RGB8 buffer of [`WIDTH`]×[`HEIGHT`] pixels.
+pub fn render_rgb(report: &RunReport, title: &str) -> Result<Vec<u8>, ChartError> {
+    ensure_font()?;
+    let mut buf = vec![0u8; WIDTH as usize * HEIGHT as usize * 3];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (WIDTH, HEIGHT)).into_drawing_area();
+        root.fill(&WHITE).map_err(draw_err)?;
+        let body = root.titled(title, ("sans-serif", 26)).map_err(draw_err)?;
+        let panels = body.split_evenly((2, 1));
+        let data = Series::from_report(&report.records);
+        draw_error_panel(&panels[0], &data)?;
+        draw_traffic_panel(&panels[1], &data)?;
+        if report.records.is_empty() {
+            let style = ("sans-serif", 28)
+                .into_font()
+                .color(&RGBColor(120, 120, 120));
+            root.draw(&Text::new(
+                "no cycles recorded",
+                (WIDTH as i32 / 2 - 110, 120),
+                style,
+            ))
+            .map_err(draw_err)?;
+        }
+        root.present().map_err(draw_err)?;
+    }
+    Ok(buf)
+}
+
+type Points = Vec<(f64, f64)>;
+
+/// The report's columns as (time, value) points, non-finite values left out.
+struct Series {
+    x: Range<f64>,
+    mean: Points,
+    p95: Points,
+    max: Points,
+    rmse: Points,
+    mb_per_s: Points,
+    slots_used: Points,
+    slots_total: Points,
+    markers: bool,
+}
+
+impl Series {
+    fn from_report(records: &[CycleRecord]) -> Self {
+        let pts = |f: &dyn Fn(&CycleRecord) -> Option<f64>| -> Points {
+            records
+                .iter()
+                .filter_map(|r| Some((r.time_s, f(r)?)))
+                .filter(|(x, y)| x.is_finite() && y.is_finite())
+                .map(|(x, y)| (clip(x), clip(y)))
+                .collect()
+        };
+        let mut mb_per_s = Vec::new();
+        let mut prev_t: Option<f64> = None;
+        for r in records {
+            // The first record's interval starts with the run.
+            let mut dt = r.time_s - prev_t.unwrap_or(0.0);
+            if !(dt > 0.0) || !dt.is_finite() {
+                dt = (r.analysis_ms
+                    + r.presort_ms
+                    + r.request_ms
+                    + r.integrate_ms
+                    + r.upload_ms
+                    + r.render_ms)
+                    / 1000.0;
+            }
+            let rate = r.bytes_received as f64 / 1e6 / dt;
+            if dt > 0.0 && rate.is_finite() && r.time_s.is_finite() {
+                mb_per_s.push((clip(r.time_s), clip(rate)));
+            }
+            if r.time_s.is_finite() {
+                prev_t = Some(r.time_s);
+            }
+        }
+        Series {
+            x: axis_range(records.iter().map(|r| r.time_s), true),
+            mean: pts(&|r| Some(f64::from(r.error.mean))),
+            p95: pts(&|r| Some(f64::from(r.error.p95))),
+            max: pts(&|r| Some(f64::from(r.error.max))),
+            rmse: pts(&|r| r.image_rmse),
+            mb_per_s,
+            slots_used: pts(&|r| Some(f64::from(r.slots_used))),
+            slots_total: pts(&|r| Some(f64::from(r.slots_total))),
+            markers: records.len() < MARKER_BELOW,
+        }
+    }
+}
+
+/// Clips a finite value to ±[`RANGE_LIMIT`], so that every point lies inside its axis range
+/// (plotters' pixel mapping overflows for points far outside it).
+fn clip(v: f64) -> f64 {
+    v.clamp(-RANGE_LIMIT, RANGE_LIMIT)
+}
+
+/// A plotting range over the finite `values` (and 0 when `include_zero`), padded 5 % above,
+/// widened when empty or zero-width, clipped to ±[`RANGE_LIMIT`].
+fn axis_range(values: impl Iterator<Item = f64>, include_zero: bool) -> Range<f64> {
+    let (mut lo, mut hi) = if include_zero {
+        (0.0, 0.0)
+    } else {
+        (f64::INFINITY, f64::NEG_INFINITY)
+    };
+    for v in values.filter(|v| v.is_finite()) {
+        lo = lo.min(clip(v));
+        hi = hi.max(clip(v));
+    }
+    if lo > hi {
+        return 0.0..1.0;
+    }
+    let span = hi - lo;
+    if span <= f64::EPSILON * hi.abs().max(lo.abs()).max(1e-300) {
+        let pad = (hi.abs() * 0.1).max(1.0);
+        return if include_zero && lo >= 0.0 {
+            lo..hi + pad
+        } else {
+            lo - pad..hi + pad
+        };
+    }
+    let top = hi + span * 0.05;
+    let bottom = if include_zero && lo == 0.0 {
+        0.0
+    } else {
+        lo - span * 0.05
+    };
+    bottom..top
+}
+
+const MEAN: RGBColor = RGBColor(31, 119, 180);
+const P95: RGBColor = RGBColor(255, 127, 14);
+const MAX: RGBColor = RGBColor(214, 39, 40);
+const RMSE: RGBColor = RGBColor(148, 103, 189);
+const RATE: RGBColor = RGBColor(44, 160, 44);
+const USED: RGBColor = RGBColor(31, 119, 180);
+const TOTAL: RGBColor = RGBColor(127, 127, 127);
+
+fn legend_line(color: RGBColor) -> impl Fn((i32, i32)) -> PathElement<(i32, i32)> {
+    move |(x, y)| PathElement::new(vec![(x, y), (x + 24, y)], color.stroke_width(2))
+}
+
+fn draw_error_panel(
+    area: &DrawingArea<BitMapBackend<'_>, Shift>,
+    s: &Series,
+) -> Result<(), ChartError> {
+    let has_rmse = !s.rmse.is_empty();
+    let y = axis_range(s.mean.iter().chain(&s.p95).chain(&s.max).map(|p| p.1), true);
+    let y2 = axis_range(s.rmse.iter().map(|p| p.1), true);
+    let mut chart = ChartBuilder::on(area)
+        .margin(12)
+        .x_label_area_size(36)
+        .y_label_area_size(70)
+        .right_y_label_area_size(RIGHT_AXIS)
+        .caption("Screen-space error", ("sans-serif", 20))
+        .build_cartesian_2d(s.x.clone(), y)
+        .map_err(draw_err)?
+        .set_secondary_coord(s.x.clone(), y2);
+    chart
+        .configure_mesh()
+        .y_desc("error (octree levels)")
+        .label_style(("sans-serif", 14))
+        .axis_desc_style(("sans-serif", 16))
+        .draw()
+        .map_err(draw_err)?;
+    if has_rmse {
+        chart
+            .configure_secondary_axes()
+            .y_desc("image RMSE vs reference")
+            .label_style(("sans-serif", 14))
+            .axis_desc_style(("sans-serif", 16))
+            .draw()
+            .map_err(draw_err)?;
+    }
+    for (points, color, label) in [
+        (&s.mean, MEAN, "error mean (levels)"),
+        (&s.p95, P95, "error p95 (levels)"),
+        (&s.max, MAX, "error max (levels)"),
+    ] {
+        chart
+            .draw_series(LineSeries::new(
+                points.iter().copied(),
+                color.stroke_width(2),
+            ))
+            .map_err(draw_err)?
+            .label(label)
+            .legend(legend_line(color));
+        if s.markers {
+            chart
+                .draw_series(points.iter().map(|&p| Circle::new(p, 3, color.filled())))
+                .map_err(draw_err)?;
+        }
+    }
+    if has_rmse {
+        chart
+            .draw_secondary_series(LineSeries::new(
+                s.rmse.iter().copied(),
+                RMSE.stroke_width(2),
+            ))
+            .map_err(draw_err)?
+            .label("image RMSE (right axis)")
+            .legend(legend_line(RMSE));
+        if s.markers {
+            chart
+                .draw_secondary_series(s.rmse.iter().map(|&p| Circle::new(p, 3, RMSE.filled())))
+                .map_err(draw_err)?;
+        }
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
+        .label_font(("sans-serif", 14))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(draw_err)
+}
+
+fn draw_traffic_panel(
+    area: &DrawingArea<BitMapBackend<'_>, Shift>,
+    s: &Series,
+) -> Result<(), ChartError> {
+    let y = axis_range(s.mb_per_s.iter().map(|p| p.1), true);
+    let y2 = axis_range(s.slots_used.iter().chain(&s.slots_total).map(|p| p.1), true);
+    let mut chart = ChartBuilder::on(area)
+        .margin(12)
+        .x_label_area_size(44)
+        .y_label_area_size(70)
+        .right_y_label_area_size(RIGHT_AXIS)
+        .caption("Traffic and slots", ("sans-serif", 20))
+        .build_cartesian_2d(s.x.clone(), y)
+        .map_err(draw_err)?
+        .set_secondary_coord(s.x.clone(), y2);
+    chart
+        .configure_mesh()
+        .x_desc("run time (s)")
+        .y_desc("received (MB/s, 1 MB = 10⁶ B)")
+        .label_style(("sans-serif", 14))
+        .axis_desc_style(("sans-serif", 16))
+        .draw()
+        .map_err(draw_err)?;
+    chart
+        .configure_secondary_axes()
+        .y_desc("slots")
+        .label_style(("sans-serif", 14))
+        .axis_desc_style(("sans-serif", 16))
+        .draw()
+        .map_err(draw_err)?;
+    chart
+        .draw_series(LineSeries::new(
+            s.mb_per_s.iter().copied(),
+            RATE.stroke_width(2),
+        ))
+        .map_err(draw_err)?
+        .label("received (MB/s)")
+        .legend(legend_line(RATE));
+    for (points, color, label) in [
+        (&s.slots_used, USED, "slots used (right axis)"),
+        (&s.slots_total, TOTAL, "slots total (right axis)"),
+    ] {
+        chart
+            .draw_secondary_series(LineSeries::new(
+                points.iter().copied(),
+                color.stroke_width(2),
+            ))
+            .map_err(draw_err)?
+            .label(label)
+            .legend(legend_line(color));
+    }
+    if s.markers {
+        chart
+            .draw_series(s.mb_per_s.iter().map(|&p| Circle::new(p, 3, RATE.filled())))
+            .map_err(draw_err)?;
+        for (points, color) in [(&s.slots_used, USED), (&s.slots_total, TOTAL)] {
+            chart
+                .draw_secondary_series(points.iter().map(|&p| Circle::new(p, 3, color.filled())))
+                .map_err(draw_err)?;
+        }
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::LowerRight)
+        .label_font(("sans-serif", 14))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(draw_err)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{ErrorSummary, RunMeta};
+
+    fn synthetic(n: u32) -> RunReport {
+        let records = (0..n)
+            .map(|i| {
+                let t = f64::from(i) / 30.0;
+                let e = (8.0 * (-t / 2.0).exp()) as f32;
+                CycleRecord {
+                    cycle: i,
+                    time_s: t,
+                    analysis_ms: 1.0,
+                    render_ms: 12.0,
+                    treelets_received: 5,
+                    bytes_received: 200_000 + u64::from(i % 7) * 30_000,
+                    slots_used: (i * 20).min(3000),
+                    slots_total: 4096,
+                    samples: 10_000,
+                    error: ErrorSummary {
+                        mean: e / 3.0,
+                        p95: e * 0.8,
+                        max: e,
+                        error_pixels: f64::from(e) * 1e4,
+                    },
+                    image_rmse: Some(f64::from(e) * 2.5),
+                    ..CycleRecord::default()
+                }
+            })
+            .collect();
+        RunReport {
+            meta: RunMeta::default(),
+            records,
+        }
+    }
+
+    fn temp_png(name: &str) -> PathBuf {
+        std::env::temp_dir().join(format!("arbor-chart-{}-{name}.png", std::process::id()))
+    }
+
+    /// Decodes the PNG at `path`, checks its size, and returns how many distinct colours it has.
+    fn check_png(path: &Path) -> usize {
+        let img = ::image::open(path).unwrap().to_rgb8();
+        assert_eq!(img.dimensions(), (WIDTH, HEIGHT));
+        let mut colours: Vec<[u8; 3]> = img.pixels().map(|p| p.0).collect();
+        colours.sort_unstable();
+        colours.dedup();
+        colours.len()
+    }
+
+    #[test]
+    fn chart_of_200_cycles_is_a_png_of_the_stated_size_with_content() {
+        let path = temp_png("200");
+        draw(&synthetic(200), &path, "synthetic run, 200 cycles").unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
+        let colours = check_png(&path);
+        // Lines in several colours plus anti-aliased text: far from one flat colour.
+        assert!(colours > 10, "only {colours} colours");
+        let _ = std::fs::remove_file(&path);
+    }
+
+    #[test]
+    fn text_is_drawn() {
+        // The title region differs between two titles only if glyphs are really rendered.
+        let report = synthetic(10);
+        let a = render_rgb(&report, "AAAA").unwrap();
+        let b = render_rgb(&report, "WWWW WWWW").unwrap();
+        let title_rows = WIDTH as usize * 3 * 40;
+        assert_ne!(a[..title_rows], b[..title_rows]);
+    }
+
+    #[test]
+    fn one_record_and_empty_reports_draw() {
+        for (name, report) in [("one", synthetic(1)), ("empty", RunReport::default())] {
+            let path = temp_png(name);
+            draw(&report, &path, name).unwrap();
+            assert!(check_png(&path) > 2);
+            let _ = std::fs::remove_file(&path);
+        }
+    }
+
+    #[test]
+    fn degenerate_values_draw() {
+        let mut zero = synthetic(50);
+        for r in &mut zero.records {
+            r.error = ErrorSummary::default();
+            r.bytes_received = 0;
+            r.slots_used = 0;
+            r.slots_total = 0;
+            r.image_rmse = Some(0.0);
+        }
+        let mut nan = synthetic(50);
+        for (i, r) in nan.records.iter_mut().enumerate() {
+            if i % 3 == 0 {
+                r.time_s = f64::NAN;
+            }
+            r.error.mean = f32::NAN;
+            r.error.max = f32::INFINITY;
+            r.image_rmse = if i % 2 == 0 { Some(f64::NAN) } else { None };
+        }
+        let mut huge = synthetic(5);
+        huge.records[2].time_s = f64::MAX;
+        huge.records[3].error.max = f32::MAX;
+        huge.records[4].bytes_received = u64::MAX;
+        // Time standing still: rates come from the phase durations.
+        let mut still = synthetic(5);
+        for r in &mut still.records {
+            r.time_s = 1.0;
+        }
+        let mut no_time = synthetic(3);
+        for r in &mut no_time.records {
+            r.time_s = 0.0;
+            r.analysis_ms = 0.0;
+            r.render_ms = 0.0;
+        }
+        for (name, report) in [
+            ("zero", zero),
+            ("nan", nan),
+            ("huge", huge),
+            ("still", still),
+            ("no_time", no_time),
+        ] {
+            render_rgb(&report, name).unwrap_or_else(|e| panic!("{name}: {e}"));
+        }
+    }
+
+    #[test]
+    fn axis_ranges_are_never_empty() {
+        assert_eq!(axis_range(std::iter::empty(), true), 0.0..1.0);
+        assert_eq!(axis_range(std::iter::empty(), false), 0.0..1.0);
+        assert_eq!(axis_range([0.0, 0.0].into_iter(), true), 0.0..1.0);
+        assert_eq!(axis_range([5.0].into_iter(), false), 4.0..6.0);
+        assert_eq!(
+            axis_range([f64::NAN, f64::INFINITY].into_iter(), true),
+            0.0..1.0
+        );
+        assert_eq!(axis_range([0.0, 10.0].into_iter(), true), 0.0..10.5);
+        let r = axis_range([f64::MAX, -f64::MAX].into_iter(), false);
+        assert!(r.start.is_finite() && r.end.is_finite() && r.start < r.end);
+    }
+
+    #[test]
+    fn rates_use_time_deltas_with_phase_fallback() {
+        let mut report = synthetic(3);
+        for r in &mut report.records {
+            r.bytes_received = 1_000_000;
+        }
+        report.records[0].time_s = 0.0; // no time since the start: phases, 13 ms
+        report.records[1].time_s = 0.5;
+        report.records[2].time_s = 0.5; // time stood still: phases again
+        let s = Series::from_report(&report.records);
+        let rates: Vec<f64> = s.mb_per_s.iter().map(|p| p.1).collect();
+        assert_eq!(rates, vec![1.0 / 0.013, 2.0, 1.0 / 0.013]);
+        report.records[0].time_s = 0.25; // first record: time since the start
+        let s = Series::from_report(&report.records);
+        assert_eq!(s.mb_per_s[0].1, 4.0);
+    }
+}

@@ -1,0 +1,1061 @@
+//! Run reports: per-cycle records of a client run, the CSV file they are kept in and the charts
+//! drawn from them — error against run time, the measure of the whole system.
+//!
+//! This crate owns the *record* of a run, not its production: the run loop fills one
+//! [`CycleRecord`] per client cycle (analysis → presort → request list → integrate arrivals →
+//! upload → render) and collects them in a [`RunReport`] with the run's settings ([`RunMeta`]).
+//! Everything that judges a run afterwards — [`RunReport::summary`], the chart in
+//! [`crate::chart`], comparisons between runs — reads only this type or its CSV file, so the
+//! format is defined here once and round-trips exactly ([`RunReport::write_csv`] /
+//! [`RunReport::read_csv`]).
+//!
+//! # CSV format
+//!
+//! ```text
+//! # arbor run report v1
+//! # scene=…            (one `# key=value` line per RunMeta field, see META_KEYS)
+//! cycle,time_s,analysis_ms,…,differing_share      (the header: CSV_COLUMNS)
+//! 0,0.016,1.2,…,                                   (one row per cycle)
+//! ```
+//!
+//! * Column names carry their unit (`_s`, `_ms`, `_levels`, …); see [`CSV_COLUMNS`].
+//! * Numbers are written with Rust's shortest round-trip formatting, so reading gives back the
+//!   identical bits (`NaN`, `inf` and `-inf` included).
+//! * An empty cell is `None` (only the optional columns `image_rmse` and `differing_share`).
+//! * Lines starting with `#` are comments; those of the form `# key=value` with a key from
+//!   [`META_KEYS`] carry [`RunMeta`]. Every meta key must be present; unknown keys are ignored.
+//!   Meta values escape `\` as `\\`, line feed as `\n` and carriage return as `\r`.
+//! * Blank lines are ignored. There is no quoting: every data cell is a number.
+//!
+//! Malformed files give a [`ReportError`] that names the line (and column, where there is one),
+//! never a panic.
+
+#![forbid(unsafe_code)]
+
+mod assets;
+pub mod chart;
+
+pub use arbor_client_core::summary::ErrorSummary;
+pub use assets::FONT;
+
+use std::fmt;
+use std::fs;
+use std::io;
+use std::path::{Path, PathBuf};
+
+/// The CSV header, in column order. Units are part of the names: `_s` seconds since the run
+/// started, `_ms` milliseconds of wall time in that phase, `bytes_` / `_bytes` bytes, `_levels`
+/// octree levels of screen-space error; counts are plain. `error_pixels` is the error-weighted
+/// pixel count (levels × pixels), `image_rmse` is in the units of the image comparison that
+/// produced it, `differing_share` is a fraction in 0..=1.
+pub const CSV_COLUMNS: [&str; 25] = [
+    "cycle",
+    "time_s",
+    "analysis_ms",
+    "presort_ms",
+    "request_ms",
+    "integrate_ms",
+    "upload_ms",
+    "render_ms",
+    "requests_sent",
+    "treelets_received",
+    "bytes_received",
+    "treelets_inserted",
+    "slots_used",
+    "slots_total",
+    "evictions",
+    "dropped",
+    "upload_ranges",
+    "upload_bytes",
+    "samples",
+    "error_mean_levels",
+    "error_p95_levels",
+    "error_max_levels",
+    "error_pixels",
+    "image_rmse",
+    "differing_share",
+];
+
+/// The `# key=value` meta keys, in the order they are written.
+pub const META_KEYS: [&str; 8] = [
+    "scene",
+    "server",
+    "width",
+    "height",
+    "feedback_ratio",
+    "budget_mib",
+    "camera_path",
+    "treelet_bytes",
+];
+
+/// The first line of every report file (a comment, so readers need not require it).
+const MAGIC_LINE: &str = "# arbor run report v1";
+
+/// What happened in one client cycle.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct CycleRecord {
+    /// Cycle number, from 0.
+    pub cycle: u32,
+    /// Seconds since the run started.
+    pub time_s: f64,
+    /// Wall time of the analysis (feedback) pass, ms.
+    pub analysis_ms: f64,
+    /// Wall time of presort, ms.
+    pub presort_ms: f64,
+    /// Wall time of building and sending the request list, ms.
+    pub request_ms: f64,
+    /// Wall time of integrating arrived treelets into the slot buffer, ms.
+    pub integrate_ms: f64,
+    /// Wall time of the upload, ms.
+    pub upload_ms: f64,
+    /// Wall time of rendering, ms.
+    pub render_ms: f64,
+    /// Items in the request list sent this cycle.
+    pub requests_sent: u32,
+    /// Treelets received this cycle.
+    pub treelets_received: u32,
+    /// Bytes received this cycle.
+    pub bytes_received: u64,
+    /// Treelets inserted into the slot buffer this cycle.
+    pub treelets_inserted: u32,
+    /// Slots in use after this cycle.
+    pub slots_used: u32,
+    /// Slots in the buffer.
+    pub slots_total: u32,
+    /// Treelets evicted this cycle.
+    pub evictions: u32,
+    /// Treelets received but dropped this cycle (not inserted).
+    pub dropped: u32,
+    /// Contiguous ranges uploaded this cycle.
+    pub upload_ranges: u32,
+    /// Bytes uploaded this cycle.
+    pub upload_bytes: u64,
+    /// Feedback samples that hit something.
+    pub samples: u32,
+    /// Screen-space error over those samples.
+    pub error: ErrorSummary,
+    /// RMSE of the rendered image against a reference image, when one was given.
+    pub image_rmse: Option<f64>,
+    /// Share of pixels that differ from the reference image (0..=1), when one was given.
+    pub differing_share: Option<f64>,
+}
+
+/// The settings a run was made with.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RunMeta {
+    /// Scene name on the server.
+    pub scene: String,
+    /// Server address (URL).
+    pub server: String,
+    /// Render width, pixels.
+    pub width: u32,
+    /// Render height, pixels.
+    pub height: u32,
+    /// Feedback buffer downscale: one sample per `feedback_ratio`² pixels.
+    pub feedback_ratio: u32,
+    /// Slot-buffer budget, MiB.
+    pub budget_mib: f64,
+    /// Camera path (file name or description).
+    pub camera_path: String,
+    /// Bytes per treelet slot.
+    pub treelet_bytes: u32,
+}
+
+/// A whole run: its settings and one record per cycle, in cycle order.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RunReport {
+    /// The settings of the run.
+    pub meta: RunMeta,
+    /// One record per cycle.
+    pub records: Vec<CycleRecord>,
+}
+
+/// Why a report could not be written or read.
+#[derive(Debug, thiserror::Error)]
+pub enum ReportError {
+    /// The file could not be created, written or read.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        #[source]
+        source: io::Error,
+    },
+    /// The file has no header row: it is empty or holds only comments and blank lines.
+    /// `line` is the line just past the end of the file.
+    #[error("line {line}: no header row (expected `{}`)", CSV_COLUMNS.join(","))]
+    MissingHeader {
+        /// 1-based line number.
+        line: usize,
+    },
+    /// The first non-comment line is not the expected header (this is also what a file whose
+    /// header was cut off gives: its first data row is taken for the header). `found` is empty
+    /// when the row is too short, `expected` is empty when it is too long.
+    #[error("line {line}, column {column}: header has `{found}` where `{expected}` is expected")]
+    BadHeader {
+        /// 1-based line number.
+        line: usize,
+        /// 1-based column number of the first mismatch.
+        column: usize,
+        /// The column name expected there.
+        expected: &'static str,
+        /// What the file has there.
+        found: String,
+    },
+    /// A data row does not have one cell per column.
+    #[error("line {line}: {found} columns, expected {}", CSV_COLUMNS.len())]
+    ColumnCount {
+        /// 1-based line number.
+        line: usize,
+        /// Number of cells in the row.
+        found: usize,
+    },
+    /// A cell is not a number of its column's type (or is empty in a required column).
+    #[error("line {line}, column {column} ({name}): `{value}` is not {kind}")]
+    BadValue {
+        /// 1-based line number.
+        line: usize,
+        /// 1-based column number.
+        column: usize,
+        /// The column's name.
+        name: &'static str,
+        /// The cell as written.
+        value: String,
+        /// What the column needs, e.g. "an unsigned 32-bit integer".
+        kind: &'static str,
+    },
+    /// A meta line (`# key=value`) has a value of the wrong type or a bad escape.
+    #[error("line {line}: meta `{key}`: {reason}")]
+    BadMeta {
+        /// 1-based line number.
+        line: usize,
+        /// The meta key.
+        key: &'static str,
+        /// What is wrong with the value.
+        reason: String,
+    },
+    /// A meta key is absent from the whole file.
+    #[error("meta `{key}` missing (expected a `# {key}=…` line before the header)")]
+    MissingMeta {
+        /// The meta key.
+        key: &'static str,
+    },
+}
+
+impl RunReport {
+    /// Writes the report as CSV (see the module docs for the format), replacing `path`.
+    pub fn write_csv(&self, path: &Path) -> Result<(), ReportError> {
+        fs::write(path, self.to_csv_string()).map_err(|source| ReportError::Io {
+            path: path.to_path_buf(),
+            source,
+        })
+    }
+
+    /// The CSV text [`write_csv`](Self::write_csv) writes.
+    pub fn to_csv_string(&self) -> String {
+        use fmt::Write as _;
+        let m = &self.meta;
+        let mut s = String::with_capacity(256 + self.records.len() * 160);
+        s.push_str(MAGIC_LINE);
+        s.push('\n');
+        let meta_values = [
+            escape(&m.scene),
+            escape(&m.server),
+            m.width.to_string(),
+            m.height.to_string(),
+            m.feedback_ratio.to_string(),
+            m.budget_mib.to_string(),
+            escape(&m.camera_path),
+            m.treelet_bytes.to_string(),
+        ];
+        for (key, value) in META_KEYS.iter().zip(meta_values) {
+            let _ = writeln!(s, "# {key}={value}");
+        }
+        s.push_str(&CSV_COLUMNS.join(","));
+        s.push('\n');
+        for r in &self.records {
+            let opt = |v: Option<f64>| v.map(|v| v.to_string()).unwrap_or_default();
+            let _ = writeln!(
+                s,
+                "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+                r.cycle,
+                r.time_s,
+                r.analysis_ms,
+                r.presort_ms,
+                r.request_ms,
+                r.integrate_ms,
+                r.upload_ms,
+                r.render_ms,
+                r.requests_sent,
+                r.treelets_received,
+                r.bytes_received,
+                r.treelets_inserted,
+                r.slots_used,
+                r.slots_total,
+                r.evictions,
+                r.dropped,
+                r.upload_ranges,
+                r.upload_bytes,
+                r.samples,
+                r.error.mean,
+                r.error.p95,
+                r.error.max,
+                r.error.error_pixels,
+                opt(r.image_rmse),
+                opt(r.differing_share),
+            );
+        }
+        s
+    }
+
+    /// Reads a report written by [`write_csv`](Self::write_csv).
+    pub fn read_csv(path: &Path) -> Result<RunReport, ReportError> {
+        let text = fs::read_to_string(path).map_err(|source| ReportError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_csv_str(&text)
+    }
+
+    /// Parses the CSV text of a report (what [`read_csv`](Self::read_csv) does after reading).
+    pub fn from_csv_str(text: &str) -> Result<RunReport, ReportError> {
+        let mut meta: [Option<String>; META_KEYS.len()] = Default::default();
+        let mut meta_lines = [0usize; META_KEYS.len()];
+        let mut header_seen = false;
+        let mut records = Vec::new();
+        let mut last_line = 0;
+        for (index, raw) in text.lines().enumerate() {
+            let line = index + 1;
+            last_line = line;
+            let trimmed = raw.trim();
+            if trimmed.is_empty() {
+                continue;
+            }
+            if trimmed.starts_with('#') {
+                // From the raw line, so that trailing spaces in a value survive.
+                let comment = raw.trim_start()[1..].trim_start();
+                if let Some((key, value)) = comment.split_once('=')
+                    && let Some(k) = META_KEYS.iter().position(|m| *m == key.trim())
+                {
+                    let value = unescape(value).map_err(|reason| ReportError::BadMeta {
+                        line,
+                        key: META_KEYS[k],
+                        reason,
+                    })?;
+                    meta[k] = Some(value);
+                    meta_lines[k] = line;
+                }
+                continue;
+            }
+            let cells: Vec<&str> = trimmed.split(',').map(str::trim).collect();
+            if !header_seen {
+                check_header(line, &cells)?;
+                header_seen = true;
+                continue;
+            }
+            records.push(parse_row(line, &cells)?);
+        }
+        if !header_seen {
+            return Err(ReportError::MissingHeader {
+                line: last_line + 1,
+            });
+        }
+        Ok(RunReport {
+            meta: build_meta(meta, meta_lines)?,
+            records,
+        })
+    }
+
+    /// Totals, convergence points and final values of the run.
+    pub fn summary(&self) -> RunSummary {
+        let sum =
+            |f: fn(&CycleRecord) -> u64| self.records.iter().map(f).fold(0u64, u64::saturating_add);
+        let first = |hit: fn(&CycleRecord) -> bool| {
+            self.records.iter().find(|r| hit(r)).map(|r| Reached {
+                cycle: r.cycle,
+                time_s: r.time_s,
+            })
+        };
+        let last = self.records.last();
+        RunSummary {
+            cycles: self.records.len(),
+            seconds: last.map_or(0.0, |r| r.time_s),
+            requests_sent: sum(|r| r.requests_sent.into()),
+            treelets_received: sum(|r| r.treelets_received.into()),
+            bytes_received: sum(|r| r.bytes_received),
+            treelets_inserted: sum(|r| r.treelets_inserted.into()),
+            evictions: sum(|r| r.evictions.into()),
+            dropped: sum(|r| r.dropped.into()),
+            upload_bytes: sum(|r| r.upload_bytes),
+            error_zero: first(|r| r.samples > 0 && r.error.max == 0.0),
+            image_exact: first(|r| r.image_rmse == Some(0.0)),
+            final_error: last.map(|r| r.error).unwrap_or_default(),
+            final_image_rmse: last.and_then(|r| r.image_rmse),
+            final_differing_share: last.and_then(|r| r.differing_share),
+            final_slots_used: last.map_or(0, |r| r.slots_used),
+            final_slots_total: last.map_or(0, |r| r.slots_total),
+        }
+    }
+}
+
+/// The cycle at which something first happened.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Reached {
+    /// The record's cycle number.
+    pub cycle: u32,
+    /// The record's time since the run started, s.
+    pub time_s: f64,
+}
+
+/// Totals, convergence points and final values of a run ([`RunReport::summary`]).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RunSummary {
+    /// Number of records.
+    pub cycles: usize,
+    /// `time_s` of the last record (0 with none).
+    pub seconds: f64,
+    /// Σ request-list items sent.
+    pub requests_sent: u64,
+    /// Σ treelets received.
+    pub treelets_received: u64,
+    /// Σ bytes received.
+    pub bytes_received: u64,
+    /// Σ treelets inserted.
+    pub treelets_inserted: u64,
+    /// Σ evictions.
+    pub evictions: u64,
+    /// Σ dropped treelets.
+    pub dropped: u64,
+    /// Σ bytes uploaded.
+    pub upload_bytes: u64,
+    /// First record with samples whose `error.max` is 0: nothing the feedback saw was
+    /// refinable. A cycle without samples (a pipelined backend's first) does not count.
+    pub error_zero: Option<Reached>,
+    /// First record whose `image_rmse` is exactly 0 (identical to the reference image).
+    pub image_exact: Option<Reached>,
+    /// Error summary of the last record.
+    pub final_error: ErrorSummary,
+    /// Image RMSE of the last record.
+    pub final_image_rmse: Option<f64>,
+    /// Differing share of the last record.
+    pub final_differing_share: Option<f64>,
+    /// Slots used after the last record.
+    pub final_slots_used: u32,
+    /// Slots in the buffer at the last record.
+    pub final_slots_total: u32,
+}
+
+impl fmt::Display for RunSummary {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let mb = self.bytes_received as f64 / 1e6;
+        write!(f, "cycles:   {} over {:.3} s", self.cycles, self.seconds)?;
+        if self.seconds > 0.0 {
+            write!(f, " ({:.1} cycles/s)", self.cycles as f64 / self.seconds)?;
+        }
+        writeln!(f)?;
+        write!(
+            f,
+            "received: {} treelets, {:.3} MB in {} requests",
+            self.treelets_received, mb, self.requests_sent
+        )?;
+        if self.seconds > 0.0 {
+            write!(f, " ({:.3} MB/s)", mb / self.seconds)?;
+        }
+        writeln!(f)?;
+        writeln!(
+            f,
+            "slots:    {} inserted, {} evicted, {} dropped; {}/{} used at the end; {:.3} MB uploaded",
+            self.treelets_inserted,
+            self.evictions,
+            self.dropped,
+            self.final_slots_used,
+            self.final_slots_total,
+            self.upload_bytes as f64 / 1e6
+        )?;
+        let e = &self.final_error;
+        write!(
+            f,
+            "error:    final mean {:.3} / p95 {:.3} / max {:.3} levels, {:.0} error-pixels; ",
+            e.mean, e.p95, e.max, e.error_pixels
+        )?;
+        match self.error_zero {
+            Some(r) => writeln!(f, "max first 0 at cycle {} ({:.3} s)", r.cycle, r.time_s)?,
+            None => writeln!(f, "max never 0")?,
+        }
+        write!(f, "image:    ")?;
+        match (self.final_image_rmse, self.final_differing_share) {
+            (None, None) if self.image_exact.is_none() => write!(f, "no reference"),
+            (rmse, share) => {
+                match rmse {
+                    Some(v) => write!(f, "final RMSE {v:.4}")?,
+                    None => write!(f, "final RMSE -")?,
+                }
+                match share {
+                    Some(v) => write!(f, ", {:.3} % of pixels differ; ", v * 100.0)?,
+                    None => write!(f, "; ")?,
+                }
+                match self.image_exact {
+                    Some(r) => write!(f, "RMSE first 0 at cycle {} ({:.3} s)", r.cycle, r.time_s),
+                    None => write!(f, "RMSE never 0"),
+                }
+            }
+        }
+    }
+}
+
+fn check_header(line: usize, cells: &[&str]) -> Result<(), ReportError> {
+    for column in 0..cells.len().max(CSV_COLUMNS.len()) {
+        let expected = CSV_COLUMNS.get(column).copied().unwrap_or("");
+        let found = cells.get(column).copied().unwrap_or("");
+        if expected != found {
+            return Err(ReportError::BadHeader {
+                line,
+                column: column + 1,
+                expected,
+                found: found.to_string(),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Reads the cells of one data row in column order.
+struct Cells<'a> {
+    line: usize,
+    cells: &'a [&'a str],
+    next: usize,
+}
+
+impl Cells<'_> {
+    fn take<T: std::str::FromStr>(&mut self, kind: &'static str) -> Result<T, ReportError> {
+        let column = self.next;
+        self.next += 1;
+        let value = self.cells[column];
+        value.parse().map_err(|_| ReportError::BadValue {
+            line: self.line,
+            column: column + 1,
+            name: CSV_COLUMNS[column],
+            value: value.to_string(),
+            kind,
+        })
+    }
+    fn u32(&mut self) -> Result<u32, ReportError> {
+        self.take("an unsigned 32-bit integer")
+    }
+    fn u64(&mut self) -> Result<u64, ReportError> {
+        self.take("an unsigned 64-bit integer")
+    }
+    fn f32(&mut self) -> Result<f32, ReportError> {
+        self.take("a number")
+    }
+    fn f64(&mut self) -> Result<f64, ReportError> {
+        self.take("a number")
+    }
+    fn opt_f64(&mut self) -> Result<Option<f64>, ReportError> {
+        if self.cells[self.next].is_empty() {
+            self.next += 1;
+            return Ok(None);
+        }
+        self.take("a number or empty").map(Some)
+    }
+}
+
+fn parse_row(line: usize, cells: &[&str]) -> Result<CycleRecord, ReportError> {
+    if cells.len() != CSV_COLUMNS.len() {
+        return Err(ReportError::ColumnCount {
+            line,
+            found: cells.len(),
+        });
+    }
+    let mut c = Cells {
+        line,
+        cells,
+        next: 0,
+    };
+    Ok(CycleRecord {
+        cycle: c.u32()?,
+        time_s: c.f64()?,
+        analysis_ms: c.f64()?,
+        presort_ms: c.f64()?,
+        request_ms: c.f64()?,
+        integrate_ms: c.f64()?,
+        upload_ms: c.f64()?,
+        render_ms: c.f64()?,
+        requests_sent: c.u32()?,
+        treelets_received: c.u32()?,
+        bytes_received: c.u64()?,
+        treelets_inserted: c.u32()?,
+        slots_used: c.u32()?,
+        slots_total: c.u32()?,
+        evictions: c.u32()?,
+        dropped: c.u32()?,
+        upload_ranges: c.u32()?,
+        upload_bytes: c.u64()?,
+        samples: c.u32()?,
+        error: ErrorSummary {
+            mean: c.f32()?,
+            p95: c.f32()?,
+            max: c.f32()?,
+            error_pixels: c.f64()?,
+        },
+        image_rmse: c.opt_f64()?,
+        differing_share: c.opt_f64()?,
+    })
+}
+
+fn build_meta(
+    values: [Option<String>; META_KEYS.len()],
+    lines: [usize; META_KEYS.len()],
+) -> Result<RunMeta, ReportError> {
+    let [
+        scene,
+        server,
+        width,
+        height,
+        feedback_ratio,
+        budget_mib,
+        camera_path,
+        treelet_bytes,
+    ] = values;
+    let need =
+        |v: Option<String>, k: usize| v.ok_or(ReportError::MissingMeta { key: META_KEYS[k] });
+    fn num<T: std::str::FromStr>(v: &str, k: usize, line: usize) -> Result<T, ReportError> {
+        v.trim().parse().map_err(|_| ReportError::BadMeta {
+            line,
+            key: META_KEYS[k],
+            reason: format!("`{v}` is not a number of the right type"),
+        })
+    }
+    Ok(RunMeta {
+        scene: need(scene, 0)?,
+        server: need(server, 1)?,
+        width: num(&need(width, 2)?, 2, lines[2])?,
+        height: num(&need(height, 3)?, 3, lines[3])?,
+        feedback_ratio: num(&need(feedback_ratio, 4)?, 4, lines[4])?,
+        budget_mib: num(&need(budget_mib, 5)?, 5, lines[5])?,
+        camera_path: need(camera_path, 6)?,
+        treelet_bytes: num(&need(treelet_bytes, 7)?, 7, lines[7])?,
+    })
+}
+
+fn escape(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for ch in s.chars() {
+        match ch {
+            '\\' => out.push_str("\\\\"),
+            '\n' => out.push_str("\\n"),
+            '\r' => out.push_str("\\r"),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+fn unescape(s: &str) -> Result<String, String> {
+    let mut out = String::with_capacity(s.len());
+    let mut chars = s.chars();
+    while let Some(ch) = chars.next() {
+        if ch != '\\' {
+            out.push(ch);
+            continue;
+        }
+        match chars.next() {
+            Some('\\') => out.push('\\'),
+            Some('n') => out.push('\n'),
+            Some('r') => out.push('\r'),
+            Some(other) => return Err(format!("unknown escape `\\{other}`")),
+            None => return Err("value ends in a lone `\\`".to_string()),
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn meta() -> RunMeta {
+        RunMeta {
+            scene: "lille, street=1 \\ \"quoted\"\nsecond line ".to_string(),
+            server: "quic://127.0.0.1:4433/lille".to_string(),
+            width: 1920,
+            height: 1080,
+            feedback_ratio: 8,
+            budget_mib: 512.5,
+            camera_path: "paths/orbit #2.toml".to_string(),
+            treelet_bytes: 65536,
+        }
+    }
+
+    fn record(cycle: u32) -> CycleRecord {
+        CycleRecord {
+            cycle,
+            time_s: f64::from(cycle) * 0.016_666,
+            analysis_ms: 1.25,
+            presort_ms: 0.1,
+            request_ms: 0.03,
+            integrate_ms: 2.0,
+            upload_ms: 0.7,
+            render_ms: 9.9,
+            requests_sent: 40,
+            treelets_received: 12,
+            bytes_received: 786_432,
+            treelets_inserted: 11,
+            slots_used: cycle.wrapping_add(100),
+            slots_total: 8192,
+            evictions: 1,
+            dropped: 1,
+            upload_ranges: 3,
+            upload_bytes: 720_896,
+            samples: 32_400,
+            error: ErrorSummary {
+                mean: 1.5,
+                p95: 3.0,
+                max: 4.0,
+                error_pixels: 1.0e6,
+            },
+            image_rmse: Some(0.125),
+            differing_share: None,
+        }
+    }
+
+    fn same_bits(a: &RunReport, b: &RunReport) -> bool {
+        a.to_csv_string() == b.to_csv_string()
+    }
+
+    #[test]
+    fn csv_round_trip_with_nones_and_extremes() {
+        let mut extreme = record(u32::MAX);
+        extreme.time_s = f64::MAX;
+        extreme.analysis_ms = f64::MIN_POSITIVE;
+        extreme.presort_ms = 5e-324; // smallest subnormal
+        extreme.request_ms = -0.0;
+        extreme.integrate_ms = f64::INFINITY;
+        extreme.upload_ms = f64::NEG_INFINITY;
+        extreme.render_ms = 0.1 + 0.2;
+        extreme.bytes_received = u64::MAX;
+        extreme.upload_bytes = u64::MAX;
+        extreme.requests_sent = u32::MAX;
+        extreme.error = ErrorSummary {
+            mean: f32::MAX,
+            p95: f32::MIN_POSITIVE,
+            max: 1.0e-45, // smallest f32 subnormal
+            error_pixels: 1.0e300,
+        };
+        extreme.image_rmse = None;
+        extreme.differing_share = Some(1.0 / 3.0);
+        let mut none = record(1);
+        none.image_rmse = None;
+        none.differing_share = None;
+        let report = RunReport {
+            meta: meta(),
+            records: vec![record(0), none, extreme, CycleRecord::default()],
+        };
+        let path = temp_path("round_trip.csv");
+        report.write_csv(&path).unwrap();
+        let back = RunReport::read_csv(&path).unwrap();
+        let _ = fs::remove_file(&path);
+        assert_eq!(back, report);
+        // -0.0 == 0.0 for PartialEq; the text (and so the sign) must survive too.
+        assert!(back.records[2].request_ms.is_sign_negative());
+        assert!(same_bits(&back, &report));
+    }
+
+    #[test]
+    fn csv_round_trips_nan() {
+        let mut r = record(0);
+        r.time_s = f64::NAN;
+        r.error.mean = f32::NAN;
+        r.image_rmse = Some(f64::NAN);
+        let report = RunReport {
+            meta: RunMeta::default(),
+            records: vec![r],
+        };
+        let back = RunReport::from_csv_str(&report.to_csv_string()).unwrap();
+        assert!(back.records[0].time_s.is_nan());
+        assert!(back.records[0].error.mean.is_nan());
+        assert!(back.records[0].image_rmse.unwrap().is_nan());
+        assert!(same_bits(&back, &report));
+    }
+
+    #[test]
+    fn csv_header_has_units_and_empty_cells_for_none() {
+        let mut r = record(7);
+        r.image_rmse = None;
+        let text = RunReport {
+            meta: meta(),
+            records: vec![r],
+        }
+        .to_csv_string();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], MAGIC_LINE);
+        assert!(lines[1].starts_with("# scene=lille, street=1 \\\\ \"quoted\"\\nsecond line "));
+        assert_eq!(lines[9], CSV_COLUMNS.join(","));
+        assert!(lines[9].contains("time_s,analysis_ms") && lines[9].contains("image_rmse"));
+        assert!(lines[10].starts_with("7,"));
+        assert!(lines[10].ends_with(",,"), "{}", lines[10]);
+        assert_eq!(lines.len(), 11);
+    }
+
+    #[test]
+    fn empty_report_round_trips() {
+        let report = RunReport {
+            meta: meta(),
+            records: vec![],
+        };
+        let back = RunReport::from_csv_str(&report.to_csv_string()).unwrap();
+        assert_eq!(back, report);
+    }
+
+    #[test]
+    fn crlf_and_blank_lines_are_accepted() {
+        let report = RunReport {
+            meta: meta(),
+            records: vec![record(0), record(1)],
+        };
+        let text = report.to_csv_string().replace('\n', "\r\n\r\n");
+        assert_eq!(RunReport::from_csv_str(&text).unwrap(), report);
+    }
+
+    fn good_text() -> String {
+        RunReport {
+            meta: meta(),
+            records: vec![record(0), record(1)],
+        }
+        .to_csv_string()
+    }
+
+    /// Replaces line `n` (1-based) of the good text.
+    fn with_line(n: usize, new: &str) -> String {
+        let mut lines: Vec<String> = good_text().lines().map(str::to_string).collect();
+        lines[n - 1] = new.to_string();
+        lines.join("\n")
+    }
+
+    #[test]
+    fn wrong_column_count_names_the_line() {
+        let good = good_text();
+        let row = good.lines().nth(10).unwrap();
+        let err = RunReport::from_csv_str(&with_line(11, &format!("{row},5"))).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                ReportError::ColumnCount {
+                    line: 11,
+                    found: 26
+                }
+            ),
+            "{err:?}"
+        );
+        assert_eq!(err.to_string(), "line 11: 26 columns, expected 25");
+        let short = row.rsplit_once(',').unwrap().0;
+        let err = RunReport::from_csv_str(&with_line(11, short)).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                ReportError::ColumnCount {
+                    line: 11,
+                    found: 24
+                }
+            ),
+            "{err:?}"
+        );
+    }
+
+    #[test]
+    fn non_number_names_line_and_column() {
+        let good = good_text();
+        let row = good.lines().nth(11).unwrap();
+        let mut cells: Vec<&str> = row.split(',').collect();
+        cells[10] = "lots";
+        let err = RunReport::from_csv_str(&with_line(12, &cells.join(","))).unwrap_err();
+        match &err {
+            ReportError::BadValue {
+                line: 12,
+                column: 11,
+                name: "bytes_received",
+                value,
+                ..
+            } => {
+                assert_eq!(value, "lots")
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(
+            err.to_string()
+                .starts_with("line 12, column 11 (bytes_received): `lots`")
+        );
+        // Negative counts, fractions in integer columns and empty required cells are errors too.
+        for (col, bad) in [(0, "-1"), (8, "1.5"), (1, ""), (19, "x")] {
+            let mut cells: Vec<&str> = row.split(',').collect();
+            cells[col] = bad;
+            let err = RunReport::from_csv_str(&with_line(12, &cells.join(","))).unwrap_err();
+            assert!(
+                matches!(err, ReportError::BadValue { line: 12, column, .. } if column == col + 1),
+                "{err:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn missing_or_wrong_header_names_line_and_column() {
+        // Header line (10) removed: the first data row is taken for the header.
+        let text: String = good_text()
+            .lines()
+            .enumerate()
+            .filter(|(i, _)| *i != 9)
+            .map(|(_, l)| format!("{l}\n"))
+            .collect();
+        let err = RunReport::from_csv_str(&text).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                ReportError::BadHeader {
+                    line: 10,
+                    column: 1,
+                    expected: "cycle",
+                    ..
+                }
+            ),
+            "{err:?}"
+        );
+        // A renamed column.
+        let header = CSV_COLUMNS.join(",").replace("upload_ms", "upload_s");
+        let err = RunReport::from_csv_str(&with_line(10, &header)).unwrap_err();
+        assert!(
+            matches!(err, ReportError::BadHeader { line: 10, column: 7, expected: "upload_ms", ref found } if found == "upload_s"),
+            "{err:?}"
+        );
+        // A header with a column too many.
+        let err =
+            RunReport::from_csv_str(&with_line(10, &format!("{},extra", CSV_COLUMNS.join(","))))
+                .unwrap_err();
+        assert!(
+            matches!(
+                err,
+                ReportError::BadHeader {
+                    line: 10,
+                    column: 26,
+                    expected: "",
+                    ..
+                }
+            ),
+            "{err:?}"
+        );
+        // Only comments, or nothing at all.
+        let err = RunReport::from_csv_str("# scene=x\n\n").unwrap_err();
+        assert!(
+            matches!(err, ReportError::MissingHeader { line: 3 }),
+            "{err:?}"
+        );
+        let err = RunReport::from_csv_str("").unwrap_err();
+        assert!(
+            matches!(err, ReportError::MissingHeader { line: 1 }),
+            "{err:?}"
+        );
+    }
+
+    #[test]
+    fn bad_or_missing_meta_is_an_error() {
+        let err = RunReport::from_csv_str(&with_line(4, "# width=wide")).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                ReportError::BadMeta {
+                    line: 4,
+                    key: "width",
+                    ..
+                }
+            ),
+            "{err:?}"
+        );
+        let err = RunReport::from_csv_str(&with_line(2, "# scene=a\\qb")).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                ReportError::BadMeta {
+                    line: 2,
+                    key: "scene",
+                    ..
+                }
+            ),
+            "{err:?}"
+        );
+        let err = RunReport::from_csv_str(&with_line(9, "# a comment")).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                ReportError::MissingMeta {
+                    key: "treelet_bytes"
+                }
+            ),
+            "{err:?}"
+        );
+    }
+
+    #[test]
+    fn read_missing_file_is_io_error() {
+        let err = RunReport::read_csv(Path::new("/nonexistent/arbor/run.csv")).unwrap_err();
+        assert!(matches!(err, ReportError::Io { .. }), "{err:?}");
+        assert!(err.to_string().starts_with("/nonexistent/arbor/run.csv: "));
+    }
+
+    #[test]
+    fn summary_totals_and_convergence() {
+        let mut records: Vec<CycleRecord> = (0..5).map(record).collect();
+        records[3].error = ErrorSummary::default();
+        records[4].error = ErrorSummary::default();
+        records[4].image_rmse = Some(0.0);
+        records[4].differing_share = Some(0.0);
+        let s = RunReport {
+            meta: meta(),
+            records,
+        }
+        .summary();
+        assert_eq!(s.cycles, 5);
+        assert_eq!(s.seconds, 4.0 * 0.016_666);
+        assert_eq!(s.treelets_received, 60);
+        assert_eq!(s.bytes_received, 5 * 786_432);
+        assert_eq!(
+            s.error_zero,
+            Some(Reached {
+                cycle: 3,
+                time_s: 3.0 * 0.016_666
+            })
+        );
+        assert_eq!(
+            s.image_exact,
+            Some(Reached {
+                cycle: 4,
+                time_s: 4.0 * 0.016_666
+            })
+        );
+        assert_eq!((s.final_slots_used, s.final_slots_total), (104, 8192));
+        let text = s.to_string();
+        assert!(text.contains("max first 0 at cycle 3"), "{text}");
+        assert!(text.contains("RMSE first 0 at cycle 4"), "{text}");
+
+        let empty = RunReport::default().summary();
+        assert_eq!(empty, RunSummary::default());
+        let text = empty.to_string();
+        assert!(
+            text.contains("max first 0") || text.contains("never 0"),
+            "{text}"
+        );
+        assert!(text.contains("no reference"), "{text}");
+
+        let mut big = record(0);
+        big.bytes_received = u64::MAX;
+        let s = RunReport {
+            meta: meta(),
+            records: vec![big.clone(), big],
+        }
+        .summary();
+        assert_eq!(s.bytes_received, u64::MAX);
+    }
+
+    pub(crate) fn temp_path(name: &str) -> PathBuf {
+        std::env::temp_dir().join(format!("arbor-report-{}-{name}", std::process::id()))
+    }
+}

@@ -1,0 +1,19 @@
+//! Streaming sessions: a treelet connection (`arbor-client-net`) feeding the plain-data client
+//! core (`arbor-client-core`), stepped one cycle at a time by whoever owns the clock — the
+//! headless runner here ([`headless`]) or the window viewer (`arbor-client-viewer`).
+//!
+//! This crate is the shell around the core: it connects (the only place that waits on the
+//! network, bounded by a timeout), decodes arrived treelet messages for the core, times each
+//! phase of a cycle and records it as a report row (`arbor-client-report`), and detects
+//! convergence. It also fetches whole scenes for reference renders.
+
+#![forbid(unsafe_code)]
+
+mod error;
+pub mod headless;
+pub mod session;
+
+pub use error::RunError;
+pub use session::{
+    FetchedScene, RenderMode, Session, SessionConfig, Step, compare, fetch_all, reference_image,
+};

@@ -1,0 +1,575 @@
+//! A streaming session: a [`TreeletClient`] connection feeding a [`ClientCore`], stepped one
+//! cycle at a time by whoever owns the clock — the headless runner or the window viewer.
+//!
+//! Connecting is the only place that waits on the network (bounded by a timeout): first a
+//! probe learns the scene's channels (the server refuses channels a scene lacks, and a client
+//! asks only for the wanted channels the scene has, DESIGN §7), then the real connection fetches
+//! the root treelet. After that, [`Session::step`] never waits: it takes whatever has arrived.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use arbor_proto::{Channel, SceneDescription, TreeletId};
+
+use arbor_client_core::backend::{Backend, render_resident};
+use arbor_client_core::camera::Camera;
+use arbor_client_core::cycle::{ClientCore, CoreConfig};
+use arbor_client_core::image::Image;
+use arbor_client_core::incore::SceneFrame;
+use arbor_client_core::render::Light;
+use arbor_client_net::{ClientConfig, ClientEvent, ClientStats, ReceivedTreelet, TreeletClient};
+use arbor_client_report::CycleRecord;
+
+use crate::RunError;
+use arbor_client_core::slots::{DecodedTreelet, SlotBuffer, SlotError};
+
+/// How a session connects.
+#[derive(Clone, Debug)]
+pub struct SessionConfig {
+    pub client: ClientConfig,
+    /// `core.channels` are the wanted channels; the session keeps those the scene has.
+    pub core: CoreConfig,
+    /// How long to wait for `SceneInfo` and the root treelet.
+    pub connect_timeout: Duration,
+}
+
+/// What a step draws.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RenderMode {
+    /// Nothing (the cycle still streams and integrates).
+    Skip,
+    /// Render and read back an [`Image`].
+    Image,
+    /// Render into the backend's own target (the viewer's window).
+    InPlace,
+}
+
+/// One step's outcome.
+#[derive(Debug)]
+pub struct Step {
+    pub record: CycleRecord,
+    /// The frame, for [`RenderMode::Image`].
+    pub image: Option<Image>,
+    /// This step completed `n²` quiet cycles with an unchanged camera: every pixel was sampled
+    /// and none saw unloaded detail coarser than a pixel (see [`Session::converged_at`]).
+    pub converged_now: bool,
+}
+
+/// A connected session.
+#[derive(Debug)]
+pub struct Session {
+    client: TreeletClient,
+    core: ClientCore,
+    scene: Arc<SceneDescription>,
+    channels: Vec<Channel>,
+    started: Instant,
+    last_stats: ClientStats,
+    cycle: u32,
+    last_camera: Option<Camera>,
+    quiet_cycles: u32,
+    converged_at: Option<u32>,
+    peak_slots: u32,
+}
+
+impl Session {
+    /// Connects, learns the scene, fetches the root treelet and builds the core on `backend`.
+    /// Synchronous: call it from a thread that is not a tokio worker, with a handle to a running
+    /// runtime (the connection task lives there).
+    pub fn connect(
+        config: SessionConfig,
+        runtime: &tokio::runtime::Handle,
+        backend: Box<dyn Backend>,
+    ) -> Result<Self, RunError> {
+        config.core.validate()?;
+        let started = Instant::now();
+        let layout = probe_scene(&config.client, config.connect_timeout, runtime)?
+            .layout
+            .clone();
+        let channels: Vec<Channel> = config
+            .core
+            .channels
+            .iter()
+            .copied()
+            .filter(|c| layout.contains(*c))
+            .collect();
+        let mut client = {
+            let _guard = runtime.enter();
+            TreeletClient::start(config.client.clone().with_channels(channels.clone()))?
+        };
+        let (scene, root) = match bootstrap(&mut client, &channels, &config) {
+            Ok(x) => x,
+            Err(e) => {
+                runtime.block_on(client.close());
+                return Err(e);
+            }
+        };
+        let core = ClientCore::with_backend(
+            scene.clone(),
+            CoreConfig {
+                channels: channels.clone(),
+                ..config.core
+            },
+            root,
+            backend,
+        )?;
+        let last_stats = client.stats();
+        Ok(Self {
+            peak_slots: core.slots().used_slots(),
+            client,
+            core,
+            scene,
+            channels,
+            started,
+            last_stats,
+            cycle: 0,
+            last_camera: None,
+            quiet_cycles: 0,
+            converged_at: None,
+        })
+    }
+
+    pub fn scene(&self) -> &Arc<SceneDescription> {
+        &self.scene
+    }
+
+    /// The channels held (wanted ∩ the scene's).
+    pub fn channels(&self) -> &[Channel] {
+        &self.channels
+    }
+
+    pub fn core(&self) -> &ClientCore {
+        &self.core
+    }
+
+    pub fn client_stats(&self) -> ClientStats {
+        self.client.stats()
+    }
+
+    /// The first cycle that completed convergence, if any.
+    pub fn converged_at(&self) -> Option<u32> {
+        self.converged_at
+    }
+
+    /// The most slots ever used.
+    pub fn peak_slots(&self) -> u32 {
+        self.peak_slots
+    }
+
+    /// When the session started connecting.
+    pub fn started(&self) -> Instant {
+        self.started
+    }
+
+    /// One cycle (DESIGN §1): analysis → presort → request list → take arrivals → integrate →
+    /// upload → render. Never waits on the network. `reference`, if given, is compared with
+    /// the rendered image (RenderMode::Image only).
+    pub fn step(
+        &mut self,
+        camera: &Camera,
+        render: RenderMode,
+        reference: Option<&Image>,
+    ) -> Result<Step, RunError> {
+        let cycle = self.cycle;
+        self.cycle += 1;
+        let t_analysis = Instant::now();
+        self.core.analyse(camera);
+        let analysis_time = t_analysis.elapsed();
+        let t_presort = Instant::now();
+        let plan = self.core.presort();
+        let presort_time = t_presort.elapsed();
+        let t_request = Instant::now();
+        let requests_sent = plan.requests.len() as u32;
+        self.client.request(plan.requests)?;
+        let request_time = t_request.elapsed();
+        let t_drain = Instant::now();
+        let drained = drain_events(&mut self.client, &self.scene, &self.channels)?;
+        for t in drained.treelets {
+            self.core.handle_treelet(t);
+        }
+        let integration = self.core.integrate();
+        let integrate_time = t_drain.elapsed();
+        let t_upload = Instant::now();
+        let upload = self.core.upload();
+        let upload_time = t_upload.elapsed();
+        self.peak_slots = self.peak_slots.max(self.core.slots().used_slots());
+
+        let ratio = self.core.config().analysis.ratio;
+        let same_camera = self.last_camera.as_ref() == Some(camera);
+        self.last_camera = Some(*camera);
+        self.quiet_cycles = if plan.error.max > 0.0 || !same_camera {
+            0
+        } else {
+            self.quiet_cycles + 1
+        };
+        let converged_now = self.converged_at.is_none() && self.quiet_cycles >= ratio * ratio;
+        if converged_now {
+            self.converged_at = Some(cycle);
+        }
+
+        let t_render = Instant::now();
+        let image = match render {
+            RenderMode::Skip => None,
+            RenderMode::Image => Some(self.core.render(camera)),
+            RenderMode::InPlace => {
+                if !self.core.render_in_place(camera) {
+                    return Err(RunError::Invalid(format!(
+                        "the {} backend cannot render in place",
+                        self.core.backend_name()
+                    )));
+                }
+                None
+            }
+        };
+        let render_time = t_render.elapsed();
+        let (image_rmse, differing_share) = match (reference, &image) {
+            (Some(r), Some(i)) => compare(i, r)?,
+            _ => (None, None),
+        };
+        let stats = self.client.stats();
+        let slots = self.core.slots();
+        let record = CycleRecord {
+            cycle,
+            time_s: self.started.elapsed().as_secs_f64(),
+            analysis_ms: ms(analysis_time),
+            presort_ms: ms(presort_time),
+            request_ms: ms(request_time),
+            integrate_ms: ms(integrate_time),
+            upload_ms: ms(upload_time),
+            render_ms: ms(render_time),
+            requests_sent,
+            treelets_received: (stats.treelets_received - self.last_stats.treelets_received) as u32,
+            bytes_received: drained.bytes,
+            treelets_inserted: integration.inserted,
+            slots_used: slots.used_slots(),
+            slots_total: slots.capacity(),
+            evictions: integration.evicted,
+            dropped: integration.dropped + drained.undecodable,
+            upload_ranges: upload.ranges.len() as u32,
+            upload_bytes: upload.bytes,
+            samples: plan.samples,
+            error: plan.error,
+            image_rmse,
+            differing_share,
+        };
+        tracing::debug!(
+            cycle,
+            requests = requests_sent,
+            inserted = integration.inserted,
+            slots = record.slots_used,
+            error_max = record.error.max,
+            "cycle"
+        );
+        self.last_stats = stats;
+        Ok(Step {
+            record,
+            image,
+            converged_now,
+        })
+    }
+
+    /// Renders (and reads back) the current view outside a step, e.g. the frame of the cycle
+    /// that turned out to be the last.
+    pub fn render(&mut self, camera: &Camera) -> Image {
+        self.core.render(camera)
+    }
+
+    /// Closes the connection gracefully.
+    pub fn close(self, runtime: &tokio::runtime::Handle) -> ClientStats {
+        let stats = self.client.stats();
+        runtime.block_on(self.client.close());
+        stats
+    }
+}
+
+/// Image RMSE and differing share of `image` against `reference`, as the report records them.
+pub fn compare(image: &Image, reference: &Image) -> Result<(Option<f64>, Option<f64>), RunError> {
+    Ok((
+        Some(
+            image
+                .rmse(reference)
+                .map_err(|e| RunError::Reference(e.to_string()))?,
+        ),
+        Some(image.differing_share(reference)),
+    ))
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+/// What [`drain_events`] took.
+struct Drained {
+    treelets: Vec<DecodedTreelet>,
+    bytes: u64,
+    /// Treelets that failed to decode (logged and dropped: the server is at fault).
+    undecodable: u32,
+}
+
+/// Takes every queued event without waiting.
+fn drain_events(
+    client: &mut TreeletClient,
+    scene: &SceneDescription,
+    channels: &[Channel],
+) -> Result<Drained, RunError> {
+    let mut out = Drained {
+        treelets: Vec::new(),
+        bytes: 0,
+        undecodable: 0,
+    };
+    while let Some(event) = client.try_next_event() {
+        match event {
+            ClientEvent::Treelet(t) => {
+                out.bytes += t.wire_bytes as u64;
+                match decode_received(&t, scene, channels) {
+                    Ok(d) => out.treelets.push(d),
+                    Err(e) => {
+                        tracing::warn!(treelet = %t.id, "dropping undecodable treelet: {e}");
+                        out.undecodable += 1;
+                    }
+                }
+            }
+            ClientEvent::Connected(s) => {
+                if s.name != scene.name || s.treelet_count != scene.treelet_count {
+                    return Err(RunError::Refused(format!(
+                        "after reconnecting the server describes a different scene ({} with {} \
+                         treelets)",
+                        s.name, s.treelet_count
+                    )));
+                }
+            }
+            ClientEvent::Disconnected {
+                reason,
+                reconnect_in: None,
+                ..
+            } => return Err(RunError::Refused(reason)),
+            ClientEvent::Disconnected { reason, .. } => {
+                tracing::warn!("connection lost, reconnecting: {reason}");
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Connects without channels just to read the scene description.
+fn probe_scene(
+    client: &ClientConfig,
+    timeout: Duration,
+    runtime: &tokio::runtime::Handle,
+) -> Result<Arc<SceneDescription>, RunError> {
+    let mut probe = {
+        let _guard = runtime.enter();
+        TreeletClient::start(client.clone().with_channels([]))?
+    };
+    let deadline = Instant::now() + timeout;
+    let result = loop {
+        match probe.try_next_event() {
+            Some(ClientEvent::Connected(s)) => break Ok(s),
+            Some(ClientEvent::Treelet(_)) => {}
+            Some(ClientEvent::Disconnected {
+                reason,
+                reconnect_in: None,
+                ..
+            }) => break Err(RunError::Refused(reason)),
+            Some(ClientEvent::Disconnected { reason, .. }) => {
+                tracing::warn!("connection attempt failed, retrying: {reason}");
+            }
+            None if Instant::now() >= deadline => {
+                break Err(RunError::Timeout(format!(
+                    "no SceneInfo within {timeout:?} from {}:{}",
+                    client.url.host, client.url.port
+                )));
+            }
+            None => std::thread::sleep(Duration::from_millis(2)),
+        }
+    };
+    // Dropping closes in the background: the session does not wait for the probe's goodbye.
+    let _guard = runtime.enter();
+    drop(probe);
+    result
+}
+
+/// Waits (bounded) for `SceneInfo` and the root treelet.
+fn bootstrap(
+    client: &mut TreeletClient,
+    channels: &[Channel],
+    config: &SessionConfig,
+) -> Result<(Arc<SceneDescription>, DecodedTreelet), RunError> {
+    let deadline = Instant::now() + config.connect_timeout;
+    let mut scene: Option<Arc<SceneDescription>> = None;
+    loop {
+        while let Some(event) = client.try_next_event() {
+            match event {
+                ClientEvent::Connected(s) => {
+                    client.request(vec![(s.root_treelet, f32::MAX)])?;
+                    scene = Some(s);
+                }
+                ClientEvent::Treelet(t) => {
+                    if let Some(s) = &scene
+                        && t.id == s.root_treelet
+                    {
+                        let root = decode_received(&t, s, channels)?;
+                        return Ok((s.clone(), root));
+                    }
+                }
+                ClientEvent::Disconnected {
+                    reason,
+                    reconnect_in: None,
+                    ..
+                } => return Err(RunError::Refused(reason)),
+                ClientEvent::Disconnected { reason, .. } => {
+                    tracing::warn!("connection attempt failed, retrying: {reason}");
+                }
+            }
+        }
+        if Instant::now() >= deadline {
+            return Err(RunError::Timeout(format!(
+                "no {} within {:?} from {}:{}",
+                if scene.is_some() {
+                    "root treelet"
+                } else {
+                    "SceneInfo"
+                },
+                config.connect_timeout,
+                config.client.url.host,
+                config.client.url.port
+            )));
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+/// Fetches every treelet of the scene over the connection (requests in id order, in batches of
+/// at most the protocol's list size) — how `arbor-client reference` gets the whole scene
+/// without reading the server's pool.
+pub fn fetch_all(
+    client_config: &ClientConfig,
+    wanted: &[Channel],
+    timeout: Duration,
+    runtime: &tokio::runtime::Handle,
+) -> Result<FetchedScene, RunError> {
+    let scene = probe_scene(client_config, timeout, runtime)?;
+    let channels: Vec<Channel> = wanted
+        .iter()
+        .copied()
+        .filter(|c| scene.layout.contains(*c))
+        .collect();
+    let mut client = {
+        let _guard = runtime.enter();
+        TreeletClient::start(client_config.clone().with_channels(channels.clone()))?
+    };
+    let result = fetch_batches(&mut client, &scene, &channels, timeout);
+    runtime.block_on(client.close());
+    Ok(FetchedScene {
+        treelets: result?,
+        scene,
+        channels,
+    })
+}
+
+/// A whole scene fetched by [`fetch_all`].
+#[derive(Debug)]
+pub struct FetchedScene {
+    pub scene: Arc<SceneDescription>,
+    /// The channels fetched: those asked for that the scene has.
+    pub channels: Vec<Channel>,
+    /// Every treelet, in id order.
+    pub treelets: Vec<DecodedTreelet>,
+}
+
+fn fetch_batches(
+    client: &mut TreeletClient,
+    scene: &Arc<SceneDescription>,
+    channels: &[Channel],
+    timeout: Duration,
+) -> Result<Vec<DecodedTreelet>, RunError> {
+    let count = scene.treelet_count;
+    let batch = arbor_proto::limits::MAX_REQUEST_ITEMS as u32;
+    let mut got: Vec<Option<DecodedTreelet>> = vec![None; count as usize];
+    let mut have = 0u32;
+    let mut start = 0u32;
+    while start < count {
+        let end = (start + batch).min(count);
+        // Lower ids first: parents before children, so a partial fetch is still a valid cut.
+        let list = (start..end)
+            .map(|i| (TreeletId(i), (count - i) as f32))
+            .collect();
+        client.request(list)?;
+        let mut deadline = Instant::now() + timeout;
+        let mut missing = end - start;
+        while missing > 0 {
+            let drained = drain_events(client, scene, channels)?;
+            if drained.undecodable > 0 {
+                return Err(RunError::Refused(format!(
+                    "{} treelets from the server did not decode",
+                    drained.undecodable
+                )));
+            }
+            if drained.treelets.is_empty() {
+                if Instant::now() >= deadline {
+                    return Err(RunError::Timeout(format!(
+                        "fetched {have} of {count} treelets; nothing new within {timeout:?}"
+                    )));
+                }
+                std::thread::sleep(Duration::from_millis(1));
+                continue;
+            }
+            deadline = Instant::now() + timeout;
+            for t in drained.treelets {
+                let i = t.treelet.header.id.0 as usize;
+                if i < got.len() && got[i].is_none() {
+                    if (start..end).contains(&(i as u32)) {
+                        missing -= 1;
+                    }
+                    got[i] = Some(t);
+                    have += 1;
+                }
+            }
+        }
+        tracing::info!("fetched {have} of {count} treelets");
+        start = end;
+    }
+    Ok(got.into_iter().flatten().collect())
+}
+
+/// The reference image: what `camera` sees with the whole scene resident, rendered by
+/// `backend` (the CPU twin or the GPU, so a run is compared with its own arithmetic).
+pub fn reference_image(
+    scene: &SceneDescription,
+    channels: &[Channel],
+    treelets: Vec<DecodedTreelet>,
+    camera: &Camera,
+    lod_bias: f64,
+    light: &Light,
+    backend: &mut dyn Backend,
+) -> Result<Image, RunError> {
+    let slots = SlotBuffer::fully_resident(scene, channels, treelets)?;
+    Ok(render_resident(
+        &slots,
+        &SceneFrame::of(scene),
+        camera,
+        lod_bias,
+        light,
+        backend,
+    ))
+}
+
+/// Decodes a treelet message as the connection delivered it, for the core.
+pub(crate) fn decode_received(
+    received: &ReceivedTreelet,
+    scene: &SceneDescription,
+    channels: &[Channel],
+) -> Result<DecodedTreelet, SlotError> {
+    let blocks: Vec<(Channel, &[u8])> = received
+        .channels
+        .iter()
+        .map(|(c, b)| (*c, b.as_ref()))
+        .collect();
+    DecodedTreelet::decode_message(
+        received.id,
+        received.used_nodes,
+        &received.nodes,
+        &blocks,
+        scene,
+        channels,
+    )
+}

@@ -1,0 +1,555 @@
+//! The winit application of the viewer: window, surface and device, the per-redraw cycle and
+//! the keys. Everything testable without a window lives in the sibling modules; this one is
+//! the glue, exercised end to end under Xvfb (`tests/tests/viewer_xvfb.rs`).
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use winit::application::ApplicationHandler;
+use winit::dpi::PhysicalSize;
+use winit::event::{ElementState, KeyEvent, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::window::{Window, WindowId};
+
+use arbor_client_core::backend::{Backend, CpuBackend};
+use arbor_client_core::image::Image;
+use arbor_client_gpu::{GpuBackend, GpuContext};
+use arbor_client_report::{RunMeta, RunReport};
+use arbor_client_session::{RenderMode, Session};
+
+use super::blit::{Blit, FrameTexture, choose_surface_format, read_back};
+use super::controls::{Button, Controls, Move};
+use super::overlay::{Overlay, OverlayStats};
+use super::{BackendChoice, Outcome, ViewerConfig, ViewerError, chart_path};
+
+/// How often the overlay text is refreshed (its figures are averages over this interval).
+const OVERLAY_INTERVAL: Duration = Duration::from_millis(250);
+
+/// Opens the window, runs the viewer until it ends and writes the report (with `--report`).
+/// Call it on the main thread (winit's event loop must live there) with a handle to a running
+/// tokio runtime for the connection.
+pub fn run(config: ViewerConfig, runtime: &tokio::runtime::Handle) -> Result<Outcome, ViewerError> {
+    if config.width == 0 || config.height == 0 {
+        return Err(ViewerError::Window(
+            "the window needs at least 1×1 pixels".into(),
+        ));
+    }
+    let event_loop = EventLoop::new()?;
+    event_loop.set_control_flow(ControlFlow::Poll);
+    let stdin_closed = Arc::new(AtomicBool::new(false));
+    if config.exit_after_converged && config.hold_until_stdin_eof {
+        let flag = stdin_closed.clone();
+        std::thread::spawn(move || {
+            // Any content is ignored; only end of file (or a read error) matters.
+            let _ = std::io::copy(&mut std::io::stdin().lock(), &mut std::io::sink());
+            flag.store(true, Ordering::SeqCst);
+        });
+    }
+    let mut app = App {
+        config,
+        runtime: runtime.clone(),
+        started: Instant::now(),
+        stdin_closed,
+        state: None,
+        error: None,
+        outcome: None,
+    };
+    event_loop.run_app(&mut app)?;
+    let App {
+        state,
+        error,
+        outcome,
+        config,
+        ..
+    } = app;
+    if let Some(state) = state {
+        let Running {
+            session, report, ..
+        } = *state;
+        if let Some(path) = &config.report {
+            write_report(&report, path)?;
+        }
+        session.close(runtime);
+    }
+    match error {
+        Some(e) => Err(e),
+        None => Ok(outcome.unwrap_or(Outcome::Closed { converged_at: None })),
+    }
+}
+
+/// Writes the report CSV at `path` and its chart beside it.
+fn write_report(report: &RunReport, path: &Path) -> Result<(), ViewerError> {
+    report
+        .write_csv(path)
+        .map_err(|e| ViewerError::Output(format!("writing {}: {e}", path.display())))?;
+    let chart = chart_path(path);
+    let title = format!(
+        "{} — viewer — {}×{}, {:.1} MiB budget",
+        report.meta.scene, report.meta.width, report.meta.height, report.meta.budget_mib
+    );
+    arbor_client_report::chart::draw(report, &chart, &title)
+        .map_err(|e| ViewerError::Output(format!("drawing {}: {e}", chart.display())))?;
+    println!("report: {} and {}", path.display(), chart.display());
+    Ok(())
+}
+
+struct App {
+    config: ViewerConfig,
+    runtime: tokio::runtime::Handle,
+    started: Instant,
+    stdin_closed: Arc<AtomicBool>,
+    state: Option<Box<Running>>,
+    error: Option<ViewerError>,
+    outcome: Option<Outcome>,
+}
+
+/// Where each cycle's frame comes from.
+enum FrameSource {
+    /// A CPU [`Image`] uploaded into the viewer's own texture.
+    Upload(FrameTexture),
+    /// The backend's own target ([`GpuBackend::target_view`]).
+    InPlace,
+}
+
+/// Figures gathered between two overlay refreshes.
+struct Interval {
+    start: Instant,
+    frames: u32,
+    bytes: u64,
+}
+
+struct Running {
+    // Dropped in order: the surface before the window it draws to.
+    surface: wgpu::Surface<'static>,
+    window: Arc<Window>,
+    surface_config: wgpu::SurfaceConfiguration,
+    /// The device the blit draws with, shared with the GPU renderer.
+    gpu: Arc<GpuContext>,
+    blit: Blit,
+    source: FrameSource,
+    session: Session,
+    controls: Controls,
+    overlay: Overlay,
+    show_overlay: bool,
+    report: RunReport,
+    backend: String,
+    last_frame: Instant,
+    interval: Interval,
+    converged_handled: bool,
+    holding: bool,
+    screenshots: u32,
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.state.is_some() || self.error.is_some() {
+            return;
+        }
+        match self.start(event_loop) {
+            Ok(state) => self.state = Some(Box::new(state)),
+            Err(e) => self.fail(event_loop, e),
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        let Some(state) = self.state.as_deref_mut() else {
+            return;
+        };
+        match event {
+            WindowEvent::CloseRequested => self.close(event_loop),
+            WindowEvent::Resized(size) => state.resize(size),
+            WindowEvent::Focused(false) => state.controls.release_all(),
+            WindowEvent::CursorMoved { position, .. } => {
+                state.controls.cursor(position.x, position.y);
+            }
+            WindowEvent::CursorLeft { .. } => state.controls.cursor_left(),
+            WindowEvent::MouseInput {
+                state: s, button, ..
+            } => {
+                let b = match button {
+                    MouseButton::Left => Button::Left,
+                    MouseButton::Right => Button::Right,
+                    _ => return,
+                };
+                state.controls.button(b, s == ElementState::Pressed);
+            }
+            WindowEvent::MouseWheel { delta, .. } => state.controls.wheel(match delta {
+                MouseScrollDelta::LineDelta(_, y) => f64::from(y),
+                MouseScrollDelta::PixelDelta(p) => p.y / 40.0,
+            }),
+            WindowEvent::KeyboardInput { event, .. } => self.key(event_loop, &event),
+            WindowEvent::RedrawRequested => {
+                if let Err(e) = self.redraw(event_loop) {
+                    self.fail(event_loop, e);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn about_to_wait(&mut self, _event_loop: &ActiveEventLoop) {
+        if let Some(state) = &self.state {
+            state.window.request_redraw();
+        }
+    }
+}
+
+impl App {
+    fn fail(&mut self, event_loop: &ActiveEventLoop, e: ViewerError) {
+        self.error.get_or_insert(e);
+        event_loop.exit();
+    }
+
+    fn close(&mut self, event_loop: &ActiveEventLoop) {
+        let converged_at = self.state.as_ref().and_then(|s| s.session.converged_at());
+        self.outcome.get_or_insert(Outcome::Closed { converged_at });
+        event_loop.exit();
+    }
+
+    fn start(&mut self, event_loop: &ActiveEventLoop) -> Result<Running, ViewerError> {
+        let attributes = Window::default_attributes()
+            .with_title("Arbor viewer")
+            .with_inner_size(PhysicalSize::new(self.config.width, self.config.height));
+        let window = Arc::new(
+            event_loop
+                .create_window(attributes)
+                .map_err(|e| ViewerError::Window(e.to_string()))?,
+        );
+        let desc = wgpu::InstanceDescriptor::new_with_display_handle_from_env(Box::new(
+            event_loop.owned_display_handle(),
+        ));
+        let backends = desc.backends;
+        let instance = wgpu::Instance::new(desc);
+        let surface = instance
+            .create_surface(window.clone())
+            .map_err(|e| ViewerError::Gpu(format!("creating the window surface: {e}")))?;
+        let gpu = Arc::new(
+            GpuContext::with_instance(instance, backends, Some(&surface))
+                .map_err(|e| ViewerError::Gpu(e.to_string()))?,
+        );
+        let caps = surface.get_capabilities(&gpu.adapter);
+        let (format, decode_srgb) = choose_surface_format(&caps.formats)
+            .ok_or_else(|| ViewerError::Gpu("the surface offers no format".into()))?;
+        let size = window.inner_size();
+        let surface_config = wgpu::SurfaceConfiguration {
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            format,
+            color_space: wgpu::SurfaceColorSpace::Auto,
+            width: size.width.max(1),
+            height: size.height.max(1),
+            desired_maximum_frame_latency: 2,
+            present_mode: wgpu::PresentMode::AutoVsync,
+            alpha_mode: wgpu::CompositeAlphaMode::Auto,
+            view_formats: vec![],
+        };
+        surface.configure(&gpu.device, &surface_config);
+        let overlay = Overlay::new();
+        let blit = Blit::new(&gpu.device, format, decode_srgb, overlay.panel_size());
+
+        let (backend, source) =
+            self.make_backend(&gpu, (surface_config.width, surface_config.height));
+        let session = Session::connect(self.config.session.clone(), &self.runtime, backend)?;
+        let backend = session.core().backend_name();
+        let frame = *session.core().frame();
+        let scene = session.scene().clone();
+        let core = &self.config.session.core;
+        let url = &self.config.session.client.url;
+        let report = RunReport {
+            meta: RunMeta {
+                scene: scene.name.clone(),
+                server: format!("quic://{}:{}/{}", url.host, url.port, url.scene),
+                width: surface_config.width,
+                height: surface_config.height,
+                feedback_ratio: core.analysis.ratio,
+                budget_mib: core.budget_bytes as f64 / (1024.0 * 1024.0),
+                camera_path: "viewer".into(),
+                treelet_bytes: scene.treelet_nodes * arbor_proto::limits::NODE_BYTES,
+            },
+            records: Vec::new(),
+        };
+        println!(
+            "window 0x{:x} {}x{} surface {:?}{} backend {backend}",
+            u64::from(window.id()),
+            surface_config.width,
+            surface_config.height,
+            format,
+            if decode_srgb { " (decoding sRGB)" } else { "" },
+        );
+        let now = Instant::now();
+        Ok(Running {
+            surface,
+            window,
+            surface_config,
+            gpu,
+            blit,
+            source,
+            session,
+            controls: Controls::new(&frame, self.config.seed),
+            overlay,
+            show_overlay: self.config.overlay,
+            report,
+            backend,
+            last_frame: now,
+            interval: Interval {
+                start: now,
+                frames: 0,
+                bytes: 0,
+            },
+            converged_handled: false,
+            holding: false,
+            screenshots: 0,
+        })
+    }
+
+    /// The renderer for the configured [`BackendChoice`], and where its frames are read.
+    fn make_backend(
+        &self,
+        gpu: &Arc<GpuContext>,
+        size: (u32, u32),
+    ) -> (Box<dyn Backend>, FrameSource) {
+        match self.config.backend {
+            BackendChoice::Gpu | BackendChoice::Auto => {
+                (Box::new(GpuBackend::new(gpu.clone())), FrameSource::InPlace)
+            }
+            BackendChoice::Cpu => (
+                Box::new(CpuBackend),
+                FrameSource::Upload(FrameTexture::new(&gpu.device, size.0, size.1)),
+            ),
+        }
+    }
+
+    fn key(&mut self, event_loop: &ActiveEventLoop, event: &KeyEvent) {
+        let PhysicalKey::Code(code) = event.physical_key else {
+            return;
+        };
+        let pressed = event.state == ElementState::Pressed;
+        let Some(state) = self.state.as_deref_mut() else {
+            return;
+        };
+        let movement = match code {
+            KeyCode::KeyW => Some(Move::Forward),
+            KeyCode::KeyS => Some(Move::Back),
+            KeyCode::KeyA => Some(Move::Left),
+            KeyCode::KeyD => Some(Move::Right),
+            KeyCode::KeyE => Some(Move::Up),
+            KeyCode::KeyQ => Some(Move::Down),
+            _ => None,
+        };
+        if let Some(m) = movement {
+            state.controls.key(m, pressed);
+            return;
+        }
+        if !pressed || event.repeat {
+            return;
+        }
+        let result = match code {
+            KeyCode::Escape => {
+                self.close(event_loop);
+                Ok(())
+            }
+            KeyCode::Tab => {
+                state.controls.toggle_mode();
+                Ok(())
+            }
+            KeyCode::KeyH | KeyCode::F1 => {
+                state.show_overlay = !state.show_overlay;
+                Ok(())
+            }
+            KeyCode::F12 | KeyCode::KeyP => {
+                state.screenshots += 1;
+                let path = PathBuf::from(format!(
+                    "arbor-view-{}-{}.png",
+                    std::process::id(),
+                    state.screenshots
+                ));
+                state.screenshot(&path)
+            }
+            KeyCode::KeyR => {
+                let path = self
+                    .config
+                    .report
+                    .clone()
+                    .unwrap_or_else(|| PathBuf::from("arbor-view-report.csv"));
+                write_report(&state.report, &path)
+            }
+            _ => Ok(()),
+        };
+        // A failed screenshot or report is reported, not fatal.
+        if let Err(e) = result {
+            eprintln!("error: {e}");
+        }
+    }
+
+    fn redraw(&mut self, event_loop: &ActiveEventLoop) -> Result<(), ViewerError> {
+        let Some(state) = self.state.as_deref_mut() else {
+            return Ok(());
+        };
+        state.frame()?;
+        let converged_at = state.session.converged_at();
+        if let (Some(cycle), false) = (converged_at, state.converged_handled) {
+            state.converged_handled = true;
+            if !state.controls.moved()
+                && let Some(path) = &self.config.screenshot
+            {
+                state.screenshot(path)?;
+            }
+            println!("converged at cycle {cycle}");
+            if self.config.exit_after_converged {
+                if self.config.hold_until_stdin_eof {
+                    state.holding = true;
+                } else {
+                    self.outcome = Some(Outcome::Converged { cycle });
+                    event_loop.exit();
+                }
+            }
+        }
+        if state.holding && self.stdin_closed.load(Ordering::SeqCst) {
+            self.outcome = converged_at.map(|cycle| Outcome::Converged { cycle });
+            event_loop.exit();
+        }
+        if let Some(limit) = self.config.timeout
+            && converged_at.is_none()
+            && self.started.elapsed() > limit
+        {
+            self.outcome = Some(Outcome::TimedOut {
+                after: limit,
+                cycles: state.report.records.len() as u32,
+            });
+            event_loop.exit();
+        }
+        Ok(())
+    }
+}
+
+impl Running {
+    fn resize(&mut self, size: PhysicalSize<u32>) {
+        if size.width == 0 || size.height == 0 {
+            return;
+        }
+        self.surface_config.width = size.width;
+        self.surface_config.height = size.height;
+        self.surface
+            .configure(&self.gpu.device, &self.surface_config);
+    }
+
+    /// One cycle: camera, session step, frame upload, blit, present, overlay figures.
+    fn frame(&mut self) -> Result<(), ViewerError> {
+        let now = Instant::now();
+        self.controls
+            .advance((now - self.last_frame).as_secs_f64().min(0.25));
+        self.last_frame = now;
+        let (width, height) = (self.surface_config.width, self.surface_config.height);
+        let camera = self.controls.camera(width, height);
+        let mode = match self.source {
+            FrameSource::Upload(_) => RenderMode::Image,
+            FrameSource::InPlace => RenderMode::InPlace,
+        };
+        let step = self.session.step(&camera, mode, None)?;
+        if let (FrameSource::Upload(texture), Some(image)) = (&mut self.source, &step.image) {
+            if texture.size() != (image.width, image.height) {
+                *texture = FrameTexture::new(&self.gpu.device, image.width, image.height);
+            }
+            texture.upload(&self.gpu.queue, image);
+        }
+        self.interval.frames += 1;
+        self.interval.bytes += step.record.bytes_received;
+        self.report.records.push(step.record);
+        if self.interval.start.elapsed() >= OVERLAY_INTERVAL || self.report.records.len() == 1 {
+            self.refresh_overlay();
+        }
+        self.present()
+    }
+
+    fn frame_view(&self) -> Result<&wgpu::TextureView, ViewerError> {
+        match &self.source {
+            FrameSource::Upload(texture) => Ok(texture.view()),
+            FrameSource::InPlace => self
+                .session
+                .core()
+                .backend()
+                .as_any()
+                .downcast_ref::<GpuBackend>()
+                .and_then(GpuBackend::target_view)
+                .ok_or_else(|| ViewerError::Gpu("the renderer exposes no target".into())),
+        }
+    }
+
+    fn present(&mut self) -> Result<(), ViewerError> {
+        let surface_texture = match self.surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(t)
+            | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
+            wgpu::CurrentSurfaceTexture::Timeout | wgpu::CurrentSurfaceTexture::Occluded => {
+                return Ok(());
+            }
+            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+                let size = self.window.inner_size();
+                self.resize(size);
+                return Ok(());
+            }
+            wgpu::CurrentSurfaceTexture::Validation => {
+                return Err(ViewerError::Gpu(
+                    "acquiring the surface texture failed validation".into(),
+                ));
+            }
+        };
+        let target = surface_texture
+            .texture
+            .create_view(&wgpu::TextureViewDescriptor::default());
+        let mut encoder = self
+            .gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("frame"),
+            });
+        let frame = self.frame_view()?;
+        self.blit.draw(
+            &self.gpu.device,
+            &self.gpu.queue,
+            &mut encoder,
+            &target,
+            frame,
+            self.show_overlay,
+        );
+        self.gpu.queue.submit([encoder.finish()]);
+        self.window.pre_present_notify();
+        self.gpu.queue.present(surface_texture);
+        Ok(())
+    }
+
+    fn refresh_overlay(&mut self) {
+        let elapsed = self.interval.start.elapsed().as_secs_f64().max(1e-9);
+        let frames = f64::from(self.interval.frames.max(1));
+        let stats = OverlayStats {
+            backend: self.backend.clone(),
+            mode: self.controls.mode().name(),
+            frame_ms: elapsed * 1e3 / frames,
+            fps: f64::from(self.interval.frames) / elapsed,
+            record: self.report.records.last().cloned().unwrap_or_default(),
+            bytes_per_s: self.interval.bytes as f64 / elapsed,
+            treelets_received: self.session.client_stats().treelets_received,
+            converged_at: self.session.converged_at(),
+        };
+        self.blit
+            .set_overlay(&self.gpu.queue, &self.overlay.draw(&stats.lines()));
+        self.interval = Interval {
+            start: Instant::now(),
+            frames: 0,
+            bytes: 0,
+        };
+    }
+
+    /// Reads the frame texture back and writes it as a PNG.
+    fn screenshot(&self, path: &Path) -> Result<(), ViewerError> {
+        let view = self.frame_view()?;
+        let image: Image = read_back(&self.gpu.device, &self.gpu.queue, view.texture())
+            .map_err(|e| ViewerError::Gpu(format!("reading the frame back: {e}")))?;
+        image
+            .save_png(path)
+            .map_err(|e| ViewerError::Output(e.to_string()))?;
+        println!("screenshot: {}", path.display());
+        Ok(())
+    }
+}
