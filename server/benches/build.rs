@@ -13,8 +13,9 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use arbor_proto::{AttributeLayout, SceneDescription, TreeletId};
-use arbor_server::build::{self, BuildError, BuildOptions, TreeletSink};
 use arbor_server::import::{self, ImportOptions};
+use arbor_server::octree::{self, BuildError, BuildOptions, TreeletSink};
+use arbor_server::pipeline::{SourceImport, build_into_pool};
 use arbor_server::pool::Pool;
 use arbor_server::source::Source;
 
@@ -159,7 +160,7 @@ fn build_counting(
     let scratch = tempfile::Builder::new().prefix("arbor-bench-").tempdir()?;
     let mut sink = CountingSink::default();
     let t = Instant::now();
-    let desc = build::build_scene(source, name, label, opts, scratch.path(), &mut sink)?;
+    let desc = octree::build_scene(source, name, label, opts, scratch.path(), &mut sink)?;
     let elapsed = t.elapsed();
     Ok((desc, sink, elapsed))
 }
@@ -178,9 +179,15 @@ fn build_pool(
         .tempdir()?;
     let pool = Pool::open(dir.path())?;
     let t = Instant::now();
-    let mut txn = pool.begin_import(name, false)?;
-    let desc = build::build_scene(source, name, label, opts, scratch.path(), &mut txn)?;
-    txn.commit(&desc)?;
+    let job = SourceImport {
+        source,
+        name,
+        label,
+        build: opts,
+        scratch: scratch.path(),
+        replace: false,
+    };
+    let desc = build_into_pool(&pool, &job, None)?;
     pool.flush()?;
     let elapsed = t.elapsed();
     let bytes = pool.disk_bytes()?;

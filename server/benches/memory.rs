@@ -11,9 +11,8 @@ use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
 
-use arbor_server::build::{BuildOptions, build_scene};
-use arbor_server::import::{ImportOptions, import_file};
-use arbor_server::memory::AnonPeakSampler;
+use arbor_server::octree::BuildOptions;
+use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
 
 /// Points on a unit sphere (Fibonacci lattice) with a little deterministic roughness.
@@ -37,20 +36,20 @@ fn write_cloud(path: &Path, n: usize) {
 }
 
 fn child(budget_mib: usize, input: &Path) {
-    let sampler = AnonPeakSampler::start();
     let started = Instant::now();
-    let scratch = tempfile::tempdir().unwrap();
-    let source = import_file(input, &ImportOptions::default(), scratch.path()).unwrap();
     let pool_dir = tempfile::tempdir().unwrap();
     let pool = Pool::open(pool_dir.path()).unwrap();
-    let mut txn = pool.begin_import("cloud", false).unwrap();
-    let opts = BuildOptions {
-        memory_budget: budget_mib << 20,
-        ..BuildOptions::default()
+    let request = SceneImport {
+        name: "cloud".into(),
+        input: input.to_path_buf(),
+        build: BuildOptions {
+            memory_budget: budget_mib << 20,
+            ..BuildOptions::default()
+        },
+        ..SceneImport::default()
     };
-    let desc = build_scene(&source, "cloud", "cloud", &opts, scratch.path(), &mut txn).unwrap();
-    txn.commit(&desc).unwrap();
-    let anon = sampler.finish();
+    let desc = import_scene(&pool, &request).unwrap().description;
+    let anon = desc.stats.peak_anon_bytes;
     println!(
         "RESULT {} {} {} {} {:.2} {} {}",
         anon,

@@ -8,9 +8,10 @@
 //! * [`memory`] measures the import's peak memory for its report.
 
 pub mod admin;
-pub mod build;
 pub mod import;
 pub mod memory;
+pub mod octree;
+pub mod pipeline;
 pub mod pool;
 pub mod service;
 pub mod source;

@@ -6,8 +6,9 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
-use arbor_server::build::{self, BuildOptions, DepthChoice};
-use arbor_server::import::{self, Format, ImportOptions, RawSpec, SampleType};
+use arbor_server::import::{Format, ImportOptions, RawSpec, SampleType};
+use arbor_server::octree::{BuildOptions, DepthChoice};
+use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
 use arbor_server::service::{AdminTokenOrigin, ConfigOverrides, ServeConfig};
 use arbor_server::verify;
@@ -255,55 +256,31 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 bail!("--iso {i} is not a finite number");
             }
             let pool = open(&db)?;
-            if !replace && pool.contains(&scene)? {
-                bail!("a scene named {scene:?} already exists (remove it first or pass --replace)");
-            }
-            arbor_proto::scene::validate_scene_name(&scene)?;
-            let scratch = match scratch {
-                Some(dir) => tempfile::Builder::new()
-                    .prefix("arbor-import-")
-                    .tempdir_in(dir)?,
-                None => tempfile::Builder::new().prefix("arbor-import-").tempdir()?,
+            let request = SceneImport {
+                name: scene,
+                input: file,
+                import: ImportOptions {
+                    format,
+                    raw: raw_dims.map(|dims| RawSpec {
+                        dims,
+                        sample: raw_type,
+                        spacing: raw_spacing,
+                        big_endian: raw_big_endian,
+                    }),
+                },
+                build: BuildOptions {
+                    depth,
+                    treelet_bytes,
+                    iso,
+                    zstd_level,
+                    dictionary: !no_dictionary,
+                    memory_budget: (memory_budget_mib as usize) << 20,
+                    progress: !quiet,
+                },
+                replace,
+                scratch_parent: scratch,
             };
-            let opts = ImportOptions {
-                format,
-                raw: raw_dims.map(|dims| RawSpec {
-                    dims,
-                    sample: raw_type,
-                    spacing: raw_spacing,
-                    big_endian: raw_big_endian,
-                }),
-            };
-            let sampler = arbor_server::memory::AnonPeakSampler::start();
-            // Import errors name the file and the place themselves.
-            let source = import::import_file(&file, &opts, scratch.path())?;
-            tracing::info!("read {}: {}", file.display(), source.describe());
-            let build_opts = BuildOptions {
-                depth,
-                treelet_bytes,
-                iso,
-                zstd_level,
-                dictionary: !no_dictionary,
-                memory_budget: (memory_budget_mib as usize) << 20,
-                progress: !quiet,
-            };
-            let mut txn = pool.begin_import(&scene, replace)?;
-            let label = file
-                .file_name()
-                .map(|n| n.to_string_lossy().into_owned())
-                .unwrap_or_default();
-            let mut desc = build::build_scene(
-                &source,
-                &scene,
-                &label,
-                &build_opts,
-                scratch.path(),
-                &mut txn,
-            )
-            .with_context(|| format!("building scene {scene:?}"))?;
-            desc.stats.peak_rss_bytes = arbor_server::memory::peak_rss_bytes();
-            desc.stats.peak_anon_bytes = sampler.finish();
-            txn.commit(&desc)?;
+            let desc = import_scene(&pool, &request)?.description;
             print_info(&desc, Some(pool.disk_bytes()?));
             Ok(ExitCode::SUCCESS)
         }

@@ -14,7 +14,7 @@ use std::path::Path;
 use arbor_proto::scene::validate_scene_name;
 use arbor_proto::{AttributeLayout, Channel, ProtoError, SceneDescription, TreeletId};
 
-use crate::build::{BuildError, TreeletSink};
+use crate::octree::{BuildError, TreeletSink};
 
 /// Errors of the pool.
 #[derive(Debug, thiserror::Error)]

@@ -14,8 +14,8 @@ use std::time::Duration;
 use arbor_proto::wire::ErrorCode;
 use arbor_proto::{Channel, SceneDescription};
 use arbor_server::admin::{AdminContext, router};
-use arbor_server::build::{BuildOptions, DepthChoice, build_scene};
-use arbor_server::import::{ImportOptions, import_file};
+use arbor_server::octree::{BuildOptions, DepthChoice};
+use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
 use arbor_server::service::state::{LATENCY_BUCKETS, ServiceState, SessionInfo};
 use serde_json::Value;
@@ -55,17 +55,22 @@ fn pool(bunny: bool) -> (Pool, Option<SceneDescription>, Vec<TempDir>) {
         path.exists(),
         "the real scans in ../shared/data are required"
     );
-    let scratch = tempfile::tempdir().unwrap();
-    let source = import_file(path, &ImportOptions::default(), scratch.path()).unwrap();
-    let opts = BuildOptions {
-        depth: DepthChoice::Fixed(5),
-        treelet_bytes: 1024,
-        ..BuildOptions::default()
+    let request = SceneImport {
+        name: "bunny".into(),
+        input: path.to_path_buf(),
+        build: BuildOptions {
+            depth: DepthChoice::Fixed(5),
+            treelet_bytes: 1024,
+            ..BuildOptions::default()
+        },
+        ..SceneImport::default()
     };
-    let mut txn = pool.begin_import("bunny", false).unwrap();
-    let d = build_scene(&source, "bunny", "bunny", &opts, scratch.path(), &mut txn).unwrap();
-    txn.commit(&d).unwrap();
-    (pool, Some(d), vec![dir, scratch])
+    let imported = import_scene(&pool, &request).unwrap();
+    (
+        pool,
+        Some(imported.description),
+        vec![dir, imported.scratch],
+    )
 }
 
 /// Known counters: what `/metrics` must report.

@@ -4,8 +4,8 @@
 use std::path::Path;
 
 use arbor_proto::{Channel, TreeletId, codec};
-use arbor_server::build::{BuildOptions, DepthChoice, build_scene};
 use arbor_server::import::{ImportOptions, import_file};
+use arbor_server::octree::{BuildOptions, DepthChoice, build_scene};
 use arbor_server::pool::{Pool, PoolError};
 use arbor_server::source::Source;
 use arbor_server::verify::verify_scene;

@@ -13,7 +13,7 @@ use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::presort::{Presort, PriorityPolicy};
 use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
 use arbor_client_core::upload::merge_ranges;
-use arbor_server::build::BuildOptions;
+use arbor_server::octree::BuildOptions;
 use arbor_tests::support::{build_file, decoded_treelets};
 
 const FRAME: u32 = 1024;

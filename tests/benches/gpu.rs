@@ -19,7 +19,7 @@ use arbor_client_core::render::{Light, render};
 use arbor_client_core::slots::SlotBuffer;
 use arbor_client_core::upload::{DEFAULT_FILL_RATIO, UploadPlan};
 use arbor_client_gpu::{GpuBackend, GpuContext};
-use arbor_server::build::BuildOptions;
+use arbor_server::octree::BuildOptions;
 use arbor_tests::support::{build_file, decoded_treelets};
 
 const FRAME: u32 = 1024;

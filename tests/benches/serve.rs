@@ -15,8 +15,9 @@ use std::time::{Duration, Instant};
 
 use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
 use arbor_proto::{SceneDescription, TreeletId};
-use arbor_server::build::{BuildOptions, build_scene};
 use arbor_server::import::{ImportOptions, import_file};
+use arbor_server::octree::BuildOptions;
+use arbor_server::pipeline::{SourceImport, build_into_pool};
 use arbor_server::pool::Pool;
 use arbor_server::service::config::AdminTokenSource;
 use arbor_server::service::{ServeConfig, start};
@@ -38,14 +39,19 @@ fn build_pool(dir: &std::path::Path) -> Vec<SceneDescription> {
     let mut out = Vec::new();
     for tb in [1024u32, 4096] {
         let name = format!("lion-{}k", tb / 1024);
-        let mut txn = pool.begin_import(&name, false).unwrap();
         let opts = BuildOptions {
             treelet_bytes: tb,
             ..BuildOptions::default()
         };
-        let d = build_scene(&source, &name, "lion", &opts, scratch.path(), &mut txn).unwrap();
-        txn.commit(&d).unwrap();
-        out.push(d);
+        let job = SourceImport {
+            source: &source,
+            name: &name,
+            label: "lion",
+            build: &opts,
+            scratch: scratch.path(),
+            replace: false,
+        };
+        out.push(build_into_pool(&pool, &job, None).unwrap());
     }
     out
 }

@@ -20,7 +20,7 @@ use arbor_client_core::traverse::{Lod, trace};
 use arbor_client_net::{ClientConfig, ServerUrl, Trust};
 use arbor_client_session::headless::{HeadlessConfig, HeadlessRun, run_headless_with};
 use arbor_proto::SceneDescription;
-use arbor_server::build::BuildOptions;
+use arbor_server::octree::BuildOptions;
 use arbor_server::service::config::{AdminTokenSource, SceneAccess};
 use arbor_server::service::{RunningServer, ServeConfig, start};
 use tempfile::TempDir;

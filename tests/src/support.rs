@@ -5,10 +5,10 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
 use arbor_proto::{Cell, Node, TreeletId, codec};
-use arbor_server::build::geometry::{Frame, boxes_overlap_open, triangle_touches_cell};
-use arbor_server::build::volume::Field;
-use arbor_server::build::{BuildOptions, build_scene};
-use arbor_server::import::{ImportOptions, import_file};
+use arbor_server::octree::BuildOptions;
+use arbor_server::octree::geometry::{Frame, boxes_overlap_open, triangle_touches_cell};
+use arbor_server::octree::volume::Field;
+use arbor_server::pipeline::{SceneImport, SourceImport, build_into_pool, import_scene};
 use arbor_server::pool::{Pool, StoredScene};
 use arbor_server::source::{Column, MeshSource, PointSource, Source};
 use arbor_server::verify::verify_scene;
@@ -48,20 +48,38 @@ pub struct Built {
 
 /// Imports a real scan and builds it into a fresh pool.
 pub fn build_file(rel: &str, name: &str, opts: &BuildOptions) -> Built {
-    let scratch = tempfile::tempdir().unwrap();
-    let source = import_file(&data(rel), &ImportOptions::default(), scratch.path())
-        .unwrap_or_else(|e| panic!("importing {rel}: {e}"));
-    build_source(source, scratch, name, opts)
+    let pool_dir = tempfile::tempdir().unwrap();
+    let pool = Pool::open(pool_dir.path()).unwrap();
+    let request = SceneImport {
+        name: name.into(),
+        input: data(rel),
+        build: opts.clone(),
+        ..SceneImport::default()
+    };
+    let imported = import_scene(&pool, &request).unwrap_or_else(|e| panic!("importing {rel}: {e}"));
+    let scene = pool.scene(name).unwrap();
+    Built {
+        pool,
+        scene,
+        source: imported.source,
+        pool_dir,
+        scratch: imported.scratch,
+    }
 }
 
 /// Builds a source into a fresh pool.
 pub fn build_source(source: Source, scratch: TempDir, name: &str, opts: &BuildOptions) -> Built {
     let pool_dir = tempfile::tempdir().unwrap();
     let pool = Pool::open(pool_dir.path()).unwrap();
-    let mut txn = pool.begin_import(name, false).unwrap();
-    let desc = build_scene(&source, name, name, opts, scratch.path(), &mut txn)
-        .unwrap_or_else(|e| panic!("building {name}: {e}"));
-    txn.commit(&desc).unwrap();
+    let job = SourceImport {
+        source: &source,
+        name,
+        label: name,
+        build: opts,
+        scratch: scratch.path(),
+        replace: false,
+    };
+    build_into_pool(&pool, &job, None).unwrap_or_else(|e| panic!("building {name}: {e}"));
     let scene = pool.scene(name).unwrap();
     Built {
         pool,

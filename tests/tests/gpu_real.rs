@@ -27,7 +27,7 @@ use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotCo
 use arbor_client_core::upload::{DEFAULT_FILL_RATIO, UploadPlan};
 use arbor_client_gpu::GpuBackend;
 use arbor_proto::{Channel, SceneDescription};
-use arbor_server::build::{BuildOptions, DepthChoice};
+use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_tests::support::{SCANS, build_file, decoded_treelets};
 use glam::DVec3;
 use gpu_compare::{Tally, compare, gpu};

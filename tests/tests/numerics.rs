@@ -6,7 +6,7 @@ use std::collections::BTreeSet;
 
 use arbor_proto::Cell;
 use arbor_proto::limits::MAX_DEPTH;
-use arbor_server::build::{BuildError, BuildOptions, DepthChoice, build_scene};
+use arbor_server::octree::{BuildError, BuildOptions, DepthChoice, build_scene};
 use arbor_server::pool::Pool;
 use arbor_tests::support::{
     assert_same_cells, assert_verifies, build_source, final_leaves, leaf_cells, mesh, points,

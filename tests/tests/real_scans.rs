@@ -1,7 +1,7 @@
 //! Every real scan imports and verifies at 1 and 4 KiB treelets, and its geometry equals a
 //! brute-force classification of every primitive against every target-depth cell.
 
-use arbor_server::build::{BuildOptions, DepthChoice};
+use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_tests::support::{
     SCANS, assert_same_cells, assert_verifies, build_file, leaf_cells, reference_cells,
 };

@@ -24,7 +24,7 @@ use arbor_client_net::{
 use arbor_proto::codec;
 use arbor_proto::wire::ErrorCode;
 use arbor_proto::{Channel, SceneDescription, TreeletId};
-use arbor_server::build::BuildOptions;
+use arbor_server::octree::BuildOptions;
 use arbor_server::service::config::{AdminTokenSource, SceneAccess};
 use arbor_server::service::{RunningServer, ServeConfig, start};
 use arbor_tests::link::{LinkConfig, LinkEmulator};

@@ -8,7 +8,7 @@ use std::sync::LazyLock;
 use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
 use arbor_client_core::upload::{DEFAULT_FILL_RATIO, UploadPlan, merge_ranges};
 use arbor_proto::{Channel, Node, SceneDescription, TreeletId};
-use arbor_server::build::{BuildOptions, DepthChoice};
+use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_tests::support::{SCANS, build_file, decoded_treelets};
 use proptest::prelude::*;
 use proptest::sample::Index;

@@ -15,7 +15,7 @@ use arbor_client_core::incore::{IncoreView, SceneFrame};
 use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
 use arbor_client_core::traverse::{Lod, Ray, trace};
 use arbor_proto::{Cell, Node, TreeletId};
-use arbor_server::build::{BuildOptions, DepthChoice};
+use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_tests::support::{SCANS, build_file, decoded_treelets, final_leaves};
 use glam::DVec3;
 

@@ -13,8 +13,8 @@ use arbor_proto::frame::{self, FrameDecoder};
 use arbor_proto::limits::MAX_TREELET_MESSAGE_BYTES;
 use arbor_proto::wire::{ALPN, ErrorCode, Frame, PROTOCOL_VERSION};
 use arbor_proto::{Channel, SceneDescription, TreeletId};
-use arbor_server::build::{BuildOptions, DepthChoice, build_scene};
-use arbor_server::import::{ImportOptions, import_file};
+use arbor_server::octree::{BuildOptions, DepthChoice};
+use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
 use arbor_server::service::config::SceneAccess;
 use arbor_server::service::{RunningServer, ServeConfig};
@@ -34,18 +34,19 @@ pub fn bunny_path() -> PathBuf {
 
 /// Imports the bunny (depth 6, 1 KiB treelets) as scene [`SCENE`] into a new pool in `dir`.
 pub fn build_pool(dir: &Path) {
-    let scratch = tempfile::tempdir().unwrap();
-    let source = import_file(&bunny_path(), &ImportOptions::default(), scratch.path()).unwrap();
     let pool = Pool::open(dir).unwrap();
-    let mut txn = pool.begin_import(SCENE, false).unwrap();
-    let opts = BuildOptions {
-        depth: DepthChoice::Fixed(6),
-        treelet_bytes: 1024,
-        progress: false,
-        ..BuildOptions::default()
+    let request = SceneImport {
+        name: SCENE.into(),
+        input: bunny_path(),
+        build: BuildOptions {
+            depth: DepthChoice::Fixed(6),
+            treelet_bytes: 1024,
+            progress: false,
+            ..BuildOptions::default()
+        },
+        ..SceneImport::default()
     };
-    let desc = build_scene(&source, SCENE, "bunny", &opts, scratch.path(), &mut txn).unwrap();
-    txn.commit(&desc).unwrap();
+    import_scene(&pool, &request).unwrap();
     pool.flush().unwrap();
 }
 

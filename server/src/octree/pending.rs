@@ -55,7 +55,7 @@ impl PendingQueue {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::build::idlist::{Budget, IdList, ListWriter, SpillFile};
+    use crate::octree::idlist::{Budget, IdList, ListWriter, SpillFile};
     use arbor_proto::{Cell, TreeletId};
 
     fn job(lists: &Lists, i: u32, n: u32) -> TreeletJob {

@@ -1,0 +1,174 @@
+//! The import pipeline, in one place: a scan file (or, for callers that made one themselves, a
+//! [`Source`]) becomes a committed scene in a [`Pool`].
+//!
+//! Every importer of the project goes through here — the `arbor-server import` CLI, the build
+//! and memory benchmarks, the test support — so the order of the steps and what a failure leaves
+//! behind are decided once:
+//!
+//! 1. the pool refuses a bad or taken name before any work ([`Pool::begin_import`]);
+//! 2. the file is parsed into disk-backed columns in a scratch directory (errors name the file
+//!    and the place, and the pool has not been touched yet);
+//! 3. the octree is built straight into the import transaction;
+//! 4. the memory figures are recorded in the description and the transaction commits — the
+//!    scene becomes visible in one catalogue insert. A failure in 2–3 drops the transaction,
+//!    which removes whatever it wrote.
+
+use std::path::{Path, PathBuf};
+
+use arbor_proto::SceneDescription;
+use tempfile::TempDir;
+use thiserror::Error;
+
+use crate::import::{ImportError, ImportOptions, import_file};
+use crate::memory::{AnonPeakSampler, peak_rss_bytes};
+use crate::octree::{BuildError, BuildOptions, build_scene};
+use crate::pool::{Pool, PoolError};
+use crate::source::Source;
+
+/// What to import, and how.
+#[derive(Clone, Debug, Default)]
+pub struct SceneImport {
+    /// The scene's name in the pool.
+    pub name: String,
+    /// The scan file.
+    pub input: PathBuf,
+    /// How to read it (format override, raw volume layout).
+    pub import: ImportOptions,
+    /// How to build the octree.
+    pub build: BuildOptions,
+    /// Replace a scene of the same name atomically instead of refusing.
+    pub replace: bool,
+    /// Where the scratch directory goes (default: the system's temporary directory).
+    pub scratch_parent: Option<PathBuf>,
+}
+
+/// A committed import: the stored description, and the parsed source with the scratch
+/// directory that backs it (dropping it removes the scratch files).
+#[derive(Debug)]
+pub struct ImportedScene {
+    /// The description as committed.
+    pub description: SceneDescription,
+    /// The parsed input (its columns are memory-mapped scratch files).
+    pub source: Source,
+    /// The scratch directory; removed on drop.
+    pub scratch: TempDir,
+}
+
+/// Why an import failed. The pool is unchanged in every case.
+#[derive(Debug, Error)]
+pub enum PipelineError {
+    /// The scratch directory could not be created.
+    #[error("creating a scratch directory{}: {source}", parent.as_ref().map(|p| format!(" in {}", p.display())).unwrap_or_default())]
+    Scratch {
+        /// The parent asked for, if any.
+        parent: Option<PathBuf>,
+        /// What the file system said.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The file could not be parsed (the error names the file and the place).
+    #[error(transparent)]
+    Import(#[from] ImportError),
+    /// The octree could not be built.
+    #[error("building scene {name:?}: {source}")]
+    Build {
+        /// The scene.
+        name: String,
+        /// What the builder said.
+        #[source]
+        source: BuildError,
+    },
+    /// The pool refused the name, or reading or writing it failed.
+    #[error(transparent)]
+    Pool(#[from] PoolError),
+}
+
+/// Parses `request.input`, builds it and commits it to `pool` as `request.name`.
+pub fn import_scene(pool: &Pool, request: &SceneImport) -> Result<ImportedScene, PipelineError> {
+    let scratch = scratch_dir(request.scratch_parent.as_deref())?;
+    // Checked again by `begin_import`; refusing here avoids parsing a file for nothing.
+    if !request.replace && pool.contains(&request.name)? {
+        return Err(PoolError::SceneExists(request.name.clone()).into());
+    }
+    let sampler = AnonPeakSampler::start();
+    let source = import_file(&request.input, &request.import, scratch.path())?;
+    tracing::info!("read {}: {}", request.input.display(), source.describe());
+    let label = request
+        .input
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let job = SourceImport {
+        source: &source,
+        name: &request.name,
+        label: &label,
+        build: &request.build,
+        scratch: scratch.path(),
+        replace: request.replace,
+    };
+    let description = build_into_pool(pool, &job, Some(sampler))?;
+    Ok(ImportedScene {
+        description,
+        source,
+        scratch,
+    })
+}
+
+/// An already parsed source to build into a pool (callers that make or reuse a [`Source`]
+/// themselves: synthetic test scenes, benchmarks building one file several ways).
+#[derive(Clone, Copy, Debug)]
+pub struct SourceImport<'a> {
+    /// The parsed input.
+    pub source: &'a Source,
+    /// The scene's name in the pool.
+    pub name: &'a str,
+    /// What the input was, for the description (e.g. the file name).
+    pub label: &'a str,
+    /// How to build the octree.
+    pub build: &'a BuildOptions,
+    /// Scratch directory for the build's spill and record files.
+    pub scratch: &'a Path,
+    /// Replace a scene of the same name atomically instead of refusing.
+    pub replace: bool,
+}
+
+/// Builds `job.source` into `pool` and commits it; `sampler`, if given, was started before
+/// parsing and supplies the peak anonymous memory recorded in the description.
+pub fn build_into_pool(
+    pool: &Pool,
+    job: &SourceImport<'_>,
+    sampler: Option<AnonPeakSampler>,
+) -> Result<SceneDescription, PipelineError> {
+    let mut txn = pool.begin_import(job.name, job.replace)?;
+    let mut description = build_scene(
+        job.source,
+        job.name,
+        job.label,
+        job.build,
+        job.scratch,
+        &mut txn,
+    )
+    .map_err(|source| PipelineError::Build {
+        name: job.name.to_owned(),
+        source,
+    })?;
+    description.stats.peak_rss_bytes = peak_rss_bytes();
+    if let Some(sampler) = sampler {
+        description.stats.peak_anon_bytes = sampler.finish();
+    }
+    txn.commit(&description)?;
+    Ok(description)
+}
+
+fn scratch_dir(parent: Option<&Path>) -> Result<TempDir, PipelineError> {
+    let mut builder = tempfile::Builder::new();
+    builder.prefix("arbor-import-");
+    match parent {
+        Some(dir) => builder.tempdir_in(dir),
+        None => builder.tempdir(),
+    }
+    .map_err(|source| PipelineError::Scratch {
+        parent: parent.map(Path::to_path_buf),
+        source,
+    })
+}
