@@ -8,6 +8,7 @@
 //! * [`memory`] measures the import's peak memory for its report.
 
 pub mod admin;
+pub mod daemon;
 pub mod import;
 pub mod memory;
 pub mod octree;

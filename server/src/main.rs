@@ -6,11 +6,12 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
+use arbor_server::daemon::AdminTokenOrigin;
 use arbor_server::import::{Format, ImportOptions, RawSpec, SampleType};
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
-use arbor_server::service::{AdminTokenOrigin, ConfigOverrides, ServeConfig};
+use arbor_server::service::{ConfigOverrides, ServeConfig};
 use arbor_server::verify;
 use clap::{Parser, Subcommand};
 
@@ -384,7 +385,7 @@ async fn serve(config: ServeConfig) -> Result<()> {
     // Handlers first, so a signal that arrives right after the addresses are printed is not lost.
     let mut term = signal(SignalKind::terminate()).context("installing the SIGTERM handler")?;
     let mut int = signal(SignalKind::interrupt()).context("installing the SIGINT handler")?;
-    let server = arbor_server::service::start(config).await?;
+    let server = arbor_server::daemon::start(config).await?;
     {
         let mut out = std::io::stdout().lock();
         writeln!(out, "quic {}", server.quic_addr)?;

@@ -145,7 +145,7 @@ async fn a_list_arrives_exactly_and_byte_identical_to_the_pool() {
 
 /// Connects a hostile client with `opts`, says Hello (unless `hello` is false) and returns it.
 async fn hostile(
-    server: &arbor_server::service::RunningServer,
+    server: &arbor_server::daemon::RunningServer,
     hello_ok: bool,
 ) -> (Client, Control) {
     let c = connect(server.quic_addr, &server.fingerprint).await;

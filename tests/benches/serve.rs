@@ -15,12 +15,13 @@ use std::time::{Duration, Instant};
 
 use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
 use arbor_proto::{SceneDescription, TreeletId};
+use arbor_server::daemon::start;
 use arbor_server::import::{ImportOptions, import_file};
 use arbor_server::octree::BuildOptions;
 use arbor_server::pipeline::{SourceImport, build_into_pool};
 use arbor_server::pool::Pool;
+use arbor_server::service::ServeConfig;
 use arbor_server::service::config::AdminTokenSource;
-use arbor_server::service::{ServeConfig, start};
 use arbor_tests::link::{LinkConfig, LinkEmulator};
 use arbor_tests::support::data;
 

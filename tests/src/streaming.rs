@@ -20,9 +20,10 @@ use arbor_client_core::traverse::{Lod, trace};
 use arbor_client_net::{ClientConfig, ServerUrl, Trust};
 use arbor_client_session::headless::{HeadlessConfig, HeadlessRun, run_headless_with};
 use arbor_proto::SceneDescription;
+use arbor_server::daemon::{RunningServer, start};
 use arbor_server::octree::BuildOptions;
+use arbor_server::service::ServeConfig;
 use arbor_server::service::config::{AdminTokenSource, SceneAccess};
-use arbor_server::service::{RunningServer, ServeConfig, start};
 use tempfile::TempDir;
 
 use crate::support::{Built, build_file, decoded_treelets};

@@ -24,9 +24,10 @@ use arbor_client_net::{
 use arbor_proto::codec;
 use arbor_proto::wire::ErrorCode;
 use arbor_proto::{Channel, SceneDescription, TreeletId};
+use arbor_server::daemon::{RunningServer, start};
 use arbor_server::octree::BuildOptions;
+use arbor_server::service::ServeConfig;
 use arbor_server::service::config::{AdminTokenSource, SceneAccess};
-use arbor_server::service::{RunningServer, ServeConfig, start};
 use arbor_tests::link::{LinkConfig, LinkEmulator};
 use arbor_tests::support::{Built, build_file};
 use tempfile::TempDir;

@@ -45,7 +45,7 @@ use tokio::task::JoinSet;
 use tracing::Instrument as _;
 
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
-use super::server::{CLOSE_FLUSH, Shared};
+use super::shared::{CLOSE_FLUSH, Shared};
 use super::shutdown::{Done, Shutdown};
 use super::state::SessionInfo;
 use super::treelets::ServedScene;

@@ -7,19 +7,23 @@
 //!   which connection goes next; it is unit- and property-tested without sockets.
 //! * [`config`]: `ServeConfig` from TOML + CLI overrides, validation, scene access.
 //! * [`tls`]: the certificate (self-signed on first start, or given) and its fingerprint.
-//! * [`server`]: [`start`] → [`RunningServer`]: QUIC endpoint, connection cap, dispatcher, admin
-//!   listener, graceful shutdown; [`connection`]: one client; [`shutdown`]: the broadcast and
-//!   drop-to-finish plumbing; [`treelets`]: treelet messages from the pool.
+//! * [`server`]: [`start_service`] → [`RunningService`]: QUIC endpoint, connection cap,
+//!   dispatcher, graceful shutdown; [`connection`]: one client; [`shutdown`]: the broadcast and
+//!   drop-to-finish plumbing; [`treelets`]: treelet messages from the pool; `shared`: what the
+//!   tasks share (scheduler, routes, scenes).
+//!
+//! The daemon ([`crate::daemon`]) starts this service and mounts the admin API beside it.
 //! * [`state`]: metrics, sessions and readiness shared with the admin API.
 pub mod config;
 pub mod connection;
 pub mod schedule;
 pub mod server;
+mod shared;
 pub mod shutdown;
 pub mod state;
 pub mod tls;
 pub mod treelets;
 
 pub use config::{ConfigError, ConfigOverrides, ServeConfig};
-pub use server::{AdminTokenOrigin, RunningServer, ServeError, start};
+pub use server::{RunningService, ServeError, start_service};
 pub use shutdown::ShutdownTrigger;

@@ -1,5 +1,6 @@
 //! The treelet service: QUIC endpoint, accept loop with a connection cap, the dispatcher that
-//! drives the shared [`Scheduler`], the admin listener, and graceful shutdown.
+//! drives the shared [`Scheduler`], and graceful shutdown. The admin API is mounted beside it by
+//! [`crate::daemon`], on the same shutdown broadcast.
 //!
 //! # Tasks
 //!
@@ -15,7 +16,6 @@
 //!   each channel can hold).
 //! * **Connection tasks** (one per connection) and their **treelet stream tasks** (one per
 //!   treelet in flight).
-//! * **Admin**: `axum::serve` with graceful shutdown on the same broadcast.
 //!
 //! # Why a slow reader cannot starve anyone
 //!
@@ -35,40 +35,31 @@
 //! treelets; each connection lets its in-flight streams finish until `shutdown_grace_ms`,
 //! resets what is left, sends `Goodbye { ShuttingDown }` on its control stream and closes with
 //! `ShuttingDown`. The supervisor waits for every connection task (drop-to-finish channel), then
-//! `endpoint.wait_idle()` for at most [`WAIT_IDLE_BOUND`], and the admin server for at most
-//! 300 ms. Total: at most grace + 1.3 s (grace + 0.1 s when every client acknowledges at once).
+//! `endpoint.wait_idle()` for at most [`WAIT_IDLE_BOUND`] (the daemon then gives its admin server
+//! at most 300 ms). Total: at most grace + 1.3 s (grace + 0.1 s when every client acknowledges at once).
 
-use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use arbor_proto::TreeletId;
 use arbor_proto::wire::ErrorCode;
-use tokio::sync::{Notify, Semaphore, mpsc};
+use tokio::sync::Semaphore;
 use tokio::task::JoinHandle;
 
-use super::config::{AdminTokenSource, ConfigError, ServeConfig};
+use super::config::{ConfigError, ServeConfig};
 use super::connection;
-use super::schedule::{ConnectionId, Scheduler, SchedulerConfig};
+use super::shared::{CLOSE_FLUSH, Core, Shared};
 use super::shutdown::{self, Shutdown, ShutdownTrigger};
 use super::state::ServiceState;
 use super::tls::{self, IdentityOrigin, TlsError};
-use super::treelets::ServedScene;
-use crate::admin::{AdminContext, router};
-use crate::pool::{Pool, PoolError, StoredScene};
+use crate::pool::{Pool, PoolError};
 
 /// Most handshakes completed at once only to refuse the connection with an application code.
 pub const MAX_REFUSALS: usize = 32;
 /// How long `shutdown` waits for the endpoint to drain after closing every connection.
 pub const WAIT_IDLE_BOUND: Duration = Duration::from_millis(500);
-/// How long a closing connection waits for its last control frame (`Error`, `Goodbye`) to be
-/// acknowledged before closing, so the frame is not discarded by the close.
-pub const CLOSE_FLUSH: Duration = Duration::from_millis(300);
-/// File holding the generated admin token in the data dir.
-pub const ADMIN_TOKEN_FILE: &str = "admin-token";
 
 /// Why the service could not start.
 #[derive(Debug, thiserror::Error)]
@@ -103,40 +94,25 @@ pub enum ServeError {
     },
 }
 
-/// Where the admin token came from, for the operator.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub enum AdminTokenOrigin {
-    /// `admin_token` in the configuration.
-    Config,
-    /// `admin_token_file`.
-    File(PathBuf),
-    /// Generated into the data dir now (`created`) or on an earlier start.
-    Generated { path: PathBuf, created: bool },
-}
-
-/// A started service. Dropping it without [`RunningServer::shutdown`] leaves the tasks
+/// A started service. Dropping it without [`RunningService::shutdown`] leaves the tasks
 /// running until the runtime ends.
 #[derive(Debug)]
-pub struct RunningServer {
+pub struct RunningService {
     /// The bound QUIC (UDP) address.
     pub quic_addr: SocketAddr,
-    /// The bound admin HTTP address; `None` when disabled.
-    pub admin_addr: Option<SocketAddr>,
     /// SHA-256 of the server certificate, lowercase hex: what clients pin.
     pub fingerprint: String,
-    /// Bearer token of the admin API.
-    pub admin_token: String,
-    pub admin_token_origin: AdminTokenOrigin,
     /// Where the TLS identity came from.
     pub tls_origin: IdentityOrigin,
     /// Metrics, sessions and readiness.
     pub state: Arc<ServiceState>,
     pool: Pool,
     trigger: ShutdownTrigger,
+    shutdown: Shutdown,
     task: JoinHandle<()>,
 }
 
-impl RunningServer {
+impl RunningService {
     /// The pool being served (read-only use).
     pub fn pool(&self) -> &Pool {
         &self.pool
@@ -154,59 +130,16 @@ impl RunningServer {
         self.wait().await;
     }
 
-    /// Waits until the service stops (after a trigger from [`RunningServer::shutdown_trigger`]).
+    /// Listens for the shutdown broadcast (what the daemon's admin server stops on).
+    pub(crate) fn shutdown_signal(&self) -> Shutdown {
+        self.shutdown.clone()
+    }
+
+    /// Waits until the service stops (after a trigger from [`RunningService::shutdown_trigger`]).
     pub async fn wait(self) {
         if let Err(e) = self.task.await {
             tracing::error!("the service supervisor failed: {e}");
         }
-    }
-}
-
-/// The scheduler and the routes to each connection's task, under one lock. Lock order: this
-/// lock is never held across an `.await` nor while taking the session lock.
-#[derive(Debug)]
-pub(crate) struct Core {
-    pub sched: Scheduler,
-    pub routes: HashMap<ConnectionId, mpsc::UnboundedSender<TreeletId>>,
-}
-
-/// Everything the service's tasks share.
-#[derive(Debug)]
-pub(crate) struct Shared {
-    pub config: ServeConfig,
-    pub pool: Pool,
-    pub state: Arc<ServiceState>,
-    core: Mutex<Core>,
-    /// Wakes the dispatcher: a list arrived, a treelet left the window, a window changed.
-    pub wake: Notify,
-    scenes: Mutex<HashMap<String, Arc<ServedScene>>>,
-    next_id: AtomicU64,
-}
-
-impl Shared {
-    pub(crate) fn core(&self) -> MutexGuard<'_, Core> {
-        // Every critical section leaves the scheduler consistent or panics inside the
-        // scheduler itself (a bug); continuing with a poisoned lock is the better failure.
-        self.core.lock().unwrap_or_else(|p| p.into_inner())
-    }
-
-    pub(crate) fn next_connection_id(&self) -> ConnectionId {
-        ConnectionId(self.next_id.fetch_add(1, Ordering::Relaxed))
-    }
-
-    /// The served form of a stored scene, shared by its connections (rebuilt when the scene's
-    /// generation changed, i.e. it was re-imported).
-    pub(crate) fn served_scene(&self, stored: StoredScene) -> Arc<ServedScene> {
-        let mut scenes = self.scenes.lock().unwrap_or_else(|p| p.into_inner());
-        let name = stored.description.name.clone();
-        if let Some(s) = scenes.get(&name)
-            && s.stored.generation == stored.generation
-        {
-            return s.clone();
-        }
-        let s = Arc::new(ServedScene::new(stored));
-        scenes.insert(name, s.clone());
-        s
     }
 }
 
@@ -222,65 +155,6 @@ fn transport_config(config: &ServeConfig) -> quinn::TransportConfig {
         .max_idle_timeout(quinn::IdleTimeout::try_from(config.idle_timeout()).ok())
         .datagram_receive_buffer_size(None);
     t
-}
-
-fn read_token(path: &Path) -> Result<String, ServeError> {
-    let err = |reason: String| ServeError::AdminToken {
-        path: path.to_owned(),
-        reason,
-    };
-    let t = std::fs::read_to_string(path).map_err(|e| err(e.to_string()))?;
-    let t = t.trim();
-    if t.is_empty() {
-        return Err(err("empty".into()));
-    }
-    Ok(t.to_owned())
-}
-
-fn admin_token(config: &ServeConfig) -> Result<(String, AdminTokenOrigin), ServeError> {
-    match &config.admin_token {
-        AdminTokenSource::Inline(t) => Ok((t.trim().to_owned(), AdminTokenOrigin::Config)),
-        AdminTokenSource::File(p) => Ok((read_token(p)?, AdminTokenOrigin::File(p.clone()))),
-        AdminTokenSource::Generated => {
-            let path = config.data_dir().join(ADMIN_TOKEN_FILE);
-            if path.exists() {
-                return Ok((
-                    read_token(&path)?,
-                    AdminTokenOrigin::Generated {
-                        path,
-                        created: false,
-                    },
-                ));
-            }
-            let err = |reason: String| ServeError::AdminToken {
-                path: path.clone(),
-                reason,
-            };
-            let mut bytes = [0u8; 32];
-            ring::rand::SecureRandom::fill(&ring::rand::SystemRandom::new(), &mut bytes)
-                .map_err(|_| err("the system random generator failed".into()))?;
-            let token: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
-            std::fs::create_dir_all(config.data_dir()).map_err(|e| err(e.to_string()))?;
-            use std::io::Write as _;
-            use std::os::unix::fs::OpenOptionsExt as _;
-            let mut f = std::fs::OpenOptions::new()
-                .write(true)
-                .create_new(true)
-                .mode(0o600)
-                .open(&path)
-                .map_err(|e| err(e.to_string()))?;
-            f.write_all(format!("{token}\n").as_bytes())
-                .and_then(|()| f.sync_all())
-                .map_err(|e| err(e.to_string()))?;
-            Ok((
-                token,
-                AdminTokenOrigin::Generated {
-                    path,
-                    created: true,
-                },
-            ))
-        }
-    }
 }
 
 /// How long `start` waits for the pool's lock: a pool handle dropped just before in the same
@@ -309,10 +183,9 @@ async fn open_pool(db: &Path) -> Result<Pool, ServeError> {
     }
 }
 
-/// Starts the service: opens the pool, loads or creates the TLS identity, binds QUIC and (unless
-/// off) the admin listener, and spawns the tasks on the current tokio runtime.
-pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
-    let probe_token = config.probe_token.clone();
+/// Starts the service: opens the pool, loads or creates the TLS identity, binds QUIC and spawns
+/// the tasks on the current tokio runtime.
+pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeError> {
     config.validate()?;
     tls::install_crypto_provider();
     if !config.db.is_dir() {
@@ -337,7 +210,6 @@ pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
         }
     }
     let identity = tls::load_or_create(&config.tls, config.data_dir())?;
-    let (admin_token, admin_token_origin) = admin_token(&config)?;
     let server_config = tls::quic_server_config(&identity, transport_config(&config))?;
     let endpoint = quinn::Endpoint::server(server_config, config.listen).map_err(|source| {
         ServeError::Bind {
@@ -350,21 +222,6 @@ pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
     let quic_addr = endpoint
         .local_addr()
         .map_err(bind_err("QUIC", config.listen))?;
-    let admin_listener = match config.admin_listen {
-        Some(addr) => Some(
-            tokio::net::TcpListener::bind(addr)
-                .await
-                .map_err(bind_err("admin", addr))?,
-        ),
-        None => None,
-    };
-    let admin_addr = match &admin_listener {
-        Some(l) => Some(
-            l.local_addr()
-                .map_err(bind_err("admin", config.admin_listen.unwrap_or(quic_addr)))?,
-        ),
-        None => None,
-    };
     if !config.listen.ip().is_loopback() && config.default_access == super::config::Access::Public {
         tracing::warn!(
             listen = %config.listen,
@@ -374,61 +231,25 @@ pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
 
     let state = Arc::new(ServiceState::new(identity.fingerprint.clone()));
     let (trigger, shutdown) = shutdown::channel(config.shutdown_grace());
-    let max_in_flight = config.max_connections.saturating_mul(config.window_max);
-    let shared = Arc::new(Shared {
-        pool: pool.clone(),
-        state: state.clone(),
-        core: Mutex::new(Core {
-            sched: Scheduler::new(SchedulerConfig { max_in_flight }),
-            routes: HashMap::new(),
-        }),
-        wake: Notify::new(),
-        scenes: Mutex::new(HashMap::new()),
-        next_id: AtomicU64::new(1),
-        config,
-    });
+    let shared = Arc::new(Shared::new(config, pool.clone(), state.clone()));
 
-    let admin_task = admin_listener.map(|listener| {
-        let app = router(AdminContext {
-            state: state.clone(),
-            pool: pool.clone(),
-            token: admin_token.clone(),
-            probe_token: probe_token.clone(),
-        });
-        let mut s = shutdown.clone();
-        tokio::spawn(async move {
-            let served = axum::serve(listener, app)
-                .with_graceful_shutdown(async move {
-                    s.recv().await;
-                })
-                .await;
-            if let Err(e) = served {
-                tracing::error!("admin API failed: {e}");
-            }
-        })
-    });
     let dispatcher = tokio::spawn(dispatch(shared.clone(), shutdown.clone()));
     state.set_ready(true);
     tracing::info!(
         quic = %quic_addr,
-        admin = ?admin_addr,
         fingerprint = %identity.fingerprint,
         db = %shared.config.db.display(),
         "serving"
     );
-    let task = tokio::spawn(supervise(
-        shared, endpoint, shutdown, dispatcher, admin_task,
-    ));
-    Ok(RunningServer {
+    let task = tokio::spawn(supervise(shared, endpoint, shutdown.clone(), dispatcher));
+    Ok(RunningService {
         quic_addr,
-        admin_addr,
         fingerprint: identity.fingerprint,
-        admin_token,
-        admin_token_origin,
         tls_origin: identity.origin,
         state,
         pool,
         trigger,
+        shutdown,
         task,
     })
 }
@@ -502,7 +323,6 @@ async fn supervise(
     endpoint: quinn::Endpoint,
     mut shutdown: Shutdown,
     dispatcher: JoinHandle<()>,
-    admin: Option<JoinHandle<()>>,
 ) {
     let permits = Arc::new(Semaphore::new(shared.config.max_connections));
     let refusals = Arc::new(Semaphore::new(MAX_REFUSALS));
@@ -575,14 +395,5 @@ async fn supervise(
         tracing::debug!("endpoint not idle within {WAIT_IDLE_BOUND:?}");
     }
     dispatcher.abort();
-    if let Some(admin) = admin {
-        let abort = admin.abort_handle();
-        if tokio::time::timeout(Duration::from_millis(300), admin)
-            .await
-            .is_err()
-        {
-            abort.abort();
-        }
-    }
     tracing::info!("stopped");
 }

@@ -13,11 +13,12 @@ use arbor_proto::frame::{self, FrameDecoder};
 use arbor_proto::limits::MAX_TREELET_MESSAGE_BYTES;
 use arbor_proto::wire::{ALPN, ErrorCode, Frame, PROTOCOL_VERSION};
 use arbor_proto::{Channel, SceneDescription, TreeletId};
+use arbor_server::daemon::RunningServer;
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
+use arbor_server::service::ServeConfig;
 use arbor_server::service::config::SceneAccess;
-use arbor_server::service::{RunningServer, ServeConfig};
 
 pub const SCENE: &str = "bunny";
 pub const TOKEN: &str = "bunny-token";
@@ -92,7 +93,7 @@ impl TestPool {
 pub async fn start(config: ServeConfig) -> RunningServer {
     let t0 = Instant::now();
     loop {
-        match arbor_server::service::start(config.clone()).await {
+        match arbor_server::daemon::start(config.clone()).await {
             Ok(s) => return s,
             Err(arbor_server::service::ServeError::Pool { .. })
                 if t0.elapsed() < Duration::from_secs(10) =>

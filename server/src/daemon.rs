@@ -1,0 +1,221 @@
+//! The serving daemon: the QUIC treelet service ([`crate::service`]) and the admin HTTP API
+//! ([`crate::admin`]) beside it, started together and stopped by one shutdown broadcast.
+//!
+//! The service knows nothing of the admin API; this module owns what joins them: the admin
+//! bearer token (configured, read from a file, or generated once into the data dir), the admin
+//! listener, and the order of shutdown (the service drains first, then the admin server gets at
+//! most [`ADMIN_STOP_BOUND`]).
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::task::JoinHandle;
+
+use crate::admin::{AdminContext, router};
+use crate::pool::Pool;
+use crate::service::config::AdminTokenSource;
+use crate::service::shutdown::ShutdownTrigger;
+use crate::service::state::ServiceState;
+use crate::service::tls::IdentityOrigin;
+use crate::service::{RunningService, ServeConfig, ServeError, start_service};
+
+/// File holding the generated admin token in the data dir.
+pub const ADMIN_TOKEN_FILE: &str = "admin-token";
+/// How long a stopping daemon waits for the admin server after the service stopped.
+pub const ADMIN_STOP_BOUND: Duration = Duration::from_millis(300);
+
+/// Where the admin token came from, for the operator.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum AdminTokenOrigin {
+    /// `admin_token` in the configuration.
+    Config,
+    /// `admin_token_file`.
+    File(PathBuf),
+    /// Generated into the data dir now (`created`) or on an earlier start.
+    Generated { path: PathBuf, created: bool },
+}
+
+/// A started daemon. Dropping it without [`RunningServer::shutdown`] leaves the tasks running
+/// until the runtime ends.
+#[derive(Debug)]
+pub struct RunningServer {
+    /// The bound QUIC (UDP) address.
+    pub quic_addr: SocketAddr,
+    /// The bound admin HTTP address; `None` when disabled.
+    pub admin_addr: Option<SocketAddr>,
+    /// SHA-256 of the server certificate, lowercase hex: what clients pin.
+    pub fingerprint: String,
+    /// Bearer token of the admin API.
+    pub admin_token: String,
+    /// Where the admin token came from.
+    pub admin_token_origin: AdminTokenOrigin,
+    /// Where the TLS identity came from.
+    pub tls_origin: IdentityOrigin,
+    /// Metrics, sessions and readiness.
+    pub state: Arc<ServiceState>,
+    service: RunningService,
+    admin: Option<JoinHandle<()>>,
+}
+
+impl RunningServer {
+    /// The pool being served (read-only use).
+    pub fn pool(&self) -> &Pool {
+        self.service.pool()
+    }
+
+    /// A handle that starts graceful shutdown from elsewhere (e.g. a signal handler).
+    pub fn shutdown_trigger(&self) -> ShutdownTrigger {
+        self.service.shutdown_trigger()
+    }
+
+    /// Graceful shutdown, as on SIGTERM; returns when the daemon has stopped (within the grace
+    /// plus 1.3 s).
+    pub async fn shutdown(self) {
+        self.service.shutdown_trigger().trigger();
+        self.wait().await;
+    }
+
+    /// Waits until the daemon stops (after a trigger from [`RunningServer::shutdown_trigger`]).
+    pub async fn wait(self) {
+        self.service.wait().await;
+        if let Some(admin) = self.admin {
+            let abort = admin.abort_handle();
+            if tokio::time::timeout(ADMIN_STOP_BOUND, admin).await.is_err() {
+                abort.abort();
+            }
+        }
+    }
+}
+
+/// Starts the daemon: the admin token, the treelet service, and (unless off) the admin listener
+/// on the service's shutdown broadcast.
+pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
+    let admin_listen = config.admin_listen;
+    let probe_token = config.probe_token.clone();
+    let token = config.admin_token.clone();
+    let data_dir = config.data_dir().to_path_buf();
+    let service = start_service(config).await?;
+    let (admin_token, admin_token_origin) = match admin_token(&token, &data_dir) {
+        Ok(t) => t,
+        Err(e) => {
+            service.shutdown().await;
+            return Err(e);
+        }
+    };
+    let (admin, admin_addr) = match admin_listen {
+        None => (None, None),
+        Some(addr) => {
+            let bound = async {
+                let listener = tokio::net::TcpListener::bind(addr).await?;
+                let local = listener.local_addr()?;
+                Ok::<_, std::io::Error>((listener, local))
+            }
+            .await;
+            let (listener, local) = match bound {
+                Ok(b) => b,
+                Err(source) => {
+                    service.shutdown().await;
+                    return Err(ServeError::Bind {
+                        what: "admin",
+                        addr,
+                        source,
+                    });
+                }
+            };
+            let app = router(AdminContext {
+                state: service.state.clone(),
+                pool: service.pool().clone(),
+                token: admin_token.clone(),
+                probe_token,
+            });
+            let mut stop = service.shutdown_signal();
+            let task = tokio::spawn(async move {
+                let served = axum::serve(listener, app)
+                    .with_graceful_shutdown(async move {
+                        stop.recv().await;
+                    })
+                    .await;
+                if let Err(e) = served {
+                    tracing::error!("admin API failed: {e}");
+                }
+            });
+            (Some(task), Some(local))
+        }
+    };
+    tracing::info!(admin = ?admin_addr, "admin API");
+    Ok(RunningServer {
+        quic_addr: service.quic_addr,
+        admin_addr,
+        fingerprint: service.fingerprint.clone(),
+        admin_token,
+        admin_token_origin,
+        tls_origin: service.tls_origin.clone(),
+        state: service.state.clone(),
+        service,
+        admin,
+    })
+}
+
+fn read_token(path: &Path) -> Result<String, ServeError> {
+    let err = |reason: String| ServeError::AdminToken {
+        path: path.to_owned(),
+        reason,
+    };
+    let t = std::fs::read_to_string(path).map_err(|e| err(e.to_string()))?;
+    let t = t.trim();
+    if t.is_empty() {
+        return Err(err("empty".into()));
+    }
+    Ok(t.to_owned())
+}
+
+fn admin_token(
+    source: &AdminTokenSource,
+    data_dir: &Path,
+) -> Result<(String, AdminTokenOrigin), ServeError> {
+    match source {
+        AdminTokenSource::Inline(t) => Ok((t.trim().to_owned(), AdminTokenOrigin::Config)),
+        AdminTokenSource::File(p) => Ok((read_token(p)?, AdminTokenOrigin::File(p.clone()))),
+        AdminTokenSource::Generated => {
+            let path = data_dir.join(ADMIN_TOKEN_FILE);
+            if path.exists() {
+                return Ok((
+                    read_token(&path)?,
+                    AdminTokenOrigin::Generated {
+                        path,
+                        created: false,
+                    },
+                ));
+            }
+            let err = |reason: String| ServeError::AdminToken {
+                path: path.clone(),
+                reason,
+            };
+            let mut bytes = [0u8; 32];
+            ring::rand::SecureRandom::fill(&ring::rand::SystemRandom::new(), &mut bytes)
+                .map_err(|_| err("the system random generator failed".into()))?;
+            let token: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+            std::fs::create_dir_all(data_dir).map_err(|e| err(e.to_string()))?;
+            use std::io::Write as _;
+            use std::os::unix::fs::OpenOptionsExt as _;
+            let mut f = std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .mode(0o600)
+                .open(&path)
+                .map_err(|e| err(e.to_string()))?;
+            f.write_all(format!("{token}\n").as_bytes())
+                .and_then(|()| f.sync_all())
+                .map_err(|e| err(e.to_string()))?;
+            Ok((
+                token,
+                AdminTokenOrigin::Generated {
+                    path,
+                    created: true,
+                },
+            ))
+        }
+    }
+}
