@@ -16,11 +16,13 @@
 //! * [`state`]: metrics, sessions and readiness shared with the admin API.
 pub mod config;
 pub mod connection;
+mod handler;
 pub mod schedule;
 pub mod server;
 mod shared;
 pub mod shutdown;
 pub mod state;
+mod streams;
 pub mod tls;
 pub mod treelets;
 

@@ -1,0 +1,394 @@
+//! A connection's life after `Hello`: one [`Handler`] holding the connection's state, with one
+//! method per event of its main loop (a request list or another control frame, a treelet handed
+//! over by the dispatcher, a treelet stream ending, the 50 ms tick, shutdown), in the
+//! mini-redis style. [`serve`] runs `Hello`, registers the connection with the scheduler and
+//! drives the loop; each event method returns `Some(end)` when the connection must end.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use arbor_proto::limits::MAX_REQUEST_ITEMS;
+use arbor_proto::wire::{ErrorCode, Frame};
+use arbor_proto::{Channel, TreeletId};
+use tokio::sync::{mpsc, oneshot};
+use tokio::task::JoinSet;
+
+use super::connection::{ControlReader, End, close, hello};
+use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
+use super::shared::Shared;
+use super::shutdown::Shutdown;
+use super::streams::{CANCEL_CODE, OpenStream, Outcome, StreamCtx, open_in_order, send_treelet};
+use super::treelets::ServedScene;
+
+/// How often the window and the slow-reader watchdog are updated.
+const TICK: Duration = Duration::from_millis(50);
+/// Added to the RTT for the redelivery guard: about one client cycle.
+const CLIENT_CYCLE: Duration = Duration::from_millis(50);
+
+/// The connection's whole service: `Hello`, then the main loop. Returns how it ends.
+pub(super) async fn serve(
+    shared: &Arc<Shared>,
+    id: ConnectionId,
+    conn: &quinn::Connection,
+    mut shutdown: Shutdown,
+    hello_deadline: tokio::time::Instant,
+    control: &mut Option<quinn::SendStream>,
+) -> End {
+    let shutting_down = || End::Close {
+        code: ErrorCode::ShuttingDown,
+        reason: "server shutting down".into(),
+        goodbye: true,
+    };
+    if shutdown.deadline().is_some() {
+        return shutting_down();
+    }
+    let greeted = tokio::select! {
+        r = tokio::time::timeout_at(hello_deadline, hello(shared, conn, control)) => match r {
+            Ok(r) => r,
+            Err(_) => Err(close(
+                ErrorCode::ProtocolViolation,
+                format!("no Hello within {} ms", shared.config.hello_timeout_ms),
+            )),
+        },
+        _ = shutdown.recv() => Err(shutting_down()),
+    };
+    let (mut reader, scene, channels) = match greeted {
+        Ok(g) => g,
+        Err(end) => return end,
+    };
+    let mut handler = match Handler::register(shared, id, conn, scene, channels) {
+        Ok(h) => h,
+        Err(end) => return end,
+    };
+    let end = handler.run(&mut reader, &mut shutdown).await;
+    handler.finish(&end).await;
+    end
+}
+
+/// The state of one connection's main loop.
+struct Handler {
+    shared: Arc<Shared>,
+    id: ConnectionId,
+    conn: quinn::Connection,
+    ctx: Arc<StreamCtx>,
+    /// Treelets the dispatcher hands to this connection.
+    jobs: mpsc::UnboundedReceiver<TreeletId>,
+    /// Asks the opener for the next stream, in rank order.
+    opens: mpsc::UnboundedSender<oneshot::Sender<OpenStream>>,
+    opener: AbortOnDrop,
+    /// One task per treelet in flight.
+    streams: JoinSet<(TreeletId, Outcome)>,
+    /// How to cancel each treelet in flight.
+    cancels: HashMap<TreeletId, oneshot::Sender<ErrorCode>>,
+    /// Rank of the next treelet started under the current list (0 = the list's first).
+    rank: i32,
+    /// The client may still send frames.
+    reading: bool,
+    window: usize,
+    treelet_count: u32,
+}
+
+impl Handler {
+    /// Registers the accepted connection with the scheduler and starts its stream opener.
+    fn register(
+        shared: &Arc<Shared>,
+        id: ConnectionId,
+        conn: &quinn::Connection,
+        scene: Arc<ServedScene>,
+        channels: Vec<Channel>,
+    ) -> Result<Handler, End> {
+        let scene_name = scene.stored.description.name.clone();
+        shared.state.update_session(id.0, |s| {
+            s.scene = scene_name.clone();
+            s.set_channels(&channels);
+        });
+        tracing::info!(channels = ?channels.iter().map(|c| c.name()).collect::<Vec<_>>(), "hello accepted");
+        let (route, jobs) = mpsc::unbounded_channel();
+        let window = shared.config.window_min;
+        {
+            let mut core = shared.core();
+            core.routes.insert(id, route);
+            let config = ConnectionConfig {
+                window,
+                max_queue: MAX_REQUEST_ITEMS,
+                redelivery_guard: ConnectionConfig::default().redelivery_guard,
+            };
+            if let Err(e) = core.sched.add_connection(id, config) {
+                tracing::error!("{e}");
+                return Err(close(ErrorCode::Internal, "connection registered twice"));
+            }
+        }
+        let treelet_count = scene.treelet_count();
+        let ctx = Arc::new(StreamCtx {
+            shared: shared.clone(),
+            id,
+            conn: conn.clone(),
+            scene,
+            channels,
+            base: Instant::now(),
+            last_progress: AtomicU64::new(0),
+            bytes_sent: AtomicU64::new(0),
+            treelets_sent: AtomicU64::new(0),
+        });
+        let (opens, open_requests) = mpsc::unbounded_channel();
+        let opener = AbortOnDrop(tokio::spawn(open_in_order(ctx.clone(), open_requests)));
+        Ok(Handler {
+            shared: shared.clone(),
+            id,
+            conn: conn.clone(),
+            ctx,
+            jobs,
+            opens,
+            opener,
+            streams: JoinSet::new(),
+            cancels: HashMap::new(),
+            rank: 0,
+            reading: true,
+            window,
+            treelet_count,
+        })
+    }
+
+    /// The main loop: waits for the next event and hands it to its method.
+    async fn run(&mut self, reader: &mut ControlReader, shutdown: &mut Shutdown) -> End {
+        let mut tick = tokio::time::interval(TICK);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            let end = tokio::select! {
+                frame = reader.read_frame(), if self.reading => self.on_frame(frame),
+                Some(t) = self.jobs.recv() => self.on_treelet(t),
+                Some(joined) = self.streams.join_next(), if !self.streams.is_empty() => {
+                    match joined {
+                        Ok((t, outcome)) => self.on_stream_end(t, outcome),
+                        Err(_) => None,
+                    }
+                }
+                _ = tick.tick() => self.on_tick(),
+                deadline = shutdown.recv() => Some(self.drain(deadline).await),
+                e = self.conn.closed() => Some(End::Lost(e)),
+            };
+            if let Some(end) = end {
+                return end;
+            }
+        }
+    }
+
+    /// A control frame from the client (or the end of its control stream).
+    fn on_frame(&mut self, frame: Result<Option<Frame>, End>) -> Option<End> {
+        match frame {
+            Ok(Some(Frame::RequestList { seq, items })) => self.on_request_list(seq, items),
+            Ok(Some(Frame::Goodbye { code })) => Some(close(
+                ErrorCode::NoError,
+                format!("client said goodbye ({code})"),
+            )),
+            Ok(Some(Frame::Error { code, message })) => Some(close(
+                ErrorCode::NoError,
+                format!("client reported an error: {code}: {message}"),
+            )),
+            Ok(Some(other)) => Some(close(
+                ErrorCode::ProtocolViolation,
+                format!("unexpected {:?} frame after Hello", other.frame_type()),
+            )),
+            Ok(None) => {
+                // The client will send no more lists; keep serving the current one.
+                tracing::debug!("control stream finished by the client");
+                self.reading = false;
+                None
+            }
+            Err(end) => Some(end),
+        }
+    }
+
+    /// A new request list: replaces the scheduler's queue and resets the streams of treelets in
+    /// flight that it no longer names.
+    fn on_request_list(&mut self, seq: u64, items: Vec<(TreeletId, f32)>) -> Option<End> {
+        let count = self.treelet_count;
+        if let Some((t, _)) = items.iter().find(|(t, _)| t.0 >= count) {
+            return Some(close(
+                ErrorCode::UnknownTreelet,
+                format!("treelet {} does not exist (the scene has {count})", t.0),
+            ));
+        }
+        let m = &self.shared.state.metrics;
+        m.request_lists.fetch_add(1, Ordering::Relaxed);
+        m.request_items
+            .fetch_add(items.len() as u64, Ordering::Relaxed);
+        let outcome =
+            self.shared
+                .core()
+                .sched
+                .handle_request_list(self.id, seq, items, Instant::now());
+        match outcome {
+            Ok(ListOutcome::Applied {
+                obsolete_in_flight, ..
+            }) => {
+                self.rank = 0;
+                for t in obsolete_in_flight {
+                    if let Some(tx) = self.cancels.remove(&t) {
+                        let _ = tx.send(CANCEL_CODE);
+                    }
+                }
+            }
+            Ok(ListOutcome::Stale { last_seq }) => {
+                tracing::debug!(seq, last_seq, "stale request list ignored");
+            }
+            Err(e) => {
+                tracing::error!("{e}");
+                return Some(close(ErrorCode::Internal, "scheduler lost the connection"));
+            }
+        }
+        self.shared
+            .state
+            .update_session(self.id.0, |s| s.request_lists += 1);
+        self.shared.wake.notify_one();
+        None
+    }
+
+    /// The dispatcher handed over a treelet: start its stream task, ranked after the ones
+    /// started before under the same list.
+    fn on_treelet(&mut self, t: TreeletId) -> Option<End> {
+        if let Some(e) = self.conn.close_reason() {
+            // Lost under our feet: do not churn through the queue opening streams.
+            return Some(End::Lost(e));
+        }
+        if self.streams.is_empty() {
+            // Idle until now: the watchdog counts from here.
+            self.ctx.progress();
+        }
+        let (tx, rx) = oneshot::channel();
+        self.cancels.insert(t, tx);
+        let (open_tx, open_rx) = oneshot::channel();
+        let _ = self.opens.send(open_tx);
+        let priority = self.rank.saturating_neg();
+        self.rank = self.rank.saturating_add(1);
+        self.streams
+            .spawn(send_treelet(self.ctx.clone(), t, priority, open_rx, rx));
+        None
+    }
+
+    /// A treelet stream task ended.
+    fn on_stream_end(&mut self, t: TreeletId, outcome: Outcome) -> Option<End> {
+        self.cancels.remove(&t);
+        match outcome {
+            Outcome::Failed(reason) => {
+                tracing::error!(treelet = t.0, "{reason}");
+                Some(close(
+                    ErrorCode::Internal,
+                    format!("treelet {} unavailable", t.0),
+                ))
+            }
+            Outcome::Lost | Outcome::Delivered | Outcome::Cancelled | Outcome::StoppedByPeer => {
+                None
+            }
+        }
+    }
+
+    /// Every [`TICK`]: the slow-reader watchdog, the window from quinn's RTT and congestion
+    /// window, the redelivery guard, the session's figures.
+    fn on_tick(&mut self) -> Option<End> {
+        let config = &self.shared.config;
+        if !self.streams.is_empty() && self.ctx.since_progress() >= config.slow_reader_timeout() {
+            return Some(close(
+                ErrorCode::SlowReader,
+                format!(
+                    "{} treelets in flight and no progress for {} ms",
+                    self.streams.len(),
+                    config.slow_reader_timeout_ms
+                ),
+            ));
+        }
+        let rtt = self.conn.rtt();
+        let cwnd = self.conn.stats().path.cwnd;
+        let bandwidth = cwnd as f64 / rtt.as_secs_f64().max(1e-6);
+        let w = window_for(
+            bandwidth,
+            rtt,
+            self.ctx.mean_treelet_bytes() as usize,
+            config.window_min,
+            config.window_max,
+        );
+        let stats = {
+            let mut core = self.shared.core();
+            if w != self.window {
+                let _ = core.sched.set_window(self.id, w);
+            }
+            let _ = core.sched.set_redelivery_guard(self.id, rtt + CLIENT_CYCLE);
+            core.sched.stats(self.id)
+        };
+        if w != self.window {
+            tracing::trace!(window = w, rtt_us = rtt.as_micros() as u64, cwnd, "window");
+            self.window = w;
+            self.shared.wake.notify_one();
+        }
+        if let Some(st) = stats {
+            self.shared.state.update_session(self.id.0, |s| {
+                s.queue_depth = st.queue_depth as u64;
+                s.in_flight = st.in_flight as u64;
+            });
+        }
+        None
+    }
+
+    /// Shutdown of one connection: stop taking lists, let in-flight streams finish until the
+    /// deadline, reset the rest, then say goodbye.
+    async fn drain(&mut self, deadline: Instant) -> End {
+        // Treelets handed over but not started are not started now.
+        {
+            let mut core = self.shared.core();
+            while let Ok(t) = self.jobs.try_recv() {
+                core.sched.handle_cancelled(self.id, t);
+            }
+        }
+        let deadline = tokio::time::Instant::from_std(deadline);
+        let in_flight = self.streams.len();
+        while !self.streams.is_empty() {
+            tokio::select! {
+                joined = self.streams.join_next() => {
+                    if let Some(Ok((t, _))) = joined {
+                        self.cancels.remove(&t);
+                    }
+                }
+                _ = tokio::time::sleep_until(deadline) => break,
+            }
+        }
+        let left = self.streams.len();
+        for (_, tx) in self.cancels.drain() {
+            let _ = tx.send(ErrorCode::ShuttingDown);
+        }
+        tracing::debug!(in_flight, reset = left, "drained for shutdown");
+        End::Close {
+            code: ErrorCode::ShuttingDown,
+            reason: "server shutting down".into(),
+            goodbye: true,
+        }
+    }
+
+    /// Whatever is still in flight ends with the connection.
+    async fn finish(&mut self, end: &End) {
+        let code = match end {
+            End::Close { code, .. } => *code,
+            End::Lost(_) => CANCEL_CODE,
+        };
+        for (_, tx) in self.cancels.drain() {
+            let _ = tx.send(code);
+        }
+        let streams = &mut self.streams;
+        let _ = tokio::time::timeout(Duration::from_millis(100), async {
+            while streams.join_next().await.is_some() {}
+        })
+        .await;
+        self.streams.abort_all();
+        self.opener.0.abort();
+    }
+}
+
+/// Aborts a task when dropped.
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}

@@ -1,0 +1,240 @@
+//! Treelet streams: one server-opened unidirectional stream per treelet, opened in rank order
+//! by one opener per connection, written from the pool's stored bytes, reset when cancelled.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use arbor_proto::wire::ErrorCode;
+use arbor_proto::{Channel, TreeletId};
+use bytes::Bytes;
+use tokio::sync::{mpsc, oneshot};
+
+use super::schedule::ConnectionId;
+use super::shared::Shared;
+use super::treelets::ServedScene;
+
+/// Reset code of a treelet stream the client's latest list no longer wants (transport-level
+/// cancel). `NoError`: nothing went wrong, the treelet is simply not coming.
+pub const CANCEL_CODE: ErrorCode = ErrorCode::NoError;
+
+/// Mean treelet message size assumed before any was sent.
+const DEFAULT_TREELET_BYTES: u64 = 4096;
+
+/// What a treelet stream task shares with its connection.
+pub(super) struct StreamCtx {
+    pub(super) shared: Arc<Shared>,
+    pub(super) id: ConnectionId,
+    pub(super) conn: quinn::Connection,
+    pub(super) scene: Arc<ServedScene>,
+    /// Requested channels, ascending by id.
+    pub(super) channels: Vec<Channel>,
+    pub(super) base: Instant,
+    /// Microseconds since `base` of the last progress of any stream.
+    pub(super) last_progress: AtomicU64,
+    pub(super) bytes_sent: AtomicU64,
+    pub(super) treelets_sent: AtomicU64,
+}
+
+impl StreamCtx {
+    pub(super) fn progress(&self) {
+        let us = self.base.elapsed().as_micros().min(u128::from(u64::MAX)) as u64;
+        self.last_progress.fetch_max(us, Ordering::Relaxed);
+    }
+
+    pub(super) fn since_progress(&self) -> Duration {
+        self.base.elapsed().saturating_sub(Duration::from_micros(
+            self.last_progress.load(Ordering::Relaxed),
+        ))
+    }
+
+    pub(super) fn mean_treelet_bytes(&self) -> u64 {
+        let n = self.treelets_sent.load(Ordering::Relaxed);
+        self.bytes_sent
+            .load(Ordering::Relaxed)
+            .checked_div(n)
+            .map_or(DEFAULT_TREELET_BYTES, |b| b.max(1))
+    }
+}
+
+/// How one treelet's transfer ended.
+#[derive(Debug)]
+pub(super) enum Outcome {
+    /// Acknowledged by the peer.
+    Delivered,
+    /// Reset by us (cancel or shutdown), or never opened because it was cancelled first.
+    Cancelled,
+    /// The peer stopped the stream.
+    StoppedByPeer,
+    /// The connection went away.
+    Lost,
+    /// The treelet could not be read from the pool: the server's fault.
+    Failed(String),
+}
+
+enum Step<T> {
+    Done(T),
+    Cancel(ErrorCode),
+}
+
+/// A treelet stream that is reset (with [`CANCEL_CODE`]) if dropped before it was finished, so
+/// a client never sees an empty or cut stream ended as if complete (quinn's `SendStream` drop
+/// finishes the stream).
+pub(super) struct OpenStream {
+    stream: quinn::SendStream,
+    finished: bool,
+}
+
+impl Drop for OpenStream {
+    fn drop(&mut self) {
+        if !self.finished {
+            let _ = self
+                .stream
+                .reset(quinn::VarInt::from_u32(CANCEL_CODE.to_u32()));
+        }
+    }
+}
+
+/// Opens the connection's treelet streams one at a time, in the order the treelets were
+/// started (their rank), and hands each to its stream task. With the client's stream credit
+/// exhausted, the next stream to open is therefore always the best-ranked waiting treelet, not
+/// whichever task happened to poll first. A task that was cancelled while waiting has dropped
+/// its receiver and is skipped. Ends when the connection is lost (pending tasks then see their
+/// sender dropped).
+pub(super) async fn open_in_order(
+    ctx: Arc<StreamCtx>,
+    mut requests: mpsc::UnboundedReceiver<oneshot::Sender<OpenStream>>,
+) {
+    while let Some(mut tx) = requests.recv().await {
+        if tx.is_closed() {
+            continue;
+        }
+        let opened = tokio::select! {
+            s = ctx.conn.open_uni() => s,
+            () = tx.closed() => continue,
+        };
+        let Ok(stream) = opened else { return };
+        ctx.progress();
+        // If the task is gone by now, the stream is reset on drop.
+        let _ = tx.send(OpenStream {
+            stream,
+            finished: false,
+        });
+    }
+}
+
+pub(super) async fn send_treelet(
+    ctx: Arc<StreamCtx>,
+    t: TreeletId,
+    priority: i32,
+    opened: oneshot::Receiver<OpenStream>,
+    mut cancel: oneshot::Receiver<ErrorCode>,
+) -> (TreeletId, Outcome) {
+    let outcome = transfer(&ctx, t, priority, opened, &mut cancel).await;
+    let now = Instant::now();
+    {
+        let mut core = ctx.shared.core();
+        match outcome {
+            Outcome::Delivered => {
+                core.sched.handle_delivered(ctx.id, t, now);
+            }
+            _ => {
+                core.sched.handle_cancelled(ctx.id, t);
+            }
+        }
+    }
+    if matches!(outcome, Outcome::Cancelled | Outcome::StoppedByPeer) {
+        ctx.shared
+            .state
+            .metrics
+            .treelets_cancelled
+            .fetch_add(1, Ordering::Relaxed);
+    }
+    ctx.shared.wake.notify_one();
+    (t, outcome)
+}
+
+async fn transfer(
+    ctx: &StreamCtx,
+    t: TreeletId,
+    priority: i32,
+    opened: oneshot::Receiver<OpenStream>,
+    cancel: &mut oneshot::Receiver<ErrorCode>,
+) -> Outcome {
+    // Read from the pool while the stream is being opened.
+    let message = match ctx.scene.message(t, &ctx.channels) {
+        Ok(m) => m,
+        Err(e) => return Outcome::Failed(e.to_string()),
+    };
+    let len = message.len() as u64;
+    let cancelled = |r: Result<ErrorCode, oneshot::error::RecvError>| r.unwrap_or(CANCEL_CODE);
+    let step = tokio::select! {
+        biased;
+        c = &mut *cancel => Step::Cancel(cancelled(c)),
+        s = opened => Step::Done(s),
+    };
+    let mut open = match step {
+        // Not opened yet: dropping the receiver tells the opener to skip it (a stream already
+        // in the channel is reset on drop).
+        Step::Cancel(_) => return Outcome::Cancelled,
+        Step::Done(Ok(s)) => s,
+        Step::Done(Err(_)) => return Outcome::Lost,
+    };
+    let stream = &mut open.stream;
+    let _ = stream.set_priority(priority);
+    let step = tokio::select! {
+        biased;
+        c = &mut *cancel => Step::Cancel(cancelled(c)),
+        r = stream.write_chunk(Bytes::from(message)) => Step::Done(r),
+    };
+    match step {
+        Step::Cancel(code) => {
+            let _ = stream.reset(quinn::VarInt::from_u32(code.to_u32()));
+            open.finished = true;
+            return Outcome::Cancelled;
+        }
+        Step::Done(Err(quinn::WriteError::Stopped(_))) => return Outcome::StoppedByPeer,
+        Step::Done(Err(_)) => return Outcome::Lost,
+        Step::Done(Ok(())) => {}
+    }
+    let _ = stream.finish();
+    open.finished = true;
+    let stream = &mut open.stream;
+    ctx.progress();
+    let now = Instant::now();
+    let latency = ctx.shared.core().sched.handle_sent(ctx.id, t, now);
+    let m = &ctx.shared.state.metrics;
+    if let Some(l) = latency {
+        m.request_to_send.observe(l);
+    }
+    m.treelets_sent.fetch_add(1, Ordering::Relaxed);
+    m.treelet_bytes_sent.fetch_add(len, Ordering::Relaxed);
+    ctx.treelets_sent.fetch_add(1, Ordering::Relaxed);
+    ctx.bytes_sent.fetch_add(len, Ordering::Relaxed);
+    ctx.shared.state.update_session(ctx.id.0, |s| {
+        s.treelets_sent += 1;
+        s.bytes_sent += len;
+    });
+    let stopped = stream.stopped();
+    let step = tokio::select! {
+        biased;
+        c = &mut *cancel => Step::Cancel(cancelled(c)),
+        r = stopped => Step::Done(r),
+    };
+    match step {
+        Step::Done(Ok(None)) => {
+            ctx.progress();
+            Outcome::Delivered
+        }
+        Step::Done(Ok(Some(_))) => Outcome::StoppedByPeer,
+        Step::Done(Err(_)) => Outcome::Lost,
+        Step::Cancel(code) => {
+            if stream.reset(quinn::VarInt::from_u32(code.to_u32())).is_ok() {
+                Outcome::Cancelled
+            } else {
+                // Already fully acknowledged: nothing left to cancel.
+                Outcome::Delivered
+            }
+        }
+    }
+}
