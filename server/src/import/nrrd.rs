@@ -90,25 +90,8 @@ fn parse_header<R: BufRead>(r: &mut R, file: &str) -> Result<(Header, u64), Impo
             .map_err(|e| ImportError::io(file, "reading the NRRD header", e))
     };
     let mut pos = read(r, &mut buf)? as u64;
-    let magic = buf.strip_suffix(b"\n").unwrap_or(&buf);
-    let magic = magic.strip_suffix(b"\r").unwrap_or(magic);
-    if !(magic.len() == 8 && magic.starts_with(b"NRRD000") && magic[7].is_ascii_digit()) {
-        return Err(ImportError::BadMagic {
-            file: file.to_owned(),
-            format: "NRRD",
-            expected: "NRRD000N".to_owned(),
-            found: show_bytes(&buf[..buf.len().min(16)]),
-        });
-    }
-
-    let mut sample = None;
-    let mut dimension = None;
-    let mut sizes: Option<[u32; 3]> = None;
-    let mut encoding = None;
-    let mut endian = None;
-    let mut spacings: Option<[f64; 3]> = None;
-    let mut directions: Option<[f64; 3]> = None;
-    let mut origin = [0.0; 3];
+    check_magic(file, &buf)?;
+    let mut fields = HeaderFields::default();
     let mut line_no = 1u64;
     loop {
         let n = read(r, &mut buf)?;
@@ -146,151 +129,58 @@ fn parse_header<R: BufRead>(r: &mut R, file: &str) -> Result<(Header, u64), Impo
                 format!("expected '<field>: <value>', got '{text}'"),
             ));
         };
-        let value = value.trim();
-        let floats = |what: &str| -> Result<Vec<f64>, ImportError> {
-            value
-                .split_ascii_whitespace()
-                .map(|t| {
-                    t.parse::<f64>().map_err(|_| {
-                        bad_header(file, line, format!("{what}: '{t}' is not a number"))
-                    })
-                })
-                .collect()
-        };
+        fields.field(file, line, field, value.trim())?;
+    }
+    Ok((fields.finish(file)?, pos))
+}
+
+fn check_magic(file: &str, first_line: &[u8]) -> Result<(), ImportError> {
+    let magic = first_line.strip_suffix(b"\n").unwrap_or(first_line);
+    let magic = magic.strip_suffix(b"\r").unwrap_or(magic);
+    if magic.len() == 8 && magic.starts_with(b"NRRD000") && magic[7].is_ascii_digit() {
+        return Ok(());
+    }
+    Err(ImportError::BadMagic {
+        file: file.to_owned(),
+        format: "NRRD",
+        expected: "NRRD000N".to_owned(),
+        found: show_bytes(&first_line[..first_line.len().min(16)]),
+    })
+}
+
+/// The header fields read so far.
+#[derive(Default)]
+struct HeaderFields {
+    sample: Option<SampleType>,
+    dimension: Option<u32>,
+    sizes: Option<[u32; 3]>,
+    encoding: Option<Encoding>,
+    /// `Some(true)` for big endian.
+    endian: Option<bool>,
+    spacings: Option<[f64; 3]>,
+    /// Lengths of the space direction vectors.
+    directions: Option<[f64; 3]>,
+    origin: Option<[f64; 3]>,
+}
+
+impl HeaderFields {
+    /// One `field: value` line, by field name.
+    fn field(
+        &mut self,
+        file: &str,
+        line: Option<u64>,
+        field: &str,
+        value: &str,
+    ) -> Result<(), ImportError> {
         match field {
-            "type" => sample = Some(parse_type(file, value)?),
-            "dimension" => {
-                let d: u32 = value.parse().map_err(|_| {
-                    bad_header(file, line, format!("dimension '{value}' is not a number"))
-                })?;
-                if d != 3 {
-                    return Err(ImportError::Unsupported {
-                        file: file.to_owned(),
-                        feature: format!("NRRD dimension {d} (only 3-D volumes can be imported)"),
-                    });
-                }
-                dimension = Some(d);
-            }
-            "sizes" => {
-                let s: Vec<&str> = value.split_ascii_whitespace().collect();
-                let parsed: Option<Vec<u32>> = s
-                    .iter()
-                    .map(|t| t.parse::<u32>().ok().filter(|&v| v > 0))
-                    .collect();
-                match (parsed, s.len()) {
-                    (Some(v), 3) => sizes = Some([v[0], v[1], v[2]]),
-                    _ => {
-                        return Err(bad_header(
-                            file,
-                            line,
-                            format!("sizes '{value}': expected 3 positive integers"),
-                        ));
-                    }
-                }
-            }
-            "encoding" => {
-                encoding = Some(match value {
-                    "raw" => Encoding::Raw,
-                    "gzip" | "gz" => Encoding::Gzip,
-                    other => {
-                        return Err(ImportError::Unsupported {
-                            file: file.to_owned(),
-                            feature: format!(
-                                "NRRD encoding '{other}' (only raw and gzip are supported)"
-                            ),
-                        });
-                    }
-                })
-            }
-            "endian" => {
-                endian = Some(match value {
-                    "little" => false,
-                    "big" => true,
-                    other => {
-                        return Err(bad_header(
-                            file,
-                            line,
-                            format!("endian '{other}' (expected little or big)"),
-                        ));
-                    }
-                })
-            }
-            "spacings" => {
-                let v = floats("spacings")?;
-                if v.len() != 3 {
-                    return Err(bad_header(
-                        file,
-                        line,
-                        format!("spacings '{value}': expected 3 values"),
-                    ));
-                }
-                // NaN means "unknown" in NRRD.
-                let s = |x: f64| {
-                    if x.is_finite() && x != 0.0 {
-                        x.abs()
-                    } else {
-                        1.0
-                    }
-                };
-                spacings = Some([s(v[0]), s(v[1]), s(v[2])]);
-            }
-            "space directions" => {
-                let vecs = parse_vectors(value).ok_or_else(|| {
-                    bad_header(
-                        file,
-                        line,
-                        format!("space directions '{value}': expected (x,y,z) vectors"),
-                    )
-                })?;
-                let lengths: Option<Vec<f64>> = vecs
-                    .iter()
-                    .map(|v| {
-                        v.as_ref()
-                            .map(|v| v.iter().map(|c| c * c).sum::<f64>().sqrt())
-                            .filter(|l| l.is_finite() && *l > 0.0)
-                    })
-                    .collect();
-                match lengths {
-                    Some(l) if l.len() == 3 => {
-                        let diagonal = vecs.iter().enumerate().all(|(i, v)| {
-                            v.as_ref().is_some_and(|v| {
-                                v.iter().enumerate().all(|(j, c)| i == j || *c == 0.0)
-                            })
-                        });
-                        if !diagonal {
-                            tracing::debug!(
-                                file,
-                                "NRRD axes are not axis aligned; using direction lengths as spacing"
-                            );
-                        }
-                        directions = Some([l[0], l[1], l[2]]);
-                    }
-                    _ => {
-                        return Err(bad_header(
-                            file,
-                            line,
-                            format!("space directions '{value}': expected 3 non-zero vectors"),
-                        ));
-                    }
-                }
-            }
-            "space origin" => {
-                let v = parse_vectors(value)
-                    .and_then(|v| match &v[..] {
-                        [Some(o)] if o.len() == 3 && o.iter().all(|c| c.is_finite()) => {
-                            Some([o[0], o[1], o[2]])
-                        }
-                        _ => None,
-                    })
-                    .ok_or_else(|| {
-                        bad_header(
-                            file,
-                            line,
-                            format!("space origin '{value}': expected one (x,y,z) vector"),
-                        )
-                    })?;
-                origin = v;
-            }
+            "type" => self.sample = Some(parse_type(file, value)?),
+            "dimension" => self.dimension = Some(parse_dimension(file, line, value)?),
+            "sizes" => self.sizes = Some(parse_sizes(file, line, value)?),
+            "encoding" => self.encoding = Some(parse_encoding(file, value)?),
+            "endian" => self.endian = Some(parse_endian(file, line, value)?),
+            "spacings" => self.spacings = Some(parse_spacings(file, line, value)?),
+            "space directions" => self.directions = Some(parse_directions(file, line, value)?),
+            "space origin" => self.origin = Some(parse_origin(file, line, value)?),
             "data file" | "datafile" => {
                 return Err(ImportError::Unsupported {
                     file: file.to_owned(),
@@ -309,34 +199,178 @@ fn parse_header<R: BufRead>(r: &mut R, file: &str) -> Result<(Header, u64), Impo
             }
             _ => tracing::debug!(file, field, value, "ignoring NRRD field"),
         }
+        Ok(())
     }
 
-    let missing = |f: &str| bad_header(file, None, format!("missing required field '{f}'"));
-    let sample = sample.ok_or_else(|| missing("type"))?;
-    dimension.ok_or_else(|| missing("dimension"))?;
-    let dims = sizes.ok_or_else(|| missing("sizes"))?;
-    let encoding = encoding.ok_or_else(|| missing("encoding"))?;
-    let big_endian = match endian {
-        Some(b) => b,
-        None => {
-            if sample.size() > 1 {
-                tracing::debug!(file, "NRRD has no 'endian' field; assuming little");
+    /// The header, once every required field was read.
+    fn finish(self, file: &str) -> Result<Header, ImportError> {
+        let missing = |f: &str| bad_header(file, None, format!("missing required field '{f}'"));
+        let sample = self.sample.ok_or_else(|| missing("type"))?;
+        self.dimension.ok_or_else(|| missing("dimension"))?;
+        let dims = self.sizes.ok_or_else(|| missing("sizes"))?;
+        let encoding = self.encoding.ok_or_else(|| missing("encoding"))?;
+        let big_endian = match self.endian {
+            Some(b) => b,
+            None => {
+                if sample.size() > 1 {
+                    tracing::debug!(file, "NRRD has no 'endian' field; assuming little");
+                }
+                false
             }
-            false
-        }
-    };
-    let spacing = directions.or(spacings).unwrap_or([1.0; 3]);
-    Ok((
-        Header {
+        };
+        Ok(Header {
             sample,
             dims,
             encoding,
             big_endian,
-            spacing,
-            origin,
-        },
-        pos,
-    ))
+            spacing: self.directions.or(self.spacings).unwrap_or([1.0; 3]),
+            origin: self.origin.unwrap_or([0.0; 3]),
+        })
+    }
+}
+
+fn header_floats(
+    file: &str,
+    line: Option<u64>,
+    what: &str,
+    value: &str,
+) -> Result<Vec<f64>, ImportError> {
+    value
+        .split_ascii_whitespace()
+        .map(|t| {
+            t.parse::<f64>()
+                .map_err(|_| bad_header(file, line, format!("{what}: '{t}' is not a number")))
+        })
+        .collect()
+}
+
+fn parse_dimension(file: &str, line: Option<u64>, value: &str) -> Result<u32, ImportError> {
+    let d: u32 = value
+        .parse()
+        .map_err(|_| bad_header(file, line, format!("dimension '{value}' is not a number")))?;
+    if d != 3 {
+        return Err(ImportError::Unsupported {
+            file: file.to_owned(),
+            feature: format!("NRRD dimension {d} (only 3-D volumes can be imported)"),
+        });
+    }
+    Ok(d)
+}
+
+fn parse_sizes(file: &str, line: Option<u64>, value: &str) -> Result<[u32; 3], ImportError> {
+    let s: Vec<&str> = value.split_ascii_whitespace().collect();
+    let parsed: Option<Vec<u32>> = s
+        .iter()
+        .map(|t| t.parse::<u32>().ok().filter(|&v| v > 0))
+        .collect();
+    match (parsed, s.len()) {
+        (Some(v), 3) => Ok([v[0], v[1], v[2]]),
+        _ => Err(bad_header(
+            file,
+            line,
+            format!("sizes '{value}': expected 3 positive integers"),
+        )),
+    }
+}
+
+fn parse_encoding(file: &str, value: &str) -> Result<Encoding, ImportError> {
+    match value {
+        "raw" => Ok(Encoding::Raw),
+        "gzip" | "gz" => Ok(Encoding::Gzip),
+        other => Err(ImportError::Unsupported {
+            file: file.to_owned(),
+            feature: format!("NRRD encoding '{other}' (only raw and gzip are supported)"),
+        }),
+    }
+}
+
+/// `true` for big endian.
+fn parse_endian(file: &str, line: Option<u64>, value: &str) -> Result<bool, ImportError> {
+    match value {
+        "little" => Ok(false),
+        "big" => Ok(true),
+        other => Err(bad_header(
+            file,
+            line,
+            format!("endian '{other}' (expected little or big)"),
+        )),
+    }
+}
+
+fn parse_spacings(file: &str, line: Option<u64>, value: &str) -> Result<[f64; 3], ImportError> {
+    let v = header_floats(file, line, "spacings", value)?;
+    if v.len() != 3 {
+        return Err(bad_header(
+            file,
+            line,
+            format!("spacings '{value}': expected 3 values"),
+        ));
+    }
+    // NaN means "unknown" in NRRD.
+    let s = |x: f64| {
+        if x.is_finite() && x != 0.0 {
+            x.abs()
+        } else {
+            1.0
+        }
+    };
+    Ok([s(v[0]), s(v[1]), s(v[2])])
+}
+
+/// The lengths of the three space direction vectors (the voxel spacing).
+fn parse_directions(file: &str, line: Option<u64>, value: &str) -> Result<[f64; 3], ImportError> {
+    let vecs = parse_vectors(value).ok_or_else(|| {
+        bad_header(
+            file,
+            line,
+            format!("space directions '{value}': expected (x,y,z) vectors"),
+        )
+    })?;
+    let lengths: Option<Vec<f64>> = vecs
+        .iter()
+        .map(|v| {
+            v.as_ref()
+                .map(|v| v.iter().map(|c| c * c).sum::<f64>().sqrt())
+                .filter(|l| l.is_finite() && *l > 0.0)
+        })
+        .collect();
+    match lengths {
+        Some(l) if l.len() == 3 => {
+            let diagonal = vecs.iter().enumerate().all(|(i, v)| {
+                v.as_ref()
+                    .is_some_and(|v| v.iter().enumerate().all(|(j, c)| i == j || *c == 0.0))
+            });
+            if !diagonal {
+                tracing::debug!(
+                    file,
+                    "NRRD axes are not axis aligned; using direction lengths as spacing"
+                );
+            }
+            Ok([l[0], l[1], l[2]])
+        }
+        _ => Err(bad_header(
+            file,
+            line,
+            format!("space directions '{value}': expected 3 non-zero vectors"),
+        )),
+    }
+}
+
+fn parse_origin(file: &str, line: Option<u64>, value: &str) -> Result<[f64; 3], ImportError> {
+    parse_vectors(value)
+        .and_then(|v| match &v[..] {
+            [Some(o)] if o.len() == 3 && o.iter().all(|c| c.is_finite()) => {
+                Some([o[0], o[1], o[2]])
+            }
+            _ => None,
+        })
+        .ok_or_else(|| {
+            bad_header(
+                file,
+                line,
+                format!("space origin '{value}': expected one (x,y,z) vector"),
+            )
+        })
 }
 
 fn layout_name(prefix: &str, dims: [u32; 3], sample: SampleType) -> String {

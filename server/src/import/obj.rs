@@ -46,34 +46,23 @@ struct ForwardRef {
 pub(super) fn import(path: &Path, file: &str, scratch: &Path) -> Result<Source, ImportError> {
     let f = File::open(path).map_err(|e| ImportError::io(file, "opening the file", e))?;
     let mut reader = BufReader::with_capacity(1 << 16, f);
-
-    let mut positions = writer::<[f64; 3]>(file, scratch, names::POSITIONS)?;
-    let mut triangles = writer::<[u32; 3]>(file, scratch, names::TRIANGLES)?;
-    let mut colors: Option<ColumnWriter<[u8; 3]>> = None;
-
+    let mut obj = ObjReader::new(file, scratch)?;
     let mut buf = Vec::new();
-    let mut line_no = 0u64;
-    let mut vertex_count = 0u64;
-    let mut face_count = 0u64;
-    let mut forward: Option<ForwardRef> = None;
-    let mut corners: Vec<u32> = Vec::new();
-    let mut unknown: HashSet<Vec<u8>> = HashSet::new();
-
     loop {
         buf.clear();
         let n = reader
             .by_ref()
             .take(MAX_LINE + 1)
             .read_until(b'\n', &mut buf)
-            .map_err(|e| ImportError::io(file, format!("reading line {}", line_no + 1), e))?;
+            .map_err(|e| ImportError::io(file, format!("reading line {}", obj.line + 1), e))?;
         if n == 0 {
             break;
         }
-        line_no += 1;
+        obj.line += 1;
         if n as u64 > MAX_LINE {
             return Err(syntax(
                 file,
-                line_no,
+                obj.line,
                 format!("line longer than {MAX_LINE} bytes (is this really an OBJ file?)"),
             ));
         }
@@ -81,235 +70,276 @@ pub(super) fn import(path: &Path, file: &str, scratch: &Path) -> Result<Source, 
             Some(p) => &buf[..p],
             None => &buf[..],
         };
+        obj.statement(content)?;
+    }
+    obj.finish()
+}
+
+/// The state of one OBJ file being read: the columns written so far and what the checks at the
+/// end need.
+struct ObjReader<'a> {
+    file: &'a str,
+    scratch: &'a Path,
+    positions: ColumnWriter<[f64; 3]>,
+    triangles: ColumnWriter<[u32; 3]>,
+    /// Created at the first coloured vertex.
+    colors: Option<ColumnWriter<[u8; 3]>>,
+    /// Line number of the statement being read (1-based).
+    line: u64,
+    vertex_count: u64,
+    face_count: u64,
+    forward: Option<ForwardRef>,
+    /// Scratch: the current face's vertex indices.
+    corners: Vec<u32>,
+    /// Unknown statements already logged (at most 32).
+    unknown: HashSet<Vec<u8>>,
+}
+
+impl<'a> ObjReader<'a> {
+    fn new(file: &'a str, scratch: &'a Path) -> Result<Self, ImportError> {
+        Ok(Self {
+            file,
+            scratch,
+            positions: writer::<[f64; 3]>(file, scratch, names::POSITIONS)?,
+            triangles: writer::<[u32; 3]>(file, scratch, names::TRIANGLES)?,
+            colors: None,
+            line: 0,
+            vertex_count: 0,
+            face_count: 0,
+            forward: None,
+            corners: Vec::new(),
+            unknown: HashSet::new(),
+        })
+    }
+
+    fn syntax(&self, detail: impl Into<String>) -> ImportError {
+        syntax(self.file, self.line, detail)
+    }
+
+    /// One statement (a line without its comment), by keyword.
+    fn statement(&mut self, content: &[u8]) -> Result<(), ImportError> {
         let mut toks = tokens(content);
         let Some(keyword) = toks.next() else {
-            continue;
+            return Ok(());
         };
         match keyword {
-            b"v" => {
-                let mut values = [0f64; 6];
-                let mut count = 0usize;
-                for tok in toks {
-                    if count == values.len() {
-                        return Err(syntax(
-                            file,
-                            line_no,
-                            format!(
-                                "vertex {vertex_count}: too many numbers after 'v' (expected x y z, x y z w or x y z r g b)"
-                            ),
-                        ));
-                    }
-                    let value = std::str::from_utf8(tok)
-                        .ok()
-                        .and_then(|s| s.parse::<f64>().ok())
-                        .ok_or_else(|| {
-                            syntax(
-                                file,
-                                line_no,
-                                format!(
-                                    "vertex {vertex_count}: '{}' is not a number (value {} after 'v')",
-                                    show(tok),
-                                    count + 1
-                                ),
-                            )
-                        })?;
-                    if !value.is_finite() {
-                        return Err(ImportError::NonFinite {
-                            file: file.to_owned(),
-                            line: Some(line_no),
-                            record: format!("vertex {vertex_count}"),
-                            value,
-                        });
-                    }
-                    values[count] = value;
-                    count += 1;
-                }
-                let color = match count {
-                    0..=2 => {
-                        return Err(syntax(
-                            file,
-                            line_no,
-                            format!(
-                                "vertex {vertex_count}: expected 3 coordinates after 'v', got {count}"
-                            ),
-                        ));
-                    }
-                    3 | 4 => None,
-                    6 => Some([
-                        unit_to_u8(values[3]),
-                        unit_to_u8(values[4]),
-                        unit_to_u8(values[5]),
-                    ]),
-                    _ => {
-                        return Err(syntax(
-                            file,
-                            line_no,
-                            format!(
-                                "vertex {vertex_count}: expected 3 (x y z), 4 (x y z w) or 6 (x y z r g b) numbers after 'v', got {count}"
-                            ),
-                        ));
-                    }
-                };
-                push(file, &mut positions, [values[0], values[1], values[2]])?;
-                match (&mut colors, color) {
-                    (Some(w), c) => push(file, w, c.unwrap_or(DEFAULT_COLOR))?,
-                    (None, Some(c)) => {
-                        // First coloured vertex: earlier vertices get the default colour.
-                        let mut w = writer::<[u8; 3]>(file, scratch, names::COLORS)?;
-                        for _ in 0..vertex_count {
-                            push(file, &mut w, DEFAULT_COLOR)?;
-                        }
-                        push(file, &mut w, c)?;
-                        colors = Some(w);
-                    }
-                    (None, None) => {}
-                }
-                vertex_count += 1;
-            }
-            b"f" => {
-                corners.clear();
-                for tok in toks {
-                    let first = tok.split(|&b| b == b'/').next().unwrap_or_default();
-                    let index = std::str::from_utf8(first)
-                        .ok()
-                        .and_then(|s| s.parse::<i64>().ok())
-                        .ok_or_else(|| {
-                            syntax(
-                                file,
-                                line_no,
-                                format!(
-                                    "face {face_count}: '{}' is not a vertex index (expected i, i/t, i//n or i/t/n)",
-                                    show(tok)
-                                ),
-                            )
-                        })?;
-                    let out_of_range = || ImportError::IndexOutOfRange {
-                        file: file.to_owned(),
-                        line: Some(line_no),
-                        primitive: format!("face {face_count}"),
-                        index,
-                        vertex_count,
-                    };
-                    let resolved = match index {
-                        0 => {
-                            return Err(syntax(
-                                file,
-                                line_no,
-                                format!(
-                                    "face {face_count}: vertex index 0 is invalid (OBJ indices start at 1)"
-                                ),
-                            ));
-                        }
-                        i if i < 0 => {
-                            // Relative to the vertices read so far: -1 is the last one.
-                            let r = vertex_count as i64 + i;
-                            if r < 0 {
-                                return Err(out_of_range());
-                            }
-                            r
-                        }
-                        i => {
-                            if i as u64 > vertex_count
-                                && forward.as_ref().is_none_or(|f| i > f.index)
-                            {
-                                forward = Some(ForwardRef {
-                                    index: i,
-                                    line: line_no,
-                                    face: face_count,
-                                });
-                            }
-                            i - 1
-                        }
-                    };
-                    let resolved = u32::try_from(resolved).map_err(|_| out_of_range())?;
-                    corners.push(resolved);
-                }
-                if corners.len() < 3 {
-                    return Err(syntax(
-                        file,
-                        line_no,
-                        format!(
-                            "face {face_count} has {} vertices; a face needs at least 3",
-                            corners.len()
-                        ),
-                    ));
-                }
-                for i in 1..corners.len() - 1 {
-                    push(
-                        file,
-                        &mut triangles,
-                        [corners[0], corners[i], corners[i + 1]],
-                    )?;
-                }
-                face_count += 1;
-            }
+            b"v" => self.vertex(toks),
+            b"f" => self.face(toks),
             b"vt" | b"vn" | b"vp" | b"g" | b"o" | b"s" | b"usemtl" | b"mtllib" | b"l" | b"p"
-            | b"cstype" | b"deg" | b"curv" | b"surf" | b"parm" | b"end" | b"lod" => {}
+            | b"cstype" | b"deg" | b"curv" | b"surf" | b"parm" | b"end" | b"lod" => Ok(()),
             other => {
-                if unknown.len() < 32 && unknown.insert(other.to_vec()) {
+                if self.unknown.len() < 32 && self.unknown.insert(other.to_vec()) {
                     tracing::debug!(
-                        file,
-                        line = line_no,
+                        file = self.file,
+                        line = self.line,
                         "ignoring unknown OBJ statement '{}'",
                         show(other)
                     );
                 }
+                Ok(())
             }
         }
     }
 
-    if vertex_count > u64::from(u32::MAX) + 1 {
-        return Err(ImportError::Unsupported {
-            file: file.to_owned(),
-            feature: format!("{vertex_count} vertices (at most 2^32 can be indexed)"),
-        });
-    }
-    if let Some(f) = forward
-        && f.index as u64 > vertex_count
-    {
-        return Err(ImportError::IndexOutOfRange {
-            file: file.to_owned(),
-            line: Some(f.line),
-            primitive: format!("face {}", f.face),
-            index: f.index,
-            vertex_count,
-        });
+    /// `v x y z [w | r g b]`.
+    fn vertex<'t>(&mut self, toks: impl Iterator<Item = &'t [u8]>) -> Result<(), ImportError> {
+        let vertex_count = self.vertex_count;
+        let mut values = [0f64; 6];
+        let mut count = 0usize;
+        for tok in toks {
+            if count == values.len() {
+                return Err(self.syntax(format!(
+                    "vertex {vertex_count}: too many numbers after 'v' (expected x y z, x y z w or x y z r g b)"
+                )));
+            }
+            let value = std::str::from_utf8(tok)
+                .ok()
+                .and_then(|s| s.parse::<f64>().ok())
+                .ok_or_else(|| {
+                    self.syntax(format!(
+                        "vertex {vertex_count}: '{}' is not a number (value {} after 'v')",
+                        show(tok),
+                        count + 1
+                    ))
+                })?;
+            if !value.is_finite() {
+                return Err(ImportError::NonFinite {
+                    file: self.file.to_owned(),
+                    line: Some(self.line),
+                    record: format!("vertex {vertex_count}"),
+                    value,
+                });
+            }
+            values[count] = value;
+            count += 1;
+        }
+        let color = match count {
+            0..=2 => {
+                return Err(self.syntax(format!(
+                    "vertex {vertex_count}: expected 3 coordinates after 'v', got {count}"
+                )));
+            }
+            3 | 4 => None,
+            6 => Some([
+                unit_to_u8(values[3]),
+                unit_to_u8(values[4]),
+                unit_to_u8(values[5]),
+            ]),
+            _ => {
+                return Err(self.syntax(format!(
+                    "vertex {vertex_count}: expected 3 (x y z), 4 (x y z w) or 6 (x y z r g b) numbers after 'v', got {count}"
+                )));
+            }
+        };
+        let file = self.file;
+        push(file, &mut self.positions, [values[0], values[1], values[2]])?;
+        match (&mut self.colors, color) {
+            (Some(w), c) => push(file, w, c.unwrap_or(DEFAULT_COLOR))?,
+            (None, Some(c)) => {
+                // First coloured vertex: earlier vertices get the default colour.
+                let mut w = writer::<[u8; 3]>(file, self.scratch, names::COLORS)?;
+                for _ in 0..vertex_count {
+                    push(file, &mut w, DEFAULT_COLOR)?;
+                }
+                push(file, &mut w, c)?;
+                self.colors = Some(w);
+            }
+            (None, None) => {}
+        }
+        self.vertex_count += 1;
+        Ok(())
     }
 
-    let colors = match colors {
-        Some(w) => Some(w.finish().map_err(|e| ImportError::column(file, e))?),
-        None => None,
-    };
-    let positions = positions
-        .finish()
-        .map_err(|e| ImportError::column(file, e))?;
-    if face_count == 0 {
-        if vertex_count == 0 {
-            return Err(ImportError::NoPrimitives {
+    /// `f i i i …` (each `i`, `i/t`, `i//n` or `i/t/n`), fan-triangulated.
+    fn face<'t>(&mut self, toks: impl Iterator<Item = &'t [u8]>) -> Result<(), ImportError> {
+        self.corners.clear();
+        for tok in toks {
+            let corner = self.corner(tok)?;
+            self.corners.push(corner);
+        }
+        let face_count = self.face_count;
+        if self.corners.len() < 3 {
+            return Err(self.syntax(format!(
+                "face {face_count} has {} vertices; a face needs at least 3",
+                self.corners.len()
+            )));
+        }
+        let c = &self.corners;
+        for i in 1..c.len() - 1 {
+            push(self.file, &mut self.triangles, [c[0], c[i], c[i + 1]])?;
+        }
+        self.face_count += 1;
+        Ok(())
+    }
+
+    /// One face corner's vertex index, resolved to 0-based; a positive index past the vertices
+    /// read so far is remembered and checked at the end.
+    fn corner(&mut self, tok: &[u8]) -> Result<u32, ImportError> {
+        let (face_count, vertex_count) = (self.face_count, self.vertex_count);
+        let first = tok.split(|&b| b == b'/').next().unwrap_or_default();
+        let index = std::str::from_utf8(first)
+            .ok()
+            .and_then(|s| s.parse::<i64>().ok())
+            .ok_or_else(|| {
+                self.syntax(format!(
+                    "face {face_count}: '{}' is not a vertex index (expected i, i/t, i//n or i/t/n)",
+                    show(tok)
+                ))
+            })?;
+        let out_of_range = || ImportError::IndexOutOfRange {
+            file: self.file.to_owned(),
+            line: Some(self.line),
+            primitive: format!("face {face_count}"),
+            index,
+            vertex_count,
+        };
+        let resolved = match index {
+            0 => {
+                return Err(self.syntax(format!(
+                    "face {face_count}: vertex index 0 is invalid (OBJ indices start at 1)"
+                )));
+            }
+            i if i < 0 => {
+                // Relative to the vertices read so far: -1 is the last one.
+                let r = vertex_count as i64 + i;
+                if r < 0 {
+                    return Err(out_of_range());
+                }
+                r
+            }
+            i => {
+                if i as u64 > vertex_count && self.forward.as_ref().is_none_or(|f| i > f.index) {
+                    self.forward = Some(ForwardRef {
+                        index: i,
+                        line: self.line,
+                        face: face_count,
+                    });
+                }
+                i - 1
+            }
+        };
+        u32::try_from(resolved).map_err(|_| out_of_range())
+    }
+
+    /// The checks that need the whole file, then the source: a mesh, or points when the file
+    /// has vertices and no faces.
+    fn finish(self) -> Result<Source, ImportError> {
+        let file = self.file;
+        let vertex_count = self.vertex_count;
+        if vertex_count > u64::from(u32::MAX) + 1 {
+            return Err(ImportError::Unsupported {
                 file: file.to_owned(),
-                detail: format!("no vertices and no faces in {line_no} lines"),
+                feature: format!("{vertex_count} vertices (at most 2^32 can be indexed)"),
             });
         }
-        tracing::info!(
-            file,
-            vertices = vertex_count,
-            "OBJ has no faces: importing as points"
-        );
-        return Ok(Source::Points(PointSource {
+        if let Some(f) = self.forward
+            && f.index as u64 > vertex_count
+        {
+            return Err(ImportError::IndexOutOfRange {
+                file: file.to_owned(),
+                line: Some(f.line),
+                primitive: format!("face {}", f.face),
+                index: f.index,
+                vertex_count,
+            });
+        }
+        let colors = match self.colors {
+            Some(w) => Some(w.finish().map_err(|e| ImportError::column(file, e))?),
+            None => None,
+        };
+        let positions = self
+            .positions
+            .finish()
+            .map_err(|e| ImportError::column(file, e))?;
+        if self.face_count == 0 {
+            if vertex_count == 0 {
+                return Err(ImportError::NoPrimitives {
+                    file: file.to_owned(),
+                    detail: format!("no vertices and no faces in {} lines", self.line),
+                });
+            }
+            tracing::info!(
+                file,
+                vertices = vertex_count,
+                "OBJ has no faces: importing as points"
+            );
+            return Ok(Source::Points(PointSource {
+                positions,
+                colors,
+                normals: None,
+            }));
+        }
+        let triangles = self
+            .triangles
+            .finish()
+            .map_err(|e| ImportError::column(file, e))?;
+        Ok(Source::Mesh(MeshSource {
             positions,
-            colors,
             normals: None,
-        }));
+            colors,
+            triangles,
+        }))
     }
-    let triangles = triangles
-        .finish()
-        .map_err(|e| ImportError::column(file, e))?;
-    Ok(Source::Mesh(MeshSource {
-        positions,
-        normals: None,
-        colors,
-        triangles,
-    }))
 }
 
 #[cfg(test)]

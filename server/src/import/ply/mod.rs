@@ -9,514 +9,21 @@
 //! Element counts come from an untrusted header: nothing is allocated from them, and they are
 //! checked against the bytes left in the file before an element is read.
 
+//!
+//! The header is read by [`header`], typed values by [`values`]; this file turns the body into
+//! columns.
+
+mod header;
+mod values;
+
 use std::fs::File;
-use std::io::{BufRead, BufReader, Read};
+use std::io::BufReader;
 use std::path::Path;
 
-use super::{ImportError, names, push, show_bytes, unit_to_u8, writer};
+use self::header::{Element, Encoding, Header, Kind, Scalar, bad_header, parse_header};
+use self::values::{Ascii, Binary, ReadErr, Values};
+use super::{ImportError, names, push, unit_to_u8, writer};
 use crate::source::{ColumnWriter, MeshSource, PointSource, Source};
-
-/// Longest accepted header line.
-const MAX_LINE: u64 = 1 << 16;
-/// Largest accepted header.
-const MAX_HEADER: u64 = 1 << 20;
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Scalar {
-    I8,
-    U8,
-    I16,
-    U16,
-    I32,
-    U32,
-    F32,
-    F64,
-}
-
-impl Scalar {
-    fn parse(name: &str) -> Option<Self> {
-        Some(match name {
-            "char" | "int8" => Scalar::I8,
-            "uchar" | "uint8" => Scalar::U8,
-            "short" | "int16" => Scalar::I16,
-            "ushort" | "uint16" => Scalar::U16,
-            "int" | "int32" => Scalar::I32,
-            "uint" | "uint32" => Scalar::U32,
-            "float" | "float32" => Scalar::F32,
-            "double" | "float64" => Scalar::F64,
-            _ => return None,
-        })
-    }
-
-    fn size(self) -> u64 {
-        match self {
-            Scalar::I8 | Scalar::U8 => 1,
-            Scalar::I16 | Scalar::U16 => 2,
-            Scalar::I32 | Scalar::U32 | Scalar::F32 => 4,
-            Scalar::F64 => 8,
-        }
-    }
-
-    fn is_int(self) -> bool {
-        !matches!(self, Scalar::F32 | Scalar::F64)
-    }
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Kind {
-    Scalar(Scalar),
-    List { count: Scalar, item: Scalar },
-}
-
-#[derive(Debug, Clone)]
-struct Property {
-    name: String,
-    kind: Kind,
-}
-
-#[derive(Debug, Clone)]
-struct Element {
-    name: String,
-    count: u64,
-    props: Vec<Property>,
-}
-
-impl Element {
-    fn scalar(&self, name: &str) -> Option<(usize, Scalar)> {
-        self.props
-            .iter()
-            .enumerate()
-            .find_map(|(i, p)| match p.kind {
-                Kind::Scalar(s) if p.name == name => Some((i, s)),
-                _ => None,
-            })
-    }
-
-    fn list(&self, names: &[&str]) -> Option<usize> {
-        self.props
-            .iter()
-            .position(|p| matches!(p.kind, Kind::List { .. }) && names.contains(&p.name.as_str()))
-    }
-
-    /// Smallest possible binary record size, and whether every record has exactly that size.
-    fn min_binary_size(&self) -> (u64, bool) {
-        let mut size = 0u64;
-        let mut fixed = true;
-        for p in &self.props {
-            match p.kind {
-                Kind::Scalar(s) => size += s.size(),
-                Kind::List { count, .. } => {
-                    size += count.size();
-                    fixed = false;
-                }
-            }
-        }
-        (size, fixed)
-    }
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Encoding {
-    Ascii,
-    LittleEndian,
-    BigEndian,
-}
-
-#[derive(Debug)]
-struct Header {
-    encoding: Encoding,
-    elements: Vec<Element>,
-    /// Byte offset of the body.
-    data_start: u64,
-    /// Number of header lines (ASCII body line numbers continue from here).
-    lines: u64,
-}
-
-fn bad_header(file: &str, line: Option<u64>, detail: impl Into<String>) -> ImportError {
-    ImportError::BadHeader {
-        file: file.to_owned(),
-        line,
-        detail: detail.into(),
-    }
-}
-
-/// Reads one line (up to `MAX_LINE` bytes) into `buf`; returns the bytes consumed (0 at EOF).
-fn read_line<R: BufRead>(r: &mut R, buf: &mut Vec<u8>) -> std::io::Result<(usize, bool)> {
-    buf.clear();
-    let n = r.by_ref().take(MAX_LINE).read_until(b'\n', buf)?;
-    let complete = buf.last() == Some(&b'\n') || n < MAX_LINE as usize;
-    Ok((n, complete))
-}
-
-fn parse_header<R: BufRead>(r: &mut R, file: &str) -> Result<Header, ImportError> {
-    let mut magic = [0u8; 4];
-    let mut got = 0;
-    while got < 4 {
-        let n = r
-            .read(&mut magic[got..])
-            .map_err(|e| ImportError::io(file, "reading the PLY header", e))?;
-        if n == 0 {
-            break;
-        }
-        got += n;
-    }
-    let ok = match &magic[..got] {
-        [b'p', b'l', b'y', b'\n'] => true,
-        [b'p', b'l', b'y', b'\r'] => {
-            // "ply\r\n": swallow the '\n'.
-            let mut nl = [0u8; 1];
-            r.read_exact(&mut nl).is_ok() && nl[0] == b'\n'
-        }
-        _ => false,
-    };
-    if !ok {
-        return Err(ImportError::BadMagic {
-            file: file.to_owned(),
-            format: "PLY",
-            expected: "ply\\n".to_owned(),
-            found: show_bytes(&magic[..got]),
-        });
-    }
-    let mut pos = if magic[3] == b'\r' { 5u64 } else { 4u64 };
-
-    let mut encoding = None;
-    let mut elements: Vec<Element> = Vec::new();
-    let mut buf = Vec::new();
-    let mut line_no = 1u64;
-    loop {
-        let (n, complete) = read_line(r, &mut buf)
-            .map_err(|e| ImportError::io(file, "reading the PLY header", e))?;
-        line_no += 1;
-        let line = Some(line_no);
-        if n == 0 {
-            return Err(bad_header(file, line, "the file ends before 'end_header'"));
-        }
-        pos += n as u64;
-        if !complete || pos > MAX_HEADER {
-            return Err(bad_header(
-                file,
-                line,
-                format!(
-                    "header line too long or header larger than {MAX_HEADER} bytes without 'end_header'"
-                ),
-            ));
-        }
-        let text = String::from_utf8_lossy(&buf);
-        let words: Vec<&str> = text.split_ascii_whitespace().collect();
-        let Some(&keyword) = words.first() else {
-            continue;
-        };
-        match keyword {
-            "comment" | "obj_info" => {}
-            "format" => {
-                if words.len() != 3 {
-                    return Err(bad_header(
-                        file,
-                        line,
-                        format!("expected 'format <encoding> 1.0', got '{}'", text.trim()),
-                    ));
-                }
-                encoding = Some(match words[1] {
-                    "ascii" => Encoding::Ascii,
-                    "binary_little_endian" => Encoding::LittleEndian,
-                    "binary_big_endian" => Encoding::BigEndian,
-                    other => {
-                        return Err(bad_header(
-                            file,
-                            line,
-                            format!(
-                                "unknown format '{other}' (expected ascii, binary_little_endian or binary_big_endian)"
-                            ),
-                        ));
-                    }
-                });
-                if !matches!(words[2], "1.0" | "1") {
-                    return Err(bad_header(
-                        file,
-                        line,
-                        format!("unsupported PLY version '{}' (expected 1.0)", words[2]),
-                    ));
-                }
-            }
-            "element" => {
-                let [_, name, count] = words[..] else {
-                    return Err(bad_header(
-                        file,
-                        line,
-                        format!("expected 'element <name> <count>', got '{}'", text.trim()),
-                    ));
-                };
-                let count = match count.parse::<u64>() {
-                    Ok(c) => c,
-                    Err(_) if count.starts_with('-') && count[1..].parse::<u64>().is_ok() => {
-                        return Err(bad_header(
-                            file,
-                            line,
-                            format!("element '{name}' has negative count {count}"),
-                        ));
-                    }
-                    Err(_) => {
-                        return Err(bad_header(
-                            file,
-                            line,
-                            format!("element '{name}' has invalid count '{count}'"),
-                        ));
-                    }
-                };
-                if elements.iter().any(|e| e.name == name) {
-                    return Err(bad_header(
-                        file,
-                        line,
-                        format!("element '{name}' is declared twice"),
-                    ));
-                }
-                elements.push(Element {
-                    name: name.to_owned(),
-                    count,
-                    props: Vec::new(),
-                });
-            }
-            "property" => {
-                let Some(element) = elements.last_mut() else {
-                    return Err(bad_header(file, line, "'property' before any 'element'"));
-                };
-                let ty = |what: String, name: &str| {
-                    Scalar::parse(name).ok_or_else(|| ImportError::UnsupportedType {
-                        file: file.to_owned(),
-                        what,
-                        type_name: name.to_owned(),
-                    })
-                };
-                let (name, kind) = match words[..] {
-                    [_, "list", count, item, name] => {
-                        let what = format!("property '{name}' of element '{}'", element.name);
-                        let count = ty(format!("list count of {what}"), count)?;
-                        let item = ty(what.clone(), item)?;
-                        if !count.is_int() {
-                            return Err(ImportError::UnsupportedType {
-                                file: file.to_owned(),
-                                what: format!("list count of {what}"),
-                                type_name: words[2].to_owned(),
-                            });
-                        }
-                        (name, Kind::List { count, item })
-                    }
-                    [_, t, name] if t != "list" => {
-                        let what = format!("property '{name}' of element '{}'", element.name);
-                        (name, Kind::Scalar(ty(what, t)?))
-                    }
-                    _ => {
-                        return Err(bad_header(
-                            file,
-                            line,
-                            format!(
-                                "expected 'property <type> <name>' or 'property list <count type> <item type> <name>', got '{}'",
-                                text.trim()
-                            ),
-                        ));
-                    }
-                };
-                if element.props.iter().any(|p| p.name == name) {
-                    return Err(bad_header(
-                        file,
-                        line,
-                        format!(
-                            "property '{name}' of element '{}' is declared twice",
-                            element.name
-                        ),
-                    ));
-                }
-                element.props.push(Property {
-                    name: name.to_owned(),
-                    kind,
-                });
-            }
-            "end_header" => break,
-            other => {
-                return Err(bad_header(
-                    file,
-                    line,
-                    format!("unknown header keyword '{other}'"),
-                ));
-            }
-        }
-    }
-    let encoding = encoding.ok_or_else(|| bad_header(file, None, "missing 'format' line"))?;
-    Ok(Header {
-        encoding,
-        elements,
-        data_start: pos,
-        lines: line_no,
-    })
-}
-
-/// Why reading one value failed.
-enum ReadErr {
-    Eof,
-    Io(std::io::Error),
-    /// ASCII only: the token is not a number of the property's type.
-    Syntax(String),
-}
-
-/// A source of typed values, binary or ASCII.
-trait Values {
-    fn value(&mut self, ty: Scalar) -> Result<f64, ReadErr>;
-    /// Skips `n` fixed-size values (binary) or tokens (ASCII).
-    fn skip(&mut self, ty: Scalar, n: u64) -> Result<(), ReadErr> {
-        for _ in 0..n {
-            self.value(ty)?;
-        }
-        Ok(())
-    }
-    /// Current byte offset (binary) or line number (ASCII), for messages.
-    fn position(&self) -> String;
-    /// Current line (ASCII only).
-    fn line(&self) -> Option<u64>;
-}
-
-struct Binary<R> {
-    r: R,
-    pos: u64,
-    big: bool,
-}
-
-impl<R: BufRead> Values for Binary<R> {
-    #[inline]
-    fn value(&mut self, ty: Scalar) -> Result<f64, ReadErr> {
-        let mut b = [0u8; 8];
-        let n = ty.size() as usize;
-        self.r.read_exact(&mut b[..n]).map_err(|e| match e.kind() {
-            std::io::ErrorKind::UnexpectedEof => ReadErr::Eof,
-            _ => ReadErr::Io(e),
-        })?;
-        self.pos += n as u64;
-        if self.big {
-            b[..n].reverse();
-        }
-        Ok(match ty {
-            Scalar::I8 => f64::from(b[0] as i8),
-            Scalar::U8 => f64::from(b[0]),
-            Scalar::I16 => f64::from(i16::from_le_bytes([b[0], b[1]])),
-            Scalar::U16 => f64::from(u16::from_le_bytes([b[0], b[1]])),
-            Scalar::I32 => f64::from(i32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-            Scalar::U32 => f64::from(u32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-            Scalar::F32 => f64::from(f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-            Scalar::F64 => f64::from_le_bytes(b),
-        })
-    }
-
-    fn skip(&mut self, ty: Scalar, n: u64) -> Result<(), ReadErr> {
-        if n == 1 {
-            return self.value(ty).map(|_| ());
-        }
-        let bytes = n.saturating_mul(ty.size());
-        let copied = std::io::copy(&mut self.r.by_ref().take(bytes), &mut std::io::sink())
-            .map_err(ReadErr::Io)?;
-        self.pos += copied;
-        if copied < bytes {
-            return Err(ReadErr::Eof);
-        }
-        Ok(())
-    }
-
-    fn position(&self) -> String {
-        format!("byte {}", self.pos)
-    }
-
-    fn line(&self) -> Option<u64> {
-        None
-    }
-}
-
-/// Longest accepted ASCII token (a number).
-const MAX_TOKEN: usize = 256;
-
-/// Whitespace-separated tokens straight from the buffered reader: no line-length limit, so a
-/// whole triangle strip on one line is fine.
-struct Ascii<R> {
-    r: R,
-    tok: Vec<u8>,
-    /// Line of the next unread byte (1-based, counting the header).
-    line: u64,
-}
-
-impl<R: BufRead> Ascii<R> {
-    fn token(&mut self) -> Result<&[u8], ReadErr> {
-        self.tok.clear();
-        // Skip whitespace, counting lines.
-        loop {
-            let buf = self.r.fill_buf().map_err(ReadErr::Io)?;
-            if buf.is_empty() {
-                return Err(ReadErr::Eof);
-            }
-            let mut i = 0;
-            while i < buf.len() && buf[i].is_ascii_whitespace() {
-                if buf[i] == b'\n' {
-                    self.line += 1;
-                }
-                i += 1;
-            }
-            let exhausted = i == buf.len();
-            self.r.consume(i);
-            if !exhausted {
-                break;
-            }
-        }
-        // Collect the token.
-        loop {
-            let buf = self.r.fill_buf().map_err(ReadErr::Io)?;
-            if buf.is_empty() {
-                break;
-            }
-            let i = buf
-                .iter()
-                .position(|b| b.is_ascii_whitespace())
-                .unwrap_or(buf.len());
-            if self.tok.len() + i > MAX_TOKEN {
-                return Err(ReadErr::Syntax(format!(
-                    "value longer than {MAX_TOKEN} characters"
-                )));
-            }
-            self.tok.extend_from_slice(&buf[..i]);
-            let done = i < buf.len();
-            self.r.consume(i);
-            if done {
-                break;
-            }
-        }
-        Ok(&self.tok)
-    }
-}
-
-impl<R: BufRead> Values for Ascii<R> {
-    fn value(&mut self, ty: Scalar) -> Result<f64, ReadErr> {
-        let tok = self.token()?;
-        let s = std::str::from_utf8(tok).unwrap_or("");
-        let parsed = if ty.is_int() {
-            s.parse::<i64>().ok().map(|v| v as f64).or_else(|| {
-                // Tolerate "3.0" for an integer property, nothing fractional.
-                s.parse::<f64>().ok().filter(|v| v.fract() == 0.0)
-            })
-        } else {
-            s.parse::<f64>().ok()
-        };
-        parsed.ok_or_else(|| {
-            ReadErr::Syntax(format!(
-                "'{}' is not a valid {}",
-                String::from_utf8_lossy(tok),
-                if ty.is_int() { "integer" } else { "number" }
-            ))
-        })
-    }
-
-    fn position(&self) -> String {
-        format!("line {}", self.line)
-    }
-
-    fn line(&self) -> Option<u64> {
-        Some(self.line)
-    }
-}
 
 /// Where the vertex attributes sit in a vertex record (indices into `Element::props`).
 struct VertexLayout {
@@ -682,6 +189,75 @@ impl At<'_> {
                 v.skip(item, n).map_err(|e| self.err(v, e))
             }
         }
+    }
+}
+
+impl<'a> Sink<'a> {
+    /// Empty columns for what `plan` says the body holds.
+    fn new(file: &'a str, scratch: &Path, plan: &BodyPlan) -> Result<Self, ImportError> {
+        Ok(Sink {
+            file,
+            vertex_count: plan.vertex_count,
+            positions: writer(file, scratch, names::POSITIONS)?,
+            normals: if plan.layout.has_normals {
+                Some(writer(file, scratch, names::NORMALS)?)
+            } else {
+                None
+            },
+            colors: if plan.layout.color_type.is_some() {
+                Some(writer(file, scratch, names::COLORS)?)
+            } else {
+                None
+            },
+            triangles: if plan.is_mesh() {
+                Some(writer(file, scratch, names::TRIANGLES)?)
+            } else {
+                None
+            },
+        })
+    }
+
+    /// The finished columns as a mesh (faces or strips gave triangles) or a point cloud.
+    fn finish(self) -> Result<Source, ImportError> {
+        let file = self.file;
+        let col = |e| ImportError::column(file, e);
+        let positions = self.positions.finish().map_err(col)?;
+        let normals = match self.normals {
+            Some(w) => Some(w.finish().map_err(col)?),
+            None => None,
+        };
+        let colors = match self.colors {
+            Some(w) => Some(w.finish().map_err(col)?),
+            None => None,
+        };
+        let Some(triangles) = self.triangles else {
+            if positions.is_empty() {
+                return Err(ImportError::NoPrimitives {
+                    file: file.to_owned(),
+                    detail: "no vertices and no faces".to_owned(),
+                });
+            }
+            return Ok(Source::Points(PointSource {
+                positions,
+                colors,
+                normals,
+            }));
+        };
+        if triangles.is_empty() {
+            return Err(ImportError::NoPrimitives {
+                file: file.to_owned(),
+                detail: format!(
+                    "the faces/strips give no triangles ({} vertices)",
+                    self.vertex_count
+                ),
+            });
+        }
+        Ok(Source::Mesh(MeshSource {
+            positions,
+            normals,
+            colors,
+            triangles: triangles.finish().map_err(col)?,
+        }))
     }
 }
 
@@ -914,82 +490,13 @@ pub(super) fn import(path: &Path, file: &str, scratch: &Path) -> Result<Source, 
     let mut r = BufReader::with_capacity(1 << 16, f);
     let header = parse_header(&mut r, file)?;
     tracing::debug!(file, ?header.encoding, elements = ?header.elements.iter().map(|e| (&e.name, e.count)).collect::<Vec<_>>(), "PLY header");
-
-    let Some(vertex) = header.elements.iter().find(|e| e.name == "vertex") else {
-        return Err(bad_header(file, None, "no 'vertex' element"));
-    };
-    let layout = VertexLayout::new(file, vertex)?;
-    let vertex_count = vertex.count;
-
-    // Role of each element: faces, strips or neither.
-    // The index list of the `face` and `tristrips` elements. An element with no records (e.g.
-    // MeshLab's `element face 0` in point clouds) does not make the file a mesh.
-    let index_list = |names: &[&str]| -> Result<Option<usize>, ImportError> {
-        match header
-            .elements
-            .iter()
-            .find(|e| names.contains(&e.name.as_str()))
-        {
-            Some(e) if e.count > 0 => e
-                .list(&["vertex_indices", "vertex_index"])
-                .map(Some)
-                .ok_or_else(|| ImportError::MissingProperty {
-                    file: file.to_owned(),
-                    element: e.name.clone(),
-                    property: "vertex_indices (list)".to_owned(),
-                }),
-            _ => Ok(None),
-        }
-    };
-    let face_list = index_list(&["face"])?;
-    let strip_list = index_list(&["tristrips", "tristrip"])?;
-    let is_mesh = face_list.is_some() || strip_list.is_some();
-    if is_mesh && vertex_count > u64::from(u32::MAX) + 1 {
-        return Err(ImportError::Unsupported {
-            file: file.to_owned(),
-            feature: format!("{vertex_count} vertices (at most 2^32 can be indexed)"),
-        });
-    }
-
-    let mut sink = Sink {
-        file,
-        vertex_count,
-        positions: writer(file, scratch, names::POSITIONS)?,
-        normals: if layout.has_normals {
-            Some(writer(file, scratch, names::NORMALS)?)
-        } else {
-            None
-        },
-        colors: if layout.color_type.is_some() {
-            Some(writer(file, scratch, names::COLORS)?)
-        } else {
-            None
-        },
-        triangles: if is_mesh {
-            Some(writer(file, scratch, names::TRIANGLES)?)
-        } else {
-            None
-        },
-    };
-
+    let plan = BodyPlan::new(file, &header)?;
+    let mut sink = Sink::new(file, scratch, &plan)?;
     let pos = header.data_start;
     match header.encoding {
         Encoding::Ascii => {
-            let mut v = Ascii {
-                r,
-                tok: Vec::new(),
-                line: header.lines + 1,
-            };
-            body(
-                &mut v,
-                &header,
-                &layout,
-                face_list,
-                strip_list,
-                &mut sink,
-                file_len,
-                |_| pos,
-            )?;
+            let mut v = Ascii::new(r, header.lines + 1);
+            body(&mut v, &header, &plan, &mut sink, file_len, |_| pos)?;
         }
         enc => {
             let mut v = Binary {
@@ -997,16 +504,7 @@ pub(super) fn import(path: &Path, file: &str, scratch: &Path) -> Result<Source, 
                 pos,
                 big: enc == Encoding::BigEndian,
             };
-            body(
-                &mut v,
-                &header,
-                &layout,
-                face_list,
-                strip_list,
-                &mut sink,
-                file_len,
-                |v| v.pos,
-            )?;
+            body(&mut v, &header, &plan, &mut sink, file_len, |v| v.pos)?;
             if v.pos < file_len {
                 tracing::debug!(
                     file,
@@ -1016,56 +514,71 @@ pub(super) fn import(path: &Path, file: &str, scratch: &Path) -> Result<Source, 
             }
         }
     }
+    sink.finish()
+}
 
-    let col = |e| ImportError::column(file, e);
-    let positions = sink.positions.finish().map_err(col)?;
-    let normals = match sink.normals {
-        Some(w) => Some(w.finish().map_err(col)?),
-        None => None,
-    };
-    let colors = match sink.colors {
-        Some(w) => Some(w.finish().map_err(col)?),
-        None => None,
-    };
-    match sink.triangles {
-        Some(w) => {
-            if w.is_empty() {
-                return Err(ImportError::NoPrimitives {
-                    file: file.to_owned(),
-                    detail: format!("the faces/strips give no triangles ({vertex_count} vertices)"),
-                });
+/// What the body holds, decided from the header: where the vertex attributes are, and the index
+/// list of the `face` and `tristrips` elements. An element with no records (e.g. MeshLab's
+/// `element face 0` in point clouds) does not make the file a mesh.
+struct BodyPlan {
+    layout: VertexLayout,
+    vertex_count: u64,
+    face_list: Option<usize>,
+    strip_list: Option<usize>,
+}
+
+impl BodyPlan {
+    fn new(file: &str, header: &Header) -> Result<Self, ImportError> {
+        let Some(vertex) = header.elements.iter().find(|e| e.name == "vertex") else {
+            return Err(bad_header(file, None, "no 'vertex' element"));
+        };
+        let layout = VertexLayout::new(file, vertex)?;
+        let index_list = |names: &[&str]| -> Result<Option<usize>, ImportError> {
+            match header
+                .elements
+                .iter()
+                .find(|e| names.contains(&e.name.as_str()))
+            {
+                Some(e) if e.count > 0 => e
+                    .list(&["vertex_indices", "vertex_index"])
+                    .map(Some)
+                    .ok_or_else(|| ImportError::MissingProperty {
+                        file: file.to_owned(),
+                        element: e.name.clone(),
+                        property: "vertex_indices (list)".to_owned(),
+                    }),
+                _ => Ok(None),
             }
-            let triangles = w.finish().map_err(col)?;
-            Ok(Source::Mesh(MeshSource {
-                positions,
-                normals,
-                colors,
-                triangles,
-            }))
+        };
+        let plan = BodyPlan {
+            layout,
+            vertex_count: vertex.count,
+            face_list: index_list(&["face"])?,
+            strip_list: index_list(&["tristrips", "tristrip"])?,
+        };
+        if plan.is_mesh() && plan.vertex_count > u64::from(u32::MAX) + 1 {
+            return Err(ImportError::Unsupported {
+                file: file.to_owned(),
+                feature: format!(
+                    "{} vertices (at most 2^32 can be indexed)",
+                    plan.vertex_count
+                ),
+            });
         }
-        None => {
-            if positions.is_empty() {
-                return Err(ImportError::NoPrimitives {
-                    file: file.to_owned(),
-                    detail: "no vertices and no faces".to_owned(),
-                });
-            }
-            Ok(Source::Points(PointSource {
-                positions,
-                colors,
-                normals,
-            }))
-        }
+        Ok(plan)
+    }
+
+    fn is_mesh(&self) -> bool {
+        self.face_list.is_some() || self.strip_list.is_some()
     }
 }
 
-#[allow(clippy::too_many_arguments)]
+/// Reads every element of the body in order: vertices, faces and strips into `sink`, anything
+/// else skipped.
 fn body<V: Values>(
     v: &mut V,
     header: &Header,
-    layout: &VertexLayout,
-    face_list: Option<usize>,
-    strip_list: Option<usize>,
+    plan: &BodyPlan,
     sink: &mut Sink<'_>,
     file_len: u64,
     pos: impl Fn(&V) -> u64,
@@ -1074,9 +587,9 @@ fn body<V: Values>(
     for e in &header.elements {
         check_fits(file, e, header.encoding, pos(v), file_len)?;
         match e.name.as_str() {
-            "vertex" => sink.vertices(v, e, layout)?,
-            "face" => sink.faces(v, e, face_list.unwrap_or(usize::MAX))?,
-            "tristrips" | "tristrip" => sink.strips(v, e, strip_list.unwrap_or(usize::MAX))?,
+            "vertex" => sink.vertices(v, e, &plan.layout)?,
+            "face" => sink.faces(v, e, plan.face_list.unwrap_or(usize::MAX))?,
+            "tristrips" | "tristrip" => sink.strips(v, e, plan.strip_list.unwrap_or(usize::MAX))?,
             _ => {
                 tracing::debug!(file, element = %e.name, count = e.count, "skipping PLY element");
                 for record in 0..e.count {
