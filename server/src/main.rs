@@ -13,7 +13,7 @@ use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
 use arbor_server::service::{ConfigOverrides, ServeConfig};
 use arbor_server::verify;
-use clap::{Parser, Subcommand};
+use clap::{Args, Parser, Subcommand};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -34,64 +34,68 @@ struct Cli {
     command: Command,
 }
 
+/// `arbor-server import`'s arguments.
+#[derive(Args, Debug)]
+struct ImportArgs {
+    /// Pool directory (created if missing).
+    #[arg(long)]
+    db: PathBuf,
+    /// Scene name: 1-128 characters of A-Z a-z 0-9 . _ -
+    #[arg(long)]
+    scene: String,
+    /// Target depth, or `auto` for the depth at which voxels reach the data's own resolution.
+    #[arg(long, default_value = "auto", value_parser = parse_depth)]
+    depth: DepthChoice,
+    /// Treelet size in bytes of node records (1024..=16384, multiple of 8).
+    #[arg(long, default_value_t = arbor_proto::limits::DEFAULT_TREELET_BYTES)]
+    treelet_bytes: u32,
+    /// Iso threshold for volumes (default: Otsu's threshold of the histogram).
+    #[arg(long)]
+    iso: Option<f32>,
+    /// Input format, when the file extension does not tell.
+    #[arg(long)]
+    format: Option<Format>,
+    /// Raw volume dimensions X,Y,Z.
+    #[arg(long, value_parser = parse_dims)]
+    raw_dims: Option<[u32; 3]>,
+    /// Raw volume sample type: u8, u16 or f32.
+    #[arg(long, default_value = "u8")]
+    raw_type: SampleType,
+    /// Raw volume sample spacing X,Y,Z.
+    #[arg(long, value_parser = parse_spacing, default_value = "1,1,1")]
+    raw_spacing: [f64; 3],
+    /// Raw volume samples are big endian.
+    #[arg(long)]
+    raw_big_endian: bool,
+    /// zstd compression level of stored blocks.
+    #[arg(long, default_value_t = 9, value_parser = clap::value_parser!(i32).range(1..=22))]
+    zstd_level: i32,
+    /// Do not train per-scene zstd dictionaries.
+    #[arg(long)]
+    no_dictionary: bool,
+    /// MiB of pending primitive lists held in memory before spilling to disk.
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..=1_048_576))]
+    memory_budget_mib: u64,
+    /// Scratch directory for the import's temporary files (default: the system temp dir).
+    #[arg(long)]
+    scratch: Option<PathBuf>,
+    /// Replace an existing scene of the same name (atomically).
+    #[arg(long)]
+    replace: bool,
+    /// Hide progress bars.
+    #[arg(long)]
+    quiet: bool,
+    /// Input file.
+    file: PathBuf,
+}
+
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Import a scan (OBJ, PLY, LAS/LAZ, NRRD, raw volume) into the pool as a new scene.
     #[command(after_help = "Examples:\n  \
         arbor-server import --db pool --scene lucy --treelet-bytes 1024 lucy.ply\n  \
         arbor-server import --db pool --scene ct --raw-dims 256,256,128 --raw-type u8 --iso 80 ct.raw")]
-    Import {
-        /// Pool directory (created if missing).
-        #[arg(long)]
-        db: PathBuf,
-        /// Scene name: 1-128 characters of A-Z a-z 0-9 . _ -
-        #[arg(long)]
-        scene: String,
-        /// Target depth, or `auto` for the depth at which voxels reach the data's own resolution.
-        #[arg(long, default_value = "auto", value_parser = parse_depth)]
-        depth: DepthChoice,
-        /// Treelet size in bytes of node records (1024..=16384, multiple of 8).
-        #[arg(long, default_value_t = arbor_proto::limits::DEFAULT_TREELET_BYTES)]
-        treelet_bytes: u32,
-        /// Iso threshold for volumes (default: Otsu's threshold of the histogram).
-        #[arg(long)]
-        iso: Option<f32>,
-        /// Input format, when the file extension does not tell.
-        #[arg(long)]
-        format: Option<Format>,
-        /// Raw volume dimensions X,Y,Z.
-        #[arg(long, value_parser = parse_dims)]
-        raw_dims: Option<[u32; 3]>,
-        /// Raw volume sample type: u8, u16 or f32.
-        #[arg(long, default_value = "u8")]
-        raw_type: SampleType,
-        /// Raw volume sample spacing X,Y,Z.
-        #[arg(long, value_parser = parse_spacing, default_value = "1,1,1")]
-        raw_spacing: [f64; 3],
-        /// Raw volume samples are big endian.
-        #[arg(long)]
-        raw_big_endian: bool,
-        /// zstd compression level of stored blocks.
-        #[arg(long, default_value_t = 9, value_parser = clap::value_parser!(i32).range(1..=22))]
-        zstd_level: i32,
-        /// Do not train per-scene zstd dictionaries.
-        #[arg(long)]
-        no_dictionary: bool,
-        /// MiB of pending primitive lists held in memory before spilling to disk.
-        #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..=1_048_576))]
-        memory_budget_mib: u64,
-        /// Scratch directory for the import's temporary files (default: the system temp dir).
-        #[arg(long)]
-        scratch: Option<PathBuf>,
-        /// Replace an existing scene of the same name (atomically).
-        #[arg(long)]
-        replace: bool,
-        /// Hide progress bars.
-        #[arg(long)]
-        quiet: bool,
-        /// Input file.
-        file: PathBuf,
-    },
+    Import(ImportArgs),
     /// List the scenes in a pool.
     List {
         #[arg(long)]
@@ -231,60 +235,7 @@ fn open(db: &Path) -> Result<Pool> {
 
 fn run(cli: Cli) -> Result<ExitCode> {
     match cli.command {
-        Command::Import {
-            db,
-            scene,
-            depth,
-            treelet_bytes,
-            iso,
-            format,
-            raw_dims,
-            raw_type,
-            raw_spacing,
-            raw_big_endian,
-            zstd_level,
-            no_dictionary,
-            memory_budget_mib,
-            scratch,
-            replace,
-            quiet,
-            file,
-        } => {
-            arbor_proto::treelet::nodes_for_bytes(treelet_bytes)?;
-            if let Some(i) = iso
-                && !i.is_finite()
-            {
-                bail!("--iso {i} is not a finite number");
-            }
-            let pool = open(&db)?;
-            let request = SceneImport {
-                name: scene,
-                input: file,
-                import: ImportOptions {
-                    format,
-                    raw: raw_dims.map(|dims| RawSpec {
-                        dims,
-                        sample: raw_type,
-                        spacing: raw_spacing,
-                        big_endian: raw_big_endian,
-                    }),
-                },
-                build: BuildOptions {
-                    depth,
-                    treelet_bytes,
-                    iso,
-                    zstd_level,
-                    dictionary: !no_dictionary,
-                    memory_budget: (memory_budget_mib as usize) << 20,
-                    progress: !quiet,
-                },
-                replace,
-                scratch_parent: scratch,
-            };
-            let desc = import_scene(&pool, &request)?.description;
-            print_info(&desc, Some(pool.disk_bytes()?));
-            Ok(ExitCode::SUCCESS)
-        }
+        Command::Import(args) => import(args),
         Command::List { db } => {
             let pool = open(&db)?;
             println!(
@@ -377,6 +328,63 @@ fn run(cli: Cli) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
     }
+}
+
+/// `arbor-server import`: parse, build and commit one scene, then print its figures.
+fn import(args: ImportArgs) -> Result<ExitCode> {
+    let ImportArgs {
+        db,
+        scene,
+        depth,
+        treelet_bytes,
+        iso,
+        format,
+        raw_dims,
+        raw_type,
+        raw_spacing,
+        raw_big_endian,
+        zstd_level,
+        no_dictionary,
+        memory_budget_mib,
+        scratch,
+        replace,
+        quiet,
+        file,
+    } = args;
+    arbor_proto::treelet::nodes_for_bytes(treelet_bytes)?;
+    if let Some(i) = iso
+        && !i.is_finite()
+    {
+        bail!("--iso {i} is not a finite number");
+    }
+    let pool = open(&db)?;
+    let request = SceneImport {
+        name: scene,
+        input: file,
+        import: ImportOptions {
+            format,
+            raw: raw_dims.map(|dims| RawSpec {
+                dims,
+                sample: raw_type,
+                spacing: raw_spacing,
+                big_endian: raw_big_endian,
+            }),
+        },
+        build: BuildOptions {
+            depth,
+            treelet_bytes,
+            iso,
+            zstd_level,
+            dictionary: !no_dictionary,
+            memory_budget: (memory_budget_mib as usize) << 20,
+            progress: !quiet,
+        },
+        replace,
+        scratch_parent: scratch,
+    };
+    let desc = import_scene(&pool, &request)?.description;
+    print_info(&desc, Some(pool.disk_bytes()?));
+    Ok(ExitCode::SUCCESS)
 }
 
 /// Runs the service until SIGINT or SIGTERM, then shuts it down gracefully.

@@ -480,49 +480,24 @@ impl GpuBackend {
         let (Some(store), Some(fb)) = (&self.store, &self.feedback) else {
             return;
         };
-        let device = &self.ctx.device;
         self.ctx
             .queue
             .write_buffer(&self.analysis_uniform, 0, bytemuck::bytes_of(u));
-        let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(shaders::ANALYSIS_ENTRY),
-            layout: &self.analysis.get_bind_group_layout(0),
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: self.analysis_uniform.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: store.nodes.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: fb.storage.as_entire_binding(),
-                },
-            ],
-        });
-        let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some(shaders::ANALYSIS_ENTRY),
-        });
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some(shaders::ANALYSIS_ENTRY),
-                timestamp_writes: self.timestamps.as_ref().map(|t| {
-                    wgpu::ComputePassTimestampWrites {
-                        query_set: &t.set,
-                        beginning_of_pass_write_index: Some(0),
-                        end_of_pass_write_index: Some(1),
-                    }
-                }),
-            });
-            pass.set_pipeline(&self.analysis);
-            pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups(size.0.div_ceil(8), size.1.div_ceil(8), 1);
-        }
-        if let Some(t) = &self.timestamps {
-            enc.resolve_query_set(&t.set, 0..2, &t.resolve, 0);
-        }
+        let entries = [
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: self.analysis_uniform.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 1,
+                resource: store.nodes.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 2,
+                resource: fb.storage.as_entire_binding(),
+            },
+        ];
+        let mut enc = self.encode_pass(Pass::Analysis, &entries, size);
         enc.copy_buffer_to_buffer(&fb.storage, 0, staging, 0, fb.storage.size());
         self.ctx.queue.submit([enc.finish()]);
     }
@@ -607,7 +582,37 @@ impl GpuBackend {
         }
     }
 
-    /// Renders into the target texture (created or resized to the camera's frame).
+    /// Creates or resizes the render target to `size`.
+    fn ensure_target(&mut self, size: (u32, u32)) {
+        if self.target.as_ref().is_some_and(|t| t.size == size) {
+            return;
+        }
+        let texture = self.ctx.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("render target"),
+            size: wgpu::Extent3d {
+                width: size.0,
+                height: size.1,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::Rgba8Unorm,
+            usage: wgpu::TextureUsages::STORAGE_BINDING
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let view = texture.create_view(&Default::default());
+        self.target = Some(Target {
+            size,
+            texture,
+            view,
+        });
+    }
+
+    /// Renders into the target texture (created or resized to the camera's frame), and copies
+    /// it into `readback` (a buffer and its row pitch) when given.
     fn encode_render(
         &mut self,
         frame: &SceneFrame,
@@ -617,30 +622,7 @@ impl GpuBackend {
         readback: Option<(&wgpu::Buffer, u32)>,
     ) {
         let size = (camera.width, camera.height);
-        if self.target.as_ref().is_none_or(|t| t.size != size) {
-            let texture = self.ctx.device.create_texture(&wgpu::TextureDescriptor {
-                label: Some("render target"),
-                size: wgpu::Extent3d {
-                    width: size.0,
-                    height: size.1,
-                    depth_or_array_layers: 1,
-                },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format: wgpu::TextureFormat::Rgba8Unorm,
-                usage: wgpu::TextureUsages::STORAGE_BINDING
-                    | wgpu::TextureUsages::TEXTURE_BINDING
-                    | wgpu::TextureUsages::COPY_SRC,
-                view_formats: &[],
-            });
-            let view = texture.create_view(&Default::default());
-            self.target = Some(Target {
-                size,
-                texture,
-                view,
-            });
-        }
+        self.ensure_target(size);
         let (Some(store), Some(target)) = (&self.store, &self.target) else {
             return;
         };
@@ -650,7 +632,6 @@ impl GpuBackend {
             max_depth: frame.max_depth,
         };
         let u = FrameUniform::new(frame, camera, &lod, light, &store.channels);
-        let device = &self.ctx.device;
         self.ctx
             .queue
             .write_buffer(&self.render_uniform, 0, bytemuck::bytes_of(&u));
@@ -660,62 +641,33 @@ impl GpuBackend {
                 .unwrap_or(&store.dummy)
                 .as_entire_binding()
         };
-        let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(shaders::RENDER_ENTRY),
-            layout: &self.render.get_bind_group_layout(0),
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: self.render_uniform.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: store.nodes.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: attr(Channel::Color),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 3,
-                    resource: attr(Channel::Normal),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 4,
-                    resource: attr(Channel::Density),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 5,
-                    resource: wgpu::BindingResource::TextureView(&target.view),
-                },
-            ],
-        });
-        let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some(shaders::RENDER_ENTRY),
-        });
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some(shaders::RENDER_ENTRY),
-                timestamp_writes: self.timestamps.as_ref().map(|t| {
-                    wgpu::ComputePassTimestampWrites {
-                        query_set: &t.set,
-                        beginning_of_pass_write_index: Some(2),
-                        end_of_pass_write_index: Some(3),
-                    }
-                }),
-            });
-            pass.set_pipeline(&self.render);
-            pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups(size.0.div_ceil(8), size.1.div_ceil(8), 1);
-        }
-        if let Some(t) = &self.timestamps {
-            enc.resolve_query_set(
-                &t.set,
-                2..4,
-                &t.resolve,
-                wgpu::QUERY_RESOLVE_BUFFER_ALIGNMENT,
-            );
-        }
+        let entries = [
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: self.render_uniform.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 1,
+                resource: store.nodes.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 2,
+                resource: attr(Channel::Color),
+            },
+            wgpu::BindGroupEntry {
+                binding: 3,
+                resource: attr(Channel::Normal),
+            },
+            wgpu::BindGroupEntry {
+                binding: 4,
+                resource: attr(Channel::Density),
+            },
+            wgpu::BindGroupEntry {
+                binding: 5,
+                resource: wgpu::BindingResource::TextureView(&target.view),
+            },
+        ];
+        let mut enc = self.encode_pass(Pass::Render, &entries, size);
         if let Some((buffer, row)) = readback {
             enc.copy_texture_to_buffer(
                 wgpu::TexelCopyTextureInfo {
@@ -740,6 +692,55 @@ impl GpuBackend {
             );
         }
         self.ctx.queue.submit([enc.finish()]);
+    }
+
+    /// One compute pass of `pass`'s pipeline over a `size` grid (8×8 workgroups) with `entries`
+    /// bound as group 0, timed when timestamp queries are on, in a new encoder the caller may add
+    /// copies to before submitting.
+    fn encode_pass(
+        &self,
+        pass: Pass,
+        entries: &[wgpu::BindGroupEntry<'_>],
+        size: (u32, u32),
+    ) -> wgpu::CommandEncoder {
+        let device = &self.ctx.device;
+        let pipeline = match pass {
+            Pass::Analysis => &self.analysis,
+            Pass::Render => &self.render,
+        };
+        let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(pass.label()),
+            layout: &pipeline.get_bind_group_layout(0),
+            entries,
+        });
+        let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some(pass.label()),
+        });
+        let first_query = pass.first_query();
+        {
+            let mut cpass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(pass.label()),
+                timestamp_writes: self.timestamps.as_ref().map(|t| {
+                    wgpu::ComputePassTimestampWrites {
+                        query_set: &t.set,
+                        beginning_of_pass_write_index: Some(first_query),
+                        end_of_pass_write_index: Some(first_query + 1),
+                    }
+                }),
+            });
+            cpass.set_pipeline(pipeline);
+            cpass.set_bind_group(0, &bind, &[]);
+            cpass.dispatch_workgroups(size.0.div_ceil(8), size.1.div_ceil(8), 1);
+        }
+        if let Some(t) = &self.timestamps {
+            enc.resolve_query_set(
+                &t.set,
+                first_query..first_query + 2,
+                &t.resolve,
+                pass.resolve_offset(),
+            );
+        }
+        enc
     }
 
     /// The GPU node array, read back (blocking): `capacity × N` records.
@@ -899,5 +900,38 @@ impl GpuBackend {
             dst.copy_from_slice(&bytes[src..src + tight]);
         }
         img
+    }
+}
+
+/// The two compute passes, named like their pipelines, entry points and CPU twins.
+#[derive(Clone, Copy, Debug)]
+enum Pass {
+    Analysis,
+    Render,
+}
+
+impl Pass {
+    /// Pipeline, entry point and label.
+    fn label(self) -> &'static str {
+        match self {
+            Pass::Analysis => shaders::ANALYSIS_ENTRY,
+            Pass::Render => shaders::RENDER_ENTRY,
+        }
+    }
+
+    /// The pass's begin timestamp query (its end is the next one).
+    fn first_query(self) -> u32 {
+        match self {
+            Pass::Analysis => 0,
+            Pass::Render => 2,
+        }
+    }
+
+    /// Where the pass's two resolved timestamps go in the resolve buffer.
+    fn resolve_offset(self) -> u64 {
+        match self {
+            Pass::Analysis => 0,
+            Pass::Render => wgpu::QUERY_RESOLVE_BUFFER_ALIGNMENT,
+        }
     }
 }

@@ -13,7 +13,7 @@ use ring::digest;
 
 use super::metrics::{PoolFigures, stream_bytes};
 use super::views::kind_name;
-use crate::service::state::ServiceState;
+use crate::service::state::{ServiceState, SessionInfo};
 
 const STYLE: &str = r#"
 :root{color-scheme:light dark;--fg:#1b1f23;--bg:#fff;--mut:#6a737d;--line:#e1e4e8;--ok:#1a7f37;--bad:#cf222e;--warn:#9a6700}
@@ -169,8 +169,6 @@ pub(super) fn login_page(message: Option<&str>) -> String {
 
 /// The status page.
 pub(super) fn status_page(state: &ServiceState, uptime: Duration, pool: &PoolFigures) -> String {
-    let m = &state.metrics;
-    let load = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
     let sessions = state.sessions();
     let mut out = head("Arbor server");
     let _ = writeln!(
@@ -181,7 +179,23 @@ pub(super) fn status_page(state: &ServiceState, uptime: Duration, pool: &PoolFig
         escape(env!("CARGO_PKG_VERSION"))
     );
     out.push_str("<main id=\"live\">\n");
+    status_section(&mut out, state, uptime, pool);
+    traffic_section(&mut out, state, &sessions);
+    scenes_section(&mut out, pool);
+    sessions_section(&mut out, &sessions);
+    out.push_str("</main>\n");
+    let _ = write!(
+        out,
+        "<footer><label><input type=\"checkbox\" id=\"auto\" checked> refresh every 2 s</label> · \
+         JSON: <a href=\"/v1/server\">server</a>, <a href=\"/v1/scenes\">scenes</a>, \
+         <a href=\"/v1/sessions\">sessions</a> · <a href=\"/metrics\">metrics</a></footer>\n\
+         <script>{SCRIPT}</script>\n</body></html>\n"
+    );
+    out
+}
 
+/// Readiness, certificate, uptime, pool size.
+fn status_section(out: &mut String, state: &ServiceState, uptime: Duration, pool: &PoolFigures) {
     let (class, word) = if state.is_shutting_down() {
         ("warn", "shutting down")
     } else if state.is_ready() {
@@ -200,7 +214,12 @@ pub(super) fn status_page(state: &ServiceState, uptime: Duration, pool: &PoolFig
         duration(uptime),
         bytes(pool.disk_bytes)
     );
+}
 
+/// Counters and the error table.
+fn traffic_section(out: &mut String, state: &ServiceState, sessions: &[SessionInfo]) {
+    let m = &state.metrics;
+    let load = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
     out.push_str("<h2>Traffic</h2>\n<table class=\"kv\">");
     let queued: u64 = sessions.iter().map(|s| s.queue_depth).sum();
     let in_flight: u64 = sessions.iter().map(|s| s.in_flight).sum();
@@ -240,7 +259,10 @@ pub(super) fn status_page(state: &ServiceState, uptime: Duration, pool: &PoolFig
         }
         out.push_str("</table>\n");
     }
+}
 
+/// One row per scene.
+fn scenes_section(out: &mut String, pool: &PoolFigures) {
     let _ = writeln!(out, "<h2>Scenes ({})</h2>", pool.scenes.len());
     if pool.scenes.is_empty() {
         out.push_str("<p class=\"mut\">The pool holds no scene.</p>\n");
@@ -272,7 +294,10 @@ pub(super) fn status_page(state: &ServiceState, uptime: Duration, pool: &PoolFig
         }
         out.push_str("</table>\n");
     }
+}
 
+/// One row per live connection.
+fn sessions_section(out: &mut String, sessions: &[SessionInfo]) {
     let _ = writeln!(out, "<h2>Sessions ({})</h2>", sessions.len());
     if sessions.is_empty() {
         out.push_str("<p class=\"mut\">No live connection.</p>\n");
@@ -285,7 +310,7 @@ pub(super) fn status_page(state: &ServiceState, uptime: Duration, pool: &PoolFig
              <th class=\"n\">Connected</th><th class=\"n\">Lists</th><th class=\"n\">Treelets</th>\
              <th class=\"n\">Sent</th><th class=\"n\">Queued</th><th class=\"n\">In flight</th></tr>\n",
         );
-        for s in &sessions {
+        for s in sessions {
             let age = Duration::from_secs_f64((now - s.connected_at).clamp(0.0, 1e12));
             let _ = writeln!(
                 out,
@@ -310,15 +335,6 @@ pub(super) fn status_page(state: &ServiceState, uptime: Duration, pool: &PoolFig
         }
         out.push_str("</table>\n");
     }
-    out.push_str("</main>\n");
-    let _ = write!(
-        out,
-        "<footer><label><input type=\"checkbox\" id=\"auto\" checked> refresh every 2 s</label> · \
-         JSON: <a href=\"/v1/server\">server</a>, <a href=\"/v1/scenes\">scenes</a>, \
-         <a href=\"/v1/sessions\">sessions</a> · <a href=\"/metrics\">metrics</a></footer>\n\
-         <script>{SCRIPT}</script>\n</body></html>\n"
-    );
-    out
 }
 
 #[cfg(test)]
