@@ -13,6 +13,7 @@
 use std::collections::HashMap;
 
 use arbor_proto::codec;
+use arbor_proto::treelet::NodePlace;
 use arbor_proto::{Cell, Channel, Node, Treelet, TreeletId};
 
 use crate::pool::{PoolError, StoredScene};
@@ -58,25 +59,48 @@ struct Link {
 /// Verifies a stored scene. `Err` only for pool I/O failures; broken invariants are in the report.
 pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
     let d = &scene.description;
-    let mut r = VerifyReport::default();
+    let mut v = Verifier {
+        scene,
+        channels: d.layout.channels().to_vec(),
+        links: HashMap::new(),
+        r: VerifyReport::default(),
+    };
     if let Err(e) = d.validate() {
-        r.problem(format!("description: {e}"));
-        return Ok(r);
+        v.r.problem(format!("description: {e}"));
+        return Ok(v.r);
     }
-    let channels: Vec<Channel> = d.layout.channels().to_vec();
-    let mut links: HashMap<u32, Link> = HashMap::new();
     let mut expected_next = 0u32;
     for id in scene.stored_ids() {
         let id = id?;
         if id.0 != expected_next {
-            r.problem(format!(
+            v.r.problem(format!(
                 "treelet ids not contiguous: expected {expected_next}, found {id}"
             ));
         }
         expected_next = id.0.wrapping_add(1);
-        r.treelets += 1;
-        let Some(bytes) = scene.nodes(id)? else {
-            continue;
+        v.r.treelets += 1;
+        v.treelet(id)?;
+    }
+    v.totals();
+    Ok(v.r)
+}
+
+/// The state of one verification: the report so far and the links refinable leaves promised.
+struct Verifier<'a> {
+    scene: &'a StoredScene,
+    channels: Vec<Channel>,
+    /// Subtreelet id → what its leaf promised, until the subtreelet is checked.
+    links: HashMap<u32, Link>,
+    r: VerifyReport,
+}
+
+impl Verifier<'_> {
+    /// One stored treelet: decodes, checks the header, its attribute blocks, its link to the
+    /// parent, and every node.
+    fn treelet(&mut self, id: TreeletId) -> Result<(), PoolError> {
+        let d = &self.scene.description;
+        let Some(bytes) = self.scene.nodes(id)? else {
+            return Ok(());
         };
         let (t, places) = match codec::decode_compressed_treelet_with_places(
             &bytes,
@@ -85,141 +109,179 @@ pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
         ) {
             Ok(decoded) => decoded,
             Err(e) => {
-                r.problem(format!("treelet {id}: {e}"));
-                continue;
+                self.r.problem(format!("treelet {id}: {e}"));
+                return Ok(());
             }
         };
         if t.header.id != id {
-            r.problem(format!(
+            self.r.problem(format!(
                 "treelet stored under {id} says it is {}",
                 t.header.id
             ));
         }
         if t.capacity() != d.treelet_nodes {
-            r.problem(format!(
+            self.r.problem(format!(
                 "treelet {id}: capacity {} != scene's {}",
                 t.capacity(),
                 d.treelet_nodes
             ));
         }
-        let used = t.used().len();
-        r.node_records += used as u64;
-        // Attribute blocks.
-        let mut attrs: Vec<Vec<u8>> = Vec::new();
-        for &c in &channels {
-            let block = match scene.channel(c, id)? {
-                Some(b) => codec::decode_compressed_attributes(
-                    &b,
-                    c,
-                    t.header.used_nodes,
-                    d.channel_dictionary(c),
-                ),
-                None => {
-                    r.problem(format!("treelet {id}: {} block missing", c.name()));
-                    continue;
-                }
-            };
-            match block {
-                Ok(b) => attrs.push(b),
-                Err(e) => r.problem(format!("treelet {id}: {} block: {e}", c.name())),
-            }
-        }
-        let attrs_ok = attrs.len() == channels.len();
-        check_link(&mut r, &mut links, &t, &attrs, &channels);
+        self.r.node_records += t.used().len() as u64;
+        let attrs = self.attributes(id, &t)?;
+        let attrs = (attrs.len() == self.channels.len()).then_some(attrs);
+        check_link(
+            &mut self.r,
+            &mut self.links,
+            &t,
+            attrs.as_deref().unwrap_or(&[]),
+            &self.channels,
+        );
         for (i, place) in places.iter().enumerate() {
-            let n = t.nodes[i];
-            if place.parent != u32::MAX {
-                let pc = places[place.parent as usize].cell;
-                if !pc.contains(&place.cell) || place.cell.depth != pc.depth + 1 {
-                    r.problem(format!(
-                        "treelet {id} node {i}: voxel {:?} not inside parent {pc:?}",
-                        place.cell
-                    ));
-                }
+            self.node(id, &t, &places, i, place, attrs.as_deref());
+        }
+        Ok(())
+    }
+
+    /// The treelet's attribute blocks, decoded, one per channel; a missing or bad block is a
+    /// problem and is left out.
+    fn attributes(&mut self, id: TreeletId, t: &Treelet) -> Result<Vec<Vec<u8>>, PoolError> {
+        let d = &self.scene.description;
+        let mut attrs = Vec::new();
+        for &c in &self.channels {
+            let Some(b) = self.scene.channel(c, id)? else {
+                self.r
+                    .problem(format!("treelet {id}: {} block missing", c.name()));
+                continue;
+            };
+            match codec::decode_compressed_attributes(
+                &b,
+                c,
+                t.header.used_nodes,
+                d.channel_dictionary(c),
+            ) {
+                Ok(b) => attrs.push(b),
+                Err(e) => self
+                    .r
+                    .problem(format!("treelet {id}: {} block: {e}", c.name())),
             }
-            if place.is_leaf {
-                if n.first_child == Node::NONE {
-                    if place.cell.depth == d.max_depth {
-                        r.leaf_voxels += 1;
-                    }
-                } else {
-                    let child = n.first_child;
-                    if child <= id.0 || child >= d.treelet_count {
-                        r.problem(format!(
-                            "treelet {id} leaf {i}: subtreelet {child} out of range"
-                        ));
-                    }
-                    let link = Link {
-                        parent: id,
-                        leaf: i as u16,
-                        leaf_parent: if place.parent == u32::MAX {
-                            0
-                        } else {
-                            place.parent as u16
-                        },
-                        child_index: place.child_index,
-                        cell: place.cell,
-                        attributes: if attrs_ok {
-                            channels
-                                .iter()
-                                .enumerate()
-                                .map(|(k, c)| record(&attrs[k], *c, i).to_vec())
-                                .collect()
-                        } else {
-                            Vec::new()
-                        },
-                    };
-                    if links.insert(child, link).is_some() {
-                        r.problem(format!("subtreelet {child} is claimed by two leaves"));
-                    }
-                }
-            } else if attrs_ok {
-                let first = i + n.first_child as usize;
-                let kids = n.child_count() as usize;
-                for (k, &c) in channels.iter().enumerate() {
-                    let mut mean = vec![0u8; c.size()];
-                    c.mean(
-                        (first..first + kids).map(|j| record(&attrs[k], c, j)),
-                        &mut mean,
-                    );
-                    if !c.within_one_step(&mean, record(&attrs[k], c, i)) {
-                        r.problem(format!(
-                            "treelet {id} node {i}: {} {:?} is not the mean {:?} of its children",
-                            c.name(),
-                            record(&attrs[k], c, i),
-                            mean
-                        ));
-                    }
-                }
+        }
+        Ok(attrs)
+    }
+
+    /// One node: inside its parent; a leaf is final (counted) or names a later subtreelet
+    /// (remembered as a link); an inner node's attributes are its children's mean.
+    fn node(
+        &mut self,
+        id: TreeletId,
+        t: &Treelet,
+        places: &[NodePlace],
+        i: usize,
+        place: &NodePlace,
+        attrs: Option<&[Vec<u8>]>,
+    ) {
+        let d = &self.scene.description;
+        let n = t.nodes[i];
+        if place.parent != u32::MAX {
+            let pc = places[place.parent as usize].cell;
+            if !pc.contains(&place.cell) || place.cell.depth != pc.depth + 1 {
+                self.r.problem(format!(
+                    "treelet {id} node {i}: voxel {:?} not inside parent {pc:?}",
+                    place.cell
+                ));
+            }
+        }
+        if !place.is_leaf {
+            if let Some(attrs) = attrs {
+                self.inner_means(id, i, n, attrs);
+            }
+            return;
+        }
+        if n.first_child == Node::NONE {
+            if place.cell.depth == d.max_depth {
+                self.r.leaf_voxels += 1;
+            }
+            return;
+        }
+        let child = n.first_child;
+        if child <= id.0 || child >= d.treelet_count {
+            self.r
+                .problem(format!("treelet {id} leaf {i}: subtreelet {child} out of range"));
+        }
+        let link = Link {
+            parent: id,
+            leaf: i as u16,
+            leaf_parent: if place.parent == u32::MAX {
+                0
+            } else {
+                place.parent as u16
+            },
+            child_index: place.child_index,
+            cell: place.cell,
+            attributes: attrs.map_or_else(Vec::new, |attrs| {
+                self.channels
+                    .iter()
+                    .enumerate()
+                    .map(|(k, c)| record(&attrs[k], *c, i).to_vec())
+                    .collect()
+            }),
+        };
+        if self.links.insert(child, link).is_some() {
+            self.r
+                .problem(format!("subtreelet {child} is claimed by two leaves"));
+        }
+    }
+
+    /// An inner node's attributes must be the mean of its children's (within one step).
+    fn inner_means(&mut self, id: TreeletId, i: usize, n: Node, attrs: &[Vec<u8>]) {
+        let first = i + n.first_child as usize;
+        let kids = n.child_count() as usize;
+        for (k, &c) in self.channels.iter().enumerate() {
+            let mut mean = vec![0u8; c.size()];
+            c.mean(
+                (first..first + kids).map(|j| record(&attrs[k], c, j)),
+                &mut mean,
+            );
+            if !c.within_one_step(&mean, record(&attrs[k], c, i)) {
+                self.r.problem(format!(
+                    "treelet {id} node {i}: {} {:?} is not the mean {:?} of its children",
+                    c.name(),
+                    record(&attrs[k], c, i),
+                    mean
+                ));
             }
         }
     }
-    r.voxels = r.node_records.saturating_sub(r.treelets.saturating_sub(1));
-    if r.treelets != u64::from(d.treelet_count) {
-        r.problem(format!(
-            "{} treelets stored, description says {}",
-            r.treelets, d.treelet_count
-        ));
+
+    /// Whole-scene checks: counts against the description, links left unresolved.
+    fn totals(&mut self) {
+        let d = &self.scene.description;
+        let r = &mut self.r;
+        r.voxels = r.node_records.saturating_sub(r.treelets.saturating_sub(1));
+        if r.treelets != u64::from(d.treelet_count) {
+            r.problem(format!(
+                "{} treelets stored, description says {}",
+                r.treelets, d.treelet_count
+            ));
+        }
+        for (child, link) in std::mem::take(&mut self.links) {
+            r.problem(format!(
+                "treelet {} leaf {}: subtreelet {child} does not exist",
+                link.parent, link.leaf
+            ));
+        }
+        if d.stats.voxels != 0 && d.stats.voxels != r.voxels {
+            r.problem(format!(
+                "{} voxels found, description says {}",
+                r.voxels, d.stats.voxels
+            ));
+        }
+        if d.stats.leaf_voxels != 0 && d.stats.leaf_voxels != r.leaf_voxels {
+            r.problem(format!(
+                "{} leaf voxels found, description says {}",
+                r.leaf_voxels, d.stats.leaf_voxels
+            ));
+        }
     }
-    for (child, link) in links {
-        r.problem(format!(
-            "treelet {} leaf {}: subtreelet {child} does not exist",
-            link.parent, link.leaf
-        ));
-    }
-    if d.stats.voxels != 0 && d.stats.voxels != r.voxels {
-        r.problem(format!(
-            "{} voxels found, description says {}",
-            r.voxels, d.stats.voxels
-        ));
-    }
-    if d.stats.leaf_voxels != 0 && d.stats.leaf_voxels != r.leaf_voxels {
-        r.problem(format!(
-            "{} leaf voxels found, description says {}",
-            r.leaf_voxels, d.stats.leaf_voxels
-        ));
-    }
-    Ok(r)
 }
 
 fn record(block: &[u8], c: Channel, i: usize) -> &[u8] {
