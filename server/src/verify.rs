@@ -204,8 +204,9 @@ impl Verifier<'_> {
         }
         let child = n.first_child;
         if child <= id.0 || child >= d.treelet_count {
-            self.r
-                .problem(format!("treelet {id} leaf {i}: subtreelet {child} out of range"));
+            self.r.problem(format!(
+                "treelet {id} leaf {i}: subtreelet {child} out of range"
+            ));
         }
         let link = Link {
             parent: id,

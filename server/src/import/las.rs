@@ -17,7 +17,7 @@ use std::path::Path;
 use ::las::raw;
 
 use super::{ImportError, names, push, show_bytes, writer};
-use crate::source::{PointSource, Source};
+use crate::source::{ColumnWriter, PointSource, Source};
 
 /// Most points decoded per batch.
 const BATCH: u64 = 1 << 16;
@@ -190,6 +190,26 @@ fn check_chunk_table(
 }
 
 pub(super) fn import(path: &Path, file: &str, scratch: &Path) -> Result<Source, ImportError> {
+    let (mut reader, header) = open(path, file)?;
+    let format = *header.point_format();
+    let n = header.number_of_points();
+    let mut columns = PointColumns::new(file, scratch, format.has_color)?;
+    let mut pd = ::las::PointDataBuilder::new().for_header(&header).build();
+    let batch = (BATCH_BYTES / u64::from(format.len()).max(1)).clamp(1, BATCH);
+    let kind = if format.is_compressed { "LAZ" } else { "LAS" };
+    let mut done = 0u64;
+    while done < n {
+        let want = batch.min(n - done);
+        let got = read_batch(&mut reader, &mut pd, file, kind, done, want, n)?;
+        columns.push_batch(&pd, done)?;
+        done += got;
+    }
+    columns.finish()
+}
+
+/// Opens the file after the header checks that need no decoder ([`precheck`]): the reader and
+/// its header, which declares at least one point whose records fit the file.
+fn open(path: &Path, file: &str) -> Result<(::las::Reader, ::las::Header), ImportError> {
     let mut f = File::open(path).map_err(|e| ImportError::io(file, "opening the file", e))?;
     let file_len = f
         .metadata()
@@ -198,8 +218,7 @@ pub(super) fn import(path: &Path, file: &str, scratch: &Path) -> Result<Source, 
     let raw_header = precheck(file, &mut f, file_len)?;
     f.seek(SeekFrom::Start(0))
         .map_err(|e| ImportError::io(file, "seeking to the start", e))?;
-
-    let mut reader = ::las::Reader::new(BufReader::with_capacity(1 << 16, f)).map_err(|e| {
+    let reader = ::las::Reader::new(BufReader::with_capacity(1 << 16, f)).map_err(|e| {
         let context = if is_eof(&e) {
             "reading the LAS VLRs or the LAZ chunk table (the file ends too early: truncated?)"
         } else {
@@ -238,62 +257,88 @@ pub(super) fn import(path: &Path, file: &str, scratch: &Path) -> Result<Source, 
             });
         }
     }
+    Ok((reader, header))
+}
 
-    let mut positions = writer::<[f64; 3]>(file, scratch, names::POSITIONS)?;
-    let rgb16_name = "src_rgb16";
-    let mut rgb16 = if format.has_color {
-        Some(writer::<[u16; 3]>(file, scratch, rgb16_name)?)
-    } else {
-        None
+/// Decodes points `done..done + want` of `n` into `pd`; a panic of the decoder on hostile data
+/// is caught and reported as corrupt data.
+fn read_batch(
+    reader: &mut ::las::Reader,
+    pd: &mut ::las::PointData,
+    file: &str,
+    kind: &str,
+    done: u64,
+    want: u64,
+    n: u64,
+) -> Result<u64, ImportError> {
+    let got = catch_unwind(AssertUnwindSafe(|| reader.fill_points(want, pd)));
+    let truncated = || ImportError::Truncated {
+        file: file.to_owned(),
+        what: format!(
+            "{kind} point data (the data ends within points {done}..{})",
+            done + want
+        ),
+        expected: n,
+        got: done,
+        unit: "points",
     };
-    let mut max_channel = 0u16;
-    let mut pd = ::las::PointDataBuilder::new().for_header(&header).build();
-    let batch = (BATCH_BYTES / u64::from(format.len()).max(1)).clamp(1, BATCH);
-    let mut done = 0u64;
-    let kind = if format.is_compressed { "LAZ" } else { "LAS" };
-    while done < n {
-        let want = batch.min(n - done);
-        let got = catch_unwind(AssertUnwindSafe(|| reader.fill_points(want, &mut pd)));
-        let got = match got {
-            Ok(Ok(k)) => k,
-            Ok(Err(e)) if is_eof(&e) => {
-                return Err(ImportError::Truncated {
-                    file: file.to_owned(),
-                    what: format!(
-                        "{kind} point data (the data ends within points {done}..{})",
-                        done + want
-                    ),
-                    expected: n,
-                    got: done,
-                    unit: "points",
-                });
-            }
-            Ok(Err(e)) => {
-                return Err(las_err(
-                    file,
-                    format!("decoding points {done}..{}", done + want),
-                    e,
-                ));
-            }
-            Err(_) => {
-                return Err(ImportError::Corrupt {
-                    file: file.to_owned(),
-                    detail: format!(
-                        "the {kind} decoder failed on points {done}..{} (corrupt or truncated compressed data)",
-                        done + want
-                    ),
-                });
-            }
-        };
-        if got == 0 {
-            return Err(ImportError::Truncated {
-                file: file.to_owned(),
-                what: format!("{kind} point data"),
-                expected: n,
-                got: done,
-                unit: "points",
-            });
-        }
+    match got {
+        Ok(Ok(0)) => Err(ImportError::Truncated {
+            file: file.to_owned(),
+            what: format!("{kind} point data"),
+            expected: n,
+            got: done,
+            unit: "points",
+        }),
+        Ok(Ok(k)) => Ok(k),
+        Ok(Err(e)) if is_eof(&e) => Err(truncated()),
+        Ok(Err(e)) => Err(las_err(
+            file,
+            format!("decoding points {done}..{}", done + want),
+            e,
+        )),
+        Err(_) => Err(ImportError::Corrupt {
+            file: file.to_owned(),
+            detail: format!(
+                "the {kind} decoder failed on points {done}..{} (corrupt or truncated compressed data)",
+                done + want
+            ),
+        }),
+    }
+}
+
+/// Scratch name of the 16-bit colour column, converted to 8 bits at the end.
+const RGB16_COLUMN: &str = "src_rgb16";
+
+/// The columns a LAS file becomes: positions, and colours kept at 16 bits until the whole file
+/// says whether they hold 8-bit values.
+struct PointColumns<'a> {
+    file: &'a str,
+    scratch: &'a Path,
+    positions: ColumnWriter<[f64; 3]>,
+    rgb16: Option<ColumnWriter<[u16; 3]>>,
+    max_channel: u16,
+}
+
+impl<'a> PointColumns<'a> {
+    fn new(file: &'a str, scratch: &'a Path, has_color: bool) -> Result<Self, ImportError> {
+        Ok(Self {
+            file,
+            scratch,
+            positions: writer::<[f64; 3]>(file, scratch, names::POSITIONS)?,
+            rgb16: if has_color {
+                Some(writer::<[u16; 3]>(file, scratch, RGB16_COLUMN)?)
+            } else {
+                None
+            },
+            max_channel: 0,
+        })
+    }
+
+    /// Appends a decoded batch whose first point is point `first` of the file; coordinates
+    /// must be finite.
+    fn push_batch(&mut self, pd: &::las::PointData, first: u64) -> Result<(), ImportError> {
+        let file = self.file;
         for (i, ((x, y), z)) in pd.x().zip(pd.y()).zip(pd.z()).enumerate() {
             if let Some(value) = [x, y, z].into_iter().find(|c| !c.is_finite()) {
                 return Err(ImportError::NonFinite {
@@ -301,53 +346,56 @@ pub(super) fn import(path: &Path, file: &str, scratch: &Path) -> Result<Source, 
                     line: None,
                     record: format!(
                         "point {} (check the header scale and offset)",
-                        done + i as u64
+                        first + i as u64
                     ),
                     value,
                 });
             }
-            push(file, &mut positions, [x, y, z])?;
+            push(file, &mut self.positions, [x, y, z])?;
         }
-        if let (Some(w), Some(rgb)) = (&mut rgb16, pd.rgb()) {
+        if let (Some(w), Some(rgb)) = (&mut self.rgb16, pd.rgb()) {
             for (r, g, b) in rgb {
-                max_channel = max_channel.max(r).max(g).max(b);
+                self.max_channel = self.max_channel.max(r).max(g).max(b);
                 push(file, w, [r, g, b])?;
             }
         }
-        done += got;
+        Ok(())
     }
 
-    let col = |e| ImportError::column(file, e);
-    let positions = positions.finish().map_err(col)?;
-    let colors = match rgb16 {
-        None => None,
-        Some(w) => {
-            let rgb16 = w.finish().map_err(col)?;
-            let shift = if is_8bit(max_channel) { 0 } else { 8 };
-            tracing::debug!(
-                file,
-                max_channel,
-                "LAS colour is {}",
-                if shift == 0 {
-                    "8-bit values in 16-bit fields"
-                } else {
-                    "true 16-bit"
+    fn finish(self) -> Result<Source, ImportError> {
+        let file = self.file;
+        let col = |e| ImportError::column(file, e);
+        let positions = self.positions.finish().map_err(col)?;
+        let colors = match self.rgb16 {
+            None => None,
+            Some(w) => {
+                let rgb16 = w.finish().map_err(col)?;
+                let shift = if is_8bit(self.max_channel) { 0 } else { 8 };
+                tracing::debug!(
+                    file,
+                    max_channel = self.max_channel,
+                    "LAS colour is {}",
+                    if shift == 0 {
+                        "8-bit values in 16-bit fields"
+                    } else {
+                        "true 16-bit"
+                    }
+                );
+                let mut out = writer::<[u8; 3]>(file, self.scratch, names::COLORS)?;
+                for c in rgb16.iter() {
+                    push(file, &mut out, c.map(|v| (v >> shift) as u8))?;
                 }
-            );
-            let mut out = writer::<[u8; 3]>(file, scratch, names::COLORS)?;
-            for c in rgb16.iter() {
-                push(file, &mut out, c.map(|v| (v >> shift) as u8))?;
+                drop(rgb16);
+                let _ = std::fs::remove_file(self.scratch.join(format!("{RGB16_COLUMN}.col")));
+                Some(out.finish().map_err(col)?)
             }
-            drop(rgb16);
-            let _ = std::fs::remove_file(scratch.join(format!("{rgb16_name}.col")));
-            Some(out.finish().map_err(col)?)
-        }
-    };
-    Ok(Source::Points(PointSource {
-        positions,
-        colors,
-        normals: None,
-    }))
+        };
+        Ok(Source::Points(PointSource {
+            positions,
+            colors,
+            normals: None,
+        }))
+    }
 }
 
 /// Whether a LAS colour column with this largest channel value holds 8-bit values.

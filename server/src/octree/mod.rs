@@ -145,91 +145,18 @@ pub fn build_scene(
     if source.primitive_count() == 0 {
         return Err(BuildError::Empty(source.describe()));
     }
-    let (min, max) = bounds(source)?;
-    let probe = Frame::around(min, max, 0);
-    let (resolution, kind) = match source {
-        Source::Mesh(m) => (triangles::mean_edge_length(m), SourceKind::Mesh),
-        Source::Points(p) => (
-            points::mean_point_spacing(&p.positions, min, max, opts.memory_budget, scratch)?,
-            SourceKind::Points,
-        ),
-        Source::Volume(v) => (
-            v.spacing.iter().cloned().fold(f64::INFINITY, f64::min),
-            SourceKind::Volume,
-        ),
-    };
-    let depth = match opts.depth {
-        DepthChoice::Fixed(d) => d,
-        DepthChoice::Auto => depth_for_resolution(probe.edge, resolution),
-    };
-    let frame = Frame::new(probe.origin, probe.edge, depth);
+    let placed = place(source, opts, scratch)?;
+    let frame = placed.frame;
+    let depth = frame.depth;
     tracing::info!(
         depth,
-        resolution,
+        resolution = placed.resolution,
         edge = frame.edge,
         "building {} ({})",
         name,
         source.describe()
     );
-
-    let mut iso_used = None;
-    let (layout, fill) = match source {
-        Source::Mesh(m) => {
-            let b = triangles::TriangleBuilder { mesh: m, frame };
-            let a = triangles::MeshAttributes::new(m, frame);
-            let layout = a.layout.clone();
-            (layout, fill_all(&b, &a, capacity, depth, opts, scratch)?)
-        }
-        Source::Points(p) => {
-            let estimated;
-            let normals = match &p.normals {
-                Some(n) => n,
-                None => {
-                    estimated = points::estimate_normals(
-                        &p.positions,
-                        min,
-                        max,
-                        opts.memory_budget,
-                        scratch,
-                    )?;
-                    &estimated
-                }
-            };
-            let b = points::PointBuilder { points: p, frame };
-            let a = points::PointAttributes::new(p, normals);
-            let layout = a.layout.clone();
-            (layout, fill_all(&b, &a, capacity, depth, opts, scratch)?)
-        }
-        Source::Volume(v) => {
-            let iso = match opts.iso {
-                Some(i) if i.is_finite() => i,
-                Some(i) => {
-                    return Err(BuildError::Parameter(format!(
-                        "iso threshold {i} is not finite"
-                    )));
-                }
-                None => volume::otsu_threshold(v),
-            };
-            iso_used = Some(iso);
-            let cells = volume::crossing_cells(v, iso, scratch)?;
-            if cells.is_empty() {
-                return Err(BuildError::Empty(format!(
-                    "iso threshold {iso} crosses no cell of the volume (values {}..{})",
-                    v.value_range[0], v.value_range[1]
-                )));
-            }
-            tracing::info!(iso, crossing_cells = cells.len(), "iso surface");
-            let field = volume::Field { vol: v };
-            let b = volume::VolumeBuilder {
-                field,
-                cells: &cells,
-                frame,
-            };
-            let a = volume::VolumeAttributes::new(field, frame);
-            let layout = a.layout.clone();
-            (layout, fill_all(&b, &a, capacity, depth, opts, scratch)?)
-        }
-    };
+    let (layout, fill, iso_used) = fill_source(source, &placed, capacity, opts, scratch)?;
 
     let records = RecordFile {
         file: fill.file,
@@ -270,7 +197,7 @@ pub fn build_scene(
         layout,
         treelet_count: fill.treelets,
         root_treelet: TreeletId::ROOT,
-        source_kind: kind,
+        source_kind: placed.kind,
         source: format!("{source_label} ({})", source.describe()),
         primitives: source.primitive_count(),
         build: BuildParameters {
@@ -278,7 +205,7 @@ pub fn build_scene(
                 DepthChoice::Fixed(d) => Some(d),
                 DepthChoice::Auto => None,
             },
-            data_resolution: resolution,
+            data_resolution: placed.resolution,
             treelet_bytes: opts.treelet_bytes,
             iso: iso_used,
             zstd_level: opts.zstd_level,
@@ -288,6 +215,113 @@ pub fn build_scene(
         node_dictionary,
         channel_dictionaries,
     })
+}
+
+/// Where the octree goes: the source's bounds, its resolution and the frame at the depth that
+/// resolution asks for (or the fixed one).
+struct Placement {
+    min: [f64; 3],
+    max: [f64; 3],
+    /// The data's own resolution (mean point spacing, edge length or voxel spacing).
+    resolution: f64,
+    kind: SourceKind,
+    frame: Frame,
+}
+
+fn place(source: &Source, opts: &BuildOptions, scratch: &Path) -> Result<Placement, BuildError> {
+    let (min, max) = bounds(source)?;
+    let probe = Frame::around(min, max, 0);
+    let (resolution, kind) = match source {
+        Source::Mesh(m) => (triangles::mean_edge_length(m), SourceKind::Mesh),
+        Source::Points(p) => (
+            points::mean_point_spacing(&p.positions, min, max, opts.memory_budget, scratch)?,
+            SourceKind::Points,
+        ),
+        Source::Volume(v) => (
+            v.spacing.iter().cloned().fold(f64::INFINITY, f64::min),
+            SourceKind::Volume,
+        ),
+    };
+    let depth = match opts.depth {
+        DepthChoice::Fixed(d) => d,
+        DepthChoice::Auto => depth_for_resolution(probe.edge, resolution),
+    };
+    Ok(Placement {
+        min,
+        max,
+        resolution,
+        kind,
+        frame: Frame::new(probe.origin, probe.edge, depth),
+    })
+}
+
+/// Pass 1 with the builder and attribute generator of the source's kind; returns the attribute
+/// layout, the filled treelets and the iso threshold used (volumes).
+fn fill_source(
+    source: &Source,
+    placed: &Placement,
+    capacity: u32,
+    opts: &BuildOptions,
+    scratch: &Path,
+) -> Result<(AttributeLayout, Filled, Option<f32>), BuildError> {
+    let frame = placed.frame;
+    let depth = frame.depth;
+    match source {
+        Source::Mesh(m) => {
+            let b = triangles::TriangleBuilder { mesh: m, frame };
+            let a = triangles::MeshAttributes::new(m, frame);
+            let fill = fill_all(&b, &a, capacity, depth, opts, scratch)?;
+            Ok((a.layout.clone(), fill, None))
+        }
+        Source::Points(p) => {
+            let estimated;
+            let normals = match &p.normals {
+                Some(n) => n,
+                None => {
+                    estimated = points::estimate_normals(
+                        &p.positions,
+                        placed.min,
+                        placed.max,
+                        opts.memory_budget,
+                        scratch,
+                    )?;
+                    &estimated
+                }
+            };
+            let b = points::PointBuilder { points: p, frame };
+            let a = points::PointAttributes::new(p, normals);
+            let fill = fill_all(&b, &a, capacity, depth, opts, scratch)?;
+            Ok((a.layout.clone(), fill, None))
+        }
+        Source::Volume(v) => {
+            let iso = match opts.iso {
+                Some(i) if i.is_finite() => i,
+                Some(i) => {
+                    return Err(BuildError::Parameter(format!(
+                        "iso threshold {i} is not finite"
+                    )));
+                }
+                None => volume::otsu_threshold(v),
+            };
+            let cells = volume::crossing_cells(v, iso, scratch)?;
+            if cells.is_empty() {
+                return Err(BuildError::Empty(format!(
+                    "iso threshold {iso} crosses no cell of the volume (values {}..{})",
+                    v.value_range[0], v.value_range[1]
+                )));
+            }
+            tracing::info!(iso, crossing_cells = cells.len(), "iso surface");
+            let field = volume::Field { vol: v };
+            let b = volume::VolumeBuilder {
+                field,
+                cells: &cells,
+                frame,
+            };
+            let a = volume::VolumeAttributes::new(field, frame);
+            let fill = fill_all(&b, &a, capacity, depth, opts, scratch)?;
+            Ok((a.layout.clone(), fill, Some(iso)))
+        }
+    }
 }
 
 /// Bounding box of the source's geometry; rejects non-finite coordinates.

@@ -159,14 +159,22 @@ pub fn fill_treelet(
     lists: &Lists,
 ) -> std::io::Result<FilledTreelet> {
     let bpv = attributes.bytes_per_voxel();
-    let mut nodes = vec![Node::default(); capacity as usize];
-    let mut attrs = vec![0u8; capacity as usize * bpv];
-    let mut pending_leaves = Vec::new();
-    let mut leaf_voxels = 0u64;
-    let mut used = 1u32;
-    let mut reserved = 0u32;
-    let mut queue = VecDeque::new();
-    queue.push_back(Pending {
+    let mut fill = TreeletFill {
+        builder,
+        attributes,
+        lists,
+        capacity,
+        max_depth,
+        bpv,
+        nodes: vec![Node::default(); capacity as usize],
+        attrs: vec![0u8; capacity as usize * bpv],
+        pending_leaves: Vec::new(),
+        leaf_voxels: 0,
+        used: 1,
+        reserved: 0,
+        queue: VecDeque::new(),
+    };
+    fill.queue.push_back(Pending {
         included: false,
         local: 0,
         parent: u32::MAX,
@@ -174,42 +182,97 @@ pub fn fill_treelet(
         cell: job.root,
         prims: job.prims,
     });
-
-    // Marks node `p.local` as a leaf in its parent's leaf_mask (the root has no parent; its
-    // leafness is its zero valid_mask).
-    let mark_leaf = |nodes: &mut [Node], p: &Pending| {
-        if p.parent != u32::MAX {
-            nodes[p.parent as usize].leaf_mask |= 1 << p.child_index;
-        }
+    while let Some(p) = fill.queue.pop_front() {
+        fill.expand(p)?;
+    }
+    let treelet = Treelet {
+        header: TreeletHeader {
+            id: job.id,
+            parent_id: job.parent_id,
+            parent_leaf_index: job.parent_leaf_index,
+            parent_leaf_parent_index: job.parent_leaf_parent_index,
+            child_index_in_parent: job.child_index_in_parent,
+            root_depth: job.root.depth,
+            root_cell: [job.root.x, job.root.y, job.root.z],
+            used_nodes: fill.used as u16,
+        },
+        nodes: fill.nodes,
     };
+    Ok(FilledTreelet {
+        treelet,
+        attributes: fill.attrs,
+        pending: fill.pending_leaves,
+        leaf_voxels: fill.leaf_voxels,
+    })
+}
 
-    while let Some(p) = queue.pop_front() {
-        let final_leaf = |nodes: &mut Vec<Node>, attrs: &mut Vec<u8>, p: &Pending| {
-            nodes[p.local as usize] = Node::leaf(Node::NONE);
-            mark_leaf(nodes, p);
-            let k = p.local as usize * bpv;
-            let out = &mut attrs[k..k + bpv];
-            match p.prims.as_slice() {
-                Some(s) => attributes.leaf(p.cell, &s[..s.len().min(MAX_LEAF_SAMPLE)], out),
-                None => attributes.leaf(p.cell, &p.prims.prefix(MAX_LEAF_SAMPLE)?, out),
-            }
-            Ok::<(), std::io::Error>(())
-        };
-        if p.cell.depth >= max_depth {
-            final_leaf(&mut nodes, &mut attrs, &p)?;
-            leaf_voxels += 1;
-            continue;
+/// One treelet being filled breadth-first.
+struct TreeletFill<'a> {
+    builder: &'a dyn TreeletBuilder,
+    attributes: &'a dyn AttributeGenerator,
+    lists: &'a Lists,
+    capacity: u32,
+    max_depth: u8,
+    /// Attribute bytes per voxel.
+    bpv: usize,
+    nodes: Vec<Node>,
+    attrs: Vec<u8>,
+    pending_leaves: Vec<PendingLeaf>,
+    leaf_voxels: u64,
+    /// Records in use.
+    used: u32,
+    /// Records promised to included subtrees not expanded yet.
+    reserved: u32,
+    queue: VecDeque<Pending>,
+}
+
+impl TreeletFill<'_> {
+    /// Decides what node `p` becomes: a final leaf, a refinable leaf, or an inner node whose
+    /// children are queued.
+    fn expand(&mut self, p: Pending) -> std::io::Result<()> {
+        if p.cell.depth >= self.max_depth {
+            self.final_leaf(&p)?;
+            self.leaf_voxels += 1;
+            return Ok(());
         }
-        let free = capacity - used;
-        // Packing (measured in ARCHITECTURE.md): a node whose whole subtree fits the unreserved
-        // space is kept entirely in this treelet and its space reserved, so small subtrees do not
-        // each become a nearly empty treelet of their own. A node whose subtree is smaller than a
-        // treelet but does not fit here is cut whole rather than split into small pieces.
+        let (included, room) = self.room_for(&p)?;
+        // A split needs at least one free record; without any the node is a refinable leaf.
+        let children = if room > 0 {
+            Some(partition_list(self.builder, p.cell, &p.prims, self.lists)?)
+        } else {
+            None
+        };
+        let count = children.as_ref().map_or(u32::MAX, |c| {
+            c.iter().filter(|l| !l.is_empty()).count() as u32
+        });
+        if count == 0 {
+            // Rounding left no child touched: the voxel is final at this depth.
+            return self.final_leaf(&p);
+        }
+        if count > room {
+            // Does not fit: a refinable leaf, refined by a child treelet.
+            self.refinable_leaf(p);
+            return Ok(());
+        }
+        if included {
+            self.reserved = self.reserved.saturating_sub(count);
+        }
+        self.split(p, children.expect("partitioned above"), included);
+        Ok(())
+    }
+
+    /// Packing (measured in ARCHITECTURE.md): a node whose whole subtree fits the unreserved
+    /// space is kept entirely in this treelet and its space reserved, so small subtrees do not
+    /// each become a nearly empty treelet of their own. A node whose subtree is smaller than a
+    /// treelet but does not fit here is cut whole rather than split into small pieces. Returns
+    /// whether `p`'s subtree is included and how many records its children may take.
+    fn room_for(&mut self, p: &Pending) -> std::io::Result<(bool, u32)> {
+        let free = self.capacity - self.used;
         let mut included = p.included;
         let mut cut = false;
         // Only lists of up to 64·N ids get the dry run (bounded work); a spilled one is read back
         // for it, so the result never depends on the memory budget.
-        let small = if !included && p.prims.len() <= 64 * u64::from(capacity) {
+        let small = if !included && p.prims.len() <= 64 * u64::from(self.capacity) {
             Some(match p.prims.as_slice() {
                 Some(s) => std::borrow::Cow::Borrowed(s),
                 None => std::borrow::Cow::Owned(p.prims.prefix(p.prims.len() as usize)?),
@@ -218,10 +281,11 @@ pub fn fill_treelet(
             None
         };
         if let Some(prims) = small {
-            match subtree_size(builder, p.cell, &prims, max_depth, u64::from(capacity)) {
-                Some(s) if s <= u64::from(free.saturating_sub(reserved)) => {
+            let limit = u64::from(self.capacity);
+            match subtree_size(self.builder, p.cell, &prims, self.max_depth, limit) {
+                Some(s) if s <= u64::from(free.saturating_sub(self.reserved)) => {
                     included = true;
-                    reserved += s as u32;
+                    self.reserved += s as u32;
                 }
                 Some(_) if p.local != 0 => cut = true,
                 _ => {}
@@ -232,85 +296,77 @@ pub fn fill_treelet(
         } else if included {
             free
         } else {
-            free.saturating_sub(reserved)
+            free.saturating_sub(self.reserved)
         };
-        // A split needs at least one free record; without any the node is a refinable leaf.
-        let children = if room > 0 {
-            Some(partition_list(builder, p.cell, &p.prims, lists)?)
-        } else {
-            None
-        };
-        let count = children.as_ref().map_or(u32::MAX, |c| {
-            c.iter().filter(|l| !l.is_empty()).count() as u32
+        Ok((included, room))
+    }
+
+    /// Marks node `p.local` as a leaf in its parent's leaf_mask (the root has no parent; its
+    /// leafness is its zero valid_mask).
+    fn mark_leaf(&mut self, p: &Pending) {
+        if p.parent != u32::MAX {
+            self.nodes[p.parent as usize].leaf_mask |= 1 << p.child_index;
+        }
+    }
+
+    /// A leaf with no more detail: its attributes come from the generator.
+    fn final_leaf(&mut self, p: &Pending) -> std::io::Result<()> {
+        self.nodes[p.local as usize] = Node::leaf(Node::NONE);
+        self.mark_leaf(p);
+        let k = p.local as usize * self.bpv;
+        let out = &mut self.attrs[k..k + self.bpv];
+        match p.prims.as_slice() {
+            Some(s) => self
+                .attributes
+                .leaf(p.cell, &s[..s.len().min(MAX_LEAF_SAMPLE)], out),
+            None => self
+                .attributes
+                .leaf(p.cell, &p.prims.prefix(MAX_LEAF_SAMPLE)?, out),
+        }
+        Ok(())
+    }
+
+    /// A leaf refined by a child treelet, built later from its primitives.
+    fn refinable_leaf(&mut self, p: Pending) {
+        self.nodes[p.local as usize] = Node::leaf(Node::NONE);
+        self.mark_leaf(&p);
+        self.pending_leaves.push(PendingLeaf {
+            local_index: p.local as u16,
+            parent_local_index: if p.parent == u32::MAX {
+                0
+            } else {
+                p.parent as u16
+            },
+            child_index: p.child_index,
+            cell: p.cell,
+            prims: p.prims,
         });
-        if count == 0 {
-            // Rounding left no child touched: the voxel is final at this depth.
-            final_leaf(&mut nodes, &mut attrs, &p)?;
-            continue;
-        }
-        if count > room {
-            // Does not fit: a refinable leaf, refined by a child treelet.
-            nodes[p.local as usize] = Node::leaf(Node::NONE);
-            mark_leaf(&mut nodes, &p);
-            pending_leaves.push(PendingLeaf {
-                local_index: p.local as u16,
-                parent_local_index: if p.parent == u32::MAX {
-                    0
-                } else {
-                    p.parent as u16
-                },
-                child_index: p.child_index,
-                cell: p.cell,
-                prims: p.prims,
-            });
-            continue;
-        }
-        if included {
-            reserved = reserved.saturating_sub(count);
-        }
-        let children = children.expect("partitioned above");
+    }
+
+    /// An inner node: its touched children get consecutive records and are queued.
+    fn split(&mut self, p: Pending, children: [IdList; 8], included: bool) {
         let mut valid = 0u8;
-        let first = used;
+        let first = self.used;
         for (i, list) in children.into_iter().enumerate() {
             if list.is_empty() {
                 continue;
             }
             valid |= 1 << i;
-            queue.push_back(Pending {
+            self.queue.push_back(Pending {
                 included,
-                local: used,
+                local: self.used,
                 parent: p.local,
                 child_index: i as u8,
                 cell: p.cell.child(i as u8),
                 prims: list,
             });
-            used += 1;
+            self.used += 1;
         }
-        nodes[p.local as usize] = Node {
+        self.nodes[p.local as usize] = Node {
             first_child: first - p.local,
             valid_mask: valid,
             leaf_mask: 0,
             spare: 0,
         };
     }
-
-    let treelet = Treelet {
-        header: TreeletHeader {
-            id: job.id,
-            parent_id: job.parent_id,
-            parent_leaf_index: job.parent_leaf_index,
-            parent_leaf_parent_index: job.parent_leaf_parent_index,
-            child_index_in_parent: job.child_index_in_parent,
-            root_depth: job.root.depth,
-            root_cell: [job.root.x, job.root.y, job.root.z],
-            used_nodes: used as u16,
-        },
-        nodes,
-    };
-    Ok(FilledTreelet {
-        treelet,
-        attributes: attrs,
-        pending: pending_leaves,
-        leaf_voxels,
-    })
 }
