@@ -14,6 +14,7 @@ pub mod memory;
 pub mod octree;
 pub mod pipeline;
 pub mod pool;
+pub mod prometheus;
 pub mod service;
 pub mod source;
 pub mod verify;

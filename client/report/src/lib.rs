@@ -43,38 +43,97 @@ use std::fs;
 use std::io;
 use std::path::{Path, PathBuf};
 
-/// The CSV header, in column order. Units are part of the names: `_s` seconds since the run
-/// started, `_ms` milliseconds of wall time in that phase, `bytes_` / `_bytes` bytes, `_levels`
-/// octree levels of screen-space error; counts are plain. `error_pixels` is the error-weighted
-/// pixel count (levels × pixels), `image_rmse` is in the units of the image comparison that
-/// produced it, `differing_share` is a fraction in 0..=1.
-pub const CSV_COLUMNS: [&str; 25] = [
-    "cycle",
-    "time_s",
-    "analysis_ms",
-    "presort_ms",
-    "request_ms",
-    "integrate_ms",
-    "upload_ms",
-    "render_ms",
-    "requests_sent",
-    "treelets_received",
-    "bytes_received",
-    "treelets_inserted",
-    "slots_used",
-    "slots_total",
-    "evictions",
-    "dropped",
-    "upload_ranges",
-    "upload_bytes",
-    "samples",
-    "error_mean_levels",
-    "error_p95_levels",
-    "error_max_levels",
-    "error_pixels",
-    "image_rmse",
-    "differing_share",
-];
+/// The report's columns, once: name (with its unit), the [`CycleRecord`] field, and the cell
+/// type. The CSV header ([`CSV_COLUMNS`]), the writer and the parser are all generated from this
+/// one list, so they cannot disagree.
+macro_rules! report_columns {
+    ($($name:literal => $($field:ident).+ : $kind:ident),* $(,)?) => {
+        /// The CSV header, in column order. Units are part of the names: `_s` seconds since the
+        /// run started, `_ms` milliseconds of wall time in that phase, `bytes_` / `_bytes` bytes,
+        /// `_levels` octree levels of screen-space error; counts are plain. `error_pixels` is
+        /// the error-weighted pixel count (levels × pixels), `image_rmse` is in the units of the
+        /// image comparison that produced it, `differing_share` is a fraction in 0..=1.
+        pub const CSV_COLUMNS: &[&str] = &[$($name),*];
+
+        /// One data row, without the line end.
+        fn write_row(out: &mut String, r: &CycleRecord) {
+            $(
+                write_cell::$kind(out, r.$($field).+);
+                out.push(',');
+            )*
+            out.pop();
+        }
+
+        /// One data row's cells, in column order.
+        fn parse_row(line: usize, cells: &[&str]) -> Result<CycleRecord, ReportError> {
+            if cells.len() != CSV_COLUMNS.len() {
+                return Err(ReportError::ColumnCount {
+                    line,
+                    found: cells.len(),
+                });
+            }
+            let mut c = Cells {
+                line,
+                cells,
+                next: 0,
+            };
+            let mut r = CycleRecord::default();
+            $( r.$($field).+ = c.$kind()?; )*
+            Ok(r)
+        }
+    };
+}
+
+report_columns! {
+    "cycle" => cycle: u32,
+    "time_s" => time_s: f64,
+    "analysis_ms" => analysis_ms: f64,
+    "presort_ms" => presort_ms: f64,
+    "request_ms" => request_ms: f64,
+    "integrate_ms" => integrate_ms: f64,
+    "upload_ms" => upload_ms: f64,
+    "render_ms" => render_ms: f64,
+    "requests_sent" => requests_sent: u32,
+    "treelets_received" => treelets_received: u32,
+    "bytes_received" => bytes_received: u64,
+    "treelets_inserted" => treelets_inserted: u32,
+    "slots_used" => slots_used: u32,
+    "slots_total" => slots_total: u32,
+    "evictions" => evictions: u32,
+    "dropped" => dropped: u32,
+    "upload_ranges" => upload_ranges: u32,
+    "upload_bytes" => upload_bytes: u64,
+    "samples" => samples: u32,
+    "error_mean_levels" => error.mean: f32,
+    "error_p95_levels" => error.p95: f32,
+    "error_max_levels" => error.max: f32,
+    "error_pixels" => error.error_pixels: f64,
+    "image_rmse" => image_rmse: opt_f64,
+    "differing_share" => differing_share: opt_f64,
+}
+
+/// Cell writers by cell type: Rust's shortest round-trip formatting; `None` is an empty cell.
+mod write_cell {
+    use std::fmt::Write as _;
+
+    pub(super) fn u32(out: &mut String, v: u32) {
+        let _ = write!(out, "{v}");
+    }
+    pub(super) fn u64(out: &mut String, v: u64) {
+        let _ = write!(out, "{v}");
+    }
+    pub(super) fn f32(out: &mut String, v: f32) {
+        let _ = write!(out, "{v}");
+    }
+    pub(super) fn f64(out: &mut String, v: f64) {
+        let _ = write!(out, "{v}");
+    }
+    pub(super) fn opt_f64(out: &mut String, v: Option<f64>) {
+        if let Some(v) = v {
+            let _ = write!(out, "{v}");
+        }
+    }
+}
 
 /// The `# key=value` meta keys, in the order they are written.
 pub const META_KEYS: [&str; 8] = [
@@ -275,36 +334,8 @@ impl RunReport {
         s.push_str(&CSV_COLUMNS.join(","));
         s.push('\n');
         for r in &self.records {
-            let opt = |v: Option<f64>| v.map(|v| v.to_string()).unwrap_or_default();
-            let _ = writeln!(
-                s,
-                "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
-                r.cycle,
-                r.time_s,
-                r.analysis_ms,
-                r.presort_ms,
-                r.request_ms,
-                r.integrate_ms,
-                r.upload_ms,
-                r.render_ms,
-                r.requests_sent,
-                r.treelets_received,
-                r.bytes_received,
-                r.treelets_inserted,
-                r.slots_used,
-                r.slots_total,
-                r.evictions,
-                r.dropped,
-                r.upload_ranges,
-                r.upload_bytes,
-                r.samples,
-                r.error.mean,
-                r.error.p95,
-                r.error.max,
-                r.error.error_pixels,
-                opt(r.image_rmse),
-                opt(r.differing_share),
-            );
+            write_row(&mut s, r);
+            s.push('\n');
         }
         s
     }
@@ -559,49 +590,6 @@ impl Cells<'_> {
         }
         self.take("a number or empty").map(Some)
     }
-}
-
-fn parse_row(line: usize, cells: &[&str]) -> Result<CycleRecord, ReportError> {
-    if cells.len() != CSV_COLUMNS.len() {
-        return Err(ReportError::ColumnCount {
-            line,
-            found: cells.len(),
-        });
-    }
-    let mut c = Cells {
-        line,
-        cells,
-        next: 0,
-    };
-    Ok(CycleRecord {
-        cycle: c.u32()?,
-        time_s: c.f64()?,
-        analysis_ms: c.f64()?,
-        presort_ms: c.f64()?,
-        request_ms: c.f64()?,
-        integrate_ms: c.f64()?,
-        upload_ms: c.f64()?,
-        render_ms: c.f64()?,
-        requests_sent: c.u32()?,
-        treelets_received: c.u32()?,
-        bytes_received: c.u64()?,
-        treelets_inserted: c.u32()?,
-        slots_used: c.u32()?,
-        slots_total: c.u32()?,
-        evictions: c.u32()?,
-        dropped: c.u32()?,
-        upload_ranges: c.u32()?,
-        upload_bytes: c.u64()?,
-        samples: c.u32()?,
-        error: ErrorSummary {
-            mean: c.f32()?,
-            p95: c.f32()?,
-            max: c.f32()?,
-            error_pixels: c.f64()?,
-        },
-        image_rmse: c.opt_f64()?,
-        differing_share: c.opt_f64()?,
-    })
 }
 
 fn build_meta(

@@ -2,12 +2,12 @@
 //! admin API's gauges of the process and the pool. Every family here is new (none of the
 //! service's names), each declared once with HELP and TYPE before its samples.
 
-use std::fmt::Write as _;
 use std::time::Duration;
 
 use arbor_proto::SceneDescription;
 
 use crate::pool::{Pool, PoolError};
+use crate::prometheus::{Kind, PromText};
 use crate::service::state::ServiceState;
 
 /// Prometheus text exposition format 0.0.4.
@@ -43,147 +43,98 @@ pub(super) fn stream_bytes(d: &SceneDescription) -> Vec<(&'static str, u64)> {
     v
 }
 
-/// A label value escaped as the text format asks (`\`, `"`, newline).
-fn label(v: &str) -> String {
-    let mut out = String::with_capacity(v.len());
-    for c in v.chars() {
-        match c {
-            '\\' => out.push_str("\\\\"),
-            '"' => out.push_str("\\\""),
-            '\n' => out.push_str("\\n"),
-            c => out.push(c),
-        }
-    }
-    out
-}
-
-fn family(out: &mut String, name: &str, kind: &str, help: &str) {
-    let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} {kind}");
-}
-
 /// The whole `/metrics` body. `pool` is `None` when the pool could not be read: its families are
 /// still declared, without samples, and `arbor_pool_readable` is 0.
 pub(super) fn render(state: &ServiceState, uptime: Duration, pool: Option<&PoolFigures>) -> String {
-    let mut out = state.render_prometheus();
-    if !out.is_empty() && !out.ends_with('\n') {
-        out.push('\n');
-    }
-    family(
-        &mut out,
+    let mut p = PromText::default();
+    state.write_prometheus(&mut p);
+    p.family(
         "arbor_build_info",
-        "gauge",
+        Kind::Gauge,
         "Always 1; the server's version in a label.",
-    );
-    let _ = writeln!(
-        out,
-        "arbor_build_info{{version=\"{}\"}} 1",
-        label(env!("CARGO_PKG_VERSION"))
-    );
-    family(
-        &mut out,
+    )
+    .sample(
+        "arbor_build_info",
+        &[("version", env!("CARGO_PKG_VERSION"))],
+        1,
+    )
+    .single(
         "arbor_ready",
-        "gauge",
+        Kind::Gauge,
         "1 when the service is ready (pool open, endpoint bound, not shutting down), else 0.",
-    );
-    let _ = writeln!(out, "arbor_ready {}", u8::from(state.is_ready()));
-    family(
-        &mut out,
+        u8::from(state.is_ready()),
+    )
+    .single(
         "arbor_shutting_down",
-        "gauge",
+        Kind::Gauge,
         "1 once graceful shutdown has begun, else 0.",
-    );
-    let _ = writeln!(
-        out,
-        "arbor_shutting_down {}",
-        u8::from(state.is_shutting_down())
-    );
-    family(
-        &mut out,
+        u8::from(state.is_shutting_down()),
+    )
+    .single(
         "arbor_uptime_seconds",
-        "gauge",
+        Kind::Gauge,
         "Seconds since the service started its admin API.",
-    );
-    let _ = writeln!(out, "arbor_uptime_seconds {}", uptime.as_secs_f64());
-    family(
-        &mut out,
+        uptime.as_secs_f64(),
+    )
+    .single(
         "arbor_pool_readable",
-        "gauge",
+        Kind::Gauge,
         "1 when the pool's catalogue could be read for this scrape, else 0.",
+        u8::from(pool.is_some()),
     );
-    let _ = writeln!(out, "arbor_pool_readable {}", u8::from(pool.is_some()));
-    family(
-        &mut out,
-        "arbor_pool_scenes",
-        "gauge",
-        "Scenes in the pool.",
-    );
-    if let Some(p) = pool {
-        let _ = writeln!(out, "arbor_pool_scenes {}", p.scenes.len());
+    p.family("arbor_pool_scenes", Kind::Gauge, "Scenes in the pool.");
+    if let Some(pool) = pool {
+        p.sample("arbor_pool_scenes", &[], pool.scenes.len());
     }
-    family(
-        &mut out,
+    p.family(
         "arbor_pool_disk_bytes",
-        "gauge",
+        Kind::Gauge,
         "Bytes the pool database occupies on disk.",
     );
-    if let Some(p) = pool {
-        let _ = writeln!(out, "arbor_pool_disk_bytes {}", p.disk_bytes);
+    if let Some(pool) = pool {
+        p.sample("arbor_pool_disk_bytes", &[], pool.disk_bytes);
     }
-    let scenes = pool.map_or(&[][..], |p| &p.scenes[..]);
-    family(
-        &mut out,
-        "arbor_scene_treelets",
-        "gauge",
-        "Treelets of a scene.",
-    );
+    scene_families(&mut p, pool.map_or(&[][..], |p| &p.scenes[..]));
+    p.finish()
+}
+
+/// Per-scene gauges.
+fn scene_families(p: &mut PromText, scenes: &[SceneDescription]) {
+    p.family("arbor_scene_treelets", Kind::Gauge, "Treelets of a scene.");
     for d in scenes {
-        let _ = writeln!(
-            out,
-            "arbor_scene_treelets{{scene=\"{}\"}} {}",
-            label(&d.name),
-            d.treelet_count
+        p.sample(
+            "arbor_scene_treelets",
+            &[("scene", &d.name)],
+            d.treelet_count,
         );
     }
-    family(
-        &mut out,
+    p.family(
         "arbor_scene_voxels",
-        "gauge",
+        Kind::Gauge,
         "Voxels (node records in use, inner and leaf) of a scene.",
     );
     for d in scenes {
-        let _ = writeln!(
-            out,
-            "arbor_scene_voxels{{scene=\"{}\"}} {}",
-            label(&d.name),
-            d.stats.voxels
-        );
+        p.sample("arbor_scene_voxels", &[("scene", &d.name)], d.stats.voxels);
     }
-    family(
-        &mut out,
+    p.family(
         "arbor_scene_compressed_bytes",
-        "gauge",
+        Kind::Gauge,
         "Compressed bytes of a scene in the pool, by stream (nodes or an attribute channel).",
     );
     for d in scenes {
         for (stream, bytes) in stream_bytes(d) {
-            let _ = writeln!(
-                out,
-                "arbor_scene_compressed_bytes{{scene=\"{}\",stream=\"{stream}\"}} {bytes}",
-                label(&d.name)
+            p.sample(
+                "arbor_scene_compressed_bytes",
+                &[("scene", &d.name), ("stream", stream)],
+                bytes,
             );
         }
     }
-    out
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn labels_are_escaped() {
-        assert_eq!(label("a\"b\\c\nd"), "a\\\"b\\\\c\\nd");
-    }
 
     #[test]
     fn families_are_declared_once_even_without_a_pool() {

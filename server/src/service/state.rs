@@ -5,7 +5,6 @@
 //! is a mutex-guarded map touched once per request list and once per treelet.
 
 use std::collections::BTreeMap;
-use std::fmt::Write as _;
 use std::net::SocketAddr;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -14,6 +13,8 @@ use std::time::{Duration, SystemTime};
 use arbor_proto::Channel;
 use arbor_proto::wire::ErrorCode;
 use serde::Serialize;
+
+use crate::prometheus::{Kind, PromText};
 
 /// Upper bounds (seconds) of the request-to-send latency histogram buckets.
 pub const LATENCY_BUCKETS: [f64; 14] = [
@@ -193,98 +194,106 @@ impl ServiceState {
 
     /// The metrics in Prometheus text exposition format (version 0.0.4).
     pub fn render_prometheus(&self) -> String {
+        let mut p = PromText::default();
+        self.write_prometheus(&mut p);
+        p.finish()
+    }
+
+    /// Writes the service's families into `p`.
+    pub fn write_prometheus(&self, p: &mut PromText) {
         let m = &self.metrics;
-        let mut out = String::new();
-        let mut counter = |name: &str, help: &str, v: u64| {
-            let _ = writeln!(
-                out,
-                "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}"
-            );
-        };
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
-        counter(
-            "arbor_connections_accepted_total",
-            "QUIC connections accepted.",
-            load(&m.connections_accepted),
-        );
-        counter(
-            "arbor_connections_rejected_total",
-            "QUIC connections refused (cap, shutdown).",
-            load(&m.connections_rejected),
-        );
-        counter(
-            "arbor_request_lists_total",
-            "Request lists received.",
-            load(&m.request_lists),
-        );
-        counter(
-            "arbor_request_items_total",
-            "Items in request lists received.",
-            load(&m.request_items),
-        );
-        counter(
-            "arbor_treelets_sent_total",
-            "Treelets sent completely.",
-            load(&m.treelets_sent),
-        );
-        counter(
-            "arbor_treelet_bytes_sent_total",
-            "Bytes of treelet messages sent.",
-            load(&m.treelet_bytes_sent),
-        );
-        counter(
-            "arbor_treelets_cancelled_total",
-            "Treelet streams reset because the client no longer wanted them.",
-            load(&m.treelets_cancelled),
-        );
+        let counters: [(&str, &str, &AtomicU64); 7] = [
+            (
+                "arbor_connections_accepted_total",
+                "QUIC connections accepted.",
+                &m.connections_accepted,
+            ),
+            (
+                "arbor_connections_rejected_total",
+                "QUIC connections refused (cap, shutdown).",
+                &m.connections_rejected,
+            ),
+            (
+                "arbor_request_lists_total",
+                "Request lists received.",
+                &m.request_lists,
+            ),
+            (
+                "arbor_request_items_total",
+                "Items in request lists received.",
+                &m.request_items,
+            ),
+            (
+                "arbor_treelets_sent_total",
+                "Treelets sent completely.",
+                &m.treelets_sent,
+            ),
+            (
+                "arbor_treelet_bytes_sent_total",
+                "Bytes of treelet messages sent.",
+                &m.treelet_bytes_sent,
+            ),
+            (
+                "arbor_treelets_cancelled_total",
+                "Treelet streams reset because the client no longer wanted them.",
+                &m.treelets_cancelled,
+            ),
+        ];
+        for (name, help, value) in counters {
+            p.single(name, Kind::Counter, help, load(value));
+        }
         let sessions = self.sessions();
         let queued: u64 = sessions.iter().map(|s| s.queue_depth).sum();
         let in_flight: u64 = sessions.iter().map(|s| s.in_flight).sum();
-        let _ = writeln!(
-            out,
-            "# HELP arbor_connections_open Connections open now.\n# TYPE arbor_connections_open gauge\narbor_connections_open {}",
-            load(&m.connections_open)
+        p.single(
+            "arbor_connections_open",
+            Kind::Gauge,
+            "Connections open now.",
+            load(&m.connections_open),
+        )
+        .single(
+            "arbor_queue_depth",
+            Kind::Gauge,
+            "Treelets queued to send, over all connections.",
+            queued,
+        )
+        .single(
+            "arbor_in_flight",
+            Kind::Gauge,
+            "Treelets in flight, over all connections.",
+            in_flight,
         );
-        let _ = writeln!(
-            out,
-            "# HELP arbor_queue_depth Treelets queued to send, over all connections.\n# TYPE arbor_queue_depth gauge\narbor_queue_depth {queued}"
-        );
-        let _ = writeln!(
-            out,
-            "# HELP arbor_in_flight Treelets in flight, over all connections.\n# TYPE arbor_in_flight gauge\narbor_in_flight {in_flight}"
-        );
-        let _ = writeln!(
-            out,
-            "# HELP arbor_errors_total Connections closed or streams reset, by error code.\n# TYPE arbor_errors_total counter"
+        p.family(
+            "arbor_errors_total",
+            Kind::Counter,
+            "Connections closed or streams reset, by error code.",
         );
         for code in ErrorCode::ALL {
-            let _ = writeln!(
-                out,
-                "arbor_errors_total{{kind=\"{}\"}} {}",
-                code.name(),
-                m.errors(code)
+            p.sample(
+                "arbor_errors_total",
+                &[("kind", code.name())],
+                m.errors(code),
             );
         }
         let h = &m.request_to_send;
-        let _ = writeln!(
-            out,
-            "# HELP arbor_request_to_send_seconds From the first request list naming a treelet to its stream finishing.\n# TYPE arbor_request_to_send_seconds histogram"
+        let name = "arbor_request_to_send_seconds";
+        p.family(
+            name,
+            Kind::Histogram,
+            "From the first request list naming a treelet to its stream finishing.",
         );
+        let bucket = format!("{name}_bucket");
         for (b, le) in h.buckets.iter().zip(LATENCY_BUCKETS) {
-            let _ = writeln!(
-                out,
-                "arbor_request_to_send_seconds_bucket{{le=\"{le}\"}} {}",
-                load(b)
-            );
+            p.sample(&bucket, &[("le", &le.to_string())], load(b));
         }
-        let _ = writeln!(
-            out,
-            "arbor_request_to_send_seconds_bucket{{le=\"+Inf\"}} {}\narbor_request_to_send_seconds_sum {}\narbor_request_to_send_seconds_count {}",
-            h.count(),
-            load(&h.sum_micros) as f64 / 1e6,
-            h.count()
-        );
-        out
+        p.sample(&bucket, &[("le", "+Inf")], h.count())
+            .sample(
+                &format!("{name}_sum"),
+                &[],
+                load(&h.sum_micros) as f64 / 1e6,
+            )
+            .sample(&format!("{name}_count"), &[], h.count());
     }
 }
 
