@@ -241,146 +241,179 @@ fn legend_line(color: RGBColor) -> impl Fn((i32, i32)) -> PathElement<(i32, i32)
     move |(x, y)| PathElement::new(vec![(x, y), (x + 24, y)], color.stroke_width(2))
 }
 
+/// One line of a panel.
+struct Line<'a> {
+    points: &'a Points,
+    color: RGBColor,
+    label: &'a str,
+}
+
+/// A panel: lines on a left and a right y axis over the shared x range.
+struct Panel<'a> {
+    caption: &'a str,
+    /// Drawn under the bottom panel only.
+    x_desc: Option<&'a str>,
+    y_desc: &'a str,
+    y2_desc: &'a str,
+    /// Whether the right axis is drawn (its lines are drawn either way).
+    right_axis: bool,
+    left: Vec<Line<'a>>,
+    right: Vec<Line<'a>>,
+    legend: SeriesLabelPosition,
+}
+
 fn draw_error_panel(
     area: &DrawingArea<BitMapBackend<'_>, Shift>,
     s: &Series,
 ) -> Result<(), ChartError> {
-    let has_rmse = !s.rmse.is_empty();
-    let y = axis_range(s.mean.iter().chain(&s.p95).chain(&s.max).map(|p| p.1), true);
-    let y2 = axis_range(s.rmse.iter().map(|p| p.1), true);
-    let mut chart = ChartBuilder::on(area)
-        .margin(12)
-        .x_label_area_size(36)
-        .y_label_area_size(70)
-        .right_y_label_area_size(RIGHT_AXIS)
-        .caption("Screen-space error", ("sans-serif", 20))
-        .build_cartesian_2d(s.x.clone(), y)
-        .map_err(draw_err)?
-        .set_secondary_coord(s.x.clone(), y2);
-    chart
-        .configure_mesh()
-        .y_desc("error (octree levels)")
-        .label_style(("sans-serif", 14))
-        .axis_desc_style(("sans-serif", 16))
-        .draw()
-        .map_err(draw_err)?;
-    if has_rmse {
-        chart
-            .configure_secondary_axes()
-            .y_desc("image RMSE vs reference")
-            .label_style(("sans-serif", 14))
-            .axis_desc_style(("sans-serif", 16))
-            .draw()
-            .map_err(draw_err)?;
-    }
-    for (points, color, label) in [
-        (&s.mean, MEAN, "error mean (levels)"),
-        (&s.p95, P95, "error p95 (levels)"),
-        (&s.max, MAX, "error max (levels)"),
-    ] {
-        chart
-            .draw_series(LineSeries::new(
-                points.iter().copied(),
-                color.stroke_width(2),
-            ))
-            .map_err(draw_err)?
-            .label(label)
-            .legend(legend_line(color));
-        if s.markers {
-            chart
-                .draw_series(points.iter().map(|&p| Circle::new(p, 3, color.filled())))
-                .map_err(draw_err)?;
-        }
-    }
-    if has_rmse {
-        chart
-            .draw_secondary_series(LineSeries::new(
-                s.rmse.iter().copied(),
-                RMSE.stroke_width(2),
-            ))
-            .map_err(draw_err)?
-            .label("image RMSE (right axis)")
-            .legend(legend_line(RMSE));
-        if s.markers {
-            chart
-                .draw_secondary_series(s.rmse.iter().map(|&p| Circle::new(p, 3, RMSE.filled())))
-                .map_err(draw_err)?;
-        }
-    }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .label_font(("sans-serif", 14))
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(draw_err)
+    let panel = Panel {
+        caption: "Screen-space error",
+        x_desc: None,
+        y_desc: "error (octree levels)",
+        y2_desc: "image RMSE vs reference",
+        right_axis: !s.rmse.is_empty(),
+        left: vec![
+            Line {
+                points: &s.mean,
+                color: MEAN,
+                label: "error mean (levels)",
+            },
+            Line {
+                points: &s.p95,
+                color: P95,
+                label: "error p95 (levels)",
+            },
+            Line {
+                points: &s.max,
+                color: MAX,
+                label: "error max (levels)",
+            },
+        ],
+        right: vec![Line {
+            points: &s.rmse,
+            color: RMSE,
+            label: "image RMSE (right axis)",
+        }],
+        legend: SeriesLabelPosition::UpperRight,
+    };
+    draw_panel(area, s, panel)
 }
 
 fn draw_traffic_panel(
     area: &DrawingArea<BitMapBackend<'_>, Shift>,
     s: &Series,
 ) -> Result<(), ChartError> {
-    let y = axis_range(s.mb_per_s.iter().map(|p| p.1), true);
-    let y2 = axis_range(s.slots_used.iter().chain(&s.slots_total).map(|p| p.1), true);
+    let panel = Panel {
+        caption: "Traffic and slots",
+        x_desc: Some("run time (s)"),
+        y_desc: "received (MB/s, 1 MB = 10⁶ B)",
+        y2_desc: "slots",
+        right_axis: true,
+        left: vec![Line {
+            points: &s.mb_per_s,
+            color: RATE,
+            label: "received (MB/s)",
+        }],
+        right: vec![
+            Line {
+                points: &s.slots_used,
+                color: USED,
+                label: "slots used (right axis)",
+            },
+            Line {
+                points: &s.slots_total,
+                color: TOTAL,
+                label: "slots total (right axis)",
+            },
+        ],
+        legend: SeriesLabelPosition::LowerRight,
+    };
+    draw_panel(area, s, panel)
+}
+
+/// Draws `panel` into `area`: axes from its lines' values, the lines (with markers for short
+/// reports) and the legend. A right line with no points is left out of the legend.
+fn draw_panel(
+    area: &DrawingArea<BitMapBackend<'_>, Shift>,
+    s: &Series,
+    panel: Panel<'_>,
+) -> Result<(), ChartError> {
+    let values = |lines: &[Line<'_>]| -> Vec<f64> {
+        lines
+            .iter()
+            .flat_map(|l| l.points.iter().map(|p| p.1))
+            .collect()
+    };
+    let y = axis_range(values(&panel.left).into_iter(), true);
+    let y2 = axis_range(values(&panel.right).into_iter(), true);
     let mut chart = ChartBuilder::on(area)
         .margin(12)
-        .x_label_area_size(44)
+        .x_label_area_size(if panel.x_desc.is_some() { 44 } else { 36 })
         .y_label_area_size(70)
         .right_y_label_area_size(RIGHT_AXIS)
-        .caption("Traffic and slots", ("sans-serif", 20))
+        .caption(panel.caption, ("sans-serif", 20))
         .build_cartesian_2d(s.x.clone(), y)
         .map_err(draw_err)?
         .set_secondary_coord(s.x.clone(), y2);
-    chart
-        .configure_mesh()
-        .x_desc("run time (s)")
-        .y_desc("received (MB/s, 1 MB = 10⁶ B)")
+    let mut mesh = chart.configure_mesh();
+    if let Some(x_desc) = panel.x_desc {
+        mesh.x_desc(x_desc);
+    }
+    mesh.y_desc(panel.y_desc)
         .label_style(("sans-serif", 14))
         .axis_desc_style(("sans-serif", 16))
         .draw()
         .map_err(draw_err)?;
-    chart
-        .configure_secondary_axes()
-        .y_desc("slots")
-        .label_style(("sans-serif", 14))
-        .axis_desc_style(("sans-serif", 16))
-        .draw()
-        .map_err(draw_err)?;
-    chart
-        .draw_series(LineSeries::new(
-            s.mb_per_s.iter().copied(),
-            RATE.stroke_width(2),
-        ))
-        .map_err(draw_err)?
-        .label("received (MB/s)")
-        .legend(legend_line(RATE));
-    for (points, color, label) in [
-        (&s.slots_used, USED, "slots used (right axis)"),
-        (&s.slots_total, TOTAL, "slots total (right axis)"),
-    ] {
+    if panel.right_axis {
         chart
-            .draw_secondary_series(LineSeries::new(
-                points.iter().copied(),
-                color.stroke_width(2),
+            .configure_secondary_axes()
+            .y_desc(panel.y2_desc)
+            .label_style(("sans-serif", 14))
+            .axis_desc_style(("sans-serif", 16))
+            .draw()
+            .map_err(draw_err)?;
+    }
+    for line in &panel.left {
+        chart
+            .draw_series(LineSeries::new(
+                line.points.iter().copied(),
+                line.color.stroke_width(2),
             ))
             .map_err(draw_err)?
-            .label(label)
-            .legend(legend_line(color));
-    }
-    if s.markers {
-        chart
-            .draw_series(s.mb_per_s.iter().map(|&p| Circle::new(p, 3, RATE.filled())))
-            .map_err(draw_err)?;
-        for (points, color) in [(&s.slots_used, USED), (&s.slots_total, TOTAL)] {
+            .label(line.label)
+            .legend(legend_line(line.color));
+        if s.markers {
             chart
-                .draw_secondary_series(points.iter().map(|&p| Circle::new(p, 3, color.filled())))
+                .draw_series(
+                    line.points
+                        .iter()
+                        .map(|&p| Circle::new(p, 3, line.color.filled())),
+                )
+                .map_err(draw_err)?;
+        }
+    }
+    for line in panel.right.iter().filter(|l| !l.points.is_empty()) {
+        chart
+            .draw_secondary_series(LineSeries::new(
+                line.points.iter().copied(),
+                line.color.stroke_width(2),
+            ))
+            .map_err(draw_err)?
+            .label(line.label)
+            .legend(legend_line(line.color));
+        if s.markers {
+            chart
+                .draw_secondary_series(
+                    line.points
+                        .iter()
+                        .map(|&p| Circle::new(p, 3, line.color.filled())),
+                )
                 .map_err(draw_err)?;
         }
     }
     chart
         .configure_series_labels()
-        .position(SeriesLabelPosition::LowerRight)
+        .position(panel.legend)
         .label_font(("sans-serif", 14))
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
