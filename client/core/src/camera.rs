@@ -334,7 +334,7 @@ impl fmt::Display for CameraPath {
 }
 
 /// Unit vector at `azimuth` about +Z from +X and `elevation` above the XY plane.
-fn spherical(azimuth: f64, elevation: f64) -> DVec3 {
+pub fn spherical(azimuth: f64, elevation: f64) -> DVec3 {
     DVec3::new(
         elevation.cos() * azimuth.cos(),
         elevation.cos() * azimuth.sin(),

@@ -19,7 +19,7 @@ use std::f64::consts::FRAC_PI_2;
 
 use glam::DVec3;
 
-use arbor_client_core::camera::{Camera, CameraPath, MAX_FRAME_SIDE, WORLD_UP};
+use arbor_client_core::camera::{Camera, CameraPath, MAX_FRAME_SIDE, WORLD_UP, spherical};
 use arbor_client_core::incore::SceneFrame;
 
 /// Orbit and look rotation per pixel of mouse movement, radians.
@@ -256,14 +256,6 @@ impl Controls {
 /// Azimuth about +Z from +X and elevation above the XY plane of a unit vector.
 fn angles(dir: DVec3) -> (f64, f64) {
     (dir.y.atan2(dir.x), dir.z.clamp(-1.0, 1.0).asin())
-}
-
-fn spherical(azimuth: f64, elevation: f64) -> DVec3 {
-    DVec3::new(
-        elevation.cos() * azimuth.cos(),
-        elevation.cos() * azimuth.sin(),
-        elevation.sin(),
-    )
 }
 
 #[cfg(test)]
