@@ -1,6 +1,8 @@
 //! `arbor-client`: headless runs against a treelet server, with images, error-against-time
 //! reports and charts; reference images of the fully resident scene; the window viewer.
 
+#![forbid(unsafe_code)]
+
 use std::path::PathBuf;
 use std::time::Duration;
 

@@ -204,10 +204,12 @@ impl AttributeLayout {
         Self { channels }
     }
 
+    /// The stored channels, in layout order.
     pub fn channels(&self) -> &[Channel] {
         &self.channels
     }
 
+    /// The scene stores channel `c`.
     pub fn contains(&self, c: Channel) -> bool {
         self.channels.contains(&c)
     }

@@ -10,9 +10,13 @@ use crate::limits::MAX_DEPTH;
     Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize,
 )]
 pub struct Cell {
+    /// Depth below the root (0 = the root cube), at most 31.
     pub depth: u8,
+    /// Integer x of the cell at its depth, in `0..2^depth`.
     pub x: u32,
+    /// Integer y of the cell at its depth.
     pub y: u32,
+    /// Integer z of the cell at its depth.
     pub z: u32,
 }
 

@@ -208,6 +208,7 @@ impl std::fmt::Debug for BlockCompressor {
 }
 
 impl BlockCompressor {
+    /// A compressor at zstd `level`, with `dictionary` if given.
     pub fn new(level: i32, dictionary: Option<&[u8]>) -> Result<Self, ProtoError> {
         let inner = match dictionary {
             Some(d) => zstd::bulk::Compressor::with_dictionary(level, d),
@@ -220,6 +221,7 @@ impl BlockCompressor {
         Ok(Self { inner })
     }
 
+    /// Compresses one block.
     pub fn compress(&mut self, raw: &[u8]) -> Result<Vec<u8>, ProtoError> {
         self.inner
             .compress(raw)

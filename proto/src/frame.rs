@@ -50,32 +50,54 @@ pub enum FrameError {
     /// A frame announced (or an encoder was given) a payload longer than the limit for its type
     /// or for the decoder.
     #[error("frame payload of {len} bytes exceeds the limit of {limit}")]
-    TooLarge { len: usize, limit: usize },
+    TooLarge {
+        /// The length found.
+        len: usize,
+        /// The limit.
+        limit: usize,
+    },
     /// The frame-type byte is not a known [`FrameType`].
     #[error("unknown frame type {0}")]
     UnknownType(u8),
     /// The bytes end before a field does.
     #[error("{what}: truncated, need {need} bytes, have {have}")]
     Truncated {
+        /// What was being read.
         what: &'static str,
+        /// Bytes needed.
         need: usize,
+        /// Bytes available.
         have: usize,
     },
     /// Bytes are left over after the last field of a frame or message.
     #[error("{what}: {extra} trailing bytes")]
-    TrailingBytes { what: &'static str, extra: usize },
+    TrailingBytes {
+        /// What was being read.
+        what: &'static str,
+        /// Bytes left over.
+        extra: usize,
+    },
     /// `Hello` carries a protocol version other than [`PROTOCOL_VERSION`]. The version is the
     /// first field, so a future layout is still answered with this error.
     #[error("unsupported protocol version {found}, this build speaks {PROTOCOL_VERSION}")]
-    UnsupportedVersion { found: u16 },
+    UnsupportedVersion {
+        /// The value found.
+        found: u16,
+    },
     /// A string field is not UTF-8.
     #[error("{what} is not valid UTF-8")]
-    BadUtf8 { what: &'static str },
+    BadUtf8 {
+        /// What was being read.
+        what: &'static str,
+    },
     /// A string field is longer than its limit.
     #[error("{what}: {len} bytes exceeds the limit of {limit}")]
     FieldTooLong {
+        /// What was being read.
         what: &'static str,
+        /// The length found.
         len: usize,
+        /// The limit.
         limit: usize,
     },
     /// The scene name in `Hello` is not a valid scene name.
@@ -83,7 +105,12 @@ pub enum FrameError {
     BadSceneName(ProtoError),
     /// More channels than [`MAX_CHANNELS`].
     #[error("{count} channels exceeds the limit of {limit}")]
-    TooManyChannels { count: usize, limit: usize },
+    TooManyChannels {
+        /// How many were given.
+        count: usize,
+        /// The limit.
+        limit: usize,
+    },
     /// A channel id this build does not know.
     #[error("unknown channel id {0}")]
     UnknownChannel(u8),
@@ -92,13 +119,26 @@ pub enum FrameError {
     DuplicateChannel(Channel),
     /// A request list with more than [`MAX_REQUEST_ITEMS`] items.
     #[error("request list of {len} items exceeds the limit of {limit}")]
-    ListTooLong { len: usize, limit: usize },
+    ListTooLong {
+        /// The length found.
+        len: usize,
+        /// The limit.
+        limit: usize,
+    },
     /// A request-list priority is NaN or infinite.
     #[error("request item {index} (treelet {treelet}): priority is not finite")]
-    NonFinitePriority { index: usize, treelet: TreeletId },
+    NonFinitePriority {
+        /// Position in the list.
+        index: usize,
+        /// The treelet named there.
+        treelet: TreeletId,
+    },
     /// A treelet id is [`TreeletId::NONE`], which names no treelet.
     #[error("item {index}: treelet id NONE")]
-    NoneTreeletId { index: usize },
+    NoneTreeletId {
+        /// Position in the list.
+        index: usize,
+    },
     /// An error code this build does not know.
     #[error("unknown error code {0}")]
     UnknownErrorCode(u32),
@@ -109,8 +149,11 @@ pub enum FrameError {
     /// A treelet-message block is empty or longer than [`MAX_COMPRESSED_BLOCK`].
     #[error("{what}: block of {len} bytes, must be 1..={limit}")]
     BadBlockLength {
+        /// What was being read.
         what: &'static str,
+        /// The length found.
         len: usize,
+        /// The limit.
         limit: usize,
     },
     /// A treelet message's used-node count is 0 or more than a treelet can hold.
@@ -591,6 +634,7 @@ impl FrameDecoder {
 /// A decoded treelet message, borrowing its blocks from the input.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct TreeletMessage<'a> {
+    /// The treelet.
     pub id: TreeletId,
     /// Node records in use, as announced; must match the decompressed node header.
     pub used_nodes: u16,
@@ -603,7 +647,9 @@ pub struct TreeletMessage<'a> {
 /// The parsed fixed part of a treelet message.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct TreeletMessageHeader {
+    /// The treelet.
     pub id: TreeletId,
+    /// Node records in use, as announced.
     pub used_nodes: u16,
     /// Compressed node block length.
     pub node_len: usize,

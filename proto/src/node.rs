@@ -13,9 +13,14 @@ use bytemuck::{Pod, Zeroable};
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Pod, Zeroable)]
 pub struct Node {
+    /// Inner node: offset of the first child from this node's own index. Leaf: the refining
+    /// treelet's id, or [`Node::NONE`].
     pub first_child: u32,
+    /// Bit `i`: child `i` exists.
     pub valid_mask: u8,
+    /// Bit `i`: child `i` is a leaf in this buffer.
     pub leaf_mask: u8,
+    /// Must be zero.
     pub spare: u16,
 }
 

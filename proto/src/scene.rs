@@ -10,8 +10,11 @@ use crate::treelet::{TreeletId, nodes_for_bytes};
 /// What kind of input a scene was built from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum SourceKind {
+    /// Triangles (OBJ, PLY faces or strips).
     Mesh,
+    /// A point cloud (LAS/LAZ, PLY vertices).
     Points,
+    /// Volume samples with an iso threshold (NRRD, raw).
     Volume,
 }
 
@@ -46,6 +49,7 @@ pub struct SceneStats {
     pub channel_bytes: Vec<u64>,
     /// Uncompressed bytes (nodes + attributes) of the used records.
     pub raw_bytes: u64,
+    /// Wall time of the build.
     pub build_seconds: f64,
     /// Bytes of primitive id lists written to the builder's spill file.
     pub spilled_bytes: u64,
@@ -60,6 +64,7 @@ pub struct SceneStats {
 /// A scene as stored in the pool and announced to clients.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SceneDescription {
+    /// The scene's name in the pool.
     pub name: String,
     /// Minimum corner of the root cube, in source units (f64: projected coordinates keep mm).
     pub origin: [f64; 3],
@@ -69,14 +74,21 @@ pub struct SceneDescription {
     pub treelet_nodes: u32,
     /// Target depth: no voxel is deeper.
     pub max_depth: u8,
+    /// The attribute channels stored.
     pub layout: AttributeLayout,
+    /// Treelets of the scene; ids are `0..treelet_count`.
     pub treelet_count: u32,
+    /// The root treelet (always [`TreeletId::ROOT`]).
     pub root_treelet: TreeletId,
+    /// What the scene was built from.
     pub source_kind: SourceKind,
     /// Source file name and a short description of its contents.
     pub source: String,
+    /// Primitives of the source (triangles, points, volume samples).
     pub primitives: u64,
+    /// How the scene was built.
     pub build: BuildParameters,
+    /// Figures of the build and the stored streams.
     pub stats: SceneStats,
     /// zstd dictionary of the node stream, when trained.
     pub node_dictionary: Option<Vec<u8>>,
@@ -137,6 +149,7 @@ impl SceneDescription {
         Ok(())
     }
 
+    /// The description's bytes (bincode), as stored and as sent in `SceneInfo`.
     pub fn encode(&self) -> Result<Vec<u8>, ProtoError> {
         bincode::serde::encode_to_vec(self, bincode_config()).map_err(|e| {
             ProtoError::Serialization {
@@ -146,6 +159,7 @@ impl SceneDescription {
         })
     }
 
+    /// Decodes and validates a description; bounded in size before anything is allocated.
     pub fn decode(bytes: &[u8]) -> Result<Self, ProtoError> {
         if bytes.len() > MAX_SCENE_DESCRIPTION_BYTES {
             return Err(ProtoError::TooLarge {

@@ -20,6 +20,7 @@ impl TreeletId {
     /// "No treelet" (a root's parent, a final leaf's subtreelet).
     pub const NONE: TreeletId = TreeletId(Node::NONE);
 
+    /// This is [`TreeletId::NONE`].
     pub fn is_none(self) -> bool {
         self == Self::NONE
     }
@@ -38,6 +39,7 @@ impl fmt::Display for TreeletId {
 /// Where a treelet sits: its own id, the leaf it refines, and its root voxel.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct TreeletHeader {
+    /// The treelet's own id.
     pub id: TreeletId,
     /// [`TreeletId::NONE`] for the root treelet.
     pub parent_id: TreeletId,
@@ -56,6 +58,7 @@ pub struct TreeletHeader {
 }
 
 impl TreeletHeader {
+    /// The root voxel's cell.
     pub fn root_cell(&self) -> Cell {
         Cell {
             depth: self.root_depth,
@@ -84,13 +87,16 @@ pub fn nodes_for_bytes(treelet_bytes: u32) -> Result<u32, ProtoError> {
 /// One treelet: header plus exactly `N` node records.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Treelet {
+    /// Where the treelet sits.
     pub header: TreeletHeader,
+    /// Exactly `N` records, breadth-first, root at 0.
     pub nodes: Vec<Node>,
 }
 
 /// One node's place, as found by walking a treelet from its root.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct NodePlace {
+    /// The node's voxel.
     pub cell: Cell,
     /// Local index of the parent node; `u32::MAX` for the root.
     pub parent: u32,

@@ -135,10 +135,15 @@ impl fmt::Display for ErrorCode {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 #[repr(u8)]
 pub enum FrameType {
+    /// [`Frame::Hello`].
     Hello = 1,
+    /// [`Frame::SceneInfo`].
     SceneInfo = 2,
+    /// [`Frame::RequestList`].
     RequestList = 3,
+    /// [`Frame::Error`].
     Error = 4,
+    /// [`Frame::Goodbye`].
     Goodbye = 5,
 }
 
@@ -184,7 +189,10 @@ pub enum Frame {
     },
     /// Server → client answer to `Hello`: the scene as stored. Payload: the bytes of
     /// [`SceneDescription::encode`].
-    SceneInfo { description: Box<SceneDescription> },
+    SceneInfo {
+        /// The scene as stored.
+        description: Box<SceneDescription>,
+    },
     /// Client → server: the treelets it wants now, replacing the previous list. Layout:
     /// `u64 seq`, `u32 count`, `count × (u32 id, f32 priority)`.
     RequestList {
@@ -196,9 +204,17 @@ pub enum Frame {
     },
     /// Either direction: what went wrong, just before the connection is closed with `code`.
     /// Layout: `u32 code`, `u16 len + message` (at most [`crate::limits::MAX_MESSAGE_BYTES`]).
-    Error { code: ErrorCode, message: String },
+    Error {
+        /// Why.
+        code: ErrorCode,
+        /// What happened, for people (bounded by [`crate::limits::MAX_MESSAGE_BYTES`]).
+        message: String,
+    },
     /// Either direction: orderly end. Layout: `u32 code`.
-    Goodbye { code: ErrorCode },
+    Goodbye {
+        /// Why the peer is leaving ([`ErrorCode::NoError`] or [`ErrorCode::ShuttingDown`]).
+        code: ErrorCode,
+    },
 }
 
 impl Frame {

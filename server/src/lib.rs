@@ -7,6 +7,8 @@
 //! * [`verify`] checks every invariant of a stored scene;
 //! * [`memory`] measures the import's peak memory for its report.
 
+#![deny(unsafe_code)]
+
 pub mod admin;
 pub mod daemon;
 pub mod import;

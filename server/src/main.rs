@@ -1,5 +1,7 @@
 //! `arbor-server`: import scans into a treelet pool, inspect and verify it, serve it.
 
+#![forbid(unsafe_code)]
+
 use std::io::Write as _;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};

@@ -121,6 +121,7 @@ impl<T: Pod> ColumnWriter<T> {
     }
 
     /// Flushes and maps the file read-only.
+    #[allow(unsafe_code)]
     pub fn finish(self) -> Result<Column<T>, ColumnError> {
         let path = self.path;
         let io = |source| ColumnError::Io {
@@ -160,6 +161,7 @@ impl<T: Pod> std::fmt::Debug for ColumnMut<T> {
 }
 
 impl<T: Pod> ColumnMut<T> {
+    #[allow(unsafe_code)]
     pub fn create(dir: &Path, name: &str, len: usize) -> Result<Self, ColumnError> {
         let path = dir.join(format!("{name}.col"));
         let io = |source| ColumnError::Io {

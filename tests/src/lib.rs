@@ -2,6 +2,8 @@
 //! here: the bad-input corpus ([`corpus`]) and scene building plus brute-force references
 //! ([`support`]).
 
+#![forbid(unsafe_code)]
+
 pub mod corpus;
 pub mod link;
 pub mod streaming;

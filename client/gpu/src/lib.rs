@@ -10,6 +10,8 @@
 //! The shaders are twins of the CPU modules (`trace.rs`, `analysis.rs`, `render.rs`): the tests
 //! `client/tests/gpu_twin.rs` and `tests/tests/gpu_real.rs` hold them to the CPU answers.
 
+#![forbid(unsafe_code)]
+
 pub mod backend;
 mod choice;
 pub mod context;

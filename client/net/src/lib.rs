@@ -32,6 +32,8 @@
 //!   request lists and reads treelet streams (validating every message, only the channels asked
 //!   for, within a byte bound that pushes back on the server when the caller falls behind).
 
+#![forbid(unsafe_code)]
+
 pub mod backoff;
 mod client;
 mod config;
