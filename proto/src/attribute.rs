@@ -89,7 +89,7 @@ impl Channel {
     }
 
     /// The inner-node value for a set of child records: the f32 mean of the dequantized children
-    /// (normals renormalised), quantized once (DESIGN §2).
+    /// (normals renormalised), quantized once (docs/design.md §2).
     pub fn mean<'a>(self, children: impl IntoIterator<Item = &'a [u8]>, out: &mut [u8]) {
         let mut sum = [0f32; 3];
         let mut tmp = [0f32; 3];

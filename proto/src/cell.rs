@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 use crate::limits::MAX_DEPTH;
 
 /// A voxel of the octree: depth and integer coordinates in `0..2^depth` per axis. Positions are
-/// kept as integers so that no float drift accumulates with depth (DESIGN §2, §9).
+/// kept as integers so that no float drift accumulates with depth (docs/design.md §2, §9).
 #[derive(
     Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize,
 )]
@@ -38,7 +38,7 @@ impl Cell {
         (self.x as u64) < side && (self.y as u64) < side && (self.z as u64) < side
     }
 
-    /// Child `i` with `i = 4·x_bit + 2·y_bit + z_bit` (DESIGN §2).
+    /// Child `i` with `i = 4·x_bit + 2·y_bit + z_bit` (docs/design.md §2).
     pub fn child(&self, i: u8) -> Cell {
         debug_assert!(i < 8 && self.depth < MAX_DEPTH);
         Cell {

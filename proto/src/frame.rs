@@ -1,5 +1,5 @@
 //! Byte layout of the network protocol: control frames and treelet messages, with every limit
-//! enforced (DESIGN §6). No I/O: callers feed bytes in and take values out.
+//! enforced (docs/design.md §6). No I/O: callers feed bytes in and take values out.
 //!
 //! # Control frames
 //!

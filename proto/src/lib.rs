@@ -1,7 +1,7 @@
 //! Arbor's shared vocabulary, with no I/O.
 //!
 //! This crate owns every format that crosses a boundary: the 64-bit [`Node`] and the fixed-size
-//! [`Treelet`] (DESIGN §2), exact integer cell coordinates ([`Cell`]), the [`SceneDescription`] with
+//! [`Treelet`] (docs/design.md §2), exact integer cell coordinates ([`Cell`]), the [`SceneDescription`] with
 //! its [`AttributeLayout`], the binary encoding of treelets and attribute blocks with zstd
 //! compression ([`codec`]), the explicit [`limits`], and the network protocol: its vocabulary
 //! ([`wire`]: ALPN, control frames, error codes) and byte layout ([`frame`]: bounded frame

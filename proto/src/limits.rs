@@ -4,7 +4,7 @@
 pub const MIN_TREELET_BYTES: u32 = 1024;
 /// Largest treelet size in bytes of node records (2048 nodes).
 pub const MAX_TREELET_BYTES: u32 = 16 * 1024;
-/// Default treelet size (DESIGN §2: 4 KiB was a good default in the thesis).
+/// Default treelet size (docs/design.md §2: 4 KiB was a good default in the thesis).
 pub const DEFAULT_TREELET_BYTES: u32 = 4 * 1024;
 /// Size of one node record.
 pub const NODE_BYTES: u32 = 8;

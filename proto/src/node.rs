@@ -2,7 +2,7 @@
 
 use bytemuck::{Pod, Zeroable};
 
-/// One octree node (DESIGN §2). Identical layout in Rust and WGSL: two `u32` words.
+/// One octree node (docs/design.md §2). Identical layout in Rust and WGSL: two `u32` words.
 ///
 /// * inner node: `first_child` is the offset of its first child *relative to the node's own
 ///   index*; children are contiguous, ordered by child index among the set bits of `valid_mask`.

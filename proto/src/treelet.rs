@@ -1,4 +1,4 @@
-//! Fixed-size treelets: `N` node records in breadth-first order, root at 0 (DESIGN §2).
+//! Fixed-size treelets: `N` node records in breadth-first order, root at 0 (docs/design.md §2).
 
 use std::fmt;
 

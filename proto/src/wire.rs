@@ -1,4 +1,4 @@
-//! The Arbor network protocol's vocabulary (DESIGN §6): ALPN, version, control frames and error
+//! The Arbor network protocol's vocabulary (docs/design.md §6): ALPN, version, control frames and error
 //! codes. The byte layout and its checks live in [`crate::frame`].
 //!
 //! A connection is QUIC with ALPN [`ALPN`]. The client opens one bidirectional **control

@@ -1,11 +1,23 @@
-//! The Arbor server: scan importers, the SVO builder, the sled treelet pool and the CLI.
+//! The Arbor server: everything on the pool's side of the wire.
 //!
+//! Import, from a scan file to a committed scene:
 //! * [`import`] reads OBJ, PLY, LAS/LAZ, NRRD and raw volumes strictly into a [`source::Source`]
-//!   of disk-backed columns;
-//! * [`build`] turns a source into treelets (DESIGN §3);
+//!   of disk-backed columns (errors name the file and the place);
+//! * [`octree`] turns a source into treelets in bounded memory (docs/design.md §3);
 //! * [`pool`] stores scenes atomically in sled, already compressed, one tree per stream;
-//! * [`verify`] checks every invariant of a stored scene;
-//! * [`memory`] measures the import's peak memory for its report.
+//! * [`pipeline`] is the one entry point that runs those steps in order ([`pipeline::import_scene`]);
+//! * [`verify`] checks every invariant of a stored scene; [`memory`] measures an import's peak
+//!   memory for its report.
+//!
+//! Serving, from the pool to clients:
+//! * [`service`] is the QUIC treelet service: an I/O-free scheduler and the tokio/quinn shell
+//!   around it (connections, treelet streams, graceful shutdown);
+//! * [`admin`] is the axum admin API (health, readiness, metrics, scenes, sessions, status page),
+//!   its text metrics written through [`prometheus`];
+//! * [`daemon`] starts the service and mounts the admin API beside it — what `arbor-server
+//!   serve` runs.
+//!
+//! Unsafe code is denied except for the two memory maps of scratch columns in [`source`].
 
 #![deny(unsafe_code)]
 

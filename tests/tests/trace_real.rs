@@ -4,7 +4,7 @@
 //! leaves.
 //!
 //! Two buffers are checked: the client's own [`SlotBuffer::fully_resident`] (children patched
-//! by the slot buffer), and a reference assembly written here from DESIGN §5 alone (treelet
+//! by the slot buffer), and a reference assembly written here from docs/design.md §5 alone (treelet
 //! `i` in slot `i`). The second isolates the traversal; the first checks that the slot buffer
 //! and the traversal agree on what a patched octree is.
 

@@ -1,4 +1,4 @@
-//! The analysis (feedback) pass, CPU twin (DESIGN §5): which voxel each sampled ray stops at,
+//! The analysis (feedback) pass, CPU twin (docs/design.md §5): which voxel each sampled ray stops at,
 //! how much coarser than a pixel it is, and which treelet would refine it.
 //!
 //! The feedback buffer is `1/n` of the frame per axis (`n` = [`AnalysisConfig::ratio`], 8 by

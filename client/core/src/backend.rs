@@ -1,5 +1,5 @@
 //! Where the per-cycle GPU stages run: the analysis pass, the slot upload and the render pass
-//! (DESIGN §5). [`ClientCore`](crate::cycle::ClientCore) drives a [`Backend`] and never knows
+//! (docs/design.md §5). [`ClientCore`](crate::cycle::ClientCore) drives a [`Backend`] and never knows
 //! which one it has.
 //!
 //! [`CpuBackend`] runs the CPU twins (the reference every GPU stage is tested against); the

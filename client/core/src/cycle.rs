@@ -1,4 +1,4 @@
-//! The client cycle (DESIGN §1, §5): analysis → presort → request list → integrate arrivals →
+//! The client cycle (docs/design.md §1, §5): analysis → presort → request list → integrate arrivals →
 //! upload → render, as an I/O-free state machine.
 //!
 //! [`ClientCore`] is the quinn-proto-style part: treelets go in with
@@ -64,7 +64,7 @@ pub struct CoreConfig {
     pub budget_bytes: u64,
     /// Treelets inserted per cycle at most.
     pub load_limit: u32,
-    /// Upload range fill ratio (DESIGN §5).
+    /// Upload range fill ratio (docs/design.md §5).
     pub fill_ratio: f32,
     /// Channels held and drawn (the scene's channels the client asked for).
     pub channels: Vec<Channel>,

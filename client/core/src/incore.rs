@@ -4,7 +4,7 @@
 //! The buffer is `slots × N` node records, slot-major: node `k` of slot `s` has the global
 //! index `s·N + k`. Slot 0 holds the root treelet, so global index 0 is the root voxel. An inner
 //! node's children start at `index.wrapping_add(first_child)`; the wrapping add is what lets a
-//! patched leaf point at a child treelet in a slot *before* its own (DESIGN §5). Attributes sit
+//! patched leaf point at a child treelet in a slot *before* its own (docs/design.md §5). Attributes sit
 //! beside the nodes, one array per channel, indexed by the same global index.
 
 use arbor_proto::{Channel, Node, SceneDescription};
@@ -48,7 +48,7 @@ impl<'a> IncoreView<'a> {
 }
 
 /// Where the octree sits in the world: the scene's root cube and target depth (f64, exact
-/// integer cells below it, DESIGN §2).
+/// integer cells below it, docs/design.md §2).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SceneFrame {
     /// Minimum corner of the root cube.

@@ -1,4 +1,4 @@
-//! Presort (DESIGN §5): from one cycle's feedback samples, the set of *visible* treelets and
+//! Presort (docs/design.md §5): from one cycle's feedback samples, the set of *visible* treelets and
 //! the *request list*, de-duplicated and sorted by priority.
 //!
 //! A plain data structure with no I/O, no GPU and no slot buffer: the caller passes a lookup

@@ -1,5 +1,5 @@
 //! The CPU reference renderer: one ray per pixel centre through [`trace`], shaded from the
-//! stored attributes with a directional light (DESIGN §5, render pass).
+//! stored attributes with a directional light (docs/design.md §5, render pass).
 //!
 //! It is the ground truth the GPU renderer is compared with and what headless runs score
 //! against, so it is a pure function of its inputs: rows run in parallel but every pixel is

@@ -1,4 +1,4 @@
-//! The incore slot buffer (DESIGN §5, "Incore update"): which treelet sits in which slot, the
+//! The incore slot buffer (docs/design.md §5, "Incore update"): which treelet sits in which slot, the
 //! patched node records the ray caster walks, and the eviction policy that keeps the buffer
 //! within a fixed memory budget.
 //!
@@ -615,13 +615,13 @@ impl SlotBuffer {
         }
     }
 
-    /// Inserts a treelet (DESIGN §5): refused with nothing changed when the cycle's load limit is
+    /// Inserts a treelet (docs/design.md §5): refused with nothing changed when the cycle's load limit is
     /// reached, the treelet is resident already or its parent is not resident; otherwise copied
     /// into a free slot (evicting if none is free) and patched into its parent.
     ///
     /// # Panics
     /// If the treelet does not fit this buffer (another `N`, a held channel missing or of the
-    /// wrong length): [`DecodedTreelet::decode`] with the buffer's channels guarantees it.
+    /// wrong length): [`DecodedTreelet::decode_message`] with the buffer's channels guarantees it.
     pub fn insert(&mut self, t: DecodedTreelet) -> InsertOutcome {
         if let Err(e) = self.check_fits(&t) {
             panic!("treelet does not fit the slot buffer: {e}");

@@ -1,6 +1,6 @@
 //! The CPU reference traversal of the incore octree: one ray in, the nearest voxel it stops at
 //! out. The analysis pass, the CPU renderer and the brute-force tests use it, and the WGSL
-//! shader is meant to be a line-by-line twin of it (DESIGN §5, §9), so it uses no recursion, no
+//! shader is meant to be a line-by-line twin of it (docs/design.md §5, §9), so it uses no recursion, no
 //! heap, only fixed-size arrays indexed by depth, and a bounded loop.
 //!
 //! # Numerics
@@ -19,7 +19,7 @@
 //!
 //! 1. Reject rays with a non-finite origin or direction, a zero direction, a scene frame with a
 //!    non-positive or non-finite edge, and an empty node buffer: no hit.
-//! 2. Slab test of the root box ([`slab`]). Per axis `a`: if `dir[a] == 0`, the ray is inside
+//! 2. Slab test of the root box (`slab`). Per axis `a`: if `dir[a] == 0`, the ray is inside
 //!    the closed slab iff `lo[a] ≤ 0 ≤ hi[a]` (no division, so no `0·∞` NaN); otherwise the face
 //!    distances are `lo[a]/dir[a]` and `hi[a]/dir[a]`, ordered by the sign of `dir[a]`.
 //!    `t_enter` is the largest entry, `t_exit` the smallest exit; the box is hit iff
@@ -111,7 +111,7 @@ pub struct Hit {
     pub entry_sign: i8,
 }
 
-/// Screen-space error of a voxel in the log domain (DESIGN §5):
+/// Screen-space error of a voxel in the log domain (docs/design.md §5):
 /// `log2(voxel_size) − log2(max(t, tiny)) − log2(pixel_angle·lod_bias)`, clamped to
 /// ±[`MAX_SCREEN_ERROR`]. Positive: the voxel covers more than a pixel by about that many
 /// octree levels.

@@ -1,4 +1,4 @@
-//! Upload planning (DESIGN §5, "Upload"): which slot ranges of the incore buffer to copy to the
+//! Upload planning (docs/design.md §5, "Upload"): which slot ranges of the incore buffer to copy to the
 //! GPU after an incore update.
 //!
 //! It owns only the range-merging rule, as plain data in the quinn-proto style (no I/O, no GPU):

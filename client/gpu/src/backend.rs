@@ -22,7 +22,7 @@
 //!   slots rather than seeing an empty frame), and when both staging buffers are still in
 //!   flight this cycle's pass is skipped. [`GpuBackend::analyse_blocking`] waits for this
 //!   cycle's result (tests, benchmarks).
-//! - **Render** writes an `rgba8unorm` storage texture ([`Backend::target_view`]);
+//! - **Render** writes an `rgba8unorm` storage texture ([`GpuBackend::target_view`]);
 //!   [`Backend::render`] also reads it back (rows padded to 256 bytes for the copy).
 //!
 //! Pipeline labels and entry points are the CPU module names, `"analysis"` and `"render"`.

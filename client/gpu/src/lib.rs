@@ -1,4 +1,4 @@
-//! The wgpu path of the client (DESIGN §5, §9): the analysis and render passes as WGSL compute
+//! The wgpu path of the client (docs/design.md §5, §9): the analysis and render passes as WGSL compute
 //! shaders over the incore buffer held in GPU storage buffers, and the slot upload.
 //!
 //! - [`context`] owns the wgpu instance, adapter, device and queue ([`GpuContext`]);

@@ -1,4 +1,5 @@
-//! The client's connection to a treelet server (DESIGN §6, issue 3 item 5).
+//! The client's connection to a treelet server (docs/design.md §6): it owns the QUIC side of
+//! the client and nothing of the cycle, so the plain-data core never sees a socket.
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), arbor_client_net::ClientError> {

@@ -1,6 +1,6 @@
 //! TLS for the client: how the server's certificate is trusted, and the rustls configuration.
 //!
-//! Two ways (DESIGN §6): a **pinned fingerprint** for the server's self-signed certificate (the
+//! Two ways (docs/design.md §6): a **pinned fingerprint** for the server's self-signed certificate (the
 //! SHA-256 of the leaf certificate's DER, as the server prints it and its admin API shows it), or
 //! ordinary **CA** verification (webpki) against the roots given, with the URL's host as the
 //! server name. Either way only TLS 1.3 with ALPN [`arbor_proto::wire::ALPN`] is offered, on the

@@ -3,7 +3,7 @@
 //!
 //! Connecting is the only place that waits on the network (bounded by a timeout): first a
 //! probe learns the scene's channels (the server refuses channels a scene lacks, and a client
-//! asks only for the wanted channels the scene has, DESIGN §7), then the real connection fetches
+//! asks only for the wanted channels the scene has, docs/design.md §7), then the real connection fetches
 //! the root treelet. After that, [`Session::step`] never waits: it takes whatever has arrived.
 
 use std::sync::Arc;
@@ -160,7 +160,7 @@ impl Session {
         self.started
     }
 
-    /// One cycle (DESIGN §1): analysis → presort → request list → take arrivals → integrate →
+    /// One cycle (docs/design.md §1): analysis → presort → request list → take arrivals → integrate →
     /// upload → render. Never waits on the network. `reference`, if given, is compared with
     /// the rendered image (RenderMode::Image only).
     pub fn step(

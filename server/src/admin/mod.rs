@@ -1,4 +1,4 @@
-//! The admin HTTP API of the server daemon (DESIGN §6): health, readiness, Prometheus metrics,
+//! The admin HTTP API of the server daemon (docs/design.md §6): health, readiness, Prometheus metrics,
 //! the pool's scenes, live sessions and a small HTML status page, on its own listener (loopback by
 //! default), served with axum.
 //!

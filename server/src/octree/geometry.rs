@@ -1,6 +1,6 @@
 //! Exact-as-possible geometric predicates in *leaf units*: the root cube maps to `[0, 2^D]³`
 //! where `D` is the target depth, so the box of any cell is a set of small integers and exact in
-//! `f64` (DESIGN §9). Only the primitive's own coordinates carry rounding, once.
+//! `f64` (docs/design.md §9). Only the primitive's own coordinates carry rounding, once.
 
 use arbor_proto::Cell;
 

@@ -1,4 +1,4 @@
-//! The generalized builder (DESIGN §3): a build manager drives a [`TreeletBuilder`] chosen by
+//! The generalized builder (docs/design.md §3): a build manager drives a [`TreeletBuilder`] chosen by
 //! input kind and an [`AttributeGenerator`] chosen by the channels the source has.
 //!
 //! Three passes, each bounded in memory:

@@ -1,4 +1,4 @@
-//! The FIFO of treelets still to build. Their primitive lists are [`IdList`]s under the build's
+//! The FIFO of treelets still to build. Their primitive lists are [`IdList`](super::idlist::IdList)s under the build's
 //! memory budget: a job queued while the budget is more than half used has its list moved to the
 //! spill file, and a spilled list is brought back into memory when its job is taken, if the
 //! budget has room then. So queued work never crowds out the lists of the treelets being filled.

@@ -1,4 +1,4 @@
-//! Filling one treelet breadth-first (DESIGN §3 step 2), shared by every input kind.
+//! Filling one treelet breadth-first (docs/design.md §3 step 2), shared by every input kind.
 //!
 //! The input kinds differ only in *which primitives touch which child voxel*; that is the
 //! [`TreeletBuilder`] trait. The fill itself — a queue of pending nodes, dropping empty children,

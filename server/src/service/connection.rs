@@ -1,6 +1,6 @@
 //! One client connection: handshake, `Hello`, request lists, treelet streams, closing. This
-//! file owns the handshake, `Hello` and the close; [`super::handler`] the main loop after
-//! `Hello`, [`super::streams`] the treelet streams.
+//! file owns the handshake, `Hello` and the close; `handler.rs` the main loop after
+//! `Hello`, `streams.rs` the treelet streams.
 //!
 //! # Life of a connection
 //!
@@ -16,7 +16,7 @@
 //!    list over the length limit is `ListTooLong`, an id ≥ the scene's treelet count is
 //!    `UnknownTreelet`, any frame but `RequestList`/`Goodbye` after `Hello` is
 //!    `ProtocolViolation`. Each list goes to the shared scheduler; treelets in flight that the
-//!    new list no longer names have their streams reset (code [`super::streams::CANCEL_CODE`]).
+//!    new list no longer names have their streams reset (code `CANCEL_CODE`: `NoError`).
 //! 4. Treelets the dispatcher hands over are sent each on its own server-opened unidirectional
 //!    stream, at a QUIC priority from their rank (the first treelet started under the newest list
 //!    highest). Streams are opened in rank order by one opener per connection, so when the
@@ -29,7 +29,7 @@
 //!    the slow-reader watchdog runs: treelets in flight and no stream progress (opened, written,
 //!    acknowledged) for `slow_reader_timeout_ms` → `SlowReader`.
 //! 6. Closing with a code first writes an `Error` (or `Goodbye`) frame on the control stream and
-//!    waits up to [`CLOSE_FLUSH`] for it to be acknowledged, then closes the connection with the
+//!    waits up to `CLOSE_FLUSH` (300 ms) for it to be acknowledged, then closes the connection with the
 //!    same code and counts it in `errors_total`.
 
 use std::sync::Arc;

@@ -1,4 +1,4 @@
-//! The treelet service (DESIGN §6).
+//! The treelet service (docs/design.md §6).
 //!
 //! * [`schedule`] is its I/O-free core, in the style of quinn-proto: a deterministic state machine
 //!   that is told what happened (`handle_*`: a request list arrived, a treelet was sent, delivered

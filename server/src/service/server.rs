@@ -1,5 +1,5 @@
 //! The treelet service: QUIC endpoint, accept loop with a connection cap, the dispatcher that
-//! drives the shared [`Scheduler`], and graceful shutdown. The admin API is mounted beside it by
+//! drives the shared [`Scheduler`](super::schedule::Scheduler), and graceful shutdown. The admin API is mounted beside it by
 //! [`crate::daemon`], on the same shutdown broadcast.
 //!
 //! # Tasks
@@ -10,7 +10,7 @@
 //!   handshake only to close the connection with `ServerBusy` / `ShuttingDown` (so the client
 //!   sees an application code; at most [`MAX_REFUSALS`] such handshakes at once, beyond that
 //!   quinn refuses at the transport level). Refusals count in `connections_rejected`.
-//! * **Dispatcher** (one): waits on a [`Notify`], then calls [`Scheduler::poll_transmit`] until
+//! * **Dispatcher** (one): waits on a [`Notify`](tokio::sync::Notify), then calls [`Scheduler::poll_transmit`](super::schedule::Scheduler::poll_transmit) until
 //!   `None` and hands each `(connection, treelet)` to that connection's task through an
 //!   unbounded channel — never blocking on any connection (the scheduler's window bounds what
 //!   each channel can hold).
@@ -30,7 +30,7 @@
 //!
 //! # Shutdown
 //!
-//! [`RunningServer::shutdown`] (or SIGTERM/SIGINT in the CLI): readiness goes false, the accept
+//! [`RunningService::shutdown`] (or SIGTERM/SIGINT in the CLI): readiness goes false, the accept
 //! loop stops (newcomers are refused with `ShuttingDown`), the dispatcher stops starting
 //! treelets; each connection lets its in-flight streams finish until `shutdown_grace_ms`,
 //! resets what is left, sends `Goodbye { ShuttingDown }` on its control stream and closes with

@@ -3,9 +3,9 @@
 //!
 //! * [`ShutdownTrigger::trigger`] starts shutdown once, fixing its **deadline** (now + grace):
 //!   in-flight treelet streams may finish until then.
-//! * Every task holds a [`Shutdown`] and selects on [`Shutdown::recv`], which yields the
+//! * Every task holds a `Shutdown` and selects on `Shutdown::recv`, which yields the
 //!   deadline.
-//! * Every connection task holds a clone of the [`Done`] sender; the server drops its own and
+//! * Every connection task holds a clone of the `Done` sender; the server drops its own and
 //!   waits for the receiver to see all senders gone.
 
 use std::sync::Arc;

@@ -1,4 +1,4 @@
-//! The server's TLS identity and its QUIC crypto configuration (DESIGN §6: TLS always).
+//! The server's TLS identity and its QUIC crypto configuration (docs/design.md §6: TLS always).
 //!
 //! * Without a configured certificate, a self-signed pair (rcgen, ECDSA P-256) is created on
 //!   first start in the data dir as `cert.pem` and `key.pem` (mode 0600, written to temporary

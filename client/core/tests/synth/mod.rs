@@ -129,7 +129,7 @@ impl Buffer {
     }
 
     /// Patches the refinable leaf `leaf` of the treelet in `parent_slot` with the root of the
-    /// treelet in `child_slot` (DESIGN §5): the leaf record becomes the child root with
+    /// treelet in `child_slot` (docs/design.md §5): the leaf record becomes the child root with
     /// `first_child = (child_slot·N + 1) − leaf_global` (wrapping), and the leaf bit in the
     /// leaf's parent's `leaf_mask` is cleared.
     pub fn patch(&mut self, parent_slot: u32, leaf: Cell, child_slot: u32) {
