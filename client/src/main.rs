@@ -10,7 +10,9 @@ use anyhow::{Context, Result, bail};
 use arbor_client_core::analysis::{AnalysisConfig, DEFAULT_FEEDBACK_RATIO};
 use arbor_client_core::backend::Backend;
 use arbor_client_core::camera::CameraPath;
-use arbor_client_core::cycle::{CoreConfig, DEFAULT_LOAD_LIMIT, DEFAULT_MAX_REQUESTS};
+use arbor_client_core::cycle::{
+    CoreConfig, DEFAULT_ANALYSIS_BUDGET_MS, DEFAULT_LOAD_LIMIT, DEFAULT_MAX_REQUESTS, Sampling,
+};
 use arbor_client_core::image::Image;
 use arbor_client_core::presort::PriorityPolicy;
 use arbor_client_core::render::Light;
@@ -123,10 +125,24 @@ struct RenderArgs {
     /// Slot buffer memory budget in MiB.
     #[arg(long, default_value_t = 64.0)]
     budget_mib: f64,
-    /// Feedback buffer is 1/n of the frame per axis.
+    /// Feedback grid is 1/n of the frame per axis: the grid sampling's share per cycle, and
+    /// the least the adaptive sampling takes.
     #[arg(long, default_value_t = DEFAULT_FEEDBACK_RATIO)]
     feedback_ratio: u32,
-    /// Request priority: error-pixels (default) or max-error (the thesis's).
+    /// Which pixels the analysis pass samples: adaptive (pixels whose treelet arrived, then
+    /// unknown ones, within --analysis-budget-ms) or grid (the thesis's 1/n grid every cycle).
+    #[arg(long, default_value = "adaptive")]
+    sampling: String,
+    /// Wall time the analysis pass may take per cycle with adaptive sampling, ms.
+    #[arg(long, default_value_t = DEFAULT_ANALYSIS_BUDGET_MS)]
+    analysis_budget_ms: f64,
+    /// Keep the LOD bias fixed even when the view needs more slots than the budget holds
+    /// (by default it is raised until the view fits, and the run converges to that target).
+    #[arg(long)]
+    fixed_bias: bool,
+    /// Request priority: error-pixels (default), centre (error-pixels weighted towards the
+    /// screen centre), max-error (the thesis's) or frustum (the peer's rule: refinable leaves in
+    /// the view frustum by projected size, no feedback).
     #[arg(long, default_value = "error-pixels")]
     policy: String,
     /// Cap on the request list.
@@ -351,8 +367,14 @@ fn view(mut a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
 fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
     let (width, height) = size(&a.view.size)?;
     let camera_path = CameraPath::parse(&a.view.camera_path)?;
-    let policy = PriorityPolicy::parse(&a.policy)
-        .with_context(|| format!("policy {:?} (error-pixels or max-error)", a.policy))?;
+    let policy = PriorityPolicy::parse(&a.policy).with_context(|| {
+        format!(
+            "policy {:?} (error-pixels, centre, max-error or frustum)",
+            a.policy
+        )
+    })?;
+    let sampling = Sampling::parse(&a.sampling)
+        .with_context(|| format!("sampling {:?} (adaptive or grid)", a.sampling))?;
     if !(a.budget_mib.is_finite() && a.budget_mib > 0.0 && a.budget_mib <= 1024.0 * 1024.0) {
         bail!("budget {} MiB must be in (0, 1 TiB]", a.budget_mib);
     }
@@ -378,6 +400,9 @@ fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
             fill_ratio: a.fill_ratio,
             channels: channels(&a.connection.channels)?,
             light: Light::default(),
+            sampling,
+            adjust_bias: !a.fixed_bias,
+            analysis_budget_ms: a.analysis_budget_ms,
         },
         camera_path,
         seed: a.view.seed,

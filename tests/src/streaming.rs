@@ -245,10 +245,13 @@ pub async fn converge(
         "{what}: the root alone should be coarser than a pixel"
     );
     assert!(records[0].image_rmse.unwrap() > 0.0);
-    let round_start = (converged + 1 - RATIO * RATIO) as usize;
+    // Convergence is every pixel of the view known, none coarser than a pixel.
+    let at = &records[converged as usize];
     assert!(
-        records[round_start..].iter().all(|r| r.error.max == 0.0),
-        "{what}: error not zero over the final round"
+        at.known_share == 1.0 && at.error.max == 0.0,
+        "{what}: converged at cycle {converged} with {:.3} of the view known, error max {}",
+        at.known_share,
+        at.error.max
     );
     assert!(run.peak_slots <= run.capacity);
     run

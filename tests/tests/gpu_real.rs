@@ -16,7 +16,7 @@ mod gpu_compare;
 
 use std::collections::BTreeMap;
 
-use arbor_client_core::analysis::{AnalysisConfig, Feedback};
+use arbor_client_core::analysis::{AnalysisConfig, Feedback, grid_pixels};
 use arbor_client_core::backend::{Backend, PassInput};
 use arbor_client_core::camera::{
     Camera, DEFAULT_DISTANCE_FACTOR, DEFAULT_FOV_Y, SplitMix64, WORLD_UP,
@@ -313,7 +313,8 @@ fn backend_trait_pipelines_feedback_by_one_cycle() {
         light: &light,
     };
     let mut out = Feedback::default();
-    backend.analyse(&input(&cams[0]), 0, &mut out);
+    let grid = |cam: &Camera, cycle: u64| grid_pixels(cam.width, cam.height, config.ratio, cycle);
+    backend.analyse(&input(&cams[0]), &grid(&cams[0], 0), 0, &mut out);
     assert!(
         out.samples.is_empty(),
         "no feedback before the first read-back"
@@ -322,7 +323,7 @@ fn backend_trait_pipelines_feedback_by_one_cycle() {
     for cycle in 1..5u64 {
         backend.finish();
         let cam = &cams[cycle as usize % cams.len()];
-        backend.analyse(&input(cam), cycle, &mut out);
+        backend.analyse(&input(cam), &grid(cam, cycle), cycle, &mut out);
         let prev = &cams[(cycle - 1) as usize % cams.len()];
         let mut expected = Feedback::default();
         reference.analyse_blocking(&slots, &frame, prev, &config, cycle - 1, &mut expected);

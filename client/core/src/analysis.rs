@@ -1,16 +1,16 @@
-//! The analysis (feedback) pass, CPU twin (docs/design.md §5): which voxel each sampled ray stops at,
-//! how much coarser than a pixel it is, and which treelet would refine it.
+//! The analysis (feedback) pass, CPU twin of `shaders/analysis.wgsl` (docs/design.md §5): which
+//! voxel each sampled ray stops at, how much coarser than a pixel it is, and which treelet would
+//! refine it.
 //!
-//! The feedback buffer is `1/n` of the frame per axis (`n` = [`AnalysisConfig::ratio`], 8 by
-//! default). Each feedback element samples one full-resolution pixel of its `n × n` block; the
-//! sub-pixel moves every cycle in a fixed scrambled order, so `n²` consecutive cycles sample
-//! every pixel of the frame exactly once. The ray of a sample is *the same ray* the render pass
-//! casts for that pixel (its centre), which is what makes convergence exact: once no sample
-//! of a full `n²` round asks for refinement, every pixel shows what the fully resident scene
-//! shows.
+//! The pass samples a *list of pixels* ([`analyse_pixels`]); which pixels, and how many per
+//! cycle, is the sampler's business ([`crate::coverage`]). The classic plan is the thesis's
+//! feedback grid ([`grid_pixels`]): `1/n` of the frame per axis, each element one pixel of its
+//! `n × n` block, the sub-pixel moving every cycle in a fixed scrambled order so that `n²`
+//! consecutive cycles sample every pixel exactly once. The ray of a sample is *the same ray* the
+//! render pass casts for that pixel (its centre), which is what makes convergence exact.
 //!
-//! The GPU pass (`shaders/analysis.wgsl`, later) writes the same [`FeedbackSample`] records;
-//! the struct is `#[repr(C)]` and `Pod` so the two can be compared word for word.
+//! The GPU pass writes the same [`FeedbackSample`] records; the struct is `#[repr(C)]` and `Pod`
+//! so the two can be compared word for word.
 
 use arbor_proto::Node;
 use bytemuck::{Pod, Zeroable};
@@ -91,17 +91,48 @@ impl Default for AnalysisConfig {
     }
 }
 
-/// Feedback of one cycle.
+/// Feedback of one analysis pass.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Feedback {
-    /// Feedback buffer width: `ceil(frame width / n)`.
-    pub width: u32,
-    /// Feedback buffer height: `ceil(frame height / n)`.
-    pub height: u32,
-    /// Sub-pixel of every `n × n` block sampled this cycle.
-    pub offset: (u32, u32),
-    /// Row-major, `width × height`.
+    /// The cycle whose pass this is (a pipelined backend hands it back a cycle later).
+    pub cycle: u64,
+    /// The pixels sampled, packed ([`pack_pixel`]).
+    pub pixels: Vec<u32>,
+    /// One sample per pixel, in the same order.
     pub samples: Vec<FeedbackSample>,
+}
+
+/// A pixel `(x, y)` in one word: `x | y << 16` (frames are at most 16384 pixels a side).
+pub const fn pack_pixel(x: u32, y: u32) -> u32 {
+    x | (y << 16)
+}
+
+/// The `(x, y)` of a packed pixel.
+pub const fn unpack_pixel(p: u32) -> (u32, u32) {
+    (p & 0xFFFF, p >> 16)
+}
+
+/// The pixels of the feedback grid at `ratio` in `cycle`, row-major: element `(fx, fy)` samples
+/// pixel `(fx·n + ox, fy·n + oy)` with `(ox, oy) = jitter(cycle, n)`, leaving out pixels past the
+/// frame's edge.
+pub fn grid_pixels(width: u32, height: u32, ratio: u32, cycle: u64) -> Vec<u32> {
+    let ratio = ratio.clamp(1, MAX_FEEDBACK_RATIO);
+    let (fw, fh) = feedback_size(width, height, ratio);
+    let (ox, oy) = jitter(cycle, ratio);
+    let mut out = Vec::with_capacity((fw * fh) as usize);
+    for fy in 0..fh {
+        let py = fy * ratio + oy;
+        if py >= height {
+            continue;
+        }
+        for fx in 0..fw {
+            let px = fx * ratio + ox;
+            if px < width {
+                out.push(pack_pixel(px, py));
+            }
+        }
+    }
+    out
 }
 
 /// Size of the feedback buffer for a frame.
@@ -139,7 +170,7 @@ fn gcd(mut a: u64, mut b: u64) -> u64 {
     a
 }
 
-/// Runs the analysis pass for `cycle` into `out` (reusing its allocation).
+/// Runs the analysis pass of `cycle` over the feedback grid of `config` (see [`grid_pixels`]).
 pub fn analyse(
     view: &IncoreView<'_>,
     frame: &SceneFrame,
@@ -148,33 +179,40 @@ pub fn analyse(
     cycle: u64,
     out: &mut Feedback,
 ) {
-    let ratio = config.ratio.clamp(1, MAX_FEEDBACK_RATIO);
-    let (fw, fh) = feedback_size(camera.width, camera.height, ratio);
-    let offset = jitter(cycle, ratio);
+    let pixels = grid_pixels(camera.width, camera.height, config.ratio, cycle);
+    analyse_pixels(view, frame, camera, config.lod_bias, &pixels, cycle, out);
+}
+
+/// Runs the analysis pass of `cycle` over `pixels` into `out` (reusing its allocations). Pixels
+/// outside the frame give [`FeedbackSample::MISS`].
+pub fn analyse_pixels(
+    view: &IncoreView<'_>,
+    frame: &SceneFrame,
+    camera: &Camera,
+    lod_bias: f64,
+    pixels: &[u32],
+    cycle: u64,
+    out: &mut Feedback,
+) {
     let lod = Lod {
         pixel_angle: camera.pixel_angle(),
-        lod_bias: config.lod_bias,
+        lod_bias,
         max_depth: frame.max_depth,
     };
-    out.width = fw;
-    out.height = fh;
-    out.offset = offset;
+    out.cycle = cycle;
+    out.pixels.clear();
+    out.pixels.extend_from_slice(pixels);
     out.samples.clear();
-    out.samples.resize((fw * fh) as usize, FeedbackSample::MISS);
+    out.samples.resize(pixels.len(), FeedbackSample::MISS);
     out.samples
-        .par_chunks_mut(fw.max(1) as usize)
-        .enumerate()
-        .for_each(|(fy, row)| {
-            let py = fy as u32 * ratio + offset.1;
-            if py >= camera.height {
-                return;
-            }
-            for (fx, sample) in row.iter_mut().enumerate() {
-                let px = fx as u32 * ratio + offset.0;
-                if px >= camera.width {
-                    continue;
+        .par_chunks_mut(256)
+        .zip(pixels.par_chunks(256))
+        .for_each(|(samples, pixels)| {
+            for (sample, &p) in samples.iter_mut().zip(pixels) {
+                let (px, py) = unpack_pixel(p);
+                if px < camera.width && py < camera.height {
+                    *sample = sample_pixel(view, frame, camera, &lod, px, py);
                 }
-                *sample = sample_pixel(view, frame, camera, &lod, px, py);
             }
         });
 }
@@ -229,6 +267,22 @@ mod tests {
         let (a, b) = (jitter(0, 8), jitter(1, 8));
         let d = (a.0 as i32 - b.0 as i32).abs() + (a.1 as i32 - b.1 as i32).abs();
         assert!(d >= 2, "{a:?} then {b:?}");
+    }
+
+    #[test]
+    fn grid_pixels_cover_every_pixel_once_per_round() {
+        for (w, h, n) in [(13u32, 7u32, 4u32), (16, 16, 8), (5, 3, 1)] {
+            let mut seen = vec![0u32; (w * h) as usize];
+            for c in 0..u64::from(n * n) {
+                for p in grid_pixels(w, h, n, c) {
+                    let (x, y) = unpack_pixel(p);
+                    assert!(x < w && y < h);
+                    seen[(y * w + x) as usize] += 1;
+                }
+            }
+            assert!(seen.iter().all(|&k| k == 1), "{w}x{h} n={n}: {seen:?}");
+        }
+        assert_eq!(unpack_pixel(pack_pixel(16383, 12000)), (16383, 12000));
     }
 
     #[test]

@@ -9,7 +9,7 @@
 
 use std::any::Any;
 
-use crate::analysis::{AnalysisConfig, Feedback, analyse};
+use crate::analysis::{AnalysisConfig, Feedback, analyse_pixels};
 use crate::camera::Camera;
 use crate::image::Image;
 use crate::incore::SceneFrame;
@@ -44,9 +44,11 @@ pub trait Backend: std::fmt::Debug + Send {
         u32::MAX
     }
 
-    /// Runs the analysis pass of `cycle` and leaves in `out` the most recent complete feedback
-    /// (this cycle's, or an earlier one's for a pipelined backend; empty before the first).
-    fn analyse(&mut self, input: &PassInput<'_>, cycle: u64, out: &mut Feedback);
+    /// Runs the analysis pass of `cycle` over `pixels` (packed, see
+    /// [`crate::analysis::pack_pixel`]) and leaves in `out` the most recent complete feedback:
+    /// this cycle's, or an earlier one's for a pipelined backend (its `cycle` says which), or an
+    /// empty one before the first.
+    fn analyse(&mut self, input: &PassInput<'_>, pixels: &[u32], cycle: u64, out: &mut Feedback);
 
     /// Copies the slot ranges of `plan` from `slots` to wherever the passes read them.
     fn upload(&mut self, slots: &SlotBuffer, plan: &UploadPlan);
@@ -59,6 +61,13 @@ pub trait Backend: std::fmt::Debug + Send {
 
     /// Renders what is resident as seen from `input.camera`, read back.
     fn render(&mut self, input: &PassInput<'_>) -> Image;
+
+    /// Samples and seconds of the last analysis pass whose cost the backend measured itself
+    /// (a GPU's timestamp queries); `None` when the caller's wall clock is the measure (the CPU
+    /// twins run inside the call).
+    fn analysis_cost(&self) -> Option<(usize, f64)> {
+        None
+    }
 
     /// The backend as [`Any`], so a shell that knows the concrete type (the viewer drawing a
     /// GPU backend's target) can reach it without the core knowing GPU types.
@@ -74,12 +83,13 @@ impl Backend for CpuBackend {
         "cpu".into()
     }
 
-    fn analyse(&mut self, input: &PassInput<'_>, cycle: u64, out: &mut Feedback) {
-        analyse(
+    fn analyse(&mut self, input: &PassInput<'_>, pixels: &[u32], cycle: u64, out: &mut Feedback) {
+        analyse_pixels(
             &input.slots.view(),
             input.frame,
             input.camera,
-            input.analysis,
+            input.analysis.lod_bias,
+            pixels,
             cycle,
             out,
         );

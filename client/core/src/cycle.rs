@@ -22,12 +22,15 @@ use std::sync::Arc;
 use arbor_proto::{Channel, SceneDescription, TreeletId};
 use thiserror::Error;
 
-use crate::analysis::{AnalysisConfig, Feedback};
+use crate::analysis::{AnalysisConfig, Feedback, grid_pixels};
 use crate::backend::{Backend, CpuBackend, PassInput};
+use crate::bias::{LodBiasControl, ViewNeed};
 use crate::camera::Camera;
+use crate::coverage::Coverage;
+use crate::frustum::FrustumSelector;
 use crate::image::Image;
 use crate::incore::SceneFrame;
-use crate::presort::{Presort, PriorityPolicy};
+use crate::presort::{Presort, PriorityPolicy, centre_weight};
 use crate::render::Light;
 use crate::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig, SlotError};
 use crate::summary::ErrorSummary;
@@ -35,8 +38,6 @@ use crate::upload::{DEFAULT_FILL_RATIO, UploadPlan};
 
 /// Default per-cycle load limit (treelets inserted per cycle).
 pub const DEFAULT_LOAD_LIMIT: u32 = 256;
-/// Requests sent even when the slot buffer has no room (it still learns what it misses).
-pub const MIN_REQUESTS: usize = 16;
 /// Default cap on the request list.
 pub const DEFAULT_MAX_REQUESTS: usize = 4096;
 
@@ -70,6 +71,40 @@ pub struct CoreConfig {
     pub channels: Vec<Channel>,
     /// Shading of the render pass.
     pub light: Light,
+    /// How the analysis pass picks its pixels.
+    pub sampling: Sampling,
+    /// Raise the LOD bias when the view needs more slots than the budget holds
+    /// (docs/design.md §10).
+    pub adjust_bias: bool,
+    /// Wall time the analysis pass may take per cycle, ms: with [`Sampling::Adaptive`] the
+    /// shell divides it by the measured cost of a sample to size the pass
+    /// ([`crate::coverage::SampleBudget`]).
+    pub analysis_budget_ms: f64,
+}
+
+/// Default [`CoreConfig::analysis_budget_ms`].
+pub const DEFAULT_ANALYSIS_BUDGET_MS: f64 = 20.0;
+
+/// How the analysis pass picks its pixels each cycle.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Sampling {
+    /// From what is known of the view ([`crate::coverage`]): pixels whose treelet arrived, then
+    /// unknown ones, as many as the cycle's budget allows.
+    #[default]
+    Adaptive,
+    /// The thesis's fixed grid: `1/n` of the frame per axis every cycle, jittered.
+    Grid,
+}
+
+impl Sampling {
+    /// Parses `adaptive` or `grid` (the CLI spelling).
+    pub fn parse(text: &str) -> Option<Self> {
+        match text {
+            "adaptive" => Some(Self::Adaptive),
+            "grid" => Some(Self::Grid),
+            _ => None,
+        }
+    }
 }
 
 impl Default for CoreConfig {
@@ -83,6 +118,9 @@ impl Default for CoreConfig {
             fill_ratio: DEFAULT_FILL_RATIO,
             channels: vec![Channel::Color, Channel::Normal, Channel::Density],
             light: Light::default(),
+            sampling: Sampling::default(),
+            adjust_bias: true,
+            analysis_budget_ms: DEFAULT_ANALYSIS_BUDGET_MS,
         }
     }
 }
@@ -115,6 +153,15 @@ impl CoreConfig {
                 "load limit and request cap must be at least 1".into(),
             ));
         }
+        if !(self.analysis_budget_ms.is_finite()
+            && self.analysis_budget_ms > 0.0
+            && self.analysis_budget_ms <= 60_000.0)
+        {
+            return Err(CoreError::Invalid(format!(
+                "analysis budget {} ms must be in (0, 60000]",
+                self.analysis_budget_ms
+            )));
+        }
         if self.max_requests > arbor_proto::limits::MAX_REQUEST_ITEMS {
             return Err(CoreError::Invalid(format!(
                 "request cap {} above the protocol's {}",
@@ -131,12 +178,27 @@ impl CoreConfig {
 pub struct Plan {
     /// The request list, highest priority first.
     pub requests: Vec<(TreeletId, f32)>,
-    /// Distinct refinable treelets seen (before the cap).
+    /// Distinct refinable treelets wanted (before the cap).
     pub distinct_requests: usize,
-    /// Screen-space error of this cycle's samples.
+    /// Screen-space error over every known pixel of the view.
     pub error: ErrorSummary,
-    /// Samples that hit something.
+    /// Samples of this cycle's pass that hit something.
     pub samples: u32,
+    /// The LOD bias in effect.
+    pub lod_bias: f64,
+    /// The bias changed this cycle (the request list is empty: it was for the old target).
+    pub bias_changed: bool,
+    /// Share of the view's pixels known.
+    pub known_share: f64,
+    /// Every pixel is known and final: the image equals the fully resident render.
+    pub converged: bool,
+}
+
+/// What this cycle's analysis pass did.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Analysis {
+    /// Pixels sampled.
+    pub sampled: usize,
 }
 
 /// The second half: what the slot buffer did.
@@ -150,7 +212,8 @@ pub struct Integration {
     pub dropped: u32,
 }
 
-/// The client's cycle state: slot buffer, presort, feedback, arrivals waiting for a slot.
+/// The client's cycle state: slot buffer, presort, what is known of the view, the LOD bias,
+/// arrivals waiting for a slot.
 #[derive(Debug)]
 pub struct ClientCore {
     scene: Arc<SceneDescription>,
@@ -159,6 +222,11 @@ pub struct ClientCore {
     slots: SlotBuffer,
     presort: Presort,
     feedback: Feedback,
+    coverage: Coverage,
+    bias: LodBiasControl,
+    /// The refinable leaves of resident treelets, for [`PriorityPolicy::Frustum`].
+    frustum: Option<FrustumSelector>,
+    last_camera: Option<Camera>,
     backlog: VecDeque<DecodedTreelet>,
     backlog_ids: HashSet<TreeletId>,
     backlog_dropped: u32,
@@ -197,6 +265,11 @@ impl ClientCore {
                 budget_bytes
             );
         }
+        let frustum = (config.policy == PriorityPolicy::Frustum).then(|| {
+            let mut f = FrustumSelector::default();
+            f.add(&root.treelet, scene.max_depth);
+            f
+        });
         let slots = SlotBuffer::new(
             SlotConfig {
                 budget_bytes,
@@ -211,6 +284,10 @@ impl ClientCore {
         Ok(Self {
             frame: SceneFrame::of(&scene),
             presort: Presort::new(config.policy, config.max_requests),
+            coverage: Coverage::new(0, 0, config.analysis.ratio),
+            bias: LodBiasControl::new(config.analysis.lod_bias),
+            frustum,
+            last_camera: None,
             scene,
             config,
             slots,
@@ -243,9 +320,19 @@ impl ClientCore {
         &self.config
     }
 
-    /// The last cycle's feedback.
+    /// The last feedback the backend handed back.
     pub fn feedback(&self) -> &Feedback {
         &self.feedback
+    }
+
+    /// What is known of the view.
+    pub fn coverage(&self) -> &Coverage {
+        &self.coverage
+    }
+
+    /// The LOD bias control (the bias in effect, when it was first raised).
+    pub fn lod_bias(&self) -> &LodBiasControl {
+        &self.bias
     }
 
     /// Cycles planned so far.
@@ -276,59 +363,166 @@ impl ClientCore {
         }
     }
 
-    /// Runs the analysis pass for `camera`; [`presort`](Self::presort) reads its feedback.
-    pub fn analyse(&mut self, camera: &Camera) {
-        let mut feedback = std::mem::take(&mut self.feedback);
-        let input = pass_input(&self.slots, &self.frame, &self.config, camera);
-        self.backend.analyse(&input, self.cycle, &mut feedback);
-        self.feedback = feedback;
+    /// The analysis config of this cycle: the configured ratio, the bias in effect.
+    fn analysis_config(&self) -> AnalysisConfig {
+        AnalysisConfig {
+            ratio: self.config.analysis.ratio,
+            lod_bias: self.bias.bias(),
+        }
     }
 
-    /// Presort of the latest feedback: ages visibility, marks what was seen and returns the
-    /// request list to send. Ends the cycle's first half.
+    /// Runs the analysis pass for `camera` over at most `max_samples` pixels (the caller's
+    /// measured budget; at least the `1/n` grid's share) and takes what it found into the view's
+    /// knowledge. A new camera (or frame size) starts the knowledge afresh.
+    pub fn analyse(&mut self, camera: &Camera, max_samples: usize) -> Analysis {
+        let cycle = self.cycle;
+        if self.coverage.size() != (camera.width, camera.height) {
+            self.coverage = Coverage::new(camera.width, camera.height, self.config.analysis.ratio);
+            self.coverage.reset(cycle);
+        } else if self.last_camera.as_ref() != Some(camera) {
+            self.coverage.reset(cycle);
+            self.bias.view_changed();
+        }
+        self.last_camera = Some(*camera);
+        let pixels = match self.config.sampling {
+            Sampling::Adaptive => {
+                let slots = &self.slots;
+                self.coverage
+                    .plan(cycle, max_samples, |id| slots.is_resident(id))
+            }
+            Sampling::Grid => grid_pixels(
+                camera.width,
+                camera.height,
+                self.config.analysis.ratio,
+                cycle,
+            ),
+        };
+        let analysis = self.analysis_config();
+        let input = PassInput {
+            slots: &self.slots,
+            frame: &self.frame,
+            camera,
+            analysis: &analysis,
+            light: &self.config.light,
+        };
+        let mut feedback = std::mem::take(&mut self.feedback);
+        self.backend.analyse(&input, &pixels, cycle, &mut feedback);
+        self.coverage.handle_feedback(&feedback);
+        self.feedback = feedback;
+        Analysis {
+            sampled: pixels.len(),
+        }
+    }
+
+    /// Presort of what is known: ages visibility, marks what is seen, adjusts the LOD bias when
+    /// the view is fully known, and returns the request list to send (capped to the room the
+    /// slot buffer has: a treelet that would be dropped for lack of room is not asked for).
+    /// Ends the cycle's first half.
     pub fn presort(&mut self) -> Plan {
+        let (visible, mut requests, distinct) = match self.config.policy {
+            PriorityPolicy::Frustum => self.select_frustum(),
+            _ => self.select_from_feedback(),
+        };
+        self.slots.begin_cycle();
+        for &s in &visible {
+            self.slots.mark_visible(s);
+        }
+        let cycle = self.cycle;
+        let mut bias_changed = false;
+        if self.config.adjust_bias && self.coverage.known() == self.coverage.pixels() {
+            let need = ViewNeed {
+                visible_slots: visible.len() as u32,
+                wanted: distinct as u32,
+                capacity: self.slots.capacity(),
+            };
+            bias_changed = self.bias.update(cycle, need);
+            if bias_changed {
+                tracing::debug!(cycle, bias = self.bias.bias(), ?need, "LOD bias adjusted");
+                self.coverage.reset(cycle + 1);
+                requests.clear();
+            }
+        }
+        // Ask for no more than could be inserted: with an oversubscribed budget the rest would
+        // only be dropped on arrival.
+        let room = (self.slots.room() as usize).saturating_sub(self.backlog.len());
+        requests.truncate(room);
+        let errors: Vec<f32> = self
+            .coverage
+            .known_samples()
+            .map(|(_, s)| s.refinable_error())
+            .collect();
+        let samples = self.feedback.samples.iter().filter(|s| s.is_hit()).count() as u32;
+        let pixels = self.coverage.pixels().max(1);
+        self.cycle += 1;
+        Plan {
+            requests,
+            distinct_requests: distinct,
+            samples,
+            error: ErrorSummary::from_samples(&errors, 1.0),
+            lod_bias: self.bias.bias(),
+            bias_changed,
+            known_share: f64::from(self.coverage.known()) / f64::from(pixels),
+            converged: !bias_changed && self.coverage.converged(),
+        }
+    }
+
+    /// Visible slots and requests from every known pixel of the view.
+    fn select_from_feedback(&mut self) -> (Vec<u32>, Vec<(TreeletId, f32)>, usize) {
         let slots = &self.slots;
         let backlog = &self.backlog_ids;
-        let sorted = self.presort.run(
-            &self.feedback.samples,
+        let (w, h) = self.coverage.size();
+        let centre = self.config.policy == PriorityPolicy::Centre;
+        let weighted = self.coverage.known_samples().map(|(i, s)| {
+            let weight = if centre {
+                centre_weight(i % w.max(1), i / w.max(1), w, h)
+            } else {
+                1.0
+            };
+            (weight, s)
+        });
+        let sorted = self.presort.run_weighted(
+            weighted,
             self.scene.treelet_nodes,
             slots.capacity(),
             |s| slots.parent_slot(s),
             |id| backlog.contains(&id) || slots.is_resident(id),
         );
-        self.slots.begin_cycle();
-        for &s in &sorted.visible_slots {
-            self.slots.mark_visible(s);
-        }
-        // Ask for no more than could be inserted (a few always, so a full buffer still learns
-        // what it is missing): with an oversubscribed budget the rest would only be dropped.
-        let room = (self.slots.room() as usize).saturating_sub(self.backlog.len());
-        let mut requests = sorted.requests;
-        requests.truncate(room.max(MIN_REQUESTS));
-        let errors: Vec<f32> = self
-            .feedback
-            .samples
-            .iter()
-            .filter(|s| s.is_hit())
-            .map(|s| s.refinable_error())
-            .collect();
-        let ratio = f64::from(self.config.analysis.ratio);
-        self.cycle += 1;
-        Plan {
-            requests: requests.iter().map(|r| (r.id, r.priority)).collect(),
-            distinct_requests: sorted.distinct_requests,
-            samples: errors.len() as u32,
-            error: ErrorSummary::from_samples(&errors, ratio * ratio),
-        }
+        let requests = sorted.requests.iter().map(|r| (r.id, r.priority)).collect();
+        (sorted.visible_slots, requests, sorted.distinct_requests)
     }
 
-    /// [`analyse`](Self::analyse) then [`presort`](Self::presort).
+    /// Visible slots and requests of the frustum policy.
+    fn select_frustum(&mut self) -> (Vec<u32>, Vec<(TreeletId, f32)>, usize) {
+        let Some(camera) = self.last_camera else {
+            return (Vec::new(), Vec::new(), 0);
+        };
+        let Some(frustum) = &self.frustum else {
+            return (Vec::new(), Vec::new(), 0);
+        };
+        let slots = &self.slots;
+        let backlog = &self.backlog_ids;
+        let (visible, requests) = frustum.select(&self.frame, &camera, self.bias.bias(), |id| {
+            backlog.contains(&id) || slots.is_resident(id)
+        });
+        let visible = visible.iter().filter_map(|&id| slots.slot_of(id)).collect();
+        let distinct = requests.len();
+        let requests = requests
+            .iter()
+            .take(self.config.max_requests)
+            .map(|r| (r.id, r.error))
+            .collect();
+        (visible, requests, distinct)
+    }
+
+    /// [`analyse`](Self::analyse) with the whole frame as budget, then
+    /// [`presort`](Self::presort).
     pub fn plan(&mut self, camera: &Camera) -> Plan {
-        self.analyse(camera);
+        self.analyse(camera, usize::MAX);
         self.presort()
     }
 
-    /// Inserts queued arrivals up to the load limit.
+    /// Inserts queued arrivals up to the load limit. An eviction can uncover a coarse leaf in
+    /// front of a known pixel, so it starts the view's knowledge afresh.
     pub fn integrate(&mut self) -> Integration {
         let mut inserted = 0;
         let mut evicted = 0;
@@ -339,6 +533,9 @@ impl ClientCore {
                 break;
             };
             self.backlog_ids.remove(&t.treelet.header.id);
+            if let Some(f) = &mut self.frustum {
+                f.add(&t.treelet, self.scene.max_depth);
+            }
             match self.slots.insert(t) {
                 InsertOutcome::Inserted { evicted: e, .. } => {
                     inserted += 1;
@@ -350,6 +547,13 @@ impl ClientCore {
                     dropped += 1
                 }
             }
+        }
+        if let Some(f) = &mut self.frustum {
+            let slots = &self.slots;
+            f.retain(|id| slots.is_resident(id));
+        }
+        if evicted > 0 {
+            self.coverage.reset(self.cycle);
         }
         Integration {
             inserted,
@@ -371,16 +575,28 @@ impl ClientCore {
         upload
     }
 
-    /// The image of what is resident, seen from `camera`.
+    /// The image of what is resident, seen from `camera` with the bias in effect.
     pub fn render(&mut self, camera: &Camera) -> Image {
-        self.backend
-            .render(&pass_input(&self.slots, &self.frame, &self.config, camera))
+        let analysis = self.analysis_config();
+        self.backend.render(&PassInput {
+            slots: &self.slots,
+            frame: &self.frame,
+            camera,
+            analysis: &analysis,
+            light: &self.config.light,
+        })
     }
 
     /// Renders into the backend's own target (see [`Backend::render_in_place`]).
     pub fn render_in_place(&mut self, camera: &Camera) -> bool {
-        self.backend
-            .render_in_place(&pass_input(&self.slots, &self.frame, &self.config, camera))
+        let analysis = self.analysis_config();
+        self.backend.render_in_place(&PassInput {
+            slots: &self.slots,
+            frame: &self.frame,
+            camera,
+            analysis: &analysis,
+            light: &self.config.light,
+        })
     }
 
     /// The backend running the passes.
@@ -391,21 +607,5 @@ impl ClientCore {
     /// Which backend runs the passes.
     pub fn backend_name(&self) -> String {
         self.backend.name()
-    }
-}
-
-/// Everything a pass reads this cycle (disjoint borrows of the core's fields).
-fn pass_input<'a>(
-    slots: &'a SlotBuffer,
-    frame: &'a SceneFrame,
-    config: &'a CoreConfig,
-    camera: &'a Camera,
-) -> PassInput<'a> {
-    PassInput {
-        slots,
-        frame,
-        camera,
-        analysis: &config.analysis,
-        light: &config.light,
     }
 }

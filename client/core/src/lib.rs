@@ -19,8 +19,11 @@
 
 pub mod analysis;
 pub mod backend;
+pub mod bias;
 pub mod camera;
+pub mod coverage;
 pub mod cycle;
+pub mod frustum;
 pub mod image;
 pub mod incore;
 pub mod presort;

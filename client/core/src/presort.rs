@@ -19,25 +19,35 @@ use arbor_proto::TreeletId;
 
 use crate::analysis::FeedbackSample;
 
-/// How a request's priority is computed from what the feedback saw.
+/// How a request's priority is computed from what the feedback saw, or, for
+/// [`PriorityPolicy::Frustum`], whether the feedback decides at all.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum PriorityPolicy {
     /// The largest screen-space error any sample saw (the thesis's rule).
     MaxError,
-    /// Largest error × samples that saw it: a treelet covering many pixels matters more.
-    /// Arbor's default.
+    /// Largest error × pixels that saw it: a treelet covering many pixels matters more.
     #[default]
     ErrorTimesPixels,
+    /// Largest error × pixels that saw it, each pixel weighted by its closeness to the screen
+    /// centre ([`centre_weight`]): what the user looks at refines first.
+    Centre,
+    /// The peer's rule (Potree, Cesium): refinable leaves in the view frustum by projected size,
+    /// no feedback, no occlusion (see [`crate::frustum`]).
+    Frustum,
 }
 
 impl PriorityPolicy {
-    /// Parses `max-error` or `error-pixels` (the CLI spelling).
+    /// Every policy, in the order the CLI lists them.
+    pub const ALL: [PriorityPolicy; 4] = [
+        PriorityPolicy::MaxError,
+        PriorityPolicy::ErrorTimesPixels,
+        PriorityPolicy::Centre,
+        PriorityPolicy::Frustum,
+    ];
+
+    /// Parses `max-error`, `error-pixels`, `centre` or `frustum` (the CLI spelling).
     pub fn parse(text: &str) -> Option<Self> {
-        match text {
-            "max-error" => Some(Self::MaxError),
-            "error-pixels" => Some(Self::ErrorTimesPixels),
-            _ => None,
-        }
+        Self::ALL.into_iter().find(|p| p.name() == text)
     }
 
     /// The command-line spelling.
@@ -45,8 +55,20 @@ impl PriorityPolicy {
         match self {
             Self::MaxError => "max-error",
             Self::ErrorTimesPixels => "error-pixels",
+            Self::Centre => "centre",
+            Self::Frustum => "frustum",
         }
     }
+}
+
+/// Weight of pixel `(x, y)` of a `width × height` frame for [`PriorityPolicy::Centre`]:
+/// `exp(−2 r²)` with `r` the distance from the centre in half frame heights (1 at the centre,
+/// 0.14 at the middle of the top edge).
+pub fn centre_weight(x: u32, y: u32, width: u32, height: u32) -> f32 {
+    let half = f64::from(height.max(1)) * 0.5;
+    let dx = (f64::from(x) + 0.5 - f64::from(width) * 0.5) / half;
+    let dy = (f64::from(y) + 0.5 - f64::from(height) * 0.5) / half;
+    (-2.0 * (dx * dx + dy * dy)).exp() as f32
 }
 
 /// One de-duplicated request.
@@ -58,6 +80,8 @@ pub struct RequestItem {
     pub error: f32,
     /// Samples that hit it.
     pub samples: u32,
+    /// Sum of the samples' weights (1 each, except for [`PriorityPolicy::Centre`]).
+    pub weight: f32,
     /// What the list is sorted by (see [`PriorityPolicy`]); finite and > 0.
     pub priority: f32,
 }
@@ -80,7 +104,8 @@ pub struct Presort {
     policy: PriorityPolicy,
     max_requests: usize,
     seen_slots: Vec<bool>,
-    requests: HashMap<TreeletId, (f32, u32)>,
+    /// Per requested treelet: largest error, samples, summed weight.
+    requests: HashMap<TreeletId, (f32, u32, f32)>,
 }
 
 impl Presort {
@@ -99,12 +124,32 @@ impl Presort {
         self.policy
     }
 
-    /// Runs presort over `samples`. `treelet_nodes` is `N`; `parent_slot(slot)` gives the slot
-    /// of a slot's parent treelet (`None` for the root slot); `skip(id)` says a subtreelet must
-    /// not be requested (already resident or waiting to be inserted).
+    /// Runs presort over `samples`, each weighing 1. `treelet_nodes` is `N`;
+    /// `parent_slot(slot)` gives the slot of a slot's parent treelet (`None` for the root slot);
+    /// `skip(id)` says a subtreelet must not be requested (already resident or waiting to be
+    /// inserted).
     pub fn run(
         &mut self,
         samples: &[FeedbackSample],
+        treelet_nodes: u32,
+        slot_count: u32,
+        parent_slot: impl Fn(u32) -> Option<u32>,
+        skip: impl Fn(TreeletId) -> bool,
+    ) -> Presorted {
+        self.run_weighted(
+            samples.iter().map(|s| (1.0, s)),
+            treelet_nodes,
+            slot_count,
+            parent_slot,
+            skip,
+        )
+    }
+
+    /// [`run`](Self::run) over `(weight, sample)` pairs (the weight counts for
+    /// [`PriorityPolicy::Centre`]).
+    pub fn run_weighted<'a>(
+        &mut self,
+        samples: impl Iterator<Item = (f32, &'a FeedbackSample)>,
         treelet_nodes: u32,
         slot_count: u32,
         parent_slot: impl Fn(u32) -> Option<u32>,
@@ -114,7 +159,7 @@ impl Presort {
         self.seen_slots.resize(slot_count as usize, false);
         self.requests.clear();
         let mut visible = Vec::new();
-        for s in samples.iter().filter(|s| s.is_hit()) {
+        for (weight, s) in samples.filter(|(_, s)| s.is_hit()) {
             let mut slot = s.node / treelet_nodes;
             // Walk up until a slot already marked: its ancestors are marked too.
             while let Some(seen) = self.seen_slots.get_mut(slot as usize) {
@@ -132,9 +177,10 @@ impl Presort {
                 let e = self
                     .requests
                     .entry(TreeletId(s.subtreelet))
-                    .or_insert((s.error, 0));
+                    .or_insert((s.error, 0, 0.0));
                 e.0 = e.0.max(s.error);
                 e.1 += 1;
+                e.2 += weight;
             }
         }
         visible.sort_unstable();
@@ -142,22 +188,21 @@ impl Presort {
         let mut requests: Vec<RequestItem> = self
             .requests
             .iter()
-            .map(|(&id, &(error, samples))| RequestItem {
+            .map(|(&id, &(error, samples, weight))| RequestItem {
                 id,
                 error,
                 samples,
+                weight,
                 priority: match policy {
-                    PriorityPolicy::MaxError => error,
+                    PriorityPolicy::MaxError | PriorityPolicy::Frustum => error,
                     PriorityPolicy::ErrorTimesPixels => error * samples as f32,
+                    // A tiny floor keeps the priority > 0 far from the centre.
+                    PriorityPolicy::Centre => error * weight.max(1e-6),
                 },
             })
             .collect();
         let distinct_requests = requests.len();
-        requests.sort_unstable_by(|a, b| {
-            b.priority
-                .total_cmp(&a.priority)
-                .then_with(|| a.id.cmp(&b.id))
-        });
+        sort_by_priority(&mut requests);
         requests.truncate(self.max_requests);
         Presorted {
             visible_slots: visible,
@@ -165,6 +210,15 @@ impl Presort {
             distinct_requests,
         }
     }
+}
+
+/// Highest priority first, ties by lower id (the server's own tie rule).
+pub fn sort_by_priority(requests: &mut [RequestItem]) {
+    requests.sort_unstable_by(|a, b| {
+        b.priority
+            .total_cmp(&a.priority)
+            .then_with(|| a.id.cmp(&b.id))
+    });
 }
 
 #[cfg(test)]
@@ -252,6 +306,29 @@ mod tests {
         let out = p.run(&samples, 16, 4, parent, |id| id == TreeletId(5));
         let ids: Vec<_> = out.requests.iter().map(|r| r.id.0).collect();
         assert_eq!(ids, vec![3, 8]);
+    }
+
+    #[test]
+    fn centre_weights_favour_the_middle_of_the_frame() {
+        let c = centre_weight(50, 50, 100, 100);
+        assert!(c > 0.99, "{c}");
+        let edge = centre_weight(50, 0, 100, 100);
+        assert!((edge - (-2.0f32).exp()).abs() < 0.01, "{edge}");
+        // Treelet 5 seen by one central sample at error 2, treelet 6 by two edge samples at 2.
+        let mut p = Presort::new(PriorityPolicy::Centre, 10);
+        let (a, b) = (hit(1, 5, 2.0), hit(2, 6, 2.0));
+        let out = p.run_weighted(
+            [(c, &a), (edge, &b), (edge, &b)].into_iter(),
+            16,
+            4,
+            parent,
+            |_| false,
+        );
+        assert_eq!(out.requests[0].id, TreeletId(5));
+        assert_eq!(out.requests[1].samples, 2);
+        for policy in PriorityPolicy::ALL {
+            assert_eq!(PriorityPolicy::parse(policy.name()), Some(policy));
+        }
     }
 
     #[test]

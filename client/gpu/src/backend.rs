@@ -35,9 +35,7 @@ use arbor_proto::{Channel, Node};
 use super::context::GpuContext;
 use super::layout::{FeedbackSample, FrameUniform};
 use super::shaders;
-use arbor_client_core::analysis::{
-    AnalysisConfig, Feedback, MAX_FEEDBACK_RATIO, feedback_size, jitter,
-};
+use arbor_client_core::analysis::{AnalysisConfig, Feedback, grid_pixels};
 use arbor_client_core::backend::{Backend, PassInput};
 use arbor_client_core::camera::Camera;
 use arbor_client_core::image::Image;
@@ -80,22 +78,39 @@ const MAP_PENDING: u8 = 1;
 const MAP_READY: u8 = 2;
 const MAP_FAILED: u8 = 3;
 
-/// One staging buffer of the pipelined feedback read-back.
+/// One staging buffer of the pipelined feedback read-back: the samples, then (with timestamp
+/// queries) the pass's two ticks.
 #[derive(Debug)]
 struct Staging {
     buffer: wgpu::Buffer,
     state: Arc<AtomicU8>,
     /// Submission order, to pick the newest completed read-back.
     serial: u64,
-    offset: (u32, u32),
+    /// The cycle and pixels of the pass in flight here.
+    cycle: u64,
+    pixels: Vec<u32>,
 }
 
+/// The analysis pass's buffers, sized for up to `capacity` samples.
 #[derive(Debug)]
 struct FeedbackBuffers {
-    size: (u32, u32),
+    capacity: u32,
+    pixels: wgpu::Buffer,
     storage: wgpu::Buffer,
     staging: [Staging; 2],
     blocking: wgpu::Buffer,
+}
+
+/// Invocations per analysis workgroup (`@workgroup_size(64, 1, 1)` in `analysis.wgsl`).
+const ANALYSIS_GROUP: u32 = 64;
+/// Most workgroups one dispatch dimension may have.
+const MAX_GROUPS: u32 = 65_535;
+
+/// Workgroups `(x, y)` and invocations per row for an analysis pass over `count` pixels.
+fn analysis_grid(count: u32) -> ((u32, u32), u32) {
+    let groups = count.div_ceil(ANALYSIS_GROUP).max(1);
+    let x = groups.min(MAX_GROUPS);
+    ((x, groups.div_ceil(x)), x * ANALYSIS_GROUP)
 }
 
 /// Timestamp queries around the two passes (when the device has `TIMESTAMP_QUERY`).
@@ -138,6 +153,8 @@ pub struct GpuBackend {
     target: Option<Target>,
     serial: u64,
     timestamps: Option<Timestamps>,
+    /// Samples and GPU seconds of the last collected analysis pass, when timed.
+    last_analysis_cost: Option<(usize, f64)>,
     /// Upload counters.
     pub stats: UploadStats,
 }
@@ -224,9 +241,19 @@ impl GpuBackend {
             target: None,
             serial: 0,
             timestamps: None,
+            last_analysis_cost: None,
             stats: UploadStats::default(),
             ctx,
         }
+    }
+
+    /// [`GpuBackend::new`] with the passes timed when the device can
+    /// ([`enable_pass_timing`](GpuBackend::enable_pass_timing)): the analysis pass's measured
+    /// cost then sizes the next passes.
+    pub fn timed(ctx: Arc<GpuContext>) -> GpuBackend {
+        let mut b = GpuBackend::new(ctx);
+        b.enable_pass_timing();
+        b
     }
 
     /// Turns on timestamp queries around both passes if the device supports them (the
@@ -419,70 +446,77 @@ impl GpuBackend {
         self.upload_all(view);
     }
 
-    fn ensure_feedback(&mut self, size: (u32, u32)) {
-        if self.feedback.as_ref().is_some_and(|f| f.size == size) {
+    /// Buffers for a pass over `count` pixels (grown to a power of two, never shrunk).
+    fn ensure_feedback(&mut self, count: u32) {
+        if self.feedback.as_ref().is_some_and(|f| f.capacity >= count) {
             return;
         }
+        let capacity = count.max(1024).next_power_of_two();
         let device = &self.ctx.device;
-        let bytes = padded(
-            u64::from(size.0) * u64::from(size.1) * std::mem::size_of::<FeedbackSample>() as u64,
-        );
-        let buffer = |label: &str, usage| {
+        let sample_bytes = u64::from(capacity) * std::mem::size_of::<FeedbackSample>() as u64;
+        let buffer = |label: &str, size: u64, usage| {
             device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
-                size: bytes,
+                size,
                 usage,
                 mapped_at_creation: false,
             })
         };
         let read = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
+        // The pass's ticks are copied behind the samples.
+        let staged = sample_bytes + 16;
         let staging = |label: &str| Staging {
-            buffer: buffer(label, read),
+            buffer: buffer(label, staged, read),
             state: Arc::new(AtomicU8::new(MAP_IDLE)),
             serial: 0,
-            offset: (0, 0),
+            cycle: 0,
+            pixels: Vec::new(),
         };
         self.feedback = Some(FeedbackBuffers {
-            size,
+            capacity,
+            pixels: buffer(
+                "analysis pixels",
+                u64::from(capacity) * 4,
+                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            ),
             storage: buffer(
                 "feedback",
+                sample_bytes,
                 wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
             ),
             staging: [staging("feedback staging 0"), staging("feedback staging 1")],
-            blocking: buffer("feedback staging (blocking)", read),
+            blocking: buffer("feedback staging (blocking)", staged, read),
         });
     }
 
-    /// The uniform of the analysis pass of `cycle`, with the feedback size and jitter.
+    /// The uniform of an analysis pass over `count` pixels.
     fn analysis_uniform(
         &self,
         frame: &SceneFrame,
         camera: &Camera,
-        config: &AnalysisConfig,
-        cycle: u64,
-    ) -> (FrameUniform, (u32, u32), (u32, u32)) {
-        let ratio = config.ratio.clamp(1, MAX_FEEDBACK_RATIO);
-        let size = feedback_size(camera.width, camera.height, ratio);
-        let offset = jitter(cycle, ratio);
+        lod_bias: f64,
+        count: u32,
+    ) -> FrameUniform {
         let lod = Lod {
             pixel_angle: camera.pixel_angle(),
-            lod_bias: config.lod_bias,
+            lod_bias,
             max_depth: frame.max_depth,
         };
         let channels = self.store.as_ref().map_or(&[][..], |s| &s.channels[..]);
-        let u = FrameUniform::new(frame, camera, &lod, &Light::default(), channels)
-            .with_feedback(size, ratio, offset);
-        (u, size, offset)
+        let (_, stride) = analysis_grid(count);
+        FrameUniform::new(frame, camera, &lod, &Light::default(), channels)
+            .with_samples(count, stride)
     }
 
-    /// Encodes the analysis pass into the feedback storage buffer and a copy into `staging`.
-    fn encode_analysis(&self, u: &FrameUniform, size: (u32, u32), staging: &wgpu::Buffer) {
+    /// Encodes the analysis pass over `pixels` into the feedback storage buffer and a copy of
+    /// its samples (and ticks) into `staging`.
+    fn encode_analysis(&self, u: &FrameUniform, pixels: &[u32], staging: &wgpu::Buffer) {
         let (Some(store), Some(fb)) = (&self.store, &self.feedback) else {
             return;
         };
-        self.ctx
-            .queue
-            .write_buffer(&self.analysis_uniform, 0, bytemuck::bytes_of(u));
+        let queue = &self.ctx.queue;
+        queue.write_buffer(&self.analysis_uniform, 0, bytemuck::bytes_of(u));
+        queue.write_buffer(&fb.pixels, 0, bytemuck::cast_slice(pixels));
         let entries = [
             wgpu::BindGroupEntry {
                 binding: 0,
@@ -496,23 +530,46 @@ impl GpuBackend {
                 binding: 2,
                 resource: fb.storage.as_entire_binding(),
             },
+            wgpu::BindGroupEntry {
+                binding: 3,
+                resource: fb.pixels.as_entire_binding(),
+            },
         ];
-        let mut enc = self.encode_pass(Pass::Analysis, &entries, size);
-        enc.copy_buffer_to_buffer(&fb.storage, 0, staging, 0, fb.storage.size());
+        let (groups, _) = analysis_grid(pixels.len() as u32);
+        let mut enc = self.encode_pass(Pass::Analysis, &entries, groups);
+        let bytes = pixels.len() as u64 * std::mem::size_of::<FeedbackSample>() as u64;
+        if bytes > 0 {
+            enc.copy_buffer_to_buffer(&fb.storage, 0, staging, 0, bytes);
+        }
+        if let Some(t) = &self.timestamps {
+            enc.copy_buffer_to_buffer(&t.resolve, 0, staging, staging.size() - 16, 16);
+        }
         self.ctx.queue.submit([enc.finish()]);
     }
 
-    /// Decodes a feedback read-back into `out`.
-    fn fill_feedback(bytes: &[u8], size: (u32, u32), offset: (u32, u32), out: &mut Feedback) {
-        let count = (size.0 * size.1) as usize;
-        out.width = size.0;
-        out.height = size.1;
-        out.offset = offset;
+    /// Decodes a feedback read-back of `pixels` into `out`; returns the pass's GPU seconds when
+    /// it was timed.
+    fn fill_feedback(
+        &self,
+        bytes: &[u8],
+        cycle: u64,
+        pixels: &[u32],
+        out: &mut Feedback,
+    ) -> Option<f64> {
+        let count = pixels.len();
+        out.cycle = cycle;
+        out.pixels.clear();
+        out.pixels.extend_from_slice(pixels);
         out.samples.clear();
         out.samples
             .extend_from_slice(bytemuck::cast_slice::<u8, FeedbackSample>(
                 &bytes[..count * std::mem::size_of::<FeedbackSample>()],
             ));
+        let ts = self.timestamps.as_ref()?;
+        let tail = &bytes[bytes.len() - 16..];
+        let tick = |at: usize| u64::from_le_bytes(tail[at..at + 8].try_into().expect("8 bytes"));
+        let ticks = tick(8).saturating_sub(tick(0));
+        Some(ticks as f64 * f64::from(ts.period) * 1e-9)
     }
 
     /// The analysis pass of `cycle`, waiting for its result (not pipelined): what
@@ -540,13 +597,29 @@ impl GpuBackend {
         cycle: u64,
         out: &mut Feedback,
     ) {
-        let (u, size, offset) = self.analysis_uniform(frame, camera, config, cycle);
-        self.ensure_feedback(size);
+        let pixels = grid_pixels(camera.width, camera.height, config.ratio, cycle);
+        self.analyse_pixels_loaded(frame, camera, config.lod_bias, &pixels, cycle, out);
+    }
+
+    /// The analysis pass of `cycle` over `pixels` on what was last loaded or uploaded, waiting
+    /// for its result.
+    pub fn analyse_pixels_loaded(
+        &mut self,
+        frame: &SceneFrame,
+        camera: &Camera,
+        lod_bias: f64,
+        pixels: &[u32],
+        cycle: u64,
+        out: &mut Feedback,
+    ) {
+        let count = pixels.len() as u32;
+        let u = self.analysis_uniform(frame, camera, lod_bias, count);
+        self.ensure_feedback(count);
         let fb = self.feedback.as_ref().expect("feedback buffers");
-        self.encode_analysis(&u, size, &fb.blocking);
+        self.encode_analysis(&u, pixels, &fb.blocking);
         let len = fb.blocking.size();
         let bytes = read_mapped(&self.ctx.device, &fb.blocking, len);
-        Self::fill_feedback(&bytes, size, offset, out);
+        self.fill_feedback(&bytes, cycle, pixels, out);
     }
 
     /// Collects completed read-backs: the newest goes to `out`, all are released.
@@ -572,7 +645,8 @@ impl GpuBackend {
                 .get_mapped_range()
                 .expect("mapped feedback")
                 .to_vec();
-            Self::fill_feedback(&bytes, fb.size, s.offset, out);
+            let seconds = self.fill_feedback(&bytes, s.cycle, &s.pixels, out);
+            self.last_analysis_cost = seconds.map(|t| (s.pixels.len(), t));
         }
         for s in &fb.staging {
             if s.state.load(Ordering::Acquire) == MAP_READY {
@@ -667,7 +741,8 @@ impl GpuBackend {
                 resource: wgpu::BindingResource::TextureView(&target.view),
             },
         ];
-        let mut enc = self.encode_pass(Pass::Render, &entries, size);
+        let groups = (size.0.div_ceil(8), size.1.div_ceil(8));
+        let mut enc = self.encode_pass(Pass::Render, &entries, groups);
         if let Some((buffer, row)) = readback {
             enc.copy_texture_to_buffer(
                 wgpu::TexelCopyTextureInfo {
@@ -694,14 +769,14 @@ impl GpuBackend {
         self.ctx.queue.submit([enc.finish()]);
     }
 
-    /// One compute pass of `pass`'s pipeline over a `size` grid (8×8 workgroups) with `entries`
+    /// One compute pass of `pass`'s pipeline over `groups` workgroups with `entries`
     /// bound as group 0, timed when timestamp queries are on, in a new encoder the caller may add
     /// copies to before submitting.
     fn encode_pass(
         &self,
         pass: Pass,
         entries: &[wgpu::BindGroupEntry<'_>],
-        size: (u32, u32),
+        groups: (u32, u32),
     ) -> wgpu::CommandEncoder {
         let device = &self.ctx.device;
         let pipeline = match pass {
@@ -730,7 +805,7 @@ impl GpuBackend {
             });
             cpass.set_pipeline(pipeline);
             cpass.set_bind_group(0, &bind, &[]);
-            cpass.dispatch_workgroups(size.0.div_ceil(8), size.1.div_ceil(8), 1);
+            cpass.dispatch_workgroups(groups.0, groups.1, 1);
         }
         if let Some(t) = &self.timestamps {
             enc.resolve_query_set(
@@ -794,18 +869,35 @@ impl Backend for GpuBackend {
         (self.max_binding_bytes() / per_slot).min(u64::from(u32::MAX)) as u32
     }
 
-    fn analyse(&mut self, input: &PassInput<'_>, cycle: u64, out: &mut Feedback) {
+    fn analyse(&mut self, input: &PassInput<'_>, pixels: &[u32], cycle: u64, out: &mut Feedback) {
         self.ensure_uploaded(&input.slots.view());
         let device = &self.ctx.device;
         // Non-blocking: runs the callbacks of whatever has completed.
         let _ = device.poll(wgpu::PollType::Poll);
-        let (u, size, offset) =
-            self.analysis_uniform(input.frame, input.camera, input.analysis, cycle);
-        if self.feedback.as_ref().is_some_and(|f| f.size == size) {
-            self.collect_feedback(out);
+        self.collect_feedback(out);
+        if pixels.is_empty() {
+            return;
         }
-        self.ensure_feedback(size);
+        let count = pixels.len() as u32;
+        let u = self.analysis_uniform(input.frame, input.camera, input.analysis.lod_bias, count);
+        // Growing the buffers drops read-backs in flight: only when both staging buffers are
+        // idle (otherwise this cycle's pass is skipped and its pixels planned again).
+        let idle = |fb: &FeedbackBuffers| {
+            fb.staging
+                .iter()
+                .all(|s| s.state.load(Ordering::Acquire) == MAP_IDLE)
+        };
+        if self
+            .feedback
+            .as_ref()
+            .is_none_or(|f| f.capacity >= count || idle(f))
+        {
+            self.ensure_feedback(count);
+        }
         let fb = self.feedback.as_ref().expect("feedback buffers");
+        if fb.capacity < count {
+            return;
+        }
         let Some(i) = fb
             .staging
             .iter()
@@ -813,13 +905,15 @@ impl Backend for GpuBackend {
         else {
             return;
         };
-        self.encode_analysis(&u, size, &fb.staging[i].buffer);
+        self.encode_analysis(&u, pixels, &fb.staging[i].buffer);
         self.serial += 1;
         let serial = self.serial;
         let fb = self.feedback.as_mut().expect("feedback buffers");
         let s = &mut fb.staging[i];
         s.serial = serial;
-        s.offset = offset;
+        s.cycle = cycle;
+        s.pixels.clear();
+        s.pixels.extend_from_slice(pixels);
         s.state.store(MAP_PENDING, Ordering::Release);
         let state = s.state.clone();
         s.buffer.slice(..).map_async(wgpu::MapMode::Read, move |r| {
@@ -860,6 +954,10 @@ impl Backend for GpuBackend {
             input.analysis.lod_bias,
             input.light,
         )
+    }
+
+    fn analysis_cost(&self) -> Option<(usize, f64)> {
+        self.last_analysis_cost
     }
 
     fn as_any(&self) -> &dyn std::any::Any {

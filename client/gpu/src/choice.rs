@@ -49,12 +49,12 @@ pub fn create_backend(choice: BackendChoice) -> Result<ChosenBackend, GpuError> 
             fallback: None,
         }),
         BackendChoice::Gpu => Ok(ChosenBackend {
-            backend: Box::new(GpuBackend::new(Arc::new(GpuContext::new(None)?))),
+            backend: Box::new(GpuBackend::timed(Arc::new(GpuContext::new(None)?))),
             fallback: None,
         }),
         BackendChoice::Auto => match GpuContext::new(None) {
             Ok(ctx) => Ok(ChosenBackend {
-                backend: Box::new(GpuBackend::new(Arc::new(ctx))),
+                backend: Box::new(GpuBackend::timed(Arc::new(ctx))),
                 fallback: None,
             }),
             Err(e) => Ok(ChosenBackend {

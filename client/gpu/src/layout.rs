@@ -68,9 +68,9 @@ pub struct FrameUniform {
     /// `pixel_angle · lod_bias`; `log2(pixel_angle) + log2(lod_bias)` (guarded like
     /// `trace::screen_error`); the unit `edge / 2^31` in world lengths; unused.
     pub lod: [f32; 4],
-    /// Frame width, height; feedback width, height.
+    /// Frame width, height; analysis: pixel-list length, invocations per dispatch row.
     pub image: [u32; 4],
-    /// Feedback ratio `n`, jitter offset x, y; deepest level (`min(max_depth, 31)`).
+    /// Unused (three words); deepest level (`min(max_depth, 31)`).
     pub sampling: [u32; 4],
     /// `FLAG_*` bits; unused.
     pub flags: [u32; 4],
@@ -137,7 +137,7 @@ impl FrameUniform {
         ];
         u.image = [camera.width, camera.height, 0, 0];
         u.sampling = [
-            1,
+            0,
             0,
             0,
             u32::from(lod.max_depth.min(arbor_proto::limits::MAX_DEPTH)),
@@ -160,13 +160,11 @@ impl FrameUniform {
         u
     }
 
-    /// Sets the feedback buffer size `(width, height)`, ratio `n` and jitter offset.
-    pub fn with_feedback(mut self, size: (u32, u32), ratio: u32, offset: (u32, u32)) -> Self {
-        self.image[2] = size.0;
-        self.image[3] = size.1;
-        self.sampling[0] = ratio;
-        self.sampling[1] = offset.0;
-        self.sampling[2] = offset.1;
+    /// The uniform of an analysis pass over a list of `count` pixels, run in rows of `stride`
+    /// invocations.
+    pub fn with_samples(mut self, count: u32, stride: u32) -> Self {
+        self.image[2] = count;
+        self.image[3] = stride;
         self
     }
 }

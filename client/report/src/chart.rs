@@ -441,6 +441,9 @@ mod tests {
                     slots_used: (i * 20).min(3000),
                     slots_total: 4096,
                     samples: 10_000,
+                    sampled: 10_000,
+                    known_share: 1.0,
+                    lod_bias: 1.0,
                     error: ErrorSummary {
                         mean: e / 3.0,
                         p95: e * 0.8,

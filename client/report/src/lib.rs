@@ -104,6 +104,9 @@ report_columns! {
     "upload_ranges" => upload_ranges: u32,
     "upload_bytes" => upload_bytes: u64,
     "samples" => samples: u32,
+    "sampled" => sampled: u32,
+    "known_share" => known_share: f64,
+    "lod_bias" => lod_bias: f64,
     "error_mean_levels" => error.mean: f32,
     "error_p95_levels" => error.p95: f32,
     "error_max_levels" => error.max: f32,
@@ -191,6 +194,13 @@ pub struct CycleRecord {
     pub upload_bytes: u64,
     /// Feedback samples that hit something.
     pub samples: u32,
+    /// Pixels the analysis pass sampled this cycle.
+    pub sampled: u32,
+    /// Share of the view's pixels known (sampled since the view last changed), 0..=1.
+    pub known_share: f64,
+    /// The LOD bias in effect (raised above the configured one when the view needs more slots
+    /// than the budget holds).
+    pub lod_bias: f64,
     /// Screen-space error over those samples.
     pub error: ErrorSummary,
     /// RMSE of the rendered image against a reference image, when one was given.
@@ -419,13 +429,24 @@ impl RunReport {
             evictions: sum(|r| r.evictions.into()),
             dropped: sum(|r| r.dropped.into()),
             upload_bytes: sum(|r| r.upload_bytes),
-            error_zero: first(|r| r.samples > 0 && r.error.max == 0.0),
+            error_zero: first(|r| r.known_share >= 1.0 && r.error.max == 0.0),
             image_exact: first(|r| r.image_rmse == Some(0.0)),
             final_error: last.map(|r| r.error).unwrap_or_default(),
             final_image_rmse: last.and_then(|r| r.image_rmse),
             final_differing_share: last.and_then(|r| r.differing_share),
             final_slots_used: last.map_or(0, |r| r.slots_used),
             final_slots_total: last.map_or(0, |r| r.slots_total),
+            lod_bias_start: self.records.first().map_or(0.0, |r| r.lod_bias),
+            lod_bias_final: last.map_or(0.0, |r| r.lod_bias),
+            bias_adjusted: self.records.first().and_then(|r0| {
+                self.records
+                    .iter()
+                    .find(|r| r.lod_bias != r0.lod_bias)
+                    .map(|r| Reached {
+                        cycle: r.cycle,
+                        time_s: r.time_s,
+                    })
+            }),
         }
     }
 }
@@ -460,8 +481,8 @@ pub struct RunSummary {
     pub dropped: u64,
     /// Σ bytes uploaded.
     pub upload_bytes: u64,
-    /// First record with samples whose `error.max` is 0: nothing the feedback saw was
-    /// refinable. A cycle without samples (a pipelined backend's first) does not count.
+    /// First record that knows every pixel of the view and whose `error.max` is 0: nothing in
+    /// view is refinable any more.
     pub error_zero: Option<Reached>,
     /// First record whose `image_rmse` is exactly 0 (identical to the reference image).
     pub image_exact: Option<Reached>,
@@ -475,6 +496,13 @@ pub struct RunSummary {
     pub final_slots_used: u32,
     /// Slots in the buffer at the last record.
     pub final_slots_total: u32,
+    /// LOD bias of the first record.
+    pub lod_bias_start: f64,
+    /// LOD bias of the last record.
+    pub lod_bias_final: f64,
+    /// First record whose LOD bias differs from the first's: the target was adjusted to the
+    /// memory budget.
+    pub bias_adjusted: Option<Reached>,
 }
 
 impl fmt::Display for RunSummary {
@@ -513,6 +541,13 @@ impl fmt::Display for RunSummary {
         match self.error_zero {
             Some(r) => writeln!(f, "max first 0 at cycle {} ({:.3} s)", r.cycle, r.time_s)?,
             None => writeln!(f, "max never 0")?,
+        }
+        if let Some(r) = self.bias_adjusted {
+            writeln!(
+                f,
+                "target:   adjusted to the memory budget from cycle {} ({:.3} s): LOD bias {} -> {:.3}",
+                r.cycle, r.time_s, self.lod_bias_start, self.lod_bias_final
+            )?;
         }
         write!(f, "image:    ")?;
         match (self.final_image_rmse, self.final_differing_share) {
@@ -697,6 +732,9 @@ mod tests {
             upload_ranges: 3,
             upload_bytes: 720_896,
             samples: 32_400,
+            sampled: 40_000,
+            known_share: 1.0,
+            lod_bias: 1.0,
             error: ErrorSummary {
                 mean: 1.5,
                 p95: 3.0,
@@ -829,23 +867,22 @@ mod tests {
         assert!(
             matches!(
                 err,
-                ReportError::ColumnCount {
-                    line: 11,
-                    found: 26
-                }
+                ReportError::ColumnCount { line: 11, found }
+                    if found == CSV_COLUMNS.len() + 1
             ),
             "{err:?}"
         );
-        assert_eq!(err.to_string(), "line 11: 26 columns, expected 25");
+        let n = CSV_COLUMNS.len();
+        assert_eq!(
+            err.to_string(),
+            format!("line 11: {} columns, expected {n}", n + 1)
+        );
         let short = row.rsplit_once(',').unwrap().0;
         let err = RunReport::from_csv_str(&with_line(11, short)).unwrap_err();
         assert!(
             matches!(
                 err,
-                ReportError::ColumnCount {
-                    line: 11,
-                    found: 24
-                }
+                ReportError::ColumnCount { line: 11, found } if found == n - 1
             ),
             "{err:?}"
         );
@@ -924,10 +961,10 @@ mod tests {
                 err,
                 ReportError::BadHeader {
                     line: 10,
-                    column: 26,
+                    column,
                     expected: "",
                     ..
-                }
+                } if column == CSV_COLUMNS.len() + 1
             ),
             "{err:?}"
         );
@@ -996,6 +1033,10 @@ mod tests {
         records[4].error = ErrorSummary::default();
         records[4].image_rmse = Some(0.0);
         records[4].differing_share = Some(0.0);
+        // Cycle 2 does not know the whole view yet: its error 0 does not count.
+        records[2].error = ErrorSummary::default();
+        records[2].known_share = 0.5;
+        records[4].lod_bias = 2f64.sqrt();
         let s = RunReport {
             meta: meta(),
             records,
@@ -1023,6 +1064,8 @@ mod tests {
         let text = s.to_string();
         assert!(text.contains("max first 0 at cycle 3"), "{text}");
         assert!(text.contains("RMSE first 0 at cycle 4"), "{text}");
+        assert_eq!(s.bias_adjusted.map(|r| r.cycle), Some(4));
+        assert!(text.contains("LOD bias 1 -> 1.414"), "{text}");
 
         let empty = RunReport::default().summary();
         assert_eq!(empty, RunSummary::default());

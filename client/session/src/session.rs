@@ -13,6 +13,7 @@ use arbor_proto::{Channel, SceneDescription, TreeletId};
 
 use arbor_client_core::backend::{Backend, render_resident};
 use arbor_client_core::camera::Camera;
+use arbor_client_core::coverage::SampleBudget;
 use arbor_client_core::cycle::{ClientCore, CoreConfig};
 use arbor_client_core::image::Image;
 use arbor_client_core::incore::SceneFrame;
@@ -65,8 +66,7 @@ pub struct Session {
     started: Instant,
     last_stats: ClientStats,
     cycle: u32,
-    last_camera: Option<Camera>,
-    quiet_cycles: u32,
+    budget: SampleBudget,
     converged_at: Option<u32>,
     peak_slots: u32,
 }
@@ -103,6 +103,7 @@ impl Session {
                 return Err(e);
             }
         };
+        let config_budget_s = config.core.analysis_budget_ms / 1e3;
         let core = ClientCore::with_backend(
             scene.clone(),
             CoreConfig {
@@ -122,8 +123,7 @@ impl Session {
             started,
             last_stats,
             cycle: 0,
-            last_camera: None,
-            quiet_cycles: 0,
+            budget: SampleBudget::new(config_budget_s),
             converged_at: None,
         })
     }
@@ -172,8 +172,15 @@ impl Session {
         let cycle = self.cycle;
         self.cycle += 1;
         let t_analysis = Instant::now();
-        self.core.analyse(camera);
+        let pixels = camera.width.saturating_mul(camera.height);
+        let analysis = self.core.analyse(camera, self.budget.max_samples(pixels));
         let analysis_time = t_analysis.elapsed();
+        let (measured, seconds) = self
+            .core
+            .backend()
+            .analysis_cost()
+            .unwrap_or((analysis.sampled, analysis_time.as_secs_f64()));
+        self.budget.record(measured, seconds);
         let t_presort = Instant::now();
         let plan = self.core.presort();
         let presort_time = t_presort.elapsed();
@@ -193,15 +200,7 @@ impl Session {
         let upload_time = t_upload.elapsed();
         self.peak_slots = self.peak_slots.max(self.core.slots().used_slots());
 
-        let ratio = self.core.config().analysis.ratio;
-        let same_camera = self.last_camera.as_ref() == Some(camera);
-        self.last_camera = Some(*camera);
-        self.quiet_cycles = if plan.error.max > 0.0 || !same_camera {
-            0
-        } else {
-            self.quiet_cycles + 1
-        };
-        let converged_now = self.converged_at.is_none() && self.quiet_cycles >= ratio * ratio;
+        let converged_now = self.converged_at.is_none() && plan.converged;
         if converged_now {
             self.converged_at = Some(cycle);
         }
@@ -247,6 +246,9 @@ impl Session {
             upload_ranges: upload.ranges.len() as u32,
             upload_bytes: upload.bytes,
             samples: plan.samples,
+            sampled: analysis.sampled as u32,
+            known_share: plan.known_share,
+            lod_bias: plan.lod_bias,
             error: plan.error,
             image_rmse,
             differing_share,

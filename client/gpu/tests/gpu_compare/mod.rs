@@ -249,7 +249,12 @@ pub fn compare(
     let mut gpu_fb = Feedback::default();
     analyse(view, frame, camera, &config, 0, &mut cpu);
     gpu.analyse_loaded(frame, camera, &config, 0, &mut gpu_fb);
-    assert_eq!((cpu.width, cpu.height), (gpu_fb.width, gpu_fb.height));
+    assert_eq!(cpu.pixels, gpu_fb.pixels);
+    assert_eq!(
+        cpu.pixels.len(),
+        (camera.width * camera.height) as usize,
+        "ratio 1 samples every pixel, row-major"
+    );
     assert_eq!(cpu.samples.len(), gpu_fb.samples.len());
     let a_img = render(view, frame, camera, lod_bias, &light);
     let g_img = gpu.render_loaded(frame, camera, lod_bias, &light);

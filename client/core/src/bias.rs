@@ -1,0 +1,145 @@
+//! The memory-adjusted target (docs/design.md §10): when the view needs more slots than the
+//! budget holds, raise the LOD bias — stop refining one quarter level earlier — instead of
+//! thrashing, until the needed cut fits; lower it again only when there is clearly room.
+//!
+//! The decision is made only with full knowledge of the view (every pixel sampled under the
+//! current bias, see [`crate::coverage`]), so it is never taken on a partial view:
+//! * the view needs `visible + wanted` slots: the slots its pixels hit (and their ancestors) and
+//!   the distinct treelets its pixels still ask for;
+//! * it is **oversubscribed** when that is more than the capacity: raise by a quarter level;
+//! * with nothing wanted and the view using less than 1/[`LOWER_HEADROOM`] of the capacity, try
+//!   a quarter level lower (a surface needs about √2× the slots per quarter level finer);
+//! * a lower that had to be raised again is not tried again until the view changes
+//!   (hysteresis), so a static view settles on one bias and traffic stops.
+
+/// A quarter octree level: the bias moves by `2^(1/4)` per step.
+pub const STEPS_PER_LEVEL: i32 = 4;
+/// Highest bias, in steps above the base (16 levels).
+pub const MAX_STEPS: i32 = 16 * STEPS_PER_LEVEL;
+/// The view must fit this many times over before the bias is lowered.
+pub const LOWER_HEADROOM: f64 = 1.6;
+
+/// What one fully known view needs, for [`LodBiasControl::update`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ViewNeed {
+    /// Slots the view's pixels hit, with their ancestors.
+    pub visible_slots: u32,
+    /// Distinct treelets the view's pixels want that are not resident or waiting.
+    pub wanted: u32,
+    /// Slots of the buffer.
+    pub capacity: u32,
+}
+
+/// The LOD bias in effect and the state of its control.
+#[derive(Clone, Debug)]
+pub struct LodBiasControl {
+    base: f64,
+    /// Quarter levels above the base.
+    steps: i32,
+    /// Lowering is not tried again until [`LodBiasControl::view_changed`].
+    locked: bool,
+    /// The last change was a lower.
+    last_was_lower: bool,
+    /// Cycle of the first raise, for the run summary.
+    first_raised_at: Option<u64>,
+}
+
+impl LodBiasControl {
+    /// Control around the configured bias `base`.
+    pub fn new(base: f64) -> Self {
+        Self {
+            base,
+            steps: 0,
+            locked: false,
+            last_was_lower: false,
+            first_raised_at: None,
+        }
+    }
+
+    /// The bias in effect.
+    pub fn bias(&self) -> f64 {
+        self.base * 2f64.powf(f64::from(self.steps) / f64::from(STEPS_PER_LEVEL))
+    }
+
+    /// The configured bias.
+    pub fn base(&self) -> f64 {
+        self.base
+    }
+
+    /// Quarter levels above the configured bias.
+    pub fn steps(&self) -> i32 {
+        self.steps
+    }
+
+    /// The cycle the bias was first raised in, if ever.
+    pub fn first_raised_at(&self) -> Option<u64> {
+        self.first_raised_at
+    }
+
+    /// The camera moved: a lower may be tried again.
+    pub fn view_changed(&mut self) {
+        self.locked = false;
+    }
+
+    /// Decides from a fully known view at `cycle`; returns whether the bias changed.
+    pub fn update(&mut self, cycle: u64, need: ViewNeed) -> bool {
+        let needed = u64::from(need.visible_slots) + u64::from(need.wanted);
+        if needed > u64::from(need.capacity) && self.steps < MAX_STEPS {
+            if self.last_was_lower {
+                self.locked = true;
+            }
+            self.steps += 1;
+            self.last_was_lower = false;
+            self.first_raised_at.get_or_insert(cycle);
+            return true;
+        }
+        let roomy = f64::from(need.visible_slots) * LOWER_HEADROOM < f64::from(need.capacity);
+        if need.wanted == 0 && roomy && self.steps > 0 && !self.locked {
+            self.steps -= 1;
+            self.last_was_lower = true;
+            return true;
+        }
+        false
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn need(visible: u32, wanted: u32) -> ViewNeed {
+        ViewNeed {
+            visible_slots: visible,
+            wanted,
+            capacity: 100,
+        }
+    }
+
+    #[test]
+    fn raises_while_oversubscribed_then_holds() {
+        let mut c = LodBiasControl::new(1.0);
+        assert!(c.update(3, need(90, 30)));
+        assert!(c.update(4, need(80, 25)));
+        assert_eq!(c.steps(), 2);
+        assert!((c.bias() - 2f64.sqrt()).abs() < 1e-12);
+        assert_eq!(c.first_raised_at(), Some(3));
+        // Fits, but not with the headroom a lower needs: hold.
+        assert!(!c.update(5, need(70, 0)));
+        assert_eq!(c.steps(), 2);
+    }
+
+    #[test]
+    fn a_failed_lower_locks_until_the_view_changes() {
+        let mut c = LodBiasControl::new(2.0);
+        assert!(c.update(0, need(99, 5)));
+        assert!(c.update(1, need(30, 0)), "plenty of room: lower");
+        assert_eq!(c.steps(), 0);
+        assert!(c.update(2, need(95, 10)), "too much after all: raise");
+        assert!(!c.update(3, need(30, 0)), "locked");
+        c.view_changed();
+        assert!(c.update(4, need(30, 0)));
+        assert_eq!(c.steps(), 0);
+        assert!(!c.update(5, need(10, 0)), "never below the base");
+        assert_eq!(c.bias(), 2.0);
+    }
+}

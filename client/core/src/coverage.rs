@@ -1,0 +1,446 @@
+//! What the client knows about every pixel of the current view, which pixels to sample next,
+//! and when the view has converged.
+//!
+//! The thesis samples a fixed 1/n grid and waits n² cycles for a full round. [`Coverage`] keeps
+//! instead the latest feedback sample of *every* pixel since the view last changed (camera, LOD
+//! bias, an eviction), and plans each cycle's analysis pass from it:
+//!
+//! 1. **pixels whose awaited treelet has arrived** first — they were coarser than a pixel, the
+//!    treelet that refines them is resident now, and resampling them finds the next level;
+//! 2. then **pixels never sampled** since the view changed, in the grid's progressive order
+//!    (round by round of the 1/n grid, so every prefix is spread evenly over the frame);
+//! 3. nothing else: a pixel known to be final stays final while the view is unchanged, and a
+//!    pixel still waiting for its treelet would only see the same leaf again.
+//!
+//! How many pixels a cycle may sample is the caller's budget (a measured cost per sample, see
+//! [`SampleBudget`]): a fast backend samples the whole frame every cycle, a slow one a part of
+//! it; never fewer than the 1/n grid's share.
+//!
+//! **Why convergence is exact.** A pixel is *clean* when its latest sample does not want
+//! refinement (it stopped at a final leaf or at a voxel at most a pixel wide). Inserting a
+//! treelet never changes a clean pixel: the refined leaf was not hit in front of the pixel's
+//! voxel (it would have been the hit), and its subtree lies inside its box. So once every pixel
+//! is clean under one camera and bias with no eviction since, the image equals the fully
+//! resident render bit for bit ([`Coverage::converged`]). An eviction can uncover a coarse leaf
+//! in front of a clean pixel, so it resets the knowledge like a camera move.
+//!
+//! The knowledge is also what presort reads: every known pixel marks its slot visible, and every
+//! pixel waiting for a treelet counts for that treelet's priority — the request list covers the
+//! whole view, not only this cycle's samples.
+//!
+//! Pipelined backends hand feedback back a cycle late: every plan is kept until its feedback
+//! arrives; feedback of a cycle before the last reset is ignored, and a plan whose feedback never
+//! comes (a skipped pass) is sampled again.
+
+use std::collections::VecDeque;
+
+use arbor_proto::TreeletId;
+
+use crate::analysis::{Feedback, FeedbackSample, feedback_size, jitter, pack_pixel, unpack_pixel};
+
+/// Plans, feedback and convergence over the pixels of one view.
+#[derive(Debug)]
+pub struct Coverage {
+    width: u32,
+    height: u32,
+    /// The grid ratio `n` of the progressive order (and of the minimum sample share).
+    base_ratio: u32,
+    /// Increases at every reset; a pixel's sample counts only in its epoch.
+    epoch: u32,
+    /// Per pixel: the epoch of its latest sample.
+    epochs: Vec<u32>,
+    /// Per pixel: the latest sample (valid when its epoch is current).
+    samples: Vec<FeedbackSample>,
+    /// Per pixel: the low bits of the cycle it was last planned in, to not resample a pixel
+    /// whose previous sample is still in flight.
+    planned: Vec<u32>,
+    known: u32,
+    dirty: u32,
+    /// Progressive order: the grid round (0..n²) and the next element of that round.
+    round: u32,
+    element: u32,
+    /// Plans sent and not answered yet.
+    outstanding: VecDeque<(u64, Vec<u32>)>,
+    /// Pixels of plans whose feedback never came.
+    retry: Vec<u32>,
+    /// Feedback of earlier cycles describes another view.
+    valid_from: u64,
+    /// Pixels sampled since the last reset.
+    sampled_since_reset: u64,
+}
+
+impl Coverage {
+    /// Knowledge of a `width × height` view, nothing known yet.
+    pub fn new(width: u32, height: u32, base_ratio: u32) -> Self {
+        let pixels = (width as usize) * (height as usize);
+        Self {
+            width,
+            height,
+            base_ratio: base_ratio.max(1),
+            epoch: 1,
+            epochs: vec![0; pixels],
+            samples: vec![FeedbackSample::MISS; pixels],
+            planned: vec![u32::MAX; pixels],
+            known: 0,
+            dirty: 0,
+            round: 0,
+            element: 0,
+            outstanding: VecDeque::new(),
+            retry: Vec::new(),
+            valid_from: 0,
+            sampled_since_reset: 0,
+        }
+    }
+
+    /// Frame size.
+    pub fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+
+    /// Pixels of the view.
+    pub fn pixels(&self) -> u32 {
+        self.width * self.height
+    }
+
+    /// Pixels with a sample since the last reset.
+    pub fn known(&self) -> u32 {
+        self.known
+    }
+
+    /// Known pixels whose voxel is coarser than a pixel and refinable.
+    pub fn dirty(&self) -> u32 {
+        self.dirty
+    }
+
+    /// Pixels sampled since the last reset (resamples included).
+    pub fn sampled_since_reset(&self) -> u64 {
+        self.sampled_since_reset
+    }
+
+    /// Every pixel is known and none wants refinement: the image is exact.
+    pub fn converged(&self) -> bool {
+        self.known == self.pixels() && self.dirty == 0
+    }
+
+    /// Forgets everything (the view changed at `cycle`): feedback of earlier cycles is ignored.
+    pub fn reset(&mut self, cycle: u64) {
+        self.epoch = self.epoch.wrapping_add(1);
+        if self.epoch == 0 {
+            // Wrapped: old stamps could alias the new epoch.
+            self.epochs.fill(0);
+            self.epoch = 1;
+        }
+        self.known = 0;
+        self.dirty = 0;
+        self.round = 0;
+        self.element = 0;
+        self.outstanding.clear();
+        self.retry.clear();
+        self.valid_from = cycle;
+        self.sampled_since_reset = 0;
+    }
+
+    /// The pixels to sample in `cycle`, at most `max_samples` (at least the 1/n grid's share
+    /// when that many are wanted). `is_resident` tells whether a treelet has arrived.
+    pub fn plan(
+        &mut self,
+        cycle: u64,
+        max_samples: usize,
+        is_resident: impl Fn(TreeletId) -> bool,
+    ) -> Vec<u32> {
+        let floor = {
+            let (fw, fh) = feedback_size(self.width, self.height, self.base_ratio);
+            (fw * fh) as usize
+        };
+        let budget = max_samples.max(floor);
+        let mut out = Vec::new();
+        let stamp = cycle as u32;
+        for p in std::mem::take(&mut self.retry) {
+            if out.len() < budget {
+                self.planned[p as usize] = stamp;
+                out.push(pack_index(p, self.width));
+            }
+        }
+        if self.dirty > 0 {
+            self.plan_arrived(stamp, budget, &is_resident, &mut out);
+        }
+        self.plan_unknown(stamp, budget, &mut out);
+        if !out.is_empty() {
+            self.outstanding.push_back((cycle, out.clone()));
+        }
+        out
+    }
+
+    /// Dirty pixels whose awaited treelet is resident, not planned in the last two cycles.
+    fn plan_arrived(
+        &mut self,
+        stamp: u32,
+        budget: usize,
+        is_resident: &impl Fn(TreeletId) -> bool,
+        out: &mut Vec<u32>,
+    ) {
+        for i in 0..self.samples.len() {
+            if out.len() >= budget {
+                return;
+            }
+            if self.epochs[i] != self.epoch {
+                continue;
+            }
+            let s = &self.samples[i];
+            if !s.wants_refinement() || !is_resident(TreeletId(s.subtreelet)) {
+                continue;
+            }
+            if stamp.wrapping_sub(self.planned[i]) < 2 {
+                continue;
+            }
+            self.planned[i] = stamp;
+            out.push(pack_index(i as u32, self.width));
+        }
+    }
+
+    /// The next pixels of the progressive order (all of them unknown: the order visits each
+    /// pixel once per reset).
+    fn plan_unknown(&mut self, stamp: u32, budget: usize, out: &mut Vec<u32>) {
+        let n = self.base_ratio;
+        let (fw, fh) = feedback_size(self.width, self.height, n);
+        let elements = fw * fh;
+        while out.len() < budget && self.round < n * n {
+            let (ox, oy) = jitter(u64::from(self.round), n);
+            while out.len() < budget && self.element < elements {
+                let (fx, fy) = (self.element % fw, self.element / fw);
+                self.element += 1;
+                let (px, py) = (fx * n + ox, fy * n + oy);
+                if px < self.width && py < self.height {
+                    self.planned[(py * self.width + px) as usize] = stamp;
+                    out.push(pack_pixel(px, py));
+                }
+            }
+            if self.element >= elements {
+                self.element = 0;
+                self.round += 1;
+            }
+        }
+    }
+
+    /// Takes the feedback of a pass: samples of the current view are recorded, plans answered
+    /// by nothing are sampled again.
+    pub fn handle_feedback(&mut self, feedback: &Feedback) {
+        if feedback.samples.is_empty() && feedback.pixels.is_empty() {
+            return;
+        }
+        // Plans older than this feedback were skipped by the backend: sample them again.
+        while let Some((cycle, _)) = self.outstanding.front() {
+            if *cycle >= feedback.cycle {
+                break;
+            }
+            let (_, lost) = self.outstanding.pop_front().expect("front exists");
+            let (width, pixels) = (self.width, self.pixels());
+            self.retry.extend(
+                lost.iter()
+                    .map(|&p| unpack_index(p, width))
+                    .filter(|&i| i < pixels),
+            );
+        }
+        if self
+            .outstanding
+            .front()
+            .is_some_and(|(c, _)| *c == feedback.cycle)
+        {
+            self.outstanding.pop_front();
+        }
+        if feedback.cycle < self.valid_from {
+            return;
+        }
+        for (&p, s) in feedback.pixels.iter().zip(&feedback.samples) {
+            let (x, y) = unpack_pixel(p);
+            if x >= self.width || y >= self.height {
+                continue;
+            }
+            let i = (y * self.width + x) as usize;
+            if self.epochs[i] == self.epoch {
+                if self.samples[i].wants_refinement() {
+                    self.dirty -= 1;
+                }
+            } else {
+                self.epochs[i] = self.epoch;
+                self.known += 1;
+            }
+            self.samples[i] = *s;
+            if s.wants_refinement() {
+                self.dirty += 1;
+            }
+            self.sampled_since_reset += 1;
+        }
+    }
+
+    /// The latest sample of every known pixel, with its pixel index (`y · width + x`).
+    pub fn known_samples(&self) -> impl Iterator<Item = (u32, &FeedbackSample)> + '_ {
+        self.samples
+            .iter()
+            .enumerate()
+            .filter(move |(i, _)| self.epochs[*i] == self.epoch)
+            .map(|(i, s)| (i as u32, s))
+    }
+}
+
+fn pack_index(i: u32, width: u32) -> u32 {
+    pack_pixel(i % width, i / width)
+}
+
+fn unpack_index(p: u32, width: u32) -> u32 {
+    let (x, y) = unpack_pixel(p);
+    y * width + x
+}
+
+/// How many pixels a cycle may sample: a per-cycle time budget divided by the measured cost of
+/// one sample (an exponential mean over recent passes). Plain data: the caller passes the
+/// measured durations in.
+#[derive(Clone, Copy, Debug)]
+pub struct SampleBudget {
+    /// Wall time the analysis pass may take per cycle, seconds.
+    pub budget_s: f64,
+    /// Measured seconds per sample (exponential mean); `None` before the first measurement.
+    pub cost_s: Option<f64>,
+}
+
+impl SampleBudget {
+    /// A budget of `budget_s` seconds per cycle, nothing measured yet.
+    pub fn new(budget_s: f64) -> Self {
+        Self {
+            budget_s,
+            cost_s: None,
+        }
+    }
+
+    /// Records that `samples` samples took `seconds`.
+    pub fn record(&mut self, samples: usize, seconds: f64) {
+        // Small passes are dominated by fixed costs: they would underestimate the rate.
+        if samples < 256 || !(seconds.is_finite() && seconds > 0.0) {
+            return;
+        }
+        let cost = seconds / samples as f64;
+        self.cost_s = Some(match self.cost_s {
+            Some(c) => 0.7 * c + 0.3 * cost,
+            None => cost,
+        });
+    }
+
+    /// Samples the next pass may take: everything until the cost is known.
+    pub fn max_samples(&self, pixels: u32) -> usize {
+        match self.cost_s {
+            None => pixels as usize,
+            Some(c) => ((self.budget_s / c) as usize).min(pixels as usize),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use arbor_proto::Node;
+
+    fn sample(sub: u32, error: f32) -> FeedbackSample {
+        FeedbackSample {
+            node: 1,
+            subtreelet: sub,
+            error,
+            t: 1.0,
+        }
+    }
+
+    fn answer(cycle: u64, pixels: &[u32], f: impl Fn(u32, u32) -> FeedbackSample) -> Feedback {
+        Feedback {
+            cycle,
+            pixels: pixels.to_vec(),
+            samples: pixels
+                .iter()
+                .map(|&p| {
+                    let (x, y) = unpack_pixel(p);
+                    f(x, y)
+                })
+                .collect(),
+        }
+    }
+
+    #[test]
+    fn the_progressive_order_visits_every_pixel_once() {
+        let mut c = Coverage::new(13, 7, 4);
+        let mut seen = vec![0; 91];
+        let mut cycle = 0;
+        loop {
+            let plan = c.plan(cycle, 10, |_| false);
+            if plan.is_empty() {
+                break;
+            }
+            assert!(plan.len() <= 10);
+            for &p in &plan {
+                let (x, y) = unpack_pixel(p);
+                seen[(y * 13 + x) as usize] += 1;
+            }
+            c.handle_feedback(&answer(cycle, &plan, |_, _| sample(Node::NONE, -1.0)));
+            cycle += 1;
+        }
+        assert!(seen.iter().all(|&k| k == 1), "{seen:?}");
+        assert!(c.converged());
+    }
+
+    #[test]
+    fn arrived_pixels_are_resampled_first_and_convergence_follows() {
+        let mut c = Coverage::new(8, 8, 8);
+        // One cycle samples the whole frame; pixels of the left half wait for treelet 5.
+        let plan = c.plan(0, 64, |_| false);
+        assert_eq!(plan.len(), 64);
+        c.handle_feedback(&answer(0, &plan, |x, _| {
+            if x < 4 {
+                sample(5, 2.0)
+            } else {
+                sample(Node::NONE, 0.5)
+            }
+        }));
+        assert_eq!((c.known(), c.dirty()), (64, 32));
+        assert!(!c.converged());
+        // Nothing arrived: nothing worth sampling.
+        assert!(c.plan(1, 64, |_| false).is_empty());
+        // Treelet 5 arrived: exactly the 32 waiting pixels come back.
+        let plan = c.plan(2, 64, |id| id == TreeletId(5));
+        assert_eq!(plan.len(), 32);
+        assert!(plan.iter().all(|&p| unpack_pixel(p).0 < 4));
+        c.handle_feedback(&answer(2, &plan, |_, _| sample(Node::NONE, 0.0)));
+        assert!(c.converged());
+    }
+
+    #[test]
+    fn stale_feedback_is_ignored_and_lost_plans_come_back() {
+        let mut c = Coverage::new(4, 4, 2);
+        let first = c.plan(0, 16, |_| false);
+        c.reset(1);
+        // The pass of cycle 0 describes the old view.
+        c.handle_feedback(&answer(0, &first, |_, _| sample(Node::NONE, 0.0)));
+        assert_eq!(c.known(), 0);
+        let a = c.plan(1, 4, |_| false);
+        let b = c.plan(2, 4, |_| false);
+        assert_eq!((a.len(), b.len()), (4, 4));
+        // Cycle 1's pass was skipped; cycle 2's arrives: cycle 1's pixels are planned again.
+        c.handle_feedback(&answer(2, &b, |_, _| sample(Node::NONE, 0.0)));
+        assert_eq!(c.known(), 4);
+        let again = c.plan(3, 4, |_| false);
+        let mut again_sorted = again.clone();
+        again_sorted.sort_unstable();
+        let mut a_sorted = a.clone();
+        a_sorted.sort_unstable();
+        assert_eq!(again_sorted, a_sorted);
+    }
+
+    #[test]
+    fn the_budget_follows_the_measured_cost_with_a_floor() {
+        let mut b = SampleBudget::new(0.010);
+        assert_eq!(b.max_samples(1000), 1000);
+        b.record(10_000, 0.020); // 2 µs per sample
+        assert_eq!(b.max_samples(1_000_000), 5000);
+        b.record(10, 100.0); // too small to count
+        assert_eq!(b.max_samples(1_000_000), 5000);
+        let mut c = Coverage::new(64, 64, 8);
+        // Budget 1 still samples the 1/8 grid's 64 pixels.
+        assert_eq!(c.plan(0, 1, |_| false).len(), 64);
+    }
+}
