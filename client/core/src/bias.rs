@@ -4,9 +4,10 @@
 //!
 //! The decision is made only with full knowledge of the view (every pixel sampled under the
 //! current bias, see [`crate::coverage`]), so it is never taken on a partial view:
-//! * the view needs `visible + wanted` slots: the slots its pixels hit (and their ancestors) and
-//!   the distinct treelets its pixels still ask for;
-//! * it is **oversubscribed** when that is more than the capacity: raise by a quarter level;
+//! * the view wants the distinct treelets its pixels still ask for, and the buffer can give it
+//!   the free slots plus those that eviction may take once everything the view does not hit has
+//!   aged out (a slot outside the view whose parent is outside it too);
+//! * it is **oversubscribed** when it wants more than that room: raise by a quarter level;
 //! * with nothing wanted and the view using less than 1/[`LOWER_HEADROOM`] of the capacity, try
 //!   a quarter level lower (a surface needs about √2× the slots per quarter level finer);
 //! * a lower that had to be raised again is not tried again until the view changes
@@ -26,6 +27,8 @@ pub struct ViewNeed {
     pub visible_slots: u32,
     /// Distinct treelets the view's pixels want that are not resident or waiting.
     pub wanted: u32,
+    /// Slots the wanted treelets could take once what the view does not hit has aged out.
+    pub room: u32,
     /// Slots of the buffer.
     pub capacity: u32,
 }
@@ -83,8 +86,7 @@ impl LodBiasControl {
 
     /// Decides from a fully known view at `cycle`; returns whether the bias changed.
     pub fn update(&mut self, cycle: u64, need: ViewNeed) -> bool {
-        let needed = u64::from(need.visible_slots) + u64::from(need.wanted);
-        if needed > u64::from(need.capacity) && self.steps < MAX_STEPS {
+        if need.wanted > need.room && self.steps < MAX_STEPS {
             if self.last_was_lower {
                 self.locked = true;
             }
@@ -111,6 +113,7 @@ mod tests {
         ViewNeed {
             visible_slots: visible,
             wanted,
+            room: 100 - visible,
             capacity: 100,
         }
     }

@@ -30,7 +30,7 @@ use crate::coverage::Coverage;
 use crate::frustum::FrustumSelector;
 use crate::image::Image;
 use crate::incore::SceneFrame;
-use crate::presort::{Presort, PriorityPolicy, centre_weight};
+use crate::presort::{Presort, PriorityPolicy, RequestItem, centre_weight};
 use crate::render::Light;
 use crate::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig, SlotError};
 use crate::summary::ErrorSummary;
@@ -184,7 +184,7 @@ pub struct Plan {
     pub error: ErrorSummary,
     /// Samples of this cycle's pass that hit something.
     pub samples: u32,
-    /// The LOD bias in effect.
+    /// The LOD bias this cycle's knowledge was gathered with.
     pub lod_bias: f64,
     /// The bias changed this cycle (the request list is empty: it was for the old target).
     pub bias_changed: bool,
@@ -226,6 +226,10 @@ pub struct ClientCore {
     bias: LodBiasControl,
     /// The refinable leaves of resident treelets, for [`PriorityPolicy::Frustum`].
     frustum: Option<FrustumSelector>,
+    /// The last full look at the view raised the bias: fill free slots only until one fits.
+    bias_unsettled: bool,
+    /// Treelets evicted by [`SlotBuffer::evict_outside`] since the last integration.
+    evicted_outside: u32,
     last_camera: Option<Camera>,
     backlog: VecDeque<DecodedTreelet>,
     backlog_ids: HashSet<TreeletId>,
@@ -287,6 +291,8 @@ impl ClientCore {
             coverage: Coverage::new(0, 0, config.analysis.ratio),
             bias: LodBiasControl::new(config.analysis.lod_bias),
             frustum,
+            bias_unsettled: false,
+            evicted_outside: 0,
             last_camera: None,
             scene,
             config,
@@ -428,24 +434,44 @@ impl ClientCore {
             self.slots.mark_visible(s);
         }
         let cycle = self.cycle;
+        let bias_in_effect = self.bias.bias();
         let mut bias_changed = false;
-        if self.config.adjust_bias && self.coverage.known() == self.coverage.pixels() {
-            let need = ViewNeed {
-                visible_slots: visible.len() as u32,
-                wanted: distinct as u32,
-                capacity: self.slots.capacity(),
-            };
-            bias_changed = self.bias.update(cycle, need);
-            if bias_changed {
-                tracing::debug!(cycle, bias = self.bias.bias(), ?need, "LOD bias adjusted");
-                self.coverage.reset(cycle + 1);
-                requests.clear();
+        let mut evicted = 0;
+        if self.coverage.known() == self.coverage.pixels() {
+            if self.config.adjust_bias {
+                let need = ViewNeed {
+                    visible_slots: visible.len() as u32,
+                    wanted: self.predicted_slots(&requests),
+                    room: self
+                        .slots
+                        .room_outside(&visible)
+                        .saturating_sub(self.backlog.len() as u32),
+                    capacity: self.slots.capacity(),
+                };
+                bias_changed = self.bias.update(cycle, need);
+                self.bias_unsettled = bias_changed;
+                if bias_changed {
+                    tracing::debug!(cycle, bias = self.bias.bias(), ?need, "LOD bias adjusted");
+                    self.coverage.reset(cycle + 1);
+                    requests.clear();
+                }
+            }
+            // The whole view is known: make room from what no pixel reaches.
+            let free = self.slots.room().saturating_sub(self.backlog.len() as u32);
+            if !bias_changed && distinct as u32 > free {
+                evicted = self.slots.evict_outside(&visible, distinct as u32 - free);
             }
         }
         // Ask for no more than could be inserted: with an oversubscribed budget the rest would
-        // only be dropped on arrival.
-        let room = (self.slots.room() as usize).saturating_sub(self.backlog.len());
-        requests.truncate(room);
+        // only be dropped on arrival. While the bias is still rising, only free slots are
+        // filled: what an eviction would make room for may not be wanted at the coarser target.
+        let room = if self.bias_unsettled {
+            self.slots.free_slots()
+        } else {
+            self.slots.room()
+        };
+        requests.truncate((room as usize).saturating_sub(self.backlog.len()));
+        self.evicted_outside += evicted;
         let errors: Vec<f32> = self
             .coverage
             .known_samples()
@@ -455,11 +481,11 @@ impl ClientCore {
         let pixels = self.coverage.pixels().max(1);
         self.cycle += 1;
         Plan {
-            requests,
+            requests: requests.iter().map(|r| (r.id, r.priority)).collect(),
             distinct_requests: distinct,
             samples,
             error: ErrorSummary::from_samples(&errors, 1.0),
-            lod_bias: self.bias.bias(),
+            lod_bias: bias_in_effect,
             bias_changed,
             known_share: f64::from(self.coverage.known()) / f64::from(pixels),
             converged: !bias_changed && self.coverage.converged(),
@@ -467,7 +493,7 @@ impl ClientCore {
     }
 
     /// Visible slots and requests from every known pixel of the view.
-    fn select_from_feedback(&mut self) -> (Vec<u32>, Vec<(TreeletId, f32)>, usize) {
+    fn select_from_feedback(&mut self) -> (Vec<u32>, Vec<RequestItem>, usize) {
         let slots = &self.slots;
         let backlog = &self.backlog_ids;
         let (w, h) = self.coverage.size();
@@ -487,12 +513,11 @@ impl ClientCore {
             |s| slots.parent_slot(s),
             |id| backlog.contains(&id) || slots.is_resident(id),
         );
-        let requests = sorted.requests.iter().map(|r| (r.id, r.priority)).collect();
-        (sorted.visible_slots, requests, sorted.distinct_requests)
+        (sorted.visible_slots, sorted.requests, sorted.distinct_requests)
     }
 
     /// Visible slots and requests of the frustum policy.
-    fn select_frustum(&mut self) -> (Vec<u32>, Vec<(TreeletId, f32)>, usize) {
+    fn select_frustum(&mut self) -> (Vec<u32>, Vec<RequestItem>, usize) {
         let Some(camera) = self.last_camera else {
             return (Vec::new(), Vec::new(), 0);
         };
@@ -504,14 +529,37 @@ impl ClientCore {
         let (visible, requests) = frustum.select(&self.frame, &camera, self.bias.bias(), |id| {
             backlog.contains(&id) || slots.is_resident(id)
         });
-        let visible = visible.iter().filter_map(|&id| slots.slot_of(id)).collect();
+        let mut visible: Vec<u32> = visible.iter().filter_map(|&id| slots.slot_of(id)).collect();
+        visible.sort_unstable();
         let distinct = requests.len();
         let requests = requests
             .iter()
             .take(self.config.max_requests)
-            .map(|r| (r.id, r.error))
+            .map(|r| RequestItem {
+                id: r.id,
+                error: r.error,
+                samples: 1,
+                weight: 1.0,
+                priority: r.error,
+            })
             .collect();
         (visible, requests, distinct)
+    }
+
+    /// Slots the wanted treelets are predicted to take at the current bias, subtrees included:
+    /// a wanted treelet covering `A` pixels will need about `2·A` leaf voxels at the end (a
+    /// voxel stops at most a pixel wide), and a treelet holds about three quarters of its used
+    /// nodes as leaves. Coarse, so the bias rises before the buffer fills with detail it would
+    /// have to evict.
+    fn predicted_slots(&self, requests: &[RequestItem]) -> u32 {
+        let used_per_treelet =
+            self.scene.stats.voxels as f64 / f64::from(self.scene.treelet_count.max(1));
+        let leaves = (0.75 * used_per_treelet).max(1.0);
+        requests
+            .iter()
+            .map(|r| (2.0 * f64::from(r.samples) / leaves).ceil().max(1.0))
+            .sum::<f64>()
+            .min(f64::from(u32::MAX)) as u32
     }
 
     /// [`analyse`](Self::analyse) with the whole frame as budget, then
@@ -557,7 +605,7 @@ impl ClientCore {
         }
         Integration {
             inserted,
-            evicted,
+            evicted: evicted + std::mem::take(&mut self.evicted_outside),
             dropped,
         }
     }

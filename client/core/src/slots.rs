@@ -570,6 +570,11 @@ impl SlotBuffer {
             .saturating_sub(self.loaded_this_cycle)
     }
 
+    /// Slots holding nothing.
+    pub fn free_slots(&self) -> u32 {
+        self.free.len() as u32
+    }
+
     /// Slots an insertion could use now: free ones plus those eviction may take (a treelet
     /// and its parent both invisible). The core caps its request list to this, so an
     /// oversubscribed buffer does not ask for treelets it would have to drop.
@@ -583,6 +588,53 @@ impl SlotBuffer {
             })
             .count() as u32;
         self.free.len() as u32 + evictable
+    }
+
+    /// Free slots plus resident ones outside `visible` (sorted): the room the view has when
+    /// the core may evict what no pixel reaches ([`SlotBuffer::evict_outside`]).
+    pub fn room_outside(&self, visible: &[u32]) -> u32 {
+        let seen = |slot: u32| visible.binary_search(&slot).is_ok();
+        let unseen = self
+            .records
+            .iter()
+            .enumerate()
+            .skip(1)
+            .filter(|(s, r)| !r.is_free() && !seen(*s as u32))
+            .count() as u32;
+        self.free.len() as u32 + unseen
+    }
+
+    /// Evicts up to `count` treelets outside `visible` (sorted), least recently visible first,
+    /// each with its resident descendants (which are outside `visible` too, since `visible`
+    /// holds the ancestors of every seen slot); returns the treelets freed.
+    ///
+    /// Unlike the eviction an insertion makes, this one may take a treelet whose parent is
+    /// visible. It is for a caller that knows the *whole* view (every pixel sampled since the
+    /// view last changed): then no pixel's ray enters the treelet, every pixel that reaches its
+    /// root stops there, and the restored leaf — the same box with the same attributes — draws
+    /// exactly what the stopped root drew.
+    pub fn evict_outside(&mut self, visible: &[u32], count: u32) -> u32 {
+        let seen = |slot: u32| visible.binary_search(&slot).is_ok();
+        let mut victims: Vec<(u64, u32)> = self
+            .records
+            .iter()
+            .enumerate()
+            .skip(1)
+            .filter(|(s, r)| !r.is_free() && !seen(*s as u32))
+            .map(|(s, r)| (r.last_visible, s as u32))
+            .collect();
+        victims.sort_unstable();
+        let mut freed = 0;
+        for (_, slot) in victims {
+            if freed >= count {
+                break;
+            }
+            // An earlier victim may have freed this one as its descendant.
+            if !self.records[slot as usize].is_free() {
+                freed += self.evict(slot);
+            }
+        }
+        freed
     }
 
     /// Starts a cycle: every slot's visibility ages by one, the load counter resets.
