@@ -41,7 +41,7 @@ use crate::limits::{
 };
 use crate::scene::{SceneDescription, validate_scene_name};
 use crate::treelet::TreeletId;
-use crate::wire::{ErrorCode, Frame, FrameType, PROTOCOL_VERSION};
+use crate::wire::{ErrorCode, Frame, FrameType, PROTOCOL_VERSION, ViewHint};
 
 /// Everything that can be wrong with bytes claiming to be a control frame or a treelet message
 /// (and with a value handed to an encoder).
@@ -156,6 +156,22 @@ pub enum FrameError {
         /// The limit.
         limit: usize,
     },
+    /// A deep request list's view hint is unusable (see [`ViewHint::check`]).
+    #[error("deep request list view: {0}")]
+    BadView(String),
+    /// A deep request list item's error is not finite or beyond ±[`ViewHint::MAX_ERROR`].
+    #[error(
+        "request item {index} (treelet {treelet}): error {} is not a finite level count within ±64",
+        f32::from_bits(*error_bits)
+    )]
+    BadError {
+        /// Position in the list.
+        index: usize,
+        /// The treelet named there.
+        treelet: TreeletId,
+        /// The bits of the error given (`f32::to_bits`; a NaN keeps its payload).
+        error_bits: u32,
+    },
     /// A treelet message's used-node count is 0 or more than a treelet can hold.
     #[error("used nodes {0} outside 1..={max}", max = MAX_TREELET_BYTES / NODE_BYTES)]
     BadUsedNodes(u16),
@@ -183,7 +199,9 @@ impl FrameError {
             | FrameError::UnknownErrorCode(_)
             | FrameError::SceneDescription(_)
             | FrameError::BadBlockLength { .. }
-            | FrameError::BadUsedNodes(_) => ErrorCode::ProtocolViolation,
+            | FrameError::BadUsedNodes(_)
+            | FrameError::BadView(_)
+            | FrameError::BadError { .. } => ErrorCode::ProtocolViolation,
         }
     }
 }
@@ -256,6 +274,7 @@ pub fn parse(frame: &[u8]) -> Result<Frame, FrameError> {
     let out = match ty {
         FrameType::Hello => parse_hello(&mut r)?,
         FrameType::RequestList => parse_request_list(&mut r)?,
+        FrameType::DeepRequestList => parse_deep_request_list(&mut r)?,
         FrameType::Error => {
             let code = r.u32("error code")?;
             let code = ErrorCode::from_u32(code).ok_or(FrameError::UnknownErrorCode(code))?;
@@ -278,6 +297,7 @@ fn frame_what(ty: FrameType) -> &'static str {
         FrameType::Hello => "Hello frame",
         FrameType::SceneInfo => "SceneInfo frame",
         FrameType::RequestList => "RequestList frame",
+        FrameType::DeepRequestList => "DeepRequestList frame",
         FrameType::Error => "Error frame",
         FrameType::Goodbye => "Goodbye frame",
     }
@@ -340,6 +360,75 @@ fn parse_request_list(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
         items.push((treelet, priority));
     }
     Ok(Frame::RequestList { seq, items })
+}
+
+fn parse_deep_request_list(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
+    let seq = r.u64("list seq")?;
+    let f64s = |r: &mut Reader<'_>, what| -> Result<[f64; 3], FrameError> {
+        Ok([
+            f64::from_bits(r.u64(what)?),
+            f64::from_bits(r.u64(what)?),
+            f64::from_bits(r.u64(what)?),
+        ])
+    };
+    let f32s = |r: &mut Reader<'_>, what| -> Result<[f32; 3], FrameError> {
+        Ok([
+            f32::from_bits(r.u32(what)?),
+            f32::from_bits(r.u32(what)?),
+            f32::from_bits(r.u32(what)?),
+        ])
+    };
+    let view = ViewHint {
+        eye: f64s(r, "view eye")?,
+        forward: f32s(r, "view forward")?,
+        up: f32s(r, "view up")?,
+        tan_half_fov_y: f32::from_bits(r.u32("view fov")?),
+        aspect: f32::from_bits(r.u32("view aspect")?),
+        footprint: f32::from_bits(r.u32("view footprint")?),
+        free_slots: r.u32("view free slots")?,
+    };
+    view.check().map_err(FrameError::BadView)?;
+    let count = r.u32("list length")? as usize;
+    if count > MAX_REQUEST_ITEMS {
+        return Err(FrameError::ListTooLong {
+            len: count,
+            limit: MAX_REQUEST_ITEMS,
+        });
+    }
+    let need = count * 12;
+    if r.remaining() < need {
+        return Err(FrameError::Truncated {
+            what: "deep request list items",
+            need,
+            have: r.remaining(),
+        });
+    }
+    let mut items = Vec::with_capacity(count);
+    for index in 0..count {
+        let treelet = TreeletId(r.u32("treelet id")?);
+        let priority = f32::from_bits(r.u32("priority")?);
+        let error = f32::from_bits(r.u32("error")?);
+        check_deep_item(index, treelet, priority, error)?;
+        items.push((treelet, priority, error));
+    }
+    Ok(Frame::DeepRequestList { seq, view, items })
+}
+
+fn check_deep_item(
+    index: usize,
+    treelet: TreeletId,
+    priority: f32,
+    error: f32,
+) -> Result<(), FrameError> {
+    check_item(index, treelet, priority)?;
+    if !(error.is_finite() && error.abs() <= ViewHint::MAX_ERROR) {
+        return Err(FrameError::BadError {
+            index,
+            treelet,
+            error_bits: error.to_bits(),
+        });
+    }
+    Ok(())
 }
 
 fn check_item(index: usize, treelet: TreeletId, priority: f32) -> Result<(), FrameError> {
@@ -405,6 +494,35 @@ pub fn encode(frame: &Frame) -> Result<Vec<u8>, FrameError> {
                 check_item(index, treelet, priority)?;
                 out.extend_from_slice(&treelet.0.to_le_bytes());
                 out.extend_from_slice(&priority.to_bits().to_le_bytes());
+            }
+        }
+        Frame::DeepRequestList { seq, view, items } => {
+            if items.len() > MAX_REQUEST_ITEMS {
+                return Err(FrameError::ListTooLong {
+                    len: items.len(),
+                    limit: MAX_REQUEST_ITEMS,
+                });
+            }
+            view.check().map_err(FrameError::BadView)?;
+            out.reserve(12 + ViewHint::BYTES + 12 * items.len());
+            out.extend_from_slice(&seq.to_le_bytes());
+            for c in view.eye {
+                out.extend_from_slice(&c.to_bits().to_le_bytes());
+            }
+            for c in view.forward.iter().chain(&view.up).chain(&[
+                view.tan_half_fov_y,
+                view.aspect,
+                view.footprint,
+            ]) {
+                out.extend_from_slice(&c.to_bits().to_le_bytes());
+            }
+            out.extend_from_slice(&view.free_slots.to_le_bytes());
+            out.extend_from_slice(&(items.len() as u32).to_le_bytes());
+            for (index, &(treelet, priority, error)) in items.iter().enumerate() {
+                check_deep_item(index, treelet, priority, error)?;
+                out.extend_from_slice(&treelet.0.to_le_bytes());
+                out.extend_from_slice(&priority.to_bits().to_le_bytes());
+                out.extend_from_slice(&error.to_bits().to_le_bytes());
             }
         }
         Frame::Error { code, message } => {
@@ -967,6 +1085,99 @@ mod tests {
         }
     }
 
+    fn view() -> ViewHint {
+        ViewHint {
+            eye: [1.0, -2.0, 3e5],
+            forward: [0.0, 0.0, -1.0],
+            up: [0.0, 1.0, 0.0],
+            tan_half_fov_y: 0.5,
+            aspect: 1.5,
+            footprint: 0.002,
+            free_slots: 900,
+        }
+    }
+
+    #[test]
+    fn deep_request_lists_round_trip_and_hostile_views_are_refused() {
+        let f = Frame::DeepRequestList {
+            seq: 9,
+            view: view(),
+            items: vec![(TreeletId(5), 3.0, 2.5), (TreeletId(7), 1.0, -64.0)],
+        };
+        let bytes = encode(&f).unwrap();
+        assert_eq!(bytes.len(), 5 + 8 + ViewHint::BYTES + 4 + 2 * 12);
+        assert_eq!(parse(&bytes).unwrap(), f);
+        let mut d = FrameDecoder::for_server();
+        assert_eq!(d.push(&bytes), bytes.len());
+        assert_eq!(d.next().unwrap(), Some(f));
+        let bad_views: [(&str, fn(&mut ViewHint)); 8] = [
+            ("NaN eye", |v| v.eye[1] = f64::NAN),
+            ("eye too far", |v| v.eye[0] = 1e300),
+            ("zero forward", |v| v.forward = [0.0; 3]),
+            ("not orthogonal", |v| v.up = [0.0, 0.0, -1.0]),
+            ("fov", |v| v.tan_half_fov_y = f32::INFINITY),
+            ("aspect", |v| v.aspect = 0.0),
+            ("footprint", |v| v.footprint = f32::NAN),
+            ("free slots", |v| v.free_slots = u32::MAX),
+        ];
+        for (what, damage) in bad_views {
+            let mut v = view();
+            damage(&mut v);
+            assert!(v.check().is_err(), "{what}");
+            // Encode refuses it, and so does the decoder when forged.
+            let good = encode(&Frame::DeepRequestList {
+                seq: 1,
+                view: view(),
+                items: vec![],
+            })
+            .unwrap();
+            assert!(
+                encode(&Frame::DeepRequestList {
+                    seq: 1,
+                    view: v,
+                    items: vec![]
+                })
+                .is_err(),
+                "{what}"
+            );
+            let mut forged = good.clone();
+            let mut payload = Vec::new();
+            for c in v.eye {
+                payload.extend_from_slice(&c.to_bits().to_le_bytes());
+            }
+            for c in v.forward.iter().chain(&v.up).chain(&[
+                v.tan_half_fov_y,
+                v.aspect,
+                v.footprint,
+            ]) {
+                payload.extend_from_slice(&c.to_bits().to_le_bytes());
+            }
+            payload.extend_from_slice(&v.free_slots.to_le_bytes());
+            forged[13..13 + ViewHint::BYTES].copy_from_slice(&payload);
+            let e = parse(&forged).unwrap_err();
+            assert!(matches!(e, FrameError::BadView(_)), "{what}: {e}");
+            assert_eq!(e.code(), ErrorCode::ProtocolViolation);
+        }
+        for error in [f32::NAN, f32::INFINITY, 65.0, -1e9] {
+            let f = Frame::DeepRequestList {
+                seq: 1,
+                view: view(),
+                items: vec![(TreeletId(1), 1.0, error)],
+            };
+            assert!(encode(&f).is_err());
+            let mut forged = encode(&Frame::DeepRequestList {
+                seq: 1,
+                view: view(),
+                items: vec![(TreeletId(1), 1.0, 0.0)],
+            })
+            .unwrap();
+            let at = forged.len() - 4;
+            forged[at..].copy_from_slice(&error.to_bits().to_le_bytes());
+            let e = parse(&forged).unwrap_err();
+            assert!(matches!(e, FrameError::BadError { index: 0, .. }), "{e}");
+        }
+    }
+
     #[test]
     fn request_list_layout_is_as_documented() {
         let f = Frame::RequestList {
@@ -1073,7 +1284,7 @@ mod tests {
 
     #[test]
     fn unknown_type_is_rejected() {
-        for t in [0u8, 6, 0xff] {
+        for t in [0u8, 7, 0xff] {
             let b = raw(t, &[]);
             assert_eq!(check(&b), Err(FrameError::UnknownType(t)));
             assert_eq!(parse(&b), Err(FrameError::UnknownType(t)));

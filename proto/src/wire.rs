@@ -4,8 +4,8 @@
 //! A connection is QUIC with ALPN [`ALPN`]. The client opens one bidirectional **control
 //! stream** and sends [`Frame::Hello`]; the server answers [`Frame::SceneInfo`] or
 //! [`Frame::Error`] (then closes the connection with the same [`ErrorCode`]). From then on the
-//! client sends a [`Frame::RequestList`] whenever its wishes change (every cycle); each list
-//! **replaces** the previous one. Treelets come back on server-opened unidirectional streams as
+//! client sends a [`Frame::RequestList`] (or a [`Frame::DeepRequestList`]) whenever its wishes
+//! change (every cycle); each list **replaces** the previous one. Treelets come back on server-opened unidirectional streams as
 //! treelet messages ([`crate::frame::encode_treelet_message`]). Either side may end with
 //! [`Frame::Goodbye`] before closing.
 //!
@@ -145,6 +145,8 @@ pub enum FrameType {
     Error = 4,
     /// [`Frame::Goodbye`].
     Goodbye = 5,
+    /// [`Frame::DeepRequestList`].
+    DeepRequestList = 6,
 }
 
 impl FrameType {
@@ -156,6 +158,7 @@ impl FrameType {
             3 => Some(FrameType::RequestList),
             4 => Some(FrameType::Error),
             5 => Some(FrameType::Goodbye),
+            6 => Some(FrameType::DeepRequestList),
             _ => None,
         }
     }
@@ -210,6 +213,22 @@ pub enum Frame {
         /// What happened, for people (bounded by [`crate::limits::MAX_MESSAGE_BYTES`]).
         message: String,
     },
+    /// Client → server: a request list as [`Frame::RequestList`] (it replaces the previous list
+    /// of either kind, `seq` counts both), plus what the server needs to send the descendants
+    /// this view would refine without waiting to be asked (docs/design.md §10, server-assisted
+    /// deep requests): the camera, the slots the client has free, and per item the screen-space
+    /// error the client measured at the leaf it refines. Layout: `u64 seq`, the [`ViewHint`]
+    /// (see [`ViewHint::BYTES`]), `u32 count`, `count × (u32 id, f32 priority, f32 error)`.
+    DeepRequestList {
+        /// Increases with every list the client sends.
+        seq: u64,
+        /// The view the errors were measured in.
+        view: ViewHint,
+        /// `(treelet, priority, error in levels)`, at most
+        /// [`crate::limits::MAX_REQUEST_ITEMS`]; priorities finite, errors within
+        /// ±[`ViewHint::MAX_ERROR`].
+        items: Vec<(TreeletId, f32, f32)>,
+    },
     /// Either direction: orderly end. Layout: `u32 code`.
     Goodbye {
         /// Why the peer is leaving ([`ErrorCode::NoError`] or [`ErrorCode::ShuttingDown`]).
@@ -226,6 +245,7 @@ impl Frame {
             Frame::RequestList { .. } => FrameType::RequestList,
             Frame::Error { .. } => FrameType::Error,
             Frame::Goodbye { .. } => FrameType::Goodbye,
+            Frame::DeepRequestList { .. } => FrameType::DeepRequestList,
         }
     }
 
@@ -241,6 +261,85 @@ impl Frame {
             message.truncate(cut);
         }
         Frame::Error { code, message }
+    }
+}
+
+/// The client's view, as a [`Frame::DeepRequestList`] carries it: enough for the server to
+/// test a voxel against the view frustum and its projected size against a pixel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ViewHint {
+    /// Camera position, world units.
+    pub eye: [f64; 3],
+    /// Unit view direction.
+    pub forward: [f32; 3],
+    /// Unit up direction, orthogonal to `forward`.
+    pub up: [f32; 3],
+    /// `tan(fov_y / 2)`.
+    pub tan_half_fov_y: f32,
+    /// Frame width / height.
+    pub aspect: f32,
+    /// Pixel angle × LOD bias, radians: a voxel of size `s` at distance `t` is coarser than a
+    /// pixel when `s > t · footprint`.
+    pub footprint: f32,
+    /// Slots the client has free for pushed treelets (beyond the listed ones).
+    pub free_slots: u32,
+}
+
+impl ViewHint {
+    /// Bytes on the wire.
+    pub const BYTES: usize = 3 * 8 + 6 * 4 + 4 * 4;
+    /// Largest free-slot count accepted.
+    pub const MAX_FREE_SLOTS: u32 = 1 << 22;
+    /// Largest accepted error magnitude, levels (the client clamps its errors to this).
+    pub const MAX_ERROR: f32 = 64.0;
+    /// Largest accepted eye coordinate magnitude.
+    pub const MAX_COORDINATE: f64 = 1e15;
+
+    /// Why the hint is unusable, if it is: every value finite and in range, the directions
+    /// unit length and orthogonal.
+    pub fn check(&self) -> Result<(), String> {
+        if !self
+            .eye
+            .iter()
+            .all(|c| c.is_finite() && c.abs() <= Self::MAX_COORDINATE)
+        {
+            return Err(format!(
+                "eye {:?} not finite or beyond ±{:e}",
+                self.eye,
+                Self::MAX_COORDINATE
+            ));
+        }
+        let len = |v: [f32; 3]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        let dot = |a: [f32; 3], b: [f32; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        for (what, v) in [("forward", self.forward), ("up", self.up)] {
+            let l = len(v);
+            if !(l.is_finite() && (0.99..=1.01).contains(&l)) {
+                return Err(format!("{what} {v:?} is not a unit vector"));
+            }
+        }
+        if !(dot(self.forward, self.up).abs() <= 0.01) {
+            return Err("forward and up are not orthogonal".into());
+        }
+        if !(self.tan_half_fov_y > 0.0 && self.tan_half_fov_y <= 1e4) {
+            return Err(format!(
+                "tan(fov/2) {} not in (0, 1e4]",
+                self.tan_half_fov_y
+            ));
+        }
+        if !(self.aspect >= 1e-4 && self.aspect <= 1e4) {
+            return Err(format!("aspect {} not in [1e-4, 1e4]", self.aspect));
+        }
+        if !(self.footprint > 1e-9 && self.footprint <= 1.0) {
+            return Err(format!("footprint {} not in (1e-9, 1]", self.footprint));
+        }
+        if self.free_slots > Self::MAX_FREE_SLOTS {
+            return Err(format!(
+                "free slots {} above {}",
+                self.free_slots,
+                Self::MAX_FREE_SLOTS
+            ));
+        }
+        Ok(())
     }
 }
 
@@ -267,11 +366,12 @@ mod tests {
             FrameType::RequestList,
             FrameType::Error,
             FrameType::Goodbye,
+            FrameType::DeepRequestList,
         ] {
             assert_eq!(FrameType::from_u8(t as u8), Some(t));
         }
         assert_eq!(FrameType::from_u8(0), None);
-        assert_eq!(FrameType::from_u8(6), None);
+        assert_eq!(FrameType::from_u8(7), None);
     }
 
     #[test]
