@@ -136,6 +136,10 @@ struct RenderArgs {
     /// Wall time the analysis pass may take per cycle with adaptive sampling, ms.
     #[arg(long, default_value_t = DEFAULT_ANALYSIS_BUDGET_MS)]
     analysis_budget_ms: f64,
+    /// Send plain request lists: no view and errors with them, so the server pushes nothing
+    /// beyond what is listed (by default it also sends the descendants the view would refine).
+    #[arg(long)]
+    no_deep_push: bool,
     /// Keep the LOD bias fixed even when the view needs more slots than the budget holds
     /// (by default it is raised until the view fits, and the run converges to that target).
     #[arg(long)]
@@ -402,6 +406,7 @@ fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
             light: Light::default(),
             sampling,
             adjust_bias: !a.fixed_bias,
+            deep_push: !a.no_deep_push,
             analysis_budget_ms: a.analysis_budget_ms,
         },
         camera_path,

@@ -41,7 +41,7 @@ use crate::limits::{
 };
 use crate::scene::{SceneDescription, validate_scene_name};
 use crate::treelet::TreeletId;
-use crate::wire::{ErrorCode, Frame, FrameType, PROTOCOL_VERSION, ViewHint};
+use crate::wire::{ErrorCode, Frame, FrameType, HELLO_FLAGS, PROTOCOL_VERSION, ViewHint};
 
 /// Everything that can be wrong with bytes claiming to be a control frame or a treelet message
 /// (and with a value handed to an encoder).
@@ -156,6 +156,9 @@ pub enum FrameError {
         /// The limit.
         limit: usize,
     },
+    /// `Hello` sets a flag this build does not know.
+    #[error("unknown Hello flags {0:#04x}")]
+    UnknownFlags(u8),
     /// A deep request list's view hint is unusable (see [`ViewHint::check`]).
     #[error("deep request list view: {0}")]
     BadView(String),
@@ -201,6 +204,7 @@ impl FrameError {
             | FrameError::BadBlockLength { .. }
             | FrameError::BadUsedNodes(_)
             | FrameError::BadView(_)
+            | FrameError::UnknownFlags(_)
             | FrameError::BadError { .. } => ErrorCode::ProtocolViolation,
         }
     }
@@ -327,11 +331,20 @@ fn parse_hello(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
         channels.push(c);
     }
     let token = r.string("access token", MAX_TOKEN_BYTES)?;
+    let flags = if r.remaining() > 0 {
+        r.u8("hello flags")?
+    } else {
+        0
+    };
+    if flags & !HELLO_FLAGS != 0 {
+        return Err(FrameError::UnknownFlags(flags));
+    }
     Ok(Frame::Hello {
         version,
         scene: scene.to_owned(),
         channels,
         token: token.to_owned(),
+        flags,
     })
 }
 
@@ -452,7 +465,11 @@ pub fn encode(frame: &Frame) -> Result<Vec<u8>, FrameError> {
             scene,
             channels,
             token,
+            flags,
         } => {
+            if flags & !HELLO_FLAGS != 0 {
+                return Err(FrameError::UnknownFlags(*flags));
+            }
             if *version != PROTOCOL_VERSION {
                 return Err(FrameError::UnsupportedVersion { found: *version });
             }
@@ -473,6 +490,9 @@ pub fn encode(frame: &Frame) -> Result<Vec<u8>, FrameError> {
                 out.push(c.id());
             }
             put_string(&mut out, "access token", token, MAX_TOKEN_BYTES)?;
+            if *flags != 0 {
+                out.push(*flags);
+            }
         }
         Frame::SceneInfo { description } => {
             description
@@ -1007,6 +1027,7 @@ mod tests {
             scene: "lion".into(),
             channels: vec![Channel::Normal, Channel::Color],
             token: "s3cret-ü".into(),
+            flags: 0,
         }
     }
 
@@ -1018,6 +1039,14 @@ mod tests {
                 scene: "a".into(),
                 channels: vec![],
                 token: String::new(),
+                flags: 0,
+            },
+            Frame::Hello {
+                version: PROTOCOL_VERSION,
+                scene: "b".into(),
+                channels: vec![Channel::Color],
+                token: String::new(),
+                flags: crate::wire::HELLO_GRANT_AVAILABLE | crate::wire::HELLO_SEND_ROOT,
             },
             Frame::SceneInfo {
                 description: Box::new(scene()),
@@ -1110,7 +1139,8 @@ mod tests {
         let mut d = FrameDecoder::for_server();
         assert_eq!(d.push(&bytes), bytes.len());
         assert_eq!(d.next().unwrap(), Some(f));
-        let bad_views: [(&str, fn(&mut ViewHint)); 8] = [
+        type Damage = fn(&mut ViewHint);
+        let bad_views: [(&str, Damage); 8] = [
             ("NaN eye", |v| v.eye[1] = f64::NAN),
             ("eye too far", |v| v.eye[0] = 1e300),
             ("zero forward", |v| v.forward = [0.0; 3]),
@@ -1145,11 +1175,12 @@ mod tests {
             for c in v.eye {
                 payload.extend_from_slice(&c.to_bits().to_le_bytes());
             }
-            for c in v.forward.iter().chain(&v.up).chain(&[
-                v.tan_half_fov_y,
-                v.aspect,
-                v.footprint,
-            ]) {
+            for c in v
+                .forward
+                .iter()
+                .chain(&v.up)
+                .chain(&[v.tan_half_fov_y, v.aspect, v.footprint])
+            {
                 payload.extend_from_slice(&c.to_bits().to_le_bytes());
             }
             payload.extend_from_slice(&v.free_slots.to_le_bytes());
@@ -1315,7 +1346,12 @@ mod tests {
             Err(FrameError::TrailingBytes { .. })
         ));
         let mut p = hello_payload(1, b"lion", &[0], b"");
+        // One byte after the token is the flags; unknown flags are refused, and a second byte
+        // is trailing.
         p.push(9);
+        assert_eq!(parse(&raw(1, &p)), Err(FrameError::UnknownFlags(9)));
+        p.pop();
+        p.extend_from_slice(&[1, 9]);
         assert!(matches!(
             parse(&raw(1, &p)),
             Err(FrameError::TrailingBytes { .. })
@@ -1426,6 +1462,7 @@ mod tests {
             scene: "lion".into(),
             channels: vec![],
             token: "a".repeat(MAX_TOKEN_BYTES + 1),
+            flags: 0,
         };
         assert!(encode(&f).is_err());
         // Over-long error message.
@@ -1472,6 +1509,7 @@ mod tests {
             scene: "lion".into(),
             channels: vec![Channel::Color; 9],
             token: String::new(),
+            flags: 0,
         };
         assert_eq!(encode(&f).unwrap_err().code(), ErrorCode::TooManyChannels);
     }

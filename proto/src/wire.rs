@@ -27,6 +27,16 @@ use crate::attribute::Channel;
 use crate::scene::SceneDescription;
 use crate::treelet::TreeletId;
 
+/// `Hello` flag: of the channels asked for, send those the scene stores instead of refusing
+/// the others with [`ErrorCode::UnknownChannel`] (the client learns which from `SceneInfo`; it
+/// need not ask the scene's channels on a connection of its own first).
+pub const HELLO_GRANT_AVAILABLE: u8 = 1;
+/// `Hello` flag: send the root treelet right after `SceneInfo`, unasked (saves the client the
+/// round trip of requesting it).
+pub const HELLO_SEND_ROOT: u8 = 2;
+/// Every `Hello` flag this build knows.
+pub const HELLO_FLAGS: u8 = HELLO_GRANT_AVAILABLE | HELLO_SEND_ROOT;
+
 /// QUIC ALPN of this protocol. A connection that negotiates anything else is refused by the TLS
 /// handshake.
 pub const ALPN: &[u8] = b"arbor/1";
@@ -177,7 +187,8 @@ impl FrameType {
 #[derive(Clone, Debug, PartialEq)]
 pub enum Frame {
     /// Client → server, first frame. Layout: `u16 version`, `u16 len + scene name`,
-    /// `u8 count + channel ids`, `u16 len + token`.
+    /// `u8 count + channel ids`, `u16 len + token`, then `u8 flags` when any flag is set (a
+    /// Hello without the byte has no flags).
     Hello {
         /// Must be [`PROTOCOL_VERSION`].
         version: u16,
@@ -189,6 +200,8 @@ pub enum Frame {
         /// Access token for the scene (empty when the scene needs none), at most
         /// [`crate::limits::MAX_TOKEN_BYTES`].
         token: String,
+        /// [`HELLO_GRANT_AVAILABLE`] and [`HELLO_SEND_ROOT`]; other bits must be zero.
+        flags: u8,
     },
     /// Server → client answer to `Hello`: the scene as stored. Payload: the bytes of
     /// [`SceneDescription::encode`].
@@ -341,6 +354,54 @@ impl ViewHint {
         }
         Ok(())
     }
+
+    /// How many octree levels the box `[min, max]` (world units, a cube) is coarser than a pixel
+    /// of this view — `log2(edge / (distance · footprint))` with the distance from the eye to the
+    /// nearest point of the box — or `None` when the box lies outside the view frustum. The
+    /// frustum test is conservative (a box is out only when wholly outside one side plane or
+    /// behind the eye); the distance is 0 inside the box, which makes the box infinitely coarse.
+    pub fn box_error(&self, min: [f64; 3], max: [f64; 3]) -> Option<f64> {
+        let v = |a: [f32; 3]| [f64::from(a[0]), f64::from(a[1]), f64::from(a[2])];
+        let cross = |a: [f64; 3], b: [f64; 3]| {
+            [
+                a[1] * b[2] - a[2] * b[1],
+                a[2] * b[0] - a[0] * b[2],
+                a[0] * b[1] - a[1] * b[0],
+            ]
+        };
+        let add =
+            |a: [f64; 3], b: [f64; 3], k: f64| [a[0] + b[0] * k, a[1] + b[1] * k, a[2] + b[2] * k];
+        let (f, up) = (v(self.forward), v(self.up));
+        let right = cross(f, up);
+        let h = f64::from(self.tan_half_fov_y);
+        let w = h * f64::from(self.aspect);
+        // Inward normals of the four side planes through the eye, and the forward half-space.
+        let planes = [
+            cross(add(f, right, -w), up),
+            cross(up, add(f, right, w)),
+            cross(right, add(f, up, -h)),
+            cross(add(f, up, h), right),
+            f,
+        ];
+        let outside = |n: [f64; 3]| {
+            let p = [0, 1, 2].map(|a| if n[a] >= 0.0 { max[a] } else { min[a] });
+            (0..3).map(|a| n[a] * (p[a] - self.eye[a])).sum::<f64>() < 0.0
+        };
+        if planes.iter().any(|&n| outside(n)) {
+            return None;
+        }
+        let d2: f64 = (0..3)
+            .map(|a| {
+                (min[a] - self.eye[a])
+                    .max(self.eye[a] - max[a])
+                    .max(0.0)
+                    .powi(2)
+            })
+            .sum();
+        let edge = max[0] - min[0];
+        let error = (edge / (d2.sqrt() * f64::from(self.footprint))).log2();
+        Some(if error.is_nan() { f64::INFINITY } else { error })
+    }
 }
 
 #[cfg(test)]
@@ -372,6 +433,34 @@ mod tests {
         }
         assert_eq!(FrameType::from_u8(0), None);
         assert_eq!(FrameType::from_u8(7), None);
+    }
+
+    #[test]
+    fn box_error_tests_the_frustum_and_the_projected_size() {
+        let v = ViewHint {
+            eye: [0.5, 0.5, 5.0],
+            forward: [0.0, 0.0, -1.0],
+            up: [0.0, 1.0, 0.0],
+            tan_half_fov_y: 0.5,
+            aspect: 1.0,
+            footprint: 0.01,
+            free_slots: 10,
+        };
+        // A unit cube 4 units ahead: 1 / (4 · 0.01) = 25 pixels, log2 ≈ 4.64 levels.
+        let e = v.box_error([0.0; 3], [1.0; 3]).unwrap();
+        assert!((e - 25f64.log2()).abs() < 1e-6, "{e}");
+        // Behind the eye, far to the side, above: out.
+        assert_eq!(v.box_error([0.0, 0.0, 6.0], [1.0, 1.0, 7.0]), None);
+        assert_eq!(v.box_error([50.0, 0.0, 0.0], [51.0, 1.0, 1.0]), None);
+        assert_eq!(v.box_error([0.0, 50.0, 0.0], [1.0, 51.0, 1.0]), None);
+        // Around the eye: infinitely coarse.
+        assert_eq!(v.box_error([0.0; 3], [10.0; 3]), Some(f64::INFINITY));
+        // Tiny and far: finer than a pixel.
+        assert!(
+            v.box_error([0.5, 0.5, -995.0], [0.501, 0.501, -994.999])
+                .unwrap()
+                < 0.0
+        );
     }
 
     #[test]

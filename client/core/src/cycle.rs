@@ -19,6 +19,7 @@
 use std::collections::{HashSet, VecDeque};
 use std::sync::Arc;
 
+use arbor_proto::wire::ViewHint;
 use arbor_proto::{Channel, SceneDescription, TreeletId};
 use thiserror::Error;
 
@@ -76,6 +77,9 @@ pub struct CoreConfig {
     /// Raise the LOD bias when the view needs more slots than the budget holds
     /// (docs/design.md §10).
     pub adjust_bias: bool,
+    /// Send deep request lists: the view and each item's error with the list, so the server
+    /// may push the descendants the view would refine (docs/design.md §10).
+    pub deep_push: bool,
     /// Wall time the analysis pass may take per cycle, ms: with [`Sampling::Adaptive`] the
     /// shell divides it by the measured cost of a sample to size the pass
     /// ([`crate::coverage::SampleBudget`]).
@@ -120,6 +124,7 @@ impl Default for CoreConfig {
             light: Light::default(),
             sampling: Sampling::default(),
             adjust_bias: true,
+            deep_push: true,
             analysis_budget_ms: DEFAULT_ANALYSIS_BUDGET_MS,
         }
     }
@@ -178,6 +183,11 @@ impl CoreConfig {
 pub struct Plan {
     /// The request list, highest priority first.
     pub requests: Vec<(TreeletId, f32)>,
+    /// Per request, the screen-space error (levels) measured at the leaf it refines.
+    pub errors: Vec<f32>,
+    /// The view of this cycle for a deep request list, when [`CoreConfig::deep_push`] is on and
+    /// the view is expressible (see [`ViewHint::check`]).
+    pub view: Option<ViewHint>,
     /// Distinct refinable treelets wanted (before the cap).
     pub distinct_requests: usize,
     /// Screen-space error over every known pixel of the view.
@@ -210,6 +220,10 @@ pub struct Integration {
     pub evicted: u32,
     /// Arrivals dropped: parent gone, no room, undecodable, or backlog overflow.
     pub dropped: u32,
+    /// Of the inserted, treelets the server pushed (named by no recent list).
+    pub pushed: u32,
+    /// Pushed treelets dropped: parent not resident, or no free slot.
+    pub push_dropped: u32,
 }
 
 /// The client's cycle state: slot buffer, presort, what is known of the view, the LOD bias,
@@ -230,6 +244,9 @@ pub struct ClientCore {
     bias_unsettled: bool,
     /// Treelets evicted by [`SlotBuffer::evict_outside`] since the last integration.
     evicted_outside: u32,
+    /// Ids of the last two request lists: an arrival named by neither was pushed.
+    listed: HashSet<TreeletId>,
+    listed_previous: HashSet<TreeletId>,
     last_camera: Option<Camera>,
     backlog: VecDeque<DecodedTreelet>,
     backlog_ids: HashSet<TreeletId>,
@@ -293,6 +310,8 @@ impl ClientCore {
             frustum,
             bias_unsettled: false,
             evicted_outside: 0,
+            listed: HashSet::new(),
+            listed_previous: HashSet::new(),
             last_camera: None,
             scene,
             config,
@@ -460,6 +479,11 @@ impl ClientCore {
             let free = self.slots.room().saturating_sub(self.backlog.len() as u32);
             if !bias_changed && distinct as u32 > free {
                 evicted = self.slots.evict_outside(&visible, distinct as u32 - free);
+                // A ray may pass through the gaps of an evicted subtree on its way to another
+                // voxel; the restored leaf is solid, so what was known is known no more.
+                if evicted > 0 {
+                    self.coverage.reset(cycle + 1);
+                }
             }
         }
         // Ask for no more than could be inserted: with an oversubscribed budget the rest would
@@ -480,7 +504,14 @@ impl ClientCore {
         let samples = self.feedback.samples.iter().filter(|s| s.is_hit()).count() as u32;
         let pixels = self.coverage.pixels().max(1);
         self.cycle += 1;
+        self.listed_previous =
+            std::mem::replace(&mut self.listed, requests.iter().map(|r| r.id).collect());
+        let push_budget = self
+            .predicted_slots(&requests)
+            .saturating_sub(requests.len() as u32);
         Plan {
+            view: self.view_hint(push_budget),
+            errors: requests.iter().map(|r| r.error).collect(),
             requests: requests.iter().map(|r| (r.id, r.priority)).collect(),
             distinct_requests: distinct,
             samples,
@@ -513,7 +544,11 @@ impl ClientCore {
             |s| slots.parent_slot(s),
             |id| backlog.contains(&id) || slots.is_resident(id),
         );
-        (sorted.visible_slots, sorted.requests, sorted.distinct_requests)
+        (
+            sorted.visible_slots,
+            sorted.requests,
+            sorted.distinct_requests,
+        )
     }
 
     /// Visible slots and requests of the frustum policy.
@@ -546,6 +581,32 @@ impl ClientCore {
         (visible, requests, distinct)
     }
 
+    /// The view for a deep request list: the last camera, the bias in effect, and the slots the
+    /// server may push into: free ones, at most `push_budget` (what the requested treelets are
+    /// predicted to need below them, so occluded subtrees cannot flood the buffer).
+    fn view_hint(&self, push_budget: u32) -> Option<ViewHint> {
+        if !self.config.deep_push {
+            return None;
+        }
+        let c = self.last_camera?;
+        let f32s = |v: glam::DVec3| [v.x as f32, v.y as f32, v.z as f32];
+        let hint = ViewHint {
+            eye: c.position.to_array(),
+            forward: f32s(c.forward),
+            up: f32s(c.up),
+            tan_half_fov_y: (c.fov_y * 0.5).tan() as f32,
+            aspect: (f64::from(c.width) / f64::from(c.height.max(1))) as f32,
+            footprint: (c.pixel_angle() * self.bias.bias()) as f32,
+            free_slots: self
+                .slots
+                .free_slots()
+                .saturating_sub(self.backlog.len() as u32)
+                .min(push_budget.saturating_add(self.listed.len() as u32))
+                .min(ViewHint::MAX_FREE_SLOTS),
+        };
+        hint.check().is_ok().then_some(hint)
+    }
+
     /// Slots the wanted treelets are predicted to take at the current bias, subtrees included:
     /// a wanted treelet covering `A` pixels will need about `2·A` leaf voxels at the end (a
     /// voxel stops at most a pixel wide), and a treelet holds about three quarters of its used
@@ -569,18 +630,38 @@ impl ClientCore {
         self.presort()
     }
 
-    /// Inserts queued arrivals up to the load limit. An eviction can uncover a coarse leaf in
-    /// front of a known pixel, so it starts the view's knowledge afresh.
+    /// Inserts queued arrivals up to the load limit: listed ones first, then pushed ones, each
+    /// parents before children (ids ascend down the tree), so a pushed treelet whose parent
+    /// arrived in the same batch finds it. A pushed
+    /// treelet (named by neither of the last two lists) takes only a free slot — it never
+    /// displaces anything — and is dropped, and counted, when its parent is not resident or no
+    /// slot is free. An eviction can uncover a coarse leaf in front of a known pixel, so it
+    /// starts the view's knowledge afresh.
     pub fn integrate(&mut self) -> Integration {
         let mut inserted = 0;
         let mut evicted = 0;
+        let mut pushed = 0;
+        let mut push_dropped = 0;
         let mut dropped = std::mem::take(&mut self.backlog_dropped);
+        let (listed, previous) = (&self.listed, &self.listed_previous);
+        let is_push = |id: &TreeletId| !listed.contains(id) && !previous.contains(id);
+        // Listed arrivals first (they may evict), then pushes (free slots only); each by id.
+        self.backlog.make_contiguous().sort_by_key(|t| {
+            let id = t.treelet.header.id;
+            (is_push(&id), id)
+        });
         // Only as many as the load limit allows leave the backlog; the rest wait, in order.
         while self.slots.loads_left() > 0 {
             let Some(t) = self.backlog.pop_front() else {
                 break;
             };
-            self.backlog_ids.remove(&t.treelet.header.id);
+            let id = t.treelet.header.id;
+            self.backlog_ids.remove(&id);
+            let is_push = !self.listed.contains(&id) && !self.listed_previous.contains(&id);
+            if is_push && self.slots.free_slots() == 0 {
+                push_dropped += 1;
+                continue;
+            }
             if let Some(f) = &mut self.frustum {
                 f.add(&t.treelet, self.scene.max_depth);
             }
@@ -588,8 +669,10 @@ impl ClientCore {
                 InsertOutcome::Inserted { evicted: e, .. } => {
                     inserted += 1;
                     evicted += e;
+                    pushed += u32::from(is_push);
                 }
                 InsertOutcome::AlreadyResident => {}
+                InsertOutcome::ParentMissing if is_push => push_dropped += 1,
                 // The load limit was checked above; count it with the drops if it still hit.
                 InsertOutcome::ParentMissing | InsertOutcome::NoRoom | InsertOutcome::LoadLimit => {
                     dropped += 1
@@ -607,6 +690,8 @@ impl ClientCore {
             inserted,
             evicted: evicted + std::mem::take(&mut self.evicted_outside),
             dropped,
+            pushed,
+            push_dropped,
         }
     }
 

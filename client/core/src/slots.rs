@@ -609,10 +609,10 @@ impl SlotBuffer {
     /// holds the ancestors of every seen slot); returns the treelets freed.
     ///
     /// Unlike the eviction an insertion makes, this one may take a treelet whose parent is
-    /// visible. It is for a caller that knows the *whole* view (every pixel sampled since the
-    /// view last changed): then no pixel's ray enters the treelet, every pixel that reaches its
-    /// root stops there, and the restored leaf — the same box with the same attributes — draws
-    /// exactly what the stopped root drew.
+    /// visible: it is for a caller that knows the *whole* view (every pixel sampled since the
+    /// view last changed), so no pixel's hit lies in the treelet. A ray may still have passed
+    /// through the gaps of the evicted subtree on its way to its hit, and the restored leaf is
+    /// solid, so the caller must sample the view again.
     pub fn evict_outside(&mut self, visible: &[u32], count: u32) -> u32 {
         let seen = |slot: u32| visible.binary_search(&slot).is_ok();
         let mut victims: Vec<(u64, u32)> = self

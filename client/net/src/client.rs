@@ -4,14 +4,14 @@ use std::sync::Arc;
 
 use arbor_proto::frame::encode;
 use arbor_proto::limits::MAX_REQUEST_ITEMS;
-use arbor_proto::wire::{Frame, PROTOCOL_VERSION};
+use arbor_proto::wire::{Frame, PROTOCOL_VERSION, ViewHint};
 use arbor_proto::{SceneDescription, TreeletId};
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
 
 use super::backoff::Jitter;
 use super::config::ClientConfig;
-use super::connection::{RequestList, Task};
+use super::connection::{RequestList, Task, Wishes};
 use super::error::ClientError;
 use super::event::{ClientEvent, ClientStats};
 use super::shared::{Queued, Shared};
@@ -54,6 +54,7 @@ impl TreeletClient {
             scene: config.url.scene.clone(),
             channels: config.channels.clone(),
             token: config.token.clone(),
+            flags: config.hello_flags,
         })
         .map_err(|e| ClientError::InvalidConfig(format!("Hello: {e}")))?;
         let shared = Arc::new(Shared::new(config.max_buffered_bytes));
@@ -86,6 +87,14 @@ impl TreeletClient {
     /// the next sequence number, and again after every reconnect; a list replaced before it was
     /// sent is never sent. Ids the scene does not have are left out when sending.
     pub fn request(&self, items: Vec<(TreeletId, f32)>) -> Result<(), ClientError> {
+        self.check(&items)?;
+        self.lists
+            .send_replace(Some(Arc::new(Wishes { items, deep: None })));
+        Ok(())
+    }
+
+    /// Checks a list against the protocol's limits before it is queued.
+    fn check(&self, items: &[(TreeletId, f32)]) -> Result<(), ClientError> {
         if items.len() > MAX_REQUEST_ITEMS {
             return Err(ClientError::InvalidRequest(format!(
                 "{} items, at most {MAX_REQUEST_ITEMS}",
@@ -102,7 +111,34 @@ impl TreeletClient {
                  must be finite"
             )));
         }
-        self.lists.send_replace(Some(Arc::new(items)));
+        Ok(())
+    }
+
+    /// Replaces the request list with a deep one ([`arbor_proto::wire::Frame::DeepRequestList`]):
+    /// `(treelet, priority, error in levels)` and the view the errors were measured in, so the
+    /// server may also send the descendants that view would refine. Errors are clamped to
+    /// ±[`ViewHint::MAX_ERROR`].
+    pub fn request_deep(
+        &self,
+        items: Vec<(TreeletId, f32, f32)>,
+        view: ViewHint,
+    ) -> Result<(), ClientError> {
+        view.check()
+            .map_err(|e| ClientError::InvalidRequest(format!("view: {e}")))?;
+        if let Some((i, (id, _, e))) = items.iter().enumerate().find(|(_, (_, _, e))| e.is_nan()) {
+            return Err(ClientError::InvalidRequest(format!(
+                "item {i}: treelet {id} with error {e}: errors must be numbers"
+            )));
+        }
+        let (plain, errors): (Vec<(TreeletId, f32)>, Vec<f32>) = items
+            .into_iter()
+            .map(|(id, p, e)| ((id, p), e.clamp(-ViewHint::MAX_ERROR, ViewHint::MAX_ERROR)))
+            .unzip();
+        self.check(&plain)?;
+        self.lists.send_replace(Some(Arc::new(Wishes {
+            items: plain,
+            deep: Some((view, errors)),
+        })));
         Ok(())
     }
 

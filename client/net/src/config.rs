@@ -34,6 +34,9 @@ pub struct ClientConfig {
     /// alone, so the bound is effectively `max(max_buffered_bytes, largest message)`. Values
     /// above `u32::MAX` are treated as `u32::MAX`.
     pub max_buffered_bytes: usize,
+    /// `Hello` flags ([`arbor_proto::wire::HELLO_GRANT_AVAILABLE`],
+    /// [`arbor_proto::wire::HELLO_SEND_ROOT`]); 0 by default.
+    pub hello_flags: u8,
 }
 
 impl ClientConfig {
@@ -47,6 +50,7 @@ impl ClientConfig {
             trust,
             backoff: Backoff::default(),
             max_buffered_bytes: DEFAULT_MAX_BUFFERED_BYTES,
+            hello_flags: 0,
         }
     }
 
@@ -70,6 +74,12 @@ impl ClientConfig {
         self
     }
 
+    /// Sets the `Hello` flags.
+    pub fn with_hello_flags(mut self, flags: u8) -> Self {
+        self.hello_flags = flags;
+        self
+    }
+
     /// Checks every field the protocol or the client limits.
     pub fn validate(&self) -> Result<(), ClientError> {
         if self.channels.len() > MAX_CHANNELS {
@@ -90,6 +100,12 @@ impl ClientConfig {
             return Err(ClientError::InvalidConfig(format!(
                 "access token of {} bytes, at most {MAX_TOKEN_BYTES}",
                 self.token.len()
+            )));
+        }
+        if self.hello_flags & !arbor_proto::wire::HELLO_FLAGS != 0 {
+            return Err(ClientError::InvalidConfig(format!(
+                "unknown Hello flags {:#04x}",
+                self.hello_flags
             )));
         }
         if self.max_buffered_bytes == 0 {

@@ -7,7 +7,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use arbor_proto::frame::{FrameDecoder, encode};
-use arbor_proto::wire::{ErrorCode, Frame};
+use arbor_proto::wire::{ErrorCode, Frame, ViewHint};
 use arbor_proto::{SceneDescription, TreeletId};
 use bytes::{Buf, Bytes};
 use quinn::{ConnectError, Connection, ConnectionError, Endpoint, RecvStream, SendStream, VarInt};
@@ -23,7 +23,15 @@ use super::stream::{LocalClose, StreamContext, close_locally, read_stream};
 use super::transport::{CLOSE_TIMEOUT, HANDSHAKE_TIMEOUT, HELLO_TIMEOUT};
 
 /// The latest request list, shared between the handle and the task.
-pub(crate) type RequestList = Arc<Vec<(TreeletId, f32)>>;
+pub(crate) type RequestList = Arc<Wishes>;
+
+/// What a request list says: the items, and for a deep list the view and each item's error.
+#[derive(Debug)]
+pub(crate) struct Wishes {
+    pub items: Vec<(TreeletId, f32)>,
+    /// The view and the errors, one per item, of a [`Frame::DeepRequestList`].
+    pub deep: Option<(ViewHint, Vec<f32>)>,
+}
 
 /// Whether a close code means reconnecting cannot help (the configuration is wrong): the scene,
 /// the token, the protocol version or the channels. Every other code, and a connection lost
@@ -367,22 +375,46 @@ async fn send_lists(
         }
         let latest = lists.borrow_and_update().clone();
         let Some(list) = latest else { continue };
-        let items: Vec<(TreeletId, f32)> = list
-            .iter()
-            .copied()
-            .filter(|(id, _)| id.0 < scene.treelet_count)
-            .collect();
-        if items.len() < list.len() {
+        let keep = |id: TreeletId| id.0 < scene.treelet_count;
+        let kept = list.items.iter().filter(|(id, _)| keep(*id)).count();
+        if kept < list.items.len() {
             tracing::warn!(
-                dropped = list.len() - items.len(),
+                dropped = list.items.len() - kept,
                 treelets = scene.treelet_count,
                 "request list names treelets the scene does not have; not sending them"
             );
         }
         let seq = *next_seq;
         *next_seq += 1;
-        let ids: Vec<TreeletId> = items.iter().map(|i| i.0).collect();
-        let bytes = match encode(&Frame::RequestList { seq, items }) {
+        let ids: Vec<TreeletId> = list
+            .items
+            .iter()
+            .map(|i| i.0)
+            .filter(|id| keep(*id))
+            .collect();
+        let frame = match &list.deep {
+            None => Frame::RequestList {
+                seq,
+                items: list
+                    .items
+                    .iter()
+                    .copied()
+                    .filter(|(id, _)| keep(*id))
+                    .collect(),
+            },
+            Some((view, errors)) => Frame::DeepRequestList {
+                seq,
+                view: *view,
+                items: list
+                    .items
+                    .iter()
+                    .zip(errors)
+                    .filter(|((id, _), _)| keep(*id))
+                    .map(|(&(id, p), &e)| (id, p, e))
+                    .collect(),
+            },
+        };
+        let bytes = match encode(&frame) {
             Ok(b) => b,
             Err(e) => {
                 // `request` validated the list, so this is a bug; skip the list, keep going.

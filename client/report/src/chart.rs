@@ -441,6 +441,8 @@ mod tests {
                     slots_used: (i * 20).min(3000),
                     slots_total: 4096,
                     samples: 10_000,
+                    pushed: 0,
+                    push_dropped: 0,
                     sampled: 10_000,
                     known_share: 1.0,
                     lod_bias: 1.0,

@@ -101,6 +101,8 @@ report_columns! {
     "slots_total" => slots_total: u32,
     "evictions" => evictions: u32,
     "dropped" => dropped: u32,
+    "pushed" => pushed: u32,
+    "push_dropped" => push_dropped: u32,
     "upload_ranges" => upload_ranges: u32,
     "upload_bytes" => upload_bytes: u64,
     "samples" => samples: u32,
@@ -188,6 +190,10 @@ pub struct CycleRecord {
     pub evictions: u32,
     /// Treelets received but dropped this cycle (not inserted).
     pub dropped: u32,
+    /// Of the inserted, treelets the server pushed (deep requests).
+    pub pushed: u32,
+    /// Pushed treelets dropped this cycle: parent not resident, or no free slot.
+    pub push_dropped: u32,
     /// Contiguous ranges uploaded this cycle.
     pub upload_ranges: u32,
     /// Bytes uploaded this cycle.
@@ -729,6 +735,8 @@ mod tests {
             slots_total: 8192,
             evictions: 1,
             dropped: 1,
+            pushed: 2,
+            push_dropped: 0,
             upload_ranges: 3,
             upload_bytes: 720_896,
             samples: 32_400,

@@ -9,6 +9,7 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use arbor_proto::wire::{HELLO_GRANT_AVAILABLE, HELLO_SEND_ROOT};
 use arbor_proto::{Channel, SceneDescription, TreeletId};
 
 use arbor_client_core::backend::{Backend, render_resident};
@@ -82,21 +83,20 @@ impl Session {
     ) -> Result<Self, RunError> {
         config.core.validate()?;
         let started = Instant::now();
-        let layout = probe_scene(&config.client, config.connect_timeout, runtime)?
-            .layout
-            .clone();
-        let channels: Vec<Channel> = config
-            .core
-            .channels
-            .iter()
-            .copied()
-            .filter(|c| layout.contains(*c))
-            .collect();
+        // One connection: the server grants the wanted channels the scene has and sends the
+        // root unasked, so no probe connection and no root round trip.
+        let wanted = config.core.channels.clone();
         let mut client = {
             let _guard = runtime.enter();
-            TreeletClient::start(config.client.clone().with_channels(channels.clone()))?
+            TreeletClient::start(
+                config
+                    .client
+                    .clone()
+                    .with_channels(wanted.clone())
+                    .with_hello_flags(HELLO_GRANT_AVAILABLE | HELLO_SEND_ROOT),
+            )?
         };
-        let (scene, root) = match bootstrap(&mut client, &channels, &config) {
+        let (scene, channels, root) = match bootstrap(&mut client, &wanted, &config) {
             Ok(x) => x,
             Err(e) => {
                 runtime.block_on(client.close());
@@ -186,7 +186,18 @@ impl Session {
         let presort_time = t_presort.elapsed();
         let t_request = Instant::now();
         let requests_sent = plan.requests.len() as u32;
-        self.client.request(plan.requests)?;
+        match plan.view {
+            Some(view) => {
+                let items = plan
+                    .requests
+                    .iter()
+                    .zip(&plan.errors)
+                    .map(|(&(id, p), &e)| (id, p, e))
+                    .collect();
+                self.client.request_deep(items, view)?
+            }
+            None => self.client.request(plan.requests.clone())?,
+        }
         let request_time = t_request.elapsed();
         let t_drain = Instant::now();
         let drained = drain_events(&mut self.client, &self.scene, &self.channels)?;
@@ -243,6 +254,8 @@ impl Session {
             slots_total: slots.capacity(),
             evictions: integration.evicted,
             dropped: integration.dropped + drained.undecodable,
+            pushed: integration.pushed,
+            push_dropped: integration.push_dropped,
             upload_ranges: upload.ranges.len() as u32,
             upload_bytes: upload.bytes,
             samples: plan.samples,
@@ -390,27 +403,32 @@ fn probe_scene(
     result
 }
 
-/// Waits (bounded) for `SceneInfo` and the root treelet.
+/// Waits (bounded) for `SceneInfo` and the root treelet the server sends unasked; returns the
+/// scene, the channels granted (the wanted ones the scene stores) and the root.
 fn bootstrap(
     client: &mut TreeletClient,
-    channels: &[Channel],
+    wanted: &[Channel],
     config: &SessionConfig,
-) -> Result<(Arc<SceneDescription>, DecodedTreelet), RunError> {
+) -> Result<(Arc<SceneDescription>, Vec<Channel>, DecodedTreelet), RunError> {
     let deadline = Instant::now() + config.connect_timeout;
-    let mut scene: Option<Arc<SceneDescription>> = None;
+    let mut scene: Option<(Arc<SceneDescription>, Vec<Channel>)> = None;
     loop {
         while let Some(event) = client.try_next_event() {
             match event {
                 ClientEvent::Connected(s) => {
-                    client.request(vec![(s.root_treelet, f32::MAX)])?;
-                    scene = Some(s);
+                    let channels = wanted
+                        .iter()
+                        .copied()
+                        .filter(|c| s.layout.contains(*c))
+                        .collect();
+                    scene = Some((s, channels));
                 }
                 ClientEvent::Treelet(t) => {
-                    if let Some(s) = &scene
+                    if let Some((s, channels)) = &scene
                         && t.id == s.root_treelet
                     {
                         let root = decode_received(&t, s, channels)?;
-                        return Ok((s.clone(), root));
+                        return Ok((s.clone(), channels.clone(), root));
                     }
                 }
                 ClientEvent::Disconnected {

@@ -37,7 +37,9 @@ use std::sync::atomic::Ordering;
 
 use arbor_proto::Channel;
 use arbor_proto::frame::{FrameDecoder, encode};
-use arbor_proto::wire::{ErrorCode, Frame, PROTOCOL_VERSION};
+use arbor_proto::wire::{
+    ErrorCode, Frame, HELLO_GRANT_AVAILABLE, HELLO_SEND_ROOT, PROTOCOL_VERSION,
+};
 use bytes::Bytes;
 use tracing::Instrument as _;
 
@@ -224,11 +226,23 @@ pub(crate) async fn run(
 }
 
 /// Waits for the control stream and `Hello`, then answers `SceneInfo`.
+/// A client that passed `Hello`.
+pub(super) struct Greeting {
+    /// The control stream's receive side.
+    pub reader: ControlReader,
+    /// The scene it is served.
+    pub scene: Arc<ServedScene>,
+    /// The channels it receives, ascending by id.
+    pub channels: Vec<Channel>,
+    /// It asked for the root treelet unasked ([`HELLO_SEND_ROOT`]).
+    pub send_root: bool,
+}
+
 pub(super) async fn hello(
     shared: &Shared,
     conn: &quinn::Connection,
     control: &mut Option<quinn::SendStream>,
-) -> Result<(ControlReader, Arc<ServedScene>, Vec<Channel>), End> {
+) -> Result<Greeting, End> {
     let (send, recv) = conn.accept_bi().await.map_err(End::Lost)?;
     *control = Some(send);
     let mut reader = ControlReader {
@@ -250,6 +264,7 @@ pub(super) async fn hello(
         scene,
         mut channels,
         token,
+        flags,
     } = frame
     else {
         return Err(close(
@@ -287,7 +302,9 @@ pub(super) async fn hello(
             return Err(close(ErrorCode::Internal, "the pool failed to read"));
         }
     };
-    if let Some(c) = channels
+    if flags & HELLO_GRANT_AVAILABLE != 0 {
+        channels.retain(|c| stored.description.layout.contains(*c));
+    } else if let Some(c) = channels
         .iter()
         .find(|c| !stored.description.layout.contains(**c))
     {
@@ -311,5 +328,10 @@ pub(super) async fn hello(
         e => close(ErrorCode::ProtocolViolation, format!("control stream: {e}")),
     })?;
     tracing::Span::current().record("scene", scene.as_str());
-    Ok((reader, served, channels))
+    Ok(Greeting {
+        reader,
+        scene: served,
+        channels,
+        send_root: flags & HELLO_SEND_ROOT != 0,
+    })
 }

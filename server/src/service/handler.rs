@@ -10,12 +10,13 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use arbor_proto::limits::MAX_REQUEST_ITEMS;
-use arbor_proto::wire::{ErrorCode, Frame};
+use arbor_proto::wire::{ErrorCode, Frame, ViewHint};
 use arbor_proto::{Channel, TreeletId};
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 
-use super::connection::{ControlReader, End, close, hello};
+use super::connection::{ControlReader, End, Greeting, close, hello};
+use super::push::{WorldCube, plan_pushes, push_priority};
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
 use super::shared::Shared;
 use super::shutdown::Shutdown;
@@ -54,14 +55,25 @@ pub(super) async fn serve(
         },
         _ = shutdown.recv() => Err(shutting_down()),
     };
-    let (mut reader, scene, channels) = match greeted {
+    let Greeting {
+        mut reader,
+        scene,
+        channels,
+        send_root,
+    } = match greeted {
         Ok(g) => g,
         Err(end) => return end,
     };
+    let root = scene.stored.description.root_treelet;
     let mut handler = match Handler::register(shared, id, conn, scene, channels) {
         Ok(h) => h,
         Err(end) => return end,
     };
+    // The root, unasked: as a list of sequence 0, which the client's first list (1 or more)
+    // replaces.
+    if send_root && let Some(end) = handler.on_request_list(0, vec![(root, f32::MAX)]) {
+        return end;
+    }
     let end = handler.run(&mut reader, &mut shutdown).await;
     handler.finish(&end).await;
     end
@@ -179,6 +191,9 @@ impl Handler {
     fn on_frame(&mut self, frame: Result<Option<Frame>, End>) -> Option<End> {
         match frame {
             Ok(Some(Frame::RequestList { seq, items })) => self.on_request_list(seq, items),
+            Ok(Some(Frame::DeepRequestList { seq, view, items })) => {
+                self.on_deep_request_list(seq, &view, &items)
+            }
             Ok(Some(Frame::Goodbye { code })) => Some(close(
                 ErrorCode::NoError,
                 format!("client said goodbye ({code})"),
@@ -244,6 +259,49 @@ impl Handler {
             .update_session(self.id.0, |s| s.request_lists += 1);
         self.shared.wake.notify_one();
         None
+    }
+
+    /// A request list with the client's view: the listed items, then the descendants the view
+    /// would refine below them (`push.rs`), within the free slots the client announced, at
+    /// priorities below every listed item.
+    fn on_deep_request_list(
+        &mut self,
+        seq: u64,
+        view: &ViewHint,
+        items: &[(TreeletId, f32, f32)],
+    ) -> Option<End> {
+        let count = self.treelet_count;
+        if let Some((t, _, _)) = items.iter().find(|(t, _, _)| t.0 >= count) {
+            return Some(close(
+                ErrorCode::UnknownTreelet,
+                format!("treelet {} does not exist (the scene has {count})", t.0),
+            ));
+        }
+        let scene = &self.ctx.scene;
+        let d = &scene.stored.description;
+        let cube = WorldCube {
+            origin: d.origin,
+            edge: d.edge,
+        };
+        let budget = (view.free_slots as usize)
+            .saturating_sub(items.len())
+            .min(MAX_REQUEST_ITEMS - items.len());
+        let pushes = plan_pushes(cube, view, items, budget, |id| {
+            scene.tree.shape(&scene.stored, id)
+        });
+        let lowest = items.iter().map(|i| i.1).fold(f32::INFINITY, f32::min);
+        let mut list: Vec<(TreeletId, f32)> = items.iter().map(|&(id, p, _)| (id, p)).collect();
+        list.extend(
+            pushes
+                .iter()
+                .map(|&(id, generation)| (id, push_priority(lowest, generation))),
+        );
+        self.shared
+            .state
+            .metrics
+            .pushes_planned
+            .fetch_add(pushes.len() as u64, Ordering::Relaxed);
+        self.on_request_list(seq, list)
     }
 
     /// The dispatcher handed over a treelet: start its stream task, ranked after the ones

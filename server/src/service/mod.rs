@@ -17,6 +17,7 @@
 pub mod config;
 pub mod connection;
 mod handler;
+pub mod push;
 pub mod schedule;
 pub mod server;
 mod shared;

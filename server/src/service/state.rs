@@ -71,6 +71,9 @@ pub struct Metrics {
     pub treelets_sent: AtomicU64,
     pub treelet_bytes_sent: AtomicU64,
     pub treelets_cancelled: AtomicU64,
+    /// Treelets planned as pushes below deep request lists, summed over lists (a push still
+    /// implied by the next list is planned again).
+    pub pushes_planned: AtomicU64,
     /// Request-to-send latency: from the first list naming a treelet to its stream finishing.
     pub request_to_send: Histogram,
     errors: [AtomicU64; ErrorCode::ALL.len()],
@@ -203,7 +206,7 @@ impl ServiceState {
     pub fn write_prometheus(&self, p: &mut PromText) {
         let m = &self.metrics;
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
-        let counters: [(&str, &str, &AtomicU64); 7] = [
+        let counters: [(&str, &str, &AtomicU64); 8] = [
             (
                 "arbor_connections_accepted_total",
                 "QUIC connections accepted.",
@@ -238,6 +241,11 @@ impl ServiceState {
                 "arbor_treelets_cancelled_total",
                 "Treelet streams reset because the client no longer wanted them.",
                 &m.treelets_cancelled,
+            ),
+            (
+                "arbor_pushes_planned_total",
+                "Treelets planned as pushes below deep request lists, summed over lists.",
+                &m.pushes_planned,
             ),
         ];
         for (name, help, value) in counters {

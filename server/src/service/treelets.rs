@@ -14,6 +14,7 @@ use arbor_proto::codec::{self, MAX_RAW_TREELET};
 use arbor_proto::frame::{FrameError, encode_treelet_header};
 use arbor_proto::{Channel, ProtoError, TreeletId};
 
+use super::push::TreeIndex;
 use crate::pool::{PoolError, StoredScene};
 
 /// Why a treelet message could not be built. Always the server's fault (the pool), never the
@@ -50,6 +51,8 @@ pub struct ServedScene {
     dictionary: Option<zstd::dict::DecoderDictionary<'static>>,
     /// Direct-mapped `used_nodes` cache: entry = `(id + 1) << 16 | used_nodes`, 0 = empty.
     used: Vec<AtomicU64>,
+    /// Treelet shapes for deep-request pushes.
+    pub tree: TreeIndex,
 }
 
 impl std::fmt::Debug for ServedScene {
@@ -75,6 +78,7 @@ impl ServedScene {
             stored,
             dictionary,
             used: (0..n).map(|_| AtomicU64::new(0)).collect(),
+            tree: TreeIndex::default(),
         }
     }
 

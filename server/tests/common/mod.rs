@@ -237,6 +237,7 @@ pub fn hello_frame(scene: &str, channels: &[Channel], token: &str) -> Frame {
         scene: scene.into(),
         channels: channels.to_vec(),
         token: token.into(),
+        flags: 0,
     }
 }
 

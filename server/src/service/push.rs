@@ -1,0 +1,281 @@
+//! Server-assisted deep requests (docs/design.md §10): the descendants a client's view would
+//! refine below the treelets it asked for, sent without waiting to be asked.
+//!
+//! A child treelet can be named only once its parent has arrived and been sampled, so refinement
+//! driven by feedback alone pays a round trip per treelet level. The server holds the whole tree:
+//! given the view and, per listed treelet, the error the client measured at the leaf it refines,
+//! [`plan_pushes`] walks down from each listed treelet, breadth first over all of them (parents
+//! before children), and keeps every descendant whose root voxel
+//! * lies in the view frustum and projects larger than a pixel ([`ViewHint::box_error`] > 0),
+//! * and is coarser than the depth the client's error says is enough (root depth < the listed
+//!   leaf's depth + its error),
+//!
+//! up to a budget: the free slots the client announced beyond its listed items. Occlusion still
+//! comes from the client's own samples at the first level; the push only removes the chain of
+//! round trips below it. The plan is pure — the tree shape comes from a lookup — so it is tested
+//! without a pool. The service appends the plan to the list at priorities below every listed
+//! item, so the scheduler sends it last, at lower QUIC priority, and a newer list that no longer
+//! implies a push cancels it like any other treelet.
+//!
+//! [`TreeIndex`] is the lookup: the root voxel and the refinable leaves of each treelet, decoded
+//! from its stored node block once and cached per scene.
+
+use std::collections::{HashMap, HashSet, VecDeque};
+use std::sync::{Arc, Mutex};
+
+use arbor_proto::codec;
+use arbor_proto::wire::ViewHint;
+use arbor_proto::{Cell, Node, TreeletId};
+
+use crate::pool::StoredScene;
+
+/// A treelet's place in the tree: its root voxel and its refinable leaves.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct TreeletShape {
+    /// The root voxel.
+    pub root: Cell,
+    /// `(child treelet, the leaf's voxel = the child's root voxel)`, in node order.
+    pub children: Vec<(TreeletId, Cell)>,
+}
+
+/// Where the scene's root cube lies in the world.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WorldCube {
+    /// Minimum corner.
+    pub origin: [f64; 3],
+    /// Edge length.
+    pub edge: f64,
+}
+
+impl WorldCube {
+    /// The box of `cell`.
+    pub fn cell_box(&self, cell: Cell) -> ([f64; 3], [f64; 3]) {
+        let size = self.edge / (1u64 << cell.depth.min(63)) as f64;
+        let min = [
+            self.origin[0] + f64::from(cell.x) * size,
+            self.origin[1] + f64::from(cell.y) * size,
+            self.origin[2] + f64::from(cell.z) * size,
+        ];
+        (min, [min[0] + size, min[1] + size, min[2] + size])
+    }
+}
+
+/// The treelets to push, in sending order (parents before children), with their generation below
+/// the listed item they descend from (1 = a child of a listed treelet).
+pub fn plan_pushes(
+    cube: WorldCube,
+    view: &ViewHint,
+    items: &[(TreeletId, f32, f32)],
+    budget: usize,
+    mut shape: impl FnMut(TreeletId) -> Option<Arc<TreeletShape>>,
+) -> Vec<(TreeletId, u32)> {
+    let mut out = Vec::new();
+    if budget == 0 {
+        return out;
+    }
+    let mut seen: HashSet<TreeletId> = items.iter().map(|i| i.0).collect();
+    // (treelet, generation, the depth its descendants' roots must stay above)
+    let mut queue = VecDeque::new();
+    for &(id, _, error) in items {
+        if let Some(s) = shape(id) {
+            let limit = f64::from(s.root.depth) + f64::from(error.max(0.0));
+            queue.push_back((id, 0u32, limit, s));
+        }
+    }
+    while let Some((_, generation, limit, s)) = queue.pop_front() {
+        for &(child, cell) in &s.children {
+            if f64::from(cell.depth) >= limit || !seen.insert(child) {
+                continue;
+            }
+            let (min, max) = cube.cell_box(cell);
+            if !view.box_error(min, max).is_some_and(|e| e > 0.0) {
+                continue;
+            }
+            out.push((child, generation + 1));
+            if out.len() >= budget {
+                return out;
+            }
+            if let Some(cs) = shape(child) {
+                queue.push_back((child, generation + 1, limit, cs));
+            }
+        }
+    }
+    out
+}
+
+/// Most treelet shapes kept per scene; beyond it the cache starts afresh (a shape costs one
+/// decompression to rebuild).
+const SHAPES_MAX: usize = 1 << 18;
+
+/// The shapes of a scene's treelets, decoded on first use.
+#[derive(Debug, Default)]
+pub struct TreeIndex {
+    shapes: Mutex<HashMap<TreeletId, Arc<TreeletShape>>>,
+}
+
+impl TreeIndex {
+    /// The shape of treelet `id` of `scene`; `None` if it is not stored or does not decode (the
+    /// push is then simply not made).
+    pub fn shape(&self, scene: &StoredScene, id: TreeletId) -> Option<Arc<TreeletShape>> {
+        if let Some(s) = self.lock().get(&id) {
+            return Some(s.clone());
+        }
+        let d = &scene.description;
+        let bytes = scene.nodes(id).ok()??;
+        let (treelet, places) = codec::decode_compressed_treelet_with_places(
+            &bytes,
+            d.max_depth,
+            d.node_dictionary.as_deref(),
+        )
+        .ok()?;
+        let children = places
+            .iter()
+            .zip(&treelet.nodes)
+            .filter(|(p, n)| p.is_leaf && n.first_child != Node::NONE)
+            .map(|(p, n)| (TreeletId(n.first_child), p.cell))
+            .collect();
+        let shape = Arc::new(TreeletShape {
+            root: treelet.header.root_cell(),
+            children,
+        });
+        let mut shapes = self.lock();
+        if shapes.len() >= SHAPES_MAX {
+            shapes.clear();
+        }
+        shapes.insert(id, shape.clone());
+        Some(shape)
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<TreeletId, Arc<TreeletShape>>> {
+        self.shapes.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+/// The priority a push of `generation` gets in a list whose lowest listed priority is
+/// `lowest`: below every listed item, and below the pushes of earlier generations.
+pub fn push_priority(lowest: f32, generation: u32) -> f32 {
+    lowest.min(0.0) - 1.0 - generation as f32
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn cell(depth: u8, x: u32, y: u32, z: u32) -> Cell {
+        Cell { depth, x, y, z }
+    }
+
+    /// A complete tree of treelets: treelet `k` at depth `d` has the 8 children of its root cell
+    /// as child treelets, down to `levels` levels; ids are assigned breadth first.
+    fn tree(levels: u8) -> HashMap<TreeletId, Arc<TreeletShape>> {
+        let mut out = HashMap::new();
+        let mut queue = VecDeque::from([(TreeletId(0), cell(0, 0, 0, 0))]);
+        let mut next = 1u32;
+        while let Some((id, root)) = queue.pop_front() {
+            let mut children = Vec::new();
+            if root.depth < levels {
+                for i in 0..8 {
+                    let c = root.child(i);
+                    children.push((TreeletId(next), c));
+                    queue.push_back((TreeletId(next), c));
+                    next += 1;
+                }
+            }
+            out.insert(id, Arc::new(TreeletShape { root, children }));
+        }
+        out
+    }
+
+    fn view_from(eye: [f64; 3], footprint: f32) -> ViewHint {
+        ViewHint {
+            eye,
+            forward: [0.0, 0.0, -1.0],
+            up: [0.0, 1.0, 0.0],
+            tan_half_fov_y: 0.6,
+            aspect: 1.0,
+            footprint,
+            free_slots: 0,
+        }
+    }
+
+    const CUBE: WorldCube = WorldCube {
+        origin: [0.0; 3],
+        edge: 1.0,
+    };
+
+    #[test]
+    fn pushes_follow_the_view_the_error_and_the_budget() {
+        let t = tree(4);
+        let shape = |id: TreeletId| t.get(&id).cloned();
+        let view = view_from([0.5, 0.5, 3.0], 0.001);
+        // Root listed with a large error: everything in view down to depth 4, parents first.
+        let all = plan_pushes(CUBE, &view, &[(TreeletId(0), 1.0, 10.0)], 10_000, shape);
+        assert_eq!(all.len(), 8 + 64 + 512 + 4096);
+        assert!(
+            all.windows(2).all(|w| w[0].1 <= w[1].1),
+            "generations ascend"
+        );
+        // The error limits the depth: 2.5 levels below the root's depth 0 → children at depth
+        // 1 and 2 only.
+        let shallow = plan_pushes(CUBE, &view, &[(TreeletId(0), 1.0, 2.5)], 10_000, shape);
+        assert_eq!(shallow.len(), 8 + 64);
+        // The budget cuts the plan, keeping the first (coarsest) ones.
+        let cut = plan_pushes(CUBE, &view, &[(TreeletId(0), 1.0, 10.0)], 20, shape);
+        assert_eq!(cut, all[..20]);
+        // Looking away: nothing. A zero budget: nothing.
+        let away = view_from([0.5, 0.5, -3.0], 0.001);
+        assert!(plan_pushes(CUBE, &away, &[(TreeletId(0), 1.0, 10.0)], 100, shape).is_empty());
+        assert!(plan_pushes(CUBE, &view, &[(TreeletId(0), 1.0, 10.0)], 0, shape).is_empty());
+        // A coarse footprint: only boxes larger than a pixel.
+        let coarse = view_from([0.5, 0.5, 3.0], 0.2);
+        let few = plan_pushes(CUBE, &coarse, &[(TreeletId(0), 1.0, 10.0)], 10_000, shape);
+        assert!(few.len() < all.len() && !few.is_empty());
+        // Listed items are never pushed.
+        let listed = [(TreeletId(0), 1.0, 10.0), (TreeletId(1), 1.0, 10.0)];
+        let p = plan_pushes(CUBE, &view, &listed, 10_000, shape);
+        assert!(p.iter().all(|(id, _)| id.0 > 1));
+    }
+
+    proptest! {
+        /// Whatever the lists and budgets: never over budget, no duplicates, nothing listed,
+        /// every push a descendant of a listed item, parents before children.
+        #[test]
+        fn plans_keep_their_invariants(
+            listed in proptest::collection::vec((0u32..585, 0f32..8.0), 1..6),
+            budget in 0usize..300,
+            eye in (-2.0f64..3.0, -2.0f64..3.0, 1.5f64..6.0),
+            footprint in 0.0005f32..0.05,
+        ) {
+            let t = tree(3);
+            let items: Vec<_> = listed.iter().map(|&(id, e)| (TreeletId(id), 1.0, e)).collect();
+            let view = view_from([eye.0, eye.1, eye.2], footprint);
+            let plan = plan_pushes(CUBE, &view, &items, budget, |id| t.get(&id).cloned());
+            prop_assert!(plan.len() <= budget);
+            let mut seen = HashSet::new();
+            let mut parent_of = HashMap::new();
+            for (id, shape) in &t {
+                for (c, _) in &shape.children {
+                    parent_of.insert(*c, *id);
+                }
+            }
+            let listed_ids: HashSet<_> = items.iter().map(|i| i.0).collect();
+            for (id, _) in &plan {
+                prop_assert!(seen.insert(*id), "pushed twice");
+                prop_assert!(!listed_ids.contains(id), "a listed item pushed");
+                let parent = parent_of[id];
+                prop_assert!(
+                    listed_ids.contains(&parent) || seen.contains(&parent),
+                    "a push before its parent"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn push_priorities_stay_below_the_list() {
+        assert!(push_priority(0.5, 1) < 0.5);
+        assert!(push_priority(-3.0, 1) < -3.0);
+        assert!(push_priority(2.0, 2) < push_priority(2.0, 1));
+    }
+}
