@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use arbor_proto::frame::{self, decode_treelet_message};
 use arbor_proto::limits::{MAX_FRAME_BYTES, MAX_REQUEST_ITEMS};
-use arbor_proto::wire::{ErrorCode, Frame};
+use arbor_proto::wire::{ErrorCode, Frame, ViewHint};
 use arbor_proto::{Channel, TreeletId, codec};
 use common::*;
 
@@ -208,6 +208,53 @@ async fn hostile_clients_end_only_their_own_connection() {
     })
     .unwrap();
 
+    // Deep request lists (docs/design.md §10) forged past the encoder's checks.
+    let view = ViewHint {
+        eye: [0.0, 0.0, 10.0],
+        forward: [0.0, 0.0, -1.0],
+        up: [0.0, 1.0, 0.0],
+        tan_half_fov_y: 0.5,
+        aspect: 1.0,
+        footprint: 0.001,
+        free_slots: 64,
+    };
+    let deep = frame::encode(&Frame::DeepRequestList {
+        seq: 1,
+        view,
+        items: vec![(TreeletId(0), 1.0, 3.0)],
+    })
+    .unwrap();
+    let forge = |at: usize, bytes: &[u8]| {
+        let mut f = deep.clone();
+        f[at..at + bytes.len()].copy_from_slice(bytes);
+        f
+    };
+    // The view starts after the 5-byte header and the 8-byte seq.
+    let nan_eye = forge(13 + 8, &f64::NAN.to_bits().to_le_bytes());
+    let huge_free_slots = forge(13 + ViewHint::BYTES - 4, &u32::MAX.to_le_bytes());
+    let absurd_levels = forge(deep.len() - 4, &1.0e6f32.to_bits().to_le_bytes());
+    let long_deep_list = {
+        let count = MAX_REQUEST_ITEMS as u32 + 1;
+        let mut p = deep[5..13 + ViewHint::BYTES].to_vec();
+        p.extend_from_slice(&count.to_le_bytes());
+        for i in 0..count {
+            p.extend_from_slice(&(i % d.treelet_count).to_le_bytes());
+            p.extend_from_slice(&1.0f32.to_le_bytes());
+            p.extend_from_slice(&2.0f32.to_le_bytes());
+        }
+        assert!(p.len() <= MAX_FRAME_BYTES);
+        let mut f = (p.len() as u32).to_le_bytes().to_vec();
+        f.push(6);
+        f.extend_from_slice(&p);
+        f
+    };
+    let deep_unknown_treelet = frame::encode(&Frame::DeepRequestList {
+        seq: 1,
+        view,
+        items: vec![(TreeletId(d.treelet_count), 1.0, 3.0)],
+    })
+    .unwrap();
+
     // (name, say Hello first, bytes to send, expected code)
     let cases: Vec<(&str, bool, Vec<u8>, ErrorCode)> = vec![
         (
@@ -238,6 +285,36 @@ async fn hostile_clients_end_only_their_own_connection() {
             "unknown treelet id",
             true,
             unknown_treelet,
+            ErrorCode::UnknownTreelet,
+        ),
+        (
+            "deep list with a NaN camera",
+            true,
+            nan_eye,
+            ErrorCode::ProtocolViolation,
+        ),
+        (
+            "deep list announcing 2^32 - 1 free slots",
+            true,
+            huge_free_slots,
+            ErrorCode::ProtocolViolation,
+        ),
+        (
+            "deep list with an error of a million levels",
+            true,
+            absurd_levels,
+            ErrorCode::ProtocolViolation,
+        ),
+        (
+            "deep list over the length limit",
+            true,
+            long_deep_list,
+            ErrorCode::ListTooLong,
+        ),
+        (
+            "deep list naming an unknown treelet",
+            true,
+            deep_unknown_treelet,
             ErrorCode::UnknownTreelet,
         ),
         (
@@ -309,6 +386,12 @@ async fn hostile_clients_end_only_their_own_connection() {
             "{name}: not counted"
         );
     }
+
+    // Refused deep lists cost no work: nothing was planned for any of them.
+    assert_eq!(
+        server.state.metrics.pushes_planned.load(Ordering::Relaxed),
+        0
+    );
 
     // No Hello at all: closed when the hello timeout passes.
     let (h, _hc) = hostile(&server, false).await;
@@ -400,7 +483,8 @@ async fn hostile_clients_end_only_their_own_connection() {
     assert_eq!(server.state.sessions().len(), 1);
     let m = &server.state.metrics;
     assert_eq!(m.errors(ErrorCode::SlowReader), 1);
-    assert_eq!(m.errors(ErrorCode::ProtocolViolation), 4);
+    // Garbage twice, a second Hello, three forged deep lists, the silent client.
+    assert_eq!(m.errors(ErrorCode::ProtocolViolation), 7);
     server.shutdown().await;
 }
 

@@ -21,7 +21,7 @@ use arbor_client_core::camera::CameraPath;
 use arbor_client_core::slots::SlotBuffer;
 use arbor_client_session::headless::run_headless_with;
 use arbor_tests::link::{LinkConfig, LinkEmulator};
-use arbor_tests::streaming::{converge, full, headless, needed_treelets, reference, serve};
+use arbor_tests::streaming::{SIZE, converge, full, headless, needed_treelets, reference, serve};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn static_camera_converges_exactly_over_loopback_with_a_fraction_of_the_scene() {
@@ -129,4 +129,77 @@ async fn orbiting_camera_stays_in_budget_and_never_shows_holes() {
     assert_eq!(holes_checked, 150);
     assert!(evictions > 0, "the budget was meant to force evictions");
     assert_eq!(run.peak_slots, run.capacity, "the buffer should fill up");
+}
+
+/// A budget a third of what the view needs: the client raises its LOD bias until the needed cut
+/// fits, stops requesting, and converges exactly to the reference rendered at that bias.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn oversubscribed_view_settles_on_a_coarser_exact_picture_and_stops_requesting() {
+    let served = Arc::new(serve("points/lion_takanawa.copc.laz", "lion", 1024).await);
+    let full = full(&served);
+    let needed = needed_treelets(&served, &full, &CameraPath::Static, 0);
+    let slot_bytes =
+        SlotBuffer::slot_bytes(served.scene.treelet_nodes, served.scene.layout.channels());
+    let budget = u64::from(needed / 3) * slot_bytes;
+    let mut cfg = headless(served.server.quic_addr, &served, CameraPath::Static, budget);
+    cfg.cycles = 400;
+    let handle = tokio::runtime::Handle::current();
+    let run = tokio::task::spawn_blocking(move || {
+        run_headless_with(cfg, &handle, Box::new(CpuBackend), |_| {})
+    })
+    .await
+    .unwrap()
+    .unwrap();
+    let r = &run.report.records;
+    let last = r.last().unwrap();
+    let bias = last.lod_bias;
+    let received: u64 = r.iter().map(|c| c.bytes_received).sum();
+    let tail: u64 = r[r.len() - 100..].iter().map(|c| c.bytes_received).sum();
+    let dropped: u32 = r.iter().map(|c| c.dropped).sum();
+    eprintln!(
+        "oversubscribed: view needs {needed}, capacity {} slots; bias {bias}, converged at \
+         {:?}, {received} B received ({tail} B in the last 100 cycles), {dropped} dropped, \
+         peak {} slots",
+        run.capacity, run.converged_at, run.peak_slots
+    );
+    assert!(bias > 1.0, "the budget cannot hold the view at bias 1");
+    assert!(
+        r.iter().any(|c| c.lod_bias > 1.0) && r[0].lod_bias == 1.0,
+        "the report shows the bias in effect per cycle"
+    );
+    assert_eq!(tail, 0, "traffic stops once the picture has settled");
+    assert_eq!(
+        r[r.len() - 100..]
+            .iter()
+            .map(|c| c.requests_sent)
+            .sum::<u32>(),
+        0
+    );
+    assert!(
+        run.converged_at.is_some(),
+        "converges against the adjusted target"
+    );
+    assert!(run.peak_slots <= run.capacity);
+    // Exact: the biased reference, every treelet resident, same camera.
+    let frame = arbor_client_core::incore::SceneFrame::of(&served.scene);
+    let camera = CameraPath::Static.camera(0, &frame, 7, SIZE.0, SIZE.1);
+    let biased = arbor_client_core::backend::render_resident(
+        &full,
+        &frame,
+        &camera,
+        bias,
+        &arbor_client_core::render::Light::default(),
+        &mut CpuBackend,
+    );
+    assert_eq!(
+        run.image, biased,
+        "the settled picture is the biased reference"
+    );
+    let unbiased = reference(&served, &full, &CameraPath::Static, 0, &mut CpuBackend);
+    assert_ne!(run.image, unbiased, "and coarser than the unbiased one");
+    let summary = run.report.summary().to_string();
+    assert!(
+        summary.contains("LOD bias"),
+        "the summary says the target was adjusted: {summary}"
+    );
 }

@@ -16,7 +16,7 @@ use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 
 use super::connection::{ControlReader, End, Greeting, close, hello};
-use super::push::{WorldCube, plan_pushes, push_priority};
+use super::push::{WorldCube, deep_list};
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
 use super::shared::Shared;
 use super::shutdown::Shutdown;
@@ -283,24 +283,14 @@ impl Handler {
             origin: d.origin,
             edge: d.edge,
         };
-        let budget = (view.free_slots as usize)
-            .saturating_sub(items.len())
-            .min(MAX_REQUEST_ITEMS - items.len());
-        let pushes = plan_pushes(cube, view, items, budget, |id| {
+        let (list, pushed) = deep_list(cube, view, items, MAX_REQUEST_ITEMS, |id| {
             scene.tree.shape(&scene.stored, id)
         });
-        let lowest = items.iter().map(|i| i.1).fold(f32::INFINITY, f32::min);
-        let mut list: Vec<(TreeletId, f32)> = items.iter().map(|&(id, p, _)| (id, p)).collect();
-        list.extend(
-            pushes
-                .iter()
-                .map(|&(id, generation)| (id, push_priority(lowest, generation))),
-        );
         self.shared
             .state
             .metrics
             .pushes_planned
-            .fetch_add(pushes.len() as u64, Ordering::Relaxed);
+            .fetch_add(pushed as u64, Ordering::Relaxed);
         self.on_request_list(seq, list)
     }
 

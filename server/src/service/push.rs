@@ -103,6 +103,31 @@ pub fn plan_pushes(
     out
 }
 
+/// The list a deep request becomes: the listed items at their priorities, then the planned
+/// pushes at priorities below every listed item ([`push_priority`]), within the free slots the
+/// client announced beyond its listed items and the list size limit. Returns the list and the
+/// number of pushes in it.
+pub fn deep_list(
+    cube: WorldCube,
+    view: &ViewHint,
+    items: &[(TreeletId, f32, f32)],
+    max_items: usize,
+    shape: impl FnMut(TreeletId) -> Option<Arc<TreeletShape>>,
+) -> (Vec<(TreeletId, f32)>, usize) {
+    let budget = (view.free_slots as usize)
+        .saturating_sub(items.len())
+        .min(max_items.saturating_sub(items.len()));
+    let pushes = plan_pushes(cube, view, items, budget, shape);
+    let lowest = items.iter().map(|i| i.1).fold(f32::INFINITY, f32::min);
+    let mut list: Vec<(TreeletId, f32)> = items.iter().map(|&(id, p, _)| (id, p)).collect();
+    list.extend(
+        pushes
+            .iter()
+            .map(|&(id, generation)| (id, push_priority(lowest, generation))),
+    );
+    (list, pushes.len())
+}
+
 /// Most treelet shapes kept per scene; beyond it the cache starts afresh (a shape costs one
 /// decompression to rebuild).
 const SHAPES_MAX: usize = 1 << 18;
@@ -153,8 +178,15 @@ impl TreeIndex {
 
 /// The priority a push of `generation` gets in a list whose lowest listed priority is
 /// `lowest`: below every listed item, and below the pushes of earlier generations.
+///
+/// The step grows with the magnitude so that the result stays strictly below even where a
+/// fixed step would be absorbed by rounding; a list whose lowest priority is near `-f32::MAX`
+/// gets non-finite push priorities, which the scheduler drops (no pushes rather than pushes that
+/// tie with listed items).
 pub fn push_priority(lowest: f32, generation: u32) -> f32 {
-    lowest.min(0.0) - 1.0 - generation as f32
+    let base = lowest.min(0.0);
+    let step = (base.abs() * f32::EPSILON * 4.0).max(1.0);
+    base - step * (1.0 + generation as f32)
 }
 
 #[cfg(test)]
@@ -277,5 +309,80 @@ mod tests {
         assert!(push_priority(0.5, 1) < 0.5);
         assert!(push_priority(-3.0, 1) < -3.0);
         assert!(push_priority(2.0, 2) < push_priority(2.0, 1));
+        // Where `x - 1.0 == x` in f32: still strictly below, generations still ordered.
+        for lowest in [-3.0e7f32, -1.0e20, -1.0e37] {
+            assert!(push_priority(lowest, 1) < lowest);
+            assert!(push_priority(lowest, 2) < push_priority(lowest, 1));
+        }
+        assert!(!push_priority(-f32::MAX, 1).is_finite());
+    }
+
+    proptest! {
+        /// The deep list through the real scheduler: every listed item starts before any push
+        /// (whatever the listed priorities), the pushes stay within the announced free slots,
+        /// and a newer list that no longer implies the pushes in flight makes them obsolete
+        /// (the service then resets their streams).
+        #[test]
+        fn deep_lists_through_the_scheduler(
+            listed in proptest::collection::vec((0u32..73, -1.0e30f32..1.0e30, 0f32..8.0), 1..6),
+            free_slots in 0u32..400,
+            window in 1usize..64,
+            eye in (0.0f64..1.0, 0.0f64..1.0, 1.5f64..4.0),
+        ) {
+            use crate::service::schedule::{ConnectionConfig, ConnectionId, ListOutcome, Scheduler};
+            use std::time::{Duration, Instant};
+            let t = tree(3);
+            let items: Vec<_> = listed.iter().map(|&(id, p, e)| (TreeletId(id), p, e)).collect();
+            let mut view = view_from([eye.0, eye.1, eye.2], 0.001);
+            view.free_slots = free_slots;
+            let shape = |id: TreeletId| t.get(&id).cloned();
+            let (list, pushed) = deep_list(CUBE, &view, &items, 4096, shape);
+            let listed_ids: HashSet<_> = items.iter().map(|i| i.0).collect();
+            prop_assert!(pushed <= (free_slots as usize).saturating_sub(items.len()));
+
+            let conn = ConnectionId(1);
+            let cfg = ConnectionConfig { window, redelivery_guard: Duration::ZERO, ..Default::default() };
+            let now = Instant::now();
+            let start = |list: Vec<(TreeletId, f32)>| {
+                let mut s = Scheduler::default();
+                s.add_connection(conn, cfg.clone()).unwrap();
+                s.handle_request_list(conn, 1, list, now).unwrap();
+                s
+            };
+            // Everything sent, each delivered at once: the order of starts.
+            let mut s = start(list.clone());
+            let mut order = Vec::new();
+            while let Some((_, id)) = s.poll_transmit(now) {
+                order.push(id);
+                s.handle_delivered(conn, id, now);
+            }
+            let first_push = order.iter().position(|id| !listed_ids.contains(id));
+            if let Some(i) = first_push {
+                prop_assert!(order[i..].iter().all(|id| !listed_ids.contains(id)), "listed after a push");
+            }
+            prop_assert_eq!(order.iter().filter(|id| listed_ids.contains(id)).count(), listed_ids.len());
+            prop_assert_eq!(order.len(), listed_ids.len() + pushed);
+
+            // The first push in flight; a newer list looking away implies no pushes.
+            if pushed > 0 {
+                let mut s = start(list);
+                let in_flight = loop {
+                    let (_, id) = s.poll_transmit(now).expect("the push is sent");
+                    if !listed_ids.contains(&id) {
+                        break id;
+                    }
+                    s.handle_delivered(conn, id, now);
+                };
+                let away = view_from([eye.0, eye.1, -eye.2], 0.001);
+                let (newer, none) = deep_list(CUBE, &ViewHint { free_slots, ..away }, &items, 4096, shape);
+                prop_assert_eq!(none, 0);
+                match s.handle_request_list(conn, 2, newer, now).unwrap() {
+                    ListOutcome::Applied { obsolete_in_flight, .. } => {
+                        prop_assert_eq!(obsolete_in_flight, vec![in_flight]);
+                    }
+                    other => prop_assert!(false, "{other:?}"),
+                }
+            }
+        }
     }
 }

@@ -1,0 +1,109 @@
+//! Pushed treelets on the client side (docs/design.md §10), on a real scan's treelets: a push
+//! is kept only in a free slot with its parent resident (or arriving in the same batch); an
+//! orphan, or a push that finds no free slot, is dropped and counted, and never displaces what
+//! the client holds.
+
+use std::sync::Arc;
+
+use arbor_client_core::cycle::{ClientCore, CoreConfig};
+use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
+use arbor_proto::TreeletId;
+use arbor_server::octree::{BuildOptions, DepthChoice};
+use arbor_tests::support::{SCANS, build_file, decoded_treelets};
+
+/// The lion's treelets (small treelets, so the tree has several levels) and a core holding its
+/// root, with room for `slots` slots in all.
+fn lion_core(slots: u64) -> (Vec<DecodedTreelet>, ClientCore) {
+    let rel = SCANS.iter().find(|(n, _)| *n == "lion").unwrap().1;
+    let opts = BuildOptions {
+        depth: DepthChoice::Fixed(8),
+        treelet_bytes: 1024,
+        ..BuildOptions::default()
+    };
+    let built = build_file(rel, "lion", &opts);
+    let treelets = decoded_treelets(&built.scene);
+    let scene = Arc::new(built.scene.description.clone());
+    let channels = scene.layout.channels().to_vec();
+    let config = CoreConfig {
+        budget_bytes: slots * SlotBuffer::slot_bytes(scene.treelet_nodes, &channels),
+        channels,
+        ..CoreConfig::default()
+    };
+    let core = ClientCore::new(scene, config, treelets[0].clone()).expect("core");
+    (treelets, core)
+}
+
+fn parent(t: &DecodedTreelet) -> TreeletId {
+    t.treelet.header.parent_id
+}
+
+#[test]
+fn pushed_orphans_are_dropped_and_counted() {
+    let (treelets, mut core) = lion_core(64);
+    // A grandchild of the root: its parent is not resident. Nothing was listed yet, so every
+    // arrival counts as pushed.
+    let grandchild = treelets
+        .iter()
+        .find(|t| {
+            let p = parent(t);
+            p.0 != 0 && !p.is_none() && parent(&treelets[p.0 as usize]).0 == 0
+        })
+        .expect("the lion has three treelet levels")
+        .clone();
+    let middle = treelets[parent(&grandchild).0 as usize].clone();
+    let used = core.slots().used_slots();
+
+    core.handle_treelet(grandchild.clone());
+    let i = core.integrate();
+    assert_eq!(
+        (i.push_dropped, i.pushed, i.inserted, i.dropped),
+        (1, 0, 0, 0)
+    );
+    assert!(!core.slots().is_resident(grandchild.id()));
+    assert_eq!(core.slots().used_slots(), used, "an orphan takes no slot");
+
+    // Child before parent in one batch: both kept, the parent first.
+    core.handle_treelet(grandchild.clone());
+    core.handle_treelet(middle.clone());
+    let i = core.integrate();
+    assert_eq!(
+        (i.push_dropped, i.pushed, i.inserted, i.dropped),
+        (0, 2, 2, 0)
+    );
+    assert!(core.slots().is_resident(grandchild.id()) && core.slots().is_resident(middle.id()));
+}
+
+#[test]
+fn pushes_take_only_free_slots_and_never_displace() {
+    let (treelets, mut core) = lion_core(4);
+    let children: Vec<_> = treelets
+        .iter()
+        .filter(|t| parent(t).0 == 0 && t.id().0 != 0)
+        .cloned()
+        .collect();
+    let free = core.slots().free_slots() as usize;
+    assert!(
+        free >= 1 && children.len() > free,
+        "{free} free, {} children",
+        children.len()
+    );
+    let before: Vec<_> = (0..core.slots().capacity())
+        .filter_map(|s| core.slots().treelet_in(s))
+        .collect();
+
+    for c in &children[..free + 2] {
+        core.handle_treelet(c.clone());
+    }
+    let i = core.integrate();
+    assert_eq!(i.pushed as usize, free);
+    assert_eq!(
+        i.push_dropped, 2,
+        "the pushes beyond the free slots are dropped and counted"
+    );
+    assert_eq!((i.evicted, i.dropped), (0, 0), "a push never evicts");
+    assert_eq!(core.slots().free_slots(), 0);
+    assert!(
+        before.iter().all(|&id| core.slots().is_resident(id)),
+        "what was resident stays"
+    );
+}
