@@ -191,6 +191,18 @@ pub async fn converge(
     reference_backend: &mut dyn Backend,
     make: impl FnOnce() -> Box<dyn Backend> + Send + 'static,
 ) -> HeadlessRun {
+    converge_with(served, addr, what, reference_backend, make, |_| {}).await
+}
+
+/// [`converge`] with the run's configuration adjusted by `tweak` (policy, sampling, push).
+pub async fn converge_with(
+    served: &Arc<Served>,
+    addr: SocketAddr,
+    what: &str,
+    reference_backend: &mut dyn Backend,
+    make: impl FnOnce() -> Box<dyn Backend> + Send + 'static,
+    tweak: impl FnOnce(&mut HeadlessConfig),
+) -> HeadlessRun {
     let full = full(served);
     let reference = reference(served, &full, &CameraPath::Static, 0, reference_backend);
     assert!(
@@ -212,6 +224,7 @@ pub async fn converge(
     let mut cfg = headless(addr, served, CameraPath::Static, budget);
     cfg.reference = Some(reference.clone());
     cfg.until_converged = true;
+    tweak(&mut cfg);
     let handle = tokio::runtime::Handle::current();
     let t0 = Instant::now();
     let run = tokio::task::spawn_blocking(move || run_headless_with(cfg, &handle, make(), |_| {}))
@@ -222,7 +235,8 @@ pub async fn converge(
     let last = records.last().unwrap();
     eprintln!(
         "{what}: {} treelets, view needs {needed}, budget {} slots; converged at {:?} after \
-         {:.2} s ({} cycles), peak {} slots, {} treelets / {} B received",
+         {:.2} s ({} cycles), peak {} slots, {} treelets / {} B received, LOD bias {}, \
+         {} dropped, {} pushed, {} pushes dropped",
         served.scene.treelet_count,
         run.capacity,
         run.converged_at,
@@ -231,6 +245,10 @@ pub async fn converge(
         run.peak_slots,
         run.client.treelets_received,
         run.client.bytes_received,
+        last.lod_bias,
+        records.iter().map(|r| r.dropped).sum::<u32>(),
+        records.iter().map(|r| r.pushed).sum::<u32>(),
+        records.iter().map(|r| r.push_dropped).sum::<u32>(),
     );
     let converged = run
         .converged_at

@@ -18,10 +18,14 @@ use std::time::Duration;
 
 use arbor_client_core::backend::CpuBackend;
 use arbor_client_core::camera::CameraPath;
+use arbor_client_core::cycle::Sampling;
+use arbor_client_core::presort::PriorityPolicy;
 use arbor_client_core::slots::SlotBuffer;
 use arbor_client_session::headless::run_headless_with;
 use arbor_tests::link::{LinkConfig, LinkEmulator};
-use arbor_tests::streaming::{SIZE, converge, full, headless, needed_treelets, reference, serve};
+use arbor_tests::streaming::{
+    SIZE, converge, converge_with, full, headless, needed_treelets, reference, scene_bytes, serve,
+};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn static_camera_converges_exactly_over_loopback_with_a_fraction_of_the_scene() {
@@ -37,6 +41,47 @@ async fn static_camera_converges_exactly_over_loopback_with_a_fraction_of_the_sc
         })
         .await;
     }
+}
+
+/// Every ranking policy, the thesis's fixed sampling grid and the run without deep pushes reach
+/// the same exact picture: they change the order of arrival, never the result.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_policy_and_sampling_converges_exactly() {
+    let served = Arc::new(serve("points/lion_takanawa.copc.laz", "lion", 1024).await);
+    let addr = served.server.quic_addr;
+    for policy in PriorityPolicy::ALL {
+        let what = format!("lion, policy {policy:?}");
+        let whole_scene = scene_bytes(&served);
+        converge_with(
+            &served,
+            addr,
+            &what,
+            &mut CpuBackend,
+            || Box::new(CpuBackend),
+            |c| {
+                c.core.policy = policy;
+                // Without occlusion the frustum policy wants every treelet in the frustum,
+                // hidden ones too: more than this budget holds (it would settle on a coarser
+                // bias).
+                if policy == PriorityPolicy::Frustum {
+                    c.core.budget_bytes = whole_scene;
+                }
+            },
+        )
+        .await;
+    }
+    converge_with(
+        &served,
+        addr,
+        "lion, fixed grid, no deep push",
+        &mut CpuBackend,
+        || Box::new(CpuBackend),
+        |c| {
+            c.core.sampling = Sampling::Grid;
+            c.core.deep_push = false;
+        },
+    )
+    .await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -379,13 +379,24 @@ impl ClientCore {
             return;
         }
         self.backlog.push_back(treelet);
-        let cap = (self.config.load_limit as usize * 4).max(64);
+        let cap = self.backlog_cap();
         while self.backlog.len() > cap {
             if let Some(old) = self.backlog.pop_front() {
                 self.backlog_ids.remove(&old.treelet.header.id);
                 self.backlog_dropped += 1;
             }
         }
+    }
+
+    /// Whether lists carry the view, so the server may push: an arrival named by no recent list
+    /// is then a push.
+    fn pushes_asked(&self) -> bool {
+        self.config.deep_push && self.config.policy != PriorityPolicy::Frustum
+    }
+
+    /// Most arrivals waiting for a slot: a few cycles of the load limit.
+    fn backlog_cap(&self) -> usize {
+        (self.config.load_limit as usize * 4).max(64)
     }
 
     /// The analysis config of this cycle: the configured ratio, the bias in effect.
@@ -487,14 +498,16 @@ impl ClientCore {
             }
         }
         // Ask for no more than could be inserted: with an oversubscribed budget the rest would
-        // only be dropped on arrival. While the bias is still rising, only free slots are
-        // filled: what an eviction would make room for may not be wanted at the coarser target.
+        // only be dropped on arrival, and so would arrivals beyond what the backlog holds. While
+        // the bias is still rising, only free slots are filled: what an eviction would make room
+        // for may not be wanted at the coarser target.
         let room = if self.bias_unsettled {
             self.slots.free_slots()
         } else {
             self.slots.room()
         };
-        requests.truncate((room as usize).saturating_sub(self.backlog.len()));
+        let room = (room as usize).min(self.backlog_cap());
+        requests.truncate(room.saturating_sub(self.backlog.len()));
         self.evicted_outside += evicted;
         let errors: Vec<f32> = self
             .coverage
@@ -583,9 +596,10 @@ impl ClientCore {
 
     /// The view for a deep request list: the last camera, the bias in effect, and the slots the
     /// server may push into: free ones, at most `push_budget` (what the requested treelets are
-    /// predicted to need below them, so occluded subtrees cannot flood the buffer).
+    /// predicted to need below them, so occluded subtrees cannot flood the buffer). The frustum
+    /// policy stands for the peers, which have no pushes: it sends plain lists.
     fn view_hint(&self, push_budget: u32) -> Option<ViewHint> {
-        if !self.config.deep_push {
+        if !self.pushes_asked() {
             return None;
         }
         let c = self.last_camera?;
@@ -644,7 +658,9 @@ impl ClientCore {
         let mut push_dropped = 0;
         let mut dropped = std::mem::take(&mut self.backlog_dropped);
         let (listed, previous) = (&self.listed, &self.listed_previous);
-        let is_push = |id: &TreeletId| !listed.contains(id) && !previous.contains(id);
+        let pushes_asked = self.pushes_asked();
+        let is_push =
+            |id: &TreeletId| pushes_asked && !listed.contains(id) && !previous.contains(id);
         // Listed arrivals first (they may evict), then pushes (free slots only); each by id.
         self.backlog.make_contiguous().sort_by_key(|t| {
             let id = t.treelet.header.id;
@@ -657,7 +673,7 @@ impl ClientCore {
             };
             let id = t.treelet.header.id;
             self.backlog_ids.remove(&id);
-            let is_push = !self.listed.contains(&id) && !self.listed_previous.contains(&id);
+            let is_push = is_push(&id);
             if is_push && self.slots.free_slots() == 0 {
                 push_dropped += 1;
                 continue;
