@@ -40,6 +40,9 @@ pub struct Served {
     pub scene: SceneDescription,
     /// Every treelet, decoded from the pool with all the scene's channels.
     pub treelets: Vec<DecodedTreelet>,
+    /// Per treelet, the bytes its message takes on the wire with all the scene's channels
+    /// (compressed blocks as stored, plus the message header).
+    pub wire_bytes: Vec<u64>,
     _pool_dir: TempDir,
     _data_dir: TempDir,
 }
@@ -48,7 +51,7 @@ pub struct Served {
 pub async fn serve(rel: &str, name: &str, treelet_bytes: u32) -> Served {
     let rel = rel.to_owned();
     let name_owned = name.to_owned();
-    let (built, treelets) = tokio::task::spawn_blocking(move || {
+    let (built, treelets, wire_bytes) = tokio::task::spawn_blocking(move || {
         let built = build_file(
             &rel,
             &name_owned,
@@ -58,7 +61,8 @@ pub async fn serve(rel: &str, name: &str, treelet_bytes: u32) -> Served {
             },
         );
         let treelets = decoded_treelets(&built.scene);
-        (built, treelets)
+        let wire_bytes = wire_bytes(&built.scene);
+        (built, treelets, wire_bytes)
     })
     .await
     .unwrap();
@@ -84,9 +88,29 @@ pub async fn serve(rel: &str, name: &str, treelet_bytes: u32) -> Served {
         server,
         scene: description,
         treelets,
+        wire_bytes,
         _pool_dir: pool_dir,
         _data_dir: data_dir,
     }
+}
+
+/// Per treelet of `scene`, its message's bytes on the wire with every channel: the stored
+/// compressed blocks and the largest message header.
+pub fn wire_bytes(scene: &arbor_server::pool::StoredScene) -> Vec<u64> {
+    let d = &scene.description;
+    (0..d.treelet_count)
+        .map(|id| {
+            let id = arbor_proto::TreeletId(id);
+            let nodes = scene.nodes(id).unwrap().map_or(0, |b| b.len());
+            let channels: usize = d
+                .layout
+                .channels()
+                .iter()
+                .map(|&c| scene.channel(c, id).unwrap().map_or(0, |b| b.len()))
+                .sum();
+            (arbor_proto::limits::MAX_TREELET_MESSAGE_HEADER + nodes + channels) as u64
+        })
+        .collect()
 }
 
 /// A headless configuration for a run against `served` through `addr`.

@@ -69,12 +69,12 @@ pub enum ChartError {
     },
 }
 
-fn draw_err(e: impl std::fmt::Display) -> ChartError {
+pub(crate) fn draw_err(e: impl std::fmt::Display) -> ChartError {
     ChartError::Draw(e.to_string())
 }
 
 /// Registers the embedded font under plotters' `sans-serif` family, once per process.
-fn ensure_font() -> Result<(), ChartError> {
+pub(crate) fn ensure_font() -> Result<(), ChartError> {
     static REGISTERED: OnceLock<bool> = OnceLock::new();
     let ok =
         *REGISTERED.get_or_init(|| register_font("sans-serif", FontStyle::Normal, FONT).is_ok());
@@ -192,13 +192,13 @@ impl Series {
 
 /// Clips a finite value to ±[`RANGE_LIMIT`], so that every point lies inside its axis range
 /// (plotters' pixel mapping overflows for points far outside it).
-fn clip(v: f64) -> f64 {
+pub(crate) fn clip(v: f64) -> f64 {
     v.clamp(-RANGE_LIMIT, RANGE_LIMIT)
 }
 
 /// A plotting range over the finite `values` (and 0 when `include_zero`), padded 5 % above,
 /// widened when empty or zero-width, clipped to ±[`RANGE_LIMIT`].
-fn axis_range(values: impl Iterator<Item = f64>, include_zero: bool) -> Range<f64> {
+pub(crate) fn axis_range(values: impl Iterator<Item = f64>, include_zero: bool) -> Range<f64> {
     let (mut lo, mut hi) = if include_zero {
         (0.0, 0.0)
     } else {

@@ -45,9 +45,9 @@ pub struct HeadlessRun {
     pub report: RunReport,
     /// The last rendered frame.
     pub image: Image,
-    /// The cycle (0-based) at which `n²` consecutive cycles with the same camera had asked for
-    /// nothing: every pixel was sampled once and no sample saw unloaded detail coarser than a
-    /// pixel, so the image is the fully resident scene's. `None` if that never happened.
+    /// The cycle (0-based) of the first exact convergence: every pixel of the view known, none
+    /// seeing unloaded detail coarser than a pixel at the bias in effect, so the image is the
+    /// fully resident scene's at that bias. `None` if that never happened.
     pub converged_at: Option<u32>,
     /// The most slots ever used, and the capacity.
     pub peak_slots: u32,

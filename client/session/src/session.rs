@@ -52,8 +52,9 @@ pub struct Step {
     pub record: CycleRecord,
     /// The frame, for [`RenderMode::Image`].
     pub image: Option<Image>,
-    /// This step completed `n²` quiet cycles with an unchanged camera: every pixel was sampled
-    /// and none saw unloaded detail coarser than a pixel (see [`Session::converged_at`]).
+    /// This step is the session's first exact convergence: every pixel of the view is known and
+    /// none sees unloaded detail coarser than a pixel at the bias in effect (see
+    /// [`Session::converged_at`]).
     pub converged_now: bool,
 }
 

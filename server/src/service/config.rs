@@ -13,7 +13,7 @@
 //! hello_timeout_ms = 5000
 //! max_connection_memory = 67108864
 //! window_min = 8
-//! window_max = 256
+//! window_max = 1024
 //! slow_reader_timeout_ms = 10000
 //! shutdown_grace_ms = 5000
 //! default_access = "token"              # scenes without a [scenes.NAME] entry: "token" or "public"
@@ -299,7 +299,7 @@ impl ServeConfig {
             hello_timeout_ms: 5_000,
             max_connection_memory: 64 << 20,
             window_min: 8,
-            window_max: 256,
+            window_max: 1024,
             slow_reader_timeout_ms: 10_000,
             shutdown_grace_ms: 5_000,
             default_access: Access::Public,

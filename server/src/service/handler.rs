@@ -349,7 +349,10 @@ impl Handler {
         }
         let rtt = self.conn.rtt();
         let cwnd = self.conn.stats().path.cwnd;
-        let bandwidth = cwnd as f64 / rtt.as_secs_f64().max(1e-6);
+        // Twice the congestion window per round trip: a connection kept within its window is
+        // application-limited, and QUIC's slow start then never grows the window (measured:
+        // 10–40 treelets per 50 ms round trip on a 100 Mbit/s link that carries 600).
+        let bandwidth = 2.0 * cwnd as f64 / rtt.as_secs_f64().max(1e-6);
         let w = window_for(
             bandwidth,
             rtt,

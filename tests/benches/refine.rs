@@ -1,0 +1,597 @@
+//! Refinement against run time, per policy, next to the physical limit (docs/design.md §10).
+//!
+//! `cargo bench -p arbor-tests --bench refine` (release). Real server over loopback QUIC and
+//! through the UDP link emulator (25 ms each way, 100 Mbit/s); the real client session on the
+//! CPU twins, 512×512, 64 MiB; lion and engine with 4 KiB treelets; a static camera, and a jump
+//! to a second viewpoint once the first has converged (measured from the jump). Per variant:
+//!
+//! * **error max 0**: the first cycle whose sampled pixels all see detail no coarser than a
+//!   pixel;
+//! * **converged**: the client's own claim, every pixel known and none coarser than a pixel;
+//! * **RMSE 0**: the truth, found afterwards: the first cycle whose resident treelets render the
+//!   fully resident reference exactly (a binary search over the cycles' resident sets, rendered
+//!   by the CPU twin; the last cycle is checked too);
+//! * bytes received and treelets dropped in the phase;
+//! * the **physical limit** over the link: the wire bytes of the treelets the view needs (those
+//!   holding a pixel's hit in the fully resident scene, and their ancestors; after a jump, those
+//!   not already resident) at 100 Mbit/s, plus one round trip for the request, plus one for the
+//!   QUIC handshake on a fresh connection.
+//!
+//! Then the oversubscribed case: lion at 3 MiB and 256×256 for 600 cycles, the new client and
+//! the thesis's (fixed grid, no bias control, no pushes): bytes received, bytes in the last 100
+//! cycles, bytes of the treelets resident at the end, the LOD bias reached and whether the
+//! picture equals the reference rendered at that bias.
+//!
+//! Prints tables; writes each run's CSV and one chart with every variant of the case "lion,
+//! static, link" to `target/refine/`. No assertion on time.
+//!
+//! `ARBOR_REFINE_FILTER=lion/static/link` (any part of `scene/path/link/variant`) runs only the
+//! matching cases; `ARBOR_REFINE_OVERSUB=0` skips the oversubscribed case.
+
+use std::collections::HashSet;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use arbor_client_core::analysis::AnalysisConfig;
+use arbor_client_core::backend::{CpuBackend, render_resident};
+use arbor_client_core::camera::{Camera, CameraPath};
+use arbor_client_core::cycle::{CoreConfig, Sampling};
+use arbor_client_core::image::Image;
+use arbor_client_core::incore::SceneFrame;
+use arbor_client_core::presort::PriorityPolicy;
+use arbor_client_core::render::Light;
+use arbor_client_core::slots::{SlotBuffer, SlotConfig};
+use arbor_client_core::traverse::{Lod, trace};
+use arbor_client_net::{ClientConfig, ServerUrl, Trust};
+use arbor_client_report::{CycleRecord, RunMeta, RunReport};
+use arbor_client_session::session::{RenderMode, Session, SessionConfig};
+use arbor_proto::TreeletId;
+use arbor_tests::link::{LinkConfig, LinkEmulator};
+use arbor_tests::streaming::{Served, TOKEN, full, serve};
+
+const SIZE: u32 = 512;
+const BUDGET: u64 = 64 << 20;
+const SEED: u64 = 7;
+const DELAY: Duration = Duration::from_millis(25);
+const RATE: u64 = 100_000_000 / 8;
+/// A phase gives up after this long (it is then reported as not converged).
+const PHASE_LIMIT: Duration = Duration::from_secs(60);
+
+/// A client configuration under comparison.
+#[derive(Clone, Copy)]
+struct Variant {
+    name: &'static str,
+    policy: PriorityPolicy,
+    sampling: Sampling,
+    deep_push: bool,
+    adjust_bias: bool,
+}
+
+const VARIANTS: [Variant; 5] = [
+    Variant {
+        name: "thesis: max-error, grid",
+        policy: PriorityPolicy::MaxError,
+        sampling: Sampling::Grid,
+        deep_push: false,
+        adjust_bias: false,
+    },
+    Variant {
+        name: "max-error",
+        policy: PriorityPolicy::MaxError,
+        sampling: Sampling::Adaptive,
+        deep_push: true,
+        adjust_bias: true,
+    },
+    Variant {
+        name: "error-pixels (default)",
+        policy: PriorityPolicy::ErrorTimesPixels,
+        sampling: Sampling::Adaptive,
+        deep_push: true,
+        adjust_bias: true,
+    },
+    Variant {
+        name: "centre",
+        policy: PriorityPolicy::Centre,
+        sampling: Sampling::Adaptive,
+        deep_push: true,
+        adjust_bias: true,
+    },
+    Variant {
+        name: "frustum (peers)",
+        policy: PriorityPolicy::Frustum,
+        sampling: Sampling::Adaptive,
+        deep_push: false,
+        adjust_bias: true,
+    },
+];
+
+/// Where the run connects.
+#[derive(Clone, Copy, PartialEq)]
+enum Transport {
+    Loopback,
+    Link,
+}
+
+/// One phase of a run: a fixed camera until convergence (or the limit).
+struct Phase {
+    records: Vec<CycleRecord>,
+    /// Resident treelets after each cycle.
+    resident: Vec<Vec<TreeletId>>,
+    /// `time_s` when the phase began.
+    t0: f64,
+}
+
+/// What a phase came to.
+struct Outcome {
+    error0: Option<f64>,
+    converged: Option<f64>,
+    rmse0: Option<f64>,
+    bytes: u64,
+    dropped: u32,
+    limit: Option<f64>,
+}
+
+fn main() {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let out = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/refine");
+    std::fs::create_dir_all(&out).unwrap();
+    let scenes = [
+        ("points/lion_takanawa.copc.laz", "lion"),
+        ("volumes/engine_256x256x128_u8.nrrd", "engine"),
+    ];
+    println!(
+        "# refine: {SIZE}×{SIZE}, {} MiB, 4 KiB treelets, CPU twins",
+        BUDGET >> 20
+    );
+    println!(
+        "{:<7} {:<6} {:<8} {:<24} {:>8} {:>8} {:>8} {:>9} {:>7} {:>8} {:>7}",
+        "scene",
+        "path",
+        "link",
+        "variant",
+        "err0 s",
+        "conv s",
+        "RMSE0 s",
+        "MB",
+        "dropped",
+        "limit s",
+        "×limit"
+    );
+    let filter = std::env::var("ARBOR_REFINE_FILTER").ok();
+    let mut chart_runs: Vec<(String, RunReport)> = Vec::new();
+    for (rel, name) in scenes {
+        let served = Arc::new(runtime.block_on(serve(rel, name, 4096)));
+        let full = full(&served);
+        for jump in [false, true] {
+            for transport in [Transport::Loopback, Transport::Link] {
+                for v in VARIANTS {
+                    let label = format!(
+                        "{name}/{}/{}/{}",
+                        if jump { "jump" } else { "static" },
+                        if transport == Transport::Link {
+                            "link"
+                        } else {
+                            "loopback"
+                        },
+                        v.name
+                    );
+                    if !filter.as_ref().is_none_or(|f| label.contains(f.as_str())) {
+                        continue;
+                    }
+                    let (o, report) = run_case(&runtime, &served, &full, v, jump, transport);
+                    print_row(name, jump, transport, v, &o);
+                    let file = format!(
+                        "{name}-{}-{}-{}.csv",
+                        if jump { "jump" } else { "static" },
+                        if transport == Transport::Link {
+                            "link"
+                        } else {
+                            "loopback"
+                        },
+                        v.name.split(&[' ', ':'][..]).next().unwrap_or("run")
+                    );
+                    report.write_csv(&out.join(file)).unwrap();
+                    if name == "lion" && !jump && transport == Transport::Link {
+                        chart_runs.push((v.name.to_owned(), report));
+                    }
+                }
+            }
+        }
+        runtime.block_on(async { drop(Arc::try_unwrap(served).ok()) });
+    }
+    if !chart_runs.is_empty() {
+        let runs: Vec<(&str, &RunReport)> =
+            chart_runs.iter().map(|(n, r)| (n.as_str(), r)).collect();
+        let chart = out.join("lion-static-link.png");
+        arbor_client_report::compare::draw_comparison(
+            &runs,
+            &chart,
+            "lion 4 KiB, 512², static camera, 25 ms / 100 Mbit/s: error and bytes against time",
+        )
+        .unwrap();
+        println!("chart: {}", chart.display());
+    }
+    if std::env::var("ARBOR_REFINE_OVERSUB").as_deref() != Ok("0") {
+        oversubscribed(&runtime, &out);
+    }
+}
+
+fn print_row(scene: &str, jump: bool, transport: Transport, v: Variant, o: &Outcome) {
+    let s = |t: Option<f64>| t.map_or("-".to_owned(), |t| format!("{t:.3}"));
+    let ratio = match (o.rmse0, o.limit) {
+        (Some(t), Some(l)) => format!("{:.2}", t / l),
+        _ => "-".to_owned(),
+    };
+    println!(
+        "{:<7} {:<6} {:<8} {:<24} {:>8} {:>8} {:>8} {:>9.3} {:>7} {:>8} {:>7}",
+        scene,
+        if jump { "jump" } else { "static" },
+        if transport == Transport::Link {
+            "25ms/100M"
+        } else {
+            "loopback"
+        },
+        v.name,
+        s(o.error0),
+        s(o.converged),
+        s(o.rmse0),
+        o.bytes as f64 / 1e6,
+        o.dropped,
+        s(o.limit),
+        ratio
+    );
+}
+
+/// A session of `v` against `served` (through a fresh link emulator for [`Transport::Link`]):
+/// the first camera until convergence, and for `jump` a second one measured from the jump.
+fn run_case(
+    runtime: &tokio::runtime::Runtime,
+    served: &Served,
+    full: &SlotBuffer,
+    v: Variant,
+    jump: bool,
+    transport: Transport,
+) -> (Outcome, RunReport) {
+    let link = (transport == Transport::Link).then(|| {
+        runtime
+            .block_on(LinkEmulator::start(
+                served.server.quic_addr,
+                LinkConfig::wan(DELAY, RATE),
+            ))
+            .unwrap()
+    });
+    let addr = link
+        .as_ref()
+        .map_or(served.server.quic_addr, |l| l.local_addr());
+    let core = CoreConfig {
+        analysis: AnalysisConfig::default(),
+        policy: v.policy,
+        sampling: v.sampling,
+        deep_push: v.deep_push,
+        adjust_bias: v.adjust_bias,
+        budget_bytes: BUDGET,
+        ..CoreConfig::default()
+    };
+    let mut session = connect(runtime, served, addr, core);
+    let frame = *session.core().frame();
+    let first = CameraPath::Static.camera(0, &frame, SEED, SIZE, SIZE);
+    let mut phase = run_phase(&mut session, &first);
+    let mut camera = first;
+    let mut handshake = true;
+    let mut already = HashSet::new();
+    if jump {
+        already = phase.resident.last().unwrap().iter().copied().collect();
+        camera = CameraPath::Jump { every: 1 }.camera(1, &frame, SEED, SIZE, SIZE);
+        phase = run_phase(&mut session, &camera);
+        handshake = false;
+    }
+    session.close(runtime.handle());
+    if let Some(l) = link {
+        runtime.block_on(l.shutdown());
+    }
+    let outcome = judge(
+        served, full, &frame, &camera, &phase, transport, handshake, &already,
+    );
+    let report = RunReport {
+        meta: RunMeta {
+            scene: served.scene.name.clone(),
+            width: SIZE,
+            height: SIZE,
+            budget_mib: (BUDGET >> 20) as f64,
+            camera_path: if jump { "jump" } else { "static" }.into(),
+            ..RunMeta::default()
+        },
+        records: phase
+            .records
+            .iter()
+            .cloned()
+            .map(|mut r| {
+                r.time_s -= phase.t0;
+                r
+            })
+            .collect(),
+    };
+    (outcome, report)
+}
+
+fn connect(
+    runtime: &tokio::runtime::Runtime,
+    served: &Served,
+    addr: SocketAddr,
+    core: CoreConfig,
+) -> Session {
+    let url = ServerUrl {
+        host: addr.ip().to_string(),
+        port: addr.port(),
+        scene: served.scene.name.clone(),
+    };
+    let client = ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
+        .with_token(TOKEN);
+    Session::connect(
+        SessionConfig {
+            client,
+            core,
+            connect_timeout: Duration::from_secs(30),
+        },
+        runtime.handle(),
+        Box::new(CpuBackend),
+    )
+    .unwrap()
+}
+
+/// Steps `camera` until every pixel is known and none is coarser than a pixel, or
+/// [`PHASE_LIMIT`].
+fn run_phase(session: &mut Session, camera: &Camera) -> Phase {
+    let t0 = session.started().elapsed().as_secs_f64();
+    let wall = Instant::now();
+    let mut phase = Phase {
+        records: Vec::new(),
+        resident: Vec::new(),
+        t0,
+    };
+    while wall.elapsed() < PHASE_LIMIT {
+        let step = session.step(camera, RenderMode::Skip, None).unwrap();
+        let slots = session.core().slots();
+        phase.resident.push(
+            (0..slots.capacity())
+                .filter_map(|s| slots.treelet_in(s))
+                .collect(),
+        );
+        let done = step.record.known_share == 1.0 && step.record.error.max == 0.0;
+        phase.records.push(step.record);
+        if done {
+            break;
+        }
+    }
+    phase
+}
+
+#[allow(clippy::too_many_arguments)]
+fn judge(
+    served: &Served,
+    full: &SlotBuffer,
+    frame: &SceneFrame,
+    camera: &Camera,
+    phase: &Phase,
+    transport: Transport,
+    handshake: bool,
+    already: &HashSet<TreeletId>,
+) -> Outcome {
+    let r = &phase.records;
+    let at = |i: usize| r[i].time_s - phase.t0;
+    let error0 = r
+        .iter()
+        .position(|c| c.sampled > 0 && c.error.max == 0.0)
+        .map(at);
+    let last = r.last().unwrap();
+    let converged = (last.known_share == 1.0 && last.error.max == 0.0).then(|| at(r.len() - 1));
+    let bias = last.lod_bias;
+    let reference = render_resident(
+        full,
+        frame,
+        camera,
+        bias,
+        &Light::default(),
+        &mut CpuBackend,
+    );
+    let exact =
+        |i: usize| render_subset(served, &phase.resident[i], frame, camera, bias) == reference;
+    let rmse0 = if exact(r.len() - 1) {
+        // Resident sets only grow in these phases (the budget holds the view): exactness is
+        // monotone, so the first exact cycle is found by bisection.
+        let (mut lo, mut hi) = (0, r.len() - 1);
+        while lo < hi {
+            let mid = (lo + hi) / 2;
+            if exact(mid) { hi = mid } else { lo = mid + 1 }
+        }
+        Some(at(lo))
+    } else {
+        eprintln!("warning: the last cycle does not render the reference exactly");
+        None
+    };
+    let limit = (transport == Transport::Link).then(|| {
+        let needed = needed(served, full, frame, camera, bias);
+        let bytes: u64 = needed
+            .iter()
+            .filter(|id| !already.contains(id))
+            .map(|id| served.wire_bytes[id.0 as usize])
+            .sum();
+        let rtt = 2.0 * DELAY.as_secs_f64();
+        bytes as f64 / RATE as f64 + rtt + if handshake { rtt } else { 0.0 }
+    });
+    Outcome {
+        error0,
+        converged,
+        rmse0,
+        bytes: r.iter().map(|c| c.bytes_received).sum(),
+        dropped: r.iter().map(|c| c.dropped).sum(),
+        limit,
+    }
+}
+
+/// The picture a client holding exactly `ids` draws.
+fn render_subset(
+    served: &Served,
+    ids: &[TreeletId],
+    frame: &SceneFrame,
+    camera: &Camera,
+    bias: f64,
+) -> Image {
+    let d = &served.scene;
+    let channels = d.layout.channels().to_vec();
+    let config = SlotConfig {
+        budget_bytes: (ids.len() as u64 + 1) * SlotBuffer::slot_bytes(d.treelet_nodes, &channels),
+        treelet_nodes: d.treelet_nodes,
+        channels,
+        visibility_max: 1,
+        load_limit: u32::MAX,
+    };
+    let mut sorted = ids.to_vec();
+    sorted.sort_unstable();
+    let mut slots = SlotBuffer::new(config, served.treelets[0].clone()).unwrap();
+    // Ids ascend down the tree: parents are inserted before their children.
+    for id in sorted.into_iter().filter(|id| id.0 != 0) {
+        slots.insert(served.treelets[id.0 as usize].clone());
+    }
+    render_resident(
+        &slots,
+        frame,
+        camera,
+        bias,
+        &Light::default(),
+        &mut CpuBackend,
+    )
+}
+
+/// The treelets holding a pixel's hit in the fully resident scene, and their ancestors.
+fn needed(
+    served: &Served,
+    full: &SlotBuffer,
+    frame: &SceneFrame,
+    camera: &Camera,
+    bias: f64,
+) -> HashSet<TreeletId> {
+    let lod = Lod {
+        pixel_angle: camera.pixel_angle(),
+        lod_bias: bias,
+        max_depth: frame.max_depth,
+    };
+    let mut out = HashSet::new();
+    for y in 0..camera.height {
+        for x in 0..camera.width {
+            let ray = camera.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
+            if let Some(h) = trace(&full.view(), frame, &ray, &lod) {
+                let mut slot = Some(h.node / served.scene.treelet_nodes);
+                while let Some(s) = slot {
+                    let Some(id) = full.treelet_in(s) else { break };
+                    if !out.insert(id) {
+                        break;
+                    }
+                    slot = full.parent_slot(s);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Lion at 3 MiB, 256×256, 600 cycles: the new client against the thesis's.
+fn oversubscribed(runtime: &tokio::runtime::Runtime, out: &std::path::Path) {
+    const CYCLES: usize = 600;
+    const SMALL: u32 = 256;
+    let served = runtime.block_on(serve("points/lion_takanawa.copc.laz", "lion", 4096));
+    let full = full(&served);
+    println!("\n# oversubscribed: lion 4 KiB, 3 MiB, {SMALL}×{SMALL}, {CYCLES} cycles, loopback");
+    println!(
+        "{:<24} {:>6} {:>9} {:>11} {:>11} {:>7} {:>8} {:>6} {:>9} {:>6}",
+        "variant",
+        "slots",
+        "MB recv",
+        "MB last100",
+        "MB resident",
+        "ratio",
+        "dropped",
+        "bias",
+        "conv cyc",
+        "exact"
+    );
+    for v in [VARIANTS[0], VARIANTS[2]] {
+        let core = CoreConfig {
+            policy: v.policy,
+            sampling: v.sampling,
+            deep_push: v.deep_push,
+            adjust_bias: v.adjust_bias,
+            budget_bytes: 3 << 20,
+            ..CoreConfig::default()
+        };
+        let mut session = connect(runtime, &served, served.server.quic_addr, core);
+        let frame = *session.core().frame();
+        let camera = CameraPath::Static.camera(0, &frame, SEED, SMALL, SMALL);
+        let mut records = Vec::new();
+        for _ in 0..CYCLES {
+            records.push(
+                session
+                    .step(&camera, RenderMode::Skip, None)
+                    .unwrap()
+                    .record,
+            );
+        }
+        let image = session.render(&camera);
+        let slots = session.core().slots();
+        let resident: u64 = (0..slots.capacity())
+            .filter_map(|s| slots.treelet_in(s))
+            .map(|id| served.wire_bytes[id.0 as usize])
+            .sum();
+        let capacity = slots.capacity();
+        let converged = session.converged_at();
+        session.close(runtime.handle());
+        let bias = records.last().unwrap().lod_bias;
+        let reference = render_resident(
+            &full,
+            &frame,
+            &camera,
+            bias,
+            &Light::default(),
+            &mut CpuBackend,
+        );
+        let received: u64 = records.iter().map(|r| r.bytes_received).sum();
+        let tail: u64 = records[CYCLES - 100..]
+            .iter()
+            .map(|r| r.bytes_received)
+            .sum();
+        println!(
+            "{:<24} {:>6} {:>9.3} {:>11.3} {:>11.3} {:>7.2} {:>8} {:>6.3} {:>9} {:>6}",
+            v.name,
+            capacity,
+            received as f64 / 1e6,
+            tail as f64 / 1e6,
+            resident as f64 / 1e6,
+            received as f64 / resident.max(1) as f64,
+            records.iter().map(|r| r.dropped).sum::<u32>(),
+            bias,
+            converged.map_or("-".into(), |c| c.to_string()),
+            image == reference
+        );
+        let report = RunReport {
+            meta: RunMeta {
+                scene: "lion".into(),
+                width: SMALL,
+                height: SMALL,
+                budget_mib: 3.0,
+                camera_path: "static".into(),
+                ..RunMeta::default()
+            },
+            records,
+        };
+        let name = v.name.split(&[' ', ':'][..]).next().unwrap_or("run");
+        report
+            .write_csv(&out.join(format!("oversubscribed-{name}.csv")))
+            .unwrap();
+    }
+}
