@@ -38,7 +38,7 @@ use crate::summary::ErrorSummary;
 use crate::upload::{DEFAULT_FILL_RATIO, UploadPlan};
 
 /// Default per-cycle load limit (treelets inserted per cycle).
-pub const DEFAULT_LOAD_LIMIT: u32 = 256;
+pub const DEFAULT_LOAD_LIMIT: u32 = 1024;
 /// Default cap on the request list.
 pub const DEFAULT_MAX_REQUESTS: usize = 4096;
 

@@ -12,6 +12,7 @@
 //! idle_timeout_ms = 30000
 //! hello_timeout_ms = 5000
 //! max_connection_memory = 67108864
+//! initial_window = 131072             # QUIC congestion window at the start, bytes
 //! window_min = 8
 //! window_max = 1024
 //! slow_reader_timeout_ms = 10000
@@ -145,6 +146,10 @@ pub struct ServeConfig {
     pub hello_timeout_ms: u64,
     /// Per-connection memory bound in bytes (see [`ServeConfig::memory_plan`]).
     pub max_connection_memory: u64,
+    /// QUIC congestion window a connection starts with, bytes. quinn's default (~14.7 KB, ten
+    /// packets) needs eight slow-start round trips to carry a 3 MB view; a larger start is how
+    /// content servers fill a fresh connection sooner.
+    pub initial_window: u64,
     /// Bounds of the per-connection in-flight window (treelets).
     pub window_min: usize,
     pub window_max: usize,
@@ -182,6 +187,13 @@ pub struct MemoryPlan {
     pub send_window: u64,
 }
 
+/// Default [`ServeConfig::initial_window`]: 128 KiB.
+pub const DEFAULT_INITIAL_WINDOW: u64 = 128 << 10;
+/// Smallest accepted initial window (two full-size packets).
+pub const MIN_INITIAL_WINDOW: u64 = 2400;
+/// Largest accepted initial window.
+pub const MAX_INITIAL_WINDOW: u64 = 16 << 20;
+
 /// Parses `off` or a socket address.
 pub fn parse_admin_listen(s: &str) -> Result<Option<SocketAddr>, String> {
     if s.eq_ignore_ascii_case("off") {
@@ -208,6 +220,7 @@ struct FileConfig {
     idle_timeout_ms: Option<u64>,
     hello_timeout_ms: Option<u64>,
     max_connection_memory: Option<u64>,
+    initial_window: Option<u64>,
     window_min: Option<usize>,
     window_max: Option<usize>,
     slow_reader_timeout_ms: Option<u64>,
@@ -298,6 +311,7 @@ impl ServeConfig {
             idle_timeout_ms: 30_000,
             hello_timeout_ms: 5_000,
             max_connection_memory: 64 << 20,
+            initial_window: DEFAULT_INITIAL_WINDOW,
             window_min: 8,
             window_max: 1024,
             slow_reader_timeout_ms: 10_000,
@@ -393,6 +407,7 @@ impl ServeConfig {
             idle_timeout_ms,
             hello_timeout_ms,
             max_connection_memory,
+            initial_window,
             window_min,
             window_max,
             slow_reader_timeout_ms,
@@ -449,6 +464,12 @@ impl ServeConfig {
         // QUIC idle timeouts are varints of milliseconds.
         if self.idle_timeout_ms >= 1 << 62 {
             return Err(invalid("idle_timeout_ms", "too large"));
+        }
+        if !(MIN_INITIAL_WINDOW..=MAX_INITIAL_WINDOW).contains(&self.initial_window) {
+            return Err(invalid(
+                "initial_window",
+                format!("{MIN_INITIAL_WINDOW}..={MAX_INITIAL_WINDOW} bytes"),
+            ));
         }
         if self.window_min > self.window_max {
             return Err(invalid(
@@ -788,6 +809,8 @@ access = "public"
             ("hello_timeout_ms = 0", "hello_timeout_ms"),
             ("slow_reader_timeout_ms = 0", "slow_reader_timeout_ms"),
             ("window_min = 0", "window_min"),
+            ("initial_window = 100", "initial_window"),
+            ("initial_window = 1000000000", "initial_window"),
             ("window_min = 10\nwindow_max = 9", "window_min"),
             ("window_max = 1000000", "window_max"),
             ("max_connection_memory = 1000", "max_connection_memory"),

@@ -154,6 +154,9 @@ fn transport_config(config: &ServeConfig) -> quinn::TransportConfig {
         .send_window(plan.send_window)
         .max_idle_timeout(quinn::IdleTimeout::try_from(config.idle_timeout()).ok())
         .datagram_receive_buffer_size(None);
+    let mut cubic = quinn::congestion::CubicConfig::default();
+    cubic.initial_window(config.initial_window);
+    t.congestion_controller_factory(std::sync::Arc::new(cubic));
     t
 }
 
