@@ -2,8 +2,9 @@
 //!
 //! `cargo bench -p arbor-tests --bench refine` (release). Real server over loopback QUIC and
 //! through the UDP link emulator (25 ms each way, 100 Mbit/s); the real client session on the
-//! CPU twins, 512×512, 64 MiB; lion and engine with 4 KiB treelets; a static camera, and a jump
-//! to a second viewpoint once the first has converged (measured from the jump). Per variant:
+//! CPU twins, 512×512, 64 MiB; lion and engine with 4 KiB treelets; a static camera (timed from
+//! the moment the session starts connecting), and a jump to another viewpoint once the first
+//! view has converged (timed from the jump). Per variant:
 //!
 //! * **error max 0**: the first cycle whose sampled pixels all see detail no coarser than a
 //!   pixel;
@@ -17,16 +18,20 @@
 //!   not already resident) at 100 Mbit/s, plus one round trip for the request, plus one for the
 //!   QUIC handshake on a fresh connection.
 //!
+//! Prints tables; writes each run's CSV and one chart with every variant of the case "lion,
+//! static, link" to `target/refine/`. No assertion on time.
+//!
+//! Then lion at 256² over loopback (every variant, best of three), the case of the loopback
+//! target.
+//!
 //! Then the oversubscribed case: lion at 3 MiB and 256×256 for 600 cycles, the new client and
 //! the thesis's (fixed grid, no bias control, no pushes): bytes received, bytes in the last 100
 //! cycles, bytes of the treelets resident at the end, the LOD bias reached and whether the
 //! picture equals the reference rendered at that bias.
 //!
-//! Prints tables; writes each run's CSV and one chart with every variant of the case "lion,
-//! static, link" to `target/refine/`. No assertion on time.
-//!
 //! `ARBOR_REFINE_FILTER=lion/static/link` (any part of `scene/path/link/variant`) runs only the
-//! matching cases; `ARBOR_REFINE_OVERSUB=0` skips the oversubscribed case.
+//! matching cases; `ARBOR_REFINE_SMALL=0` skips the 256² case and `ARBOR_REFINE_OVERSUB=0` the
+//! oversubscribed one.
 
 use std::collections::HashSet;
 use std::net::SocketAddr;
@@ -184,7 +189,7 @@ fn main() {
                     if !filter.as_ref().is_none_or(|f| label.contains(f.as_str())) {
                         continue;
                     }
-                    let (o, report) = run_case(&runtime, &served, &full, v, jump, transport);
+                    let (o, report) = run_case(&runtime, &served, &full, v, jump, transport, SIZE);
                     print_row(name, jump, transport, v, &o);
                     let file = format!(
                         "{name}-{}-{}-{}.csv",
@@ -217,9 +222,56 @@ fn main() {
         .unwrap();
         println!("chart: {}", chart.display());
     }
+    if std::env::var("ARBOR_REFINE_SMALL").as_deref() != Ok("0") {
+        small_loopback(&runtime);
+    }
     if std::env::var("ARBOR_REFINE_OVERSUB").as_deref() != Ok("0") {
         oversubscribed(&runtime, &out);
     }
+}
+
+/// Lion at 256², loopback, static camera, every policy on the CPU twins: time from the start of
+/// the session to the client's own convergence claim and to RMSE 0, best of three.
+fn small_loopback(runtime: &tokio::runtime::Runtime) {
+    const SMALL: u32 = 256;
+    const RUNS: usize = 3;
+    let served = runtime.block_on(serve("points/lion_takanawa.copc.laz", "lion", 4096));
+    let full = full(&served);
+    println!("\n# loopback: lion 4 KiB, {SMALL}×{SMALL}, static, CPU twins, best of {RUNS}");
+    println!(
+        "{:<24} {:>8} {:>8} {:>9}",
+        "variant", "conv s", "RMSE0 s", "MB"
+    );
+    for v in VARIANTS {
+        let runs: Vec<Outcome> = (0..RUNS)
+            .map(|_| {
+                run_case(
+                    runtime,
+                    &served,
+                    &full,
+                    v,
+                    false,
+                    Transport::Loopback,
+                    SMALL,
+                )
+                .0
+            })
+            .collect();
+        let best = |f: fn(&Outcome) -> Option<f64>| {
+            runs.iter()
+                .filter_map(f)
+                .min_by(f64::total_cmp)
+                .map_or("-".to_owned(), |t| format!("{t:.3}"))
+        };
+        println!(
+            "{:<24} {:>8} {:>8} {:>9.3}",
+            v.name,
+            best(|o| o.converged),
+            best(|o| o.rmse0),
+            runs.iter().map(|o| o.bytes).min().unwrap_or(0) as f64 / 1e6
+        );
+    }
+    runtime.block_on(async { drop(served) });
 }
 
 fn print_row(scene: &str, jump: bool, transport: Transport, v: Variant, o: &Outcome) {
@@ -257,6 +309,7 @@ fn run_case(
     v: Variant,
     jump: bool,
     transport: Transport,
+    size: u32,
 ) -> (Outcome, RunReport) {
     let link = (transport == Transport::Link).then(|| {
         runtime
@@ -280,15 +333,17 @@ fn run_case(
     };
     let mut session = connect(runtime, served, addr, core);
     let frame = *session.core().frame();
-    let first = CameraPath::Static.camera(0, &frame, SEED, SIZE, SIZE);
-    let mut phase = run_phase(&mut session, &first);
+    let first = CameraPath::Static.camera(0, &frame, SEED, size, size);
+    // The first phase counts from the moment the session started connecting (handshake, Hello,
+    // root), as the physical limit does.
+    let mut phase = run_phase(&mut session, &first, true);
     let mut camera = first;
     let mut handshake = true;
     let mut already = HashSet::new();
     if jump {
         already = phase.resident.last().unwrap().iter().copied().collect();
-        camera = CameraPath::Jump { every: 1 }.camera(1, &frame, SEED, SIZE, SIZE);
-        phase = run_phase(&mut session, &camera);
+        camera = CameraPath::Jump { every: 1 }.camera(1, &frame, SEED, size, size);
+        phase = run_phase(&mut session, &camera, false);
         handshake = false;
     }
     session.close(runtime.handle());
@@ -301,8 +356,8 @@ fn run_case(
     let report = RunReport {
         meta: RunMeta {
             scene: served.scene.name.clone(),
-            width: SIZE,
-            height: SIZE,
+            width: size,
+            height: size,
             budget_mib: (BUDGET >> 20) as f64,
             camera_path: if jump { "jump" } else { "static" }.into(),
             ..RunMeta::default()
@@ -346,9 +401,13 @@ fn connect(
 }
 
 /// Steps `camera` until every pixel is known and none is coarser than a pixel, or
-/// [`PHASE_LIMIT`].
-fn run_phase(session: &mut Session, camera: &Camera) -> Phase {
-    let t0 = session.started().elapsed().as_secs_f64();
+/// [`PHASE_LIMIT`]. Times count from the session's start (`from_start`) or from now.
+fn run_phase(session: &mut Session, camera: &Camera, from_start: bool) -> Phase {
+    let t0 = if from_start {
+        0.0
+    } else {
+        session.started().elapsed().as_secs_f64()
+    };
     let wall = Instant::now();
     let mut phase = Phase {
         records: Vec::new(),

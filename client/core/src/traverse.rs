@@ -34,7 +34,9 @@
 //!    the child index bits (`cell·2 + bit`), popping shifts them off (`cell >> 1`).
 //! 6. Loop (at most [`MAX_STEPS`] times): at level `d`, if the remaining mask is empty, or its
 //!    smallest key is not below the best hit found so far, pop (finish when popping the root).
-//!    Otherwise slab-test every remaining child; drop the ones missed or whose key is not below
+//!    Otherwise slab-test every remaining child (the eight children share their low, middle
+//!    and high faces per axis, so those 9 distances are divided once per node, not 6 per
+//!    child — the same quotients); drop the ones missed or whose key is not below
 //!    the best hit; pick the smallest key (ties: lower child index), clear its bit and record
 //!    the smallest key of the rest. The child's record is at
 //!    `index + first_child + rank` (wrapping add, rank = number of valid children with a lower
@@ -150,6 +152,22 @@ struct Slab {
 /// Slab test of the camera-relative box `[lo, hi]` against a ray from the origin along `dir`
 /// (see the module docs, step 2). `None` when missed.
 fn slab(lo: [f64; 3], hi: [f64; 3], dir: [f64; 3]) -> Option<Slab> {
+    let t_lo = [0, 1, 2].map(|a| lo[a] / dir[a]);
+    let t_hi = [0, 1, 2].map(|a| hi[a] / dir[a]);
+    slab_with(lo, hi, t_lo, t_hi, dir)
+}
+
+/// [`slab`] with the face distances `t_lo = lo / dir` and `t_hi = hi / dir` given: the children
+/// of one node share their faces, so the traversal divides 9 face coordinates per node instead
+/// of 6 per child — the same quotients, so the same results (as `slab_with` in
+/// `traverse.wgsl`). Components where `dir` is 0 are not read.
+fn slab_with(
+    lo: [f64; 3],
+    hi: [f64; 3],
+    t_lo: [f64; 3],
+    t_hi: [f64; 3],
+    dir: [f64; 3],
+) -> Option<Slab> {
     let mut t_enter = f64::NEG_INFINITY;
     let mut t_exit = f64::INFINITY;
     let mut entry_axis = 0u8;
@@ -164,9 +182,9 @@ fn slab(lo: [f64; 3], hi: [f64; 3], dir: [f64; 3]) -> Option<Slab> {
             continue;
         }
         let (near, far, sign) = if d > 0.0 {
-            (lo[a] / d, hi[a] / d, -1)
+            (t_lo[a], t_hi[a], -1)
         } else {
-            (hi[a] / d, lo[a] / d, 1)
+            (t_hi[a], t_lo[a], 1)
         };
         if near > t_enter {
             t_enter = near;
@@ -182,6 +200,32 @@ fn slab(lo: [f64; 3], hi: [f64; 3], dir: [f64; 3]) -> Option<Slab> {
         entry_axis,
         entry_sign,
     })
+}
+
+/// The faces shared by the eight children of one node, per axis: low, middle and high
+/// (camera-relative), and their distances along the ray.
+struct ChildFaces {
+    face: [[f64; 3]; 3],
+    t: [[f64; 3]; 3],
+}
+
+impl ChildFaces {
+    /// Slab test of child `i` (bit 2: x, bit 1: y, bit 0: z upper half).
+    #[inline]
+    fn test(&self, i: u8, dir: [f64; 3]) -> Option<Slab> {
+        let bx = usize::from((i >> 2) & 1);
+        let by = usize::from((i >> 1) & 1);
+        let bz = usize::from(i & 1);
+        let f = &self.face;
+        let t = &self.t;
+        slab_with(
+            [f[0][bx], f[1][by], f[2][bz]],
+            [f[0][bx + 1], f[1][by + 1], f[2][bz + 1]],
+            [t[0][bx], t[1][by], t[2][bz]],
+            [t[0][bx + 1], t[1][by + 1], t[2][bz + 1]],
+            dir,
+        )
+    }
 }
 
 /// Everything about a ray that is fixed for one traversal.
@@ -223,6 +267,22 @@ impl Setup {
         let lo = [0, 1, 2].map(|a| self.rel[a] + f64::from(cell[a]) * size);
         let hi = [0, 1, 2].map(|a| self.rel[a] + (f64::from(cell[a]) + 1.0) * size);
         slab(lo, hi, self.dir)
+    }
+
+    /// The faces of the children of `cell`, whose voxel edge is `size`. Child `b` (0 or 1) of
+    /// an axis spans `2·cell + b .. 2·cell + b + 1`; each face is computed with the formula of
+    /// [`Setup::test`] (integers below 2^53 are exact in `f64`), so bit for bit the same.
+    fn child_faces(&self, cell: [u32; 3], size: f64) -> ChildFaces {
+        let mut face = [[0.0; 3]; 3];
+        let mut t = [[0.0; 3]; 3];
+        for a in 0..3 {
+            let k0 = f64::from(cell[a]) * 2.0;
+            for k in 0..3 {
+                face[a][k] = self.rel[a] + (k0 + k as f64) * size;
+                t[a][k] = face[a][k] / self.dir[a];
+            }
+        }
+        ChildFaces { face, t }
     }
 }
 
@@ -313,6 +373,7 @@ pub fn trace(view: &IncoreView<'_>, frame: &SceneFrame, ray: &Ray, lod: &Lod) ->
         let mut remaining = mask;
         let mut pick: Option<(u8, [u32; 3], Slab, f64)> = None;
         let mut next = f64::INFINITY;
+        let faces = setup.child_faces(cell, size);
         for i in 0..8u8 {
             if mask & (1 << i) == 0 {
                 continue;
@@ -322,7 +383,7 @@ pub fn trace(view: &IncoreView<'_>, frame: &SceneFrame, ray: &Ray, lod: &Lod) ->
                 cell[1] * 2 + u32::from((i >> 1) & 1),
                 cell[2] * 2 + u32::from(i & 1),
             ];
-            let Some(s) = setup.test(child_cell, size) else {
+            let Some(s) = faces.test(i, setup.dir) else {
                 remaining &= !(1 << i);
                 continue;
             };
