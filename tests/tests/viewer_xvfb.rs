@@ -419,7 +419,9 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
         mean(|r| r.render_ms),
         span * 1e3 / (records.len() - 1) as f64
     );
-    assert!(records.len() >= 40, "only {} frames drawn", records.len());
+    // The viewer draws a frame every cycle while treelets arrive: arrivals spread over many
+    // frames, not one blocking load. (Refinement converges in about 30 cycles here now, so the
+    // run itself is short: no minimum on the frames drawn in all.)
     assert!(
         inserting.len() >= 3 && last - first >= 10,
         "treelets should arrive over many frames: {inserting:?}"

@@ -41,6 +41,9 @@ use crate::upload::{DEFAULT_FILL_RATIO, UploadPlan};
 pub const DEFAULT_LOAD_LIMIT: u32 = 1024;
 /// Default cap on the request list.
 pub const DEFAULT_MAX_REQUESTS: usize = 4096;
+/// Cycles without pushes after an eviction made room: the buffer is full, and a push would only
+/// take a slot the next listed arrival evicts again (and the server would push it again).
+pub const PUSH_PAUSE_CYCLES: u64 = 16;
 
 /// Why a core could not be built.
 #[derive(Debug, Error)]
@@ -244,6 +247,11 @@ pub struct ClientCore {
     bias_unsettled: bool,
     /// Treelets evicted by [`SlotBuffer::evict_outside`] since the last integration.
     evicted_outside: u32,
+    /// No pushes are announced before this cycle ([`PUSH_PAUSE_CYCLES`] after an eviction).
+    pushes_paused_until: u64,
+    /// Treelets evicted since the view last changed: one asked for again is needed by the
+    /// view although no pixel hits it, and is pinned ([`SlotBuffer::pin`]).
+    evicted_in_view: HashSet<TreeletId>,
     /// Ids of the last two request lists: an arrival named by neither was pushed.
     listed: HashSet<TreeletId>,
     listed_previous: HashSet<TreeletId>,
@@ -310,6 +318,8 @@ impl ClientCore {
             frustum,
             bias_unsettled: false,
             evicted_outside: 0,
+            pushes_paused_until: 0,
+            evicted_in_view: HashSet::new(),
             listed: HashSet::new(),
             listed_previous: HashSet::new(),
             last_camera: None,
@@ -404,6 +414,21 @@ impl ClientCore {
             .max(64)
     }
 
+    /// Remembers what the slot buffer evicted (bounded: a view that evicts this much is
+    /// thrashing anyway, and forgetting only costs a pin).
+    fn note_evictions(&mut self) {
+        if self.evicted_in_view.len() > 1 << 16 {
+            self.evicted_in_view.clear();
+        }
+        self.evicted_in_view.extend(self.slots.take_evicted());
+    }
+
+    /// The view changed (camera or LOD bias): what it needed no longer says anything.
+    fn forget_pins(&mut self) {
+        self.slots.unpin_all();
+        self.evicted_in_view.clear();
+    }
+
     /// The analysis config of this cycle: the configured ratio, the bias in effect.
     fn analysis_config(&self) -> AnalysisConfig {
         AnalysisConfig {
@@ -420,9 +445,11 @@ impl ClientCore {
         if self.coverage.size() != (camera.width, camera.height) {
             self.coverage = Coverage::new(camera.width, camera.height, self.config.analysis.ratio);
             self.coverage.reset(cycle);
+            self.forget_pins();
         } else if self.last_camera.as_ref() != Some(camera) {
             self.coverage.reset(cycle);
             self.bias.view_changed();
+            self.forget_pins();
         }
         self.last_camera = Some(*camera);
         let pixels = match self.config.sampling {
@@ -488,6 +515,7 @@ impl ClientCore {
                 if bias_changed {
                     tracing::debug!(cycle, bias = self.bias.bias(), ?need, "LOD bias adjusted");
                     self.coverage.reset(cycle + 1);
+                    self.forget_pins();
                     requests.clear();
                 }
             }
@@ -502,6 +530,7 @@ impl ClientCore {
                 }
             }
         }
+        self.note_evictions();
         // Ask for no more than could be inserted: with an oversubscribed budget the rest would
         // only be dropped on arrival, and so would arrivals beyond what the backlog holds. While
         // the bias is still rising, only free slots are filled: what an eviction would make room
@@ -607,6 +636,12 @@ impl ClientCore {
         if !self.pushes_asked() {
             return None;
         }
+        // The buffer was full lately: room for the listed items only.
+        let push_budget = if self.cycle < self.pushes_paused_until {
+            0
+        } else {
+            push_budget
+        };
         let c = self.last_camera?;
         let f32s = |v: glam::DVec3| [v.x as f32, v.y as f32, v.z as f32];
         let hint = ViewHint {
@@ -700,6 +735,9 @@ impl ClientCore {
                     inserted += 1;
                     evicted += e;
                     pushed += u32::from(is_push);
+                    if self.evicted_in_view.remove(&id) {
+                        self.slots.pin(id);
+                    }
                 }
                 InsertOutcome::AlreadyResident => {}
                 InsertOutcome::ParentMissing if is_push => push_dropped += 1,
@@ -715,6 +753,10 @@ impl ClientCore {
         }
         if evicted > 0 {
             self.coverage.reset(self.cycle);
+        }
+        self.note_evictions();
+        if evicted + self.evicted_outside > 0 {
+            self.pushes_paused_until = self.cycle + PUSH_PAUSE_CYCLES;
         }
         Integration {
             inserted,

@@ -30,6 +30,8 @@ const DIRTY: u8 = 1;
 /// Bookkeeping flag, set only during an eviction scan: the slot is the new treelet's parent or
 /// one of its ancestors and must not be evicted to make room for it.
 const PROTECTED: u8 = 2;
+/// Bookkeeping flag: never evicted until [`SlotBuffer::unpin_all`] (see [`SlotBuffer::pin`]).
+const PINNED: u8 = 4;
 
 /// What the slot buffer is asked to hold.
 #[derive(Clone, Debug, PartialEq)]
@@ -354,6 +356,8 @@ pub struct SlotBuffer {
     cycle: u64,
     loaded_this_cycle: u32,
     stats: SlotStats,
+    /// Treelets evicted since the last [`SlotBuffer::take_evicted`].
+    evicted_log: Vec<TreeletId>,
 }
 
 impl fmt::Debug for SlotBuffer {
@@ -429,6 +433,7 @@ impl SlotBuffer {
             dirty: Vec::with_capacity(capacity as usize),
             cycle: 0,
             loaded_this_cycle: 0,
+            evicted_log: Vec::new(),
             stats: SlotStats::default(),
             config,
         };
@@ -584,7 +589,10 @@ impl SlotBuffer {
             .iter()
             .skip(1)
             .filter(|r| {
-                !r.is_free() && r.visibility == 0 && self.records[r.parent as usize].visibility == 0
+                !r.is_free()
+                    && r.flags & PINNED == 0
+                    && r.visibility == 0
+                    && self.records[r.parent as usize].visibility == 0
             })
             .count() as u32;
         self.free.len() as u32 + evictable
@@ -599,7 +607,7 @@ impl SlotBuffer {
             .iter()
             .enumerate()
             .skip(1)
-            .filter(|(s, r)| !r.is_free() && !seen(*s as u32))
+            .filter(|(s, r)| !r.is_free() && r.flags & PINNED == 0 && !seen(*s as u32))
             .count() as u32;
         self.free.len() as u32 + unseen
     }
@@ -620,7 +628,7 @@ impl SlotBuffer {
             .iter()
             .enumerate()
             .skip(1)
-            .filter(|(s, r)| !r.is_free() && !seen(*s as u32))
+            .filter(|(s, r)| !r.is_free() && r.flags & PINNED == 0 && !seen(*s as u32))
             .map(|(s, r)| (r.last_visible, s as u32))
             .collect();
         victims.sort_unstable();
@@ -635,6 +643,34 @@ impl SlotBuffer {
             }
         }
         freed
+    }
+
+    /// Keeps treelet `id` (if resident) from eviction until [`SlotBuffer::unpin_all`]: for a
+    /// treelet the view needs although no pixel's hit lies in it — rays pass through its gaps
+    /// to what lies behind, and its restored coarse leaf would stop them — so visibility alone
+    /// would let it go, and the view would ask for it again.
+    pub fn pin(&mut self, id: TreeletId) {
+        if let Some(slot) = self.slot_of(id) {
+            self.records[slot as usize].flags |= PINNED;
+        }
+    }
+
+    /// Lifts every [`SlotBuffer::pin`] (the view changed).
+    pub fn unpin_all(&mut self) {
+        for r in &mut self.records {
+            r.flags &= !PINNED;
+        }
+    }
+
+    /// Whether treelet `id` is resident and pinned.
+    pub fn is_pinned(&self, id: TreeletId) -> bool {
+        self.slot_of(id)
+            .is_some_and(|s| self.records[s as usize].flags & PINNED != 0)
+    }
+
+    /// The treelets evicted (descendants included) since the last call.
+    pub fn take_evicted(&mut self) -> Vec<TreeletId> {
+        std::mem::take(&mut self.evicted_log)
     }
 
     /// Starts a cycle: every slot's visibility ages by one, the load counter resets.
@@ -937,7 +973,7 @@ impl SlotBuffer {
         }
         let mut best: Option<(u64, u32)> = None;
         for (slot, r) in self.records.iter().enumerate().skip(1) {
-            if r.is_free() || r.visibility != 0 || r.flags & PROTECTED != 0 {
+            if r.is_free() || r.visibility != 0 || r.flags & (PROTECTED | PINNED) != 0 {
                 continue;
             }
             if self.records[r.parent as usize].visibility != 0 {
@@ -988,6 +1024,7 @@ impl SlotBuffer {
             if s != victim {
                 self.unlink(s);
             }
+            self.evicted_log.push(self.records[s as usize].treelet);
             self.free_slot(s);
             freed += 1;
             if s == victim {
@@ -1017,7 +1054,7 @@ impl SlotBuffer {
         self.index_remove(id);
         // A freed slot needs no upload: nothing reaches it until a new treelet is copied in,
         // which marks it dirty again. Its DIRTY flag stays consistent with the dirty list.
-        let flags = self.records[slot as usize].flags;
+        let flags = self.records[slot as usize].flags & DIRTY;
         self.records[slot as usize] = SlotRecord {
             flags,
             ..SlotRecord::FREE
@@ -1328,6 +1365,42 @@ mod tests {
         b.begin_cycle();
         assert_eq!(inserted(&mut b, treelet(6, Some((5, 1)), &[NONE])), (1, 1));
         assert_eq!(b.stats().no_room, 2);
+    }
+
+    #[test]
+    fn pinned_treelets_are_never_evicted_until_unpinned() {
+        let mut b = buffer(3, treelet(0, None, &[1, 5]));
+        inserted(&mut b, treelet(1, Some((0, 1)), &[NONE]));
+        inserted(&mut b, treelet(5, Some((0, 2)), &[6]));
+        b.pin(TreeletId(1));
+        assert!(b.is_pinned(TreeletId(1)) && !b.is_pinned(TreeletId(5)));
+        b.begin_cycle();
+        b.begin_cycle();
+        // Both invisible, 1 the least recently seen: without its pin it would go. Only 5 counts
+        // as room, and 5 is the new one's parent, so nothing may go for it.
+        assert_eq!(b.room(), 1);
+        assert_eq!(b.room_outside(&[]), 1);
+        assert_eq!(
+            b.insert(treelet(6, Some((5, 1)), &[NONE])),
+            InsertOutcome::NoRoom
+        );
+        assert!(b.take_evicted().is_empty());
+        b.unpin_all();
+        assert!(!b.is_pinned(TreeletId(1)));
+        assert_eq!(inserted(&mut b, treelet(6, Some((5, 1)), &[NONE])), (1, 1));
+        assert_eq!(b.take_evicted(), vec![TreeletId(1)]);
+        assert!(b.take_evicted().is_empty(), "taken once");
+        // A pinned treelet freed as the descendant of an evicted one leaves its slot unpinned.
+        b.pin(TreeletId(6));
+        b.begin_cycle();
+        b.begin_cycle();
+        assert_eq!(b.evict_outside(&[], 1), 2, "5, and 6 below it");
+        let mut gone = b.take_evicted();
+        gone.sort_unstable();
+        assert_eq!(gone, vec![TreeletId(5), TreeletId(6)]);
+        inserted(&mut b, treelet(5, Some((0, 2)), &[6]));
+        inserted(&mut b, treelet(6, Some((5, 1)), &[NONE]));
+        assert!(!b.is_pinned(TreeletId(5)) && !b.is_pinned(TreeletId(6)));
     }
 
     #[test]
