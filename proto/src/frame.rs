@@ -348,8 +348,13 @@ fn parse_hello(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
     })
 }
 
-fn parse_request_list(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
-    let seq = r.u64("list seq")?;
+/// Reads a list's item count and checks it against the protocol's limit and against the bytes
+/// left for items of `item_bytes` each, before anything is allocated.
+fn list_length(
+    r: &mut Reader<'_>,
+    item_bytes: usize,
+    what: &'static str,
+) -> Result<usize, FrameError> {
     let count = r.u32("list length")? as usize;
     if count > MAX_REQUEST_ITEMS {
         return Err(FrameError::ListTooLong {
@@ -357,14 +362,20 @@ fn parse_request_list(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
             limit: MAX_REQUEST_ITEMS,
         });
     }
-    let need = count * 8;
+    let need = count * item_bytes;
     if r.remaining() < need {
         return Err(FrameError::Truncated {
-            what: "request list items",
+            what,
             need,
             have: r.remaining(),
         });
     }
+    Ok(count)
+}
+
+fn parse_request_list(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
+    let seq = r.u64("list seq")?;
+    let count = list_length(r, 8, "request list items")?;
     let mut items = Vec::with_capacity(count);
     for index in 0..count {
         let treelet = TreeletId(r.u32("treelet id")?);
@@ -401,21 +412,7 @@ fn parse_deep_request_list(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
         free_slots: r.u32("view free slots")?,
     };
     view.check().map_err(FrameError::BadView)?;
-    let count = r.u32("list length")? as usize;
-    if count > MAX_REQUEST_ITEMS {
-        return Err(FrameError::ListTooLong {
-            len: count,
-            limit: MAX_REQUEST_ITEMS,
-        });
-    }
-    let need = count * 12;
-    if r.remaining() < need {
-        return Err(FrameError::Truncated {
-            what: "deep request list items",
-            need,
-            have: r.remaining(),
-        });
-    }
+    let count = list_length(r, 12, "deep request list items")?;
     let mut items = Vec::with_capacity(count);
     for index in 0..count {
         let treelet = TreeletId(r.u32("treelet id")?);
