@@ -9,6 +9,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use arbor_server::daemon::AdminTokenOrigin;
+use arbor_server::logging::LogFormat;
 use arbor_server::import::{Format, ImportOptions, RawSpec, SampleType};
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_server::pipeline::{SceneImport, import_scene};
@@ -32,6 +33,10 @@ use clap::{Args, Parser, Subcommand};
         arbor-server serve --db pool --listen 0.0.0.0:4433"
 )]
 struct Cli {
+    /// Log lines on stderr: `text` (coloured only on a terminal) or `json` (one object per line,
+    /// for log shippers). `RUST_LOG` filters them (default `info`).
+    #[arg(long, global = true, value_enum, default_value_t = LogFormat::Text)]
+    log_format: LogFormat,
     #[command(subcommand)]
     command: Command,
 }
@@ -214,14 +219,8 @@ fn parse_spacing(s: &str) -> Result<[f64; 3], String> {
 }
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .with_writer(std::io::stderr)
-        .init();
     let cli = Cli::parse();
+    arbor_server::logging::init(cli.log_format);
     match run(cli) {
         Ok(code) => code,
         Err(e) => {
