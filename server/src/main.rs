@@ -9,8 +9,8 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use arbor_server::daemon::AdminTokenOrigin;
-use arbor_server::logging::LogFormat;
 use arbor_server::import::{Format, ImportOptions, RawSpec, SampleType};
+use arbor_server::logging::LogFormat;
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
