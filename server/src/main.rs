@@ -14,6 +14,7 @@ use arbor_server::logging::LogFormat;
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
+use arbor_server::service::config::AdminTls;
 use arbor_server::service::{ConfigOverrides, ServeConfig};
 use arbor_server::verify;
 use clap::{Args, Parser, Subcommand};
@@ -153,6 +154,10 @@ enum Command {
         /// Admin HTTP listen address, or `off` [default: 127.0.0.1:9090].
         #[arg(long, value_parser = parse_admin)]
         admin: Option<AdminArg>,
+        /// Admin listener over HTTPS: `auto` (unless the admin address is loopback), `on`, or
+        /// `off` (cleartext on any address) [default: auto].
+        #[arg(long, value_enum)]
+        admin_tls: Option<AdminTls>,
         /// TOML configuration file.
         #[arg(long)]
         config: Option<PathBuf>,
@@ -308,6 +313,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             db,
             listen,
             admin,
+            admin_tls,
             config,
             data_dir,
         } => {
@@ -315,6 +321,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 db,
                 listen,
                 admin_listen: admin.map(|a| a.0),
+                admin_tls,
                 data_dir,
             };
             let config = ServeConfig::load(config.as_deref(), &overrides)?;
