@@ -23,7 +23,7 @@ use arbor_client_core::slots::SlotBuffer;
 use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
 use arbor_client_session::headless::{HeadlessConfig, run_headless_with};
 use arbor_server::octree::{BuildOptions, DepthChoice};
-use arbor_tests::support::{build_file, decoded_treelets};
+use arbor_tests::support::{build_file, copy_dir, decoded_treelets};
 
 /// The `arbor-server` binary of this build, beside this test's executable.
 fn server_binary() -> PathBuf {
@@ -88,20 +88,6 @@ impl Replica {
             host: self.addr.ip().to_string(),
             port: self.addr.port(),
             scene: scene.into(),
-        }
-    }
-}
-
-/// Copies a closed pool directory (sled's files) to `to`.
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for entry in std::fs::read_dir(from).unwrap() {
-        let entry = entry.unwrap();
-        let target = to.join(entry.file_name());
-        if entry.file_type().unwrap().is_dir() {
-            copy_dir(&entry.path(), &target);
-        } else {
-            std::fs::copy(entry.path(), target).unwrap();
         }
     }
 }

@@ -16,6 +16,7 @@
 //! hello_timeout_ms = 5000
 //! max_connection_memory = 67108864
 //! initial_window = 131072             # QUIC congestion window at the start, bytes
+//! message_cache_bytes = 67108864      # built treelet messages kept for sending again, server-wide
 //! window_min = 8
 //! window_max = 1024
 //! slow_reader_timeout_ms = 10000
@@ -171,6 +172,9 @@ pub struct ServeConfig {
     /// packets) needs eight slow-start round trips to carry a 3 MB view; a larger start is how
     /// content servers fill a fresh connection sooner.
     pub initial_window: u64,
+    /// Bytes of built treelet messages kept server-wide, so a treelet sent again costs no pool
+    /// read and no copy (0: none kept).
+    pub message_cache_bytes: u64,
     /// Bounds of the per-connection in-flight window (treelets).
     pub window_min: usize,
     pub window_max: usize,
@@ -211,6 +215,8 @@ pub struct MemoryPlan {
 
 /// Default [`ServeConfig::initial_window`]: 128 KiB.
 pub const DEFAULT_INITIAL_WINDOW: u64 = 128 << 10;
+/// Default [`ServeConfig::message_cache_bytes`]: 64 MiB.
+pub const DEFAULT_MESSAGE_CACHE_BYTES: u64 = 64 << 20;
 /// Smallest accepted initial window (two full-size packets).
 pub const MIN_INITIAL_WINDOW: u64 = 2400;
 /// Largest accepted initial window.
@@ -246,6 +252,7 @@ struct FileConfig {
     hello_timeout_ms: Option<u64>,
     max_connection_memory: Option<u64>,
     initial_window: Option<u64>,
+    message_cache_bytes: Option<u64>,
     window_min: Option<usize>,
     window_max: Option<usize>,
     slow_reader_timeout_ms: Option<u64>,
@@ -359,6 +366,7 @@ impl ServeConfig {
             hello_timeout_ms: 5_000,
             max_connection_memory: 64 << 20,
             initial_window: DEFAULT_INITIAL_WINDOW,
+            message_cache_bytes: DEFAULT_MESSAGE_CACHE_BYTES,
             window_min: 8,
             window_max: 1024,
             slow_reader_timeout_ms: 10_000,
@@ -452,6 +460,7 @@ impl ServeConfig {
             hello_timeout_ms,
             max_connection_memory,
             initial_window,
+            message_cache_bytes,
             window_min,
             window_max,
             slow_reader_timeout_ms,

@@ -214,13 +214,19 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
     }
     let identity = tls::load_or_create(&config.tls, config.data_dir())?;
     let server_config = tls::quic_server_config(&identity, transport_config(&config))?;
-    let endpoint = quinn::Endpoint::server(server_config, config.listen).map_err(|source| {
-        ServeError::Bind {
+    let mut endpoint_config = quinn::EndpointConfig::default();
+    endpoint_config.reset_key(Arc::new(tls::stateless_reset_key(&identity)));
+    let endpoint = std::net::UdpSocket::bind(config.listen)
+        .and_then(|socket| {
+            let runtime = quinn::default_runtime()
+                .ok_or_else(|| std::io::Error::other("no async runtime"))?;
+            quinn::Endpoint::new(endpoint_config, Some(server_config), socket, runtime)
+        })
+        .map_err(|source| ServeError::Bind {
             what: "QUIC",
             addr: config.listen,
             source,
-        }
-    })?;
+        })?;
     let bind_err = |what, addr| move |source| ServeError::Bind { what, addr, source };
     let quic_addr = endpoint
         .local_addr()
