@@ -545,15 +545,27 @@ async fn main() {
     .await
     .unwrap();
     // Loopback comparison: Arbor's window fixed to raw quinn's.
-    let server = start(serve_config(
-        pool_dir.path(),
-        data_dir.path(),
-        (WINDOW, WINDOW),
-    ))
+    // ARBOR_BENCH_WINDOW=MIN,MAX: other window bounds for Arbor (experiments).
+    let window = std::env::var("ARBOR_BENCH_WINDOW")
+        .ok()
+        .and_then(|w| {
+            let (a, b) = w.split_once(',')?;
+            Some((a.parse().ok()?, b.parse().ok()?))
+        })
+        .unwrap_or((WINDOW, WINDOW));
+    let server = start(serve_config(pool_dir.path(), data_dir.path(), window))
     .await
     .unwrap();
     let fp = server.fingerprint.clone();
     let addr = server.quic_addr;
+    if std::env::var("ARBOR_BENCH_PROFILE").is_ok() {
+        // One client fetching lion-4k again and again, for a profiler.
+        for _ in 0..30 {
+            let (secs, _) = arbor_run(addr, &fp, &scenes[1], 1, 2000).await;
+            println!("{:.0} treelets/s", 2000.0 / secs);
+        }
+        return;
+    }
     let raw = raw::start();
     let nginx = nginx::start(&files);
 
