@@ -554,8 +554,8 @@ async fn main() {
         })
         .unwrap_or((WINDOW, WINDOW));
     let server = start(serve_config(pool_dir.path(), data_dir.path(), window))
-    .await
-    .unwrap();
+        .await
+        .unwrap();
     let fp = server.fingerprint.clone();
     let addr = server.quic_addr;
     if std::env::var("ARBOR_BENCH_PROFILE").is_ok() {

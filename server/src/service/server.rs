@@ -214,8 +214,7 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
     }
     let identity = tls::load_or_create(&config.tls, config.data_dir())?;
     let server_config = tls::quic_server_config(&identity, transport_config(&config))?;
-    let mut endpoint_config = quinn::EndpointConfig::default();
-    endpoint_config.reset_key(Arc::new(tls::stateless_reset_key(&identity)));
+    let endpoint_config = super::reset::endpoint_config(&identity);
     let endpoint = std::net::UdpSocket::bind(config.listen)
         .and_then(|socket| {
             let runtime = quinn::default_runtime()

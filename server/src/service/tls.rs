@@ -221,17 +221,6 @@ fn create_self_signed(
     })
 }
 
-/// The key of QUIC stateless resets, derived from the private key: every process serving with
-/// the same identity — the server restarted on the same data dir, or replicas sharing the
-/// certificate — resets a connection it does not know with a token the client accepts, so the
-/// client learns at once that the connection is gone instead of waiting for its idle timeout.
-pub fn stateless_reset_key(identity: &TlsIdentity) -> ring::hmac::Key {
-    let mut input = b"arbor stateless reset key v1".to_vec();
-    input.extend_from_slice(identity.key.secret_der());
-    let digest = ring::digest::digest(&ring::digest::SHA256, &input);
-    ring::hmac::Key::new(ring::hmac::HMAC_SHA256, digest.as_ref())
-}
-
 /// The rustls server configuration: TLS 1.3 only, ring provider, ALPN `arbor/1` only.
 pub fn rustls_server_config(identity: &TlsIdentity) -> Result<rustls::ServerConfig, TlsError> {
     let provider = Arc::new(rustls::crypto::ring::default_provider());
