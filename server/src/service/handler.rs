@@ -124,11 +124,16 @@ impl Handler {
         });
         tracing::info!(channels = ?channels.iter().map(|c| c.name()).collect::<Vec<_>>(), "hello accepted");
         let (route, jobs) = mpsc::unbounded_channel();
-        // Twice the initial congestion window from the start (as `on_tick` keeps it), so a
-        // fresh connection is not held to `window_min` for the first tick.
-        let window = (2 * shared.config.initial_window as usize)
-            .div_ceil(super::streams::DEFAULT_TREELET_BYTES as usize)
-            .clamp(shared.config.window_min, shared.config.window_max);
+        // Twice the initial congestion window from the start (as `on_tick` keeps it), in the
+        // scene's mean stored treelet, so a fresh connection is not held to `window_min` until
+        // the first tick (a whole small scene is sent before it).
+        let stats = &scene.stored.description.stats;
+        let stored = stats.node_bytes + stats.channel_bytes.iter().sum::<u64>();
+        let mean = (stored / u64::from(scene.treelet_count().max(1))).max(256);
+        let window = (2 * shared.config.initial_window).div_ceil(mean).clamp(
+            shared.config.window_min as u64,
+            shared.config.window_max as u64,
+        ) as usize;
         {
             let mut core = shared.core();
             core.routes.insert(id, route);

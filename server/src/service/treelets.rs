@@ -48,7 +48,7 @@ pub enum MessageError {
 /// Most treelet messages on one stream. Measured (`cargo bench -p arbor-tests --bench serve`):
 /// QUIC's per-stream cost (open, credit, frames, acknowledgement bookkeeping, one task) dominated
 /// a 4 KiB treelet; a few per stream share it.
-pub const MAX_TREELETS_PER_STREAM: usize = 16;
+pub const MAX_TREELETS_PER_STREAM: usize = 64;
 
 /// Which message: scene generation, treelet, channel set (bit per channel id).
 type MessageKey = (u64, u32, u32);
