@@ -90,10 +90,14 @@ pub(crate) fn ensure_font() -> Result<(), ChartError> {
 /// Returns `Ok` for every report, including an empty one (empty axes and a note); errors are
 /// only the font, drawing or writing the file.
 pub fn draw(report: &RunReport, path: &Path, title: &str) -> Result<(), ChartError> {
-    let buf = render_rgb(report, title)?;
+    save_png(&render_rgb(report, title)?, path)
+}
+
+/// Writes a packed RGB8 buffer of [`WIDTH`]×[`HEIGHT`] pixels as a PNG at `path`.
+pub(crate) fn save_png(buf: &[u8], path: &Path) -> Result<(), ChartError> {
     ::image::save_buffer_with_format(
         path,
-        &buf,
+        buf,
         WIDTH,
         HEIGHT,
         ::image::ExtendedColorType::Rgb8,

@@ -12,7 +12,7 @@ use std::path::Path;
 use plotters::prelude::*;
 
 use crate::RunReport;
-use crate::chart::{ChartError, HEIGHT, WIDTH, axis_range, clip, draw_err, ensure_font};
+use crate::chart::{ChartError, HEIGHT, WIDTH, axis_range, clip, draw_err, ensure_font, save_png};
 use crate::clip::{PlotArea, draw_clipped_line, legend_line};
 
 /// Colours of the runs, in order (repeated past ten runs).
@@ -53,18 +53,7 @@ pub fn draw_comparison(
     title: &str,
 ) -> Result<(), ChartError> {
     let (buf, _) = render_comparison(runs, title)?;
-    ::image::save_buffer_with_format(
-        path,
-        &buf,
-        WIDTH,
-        HEIGHT,
-        ::image::ExtendedColorType::Rgb8,
-        ::image::ImageFormat::Png,
-    )
-    .map_err(|source| ChartError::Write {
-        path: path.to_path_buf(),
-        source,
-    })
+    save_png(&buf, path)
 }
 
 /// The comparison as a packed RGB8 buffer, with the plotting areas of the two panels.
