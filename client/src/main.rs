@@ -75,6 +75,13 @@ struct Connection {
     /// `quic://HOST:PORT/SCENE`.
     #[arg(long, value_name = "quic://HOST:PORT/SCENE")]
     server: Option<String>,
+    /// Another server of the same pool (repeatable): on a lost connection the client moves to
+    /// the next one and keeps what it holds. Same scene; the same certificate (or --ca).
+    #[arg(long, value_name = "quic://HOST:PORT/SCENE")]
+    replica: Vec<String>,
+    /// With replicas: milliseconds without a packet after which a connection counts as lost.
+    #[arg(long, default_value_t = arbor_client_net::DEFAULT_FAILOVER_AFTER.as_millis() as u64)]
+    failover_after_ms: u64,
     /// SHA-256 fingerprint of the server certificate (printed by `arbor-server serve`).
     #[arg(long, conflicts_with = "ca")]
     cert_fingerprint: Option<String>,
@@ -249,11 +256,18 @@ fn main() {
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
         )
         .with_writer(std::io::stderr)
+        .with_ansi(colour_on_stderr())
         .init();
     if let Err(e) = run(Cli::parse()) {
         eprintln!("error: {e:#}");
         std::process::exit(1);
     }
+}
+
+/// Colour only on a terminal (and not with `NO_COLOR`): logs written to files stay plain text.
+fn colour_on_stderr() -> bool {
+    use std::io::IsTerminal as _;
+    std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty())
 }
 
 fn run(cli: Cli) -> Result<()> {
@@ -282,7 +296,14 @@ fn client_config(c: &Connection) -> Result<ClientConfig> {
         ),
         _ => bail!("give the server's --cert-fingerprint or a --ca file"),
     };
-    let mut config = ClientConfig::new(url, trust);
+    let replicas = c
+        .replica
+        .iter()
+        .map(|r| parse_server_url(r))
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut config = ClientConfig::new(url, trust)
+        .with_replicas(replicas)
+        .with_failover_after(std::time::Duration::from_millis(c.failover_after_ms));
     if let Some(t) = &c.token {
         config = config.with_token(t.clone());
     }

@@ -3,7 +3,7 @@
 //!
 //! The service knows nothing of the admin API; this module owns what joins them: the admin
 //! bearer token (configured, read from a file, or generated once into the data dir), the admin
-//! listener, and the order of shutdown (the service drains first, then the admin server gets at
+//! listener (HTTPS off loopback, `admin/https.rs`), and the order of shutdown (the service drains first, then the admin server gets at
 //! most [`ADMIN_STOP_BOUND`]).
 
 use std::net::SocketAddr;
@@ -15,10 +15,10 @@ use tokio::task::JoinHandle;
 
 use crate::admin::{AdminContext, router};
 use crate::pool::Pool;
-use crate::service::config::AdminTokenSource;
+use crate::service::config::{AdminTokenSource, TlsSource};
 use crate::service::shutdown::ShutdownTrigger;
 use crate::service::state::ServiceState;
-use crate::service::tls::IdentityOrigin;
+use crate::service::tls::{IdentityOrigin, read_pem};
 use crate::service::{RunningService, ServeConfig, ServeError, start_service};
 
 /// File holding the generated admin token in the data dir.
@@ -45,6 +45,8 @@ pub struct RunningServer {
     pub quic_addr: SocketAddr,
     /// The bound admin HTTP address; `None` when disabled.
     pub admin_addr: Option<SocketAddr>,
+    /// Whether the admin listener speaks HTTPS.
+    pub admin_https: bool,
     /// SHA-256 of the server certificate, lowercase hex: what clients pin.
     pub fingerprint: String,
     /// Bearer token of the admin API.
@@ -93,6 +95,7 @@ impl RunningServer {
 /// on the service's shutdown broadcast.
 pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
     let admin_listen = config.admin_listen;
+    let (admin_tls, admin_identity) = (config.admin_tls, config.admin_identity.clone());
     let probe_token = config.probe_token.clone();
     let token = config.admin_token.clone();
     let data_dir = config.data_dir().to_path_buf();
@@ -103,6 +106,18 @@ pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
             service.shutdown().await;
             return Err(e);
         }
+    };
+    let admin_https = admin_listen.is_some_and(|a| admin_tls.encrypts(a));
+    let https = if admin_https {
+        match admin_rustls_config(&admin_identity, &service.tls_origin) {
+            Ok(c) => Some(c),
+            Err(e) => {
+                service.shutdown().await;
+                return Err(e);
+            }
+        }
+    } else {
+        None
     };
     let (admin, admin_addr) = match admin_listen {
         None => (None, None),
@@ -130,24 +145,27 @@ pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
                 token: admin_token.clone(),
                 probe_token,
             });
+            if !admin_https && !local.ip().is_loopback() {
+                tracing::warn!(admin = %local, "admin API in cleartext off loopback (admin_tls = \"off\"): the token crosses the network unencrypted");
+            }
             let mut stop = service.shutdown_signal();
             let task = tokio::spawn(async move {
-                let served = axum::serve(listener, app)
-                    .with_graceful_shutdown(async move {
-                        stop.recv().await;
-                    })
-                    .await;
-                if let Err(e) = served {
+                let stop = async move {
+                    stop.recv().await;
+                };
+                if let Err(e) = crate::admin::https::serve(listener, https, app, stop).await {
                     tracing::error!("admin API failed: {e}");
                 }
             });
             (Some(task), Some(local))
         }
     };
-    tracing::info!(admin = ?admin_addr, "admin API");
+    let scheme = if admin_https { "https" } else { "http" };
+    tracing::info!(admin = ?admin_addr, scheme, "admin API");
     Ok(RunningServer {
         quic_addr: service.quic_addr,
         admin_addr,
+        admin_https,
         fingerprint: service.fingerprint.clone(),
         admin_token,
         admin_token_origin,
@@ -156,6 +174,22 @@ pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
         service,
         admin,
     })
+}
+
+/// The admin listener's TLS configuration: its own PEM pair when configured, else the files of
+/// the identity the service loaded (the self-signed pair exists by now).
+fn admin_rustls_config(
+    admin_identity: &TlsSource,
+    service_identity: &IdentityOrigin,
+) -> Result<Arc<rustls::ServerConfig>, ServeError> {
+    let (cert, key) = match (admin_identity, service_identity) {
+        (TlsSource::Files { cert, key }, _)
+        | (_, IdentityOrigin::Created { cert, key })
+        | (_, IdentityOrigin::Reused { cert, key })
+        | (_, IdentityOrigin::Files { cert, key }) => (cert, key),
+    };
+    let identity = read_pem(cert, key)?;
+    Ok(Arc::new(crate::admin::https::rustls_config(&identity)?))
 }
 
 fn read_token(path: &Path) -> Result<String, ServeError> {

@@ -17,6 +17,8 @@
 //! * [`daemon`] starts the service and mounts the admin API beside it — what `arbor-server
 //!   serve` runs.
 //!
+//! [`logging`] sets up the binaries' log lines (text, coloured only on a terminal, or JSON).
+//!
 //! Unsafe code is denied except for the two memory maps of scratch columns in [`source`].
 
 #![deny(unsafe_code)]
@@ -24,6 +26,7 @@
 pub mod admin;
 pub mod daemon;
 pub mod import;
+pub mod logging;
 pub mod memory;
 pub mod octree;
 pub mod pipeline;

@@ -10,9 +10,11 @@ use std::process::ExitCode;
 use anyhow::{Context, Result, bail};
 use arbor_server::daemon::AdminTokenOrigin;
 use arbor_server::import::{Format, ImportOptions, RawSpec, SampleType};
+use arbor_server::logging::LogFormat;
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
+use arbor_server::service::config::AdminTls;
 use arbor_server::service::{ConfigOverrides, ServeConfig};
 use arbor_server::verify;
 use clap::{Args, Parser, Subcommand};
@@ -32,6 +34,10 @@ use clap::{Args, Parser, Subcommand};
         arbor-server serve --db pool --listen 0.0.0.0:4433"
 )]
 struct Cli {
+    /// Log lines on stderr: `text` (coloured only on a terminal) or `json` (one object per line,
+    /// for log shippers). `RUST_LOG` filters them (default `info`).
+    #[arg(long, global = true, value_enum, default_value_t = LogFormat::Text)]
+    log_format: LogFormat,
     #[command(subcommand)]
     command: Command,
 }
@@ -148,6 +154,10 @@ enum Command {
         /// Admin HTTP listen address, or `off` [default: 127.0.0.1:9090].
         #[arg(long, value_parser = parse_admin)]
         admin: Option<AdminArg>,
+        /// Admin listener over HTTPS: `auto` (unless the admin address is loopback), `on`, or
+        /// `off` (cleartext on any address) [default: auto].
+        #[arg(long, value_enum)]
+        admin_tls: Option<AdminTls>,
         /// TOML configuration file.
         #[arg(long)]
         config: Option<PathBuf>,
@@ -214,14 +224,8 @@ fn parse_spacing(s: &str) -> Result<[f64; 3], String> {
 }
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .with_writer(std::io::stderr)
-        .init();
     let cli = Cli::parse();
+    arbor_server::logging::init(cli.log_format);
     match run(cli) {
         Ok(code) => code,
         Err(e) => {
@@ -309,6 +313,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             db,
             listen,
             admin,
+            admin_tls,
             config,
             data_dir,
         } => {
@@ -316,6 +321,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 db,
                 listen,
                 admin_listen: admin.map(|a| a.0),
+                admin_tls,
                 data_dir,
             };
             let config = ServeConfig::load(config.as_deref(), &overrides)?;

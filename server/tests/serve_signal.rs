@@ -268,32 +268,43 @@ async fn receive(
     ids
 }
 
-/// The real client library against the real binary: treelets arrive, `/metrics` counts exactly
-/// that traffic, SIGTERM reaches the client as ShuttingDown with a reconnect scheduled, and when
-/// the server is back on the same port the client reconnects by itself, re-sends its latest
-/// list and receives it again.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_client_reconnects_when_the_server_is_back_and_metrics_count_the_traffic() {
-    use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
-    let (dir, config) = bunny_pool_and_config();
+/// Serves on a free loopback port and starts a client library connection to it: the listen
+/// address (to serve on again), the server, the client.
+fn serve_and_connect(
+    dir: &Path,
+    config: &Path,
+) -> (String, Serving, arbor_client_net::TreeletClient) {
+    use arbor_client_net::{ClientConfig, ServerUrl, TreeletClient, Trust};
     let port = std::net::UdpSocket::bind("127.0.0.1:0")
         .unwrap()
         .local_addr()
         .unwrap()
         .port();
     let listen = format!("127.0.0.1:{port}");
-    let mut first = serve_on(dir.path(), &config, &listen);
+    let server = serve_on(dir, config, &listen);
     let url = ServerUrl {
         host: "127.0.0.1".into(),
         port,
         scene: SCENE.into(),
     };
-    let mut client = TreeletClient::start(
-        ClientConfig::new(url, Trust::Fingerprint(first.fingerprint.clone()))
+    let client = TreeletClient::start(
+        ClientConfig::new(url, Trust::Fingerprint(server.fingerprint.clone()))
             .with_token(TOKEN)
             .with_channels([Channel::Normal]),
     )
     .unwrap();
+    (listen, server, client)
+}
+
+/// The real client library against the real binary: treelets arrive, `/metrics` counts exactly
+/// that traffic, SIGTERM reaches the client as ShuttingDown with a reconnect scheduled, and when
+/// the server is back on the same port the client reconnects by itself, re-sends its latest
+/// list and receives it again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_client_reconnects_when_the_server_is_back_and_metrics_count_the_traffic() {
+    use arbor_client_net::ClientEvent;
+    let (dir, config) = bunny_pool_and_config();
+    let (listen, mut first, mut client) = serve_and_connect(dir.path(), &config);
     let scene = match next(&mut client).await {
         ClientEvent::Connected(d) => d,
         other => panic!("expected Connected, got {other:?}"),
@@ -357,4 +368,32 @@ async fn the_client_reconnects_when_the_server_is_back_and_metrics_count_the_tra
         wait_exit(&mut second.child, Duration::from_secs(5)).code(),
         Some(0)
     );
+}
+
+/// A server killed with SIGKILL and started again on the same port and data dir resets the
+/// connections of its previous life at once: the stateless-reset key is derived from the TLS
+/// key, so the client accepts the new process's reset (`connection reset`) instead of waiting
+/// for its 30 s idle timeout.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_restarted_server_resets_its_old_connections_at_once() {
+    use arbor_client_net::ClientEvent;
+    let (dir, config) = bunny_pool_and_config();
+    let (listen, mut first, mut client) = serve_and_connect(dir.path(), &config);
+    assert!(matches!(next(&mut client).await, ClientEvent::Connected(_)));
+    signal(&first.child, "-KILL");
+    wait_exit(&mut first.child, Duration::from_secs(5));
+    let second = serve_on(dir.path(), &config, &listen);
+    assert_eq!(second.fingerprint, first.fingerprint);
+    // A list makes the client send at once; the new process answers with a stateless reset.
+    client
+        .request(vec![(arbor_proto::TreeletId(0), 1.0)])
+        .unwrap();
+    // Without the shared key the client would only time out (after 30 s), saying so.
+    let within = Duration::from_secs(60);
+    let reason = match tokio::time::timeout(within, client.next_event()).await {
+        Ok(Some(ClientEvent::Disconnected { reason, .. })) => reason,
+        other => panic!("expected Disconnected, got {other:?}"),
+    };
+    assert!(reason.contains("reset by the server"), "{reason}");
+    client.close().await;
 }

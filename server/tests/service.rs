@@ -12,6 +12,7 @@ use arbor_proto::frame::{self, decode_treelet_message};
 use arbor_proto::limits::{MAX_FRAME_BYTES, MAX_REQUEST_ITEMS};
 use arbor_proto::wire::{ErrorCode, Frame, ViewHint};
 use arbor_proto::{Channel, TreeletId, codec};
+use arbor_server::service::treelets::MAX_TREELETS_PER_STREAM;
 use common::*;
 
 const LONG: Duration = Duration::from_secs(10);
@@ -650,23 +651,38 @@ async fn a_replacement_list_cancels_obsolete_treelets_in_flight() {
             items: new.iter().map(|&t| (t, 1.0)).collect(),
         })
         .await;
+    // Every batch but the one on the open stream is cancelled.
     let t0 = Instant::now();
     while server
         .state
         .metrics
         .treelets_cancelled
         .load(Ordering::Relaxed)
-        < in_flight - 1
+        < in_flight.saturating_sub(MAX_TREELETS_PER_STREAM as u64)
     {
         assert!(t0.elapsed() < LONG, "obsolete treelets not cancelled");
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
-    // Reading now: the one stream already sent, then exactly the new list.
-    let got = receive(&client.conn, new.len() + 1, LONG).await.unwrap();
-    let mut ids: Vec<u32> = got.iter().map(|g| g.0.0).collect();
+    // Reading now: the one stream already sent (a batch of the first treelets), then exactly
+    // the new list.
+    let mut ids: Vec<u32> = Vec::new();
+    while !new.iter().all(|t| ids.contains(&t.0)) {
+        let got = receive(&client.conn, 1, LONG).await.unwrap();
+        ids.extend(got.iter().map(|g| g.0.0));
+    }
     ids.sort_unstable();
+    let first: Vec<u32> = ids.iter().copied().filter(|&i| i < 100).collect();
+    assert!(
+        !first.is_empty() && first.len() <= MAX_TREELETS_PER_STREAM,
+        "the open stream's batch: {first:?}"
+    );
+    assert_eq!(
+        first,
+        (0..first.len() as u32).collect::<Vec<_>>(),
+        "the open stream carried the first-ranked treelets"
+    );
     let mut want: Vec<u32> = new.iter().map(|t| t.0).collect();
-    want.insert(0, 0);
+    want.splice(0..0, first);
     assert_eq!(
         ids, want,
         "only the new list (and the one stream already sent)"

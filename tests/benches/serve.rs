@@ -1,13 +1,20 @@
-//! Serving throughput, in one run, on loopback:
+//! Serving throughput, in one run, on loopback, each row measured in turns (best of
+//! [`ROUNDS`]) so that load from elsewhere affects every column alike:
 //! * Arbor: treelets/s and MB/s for 1 and 4 KiB treelets (lion) with 1, 8 and 64 concurrent
 //!   clients, each asking for the same number of treelets, all channels;
+//! * nginx over HTTP/2 + TLS (`nginx`, `h2load`; the peers' static tile server): the same 4 KiB
+//!   scene's treelet messages as files, byte for byte, the same number per connection, the same
+//!   streams in flight. Skipped, loudly, when nginx or h2load is not installed (`apt-get install
+//!   nginx nghttp2-client`);
 //! * raw quinn, measured the same way: one server-opened unidirectional stream per message of the
-//!   scene's mean message size, the same number per connection, the same in-flight window, plus
-//!   one bulk stream for the link's ceiling;
+//!   scene's mean message size, the same number per connection, the same in-flight window;
+//! * one client fetching the whole 4 KiB scene against raw quinn's bulk rate on one stream of the
+//!   same bytes;
 //! * over the link emulator (25 ms each way, 100 Mbit/s): time until the top 1,000 of a list
 //!   (random priorities over all treelets of the 4 KiB scene) have arrived.
 //!
 //! `cargo bench -p arbor-tests --bench serve` (ARBOR_BENCH_QUICK=1: fewer treelets per client).
+//! Never run in CI.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -25,8 +32,11 @@ use arbor_server::service::config::AdminTokenSource;
 use arbor_tests::link::{LinkConfig, LinkEmulator};
 use arbor_tests::support::data;
 
-/// The server's per-connection window bounds used for both Arbor and raw quinn.
+/// The server's per-connection window bounds used for Arbor, and the streams in flight per
+/// connection of raw quinn and nginx.
 const WINDOW: usize = 64;
+/// Runs per row, in turns; the best counts.
+const ROUNDS: usize = 3;
 
 fn build_pool(dir: &std::path::Path) -> Vec<SceneDescription> {
     let pool = Pool::open(dir).unwrap();
@@ -55,6 +65,16 @@ fn build_pool(dir: &std::path::Path) -> Vec<SceneDescription> {
         out.push(build_into_pool(&pool, &job, None).unwrap());
     }
     out
+}
+
+/// Every treelet message of `scene` with all its channels, exactly as the service sends it.
+fn messages(dir: &std::path::Path, scene: &str) -> Vec<Vec<u8>> {
+    let pool = Pool::open(dir).unwrap();
+    let served = arbor_server::service::treelets::ServedScene::new(pool.scene(scene).unwrap());
+    let channels = served.stored.description.layout.channels().to_vec();
+    (0..served.treelet_count())
+        .map(|i| served.message(TreeletId(i), &channels).unwrap().to_vec())
+        .collect()
 }
 
 /// A client asking for every channel of the scene.
@@ -130,21 +150,28 @@ async fn arbor_run(
     let list: Vec<(TreeletId, f32)> = (0..per_client as u32)
         .map(|i| (TreeletId(i), (per_client as u32 - i) as f32))
         .collect();
+    // The clock runs from the lists to the last treelet; connecting and closing are outside
+    // it, for every row alike.
     let t = Instant::now();
     let mut tasks = Vec::new();
     for mut c in cs {
         c.request(list.clone()).unwrap();
         tasks.push(tokio::spawn(async move {
             let b = receive(&mut c, per_client).await;
-            c.close().await;
-            b
+            (b, Instant::now(), c)
         }));
     }
-    let mut bytes = 0;
-    for t in tasks {
-        bytes += t.await.unwrap();
+    let (mut bytes, mut last, mut done) = (0, t, Vec::new());
+    for task in tasks {
+        let (b, at, c) = task.await.unwrap();
+        bytes += b;
+        last = last.max(at);
+        done.push(c);
     }
-    (t.elapsed().as_secs_f64(), bytes)
+    for c in done {
+        c.close().await;
+    }
+    ((last - t).as_secs_f64(), bytes)
 }
 
 mod raw {
@@ -227,17 +254,19 @@ mod raw {
         }
     }
 
-    /// One client fetching `count` messages of `size` bytes; returns bytes received.
-    async fn one(
-        raw_addr: SocketAddr,
-        cc: quinn::ClientConfig,
-        count: u32,
-        size: u32,
-        window: u32,
-    ) -> u64 {
+    /// A connected raw client: its endpoint and connection.
+    type Connected = (quinn::Endpoint, quinn::Connection);
+
+    async fn connect(raw_addr: SocketAddr, cc: quinn::ClientConfig) -> Connected {
         let mut ep = quinn::Endpoint::client("127.0.0.1:0".parse().unwrap()).unwrap();
         ep.set_default_client_config(cc);
         let conn = ep.connect(raw_addr, "localhost").unwrap().await.unwrap();
+        (ep, conn)
+    }
+
+    /// One connected client fetching `count` messages of `size` bytes; returns bytes received
+    /// and when the last arrived.
+    async fn fetch(conn: quinn::Connection, count: u32, size: u32, window: u32) -> (u64, Instant) {
         let (mut s, _r) = conn.open_bi().await.unwrap();
         let mut req = Vec::new();
         for v in [count, size, window] {
@@ -256,30 +285,273 @@ mod raw {
         while let Some(b) = readers.join_next().await {
             bytes += b.unwrap();
         }
-        conn.close(0u32.into(), b"done");
-        ep.wait_idle().await;
-        bytes
+        (bytes, Instant::now())
     }
 
-    /// `clients` concurrent clients; (seconds, bytes).
+    /// `clients` concurrent clients, connected before the clock starts and closed after it
+    /// stops (like Arbor's rows); (seconds, bytes).
     pub async fn run(raw: &Raw, clients: usize, count: u32, size: u32, window: u32) -> (f64, u64) {
-        let t = Instant::now();
-        let mut tasks = Vec::new();
+        let mut connected = Vec::new();
         for _ in 0..clients {
-            tasks.push(tokio::spawn(one(
-                raw.addr,
-                raw.client_config.clone(),
-                count,
-                size,
-                window,
-            )));
+            connected.push(connect(raw.addr, raw.client_config.clone()).await);
         }
-        let mut bytes = 0;
-        for t in tasks {
-            bytes += t.await.unwrap();
+        let t = Instant::now();
+        let tasks: Vec<_> = connected
+            .iter()
+            .map(|(_, conn)| tokio::spawn(fetch(conn.clone(), count, size, window)))
+            .collect();
+        let (mut bytes, mut last) = (0, t);
+        for task in tasks {
+            let (b, at) = task.await.unwrap();
+            bytes += b;
+            last = last.max(at);
         }
-        (t.elapsed().as_secs_f64(), bytes)
+        for (ep, conn) in connected {
+            conn.close(0u32.into(), b"done");
+            ep.wait_idle().await;
+        }
+        ((last - t).as_secs_f64(), bytes)
     }
+}
+
+mod nginx {
+    //! nginx over HTTP/2 + TLS as the peers' static tile server, loaded by h2load.
+    use std::io::Write as _;
+    use std::process::{Child, Command, Stdio};
+
+    pub struct Nginx {
+        child: Child,
+        port: u16,
+        dir: tempfile::TempDir,
+        /// Bytes of each file, in URI order.
+        sizes: Vec<u64>,
+    }
+
+    impl Drop for Nginx {
+        fn drop(&mut self) {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+
+    fn installed(tool: &str) -> bool {
+        Command::new(tool)
+            .arg("-v")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .status()
+            .is_ok()
+    }
+
+    /// Serves `files` as `/t/{index}` over HTTP/2 + TLS on a free loopback port; `None` (after
+    /// saying so loudly) when nginx or h2load is missing or nginx does not come up.
+    pub fn start(files: &[Vec<u8>]) -> Option<Nginx> {
+        if !installed("nginx") || !installed("h2load") {
+            eprintln!(
+                "\n*** nginx HTTP/2 row SKIPPED: nginx or h2load is not installed \
+                 (apt-get install nginx nghttp2-client) ***\n"
+            );
+            return None;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path();
+        for sub in ["www/t", "logs", "tmp"] {
+            std::fs::create_dir_all(p.join(sub)).unwrap();
+        }
+        for (i, f) in files.iter().enumerate() {
+            std::fs::write(p.join(format!("www/t/{i}")), f).unwrap();
+        }
+        // nginx's workers drop to an unprivileged user when started as root: let it read.
+        let _ = Command::new("chmod").args(["-R", "a+rX"]).arg(p).status();
+        let cert = rcgen::generate_simple_self_signed(vec!["localhost".into()]).unwrap();
+        std::fs::write(p.join("cert.pem"), cert.cert.pem()).unwrap();
+        std::fs::write(p.join("key.pem"), cert.signing_key.serialize_pem()).unwrap();
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        // The peers' configuration (../shared/peers/nginx-h2.conf), TLS server only.
+        let prefix = p.display();
+        let conf = format!(
+            "daemon off; master_process on; worker_processes 1; pid {prefix}/nginx.pid;\n\
+             error_log {prefix}/logs/error.log warn;\n\
+             events {{ worker_connections 1024; }}\n\
+             http {{ access_log off; client_body_temp_path {prefix}/tmp/body; \
+             proxy_temp_path {prefix}/tmp/proxy; fastcgi_temp_path {prefix}/tmp/fastcgi; \
+             uwsgi_temp_path {prefix}/tmp/uwsgi; scgi_temp_path {prefix}/tmp/scgi;\n\
+             sendfile on; tcp_nopush on; tcp_nodelay on; keepalive_requests 1000000; \
+             keepalive_timeout 65; open_file_cache max=20000 inactive=60s; \
+             default_type application/octet-stream;\n\
+             server {{ listen 127.0.0.1:{port} ssl http2; ssl_certificate {prefix}/cert.pem; \
+             ssl_certificate_key {prefix}/key.pem; root {prefix}/www; }} }}\n"
+        );
+        std::fs::File::create(p.join("nginx.conf"))
+            .unwrap()
+            .write_all(conf.as_bytes())
+            .unwrap();
+        let child = Command::new("nginx")
+            .arg("-c")
+            .arg(p.join("nginx.conf"))
+            .arg("-p")
+            .arg(p)
+            .stdout(Stdio::null())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap();
+        let nginx = Nginx {
+            child,
+            port,
+            sizes: files.iter().map(|f| f.len() as u64).collect(),
+            dir,
+        };
+        for _ in 0..100 {
+            if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
+                return Some(nginx);
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        eprintln!("\n*** nginx HTTP/2 row SKIPPED: nginx did not start on port {port} ***\n");
+        None
+    }
+
+    /// h2load with `clients` connections, `streams` requests in flight on each, for 2 s after
+    /// a 0.3 s warm-up (handshakes left out, like Arbor's rows), every connection fetching files
+    /// `0..per_client` in order, round and round; (files/s, MB/s) or `None` if a request failed.
+    pub fn run(
+        nginx: &Nginx,
+        clients: usize,
+        per_client: usize,
+        streams: usize,
+    ) -> Option<(f64, f64)> {
+        let uris = nginx.dir.path().join(format!("uris-{per_client}"));
+        let mut text = String::new();
+        for i in 0..per_client {
+            if i == 0 {
+                text.push_str(&format!("https://127.0.0.1:{}/t/0\n", nginx.port));
+            } else {
+                text.push_str(&format!("/t/{i}\n"));
+            }
+        }
+        std::fs::write(&uris, text).unwrap();
+        let out = Command::new("h2load")
+            .args(["-c", &clients.to_string(), "-m", &streams.to_string()])
+            .args(["-D", "2s", "--warm-up-time", "300ms", "-i"])
+            .arg(&uris)
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        let rate = stdout
+            .lines()
+            .find_map(|l| l.strip_prefix("finished in "))
+            .and_then(|l| l.split(", ").nth(1))
+            .and_then(|r| r.trim_end_matches(" req/s").parse::<f64>().ok());
+        let failed = stdout
+            .lines()
+            .find(|l| l.starts_with("requests:"))
+            .is_none_or(|l| !l.contains(" 0 failed, 0 errored"));
+        match rate {
+            Some(r) if !failed => {
+                let mean = nginx.sizes[..per_client].iter().sum::<u64>() as f64 / per_client as f64;
+                Some((r, r * mean / 1e6))
+            }
+            _ => {
+                eprintln!(
+                    "*** h2load failed:\n{stdout}{}",
+                    String::from_utf8_lossy(&out.stderr)
+                );
+                None
+            }
+        }
+    }
+}
+
+/// Where a treelet's time goes, each part measured alone on this machine: the pool read and
+/// message assembly (a cache miss), a cached message, the scheduler's work for one treelet
+/// (list, transmit, sent, delivered), against the whole per-treelet time of the rows above.
+fn cost_breakdown(dir: &std::path::Path, scene: &str) {
+    use arbor_server::service::schedule::{
+        ConnectionConfig, ConnectionId, Scheduler, SchedulerConfig,
+    };
+    // The server just stopped: sled's flusher lets go of the directory lock a moment later.
+    let t0 = Instant::now();
+    let pool = loop {
+        match Pool::open(dir) {
+            Ok(p) => break p,
+            Err(e) if t0.elapsed() < Duration::from_secs(10) => {
+                let _ = e;
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            Err(e) => panic!("opening the pool: {e}"),
+        }
+    };
+    let stored = pool.scene(scene).unwrap();
+    let count = stored.description.treelet_count;
+    let channels = stored.description.layout.channels().to_vec();
+    let cold = arbor_server::service::treelets::MessageCache::new(0);
+    let served = arbor_server::service::treelets::ServedScene::with_cache(
+        stored.clone(),
+        std::sync::Arc::new(cold),
+    );
+    let t = Instant::now();
+    for i in 0..count {
+        std::hint::black_box(served.message(TreeletId(i), &channels).unwrap());
+    }
+    let miss = t.elapsed().as_secs_f64() / f64::from(count);
+    let warm = arbor_server::service::treelets::ServedScene::new(stored);
+    for i in 0..count {
+        warm.message(TreeletId(i), &channels).unwrap();
+    }
+    let t = Instant::now();
+    for i in 0..count {
+        std::hint::black_box(warm.message(TreeletId(i), &channels).unwrap());
+    }
+    let hit = t.elapsed().as_secs_f64() / f64::from(count);
+    let mut sched = Scheduler::new(SchedulerConfig {
+        max_in_flight: 1 << 20,
+    });
+    let c = ConnectionId(1);
+    sched
+        .add_connection(
+            c,
+            ConnectionConfig {
+                window: WINDOW,
+                max_queue: 1 << 16,
+                redelivery_guard: Duration::ZERO,
+            },
+        )
+        .unwrap();
+    let list: Vec<(TreeletId, f32)> = (0..count).map(|i| (TreeletId(i), i as f32)).collect();
+    let t = Instant::now();
+    let now = Instant::now();
+    sched.handle_request_list(c, 1, list, now).unwrap();
+    let mut done = 0u32;
+    while done < count {
+        let mut batch = Vec::new();
+        while let Some((_, t)) = sched.poll_transmit(now) {
+            batch.push(t);
+        }
+        for t in batch {
+            sched.handle_sent(c, t, now);
+            sched.handle_delivered(c, t, now);
+            done += 1;
+        }
+    }
+    let scheduling = t.elapsed().as_secs_f64() / f64::from(count);
+    println!(
+        "per treelet ({scene}, alone): pool read + assembly (cache miss) {:.2} µs, cached message \
+         {:.2} µs, scheduler (list, transmit, sent, delivered) {:.2} µs",
+        miss * 1e6,
+        hit * 1e6,
+        scheduling * 1e6
+    );
+}
+
+/// The best of `ROUNDS` (rate, MB/s) pairs by rate.
+fn best(runs: &[(f64, f64)]) -> (f64, f64) {
+    runs.iter()
+        .copied()
+        .fold((0.0, 0.0), |a, b| if b.0 > a.0 { b } else { a })
 }
 
 #[tokio::main(flavor = "multi_thread")]
@@ -288,38 +560,60 @@ async fn main() {
     let pool_dir = tempfile::tempdir().unwrap();
     let data_dir = tempfile::tempdir().unwrap();
     let dir = pool_dir.path().to_owned();
-    let scenes = tokio::task::spawn_blocking(move || build_pool(&dir))
-        .await
-        .unwrap();
-    // Loopback comparison: Arbor's window fixed to raw quinn's.
-    let server = start(serve_config(
-        pool_dir.path(),
-        data_dir.path(),
-        (WINDOW, WINDOW),
-    ))
+    let (scenes, files) = tokio::task::spawn_blocking(move || {
+        let scenes = build_pool(&dir);
+        let files = messages(&dir, "lion-4k");
+        (scenes, files)
+    })
     .await
     .unwrap();
+    // Loopback comparison: Arbor's window fixed to raw quinn's.
+    // ARBOR_BENCH_WINDOW=MIN,MAX: other window bounds for Arbor (experiments).
+    let window = std::env::var("ARBOR_BENCH_WINDOW")
+        .ok()
+        .and_then(|w| {
+            let (a, b) = w.split_once(',')?;
+            Some((a.parse().ok()?, b.parse().ok()?))
+        })
+        .unwrap_or((WINDOW, WINDOW));
+    let server = start(serve_config(pool_dir.path(), data_dir.path(), window))
+        .await
+        .unwrap();
     let fp = server.fingerprint.clone();
     let addr = server.quic_addr;
+    if std::env::var("ARBOR_BENCH_PROFILE").is_ok() {
+        // One client fetching lion-4k again and again, for a profiler.
+        let n = scenes[1].treelet_count as usize;
+        for _ in 0..300 {
+            let (secs, _) = arbor_run(addr, &fp, &scenes[1], 1, n).await;
+            println!("{:.0} treelets/s", n as f64 / secs);
+        }
+        return;
+    }
     let raw = raw::start();
+    let nginx = nginx::start(&files);
 
     println!(
-        "Arbor serving benchmark (loopback QUIC, release, {} cores; all channels; Arbor window fixed at {} like raw quinn)",
+        "Arbor serving benchmark (loopback, release, {} cores; all channels; {} streams or \
+         treelets in flight per connection for Arbor, nginx and raw quinn; best of {ROUNDS} runs \
+         in turns)",
         std::thread::available_parallelism().map_or(0, |n| n.get()),
         WINDOW
     );
     println!(
-        "{:<8} {:>7} {:>9} | {:>10} {:>8} {:>8} | {:>14} {:>10} {:>8} | {:>6}",
+        "{:<8} {:>7} {:>9} {:>7} | {:>10} {:>7} | {:>11} {:>7} | {:>11} {:>7} | {:>7} {:>7}",
         "scene",
         "clients",
         "treelets",
-        "treelets/s",
-        "MB/s",
         "mean B",
-        "raw streams/s",
-        "raw MB/s",
-        "raw s",
-        "ratio"
+        "Arbor /s",
+        "MB/s",
+        "nginx h2 /s",
+        "MB/s",
+        "raw quic /s",
+        "MB/s",
+        "÷nginx",
+        "÷raw"
     );
     for d in &scenes {
         for clients in [1usize, 8, 64] {
@@ -331,23 +625,48 @@ async fn main() {
                 2000
             }
             .min(d.treelet_count as usize);
-            let (secs, bytes) = arbor_run(addr, &fp, d, clients, per_client).await;
             let n = (clients * per_client) as f64;
-            let mean = (bytes as f64 / n).round() as u32;
-            let (rsecs, rbytes) =
-                raw::run(&raw, clients, per_client as u32, mean, WINDOW as u32).await;
+            let (mut a, mut g, mut r) = (Vec::new(), Vec::new(), Vec::new());
+            let mut mean = 0;
+            for _ in 0..ROUNDS {
+                let (secs, bytes) = arbor_run(addr, &fp, d, clients, per_client).await;
+                mean = (bytes as f64 / n).round() as u32;
+                a.push((n / secs, bytes as f64 / secs / 1e6));
+                if let Some(ng) = nginx.as_ref().filter(|_| d.name == "lion-4k") {
+                    let (clients, per_client) = (clients, per_client);
+                    if let Some(x) =
+                        tokio::task::block_in_place(|| nginx::run(ng, clients, per_client, WINDOW))
+                    {
+                        g.push(x);
+                    }
+                }
+                let (rsecs, rbytes) =
+                    raw::run(&raw, clients, per_client as u32, mean, WINDOW as u32).await;
+                r.push((n / rsecs, rbytes as f64 / rsecs / 1e6));
+            }
+            let (a, r) = (best(&a), best(&r));
+            let (ng, ng_ratio) = if g.is_empty() {
+                ("-".to_owned(), "-".to_owned())
+            } else {
+                let g = best(&g);
+                (
+                    format!("{:>11.0} {:>7.1}", g.0, g.1),
+                    format!("{:.2}", a.0 / g.0),
+                )
+            };
             println!(
-                "{:<8} {:>7} {:>9} | {:>10.0} {:>8.1} {:>8} | {:>14.0} {:>10.1} {:>8.2} | {:>6.2}",
+                "{:<8} {:>7} {:>9} {:>7} | {:>10.0} {:>7.1} | {:>19} | {:>11.0} {:>7.1} | {:>7} {:>7.2}",
                 d.name,
                 clients,
                 clients * per_client,
-                n / secs,
-                bytes as f64 / secs / 1e6,
                 mean,
-                n / rsecs,
-                rbytes as f64 / rsecs / 1e6,
-                rsecs,
-                (n / secs) / (n / rsecs)
+                a.0,
+                a.1,
+                ng,
+                r.0,
+                r.1,
+                ng_ratio,
+                a.0 / r.0
             );
         }
     }
@@ -356,15 +675,39 @@ async fn main() {
         "raw quinn bulk, one 64 MiB stream: {:.1} MB/s",
         bbytes as f64 / bsecs / 1e6
     );
+    drop(nginx);
+    server.shutdown().await;
 
     // Over the emulated WAN: the top 1,000 of a list of all treelets, random priorities; the
     // window adapts to RTT × bandwidth between 8 and 1024.
-    server.shutdown().await;
     let server = start(serve_config(pool_dir.path(), data_dir.path(), (8, 1024)))
         .await
         .unwrap();
     let addr = server.quic_addr;
+    // One client fetching the whole 4 KiB scene from a server with the default window against one
+    // raw quinn stream of the same bytes.
     let d = &scenes[1];
+    let whole = d.treelet_count as usize;
+    let (mut a, mut r) = (Vec::new(), Vec::new());
+    let mut total = 0;
+    for _ in 0..ROUNDS {
+        let (secs, bytes) = arbor_run(addr, &fp, d, 1, whole).await;
+        total = bytes;
+        a.push((whole as f64 / secs, bytes as f64 / secs / 1e6));
+        let (rsecs, rbytes) = raw::run(&raw, 1, 1, bytes as u32, 1).await;
+        r.push((1.0 / rsecs, rbytes as f64 / rsecs / 1e6));
+    }
+    let (a, r) = (best(&a), best(&r));
+    println!(
+        "whole {} by one client ({} treelets, {:.1} MB): Arbor {:.1} MB/s, raw quinn one stream \
+         of the same bytes {:.1} MB/s: {:.2}x",
+        d.name,
+        whole,
+        total as f64 / 1e6,
+        a.1,
+        r.1,
+        a.1 / r.1
+    );
     let link = LinkEmulator::start(
         addr,
         LinkConfig::wan(Duration::from_millis(25), 100_000_000 / 8),
@@ -422,4 +765,6 @@ async fn main() {
     c.close().await;
     link.shutdown().await;
     server.shutdown().await;
+    cost_breakdown(pool_dir.path(), "lion-4k");
+    cost_breakdown(pool_dir.path(), "lion-1k");
 }

@@ -90,6 +90,21 @@ pub fn build_source(source: Source, scratch: TempDir, name: &str, opts: &BuildOp
     }
 }
 
+/// Copies a closed pool directory (sled's files and folders) to `to`: how replicas get their
+/// own copy of a pool.
+pub fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        let target = to.join(entry.file_name());
+        if entry.file_type().unwrap().is_dir() {
+            copy_dir(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), target).unwrap();
+        }
+    }
+}
+
 /// Asserts that `verify` finds no problem.
 pub fn assert_verifies(scene: &StoredScene) {
     let r = verify_scene(scene).unwrap();

@@ -14,11 +14,13 @@ use super::config::ClientConfig;
 use super::connection::{RequestList, Task, Wishes};
 use super::error::ClientError;
 use super::event::{ClientEvent, ClientStats};
+use super::replicas::Replicas;
 use super::shared::{Queued, Shared};
 use super::tls::install_crypto_provider;
 use super::transport::{CLOSE_TIMEOUT, quinn_client_config};
 
-/// A connection to one scene on one treelet server, kept up in the background.
+/// A connection to one scene on a treelet server (or one of its replicas), kept up in the
+/// background.
 ///
 /// [`TreeletClient::start`] spawns a task on the current tokio runtime that connects, sends
 /// `Hello`, and from then on sends the latest request list whenever it changes, receives
@@ -48,7 +50,7 @@ impl TreeletClient {
         config.validate()?;
         let runtime = tokio::runtime::Handle::try_current().map_err(|_| ClientError::NoRuntime)?;
         install_crypto_provider();
-        let quinn_config = quinn_client_config(&config.trust)?;
+        let quinn_config = quinn_client_config(&config.trust, config.idle_timeout())?;
         let hello = encode(&Frame::Hello {
             version: PROTOCOL_VERSION,
             scene: config.url.scene.clone(),
@@ -62,6 +64,7 @@ impl TreeletClient {
         let (shutdown_tx, shutdown_rx) = watch::channel(false);
         let (events_tx, events_rx) = mpsc::unbounded_channel();
         let task = Task {
+            replicas: Replicas::new(config.servers()),
             config,
             quinn_config,
             hello,
@@ -71,6 +74,7 @@ impl TreeletClient {
             shutdown: shutdown_rx,
             jitter: Jitter::from_entropy(),
             next_addr: 0,
+            last_server: None,
         };
         let task = runtime.spawn(task.run());
         Ok(Self {
@@ -153,7 +157,8 @@ impl TreeletClient {
         self.events.recv().await.map(|q| q.event)
     }
 
-    /// The scene of the current (or last) connection.
+    /// The scene of the current (or last) connection. With replicas it is the same on every
+    /// server: one that describes it differently is refused.
     pub fn scene(&self) -> Option<Arc<SceneDescription>> {
         self.shared.scene()
     }

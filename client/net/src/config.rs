@@ -1,5 +1,7 @@
 //! What a [`TreeletClient`](super::TreeletClient) is started with.
 
+use std::time::Duration;
+
 use arbor_proto::Channel;
 use arbor_proto::limits::{MAX_CHANNELS, MAX_TOKEN_BYTES, MAX_TREELET_MESSAGE_BYTES};
 
@@ -10,12 +12,26 @@ use super::url::ServerUrl;
 
 /// Default bound on received treelets the caller has not taken yet: 64 MiB.
 pub const DEFAULT_MAX_BUFFERED_BYTES: usize = 64 << 20;
+/// Default [`ClientConfig::failover_after`]: 750 ms.
+pub const DEFAULT_FAILOVER_AFTER: Duration = Duration::from_millis(750);
+/// Shortest [`ClientConfig::failover_after`]: keep-alives every third of it must stay cheap.
+pub const MIN_FAILOVER_AFTER: Duration = Duration::from_millis(100);
+/// Most replicas besides the URL.
+pub const MAX_REPLICAS: usize = 64;
 
 /// Everything a client needs to connect and stay connected.
 #[derive(Clone, Debug)]
 pub struct ClientConfig {
     /// Server and scene.
     pub url: ServerUrl,
+    /// Other servers of the same pool (the same scene description), tried in order after `url`
+    /// when a connection is lost or an attempt fails. Same scene name as `url`; a server that
+    /// describes the scene differently from the first one connected to is refused.
+    pub replicas: Vec<ServerUrl>,
+    /// With replicas, a connection on which nothing arrives for this long is lost (the QUIC idle
+    /// timeout, with keep-alives every third of it) and the client moves to the next server.
+    /// Without replicas the client waits [`crate::transport::IDLE_TIMEOUT`] instead.
+    pub failover_after: Duration,
     /// Access token for the scene (empty when it needs none), at most
     /// [`MAX_TOKEN_BYTES`].
     pub token: String,
@@ -45,12 +61,42 @@ impl ClientConfig {
     pub fn new(url: ServerUrl, trust: Trust) -> Self {
         Self {
             url,
+            replicas: Vec::new(),
+            failover_after: DEFAULT_FAILOVER_AFTER,
             token: String::new(),
             channels: Vec::new(),
             trust,
             backoff: Backoff::default(),
             max_buffered_bytes: DEFAULT_MAX_BUFFERED_BYTES,
             hello_flags: 0,
+        }
+    }
+
+    /// Sets the replicas of the same pool to fail over to.
+    pub fn with_replicas(mut self, replicas: impl IntoIterator<Item = ServerUrl>) -> Self {
+        self.replicas = replicas.into_iter().collect();
+        self
+    }
+
+    pub fn with_failover_after(mut self, after: Duration) -> Self {
+        self.failover_after = after;
+        self
+    }
+
+    /// The URL and then the replicas, in order of preference.
+    pub fn servers(&self) -> Vec<ServerUrl> {
+        std::iter::once(self.url.clone())
+            .chain(self.replicas.iter().cloned())
+            .collect()
+    }
+
+    /// The QUIC idle timeout the client offers: [`Self::failover_after`] with replicas, the
+    /// long [`crate::transport::IDLE_TIMEOUT`] without.
+    pub fn idle_timeout(&self) -> Duration {
+        if self.replicas.is_empty() {
+            crate::transport::IDLE_TIMEOUT
+        } else {
+            self.failover_after
         }
     }
 
@@ -108,12 +154,46 @@ impl ClientConfig {
                 self.hello_flags
             )));
         }
+        self.validate_replicas()?;
         if self.max_buffered_bytes == 0 {
             return Err(ClientError::InvalidConfig(
                 "max_buffered_bytes must be positive".into(),
             ));
         }
         self.backoff.validate()
+    }
+}
+
+impl ClientConfig {
+    fn validate_replicas(&self) -> Result<(), ClientError> {
+        if self.replicas.len() > MAX_REPLICAS {
+            return Err(ClientError::InvalidConfig(format!(
+                "{} replicas, at most {MAX_REPLICAS}",
+                self.replicas.len()
+            )));
+        }
+        let servers = self.servers();
+        for (i, r) in servers.iter().enumerate().skip(1) {
+            if r.scene != self.url.scene {
+                return Err(ClientError::InvalidConfig(format!(
+                    "replica {r} names scene {:?}, the URL {:?}: replicas serve the same scene",
+                    r.scene, self.url.scene
+                )));
+            }
+            if servers[..i].contains(r) {
+                return Err(ClientError::InvalidConfig(format!(
+                    "server {r} given twice"
+                )));
+            }
+        }
+        if !(MIN_FAILOVER_AFTER..=crate::transport::IDLE_TIMEOUT).contains(&self.failover_after) {
+            return Err(ClientError::InvalidConfig(format!(
+                "failover_after {:?} outside {MIN_FAILOVER_AFTER:?}..={:?}",
+                self.failover_after,
+                crate::transport::IDLE_TIMEOUT
+            )));
+        }
+        Ok(())
     }
 }
 

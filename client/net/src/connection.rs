@@ -18,9 +18,11 @@ use tokio::time::timeout;
 use super::backoff::Jitter;
 use super::config::ClientConfig;
 use super::event::ClientEvent;
+use super::replicas::Replicas;
 use super::shared::{Queued, Shared};
 use super::stream::{LocalClose, StreamContext, close_locally, read_stream};
 use super::transport::{CLOSE_TIMEOUT, HANDSHAKE_TIMEOUT, HELLO_TIMEOUT};
+use super::url::ServerUrl;
 
 /// The latest request list, shared between the handle and the task.
 pub(crate) type RequestList = Arc<Wishes>;
@@ -78,6 +80,8 @@ async fn shutdown_requested(rx: &mut watch::Receiver<bool>) {
 
 pub(crate) struct Task {
     pub config: ClientConfig,
+    /// The URL and its replicas, and which one is in use.
+    pub replicas: Replicas,
     pub quinn_config: quinn::ClientConfig,
     /// The encoded `Hello` frame.
     pub hello: Vec<u8>,
@@ -88,6 +92,8 @@ pub(crate) struct Task {
     pub jitter: Jitter,
     /// Index of the resolved address to try next; kept while connections succeed.
     pub next_addr: usize,
+    /// The server of the last established connection, to count failovers.
+    pub last_server: Option<ServerUrl>,
 }
 
 impl Task {
@@ -103,7 +109,16 @@ impl Task {
             if ending.connected {
                 attempt = 0;
             }
+            // A lost connection moves to the next replica at once; failed attempts move on too,
+            // with backoff.
+            let lost = ending.connected && self.replicas.can_fail_over();
+            if ending.retry && self.replicas.advance() {
+                self.next_addr = 0;
+            }
             let reconnect_in = ending.retry.then(|| {
+                if lost {
+                    return std::time::Duration::ZERO;
+                }
                 let d = self.config.backoff.delay(attempt, &mut self.jitter);
                 attempt = attempt.saturating_add(1);
                 d
@@ -116,7 +131,8 @@ impl Task {
                 }
             }
             tracing::info!(
-                url = %self.config.url,
+                url = %self.last_server.as_ref().unwrap_or(&self.config.url),
+                next = %self.replicas.current(),
                 code = ?ending.code,
                 reason = %ending.reason,
                 ?reconnect_in,
@@ -141,7 +157,7 @@ impl Task {
 
     /// One connection attempt and, if it succeeds, the connection's life.
     async fn session(&mut self, endpoint: &mut Option<Endpoint>, next_seq: &mut u64) -> Outcome {
-        let url = &self.config.url;
+        let url = &self.replicas.current().clone();
         let resolved = tokio::select! {
             r = tokio::net::lookup_host((url.host.as_str(), url.port)) => r,
             _ = shutdown_requested(&mut self.shutdown) => return Outcome::Shutdown,
@@ -212,6 +228,19 @@ impl Task {
 
         // Connected: stay with this address next time.
         self.next_addr = self.next_addr.wrapping_sub(1);
+        if let Err(reason) = self.replicas.admit(&scene) {
+            tracing::error!(%reason, "refusing a replica");
+            close_gracefully(&conn, Some(&mut send)).await;
+            return failed(reason, true);
+        }
+        {
+            let mut stats = self.shared.stats();
+            if self.last_server.as_ref().is_some_and(|s| s != url) {
+                stats.failovers += 1;
+            }
+            stats.server = Some(url.clone());
+        }
+        self.last_server = Some(url.clone());
         if scene.name != url.scene {
             tracing::warn!(asked = %url.scene, got = %scene.name, "server named the scene differently");
         }

@@ -70,4 +70,8 @@ pub struct ClientStats {
     pub buffered_bytes: usize,
     /// The most `buffered_bytes` ever was.
     pub peak_buffered_bytes: usize,
+    /// Connections made to a different server than the one before (failovers to a replica).
+    pub failovers: u64,
+    /// The server of the current (or last) connection.
+    pub server: Option<super::url::ServerUrl>,
 }

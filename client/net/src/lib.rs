@@ -29,6 +29,9 @@
 //! * [`tls`]: trusting the server by pinned certificate fingerprint or by CA ([`Trust`]).
 //! * [`transport`]: QUIC transport parameters and timeouts.
 //! * [`backoff`]: reconnect delays ([`Backoff`]).
+//! * Replicas ([`ClientConfig::with_replicas`]): other servers of the same pool; on a lost
+//!   connection the client moves to the next one at once and re-sends the latest list; a server
+//!   describing the scene differently is refused.
 //! * [`TreeletClient`]: the handle; a background task owns the connection, reconnects, sends
 //!   request lists and reads treelet streams (validating every message, only the channels asked
 //!   for, within a byte bound that pushes back on the server when the caller falls behind).
@@ -41,6 +44,7 @@ mod config;
 mod connection;
 mod error;
 mod event;
+mod replicas;
 mod shared;
 mod stream;
 pub mod tls;
@@ -49,7 +53,10 @@ pub mod url;
 
 pub use backoff::{Backoff, Jitter};
 pub use client::TreeletClient;
-pub use config::{ClientConfig, DEFAULT_MAX_BUFFERED_BYTES};
+pub use config::{
+    ClientConfig, DEFAULT_FAILOVER_AFTER, DEFAULT_MAX_BUFFERED_BYTES, MAX_REPLICAS,
+    MIN_FAILOVER_AFTER,
+};
 pub use connection::is_final_code;
 pub use error::ClientError;
 pub use event::{ClientEvent, ClientStats, ReceivedTreelet};

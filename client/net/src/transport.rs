@@ -30,27 +30,33 @@ pub const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
 /// How long a graceful close waits for the `Goodbye` to be written and the close to be sent.
 pub const CLOSE_TIMEOUT: Duration = Duration::from_secs(2);
 
-/// The transport parameters the client offers.
-pub fn transport_config() -> TransportConfig {
+/// The transport parameters the client offers, with `idle_timeout` (keep-alives every third
+/// of it, at most every [`KEEP_ALIVE`]).
+pub fn transport_config(idle_timeout: Duration) -> TransportConfig {
     let mut t = TransportConfig::default();
     t.max_concurrent_uni_streams(VarInt::from_u32(MAX_INCOMING_UNI_STREAMS))
         // The client opens the only bidirectional stream; the server opens none.
         .max_concurrent_bidi_streams(VarInt::from_u32(0))
         .stream_receive_window(VarInt::from_u32(STREAM_RECEIVE_WINDOW))
         .receive_window(VarInt::from_u32(RECEIVE_WINDOW))
-        .keep_alive_interval(Some(KEEP_ALIVE))
+        .keep_alive_interval(Some(KEEP_ALIVE.min(idle_timeout / 3)))
         .max_idle_timeout(Some(
-            IdleTimeout::try_from(IDLE_TIMEOUT).expect("30 s fits a QUIC idle timeout"),
+            IdleTimeout::try_from(idle_timeout.min(IDLE_TIMEOUT))
+                .expect("at most 30 s fits a QUIC idle timeout"),
         ));
     t
 }
 
-/// The quinn client configuration for `trust` (TLS from [`rustls_client_config`]).
-pub fn quinn_client_config(trust: &Trust) -> Result<quinn::ClientConfig, ClientError> {
+/// The quinn client configuration for `trust` (TLS from [`rustls_client_config`]) with
+/// `idle_timeout` (see [`transport_config`]).
+pub fn quinn_client_config(
+    trust: &Trust,
+    idle_timeout: Duration,
+) -> Result<quinn::ClientConfig, ClientError> {
     let tls = rustls_client_config(trust)?;
     let quic = QuicClientConfig::try_from(Arc::new(tls))
         .map_err(|e| ClientError::InvalidConfig(format!("QUIC TLS configuration: {e}")))?;
     let mut config = quinn::ClientConfig::new(Arc::new(quic));
-    config.transport_config(Arc::new(transport_config()));
+    config.transport_config(Arc::new(transport_config(idle_timeout)));
     Ok(config)
 }

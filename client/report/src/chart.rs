@@ -18,6 +18,9 @@
 //! rendered into an in-memory RGB buffer and encoded with the `image` crate (plotters' own
 //! `bitmap_encoder` would pull in an older `image`).
 //!
+//! Every series is clipped to its panel's plotting area (`clip.rs`), so a spike never crosses
+//! into the other panel; every series has its own colour.
+//!
 //! Degenerate reports never panic: values that are not finite are left out of the series,
 //! empty or zero-width axis ranges are widened, and values and ranges are clipped to ±10¹². An empty
 //! report still gives an `Ok` chart with empty axes and a "no cycles recorded" note; a
@@ -32,6 +35,7 @@ use plotters::prelude::*;
 use plotters::style::{FontStyle, register_font};
 
 use crate::assets::FONT;
+use crate::clip::{PlotArea, draw_clipped_line, legend_line};
 use crate::{CycleRecord, RunReport};
 
 /// Width of the chart, pixels.
@@ -86,10 +90,14 @@ pub(crate) fn ensure_font() -> Result<(), ChartError> {
 /// Returns `Ok` for every report, including an empty one (empty axes and a note); errors are
 /// only the font, drawing or writing the file.
 pub fn draw(report: &RunReport, path: &Path, title: &str) -> Result<(), ChartError> {
-    let buf = render_rgb(report, title)?;
+    save_png(&render_rgb(report, title)?, path)
+}
+
+/// Writes a packed RGB8 buffer of [`WIDTH`]×[`HEIGHT`] pixels as a PNG at `path`.
+pub(crate) fn save_png(buf: &[u8], path: &Path) -> Result<(), ChartError> {
     ::image::save_buffer_with_format(
         path,
-        &buf,
+        buf,
         WIDTH,
         HEIGHT,
         ::image::ExtendedColorType::Rgb8,
@@ -103,7 +111,16 @@ pub fn draw(report: &RunReport, path: &Path, title: &str) -> Result<(), ChartErr
 
 /// Renders the chart into a packed RGB8 buffer of [`WIDTH`]×[`HEIGHT`] pixels.
 pub fn render_rgb(report: &RunReport, title: &str) -> Result<Vec<u8>, ChartError> {
+    render_with_plot_areas(report, title).map(|(buf, _)| buf)
+}
+
+/// [`render_rgb`], also returning the plotting areas of the top and bottom panels.
+pub(crate) fn render_with_plot_areas(
+    report: &RunReport,
+    title: &str,
+) -> Result<(Vec<u8>, [PlotArea; 2]), ChartError> {
     ensure_font()?;
+    let areas;
     let mut buf = vec![0u8; WIDTH as usize * HEIGHT as usize * 3];
     {
         let root = BitMapBackend::with_buffer(&mut buf, (WIDTH, HEIGHT)).into_drawing_area();
@@ -111,8 +128,10 @@ pub fn render_rgb(report: &RunReport, title: &str) -> Result<Vec<u8>, ChartError
         let body = root.titled(title, ("sans-serif", 26)).map_err(draw_err)?;
         let panels = body.split_evenly((2, 1));
         let data = Series::from_report(&report.records);
-        draw_error_panel(&panels[0], &data)?;
-        draw_traffic_panel(&panels[1], &data)?;
+        areas = [
+            draw_error_panel(&panels[0], &data)?,
+            draw_traffic_panel(&panels[1], &data)?,
+        ];
         if report.records.is_empty() {
             let style = ("sans-serif", 28)
                 .into_font()
@@ -126,7 +145,7 @@ pub fn render_rgb(report: &RunReport, title: &str) -> Result<Vec<u8>, ChartError
         }
         root.present().map_err(draw_err)?;
     }
-    Ok(buf)
+    Ok((buf, areas))
 }
 
 type Points = Vec<(f64, f64)>;
@@ -234,12 +253,9 @@ const P95: RGBColor = RGBColor(255, 127, 14);
 const MAX: RGBColor = RGBColor(214, 39, 40);
 const RMSE: RGBColor = RGBColor(148, 103, 189);
 const RATE: RGBColor = RGBColor(44, 160, 44);
-const USED: RGBColor = RGBColor(31, 119, 180);
-const TOTAL: RGBColor = RGBColor(127, 127, 127);
-
-fn legend_line(color: RGBColor) -> impl Fn((i32, i32)) -> PathElement<(i32, i32)> {
-    move |(x, y)| PathElement::new(vec![(x, y), (x + 24, y)], color.stroke_width(2))
-}
+// Every series has its own colour, so a pixel tells which series (and panel) it belongs to.
+const USED: RGBColor = RGBColor(23, 190, 207);
+const TOTAL: RGBColor = RGBColor(140, 86, 75);
 
 /// One line of a panel.
 struct Line<'a> {
@@ -265,7 +281,7 @@ struct Panel<'a> {
 fn draw_error_panel(
     area: &DrawingArea<BitMapBackend<'_>, Shift>,
     s: &Series,
-) -> Result<(), ChartError> {
+) -> Result<PlotArea, ChartError> {
     let panel = Panel {
         caption: "Screen-space error",
         x_desc: None,
@@ -302,7 +318,7 @@ fn draw_error_panel(
 fn draw_traffic_panel(
     area: &DrawingArea<BitMapBackend<'_>, Shift>,
     s: &Series,
-) -> Result<(), ChartError> {
+) -> Result<PlotArea, ChartError> {
     let panel = Panel {
         caption: "Traffic and slots",
         x_desc: Some("run time (s)"),
@@ -332,12 +348,13 @@ fn draw_traffic_panel(
 }
 
 /// Draws `panel` into `area`: axes from its lines' values, the lines (with markers for short
-/// reports) and the legend. A right line with no points is left out of the legend.
+/// reports) and the legend. A right line with no points is left out of the legend. Returns the
+/// plotting area's pixels.
 fn draw_panel(
     area: &DrawingArea<BitMapBackend<'_>, Shift>,
     s: &Series,
     panel: Panel<'_>,
-) -> Result<(), ChartError> {
+) -> Result<PlotArea, ChartError> {
     let values = |lines: &[Line<'_>]| -> Vec<f64> {
         lines
             .iter()
@@ -373,43 +390,30 @@ fn draw_panel(
             .draw()
             .map_err(draw_err)?;
     }
+    let plot = chart.plotting_area().get_pixel_range();
+    // Lines are drawn clipped in pixels (clip.rs); the empty series only carry the legend.
     for line in &panel.left {
+        let pixels: Vec<(i32, i32)> = line.points.iter().map(|p| chart.backend_coord(p)).collect();
+        draw_clipped_line(area, &plot, &pixels, line.color, s.markers)?;
         chart
-            .draw_series(LineSeries::new(
-                line.points.iter().copied(),
-                line.color.stroke_width(2),
-            ))
+            .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
             .map_err(draw_err)?
             .label(line.label)
             .legend(legend_line(line.color));
-        if s.markers {
-            chart
-                .draw_series(
-                    line.points
-                        .iter()
-                        .map(|&p| Circle::new(p, 3, line.color.filled())),
-                )
-                .map_err(draw_err)?;
-        }
     }
     for line in panel.right.iter().filter(|l| !l.points.is_empty()) {
+        let secondary = chart.borrow_secondary();
+        let pixels: Vec<(i32, i32)> = line
+            .points
+            .iter()
+            .map(|p| secondary.backend_coord(p))
+            .collect();
+        draw_clipped_line(area, &plot, &pixels, line.color, s.markers)?;
         chart
-            .draw_secondary_series(LineSeries::new(
-                line.points.iter().copied(),
-                line.color.stroke_width(2),
-            ))
+            .draw_secondary_series(std::iter::empty::<PathElement<(f64, f64)>>())
             .map_err(draw_err)?
             .label(line.label)
             .legend(legend_line(line.color));
-        if s.markers {
-            chart
-                .draw_secondary_series(
-                    line.points
-                        .iter()
-                        .map(|&p| Circle::new(p, 3, line.color.filled())),
-                )
-                .map_err(draw_err)?;
-        }
     }
     chart
         .configure_series_labels()
@@ -418,7 +422,8 @@ fn draw_panel(
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
         .draw()
-        .map_err(draw_err)
+        .map_err(draw_err)?;
+    Ok(plot)
 }
 
 #[cfg(test)]
@@ -551,6 +556,66 @@ mod tests {
             ("no_time", no_time),
         ] {
             render_rgb(&report, name).unwrap_or_else(|e| panic!("{name}: {e}"));
+        }
+    }
+
+    /// A run with sharp spikes in every series: one-cycle jumps far above the rest, repeated
+    /// timestamps (zero-length segments), and a burst of traffic in a single cycle.
+    fn spiky(n: u32) -> RunReport {
+        let mut report = synthetic(n);
+        for (i, r) in report.records.iter_mut().enumerate() {
+            if i % 17 == 5 {
+                r.error.max = 60.0;
+                r.error.p95 = 40.0;
+                r.error.mean = 20.0;
+                r.image_rmse = Some(90.0);
+                r.bytes_received = 400_000_000;
+                r.slots_used = 4096;
+            }
+            if i % 23 == 7 {
+                r.error.max = 0.0;
+                r.slots_used = 0;
+            }
+            if i % 11 == 3 && i > 0 {
+                r.time_s = report_time(i - 1);
+            }
+        }
+        report
+    }
+
+    fn report_time(i: usize) -> f64 {
+        i as f64 / 30.0
+    }
+
+    /// Every pixel of exactly a series colour lies inside the plotting area of its panel.
+    #[test]
+    fn series_are_clipped_to_their_panels() {
+        let top = [MEAN, P95, MAX, RMSE];
+        let bottom = [RATE, USED, TOTAL];
+        for n in [12, 60, 400] {
+            let (buf, [top_area, bottom_area]) =
+                render_with_plot_areas(&spiky(n), "spikes").unwrap();
+            let mut drawn = 0usize;
+            for (i, px) in buf.chunks_exact(3).enumerate() {
+                let (x, y) = ((i % WIDTH as usize) as i32, (i / WIDTH as usize) as i32);
+                let colour = RGBColor(px[0], px[1], px[2]);
+                let inside = |a: &PlotArea| a.0.contains(&x) && a.1.contains(&y);
+                if top.contains(&colour) {
+                    drawn += 1;
+                    assert!(
+                        inside(&top_area),
+                        "{n}: {colour:?} at ({x}, {y}) outside {top_area:?}"
+                    );
+                }
+                if bottom.contains(&colour) {
+                    drawn += 1;
+                    assert!(
+                        inside(&bottom_area),
+                        "{n}: {colour:?} at ({x}, {y}) outside {bottom_area:?}"
+                    );
+                }
+            }
+            assert!(drawn > 1000, "{n}: only {drawn} series pixels");
         }
     }
 

@@ -4,15 +4,16 @@
 //! The single-run chart ([`crate::chart`]) shows everything about one run; this one answers
 //! "which run gets there first, and for how many bytes". Two panels share the x axis (run time,
 //! s): the top one the error mean (octree levels) of each run, the bottom one each run's bytes
-//! received so far (MB, 10⁶ bytes). Axis ranges cover every run's values, so no line leaves its
-//! panel; values that are not finite are left out.
+//! received so far (MB, 10⁶ bytes). Axis ranges cover every run's values and every line is
+//! clipped to its panel's plotting area (`clip.rs`); values that are not finite are left out.
 
 use std::path::Path;
 
 use plotters::prelude::*;
 
 use crate::RunReport;
-use crate::chart::{ChartError, HEIGHT, WIDTH, axis_range, clip, draw_err, ensure_font};
+use crate::chart::{ChartError, HEIGHT, WIDTH, axis_range, clip, draw_err, ensure_font, save_png};
+use crate::clip::{PlotArea, draw_clipped_line, legend_line};
 
 /// Colours of the runs, in order (repeated past ten runs).
 const PALETTE: [RGBColor; 10] = [
@@ -51,6 +52,15 @@ pub fn draw_comparison(
     path: &Path,
     title: &str,
 ) -> Result<(), ChartError> {
+    let (buf, _) = render_comparison(runs, title)?;
+    save_png(&buf, path)
+}
+
+/// The comparison as a packed RGB8 buffer, with the plotting areas of the two panels.
+fn render_comparison(
+    runs: &[(&str, &RunReport)],
+    title: &str,
+) -> Result<(Vec<u8>, [PlotArea; 2]), ChartError> {
     ensure_font()?;
     let error: Vec<Points> = runs
         .iter()
@@ -62,6 +72,7 @@ pub fn draw_comparison(
         .collect();
     let x = axis_range(error.iter().flatten().map(|p| p.0), true);
     let mut buf = vec![0u8; WIDTH as usize * HEIGHT as usize * 3];
+    let areas;
     {
         let root = BitMapBackend::with_buffer(&mut buf, (WIDTH, HEIGHT)).into_drawing_area();
         root.fill(&WHITE).map_err(draw_err)?;
@@ -69,33 +80,25 @@ pub fn draw_comparison(
         let panels = body.split_evenly((2, 1));
         let labels: Vec<&str> = runs.iter().map(|(l, _)| *l).collect();
         let top = ("Screen-space error mean", "error mean (levels)", None);
-        draw_lines(&panels[0], &x, &error, &labels, top)?;
         let bottom = ("Received so far", "MB received", Some("run time (s)"));
-        draw_lines(&panels[1], &x, &bytes, &labels, bottom)?;
+        areas = [
+            draw_lines(&panels[0], &x, &error, &labels, top)?,
+            draw_lines(&panels[1], &x, &bytes, &labels, bottom)?,
+        ];
         root.present().map_err(draw_err)?;
     }
-    ::image::save_buffer_with_format(
-        path,
-        &buf,
-        WIDTH,
-        HEIGHT,
-        ::image::ExtendedColorType::Rgb8,
-        ::image::ImageFormat::Png,
-    )
-    .map_err(|source| ChartError::Write {
-        path: path.to_path_buf(),
-        source,
-    })
+    Ok((buf, areas))
 }
 
-/// One panel: a line per run over the shared x range, `(caption, y label, x label)`.
+/// One panel: a line per run over the shared x range, `(caption, y label, x label)`, clipped to
+/// the plotting area, whose pixels it returns.
 fn draw_lines(
     area: &DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>,
     x: &std::ops::Range<f64>,
     lines: &[Points],
     labels: &[&str],
     (caption, y_desc, x_desc): (&str, &str, Option<&str>),
-) -> Result<(), ChartError> {
+) -> Result<PlotArea, ChartError> {
     let y = axis_range(lines.iter().flatten().map(|p| p.1), true);
     let mut chart = ChartBuilder::on(area)
         .margin(12)
@@ -113,18 +116,17 @@ fn draw_lines(
         .axis_desc_style(("sans-serif", 16))
         .draw()
         .map_err(draw_err)?;
+    let plot = chart.plotting_area().get_pixel_range();
     for (i, (points, label)) in lines.iter().zip(labels).enumerate() {
         let color = PALETTE[i % PALETTE.len()];
+        let pixels: Vec<(i32, i32)> = points.iter().map(|p| chart.backend_coord(p)).collect();
+        draw_clipped_line(area, &plot, &pixels, color, false)?;
+        // The empty series only carries the legend entry.
         chart
-            .draw_series(LineSeries::new(
-                points.iter().copied(),
-                color.stroke_width(2),
-            ))
+            .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
             .map_err(draw_err)?
             .label(*label)
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 24, y)], color.stroke_width(2))
-            });
+            .legend(legend_line(color));
     }
     chart
         .configure_series_labels()
@@ -133,7 +135,8 @@ fn draw_lines(
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
         .draw()
-        .map_err(draw_err)
+        .map_err(draw_err)?;
+    Ok(plot)
 }
 
 #[cfg(test)]
@@ -182,5 +185,36 @@ mod tests {
             assert!(top > 200 && bottom > 200, "{c:?}: {top} / {bottom} pixels");
         }
         assert_eq!(count(PALETTE[2]), [0, 0], "a third colour for two runs");
+    }
+
+    #[test]
+    fn spiky_runs_stay_inside_their_panels() {
+        let mut spiky = run(1.0, 3.0);
+        for (i, r) in spiky.records.iter_mut().enumerate() {
+            if i % 7 == 3 {
+                r.error.mean = 400.0;
+                r.bytes_received = 900_000_000;
+            }
+            if i % 5 == 1 && i > 0 {
+                r.time_s = 1.0 * (i - 1) as f64 / 50.0;
+            }
+        }
+        let calm = run(2.0, 5.0);
+        let (buf, [top, bottom]) =
+            render_comparison(&[("spiky", &spiky), ("calm", &calm)], "spikes").unwrap();
+        let mut drawn = 0;
+        for (i, px) in buf.chunks_exact(3).enumerate() {
+            let (x, y) = ((i % WIDTH as usize) as i32, (i / WIDTH as usize) as i32);
+            let colour = RGBColor(px[0], px[1], px[2]);
+            if PALETTE[..2].contains(&colour) {
+                drawn += 1;
+                let inside = |a: &PlotArea| a.0.contains(&x) && a.1.contains(&y);
+                assert!(
+                    inside(&top) || inside(&bottom),
+                    "{colour:?} at ({x}, {y}) outside {top:?} and {bottom:?}"
+                );
+            }
+        }
+        assert!(drawn > 400, "only {drawn} series pixels");
     }
 }

@@ -34,6 +34,7 @@
 
 mod assets;
 pub mod chart;
+mod clip;
 pub mod compare;
 
 pub use arbor_client_core::summary::ErrorSummary;

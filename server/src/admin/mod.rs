@@ -23,6 +23,7 @@
 //! logged, and [`AdminContext`]'s `Debug` redacts it.
 
 mod auth;
+pub mod https;
 mod metrics;
 mod page;
 mod views;

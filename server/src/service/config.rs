@@ -5,6 +5,9 @@
 //! data_dir = "/var/lib/arbor/state"     # cert.pem + key.pem + admin-token live here; default: db (CLI --data-dir)
 //! listen = "0.0.0.0:4433"               # QUIC, UDP (CLI --listen); default 127.0.0.1:4433
 //! admin_listen = "127.0.0.1:9090"       # admin HTTP (CLI --admin); "off" disables
+//! admin_tls = "auto"                    # HTTPS unless admin_listen is loopback; "on" always; "off" cleartext (CLI --admin-tls)
+//! admin_cert = "/etc/arbor/tls/admin.pem" # optional PEM chain + key for the admin HTTPS listener; default: the daemon's certificate
+//! admin_key = "/etc/arbor/tls/admin-key.pem"
 //! admin_token_file = "/etc/arbor/admin-token"   # or admin_token = "..."; neither: generated into <data_dir>/admin-token
 //! cert = "/etc/arbor/tls/fullchain.pem" # optional PEM chain + key instead of the self-signed pair
 //! key = "/etc/arbor/tls/key.pem"
@@ -13,6 +16,7 @@
 //! hello_timeout_ms = 5000
 //! max_connection_memory = 67108864
 //! initial_window = 131072             # QUIC congestion window at the start, bytes
+//! message_cache_bytes = 67108864      # built treelet messages kept for sending again, server-wide
 //! window_min = 8
 //! window_max = 1024
 //! slow_reader_timeout_ms = 10000
@@ -114,6 +118,19 @@ pub enum AdminTokenSource {
     Generated,
 }
 
+/// Whether the admin listener speaks HTTPS (`admin_tls`, CLI `--admin-tls`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum AdminTls {
+    /// HTTPS unless the admin address is a loopback address.
+    #[default]
+    Auto,
+    /// HTTPS on any address.
+    On,
+    /// Cleartext HTTP on any address (a warning is logged off loopback).
+    Off,
+}
+
 /// TLS identity source.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum TlsSource {
@@ -135,6 +152,11 @@ pub struct ServeConfig {
     /// Admin HTTP listen address; `None`: no admin API.
     pub admin_listen: Option<SocketAddr>,
     pub admin_token: AdminTokenSource,
+    /// HTTPS or cleartext on the admin listener.
+    pub admin_tls: AdminTls,
+    /// The admin listener's certificate when it differs from the daemon's (`admin_cert`,
+    /// `admin_key`); `SelfSigned`: the daemon's identity, whatever `tls` is.
+    pub admin_identity: TlsSource,
     /// A low-privilege token that opens only the admin API's `/readyz` (for orchestrator
     /// readiness probes, which cannot read secrets); `None`: `/readyz` needs the admin token.
     pub probe_token: Option<String>,
@@ -150,6 +172,9 @@ pub struct ServeConfig {
     /// packets) needs eight slow-start round trips to carry a 3 MB view; a larger start is how
     /// content servers fill a fresh connection sooner.
     pub initial_window: u64,
+    /// Bytes of built treelet messages kept server-wide, so a treelet sent again costs no pool
+    /// read and no copy (0: none kept).
+    pub message_cache_bytes: u64,
     /// Bounds of the per-connection in-flight window (treelets).
     pub window_min: usize,
     pub window_max: usize,
@@ -171,6 +196,7 @@ pub struct ConfigOverrides {
     pub listen: Option<SocketAddr>,
     /// `Some(None)`: `--admin off`.
     pub admin_listen: Option<Option<SocketAddr>>,
+    pub admin_tls: Option<AdminTls>,
     pub data_dir: Option<PathBuf>,
 }
 
@@ -189,6 +215,8 @@ pub struct MemoryPlan {
 
 /// Default [`ServeConfig::initial_window`]: 128 KiB.
 pub const DEFAULT_INITIAL_WINDOW: u64 = 128 << 10;
+/// Default [`ServeConfig::message_cache_bytes`]: 64 MiB.
+pub const DEFAULT_MESSAGE_CACHE_BYTES: u64 = 64 << 20;
 /// Smallest accepted initial window (two full-size packets).
 pub const MIN_INITIAL_WINDOW: u64 = 2400;
 /// Largest accepted initial window.
@@ -213,6 +241,9 @@ struct FileConfig {
     admin_listen: Option<String>,
     admin_token: Option<String>,
     admin_token_file: Option<PathBuf>,
+    admin_tls: Option<AdminTls>,
+    admin_cert: Option<PathBuf>,
+    admin_key: Option<PathBuf>,
     probe_token: Option<String>,
     cert: Option<PathBuf>,
     key: Option<PathBuf>,
@@ -221,6 +252,7 @@ struct FileConfig {
     hello_timeout_ms: Option<u64>,
     max_connection_memory: Option<u64>,
     initial_window: Option<u64>,
+    message_cache_bytes: Option<u64>,
     window_min: Option<usize>,
     window_max: Option<usize>,
     slow_reader_timeout_ms: Option<u64>,
@@ -279,6 +311,26 @@ fn key_at(src: &str, offset: usize) -> Option<String> {
     })
 }
 
+/// A PEM pair from two optional keys, both or neither.
+fn tls_source(
+    cert: Option<PathBuf>,
+    key: Option<PathBuf>,
+    (cert_key, key_key): (&str, &str),
+) -> Result<TlsSource, ConfigError> {
+    match (cert, key) {
+        (Some(cert), Some(key)) => Ok(TlsSource::Files { cert, key }),
+        (None, None) => Ok(TlsSource::SelfSigned),
+        (Some(_), None) => Err(invalid(
+            key_key,
+            format!("`{cert_key}` is set but `{key_key}` is not"),
+        )),
+        (None, Some(_)) => Err(invalid(
+            cert_key,
+            format!("`{key_key}` is set but `{cert_key}` is not"),
+        )),
+    }
+}
+
 /// Reads a token file: surrounding whitespace trimmed, must not be empty.
 fn read_token_file(key: &str, path: &Path) -> Result<String, ConfigError> {
     let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
@@ -305,6 +357,8 @@ impl ServeConfig {
             listen: DEFAULT_LISTEN.parse().expect("valid default"),
             admin_listen: Some(DEFAULT_ADMIN_LISTEN.parse().expect("valid default")),
             admin_token: AdminTokenSource::Generated,
+            admin_tls: AdminTls::Auto,
+            admin_identity: TlsSource::SelfSigned,
             probe_token: None,
             tls: TlsSource::SelfSigned,
             max_connections: 256,
@@ -312,6 +366,7 @@ impl ServeConfig {
             hello_timeout_ms: 5_000,
             max_connection_memory: 64 << 20,
             initial_window: DEFAULT_INITIAL_WINDOW,
+            message_cache_bytes: DEFAULT_MESSAGE_CACHE_BYTES,
             window_min: 8,
             window_max: 1024,
             slow_reader_timeout_ms: 10_000,
@@ -393,12 +448,9 @@ impl ServeConfig {
             (None, None) => AdminTokenSource::Generated,
         };
         c.probe_token = f.probe_token;
-        c.tls = match (f.cert, f.key) {
-            (Some(cert), Some(key)) => TlsSource::Files { cert, key },
-            (None, None) => TlsSource::SelfSigned,
-            (Some(_), None) => return Err(invalid("key", "`cert` is set but `key` is not")),
-            (None, Some(_)) => return Err(invalid("cert", "`key` is set but `cert` is not")),
-        };
+        c.tls = tls_source(f.cert, f.key, ("cert", "key"))?;
+        c.admin_tls = overrides.admin_tls.or(f.admin_tls).unwrap_or_default();
+        c.admin_identity = tls_source(f.admin_cert, f.admin_key, ("admin_cert", "admin_key"))?;
         macro_rules! take {
             ($($field:ident),*) => { $( if let Some(v) = f.$field { c.$field = v; } )* };
         }
@@ -408,6 +460,7 @@ impl ServeConfig {
             hello_timeout_ms,
             max_connection_memory,
             initial_window,
+            message_cache_bytes,
             window_min,
             window_max,
             slow_reader_timeout_ms,
@@ -751,6 +804,7 @@ access = "public"
             listen: Some("127.0.0.1:1".parse().unwrap()),
             admin_listen: Some(None),
             data_dir: Some("cli-data".into()),
+            ..ConfigOverrides::default()
         };
         let c = ServeConfig::from_toml(
             "db = \"file-db\"\nlisten = \"0.0.0.0:5\"\nadmin_listen = \"127.0.0.1:6\"\ndata_dir = \"d\"",

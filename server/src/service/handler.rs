@@ -20,13 +20,16 @@ use super::push::{WorldCube, deep_list};
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
 use super::shared::Shared;
 use super::shutdown::Shutdown;
-use super::streams::{CANCEL_CODE, OpenStream, Outcome, StreamCtx, open_in_order, send_treelet};
-use super::treelets::ServedScene;
+use super::streams::{CANCEL_CODE, OpenStream, Outcome, StreamCtx, open_in_order, send_batch};
+use super::treelets::{MAX_TREELETS_PER_STREAM, ServedScene};
 
 /// How often the window and the slow-reader watchdog are updated.
 const TICK: Duration = Duration::from_millis(50);
 /// Added to the RTT for the redelivery guard: about one client cycle.
 const CLIENT_CYCLE: Duration = Duration::from_millis(50);
+/// Batches hold at most this share of the window, so several are in flight and the window
+/// refills while a batch is acknowledged.
+const BATCHES_PER_WINDOW: usize = 4;
 
 /// The connection's whole service: `Hello`, then the main loop. Returns how it ends.
 pub(super) async fn serve(
@@ -90,10 +93,13 @@ struct Handler {
     /// Asks the opener for the next stream, in rank order.
     opens: mpsc::UnboundedSender<oneshot::Sender<OpenStream>>,
     opener: AbortOnDrop,
-    /// One task per treelet in flight.
-    streams: JoinSet<(TreeletId, Outcome)>,
-    /// How to cancel each treelet in flight.
-    cancels: HashMap<TreeletId, oneshot::Sender<ErrorCode>>,
+    /// One task per batch in flight.
+    streams: JoinSet<(Vec<TreeletId>, Outcome)>,
+    /// The batch of each treelet in flight.
+    batch_of: HashMap<TreeletId, u64>,
+    /// Per batch: how to cancel it, and how many of its treelets the latest list still wants.
+    batches: HashMap<u64, (oneshot::Sender<ErrorCode>, usize)>,
+    next_batch: u64,
     /// Rank of the next treelet started under the current list (0 = the list's first).
     rank: i32,
     /// The client may still send frames.
@@ -118,7 +124,16 @@ impl Handler {
         });
         tracing::info!(channels = ?channels.iter().map(|c| c.name()).collect::<Vec<_>>(), "hello accepted");
         let (route, jobs) = mpsc::unbounded_channel();
-        let window = shared.config.window_min;
+        // Twice the initial congestion window from the start (as `on_tick` keeps it), in the
+        // scene's mean stored treelet, so a fresh connection is not held to `window_min` until
+        // the first tick (a whole small scene is sent before it).
+        let stats = &scene.stored.description.stats;
+        let stored = stats.node_bytes + stats.channel_bytes.iter().sum::<u64>();
+        let mean = (stored / u64::from(scene.treelet_count().max(1))).max(256);
+        let window = (2 * shared.config.initial_window).div_ceil(mean).clamp(
+            shared.config.window_min as u64,
+            shared.config.window_max as u64,
+        ) as usize;
         {
             let mut core = shared.core();
             core.routes.insert(id, route);
@@ -155,7 +170,9 @@ impl Handler {
             opens,
             opener,
             streams: JoinSet::new(),
-            cancels: HashMap::new(),
+            batch_of: HashMap::new(),
+            batches: HashMap::new(),
+            next_batch: 0,
             rank: 0,
             reading: true,
             window,
@@ -173,7 +190,7 @@ impl Handler {
                 Some(t) = self.jobs.recv() => self.on_treelet(t),
                 Some(joined) = self.streams.join_next(), if !self.streams.is_empty() => {
                     match joined {
-                        Ok((t, outcome)) => self.on_stream_end(t, outcome),
+                        Ok((batch, outcome)) => self.on_stream_end(&batch, outcome),
                         Err(_) => None,
                     }
                 }
@@ -240,11 +257,7 @@ impl Handler {
                 obsolete_in_flight, ..
             }) => {
                 self.rank = 0;
-                for t in obsolete_in_flight {
-                    if let Some(tx) = self.cancels.remove(&t) {
-                        let _ = tx.send(CANCEL_CODE);
-                    }
-                }
+                self.cancel_obsolete(&obsolete_in_flight);
             }
             Ok(ListOutcome::Stale { last_seq }) => {
                 tracing::debug!(seq, last_seq, "stale request list ignored");
@@ -294,8 +307,28 @@ impl Handler {
         self.on_request_list(seq, list)
     }
 
-    /// The dispatcher handed over a treelet: start its stream task, ranked after the ones
-    /// started before under the same list.
+    /// Resets the streams of batches the latest list wants nothing of any more; a batch with
+    /// a treelet still wanted goes on (the few unwanted ones in it arrive anyway).
+    fn cancel_obsolete(&mut self, obsolete: &[TreeletId]) {
+        for t in obsolete {
+            let Some(b) = self.batch_of.get(t) else {
+                continue;
+            };
+            if let Some((_, wanted)) = self.batches.get_mut(b) {
+                *wanted = wanted.saturating_sub(1);
+                if *wanted == 0
+                    && let Some((tx, _)) = self.batches.remove(b)
+                {
+                    let _ = tx.send(CANCEL_CODE);
+                }
+            }
+        }
+    }
+
+    /// The dispatcher handed over a treelet: start a stream task for it and the treelets handed
+    /// over right after it (adjacent in rank, up to [`MAX_TREELETS_PER_STREAM`] and a quarter of
+    /// the window),
+    /// ranked after the ones started before under the same list.
     fn on_treelet(&mut self, t: TreeletId) -> Option<End> {
         if let Some(e) = self.conn.close_reason() {
             // Lost under our feet: do not churn through the queue opening streams.
@@ -305,26 +338,43 @@ impl Handler {
             // Idle until now: the watchdog counts from here.
             self.ctx.progress();
         }
+        let most = (self.window / BATCHES_PER_WINDOW).clamp(1, MAX_TREELETS_PER_STREAM);
+        let mut batch = vec![t];
+        while batch.len() < most
+            && let Ok(next) = self.jobs.try_recv()
+        {
+            batch.push(next);
+        }
         let (tx, rx) = oneshot::channel();
-        self.cancels.insert(t, tx);
+        let id = self.next_batch;
+        self.next_batch += 1;
+        for &t in &batch {
+            self.batch_of.insert(t, id);
+        }
+        self.batches.insert(id, (tx, batch.len()));
         let (open_tx, open_rx) = oneshot::channel();
         let _ = self.opens.send(open_tx);
         let priority = self.rank.saturating_neg();
-        self.rank = self.rank.saturating_add(1);
+        self.rank = self.rank.saturating_add(batch.len() as i32);
         self.streams
-            .spawn(send_treelet(self.ctx.clone(), t, priority, open_rx, rx));
+            .spawn(send_batch(self.ctx.clone(), batch, priority, open_rx, rx));
         None
     }
 
-    /// A treelet stream task ended.
-    fn on_stream_end(&mut self, t: TreeletId, outcome: Outcome) -> Option<End> {
-        self.cancels.remove(&t);
+    /// A batch's stream task ended.
+    fn on_stream_end(&mut self, batch: &[TreeletId], outcome: Outcome) -> Option<End> {
+        if let Some(b) = batch.first().and_then(|t| self.batch_of.get(t)) {
+            self.batches.remove(b);
+        }
+        for t in batch {
+            self.batch_of.remove(t);
+        }
         match outcome {
             Outcome::Failed(reason) => {
-                tracing::error!(treelet = t.0, "{reason}");
+                tracing::error!(treelets = ?batch, "{reason}");
                 Some(close(
                     ErrorCode::Internal,
-                    format!("treelet {} unavailable", t.0),
+                    format!("treelets {batch:?} unavailable"),
                 ))
             }
             Outcome::Lost | Outcome::Delivered | Outcome::Cancelled | Outcome::StoppedByPeer => {
@@ -397,15 +447,15 @@ impl Handler {
         while !self.streams.is_empty() {
             tokio::select! {
                 joined = self.streams.join_next() => {
-                    if let Some(Ok((t, _))) = joined {
-                        self.cancels.remove(&t);
+                    if let Some(Ok((batch, outcome))) = joined {
+                        self.on_stream_end(&batch, outcome);
                     }
                 }
                 _ = tokio::time::sleep_until(deadline) => break,
             }
         }
         let left = self.streams.len();
-        for (_, tx) in self.cancels.drain() {
+        for (_, (tx, _)) in self.batches.drain() {
             let _ = tx.send(ErrorCode::ShuttingDown);
         }
         tracing::debug!(in_flight, reset = left, "drained for shutdown");
@@ -422,7 +472,7 @@ impl Handler {
             End::Close { code, .. } => *code,
             End::Lost(_) => CANCEL_CODE,
         };
-        for (_, tx) in self.cancels.drain() {
+        for (_, (tx, _)) in self.batches.drain() {
             let _ = tx.send(code);
         }
         let streams = &mut self.streams;

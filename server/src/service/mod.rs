@@ -6,11 +6,13 @@
 //!   for every connection, which treelets to send in which order, how many may be in flight, and
 //!   which connection goes next; it is unit- and property-tested without sockets.
 //! * [`config`]: `ServeConfig` from TOML + CLI overrides, validation, scene access.
-//! * [`tls`]: the certificate (self-signed on first start, or given) and its fingerprint.
+//! * [`tls`]: the certificate (self-signed on first start, or given) and its fingerprint;
+//!   [`reset`]: stateless resets that outlive the process (key from the TLS key, random ids).
 //! * [`server`]: [`start_service`] → [`RunningService`]: QUIC endpoint, connection cap,
 //!   dispatcher, graceful shutdown; [`connection`]: one client; [`shutdown`]: the broadcast and
-//!   drop-to-finish plumbing; [`treelets`]: treelet messages from the pool; `shared`: what the
-//!   tasks share (scheduler, routes, scenes).
+//!   drop-to-finish plumbing; [`treelets`]: treelet messages from the pool and their cache
+//!   bounded in bytes; `streams`: a few treelets per stream; `shared`: what the tasks share
+//!   (scheduler, routes, scenes, message cache).
 //!
 //! The daemon ([`crate::daemon`]) starts this service and mounts the admin API beside it.
 //! * [`state`]: metrics, sessions and readiness shared with the admin API.
@@ -18,6 +20,7 @@ pub mod config;
 pub mod connection;
 mod handler;
 pub mod push;
+pub mod reset;
 pub mod schedule;
 pub mod server;
 mod shared;

@@ -12,7 +12,7 @@ use tokio::sync::{Notify, mpsc};
 use super::config::ServeConfig;
 use super::schedule::{ConnectionId, Scheduler, SchedulerConfig};
 use super::state::ServiceState;
-use super::treelets::ServedScene;
+use super::treelets::{MessageCache, ServedScene};
 use crate::pool::{Pool, StoredScene};
 
 /// How long a closing connection waits for its last control frame (`Error`, `Goodbye`) to be
@@ -37,6 +37,8 @@ pub(crate) struct Shared {
     /// Wakes the dispatcher: a list arrived, a treelet left the window, a window changed.
     pub wake: Notify,
     scenes: Mutex<HashMap<String, Arc<ServedScene>>>,
+    /// Built treelet messages of every scene, bounded by `message_cache_bytes`.
+    pub messages: Arc<MessageCache>,
     next_id: AtomicU64,
 }
 
@@ -54,6 +56,9 @@ impl Shared {
             }),
             wake: Notify::new(),
             scenes: Mutex::new(HashMap::new()),
+            messages: Arc::new(MessageCache::new(
+                usize::try_from(config.message_cache_bytes).unwrap_or(usize::MAX),
+            )),
             next_id: AtomicU64::new(1),
             config,
         }
@@ -79,7 +84,7 @@ impl Shared {
         {
             return s.clone();
         }
-        let s = Arc::new(ServedScene::new(stored));
+        let s = Arc::new(ServedScene::with_cache(stored, self.messages.clone()));
         scenes.insert(name, s.clone());
         s
     }

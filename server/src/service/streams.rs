@@ -1,5 +1,7 @@
-//! Treelet streams: one server-opened unidirectional stream per treelet, opened in rank order
-//! by one opener per connection, written from the pool's stored bytes, reset when cancelled.
+//! Treelet streams: one server-opened unidirectional stream per batch of treelets adjacent in
+//! rank (a few per stream, so the per-stream cost of QUIC is shared), opened in rank order by one
+//! opener per connection, written from the cached messages without a copy, reset when the
+//! latest list wants none of the batch.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -7,7 +9,6 @@ use std::time::{Duration, Instant};
 
 use arbor_proto::wire::ErrorCode;
 use arbor_proto::{Channel, TreeletId};
-use bytes::Bytes;
 use tokio::sync::{mpsc, oneshot};
 
 use super::schedule::ConnectionId;
@@ -19,7 +20,7 @@ use super::treelets::ServedScene;
 pub const CANCEL_CODE: ErrorCode = ErrorCode::NoError;
 
 /// Mean treelet message size assumed before any was sent.
-const DEFAULT_TREELET_BYTES: u64 = 4096;
+pub(super) const DEFAULT_TREELET_BYTES: u64 = 4096;
 
 /// What a treelet stream task shares with its connection.
 pub(super) struct StreamCtx {
@@ -123,23 +124,29 @@ pub(super) async fn open_in_order(
     }
 }
 
-pub(super) async fn send_treelet(
+/// Sends a batch of treelets, adjacent in rank, on one stream: their messages back to back,
+/// the stream finished, then waits until the client has all of it. The batch is cancelled as a
+/// whole (its stream reset) when the connection's latest list no longer wants any of it; the
+/// scheduler then hears of every treelet of the batch.
+pub(super) async fn send_batch(
     ctx: Arc<StreamCtx>,
-    t: TreeletId,
+    batch: Vec<TreeletId>,
     priority: i32,
     opened: oneshot::Receiver<OpenStream>,
     mut cancel: oneshot::Receiver<ErrorCode>,
-) -> (TreeletId, Outcome) {
-    let outcome = transfer(&ctx, t, priority, opened, &mut cancel).await;
+) -> (Vec<TreeletId>, Outcome) {
+    let outcome = transfer(&ctx, &batch, priority, opened, &mut cancel).await;
     let now = Instant::now();
     {
         let mut core = ctx.shared.core();
-        match outcome {
-            Outcome::Delivered => {
-                core.sched.handle_delivered(ctx.id, t, now);
-            }
-            _ => {
-                core.sched.handle_cancelled(ctx.id, t);
+        for &t in &batch {
+            match outcome {
+                Outcome::Delivered => {
+                    core.sched.handle_delivered(ctx.id, t, now);
+                }
+                _ => {
+                    core.sched.handle_cancelled(ctx.id, t);
+                }
             }
         }
     }
@@ -148,25 +155,28 @@ pub(super) async fn send_treelet(
             .state
             .metrics
             .treelets_cancelled
-            .fetch_add(1, Ordering::Relaxed);
+            .fetch_add(batch.len() as u64, Ordering::Relaxed);
     }
     ctx.shared.wake.notify_one();
-    (t, outcome)
+    (batch, outcome)
 }
 
 async fn transfer(
     ctx: &StreamCtx,
-    t: TreeletId,
+    batch: &[TreeletId],
     priority: i32,
     opened: oneshot::Receiver<OpenStream>,
     cancel: &mut oneshot::Receiver<ErrorCode>,
 ) -> Outcome {
-    // Read from the pool while the stream is being opened.
-    let message = match ctx.scene.message(t, &ctx.channels) {
-        Ok(m) => m,
-        Err(e) => return Outcome::Failed(e.to_string()),
-    };
-    let len = message.len() as u64;
+    // Read (or take from the cache) while the stream is being opened.
+    let mut messages = Vec::with_capacity(batch.len());
+    for &t in batch {
+        match ctx.scene.message(t, &ctx.channels) {
+            Ok(m) => messages.push(m),
+            Err(e) => return Outcome::Failed(e.to_string()),
+        }
+    }
+    let len: u64 = messages.iter().map(|m| m.len() as u64).sum();
     let cancelled = |r: Result<ErrorCode, oneshot::error::RecvError>| r.unwrap_or(CANCEL_CODE);
     let step = tokio::select! {
         biased;
@@ -182,10 +192,11 @@ async fn transfer(
     };
     let stream = &mut open.stream;
     let _ = stream.set_priority(priority);
+    // The cached bytes go to quinn as they are: no copy, no re-framing.
     let step = tokio::select! {
         biased;
         c = &mut *cancel => Step::Cancel(cancelled(c)),
-        r = stream.write_chunk(Bytes::from(message)) => Step::Done(r),
+        r = stream.write_all_chunks(&mut messages) => Step::Done(r),
     };
     match step {
         Step::Cancel(code) => {
@@ -199,23 +210,9 @@ async fn transfer(
     }
     let _ = stream.finish();
     open.finished = true;
-    let stream = &mut open.stream;
     ctx.progress();
-    let now = Instant::now();
-    let latency = ctx.shared.core().sched.handle_sent(ctx.id, t, now);
-    let m = &ctx.shared.state.metrics;
-    if let Some(l) = latency {
-        m.request_to_send.observe(l);
-    }
-    m.treelets_sent.fetch_add(1, Ordering::Relaxed);
-    m.treelet_bytes_sent.fetch_add(len, Ordering::Relaxed);
-    ctx.treelets_sent.fetch_add(1, Ordering::Relaxed);
-    ctx.bytes_sent.fetch_add(len, Ordering::Relaxed);
-    ctx.shared.state.update_session(ctx.id.0, |s| {
-        s.treelets_sent += 1;
-        s.bytes_sent += len;
-    });
-    let stopped = stream.stopped();
+    record_sent(ctx, batch, len);
+    let stopped = open.stream.stopped();
     let step = tokio::select! {
         biased;
         c = &mut *cancel => Step::Cancel(cancelled(c)),
@@ -229,7 +226,11 @@ async fn transfer(
         Step::Done(Ok(Some(_))) => Outcome::StoppedByPeer,
         Step::Done(Err(_)) => Outcome::Lost,
         Step::Cancel(code) => {
-            if stream.reset(quinn::VarInt::from_u32(code.to_u32())).is_ok() {
+            if open
+                .stream
+                .reset(quinn::VarInt::from_u32(code.to_u32()))
+                .is_ok()
+            {
                 Outcome::Cancelled
             } else {
                 // Already fully acknowledged: nothing left to cancel.
@@ -237,4 +238,29 @@ async fn transfer(
             }
         }
     }
+}
+
+/// The scheduler, the metrics and the session hear that a batch was written.
+fn record_sent(ctx: &StreamCtx, batch: &[TreeletId], len: u64) {
+    let now = Instant::now();
+    let latencies: Vec<Duration> = {
+        let mut core = ctx.shared.core();
+        batch
+            .iter()
+            .filter_map(|&t| core.sched.handle_sent(ctx.id, t, now))
+            .collect()
+    };
+    let m = &ctx.shared.state.metrics;
+    for l in latencies {
+        m.request_to_send.observe(l);
+    }
+    let n = batch.len() as u64;
+    m.treelets_sent.fetch_add(n, Ordering::Relaxed);
+    m.treelet_bytes_sent.fetch_add(len, Ordering::Relaxed);
+    ctx.treelets_sent.fetch_add(n, Ordering::Relaxed);
+    ctx.bytes_sent.fetch_add(len, Ordering::Relaxed);
+    ctx.shared.state.update_session(ctx.id.0, |s| {
+        s.treelets_sent += n;
+        s.bytes_sent += len;
+    });
 }

@@ -137,7 +137,7 @@ fn write_atomically(path: &Path, data: &[u8], mode: u32) -> Result<(), TlsError>
 }
 
 /// Reads a PEM chain and key.
-fn read_pem(cert: &Path, key: &Path) -> Result<TlsIdentity, TlsError> {
+pub(crate) fn read_pem(cert: &Path, key: &Path) -> Result<TlsIdentity, TlsError> {
     let cert_bytes = std::fs::read(cert).map_err(io_err(cert))?;
     let certs = CertificateDer::pem_slice_iter(&cert_bytes)
         .collect::<Result<Vec<_>, _>>()

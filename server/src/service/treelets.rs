@@ -1,18 +1,20 @@
 //! Treelet messages as the service sends them: the stored blocks, unchanged, behind
 //! [`arbor_proto::frame::encode_treelet_header`].
 //!
-//! The header needs `used_nodes`, which the pool does not store next to the block. Decision: it
-//! is read from the node block itself (decompressed with the scene's prepared dictionary, header
-//! decoded) the first time a treelet is sent and kept in a small direct-mapped cache per scene
-//! (at most 65,536 entries of 8 bytes, lock-free), so a treelet sent again — to another client, or
-//! after an eviction — costs no decompression. Measured on the bunny at 1 KiB the first
-//! decompression costs a few microseconds; nothing is ever recompressed.
+//! The header needs `used_nodes`, which the pool does not store next to the block: it is read
+//! from the node block itself (decompressed with the scene's prepared dictionary, header
+//! decoded) when the message is built. Built messages are kept in a [`MessageCache`] bounded in
+//! bytes (server-wide, `message_cache_bytes`), so a treelet sent again — to another client, or
+//! after an eviction — costs no pool read, no decompression and no copy: the cached [`Bytes`]
+//! go to the wire as they are. Nothing is ever recompressed.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::collections::{HashMap, VecDeque};
+use std::sync::{Arc, Mutex};
 
 use arbor_proto::codec::{self, MAX_RAW_TREELET};
 use arbor_proto::frame::{FrameError, encode_treelet_header};
 use arbor_proto::{Channel, ProtoError, TreeletId};
+use bytes::Bytes;
 
 use super::push::TreeIndex;
 use crate::pool::{PoolError, StoredScene};
@@ -43,14 +45,92 @@ pub enum MessageError {
     },
 }
 
-const CACHE_MAX: usize = 1 << 16;
+/// Most treelet messages on one stream. Measured (`cargo bench -p arbor-tests --bench serve`):
+/// QUIC's per-stream cost (open, credit, frames, acknowledgement bookkeeping, one task) dominated
+/// a 4 KiB treelet; a few per stream share it.
+pub const MAX_TREELETS_PER_STREAM: usize = 64;
+
+/// Which message: scene generation, treelet, channel set (bit per channel id).
+type MessageKey = (u64, u32, u32);
+
+/// Built treelet messages, bounded in bytes, oldest insertion evicted first (a treelet's
+/// popularity follows the views of many clients; FIFO keeps the bookkeeping to one queue and
+/// one map under one short lock).
+#[derive(Debug)]
+pub struct MessageCache {
+    capacity: usize,
+    inner: Mutex<CacheInner>,
+}
+
+#[derive(Debug, Default)]
+struct CacheInner {
+    map: HashMap<MessageKey, Bytes>,
+    order: VecDeque<MessageKey>,
+    bytes: usize,
+    hits: u64,
+    misses: u64,
+}
+
+impl MessageCache {
+    /// A cache holding at most `capacity` bytes of messages (0: nothing is kept).
+    pub fn new(capacity: usize) -> MessageCache {
+        MessageCache {
+            capacity,
+            inner: Mutex::default(),
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, CacheInner> {
+        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn get(&self, key: &MessageKey) -> Option<Bytes> {
+        let mut inner = self.lock();
+        let hit = inner.map.get(key).cloned();
+        if hit.is_some() {
+            inner.hits += 1;
+        } else {
+            inner.misses += 1;
+        }
+        hit
+    }
+
+    fn insert(&self, key: MessageKey, message: Bytes) {
+        if message.len() > self.capacity {
+            return;
+        }
+        let mut inner = self.lock();
+        if inner.map.contains_key(&key) {
+            return;
+        }
+        while inner.bytes + message.len() > self.capacity {
+            let Some(old) = inner.order.pop_front() else {
+                break;
+            };
+            if let Some(b) = inner.map.remove(&old) {
+                inner.bytes -= b.len();
+            }
+        }
+        inner.bytes += message.len();
+        inner.order.push_back(key);
+        inner.map.insert(key, message);
+    }
+
+    /// `(bytes held, hits, misses)`.
+    pub fn figures(&self) -> (usize, u64, u64) {
+        let inner = self.lock();
+        (inner.bytes, inner.hits, inner.misses)
+    }
+}
+
+/// Cache of a scene opened on its own (tools, benches): 16 MiB.
+const DEFAULT_CACHE_BYTES: usize = 16 << 20;
 
 /// A scene opened for serving.
 pub struct ServedScene {
     pub stored: StoredScene,
     dictionary: Option<zstd::dict::DecoderDictionary<'static>>,
-    /// Direct-mapped `used_nodes` cache: entry = `(id + 1) << 16 | used_nodes`, 0 = empty.
-    used: Vec<AtomicU64>,
+    cache: Arc<MessageCache>,
     /// Treelet shapes for deep-request pushes.
     pub tree: TreeIndex,
 }
@@ -65,19 +145,22 @@ impl std::fmt::Debug for ServedScene {
 }
 
 impl ServedScene {
+    /// A scene with a cache of its own.
     pub fn new(stored: StoredScene) -> ServedScene {
+        Self::with_cache(stored, Arc::new(MessageCache::new(DEFAULT_CACHE_BYTES)))
+    }
+
+    /// A scene sharing the server's message cache.
+    pub fn with_cache(stored: StoredScene, cache: Arc<MessageCache>) -> ServedScene {
         let dictionary = stored
             .description
             .node_dictionary
             .as_deref()
             .map(zstd::dict::DecoderDictionary::copy);
-        let n = (stored.description.treelet_count as usize)
-            .clamp(1, CACHE_MAX)
-            .next_power_of_two();
         ServedScene {
             stored,
             dictionary,
-            used: (0..n).map(|_| AtomicU64::new(0)).collect(),
+            cache,
             tree: TreeIndex::default(),
         }
     }
@@ -86,31 +169,21 @@ impl ServedScene {
         self.stored.description.treelet_count
     }
 
-    /// `used_nodes` of a treelet, from the cache or its node block.
+    /// `used_nodes` of a treelet, from its node block.
     fn used_nodes(&self, id: TreeletId, nodes: &[u8]) -> Result<u16, MessageError> {
-        let slot = &self.used[id.0 as usize & (self.used.len() - 1)];
-        let tag = (u64::from(id.0) + 1) << 16;
-        let e = slot.load(Ordering::Relaxed);
-        if e & !0xffff == tag {
-            return Ok((e & 0xffff) as u16);
-        }
         let corrupt = |source| MessageError::Corrupt { id: id.0, source };
+        let compression = |e: std::io::Error| {
+            corrupt(ProtoError::Compression {
+                what: "decompress",
+                detail: e.to_string(),
+            })
+        };
         let mut d = match &self.dictionary {
             Some(dict) => zstd::bulk::Decompressor::with_prepared_dictionary(dict),
             None => zstd::bulk::Decompressor::new(),
         }
-        .map_err(|e| {
-            corrupt(ProtoError::Compression {
-                what: "decompress",
-                detail: e.to_string(),
-            })
-        })?;
-        let raw = d.decompress(nodes, MAX_RAW_TREELET).map_err(|e| {
-            corrupt(ProtoError::Compression {
-                what: "decompress",
-                detail: e.to_string(),
-            })
-        })?;
+        .map_err(compression)?;
+        let raw = d.decompress(nodes, MAX_RAW_TREELET).map_err(compression)?;
         let (header, _) = codec::decode_header(&raw).map_err(corrupt)?;
         if header.id != id {
             return Err(corrupt(ProtoError::OutOfRange {
@@ -118,13 +191,26 @@ impl ServedScene {
                 detail: format!("stored under id {} but says {}", id.0, header.id.0),
             }));
         }
-        slot.store(tag | u64::from(header.used_nodes), Ordering::Relaxed);
         Ok(header.used_nodes)
     }
 
     /// The whole treelet message for `id` with `channels` (ascending by channel id, each stored
-    /// by the scene): header + node block + channel blocks, byte for byte as stored.
-    pub fn message(&self, id: TreeletId, channels: &[Channel]) -> Result<Vec<u8>, MessageError> {
+    /// by the scene): header + node block + channel blocks, byte for byte as stored; from the
+    /// cache when it was built before.
+    pub fn message(&self, id: TreeletId, channels: &[Channel]) -> Result<Bytes, MessageError> {
+        let mask = channels
+            .iter()
+            .fold(0u32, |m, c| m | 1 << (c.id() as u32 & 31));
+        let key = (self.stored.generation, id.0, mask);
+        if let Some(hit) = self.cache.get(&key) {
+            return Ok(hit);
+        }
+        let message = Bytes::from(self.build(id, channels)?);
+        self.cache.insert(key, message.clone());
+        Ok(message)
+    }
+
+    fn build(&self, id: TreeletId, channels: &[Channel]) -> Result<Vec<u8>, MessageError> {
         let nodes = self.stored.nodes(id)?.ok_or(MessageError::Missing {
             id: id.0,
             what: "node",
@@ -149,5 +235,32 @@ impl ServedScene {
             out.extend_from_slice(b);
         }
         Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_cache_stays_within_its_bytes_and_evicts_the_oldest() {
+        let cache = MessageCache::new(100);
+        for i in 0..10u32 {
+            cache.insert((1, i, 1), Bytes::from(vec![i as u8; 30]));
+            assert!(cache.figures().0 <= 100);
+        }
+        // The last three fit; older ones are gone.
+        assert!(cache.get(&(1, 9, 1)).is_some());
+        assert!(cache.get(&(1, 7, 1)).is_some());
+        assert!(cache.get(&(1, 6, 1)).is_none());
+        // Another channel set or generation is another message.
+        assert!(cache.get(&(1, 9, 3)).is_none());
+        assert!(cache.get(&(2, 9, 1)).is_none());
+        // Larger than the whole cache: not kept.
+        cache.insert((1, 99, 1), Bytes::from(vec![0; 101]));
+        assert!(cache.get(&(1, 99, 1)).is_none());
+        let none = MessageCache::new(0);
+        none.insert((1, 1, 1), Bytes::from_static(b"x"));
+        assert_eq!(none.figures().0, 0);
     }
 }

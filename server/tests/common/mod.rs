@@ -289,13 +289,12 @@ pub async fn receive(
         tokio::select! {
             s = conn.accept_uni() => {
                 let mut s = s.map_err(|e| format!("accept_uni after {} treelets: {e}", got.len()))?;
-                readers.spawn(async move { s.read_to_end(MAX_TREELET_MESSAGE_BYTES).await });
+                // A stream carries one or a few messages back to back.
+                readers.spawn(async move { s.read_to_end(64 * MAX_TREELET_MESSAGE_BYTES).await });
             }
             Some(r) = readers.join_next(), if !readers.is_empty() => {
                 if let Ok(Ok(bytes)) = r {
-                    let m = frame::decode_treelet_message(&bytes)
-                        .map_err(|e| format!("bad treelet message: {e}"))?;
-                    got.push((m.id, bytes));
+                    got.extend(split_messages(&bytes)?);
                 }
             }
             _ = tokio::time::sleep_until(deadline) => {
@@ -304,6 +303,21 @@ pub async fn receive(
         }
     }
     Ok(got)
+}
+
+/// The treelet messages of one stream's bytes, each checked and decoded.
+pub fn split_messages(mut bytes: &[u8]) -> Result<Vec<Received>, String> {
+    let mut out = Vec::new();
+    while !bytes.is_empty() {
+        let len = frame::check_treelet_message(bytes)
+            .map_err(|e| format!("bad treelet message: {e}"))?
+            .ok_or("a stream ends inside a treelet message")?;
+        let m = frame::decode_treelet_message(&bytes[..len])
+            .map_err(|e| format!("bad treelet message: {e}"))?;
+        out.push((m.id, bytes[..len].to_vec()));
+        bytes = &bytes[len..];
+    }
+    Ok(out)
 }
 
 /// Sends a list of `ids` (priority = position from the top) and receives exactly those; returns

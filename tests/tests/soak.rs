@@ -1,0 +1,275 @@
+//! Soak: 64 clients on loopback against a real `arbor-server` process for 10 minutes
+//! (`ARBOR_SOAK_SECS` to change), each replacing its request list every 100–300 ms with a new
+//! random part of lion (4 KiB treelets): 0 errors (no disconnect, no undecodable or unasked
+//! treelet), the server's RSS flat (its slope over the second half, after warm-up, is printed),
+//! and the p50/p99 latency from sending a list to the first treelet of it arriving.
+//!
+//! Ignored (it takes 10 minutes):
+//! `cargo build --release -p arbor-server && cargo test --release -p arbor-tests --test soak -- --ignored --nocapture`
+
+use std::collections::HashSet;
+use std::io::{BufRead as _, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
+use arbor_proto::TreeletId;
+use arbor_proto::rng::SplitMix64;
+use arbor_server::octree::BuildOptions;
+use arbor_tests::support::{build_file, copy_dir};
+use tokio::sync::Mutex;
+
+const CLIENTS: usize = 64;
+const LIST_ITEMS: u32 = 200;
+
+fn server_binary() -> PathBuf {
+    let exe = std::env::current_exe().unwrap();
+    let bin = exe
+        .parent()
+        .and_then(Path::parent)
+        .unwrap()
+        .join("arbor-server");
+    assert!(
+        bin.exists(),
+        "{} is missing: build it first (cargo build [--release] -p arbor-server)",
+        bin.display()
+    );
+    bin
+}
+
+struct Server(Child);
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Resident set of a process, KiB.
+fn rss_kib(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .expect("VmRSS in /proc/PID/status")
+}
+
+/// Least-squares slope of `(seconds, KiB)` samples, KiB per minute.
+fn slope_per_minute(samples: &[(f64, f64)]) -> f64 {
+    let n = samples.len() as f64;
+    let (mx, my) = samples
+        .iter()
+        .fold((0.0, 0.0), |a, s| (a.0 + s.0 / n, a.1 + s.1 / n));
+    let (num, den) = samples.iter().fold((0.0, 0.0), |a, s| {
+        (a.0 + (s.0 - mx) * (s.1 - my), a.1 + (s.0 - mx) * (s.0 - mx))
+    });
+    if den == 0.0 { 0.0 } else { num / den * 60.0 }
+}
+
+#[derive(Default)]
+struct Tally {
+    treelets: AtomicU64,
+    bytes: AtomicU64,
+    lists: AtomicU64,
+    errors: AtomicU64,
+}
+
+/// One client: a new random list every 100–300 ms until `stop`; latencies from each list to
+/// the first treelet of it.
+async fn client(
+    url: ServerUrl,
+    fingerprint: String,
+    treelets: u32,
+    seed: u64,
+    stop: Arc<AtomicBool>,
+    tally: Arc<Tally>,
+    latencies: Arc<Mutex<Vec<f64>>>,
+) {
+    let config = ClientConfig::new(url, Trust::Fingerprint(fingerprint))
+        .with_channels([arbor_proto::Channel::Color]);
+    let mut c = TreeletClient::start(config).unwrap();
+    let mut rng = SplitMix64::new(seed);
+    let mut wanted: HashSet<TreeletId> = HashSet::new();
+    let mut sent_at: Option<Instant> = None;
+    let mut next_list = Instant::now();
+    let mut mine = Vec::new();
+    while !stop.load(Ordering::Relaxed) {
+        if Instant::now() >= next_list {
+            let start = rng.below(u64::from(treelets)) as u32;
+            let list: Vec<(TreeletId, f32)> = (0..LIST_ITEMS)
+                .map(|i| {
+                    let id = (start + i * 7) % treelets;
+                    (TreeletId(id), rng.next_f64() as f32 * 100.0)
+                })
+                .collect();
+            wanted = list.iter().map(|x| x.0).collect();
+            c.request(list).unwrap();
+            tally.lists.fetch_add(1, Ordering::Relaxed);
+            sent_at = Some(Instant::now());
+            next_list = Instant::now() + Duration::from_millis(100 + rng.below(200));
+        }
+        let wait = next_list.saturating_duration_since(Instant::now());
+        match tokio::time::timeout(wait, c.next_event()).await {
+            Ok(Some(ClientEvent::Treelet(t))) => {
+                tally.treelets.fetch_add(1, Ordering::Relaxed);
+                tally
+                    .bytes
+                    .fetch_add(t.wire_bytes as u64, Ordering::Relaxed);
+                if wanted.contains(&t.id)
+                    && let Some(at) = sent_at.take()
+                {
+                    mine.push(at.elapsed().as_secs_f64());
+                }
+            }
+            Ok(Some(ClientEvent::Connected(_))) => {}
+            Ok(Some(ClientEvent::Disconnected { reason, .. })) => {
+                eprintln!("client {seed}: {reason}");
+                tally.errors.fetch_add(1, Ordering::Relaxed);
+            }
+            Ok(None) => {
+                tally.errors.fetch_add(1, Ordering::Relaxed);
+                break;
+            }
+            Err(_) => {}
+        }
+    }
+    latencies.lock().await.extend(mine);
+    c.close().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "10 minutes; run with --release -- --ignored --nocapture"]
+async fn sixty_four_clients_for_ten_minutes() {
+    let secs: u64 = std::env::var("ARBOR_SOAK_SECS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(600);
+    let work = tempfile::tempdir().unwrap();
+    let pool = work.path().join("pool");
+    let treelets = tokio::task::spawn_blocking({
+        let pool = pool.clone();
+        move || {
+            let built = build_file(
+                "points/lion_takanawa.copc.laz",
+                "lion",
+                &BuildOptions {
+                    treelet_bytes: 4096,
+                    ..BuildOptions::default()
+                },
+            );
+            let count = built.scene.description.treelet_count;
+            built.pool.flush().unwrap();
+            let from = built.pool_dir.path().to_owned();
+            drop(built.scene);
+            drop(built.pool);
+            copy_dir(&from, &pool);
+            drop(built.pool_dir);
+            count
+        }
+    })
+    .await
+    .unwrap();
+    let mut child = Command::new(server_binary())
+        .args(["serve", "--listen", "127.0.0.1:0", "--admin", "off", "--db"])
+        .arg(&pool)
+        .arg("--data-dir")
+        .arg(work.path().join("state"))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+    let (mut addr, mut fp) = (None, None);
+    while addr.is_none() || fp.is_none() {
+        let line = lines.next().expect("serve printed its lines").unwrap();
+        if let Some(a) = line.strip_prefix("quic ") {
+            addr = Some(a.parse::<std::net::SocketAddr>().unwrap());
+        } else if let Some(f) = line.strip_prefix("fingerprint ") {
+            fp = Some(f.to_owned());
+        }
+    }
+    std::thread::spawn(move || lines.for_each(drop));
+    let server = Server(child);
+    let pid = server.0.id();
+    let (addr, fp) = (addr.unwrap(), fp.unwrap());
+    let url = ServerUrl {
+        host: addr.ip().to_string(),
+        port: addr.port(),
+        scene: "lion".into(),
+    };
+
+    let stop = Arc::new(AtomicBool::new(false));
+    let tally = Arc::new(Tally::default());
+    let latencies = Arc::new(Mutex::new(Vec::new()));
+    let mut tasks = Vec::new();
+    for i in 0..CLIENTS {
+        tasks.push(tokio::spawn(client(
+            url.clone(),
+            fp.clone(),
+            treelets,
+            i as u64 + 1,
+            stop.clone(),
+            tally.clone(),
+            latencies.clone(),
+        )));
+    }
+    let started = Instant::now();
+    let mut samples = Vec::new();
+    while started.elapsed() < Duration::from_secs(secs) {
+        tokio::time::sleep(Duration::from_secs(5)).await;
+        let t = started.elapsed().as_secs_f64();
+        let rss = rss_kib(pid);
+        samples.push((t, rss as f64));
+        if samples.len() % 12 == 0 {
+            eprintln!(
+                "{t:.0} s: server RSS {rss} KiB, {} treelets, {} lists, {} errors",
+                tally.treelets.load(Ordering::Relaxed),
+                tally.lists.load(Ordering::Relaxed),
+                tally.errors.load(Ordering::Relaxed)
+            );
+        }
+    }
+    stop.store(true, Ordering::Relaxed);
+    for t in tasks {
+        t.await.unwrap();
+    }
+    let mut lat = std::mem::take(&mut *latencies.lock().await);
+    lat.sort_by(f64::total_cmp);
+    let q = |p: f64| lat[((lat.len() as f64 - 1.0) * p).round() as usize] * 1e3;
+    let second_half: Vec<(f64, f64)> = samples[samples.len() / 2..].to_vec();
+    let slope = slope_per_minute(&second_half);
+    let (first, last) = (samples[0].1, samples.last().unwrap().1);
+    let elapsed = started.elapsed().as_secs_f64();
+    eprintln!(
+        "soak: {CLIENTS} clients, {elapsed:.0} s, {} lists, {} treelets ({:.1} MB, {:.0}/s), {} \
+         errors; server RSS {first:.0} -> {last:.0} KiB, slope over the second half \
+         {slope:+.1} KiB/min; list to first treelet p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms \
+         ({} lists answered)",
+        tally.lists.load(Ordering::Relaxed),
+        tally.treelets.load(Ordering::Relaxed),
+        tally.bytes.load(Ordering::Relaxed) as f64 / 1e6,
+        tally.treelets.load(Ordering::Relaxed) as f64 / elapsed,
+        tally.errors.load(Ordering::Relaxed),
+        q(0.5),
+        q(0.99),
+        q(1.0),
+        lat.len(),
+    );
+    assert_eq!(
+        tally.errors.load(Ordering::Relaxed),
+        0,
+        "errors during the soak"
+    );
+    assert!(!lat.is_empty(), "no list was ever answered");
+    // Flat: the second half grows by less than 1 % of the resident set per minute.
+    assert!(
+        slope < last / 100.0,
+        "server RSS grows {slope:.0} KiB/min over the second half"
+    );
+}
