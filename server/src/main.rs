@@ -9,6 +9,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use arbor_server::daemon::AdminTokenOrigin;
+use arbor_server::import::tiles::TileOptions;
 use arbor_server::import::{Format, ImportOptions, RawSpec, SampleType};
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_server::pipeline::{SceneImport, import_scene};
@@ -87,15 +88,24 @@ struct ImportArgs {
     /// Hide progress bars.
     #[arg(long)]
     quiet: bool,
-    /// Input file.
-    file: PathBuf,
+    /// Import tiles whose coordinate systems differ (by default a set whose LAS headers declare
+    /// different coordinate systems is refused, naming both files).
+    #[arg(long)]
+    allow_mixed_crs: bool,
+    /// Input file; or several files, directories (their LAS, LAZ and PLY files) or patterns
+    /// (`tiles/*.laz`, quoted so the shell leaves it) of point tiles, read as one scene.
+    #[arg(required = true, num_args = 1..)]
+    files: Vec<PathBuf>,
 }
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Import a scan (OBJ, PLY, LAS/LAZ, NRRD, raw volume) into the pool as a new scene.
+    /// Import a scan (OBJ, PLY, LAS/LAZ, NRRD, raw volume), or a set of point tiles, into the
+    /// pool as a new scene.
     #[command(after_help = "Examples:\n  \
         arbor-server import --db pool --scene lucy --treelet-bytes 1024 lucy.ply\n  \
+        arbor-server import --db pool --scene city tiles/            (every LAS/LAZ/PLY file in tiles/, one scene)\n  \
+        arbor-server import --db pool --scene city 'tiles/*.laz'     (a pattern, expanded by the server)\n  \
         arbor-server import --db pool --scene ct --raw-dims 256,256,128 --raw-type u8 --iso 80 ct.raw")]
     Import(ImportArgs),
     /// List the scenes in a pool.
@@ -351,8 +361,12 @@ fn import(args: ImportArgs) -> Result<ExitCode> {
         scratch,
         replace,
         quiet,
-        file,
+        allow_mixed_crs,
+        files,
     } = args;
+    let mut files = arbor_server::import::tiles::expand_inputs(&files)?.into_iter();
+    let file = files.next().context("no input file")?;
+    let more_tiles: Vec<PathBuf> = files.collect();
     arbor_proto::treelet::nodes_for_bytes(treelet_bytes)?;
     if let Some(i) = iso
         && !i.is_finite()
@@ -363,6 +377,7 @@ fn import(args: ImportArgs) -> Result<ExitCode> {
     let request = SceneImport {
         name: scene,
         input: file,
+        more_tiles,
         import: ImportOptions {
             format,
             raw: raw_dims.map(|dims| RawSpec {
@@ -371,6 +386,7 @@ fn import(args: ImportArgs) -> Result<ExitCode> {
                 spacing: raw_spacing,
                 big_endian: raw_big_endian,
             }),
+            tiles: TileOptions { allow_mixed_crs },
         },
         build: BuildOptions {
             depth,

@@ -6,7 +6,7 @@
 //! behind are decided once:
 //!
 //! 1. the pool refuses a bad or taken name before any work ([`Pool::begin_import`]);
-//! 2. the file is parsed into disk-backed columns in a scratch directory (errors name the file
+//! 2. the file (or every tile of a point set) is parsed into disk-backed columns in a scratch directory (errors name the file
 //!    and the place, and the pool has not been touched yet);
 //! 3. the octree is built straight into the import transaction;
 //! 4. the memory figures are recorded in the description and the transaction commits — the
@@ -19,6 +19,7 @@ use arbor_proto::SceneDescription;
 use tempfile::TempDir;
 use thiserror::Error;
 
+use crate::import::tiles::import_tiles;
 use crate::import::{ImportError, ImportOptions, import_file};
 use crate::memory::{AnonPeakSampler, peak_rss_bytes};
 use crate::octree::{BuildError, BuildOptions, build_scene};
@@ -30,8 +31,11 @@ use crate::source::Source;
 pub struct SceneImport {
     /// The scene's name in the pool.
     pub name: String,
-    /// The scan file.
+    /// The scan file (the first tile of a point set).
     pub input: PathBuf,
+    /// Further tiles of a point set, read after `input` as one scene, in this order (LAS/LAZ and
+    /// point PLY files; see [`crate::import::tiles`]).
+    pub more_tiles: Vec<PathBuf>,
     /// How to read it (format override, raw volume layout).
     pub import: ImportOptions,
     /// How to build the octree.
@@ -91,13 +95,22 @@ pub fn import_scene(pool: &Pool, request: &SceneImport) -> Result<ImportedScene,
         return Err(PoolError::SceneExists(request.name.clone()).into());
     }
     let sampler = AnonPeakSampler::start();
-    let source = import_file(&request.input, &request.import, scratch.path())?;
+    let source = if request.more_tiles.is_empty() {
+        import_file(&request.input, &request.import, scratch.path())?
+    } else {
+        let mut files = vec![request.input.clone()];
+        files.extend(request.more_tiles.iter().cloned());
+        import_tiles(&files, &request.import.tiles, scratch.path())?
+    };
     tracing::info!("read {}: {}", request.input.display(), source.describe());
-    let label = request
+    let mut label = request
         .input
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
+    if !request.more_tiles.is_empty() {
+        label = format!("{label} + {} more tiles", request.more_tiles.len());
+    }
     let job = SourceImport {
         source: &source,
         name: &request.name,

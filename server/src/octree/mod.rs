@@ -38,7 +38,7 @@ use crate::source::{ColumnError, Source};
 use geometry::{Frame, depth_for_resolution};
 use idlist::{Budget, IdList, Lists, SpillFile};
 use pending::PendingQueue;
-pub use treelet_builder::{AttributeGenerator, TreeletBuilder, fill_treelet};
+pub use treelet_builder::{AttributeGenerator, MAX_PRIMITIVES, TreeletBuilder, fill_treelet};
 use treelet_builder::{FilledTreelet, TreeletJob};
 
 /// Depth to build to.
@@ -101,9 +101,17 @@ pub enum BuildError {
     /// A parameter is out of range.
     #[error("invalid build parameter: {0}")]
     Parameter(String),
-    /// More treelets than ids.
-    #[error("scene needs more than {} treelets", arbor_proto::limits::MAX_TREELETS)]
+    /// More treelets than ids (treelet ids are 32-bit in the format).
+    #[error(
+        "scene needs more than {} treelets (treelet ids are 32-bit): use larger treelets (--treelet-bytes, up to 16384) or a coarser --depth",
+        arbor_proto::limits::MAX_TREELETS
+    )]
     TooManyTreelets,
+    /// More primitives than one build can index (primitive ids are 32-bit).
+    #[error(
+        "{count} primitives exceed the limit of {limit} per scene (primitive ids are 32-bit): split the input into several scenes"
+    )]
+    TooManyPrimitives { count: u64, limit: u64 },
     /// The treelet sink (the pool) refused a write.
     #[error("storing treelets: {0}")]
     Sink(String),
@@ -144,6 +152,12 @@ pub fn build_scene(
     }
     if source.primitive_count() == 0 {
         return Err(BuildError::Empty(source.describe()));
+    }
+    if source.primitive_count() > MAX_PRIMITIVES {
+        return Err(BuildError::TooManyPrimitives {
+            count: source.primitive_count(),
+            limit: MAX_PRIMITIVES,
+        });
     }
     let placed = place(source, opts, scratch)?;
     let frame = placed.frame;
@@ -468,6 +482,11 @@ fn fill_all(
         capacity,
         bpv: attributes.bytes_per_voxel(),
     };
+    let count = builder.primitive_count();
+    let count = u32::try_from(count).map_err(|_| BuildError::TooManyPrimitives {
+        count,
+        limit: MAX_PRIMITIVES,
+    })?;
     let lists = Lists {
         budget: Budget::new(opts.memory_budget),
         spill: SpillFile::create(scratch)?,
@@ -480,7 +499,7 @@ fn fill_all(
         parent_leaf_parent_index: 0,
         child_index_in_parent: 0,
         root: Cell::ROOT,
-        prims: IdList::Range(0..builder.primitive_count()),
+        prims: IdList::Range(0..count),
     })?;
     let mut next_id: u64 = 1;
     let mut written = 0u32;
@@ -506,10 +525,7 @@ fn fill_all(
             let id = f.treelet.header.id;
             debug_assert_eq!(id.0, written);
             for leaf in f.pending.drain(..) {
-                if next_id > u64::from(arbor_proto::limits::MAX_TREELETS) {
-                    return Err(BuildError::TooManyTreelets);
-                }
-                let child = TreeletId(next_id as u32);
+                let child = treelet_id(next_id)?;
                 next_id += 1;
                 f.treelet.nodes[usize::from(leaf.local_index)].first_child = child.0;
                 queue.push(TreeletJob {
@@ -557,6 +573,14 @@ fn fill_all(
         spilled_bytes,
         peak_list_bytes: lists.budget.peak() as u64,
     })
+}
+
+/// The id of the `next`-th treelet, or the format limit's error (ids are 32-bit).
+fn treelet_id(next: u64) -> Result<TreeletId, BuildError> {
+    match u32::try_from(next) {
+        Ok(id) if id <= arbor_proto::limits::MAX_TREELETS => Ok(TreeletId(id)),
+        _ => Err(BuildError::TooManyTreelets),
+    }
 }
 
 /// Pass 2: inner attributes as the mean of their children, treelets in reverse id order.
@@ -730,4 +754,63 @@ fn pack(
     }
     pb.finish_and_clear();
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A builder that only counts: no primitive exists, so nothing that large is allocated.
+    struct Counting(u64);
+
+    impl TreeletBuilder for Counting {
+        fn primitive_count(&self) -> u64 {
+            self.0
+        }
+        fn child_mask(&self, _prim: u32, _cell: Cell) -> u8 {
+            1
+        }
+    }
+
+    struct NoAttributes;
+
+    impl AttributeGenerator for NoAttributes {
+        fn bytes_per_voxel(&self) -> usize {
+            0
+        }
+        fn leaf(&self, _cell: Cell, _prims: &[u32], _out: &mut [u8]) {}
+    }
+
+    #[test]
+    fn primitive_counts_past_32_bits_are_refused_not_wrapped() {
+        let dir = tempfile::tempdir().unwrap();
+        let opts = BuildOptions::default();
+        for count in [MAX_PRIMITIVES + 1, 1 << 32, u64::MAX] {
+            let e = fill_all(&Counting(count), &NoAttributes, 512, 10, &opts, dir.path())
+                .err()
+                .expect("refused");
+            assert!(
+                matches!(e, BuildError::TooManyPrimitives { count: c, limit } if c == count && limit == MAX_PRIMITIVES),
+                "{e}"
+            );
+            assert!(e.to_string().contains("4294967295 per scene"), "{e}");
+        }
+    }
+
+    #[test]
+    fn treelet_ids_stop_at_the_format_limit_naming_the_knob() {
+        let last = u64::from(arbor_proto::limits::MAX_TREELETS);
+        assert_eq!(
+            treelet_id(last).unwrap(),
+            TreeletId(arbor_proto::limits::MAX_TREELETS)
+        );
+        for next in [last + 1, 1 << 32, u64::MAX] {
+            let e = treelet_id(next).unwrap_err().to_string();
+            assert!(e.contains("treelet ids are 32-bit"), "{e}");
+            assert!(
+                e.contains("--treelet-bytes") && e.contains("--depth"),
+                "{e}"
+            );
+        }
+    }
 }

@@ -16,8 +16,8 @@ pub struct PointBuilder<'a> {
 }
 
 impl TreeletBuilder for PointBuilder<'_> {
-    fn primitive_count(&self) -> u32 {
-        self.points.positions.len() as u32
+    fn primitive_count(&self) -> u64 {
+        self.points.positions.len() as u64
     }
 
     fn child_mask(&self, prim: u32, cell: Cell) -> u8 {

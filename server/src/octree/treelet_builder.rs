@@ -16,10 +16,15 @@ use super::idlist::{IdList, ListWriter, Lists};
 /// such as millions of identical points).
 const MAX_LEAF_SAMPLE: usize = 1 << 20;
 
+/// Most primitives one build can index: primitive ids are `u32` (`0..count`), which keeps the
+/// id lists — the bulk of a build's memory — at 4 bytes a primitive.
+pub const MAX_PRIMITIVES: u64 = u32::MAX as u64;
+
 /// Classifies primitives against voxels. Implemented per input kind.
 pub trait TreeletBuilder: Sync {
-    /// Number of primitives; ids are `0..count`.
-    fn primitive_count(&self) -> u32;
+    /// Number of primitives; ids are `0..count`. A 64-bit count, so that a source past
+    /// [`MAX_PRIMITIVES`] is refused by the build instead of wrapping.
+    fn primitive_count(&self) -> u64;
     /// Bit `i` set when primitive `prim`, known to touch `cell`, touches child `i` of `cell`.
     fn child_mask(&self, prim: u32, cell: Cell) -> u8;
 }
