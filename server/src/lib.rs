@@ -24,10 +24,12 @@
 pub mod admin;
 pub mod daemon;
 pub mod import;
+pub mod live_import;
 pub mod memory;
 pub mod octree;
 pub mod pipeline;
 pub mod pool;
+pub mod progress;
 pub mod prometheus;
 pub mod service;
 pub mod source;

@@ -22,8 +22,9 @@ use thiserror::Error;
 use crate::import::tiles::import_tiles;
 use crate::import::{ImportError, ImportOptions, import_file};
 use crate::memory::{AnonPeakSampler, peak_rss_bytes};
-use crate::octree::{BuildError, BuildOptions, build_scene};
+use crate::octree::{BuildError, BuildOptions, BuildTarget, build_scene_observed};
 use crate::pool::{Pool, PoolError};
+use crate::progress::{ImportProgress, Phase};
 use crate::source::Source;
 
 /// What to import, and how.
@@ -89,12 +90,35 @@ pub enum PipelineError {
 
 /// Parses `request.input`, builds it and commits it to `pool` as `request.name`.
 pub fn import_scene(pool: &Pool, request: &SceneImport) -> Result<ImportedScene, PipelineError> {
+    import_scene_observed(pool, request, &ImportProgress::default(), Superseded::Drop)
+        .map(|(scene, _)| scene)
+}
+
+/// What a replacing import does with the generation it supersedes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Superseded {
+    /// Drop it at once (nobody else reads the pool).
+    Drop,
+    /// Keep it and return it, for readers that opened it to finish on it (the serving daemon
+    /// drops it with [`Pool::drop_retired`] when its last session ended).
+    Keep,
+}
+
+/// [`import_scene`], reporting progress as it goes; with [`Superseded::Keep`] also returns the
+/// generation a replacement superseded.
+pub fn import_scene_observed(
+    pool: &Pool,
+    request: &SceneImport,
+    progress: &ImportProgress,
+    superseded: Superseded,
+) -> Result<(ImportedScene, Option<u64>), PipelineError> {
     let scratch = scratch_dir(request.scratch_parent.as_deref())?;
     // Checked again by `begin_import`; refusing here avoids parsing a file for nothing.
     if !request.replace && pool.contains(&request.name)? {
         return Err(PoolError::SceneExists(request.name.clone()).into());
     }
     let sampler = AnonPeakSampler::start();
+    progress.enter(Phase::Reading, 0);
     let source = if request.more_tiles.is_empty() {
         import_file(&request.input, &request.import, scratch.path())?
     } else {
@@ -119,12 +143,16 @@ pub fn import_scene(pool: &Pool, request: &SceneImport) -> Result<ImportedScene,
         scratch: scratch.path(),
         replace: request.replace,
     };
-    let description = build_into_pool(pool, &job, Some(sampler))?;
-    Ok(ImportedScene {
-        description,
-        source,
-        scratch,
-    })
+    let (description, retired) =
+        build_into_pool_observed(pool, &job, Some(sampler), progress, superseded)?;
+    Ok((
+        ImportedScene {
+            description,
+            source,
+            scratch,
+        },
+        retired,
+    ))
 }
 
 /// An already parsed source to build into a pool (callers that make or reuse a [`Source`]
@@ -152,25 +180,43 @@ pub fn build_into_pool(
     job: &SourceImport<'_>,
     sampler: Option<AnonPeakSampler>,
 ) -> Result<SceneDescription, PipelineError> {
+    let progress = ImportProgress::default();
+    build_into_pool_observed(pool, job, sampler, &progress, Superseded::Drop).map(|(d, _)| d)
+}
+
+/// [`build_into_pool`], reporting progress; returns the superseded generation when kept.
+pub fn build_into_pool_observed(
+    pool: &Pool,
+    job: &SourceImport<'_>,
+    sampler: Option<AnonPeakSampler>,
+    progress: &ImportProgress,
+    superseded: Superseded,
+) -> Result<(SceneDescription, Option<u64>), PipelineError> {
     let mut txn = pool.begin_import(job.name, job.replace)?;
-    let mut description = build_scene(
-        job.source,
-        job.name,
-        job.label,
-        job.build,
-        job.scratch,
-        &mut txn,
-    )
-    .map_err(|source| PipelineError::Build {
-        name: job.name.to_owned(),
-        source,
-    })?;
+    let target = BuildTarget {
+        name: job.name,
+        source_label: job.label,
+        scratch: job.scratch,
+    };
+    let mut description = build_scene_observed(job.source, &target, job.build, &mut txn, progress)
+        .map_err(|source| PipelineError::Build {
+            name: job.name.to_owned(),
+            source,
+        })?;
     description.stats.peak_rss_bytes = peak_rss_bytes();
     if let Some(sampler) = sampler {
         description.stats.peak_anon_bytes = sampler.finish();
     }
-    txn.commit(&description)?;
-    Ok(description)
+    progress.enter(Phase::Committing, 0);
+    let retired = match superseded {
+        Superseded::Drop => {
+            txn.commit(&description)?;
+            None
+        }
+        Superseded::Keep => txn.commit_retaining(&description)?,
+    };
+    progress.enter(Phase::Done, 0);
+    Ok((description, retired))
 }
 
 fn scratch_dir(parent: Option<&Path>) -> Result<TempDir, PipelineError> {

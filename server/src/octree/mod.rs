@@ -34,6 +34,7 @@ use arbor_proto::{
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 
+use crate::progress::{ImportProgress, Phase};
 use crate::source::{ColumnError, Source};
 use geometry::{Frame, depth_for_resolution};
 use idlist::{Budget, IdList, Lists, SpillFile};
@@ -140,6 +141,38 @@ pub fn build_scene(
     scratch: &Path,
     sink: &mut dyn TreeletSink,
 ) -> Result<SceneDescription, BuildError> {
+    let target = BuildTarget {
+        name,
+        source_label,
+        scratch,
+    };
+    build_scene_observed(source, &target, opts, sink, &ImportProgress::default())
+}
+
+/// What a build makes and where its scratch files go.
+#[derive(Clone, Copy, Debug)]
+pub struct BuildTarget<'a> {
+    /// The scene's name.
+    pub name: &'a str,
+    /// What the input was, for the description.
+    pub source_label: &'a str,
+    /// Scratch directory for spill and record files.
+    pub scratch: &'a Path,
+}
+
+/// [`build_scene`], reporting its phases and counts to `progress` as it goes.
+pub fn build_scene_observed(
+    source: &Source,
+    target: &BuildTarget<'_>,
+    opts: &BuildOptions,
+    sink: &mut dyn TreeletSink,
+    progress: &ImportProgress,
+) -> Result<SceneDescription, BuildError> {
+    let BuildTarget {
+        name,
+        source_label,
+        scratch,
+    } = *target;
     let started = Instant::now();
     let capacity = nodes_for_bytes(opts.treelet_bytes)?;
     if let DepthChoice::Fixed(d) = opts.depth
@@ -159,6 +192,7 @@ pub fn build_scene(
             limit: MAX_PRIMITIVES,
         });
     }
+    progress.enter(Phase::Placing, 0);
     let placed = place(source, opts, scratch)?;
     let frame = placed.frame;
     let depth = frame.depth;
@@ -170,14 +204,22 @@ pub fn build_scene(
         name,
         source.describe()
     );
-    let (layout, fill, iso_used) = fill_source(source, &placed, capacity, opts, scratch)?;
+    let (layout, fill, iso_used) = fill_source(source, &placed, capacity, opts, scratch, progress)?;
 
     let records = RecordFile {
         file: fill.file,
         capacity,
         bpv: layout.bytes_per_voxel(),
     };
-    average_bottom_up(&records, &layout, fill.treelets, depth, opts.progress)?;
+    progress.enter(Phase::Attributes, u64::from(fill.treelets));
+    average_bottom_up(
+        &records,
+        &layout,
+        fill.treelets,
+        depth,
+        opts.progress,
+        progress,
+    )?;
     let mut stats = SceneStats {
         voxels: fill.used_nodes - u64::from(fill.treelets - 1),
         leaf_voxels: fill.leaf_voxels,
@@ -190,6 +232,7 @@ pub fn build_scene(
     } else {
         (None, vec![None; layout.channels().len()])
     };
+    progress.enter(Phase::Packing, u64::from(fill.treelets));
     pack(
         &records,
         &layout,
@@ -199,6 +242,7 @@ pub fn build_scene(
         &channel_dictionaries,
         &mut stats,
         sink,
+        progress,
     )?;
     stats.build_seconds = started.elapsed().as_secs_f64();
     let dictionary = node_dictionary.is_some();
@@ -277,14 +321,18 @@ fn fill_source(
     capacity: u32,
     opts: &BuildOptions,
     scratch: &Path,
+    progress: &ImportProgress,
 ) -> Result<(AttributeLayout, Filled, Option<f32>), BuildError> {
     let frame = placed.frame;
-    let depth = frame.depth;
+    let fill_all = |b: &dyn TreeletBuilder, a: &dyn AttributeGenerator| {
+        progress.enter(Phase::Filling, 0);
+        fill_all(b, a, capacity, frame.depth, opts, scratch, progress)
+    };
     match source {
         Source::Mesh(m) => {
             let b = triangles::TriangleBuilder { mesh: m, frame };
             let a = triangles::MeshAttributes::new(m, frame);
-            let fill = fill_all(&b, &a, capacity, depth, opts, scratch)?;
+            let fill = fill_all(&b, &a)?;
             Ok((a.layout.clone(), fill, None))
         }
         Source::Points(p) => {
@@ -304,7 +352,7 @@ fn fill_source(
             };
             let b = points::PointBuilder { points: p, frame };
             let a = points::PointAttributes::new(p, normals);
-            let fill = fill_all(&b, &a, capacity, depth, opts, scratch)?;
+            let fill = fill_all(&b, &a)?;
             Ok((a.layout.clone(), fill, None))
         }
         Source::Volume(v) => {
@@ -332,7 +380,7 @@ fn fill_source(
                 frame,
             };
             let a = volume::VolumeAttributes::new(field, frame);
-            let fill = fill_all(&b, &a, capacity, depth, opts, scratch)?;
+            let fill = fill_all(&b, &a)?;
             Ok((a.layout.clone(), fill, Some(iso)))
         }
     }
@@ -470,6 +518,7 @@ fn fill_all(
     depth: u8,
     opts: &BuildOptions,
     scratch: &Path,
+    progress: &ImportProgress,
 ) -> Result<Filled, BuildError> {
     let file = File::options()
         .create(true)
@@ -550,6 +599,7 @@ fn fill_all(
                 .write_all_at(&buf, u64::from(written) * records.size() as u64)?;
             written += 1;
         }
+        progress.set_done(u64::from(written));
         pb.set_message(format!(
             "{written} treelets, {leaf_voxels} leaf voxels, {} queued",
             queue.len()
@@ -589,7 +639,8 @@ fn average_bottom_up(
     layout: &AttributeLayout,
     count: u32,
     depth: u8,
-    progress: bool,
+    bars: bool,
+    progress: &ImportProgress,
 ) -> Result<(), BuildError> {
     let bpv = records.bpv;
     let mut offsets = Vec::new();
@@ -600,7 +651,7 @@ fn average_bottom_up(
     }
     // Root attributes of treelets whose parent has not been processed yet.
     let mut child_roots: HashMap<u32, Vec<u8>> = HashMap::new();
-    let pb = bar(progress, "attributes", u64::from(count));
+    let pb = bar(bars, "attributes", u64::from(count));
     for id in (0..count).rev() {
         let (t, places, mut attrs) = records.read_with_places(id, depth)?;
         for i in (0..t.used().len()).rev() {
@@ -637,6 +688,7 @@ fn average_bottom_up(
         }
         records.write_attributes(id, &attrs)?;
         pb.inc(1);
+        progress.set_done(u64::from(count - id));
     }
     pb.finish_and_clear();
     Ok(())
@@ -706,6 +758,7 @@ fn pack(
     channel_dicts: &[Option<Vec<u8>>],
     stats: &mut SceneStats,
     sink: &mut dyn TreeletSink,
+    progress: &ImportProgress,
 ) -> Result<(), BuildError> {
     stats.channel_bytes = vec![0; layout.channels().len()];
     sink.start(layout)?;
@@ -751,6 +804,7 @@ fn pack(
             sink.put(id, nodes, chans)?;
         }
         pb.set_position(u64::from(end));
+        progress.set_done(u64::from(end));
     }
     pb.finish_and_clear();
     Ok(())
@@ -786,9 +840,18 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let opts = BuildOptions::default();
         for count in [MAX_PRIMITIVES + 1, 1 << 32, u64::MAX] {
-            let e = fill_all(&Counting(count), &NoAttributes, 512, 10, &opts, dir.path())
-                .err()
-                .expect("refused");
+            let progress = ImportProgress::default();
+            let e = fill_all(
+                &Counting(count),
+                &NoAttributes,
+                512,
+                10,
+                &opts,
+                dir.path(),
+                &progress,
+            )
+            .err()
+            .expect("refused");
             assert!(
                 matches!(e, BuildError::TooManyPrimitives { count: c, limit } if c == count && limit == MAX_PRIMITIVES),
                 "{e}"
