@@ -316,15 +316,15 @@ fn ms(d: Duration) -> f64 {
 }
 
 /// What [`drain_events`] took.
-struct Drained {
-    treelets: Vec<DecodedTreelet>,
+pub(crate) struct Drained {
+    pub(crate) treelets: Vec<DecodedTreelet>,
     bytes: u64,
     /// Treelets that failed to decode (logged and dropped: the server is at fault).
-    undecodable: u32,
+    pub(crate) undecodable: u32,
 }
 
 /// Takes every queued event without waiting.
-fn drain_events(
+pub(crate) fn drain_events(
     client: &mut TreeletClient,
     scene: &SceneDescription,
     channels: &[Channel],
@@ -379,7 +379,7 @@ fn drain_events(
 }
 
 /// Connects without channels just to read the scene description.
-fn probe_scene(
+pub(crate) fn probe_scene(
     client: &ClientConfig,
     timeout: Duration,
     runtime: &tokio::runtime::Handle,
