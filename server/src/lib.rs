@@ -17,7 +17,7 @@
 //! * [`daemon`] starts the service and mounts the admin API beside it — what `arbor-server
 //!   serve` runs.
 //!
-//! Unsafe code is denied except for the two memory maps of scratch columns in [`source`].
+//! Unsafe code is denied except for the memory maps of scratch columns in [`source`].
 
 #![deny(unsafe_code)]
 

@@ -15,6 +15,7 @@ pub mod geometry;
 pub mod idlist;
 pub mod pending;
 pub mod points;
+pub mod sorted_points;
 pub mod treelet_builder;
 pub mod triangles;
 pub mod volume;
@@ -35,7 +36,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 
 use crate::progress::{ImportProgress, Phase};
-use crate::source::{ColumnError, Source};
+use crate::source::{ColumnError, ColumnWriter, Source};
 use geometry::{Frame, depth_for_resolution};
 use idlist::{Budget, IdList, Lists, SpillFile};
 use pending::PendingQueue;
@@ -333,6 +334,34 @@ fn fill_source(
             let b = triangles::TriangleBuilder { mesh: m, frame };
             let a = triangles::MeshAttributes::new(m, frame);
             let fill = fill_all(&b, &a)?;
+            Ok((a.layout.clone(), fill, None))
+        }
+        Source::Points(p) if frame.depth <= sorted_points::MAX_KEY_DEPTH => {
+            let (records, sorted) =
+                sorted_points::sort_points(p, &frame, opts.memory_budget, scratch)?;
+            let normals = match &p.normals {
+                Some(file) => {
+                    let mut w = ColumnWriter::create(scratch, "sorted-normals")?;
+                    for r in records.iter() {
+                        w.push(file[r.id as usize])?;
+                    }
+                    w.finish()?
+                }
+                None => {
+                    let centre = [0, 1, 2].map(|a| (placed.min[a] + placed.max[a]) * 0.5);
+                    sorted_points::cell_normals(&records, frame.depth, centre, scratch)?
+                }
+            };
+            let b = sorted_points::SortedPointBuilder {
+                records: &records,
+                depth: frame.depth,
+            };
+            let a =
+                sorted_points::SortedPointAttributes::new(&records, &normals, p.colors.is_some());
+            let mut fill = fill_all(&b, &a)?;
+            // The sort is this path's bounded working memory (it writes no id list).
+            fill.spilled_bytes += sorted.spilled_bytes;
+            fill.peak_list_bytes = fill.peak_list_bytes.max(sorted.peak_bytes);
             Ok((a.layout.clone(), fill, None))
         }
         Source::Points(p) => {
@@ -813,6 +842,7 @@ fn pack(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::source::{Column, PointSource};
 
     /// A builder that only counts: no primitive exists, so nothing that large is allocated.
     struct Counting(u64);
@@ -833,6 +863,70 @@ mod tests {
             0
         }
         fn leaf(&self, _cell: Cell, _prims: &[u32], _out: &mut [u8]) {}
+    }
+
+    /// The sorted path (ranges, no id lists) fills exactly the treelets of the general path
+    /// (id lists partitioned point by point) on a real scan: same ids, same node records.
+    #[test]
+    fn sorted_points_fill_the_same_treelets_as_id_lists() {
+        let dir = tempfile::tempdir().unwrap();
+        let lion = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../shared/data/points/lion_takanawa.copc.laz");
+        let Source::Points(p) =
+            crate::import::import_file(&lion, &Default::default(), dir.path()).unwrap()
+        else {
+            panic!("points expected")
+        };
+        let opts = BuildOptions::default();
+        let (min, max) = bounds(&Source::Points(PointSource {
+            positions: Column::from_slice(dir.path(), "copy", &p.positions).unwrap(),
+            colors: None,
+            normals: None,
+        }))
+        .unwrap();
+        let frame = Frame::around(min, max, 10);
+        let progress = ImportProgress::default();
+        let general = fill_all(
+            &points::PointBuilder { points: &p, frame },
+            &NoAttributes,
+            512,
+            10,
+            &opts,
+            dir.path(),
+            &progress,
+        )
+        .unwrap();
+        let (records, _) = sorted_points::sort_points(&p, &frame, 1 << 20, dir.path()).unwrap();
+        let sorted = fill_all(
+            &sorted_points::SortedPointBuilder {
+                records: &records,
+                depth: 10,
+            },
+            &NoAttributes,
+            512,
+            10,
+            &opts,
+            dir.path(),
+            &progress,
+        );
+        let sorted = sorted.unwrap();
+        assert!(general.treelets > 100, "{}", general.treelets);
+        assert_eq!(general.treelets, sorted.treelets);
+        assert_eq!(general.used_nodes, sorted.used_nodes);
+        assert_eq!(general.leaf_voxels, sorted.leaf_voxels);
+        let size = RecordFile::node_bytes(512);
+        let (mut a, mut b) = (vec![0u8; size], vec![0u8; size]);
+        for id in 0..general.treelets {
+            general
+                .file
+                .read_exact_at(&mut a, u64::from(id) * size as u64)
+                .unwrap();
+            sorted
+                .file
+                .read_exact_at(&mut b, u64::from(id) * size as u64)
+                .unwrap();
+            assert!(a == b, "treelet {id} differs");
+        }
     }
 
     #[test]

@@ -385,7 +385,7 @@ pub fn estimate_normals(
 
 /// Smallest-eigenvalue eigenvector of the covariance of `pts` around their mean (+Z when fewer
 /// than 3 points or degenerate).
-fn pca_normal(origin: [f64; 3], pts: impl Iterator<Item = [f64; 3]>) -> [f64; 3] {
+pub(crate) fn pca_normal(origin: [f64; 3], pts: impl Iterator<Item = [f64; 3]>) -> [f64; 3] {
     let rel: Vec<[f64; 3]> = pts
         .map(|p| [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]])
         .collect();
