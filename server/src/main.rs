@@ -80,7 +80,7 @@ struct ImportArgs {
     #[arg(long)]
     raw_big_endian: bool,
     /// zstd compression level of stored blocks.
-    #[arg(long, default_value_t = 9, value_parser = clap::value_parser!(i32).range(1..=22))]
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(i32).range(1..=22))]
     zstd_level: i32,
     /// Do not train per-scene zstd dictionaries.
     #[arg(long)]

@@ -74,7 +74,7 @@ impl Default for BuildOptions {
             depth: DepthChoice::Auto,
             treelet_bytes: arbor_proto::limits::DEFAULT_TREELET_BYTES,
             iso: None,
-            zstd_level: 9,
+            zstd_level: 3,
             dictionary: true,
             memory_budget: 256 << 20,
             progress: false,
@@ -205,7 +205,13 @@ pub fn build_scene_observed(
         name,
         source.describe()
     );
+    let phase = |what: &str, since: Instant| {
+        tracing::info!(seconds = since.elapsed().as_secs_f64(), "{what} done");
+        Instant::now()
+    };
+    let t = phase("placing (bounds, resolution)", started);
     let (layout, fill, iso_used) = fill_source(source, &placed, capacity, opts, scratch, progress)?;
+    let t = phase("fill (with sorting and normals)", t);
 
     let records = RecordFile {
         file: fill.file,
@@ -216,11 +222,12 @@ pub fn build_scene_observed(
     average_bottom_up(
         &records,
         &layout,
-        fill.treelets,
+        &fill.level_starts,
         depth,
         opts.progress,
         progress,
     )?;
+    let t = phase("attributes", t);
     let mut stats = SceneStats {
         voxels: fill.used_nodes - u64::from(fill.treelets - 1),
         leaf_voxels: fill.leaf_voxels,
@@ -233,6 +240,7 @@ pub fn build_scene_observed(
     } else {
         (None, vec![None; layout.channels().len()])
     };
+    let t = phase("dictionary training", t);
     progress.enter(Phase::Packing, u64::from(fill.treelets));
     pack(
         &records,
@@ -245,6 +253,7 @@ pub fn build_scene_observed(
         sink,
         progress,
     )?;
+    phase("pack", t);
     stats.build_seconds = started.elapsed().as_secs_f64();
     let dictionary = node_dictionary.is_some();
     Ok(SceneDescription {
@@ -337,8 +346,14 @@ fn fill_source(
             Ok((a.layout.clone(), fill, None))
         }
         Source::Points(p) if frame.depth <= sorted_points::MAX_KEY_DEPTH => {
+            let t = Instant::now();
             let (records, sorted) =
                 sorted_points::sort_points(p, &frame, opts.memory_budget, scratch)?;
+            tracing::info!(
+                seconds = t.elapsed().as_secs_f64(),
+                "points sorted by leaf cell"
+            );
+            let t = Instant::now();
             let normals = match &p.normals {
                 Some(file) => {
                     let mut w = ColumnWriter::create(scratch, "sorted-normals")?;
@@ -352,6 +367,7 @@ fn fill_source(
                     sorted_points::cell_normals(&records, frame.depth, centre, scratch)?
                 }
             };
+            tracing::info!(seconds = t.elapsed().as_secs_f64(), "normals");
             let b = sorted_points::SortedPointBuilder {
                 records: &records,
                 depth: frame.depth,
@@ -466,6 +482,9 @@ fn bounds(source: &Source) -> Result<([f64; 3], [f64; 3]), BuildError> {
 struct Filled {
     file: File,
     treelets: u32,
+    /// First id of each treelet level (root = level 0), then the count: ids grow level by
+    /// level because jobs run in FIFO order.
+    level_starts: Vec<u32>,
     used_nodes: u64,
     leaf_voxels: u64,
     spilled_bytes: u64,
@@ -580,6 +599,8 @@ fn fill_all(
         prims: IdList::Range(0..count),
     })?;
     let mut next_id: u64 = 1;
+    // Level of every treelet (1 byte each), to find where each level starts.
+    let mut level_of: Vec<u8> = vec![0];
     let mut written = 0u32;
     let (mut used_nodes, mut leaf_voxels) = (0u64, 0u64);
     let pb = spinner(opts.progress, "fill");
@@ -605,6 +626,7 @@ fn fill_all(
             for leaf in f.pending.drain(..) {
                 let child = treelet_id(next_id)?;
                 next_id += 1;
+                level_of.push(level_of[id.0 as usize].saturating_add(1));
                 f.treelet.nodes[usize::from(leaf.local_index)].first_child = child.0;
                 queue.push(TreeletJob {
                     id: child,
@@ -644,9 +666,18 @@ fn fill_all(
             "primitive lists spilled to disk"
         );
     }
+    let mut level_starts = vec![0u32];
+    for (i, pair) in level_of.windows(2).enumerate() {
+        debug_assert!(pair[0] <= pair[1], "FIFO order keeps levels contiguous");
+        if pair[1] != pair[0] {
+            level_starts.push(i as u32 + 1);
+        }
+    }
+    level_starts.push(written);
     Ok(Filled {
         file: records.file,
         treelets: written,
+        level_starts,
         used_nodes,
         leaf_voxels,
         spilled_bytes,
@@ -666,61 +697,87 @@ fn treelet_id(next: u64) -> Result<TreeletId, BuildError> {
 fn average_bottom_up(
     records: &RecordFile,
     layout: &AttributeLayout,
-    count: u32,
+    level_starts: &[u32],
     depth: u8,
     bars: bool,
     progress: &ImportProgress,
 ) -> Result<(), BuildError> {
-    let bpv = records.bpv;
-    let mut offsets = Vec::new();
-    let mut at = 0;
-    for c in layout.channels() {
-        offsets.push(at);
-        at += c.size();
-    }
-    // Root attributes of treelets whose parent has not been processed yet.
-    let mut child_roots: HashMap<u32, Vec<u8>> = HashMap::new();
+    let count = level_starts.last().copied().unwrap_or(0);
+    // Root attributes of the treelets one level below, for their parents' refinable leaves.
+    let mut below: HashMap<u32, Vec<u8>> = HashMap::new();
     let pb = bar(bars, "attributes", u64::from(count));
-    for id in (0..count).rev() {
-        let (t, places, mut attrs) = records.read_with_places(id, depth)?;
-        for i in (0..t.used().len()).rev() {
-            let n: Node = t.nodes[i];
-            let k = i * bpv;
-            if places[i].is_leaf {
-                if n.first_child != Node::NONE {
-                    let root = child_roots.remove(&n.first_child).ok_or_else(|| {
-                        BuildError::Sink(format!(
-                            "treelet {id} leaf {i}: child treelet {} was never built",
-                            n.first_child
-                        ))
-                    })?;
-                    attrs[k..k + bpv].copy_from_slice(&root);
-                }
-                continue;
-            }
-            let first = i + n.first_child as usize;
-            let kids = n.child_count() as usize;
-            for (ci, c) in layout.channels().iter().enumerate() {
-                let off = offsets[ci];
-                let size = c.size();
-                let mut out = vec![0u8; size];
-                let src = &attrs;
-                c.mean(
-                    (first..first + kids).map(|j| &src[j * bpv + off..j * bpv + off + size]),
-                    &mut out,
-                );
-                attrs[k + off..k + off + size].copy_from_slice(&out);
+    let mut done = 0u64;
+    for level in (0..level_starts.len().saturating_sub(1)).rev() {
+        // Treelets of one level are independent: their children are all one level deeper.
+        let ids = level_starts[level]..level_starts[level + 1];
+        let roots: Vec<Result<Option<RootAttribute>, BuildError>> = ids
+            .clone()
+            .into_par_iter()
+            .map(|id| average_treelet(records, layout, id, depth, &below))
+            .collect();
+        below = HashMap::with_capacity(roots.len());
+        for r in roots {
+            if let Some((id, root)) = r? {
+                below.insert(id, root);
             }
         }
-        if !t.header.parent_id.is_none() {
-            child_roots.insert(id, attrs[..bpv].to_vec());
-        }
-        records.write_attributes(id, &attrs)?;
-        pb.inc(1);
-        progress.set_done(u64::from(count - id));
+        done += u64::from(ids.end - ids.start);
+        pb.set_position(done);
+        progress.set_done(done);
     }
     pb.finish_and_clear();
     Ok(())
+}
+
+/// A treelet id and its root voxel's attribute bytes.
+type RootAttribute = (u32, Vec<u8>);
+
+/// Averages one treelet's inner attributes bottom-up (its refinable leaves take their child
+/// treelet's root attribute from `below`), writes them back, and returns its own root attribute
+/// for its parent (none for the root treelet).
+fn average_treelet(
+    records: &RecordFile,
+    layout: &AttributeLayout,
+    id: u32,
+    depth: u8,
+    below: &HashMap<u32, Vec<u8>>,
+) -> Result<Option<RootAttribute>, BuildError> {
+    let bpv = records.bpv;
+    let (t, places, mut attrs) = records.read_with_places(id, depth)?;
+    let mut out = Vec::new();
+    for i in (0..t.used().len()).rev() {
+        let n: Node = t.nodes[i];
+        let k = i * bpv;
+        if places[i].is_leaf {
+            if n.first_child != Node::NONE {
+                let root = below.get(&n.first_child).ok_or_else(|| {
+                    BuildError::Sink(format!(
+                        "treelet {id} leaf {i}: child treelet {} was never built",
+                        n.first_child
+                    ))
+                })?;
+                attrs[k..k + bpv].copy_from_slice(root);
+            }
+            continue;
+        }
+        let first = i + n.first_child as usize;
+        let kids = n.child_count() as usize;
+        let mut off = 0;
+        for c in layout.channels() {
+            let size = c.size();
+            out.clear();
+            out.resize(size, 0);
+            let src = &attrs;
+            c.mean(
+                (first..first + kids).map(|j| &src[j * bpv + off..j * bpv + off + size]),
+                &mut out,
+            );
+            attrs[k + off..k + off + size].copy_from_slice(&out);
+            off += size;
+        }
+    }
+    records.write_attributes(id, &attrs)?;
+    Ok((!t.header.parent_id.is_none()).then(|| (id, attrs[..bpv].to_vec())))
 }
 
 /// Splits a record's attribute bytes into one block per channel (used records only).

@@ -529,6 +529,44 @@ pub fn cell_normals(
     out.finish()
 }
 
+/// The first index `i ≤ from` such that `same` holds for all of `records[i..from]`, found by
+/// doubling steps back from `from` (cost logarithmic in the distance, not in the array).
+fn gallop_back(records: &[PointRecord], from: usize, same: impl Fn(&PointRecord) -> bool) -> usize {
+    let mut step = 1;
+    let mut lo = from;
+    while lo > 0 && same(&records[lo - 1]) {
+        let next = lo.saturating_sub(step);
+        if same(&records[next]) {
+            lo = next;
+            step *= 2;
+        } else {
+            return next + 1 + records[next + 1..lo].partition_point(|r| !same(r));
+        }
+    }
+    lo
+}
+
+/// The first index `i ≥ from` such that `same` fails at `records[i]` (or the end), found by
+/// doubling steps forward.
+fn gallop_forward(
+    records: &[PointRecord],
+    from: usize,
+    same: impl Fn(&PointRecord) -> bool,
+) -> usize {
+    let mut step = 1;
+    let mut hi = from;
+    while hi < records.len() && same(&records[hi]) {
+        let next = (hi + step).min(records.len() - 1);
+        if same(&records[next]) {
+            hi = next + 1;
+            step *= 2;
+        } else {
+            return hi + records[hi..next].partition_point(|r| same(r));
+        }
+    }
+    hi
+}
+
 fn step_normals(
     records: &[PointRecord],
     step: Range<usize>,
@@ -547,8 +585,8 @@ fn step_normals(
         while hi - lo < NORMAL_MIN_POINTS && l > 0 {
             l -= 1;
             let parent = cell_of(records[at].key, l);
-            lo = records[..lo].partition_point(|r| cell_of(r.key, l) < parent);
-            hi += records[hi..].partition_point(|r| cell_of(r.key, l) == parent);
+            lo = gallop_back(records, lo, |r| cell_of(r.key, l) == parent);
+            hi = gallop_forward(records, hi, |r| cell_of(r.key, l) == parent);
         }
         // A sparse point whose enclosing cell is huge takes its key-order neighbours only.
         if hi - lo > NORMAL_MAX_POINTS {
@@ -588,6 +626,24 @@ mod tests {
             let want = (bit(cell[0]) << 2 | bit(cell[1]) << 1 | bit(cell[2])) as u8;
             assert_eq!(child_of(key, d, depth), want, "level {d}");
         }
+    }
+
+    #[test]
+    fn galloping_finds_the_run_of_a_cell() {
+        let records: Vec<PointRecord> = [1u64, 1, 2, 2, 2, 2, 2, 2, 2, 3, 4, 4]
+            .iter()
+            .map(|&key| PointRecord {
+                key,
+                ..PointRecord::default()
+            })
+            .collect();
+        for from in 2..=9 {
+            assert_eq!(gallop_back(&records, from, |r| r.key == 2), 2, "{from}");
+            assert_eq!(gallop_forward(&records, from, |r| r.key == 2), 9, "{from}");
+        }
+        assert_eq!(gallop_back(&records, 2, |r| r.key == 1), 0);
+        assert_eq!(gallop_forward(&records, 10, |r| r.key == 4), 12);
+        assert_eq!(gallop_back(&records, 0, |r| r.key == 1), 0);
     }
 
     #[test]
