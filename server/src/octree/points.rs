@@ -124,8 +124,8 @@ impl Grid {
         m(c[0]) << 42 | m(c[1]) << 21 | m(c[2])
     }
 
-    /// Calls `f` for every point in the 3×3×3 cells around `p`.
-    fn around(&self, p: [f64; 3], mut f: impl FnMut(u32)) {
+    /// Calls `f` with the key of every grid cell of the 3×3×3 block around `p`.
+    fn cells_around(&self, p: [f64; 3], mut f: impl FnMut(u64)) {
         let c = self.coords(p);
         for dx in -1..=1 {
             for dy in -1..=1 {
@@ -134,17 +134,23 @@ impl Grid {
                     if cc.iter().any(|v| !(0..1 << 21).contains(v)) {
                         continue;
                     }
-                    let k = self.key(cc);
-                    let start = self.keys.partition_point(|e| e.0 < k);
-                    for e in &self.keys[start..] {
-                        if e.0 != k {
-                            break;
-                        }
-                        f(e.1);
-                    }
+                    f(self.key(cc));
                 }
             }
         }
+    }
+
+    /// Calls `f` for every point in the 3×3×3 cells around `p`.
+    fn around(&self, p: [f64; 3], mut f: impl FnMut(u32)) {
+        self.cells_around(p, |k| {
+            let start = self.keys.partition_point(|e| e.0 < k);
+            for e in &self.keys[start..] {
+                if e.0 != k {
+                    break;
+                }
+                f(e.1);
+            }
+        });
     }
 }
 
@@ -279,55 +285,63 @@ fn points_per_group(memory_budget: usize) -> usize {
     (memory_budget / 40).max(1 << 16)
 }
 
-/// Mean distance to the nearest neighbour, estimated from up to 20,000 evenly spread points.
+/// Mean distance to the nearest neighbour, estimated from up to 20,000 evenly spread points
+/// (every `n / 20,000`-th in file order). Their neighbours are searched in the 3×3×3 grid cells
+/// around each: one pass over the cloud keeps only the points in those cells (memory bounded by
+/// the samples, not by the cloud), then each sample's nearest is found among them.
 pub fn mean_point_spacing(
     pos: &[[f64; 3]],
     min: [f64; 3],
     max: [f64; 3],
-    memory_budget: usize,
-    scratch: &std::path::Path,
+    _memory_budget: usize,
+    _scratch: &std::path::Path,
 ) -> Result<f64, ColumnError> {
     if pos.len() < 2 {
         return Ok(0.0);
     }
     let cell = grid_cell(pos.len(), min, max, 4.0);
-    let step = (pos.len() / 20_000).max(1) as u32;
-    let (mut sum, mut n) = (0.0f64, 0u64);
-    for_each_slab_group(
-        pos,
-        min,
-        max,
+    let step = (pos.len() / 20_000).max(1);
+    let mut grid = Grid {
+        origin: min,
         cell,
-        points_per_group(memory_budget),
-        scratch,
-        |own, local| {
-            let grid = Grid::new(pos, local, min, cell);
-            let (s, k) = own
-                .par_iter()
-                .filter(|&&i| i % step == 0)
-                .map(|&i| {
-                    let p = pos[i as usize];
-                    let mut best = f64::INFINITY;
-                    grid.around(p, |j| {
-                        if j != i {
-                            let d = dist2(p, pos[j as usize]);
-                            if d > 0.0 && d < best {
-                                best = d;
-                            }
-                        }
-                    });
-                    if best.is_finite() {
-                        (best.sqrt(), 1u64)
-                    } else {
-                        (0.0, 0)
+        keys: Vec::new(),
+    };
+    let mut wanted = std::collections::HashSet::new();
+    for i in (0..pos.len()).step_by(step) {
+        grid.cells_around(pos[i], |k| {
+            wanted.insert(k);
+        });
+    }
+    let mut keys: Vec<(u64, u32)> = (0..pos.len())
+        .into_par_iter()
+        .filter_map(|i| {
+            let k = grid.key(grid.coords(pos[i]));
+            wanted.contains(&k).then_some((k, i as u32))
+        })
+        .collect();
+    keys.par_sort_unstable();
+    grid.keys = keys;
+    let (sum, n) = (0..pos.len())
+        .into_par_iter()
+        .step_by(step)
+        .map(|i| {
+            let p = pos[i];
+            let mut best = f64::INFINITY;
+            grid.around(p, |j| {
+                if j as usize != i {
+                    let d = dist2(p, pos[j as usize]);
+                    if d > 0.0 && d < best {
+                        best = d;
                     }
-                })
-                .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
-            sum += s;
-            n += k;
-            Ok(())
-        },
-    )?;
+                }
+            });
+            if best.is_finite() {
+                (best.sqrt(), 1u64)
+            } else {
+                (0.0, 0)
+            }
+        })
+        .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
     Ok(if n == 0 { 0.0 } else { sum / n as f64 })
 }
 
