@@ -1,0 +1,150 @@
+//! Streaming while the daemon imports: a client of lion (1 KiB treelets, 256², CPU backend,
+//! budget 1.5× what the view needs) converges from scratch, again and again, alternating runs
+//! with the daemon idle and runs while it imports a tiled point set (the scale bench's 10⁷-point
+//! city when it exists under target/scale, else lion and autzen copies) into the same pool.
+//! Figures per run: time to exact convergence, treelets received, treelets/s; then the medians
+//! of both kinds side by side.
+//!
+//! `cargo bench -p arbor-tests --bench live_import` (ARBOR_LIVE_RUNS=N: runs per kind, 3).
+
+use std::net::SocketAddr;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use arbor_client_core::camera::CameraPath;
+use arbor_client_core::slots::SlotBuffer;
+use arbor_client_session::headless::run_headless;
+use arbor_server::daemon::DaemonOptions;
+use arbor_tests::streaming::{ADMIN_TOKEN, Served, full, headless, needed_treelets, serve_with};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+async fn http(addr: SocketAddr, method: &str, path: &str, body: &str) -> String {
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let req = format!(
+        "{method} {path} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {ADMIN_TOKEN}\r\n\
+         Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    s.write_all(req.as_bytes()).await.unwrap();
+    let mut raw = String::new();
+    s.read_to_string(&mut raw).await.unwrap();
+    raw.split_once("\r\n\r\n")
+        .map(|(_, b)| b.to_owned())
+        .unwrap_or_default()
+}
+
+/// One convergence from scratch: seconds, treelets received.
+async fn converge_once(served: &Arc<Served>, budget: u64) -> (f64, u64) {
+    let mut cfg = headless(served.server.quic_addr, served, CameraPath::Static, budget);
+    cfg.width = 256;
+    cfg.height = 256;
+    cfg.until_converged = true;
+    cfg.cycles = 2000;
+    let handle = tokio::runtime::Handle::current();
+    let t0 = Instant::now();
+    let run = tokio::task::spawn_blocking(move || run_headless(cfg, &handle))
+        .await
+        .unwrap()
+        .unwrap();
+    assert!(run.converged_at.is_some(), "did not converge");
+    (t0.elapsed().as_secs_f64(), run.client.treelets_received)
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+#[tokio::main(flavor = "multi_thread", worker_threads = 2)]
+async fn main() {
+    let runs: usize = std::env::var("ARBOR_LIVE_RUNS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(3);
+    let root = tempfile::tempdir().unwrap();
+    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/points");
+    let city = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/scale/tiles-10000000");
+    let input = if city.join("complete").exists() {
+        std::os::unix::fs::symlink(&city, root.path().join("tiles")).unwrap();
+        "tiles"
+    } else {
+        std::fs::create_dir(root.path().join("tiles")).unwrap();
+        for i in 0..4 {
+            std::fs::copy(
+                shared.join("lion_takanawa.copc.laz"),
+                root.path().join(format!("tiles/l{i}.laz")),
+            )
+            .unwrap();
+        }
+        "tiles"
+    };
+    let options = DaemonOptions {
+        import_root: Some(root.path().to_owned()),
+        import_scratch: None,
+    };
+    let served = Arc::new(serve_with("points/lion_takanawa.copc.laz", "lion", 1024, options).await);
+    let admin = served.server.admin_addr.unwrap();
+    let full = full(&served);
+    let needed = needed_treelets(&served, &full, &CameraPath::Static, 0);
+    let budget = u64::from(needed + needed / 2)
+        * SlotBuffer::slot_bytes(served.scene.treelet_nodes, served.scene.layout.channels());
+    let (mut idle, mut busy) = (Vec::new(), Vec::new());
+    for run in 0..runs {
+        let (s, n) = converge_once(&served, budget).await;
+        println!(
+            "run {run} idle:      converged in {s:.2} s, {n} treelets, {:.0} treelets/s",
+            n as f64 / s
+        );
+        idle.push((s, n as f64 / s));
+        let body = format!(r#"{{"scene":"city{run}","inputs":["{input}"],"depth":"auto"}}"#);
+        let answer = http(admin, "POST", "/v1/scenes", &body).await;
+        let id: u64 = serde_json::from_str::<serde_json::Value>(&answer).unwrap()["id"]
+            .as_u64()
+            .unwrap_or_else(|| panic!("import refused: {answer}"));
+        // Let the import get going, then stream while it runs.
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let (s, n) = converge_once(&served, budget).await;
+        let status: serde_json::Value =
+            serde_json::from_str(&http(admin, "GET", &format!("/v1/imports/{id}"), "").await)
+                .unwrap();
+        println!(
+            "run {run} importing: converged in {s:.2} s, {n} treelets, {:.0} treelets/s (import {} at the end: {})",
+            n as f64 / s,
+            id,
+            status["phase"]
+        );
+        busy.push((s, n as f64 / s));
+        loop {
+            let st: serde_json::Value =
+                serde_json::from_str(&http(admin, "GET", &format!("/v1/imports/{id}"), "").await)
+                    .unwrap();
+            if st["phase"] == "done" || st["phase"] == "failed" {
+                println!(
+                    "  import {id}: {} in {:.1} s",
+                    st["phase"],
+                    st["seconds"].as_f64().unwrap_or(0.0)
+                );
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+        let _ = http(admin, "DELETE", &format!("/v1/scenes/city{run}"), "").await;
+    }
+    let m = |v: &[(f64, f64)], k: usize| {
+        median(v.iter().map(|x| if k == 0 { x.0 } else { x.1 }).collect())
+    };
+    println!();
+    println!("| lion 256², 1 KiB | median time to converge | median treelets/s |");
+    println!("|---|---|---|");
+    println!(
+        "| daemon idle | {:.2} s | {:.0} |",
+        m(&idle, 0),
+        m(&idle, 1)
+    );
+    println!(
+        "| daemon importing | {:.2} s | {:.0} |",
+        m(&busy, 0),
+        m(&busy, 1)
+    );
+}
