@@ -16,22 +16,10 @@ use arbor_client_core::camera::CameraPath;
 use arbor_client_core::slots::SlotBuffer;
 use arbor_client_session::headless::run_headless;
 use arbor_server::daemon::DaemonOptions;
-use arbor_tests::streaming::{ADMIN_TOKEN, Served, full, headless, needed_treelets, serve_with};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use arbor_tests::streaming::{Served, admin_request, full, headless, needed_treelets, serve_with};
 
-async fn http(addr: SocketAddr, method: &str, path: &str, body: &str) -> String {
-    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
-    let req = format!(
-        "{method} {path} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {ADMIN_TOKEN}\r\n\
-         Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        body.len()
-    );
-    s.write_all(req.as_bytes()).await.unwrap();
-    let mut raw = String::new();
-    s.read_to_string(&mut raw).await.unwrap();
-    raw.split_once("\r\n\r\n")
-        .map(|(_, b)| b.to_owned())
-        .unwrap_or_default()
+async fn http(addr: SocketAddr, method: &str, path: &str, body: &str) -> serde_json::Value {
+    admin_request(addr, method, path, body).await.1
 }
 
 /// One convergence from scratch: seconds, treelets received.
@@ -99,15 +87,13 @@ async fn main() {
         idle.push((s, n as f64 / s));
         let body = format!(r#"{{"scene":"city{run}","inputs":["{input}"],"depth":"auto"}}"#);
         let answer = http(admin, "POST", "/v1/scenes", &body).await;
-        let id: u64 = serde_json::from_str::<serde_json::Value>(&answer).unwrap()["id"]
+        let id: u64 = answer["id"]
             .as_u64()
             .unwrap_or_else(|| panic!("import refused: {answer}"));
         // Let the import get going, then stream while it runs.
         tokio::time::sleep(Duration::from_millis(300)).await;
         let (s, n) = converge_once(&served, budget).await;
-        let status: serde_json::Value =
-            serde_json::from_str(&http(admin, "GET", &format!("/v1/imports/{id}"), "").await)
-                .unwrap();
+        let status = http(admin, "GET", &format!("/v1/imports/{id}"), "").await;
         println!(
             "run {run} importing: converged in {s:.2} s, {n} treelets, {:.0} treelets/s (import {} at the end: {})",
             n as f64 / s,
@@ -116,9 +102,7 @@ async fn main() {
         );
         busy.push((s, n as f64 / s));
         loop {
-            let st: serde_json::Value =
-                serde_json::from_str(&http(admin, "GET", &format!("/v1/imports/{id}"), "").await)
-                    .unwrap();
+            let st = http(admin, "GET", &format!("/v1/imports/{id}"), "").await;
             if st["phase"] == "done" || st["phase"] == "failed" {
                 println!(
                     "  import {id}: {} in {:.1} s",

@@ -3,32 +3,14 @@
 //! the new scenes are served. Real sled pool, real QUIC service and headless client, admin API
 //! on a real port.
 
-use std::net::SocketAddr;
 use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use arbor_client_core::backend::CpuBackend;
 use arbor_server::daemon::DaemonOptions;
-use arbor_tests::streaming::{ADMIN_TOKEN, converge, serve_with};
-use serde_json::{Value, json};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-
-async fn http(addr: SocketAddr, method: &str, path: &str, body: &str) -> (u16, Value) {
-    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
-    let req = format!(
-        "{method} {path} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {ADMIN_TOKEN}\r\n\
-         Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        body.len()
-    );
-    s.write_all(req.as_bytes()).await.unwrap();
-    let mut raw = Vec::new();
-    s.read_to_end(&mut raw).await.unwrap();
-    let raw = String::from_utf8(raw).unwrap();
-    let (head, body) = raw.split_once("\r\n\r\n").unwrap();
-    let status = head.split(' ').nth(1).unwrap().parse().unwrap();
-    (status, serde_json::from_str(body).unwrap_or(Value::Null))
-}
+use arbor_tests::streaming::{admin_request, converge, serve_with};
+use serde_json::json;
 
 fn shared(rel: &str) -> std::path::PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -57,7 +39,7 @@ async fn a_client_of_another_scene_converges_exactly_while_scenes_are_imported()
     let admin = served.server.admin_addr.unwrap();
     let mut ids = Vec::new();
     for (scene, input) in [("lion2", "lion.laz"), ("autzen", "autzen.las")] {
-        let (s, r) = http(
+        let (s, r) = admin_request(
             admin,
             "POST",
             "/v1/scenes",
@@ -83,7 +65,7 @@ async fn a_client_of_another_scene_converges_exactly_while_scenes_are_imported()
     for id in ids {
         let t0 = Instant::now();
         loop {
-            let (s, st) = http(admin, "GET", &format!("/v1/imports/{id}"), "").await;
+            let (s, st) = admin_request(admin, "GET", &format!("/v1/imports/{id}"), "").await;
             assert_eq!(s, 200, "{st}");
             if st["phase"] == "done" {
                 eprintln!(

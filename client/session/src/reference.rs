@@ -205,8 +205,8 @@ fn place(
     Ok(slots)
 }
 
-/// Fetches exactly `ids`, in batches of the protocol's list size.
-fn fetch_ids(
+/// Fetches exactly `ids`, in batches of the protocol's list size, in the given order.
+pub(crate) fn fetch_ids(
     client: &mut TreeletClient,
     scene: &SceneDescription,
     channels: &[Channel],

@@ -39,14 +39,10 @@ pub struct PointAttributes<'a> {
 
 impl<'a> PointAttributes<'a> {
     pub fn new(points: &'a PointSource, normals: &'a Column<[f32; 3]>) -> Self {
-        let mut ch = vec![Channel::Normal];
-        if points.colors.is_some() {
-            ch.push(Channel::Color);
-        }
         Self {
             points,
             normals,
-            layout: AttributeLayout::new(ch),
+            layout: point_layout(points.colors.is_some()),
         }
     }
 }
@@ -57,37 +53,63 @@ impl AttributeGenerator for PointAttributes<'_> {
     }
 
     fn leaf(&self, _cell: Cell, prims: &[u32], out: &mut [u8]) {
-        let mut n = [0f32; 3];
-        let mut c = [0f32; 3];
-        for &p in prims {
-            let v = self.normals[p as usize];
-            // Estimated normals have no consistent sign everywhere: align with the first.
-            let s = if n[0] * v[0] + n[1] * v[1] + n[2] * v[2] < 0.0 {
-                -1.0
-            } else {
-                1.0
-            };
+        let colors = self.points.colors.as_ref();
+        leaf_attributes(
+            &self.layout,
+            prims
+                .iter()
+                .map(|&p| (self.normals[p as usize], colors.map(|c| c[p as usize]))),
+            out,
+        );
+    }
+}
+
+/// The attribute layout of a point scene: normal, and colour when the source has it.
+pub(crate) fn point_layout(colour: bool) -> AttributeLayout {
+    let mut ch = vec![Channel::Normal];
+    if colour {
+        ch.push(Channel::Color);
+    }
+    AttributeLayout::new(ch)
+}
+
+/// A leaf voxel's attributes from its points' (normal, colour): the normals summed with their
+/// signs aligned to the first (estimated normals have no consistent sign everywhere), the mean
+/// colour; f32 sums in the given order.
+pub(crate) fn leaf_attributes(
+    layout: &AttributeLayout,
+    points: impl Iterator<Item = ([f32; 3], Option<[u8; 3]>)>,
+    out: &mut [u8],
+) {
+    let mut n = [0f32; 3];
+    let mut c = [0f32; 3];
+    let mut k = 0usize;
+    for (v, col) in points {
+        let s = if n[0] * v[0] + n[1] * v[1] + n[2] * v[2] < 0.0 {
+            -1.0
+        } else {
+            1.0
+        };
+        for a in 0..3 {
+            n[a] += s * v[a];
+        }
+        if let Some(col) = col {
             for a in 0..3 {
-                n[a] += s * v[a];
-            }
-            if let Some(cs) = &self.points.colors {
-                let col = cs[p as usize];
-                for a in 0..3 {
-                    c[a] += f32::from(col[a]) / 255.0;
-                }
+                c[a] += f32::from(col[a]) / 255.0;
             }
         }
-        let k = prims.len().max(1) as f32;
-        let mut at = 0;
-        for ch in self.layout.channels() {
-            let size = ch.size();
-            match ch {
-                Channel::Normal => ch.encode(&n, &mut out[at..at + size]),
-                Channel::Color => ch.encode(&c.map(|x| x / k), &mut out[at..at + size]),
-                Channel::Density => {}
-            }
-            at += size;
+        k += 1;
+    }
+    let k = k.max(1) as f32;
+    let mut at = 0;
+    for ch in layout.channels() {
+        let size = ch.size();
+        match ch {
+            Channel::Normal => ch.encode(&n, &mut out[at..at + size]),
+            Channel::Color => ch.encode(&c.map(|x| x / k), &mut out[at..at + size]),
+            Channel::Density => {}
         }
+        at += size;
     }
 }
 

@@ -28,10 +28,10 @@ use std::path::Path;
 use bytemuck::{Pod, Zeroable};
 use rayon::prelude::*;
 
-use arbor_proto::{AttributeLayout, Cell, Channel};
+use arbor_proto::{AttributeLayout, Cell};
 
 use super::geometry::Frame;
-use super::points::pca_normal;
+use super::points::{leaf_attributes, pca_normal, point_layout};
 use super::treelet_builder::{AttributeGenerator, TreeletBuilder};
 use crate::source::{Column, ColumnError, ColumnMut, PointSource};
 
@@ -415,15 +415,17 @@ pub struct SortedPointAttributes<'a> {
 
 impl<'a> SortedPointAttributes<'a> {
     pub fn new(records: &'a [PointRecord], normals: &'a [[f32; 3]], colour: bool) -> Self {
-        let mut ch = vec![Channel::Normal];
-        if colour {
-            ch.push(Channel::Color);
-        }
         Self {
             records,
             normals,
-            layout: AttributeLayout::new(ch),
+            layout: point_layout(colour),
         }
+    }
+
+    /// (normal, colour) of sorted point `p`.
+    fn point(&self, p: u32) -> ([f32; 3], Option<[u8; 3]>) {
+        let colour = (self.layout.channels().len() > 1).then(|| self.records[p as usize].rgb);
+        (self.normals[p as usize], colour)
     }
 }
 
@@ -432,52 +434,12 @@ impl AttributeGenerator for SortedPointAttributes<'_> {
         self.layout.bytes_per_voxel()
     }
 
-    fn leaf(&self, cell: Cell, prims: &[u32], out: &mut [u8]) {
-        leaf_attributes(self, cell, prims.iter().copied(), out);
+    fn leaf(&self, _cell: Cell, prims: &[u32], out: &mut [u8]) {
+        leaf_attributes(&self.layout, prims.iter().map(|&p| self.point(p)), out);
     }
 
-    fn leaf_range(&self, cell: Cell, prims: Range<u32>, out: &mut [u8]) {
-        leaf_attributes(self, cell, prims, out);
-    }
-}
-
-/// Mean colour and sign-aligned normal sum of a leaf's points, in the general path's arithmetic
-/// (f32 sums in file order).
-fn leaf_attributes(
-    a: &SortedPointAttributes<'_>,
-    _cell: Cell,
-    prims: impl Iterator<Item = u32>,
-    out: &mut [u8],
-) {
-    let mut n = [0f32; 3];
-    let mut c = [0f32; 3];
-    let mut k = 0usize;
-    for p in prims {
-        let v = a.normals[p as usize];
-        let s = if n[0] * v[0] + n[1] * v[1] + n[2] * v[2] < 0.0 {
-            -1.0
-        } else {
-            1.0
-        };
-        for i in 0..3 {
-            n[i] += s * v[i];
-        }
-        let col = a.records[p as usize].rgb;
-        for i in 0..3 {
-            c[i] += f32::from(col[i]) / 255.0;
-        }
-        k += 1;
-    }
-    let k = k.max(1) as f32;
-    let mut at = 0;
-    for ch in a.layout.channels() {
-        let size = ch.size();
-        match ch {
-            Channel::Normal => ch.encode(&n, &mut out[at..at + size]),
-            Channel::Color => ch.encode(&c.map(|x| x / k), &mut out[at..at + size]),
-            Channel::Density => {}
-        }
-        at += size;
+    fn leaf_range(&self, _cell: Cell, prims: Range<u32>, out: &mut [u8]) {
+        leaf_attributes(&self.layout, prims.map(|p| self.point(p)), out);
     }
 }
 
