@@ -42,18 +42,20 @@ fn streamed(served: &Arc<Served>, path: CameraPath, cycle: u32) -> StreamedRefer
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_streamed_reference_equals_the_whole_scene_reference() {
-    for (rel, name, treelet_bytes) in [
-        ("points/lion_takanawa.copc.laz", "lion", 1024),
-        ("points/autzen_trim.las", "autzen", 4096),
-        ("volumes/engine_256x256x128_u8.nrrd", "engine", 1024),
-        ("meshes/igea.ply", "igea", 1024),
+    // Points, a volume and a mesh; a distant and a close camera on lion.
+    for (rel, name, treelet_bytes, close) in [
+        ("points/lion_takanawa.copc.laz", "lion", 1024, true),
+        ("points/autzen_trim.las", "autzen", 4096, false),
+        ("volumes/engine_256x256x128_u8.nrrd", "engine", 1024, false),
+        ("meshes/stanford-bunny.obj", "bunny", 1024, false),
     ] {
         let served = Arc::new(serve(rel, name, treelet_bytes).await);
         let full = full(&served);
-        for (path, cycle) in [
+        let views = [
             (CameraPath::Static, 0),
             (CameraPath::FlyIn { cycles: 10 }, 7),
-        ] {
+        ];
+        for &(path, cycle) in &views[..if close { 2 } else { 1 }] {
             let whole = reference(&served, &full, &path, cycle, &mut CpuBackend);
             let s = Arc::clone(&served);
             let r = tokio::task::spawn_blocking(move || streamed(&s, path, cycle))
