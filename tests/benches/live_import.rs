@@ -50,25 +50,26 @@ async fn main() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(3);
-    let root = tempfile::tempdir().unwrap();
+    let made = tempfile::tempdir().unwrap();
     let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/points");
-    let city = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/scale/tiles-10000000");
-    let input = if city.join("complete").exists() {
-        std::os::unix::fs::symlink(&city, root.path().join("tiles")).unwrap();
-        "tiles"
+    let scale = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/scale");
+    // The import root must hold the tiles themselves (a symlink leading out is refused).
+    let (root, input) = if scale.join("tiles-10000000/complete").exists() {
+        (scale, "tiles-10000000")
     } else {
-        std::fs::create_dir(root.path().join("tiles")).unwrap();
+        std::fs::create_dir(made.path().join("tiles")).unwrap();
         for i in 0..4 {
             std::fs::copy(
                 shared.join("lion_takanawa.copc.laz"),
-                root.path().join(format!("tiles/l{i}.laz")),
+                made.path().join(format!("tiles/l{i}.laz")),
             )
             .unwrap();
         }
-        "tiles"
+        (made.path().to_owned(), "tiles")
     };
+    println!("importing {input} under {}", root.display());
     let options = DaemonOptions {
-        import_root: Some(root.path().to_owned()),
+        import_root: Some(root),
         import_scratch: None,
     };
     let served = Arc::new(serve_with("points/lion_takanawa.copc.laz", "lion", 1024, options).await);
