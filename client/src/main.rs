@@ -20,6 +20,7 @@ use arbor_client_core::upload::DEFAULT_FILL_RATIO;
 use arbor_client_gpu::{BackendChoice, create_backend};
 use arbor_client_net::{ClientConfig, Trust, parse_server_url};
 use arbor_client_session::headless::{HeadlessConfig, run_headless_with};
+use arbor_client_session::reference::{ReferenceView, streamed_reference};
 use arbor_client_session::session::SessionConfig;
 use arbor_client_session::session::{FetchedScene, fetch_all, reference_image};
 use arbor_client_viewer::{Outcome, ViewerConfig};
@@ -51,7 +52,8 @@ enum Command {
     /// Stream and render a camera path headless; write the last frame, the per-cycle report and
     /// its chart.
     Render(RenderArgs),
-    /// Fetch the whole scene and render what a camera sees with everything resident.
+    /// Render what a camera sees with the whole scene resident: fetches only the treelets the
+    /// view's fully refined cut needs (or, with --whole-scene, every treelet).
     Reference(ReferenceArgs),
     /// Open a window and stream, render and explore the scene interactively.
     #[command(after_help = VIEW_HELP)]
@@ -248,6 +250,10 @@ struct ReferenceArgs {
     /// The image, PNG.
     #[arg(long)]
     out: PathBuf,
+    /// Fetch every treelet of the scene instead of only the cut this view needs (same image;
+    /// needs the whole scene in memory).
+    #[arg(long)]
+    whole_scene: bool,
 }
 
 fn main() {
@@ -476,6 +482,9 @@ fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
 }
 
 fn reference(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
+    if !a.whole_scene {
+        return streamed(a, runtime);
+    }
     let (width, height) = size(&a.view.size)?;
     let camera_path = CameraPath::parse(&a.view.camera_path)?;
     let FetchedScene {
@@ -514,6 +523,64 @@ fn reference(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         a.out.display()
     );
     Ok(())
+}
+
+/// `reference` fetching only the treelets the view's fully refined cut needs.
+fn streamed(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
+    let (width, height) = size(&a.view.size)?;
+    let camera_path = CameraPath::parse(&a.view.camera_path)?;
+    let camera = |frame: &arbor_client_core::incore::SceneFrame| {
+        camera_path.camera(a.cycle, frame, a.view.seed, width, height)
+    };
+    let light = Light::default();
+    let view = ReferenceView {
+        camera: &camera,
+        lod_bias: a.view.lod_bias,
+        light: &light,
+    };
+    let mut backend = backend(&a.view.backend)?;
+    let r = streamed_reference(
+        &client_config(&a.connection)?,
+        &channels(&a.connection.channels)?,
+        &view,
+        timeout(a.connection.connect_timeout)?,
+        runtime,
+        backend.as_mut(),
+    )?;
+    r.image
+        .save_png(&a.out)
+        .with_context(|| format!("writing {}", a.out.display()))?;
+    println!(
+        "reference of {} on {} at cycle {} of {}: {} covered pixels → {}",
+        r.scene.name,
+        backend.name(),
+        a.cycle,
+        a.view.camera_path,
+        r.image.coverage(),
+        a.out.display()
+    );
+    println!(
+        "fetched {} of {} treelets in {} rounds ({:.2} s); cut held at most {:.1} MiB; peak RSS {:.1} MiB",
+        r.treelets,
+        r.scene.treelet_count,
+        r.rounds,
+        r.seconds,
+        r.peak_cut_bytes as f64 / f64::from(1 << 20),
+        peak_rss_mib()
+    );
+    Ok(())
+}
+
+/// The process's peak resident set (`VmHWM`), MiB; 0 where /proc does not say.
+fn peak_rss_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("VmHWM:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        })
+        .map_or(0.0, |kib| kib / 1024.0)
 }
 
 /// Makes the backend `--backend` names, saying on stderr when `auto` falls back to the CPU.

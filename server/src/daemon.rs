@@ -1,5 +1,7 @@
 //! The serving daemon: the QUIC treelet service ([`crate::service`]) and the admin HTTP API
-//! ([`crate::admin`]) beside it, started together and stopped by one shutdown broadcast.
+//! ([`crate::admin`]) beside it, started together and stopped by one shutdown broadcast. The
+//! daemon owns the pool: scenes are imported into it and removed while it serves
+//! ([`crate::live_import`], driven by the admin API's `POST /v1/scenes`).
 //!
 //! The service knows nothing of the admin API; this module owns what joins them: the admin
 //! bearer token (configured, read from a file, or generated once into the data dir), the admin
@@ -13,9 +15,10 @@ use std::time::Duration;
 
 use tokio::task::JoinHandle;
 
-use crate::admin::{AdminContext, router};
+use crate::admin::{AdminContext, router_with_imports};
+use crate::live_import::LiveImports;
 use crate::pool::Pool;
-use crate::service::config::{AdminTokenSource, TlsSource};
+use crate::service::config::{AdminTokenSource, ConfigError, TlsSource};
 use crate::service::shutdown::ShutdownTrigger;
 use crate::service::state::ServiceState;
 use crate::service::tls::{IdentityOrigin, read_pem};
@@ -57,6 +60,8 @@ pub struct RunningServer {
     pub tls_origin: IdentityOrigin,
     /// Metrics, sessions and readiness.
     pub state: Arc<ServiceState>,
+    /// Scene management (imports, removals) of the pool being served.
+    pub imports: LiveImports,
     service: RunningService,
     admin: Option<JoinHandle<()>>,
 }
@@ -91,9 +96,35 @@ impl RunningServer {
     }
 }
 
+/// What the daemon adds to the service's configuration: scene management.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct DaemonOptions {
+    /// Directory under which `POST /v1/scenes` may read files; `None`: imports disabled.
+    pub import_root: Option<PathBuf>,
+    /// Where import scratch directories go (default: the system's temporary directory).
+    pub import_scratch: Option<PathBuf>,
+}
+
 /// Starts the daemon: the admin token, the treelet service, and (unless off) the admin listener
-/// on the service's shutdown broadcast.
+/// on the service's shutdown broadcast. Imports are disabled (see [`start_with`]).
 pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
+    start_with(config, DaemonOptions::default()).await
+}
+
+/// [`start`], with scene management by the admin API ([`crate::live_import`]).
+pub async fn start_with(
+    config: ServeConfig,
+    options: DaemonOptions,
+) -> Result<RunningServer, ServeError> {
+    if let Some(root) = &options.import_root
+        && let Err(source) = std::fs::read_dir(root)
+    {
+        return Err(ServeError::Config(ConfigError::Read {
+            key: "--import-root".into(),
+            path: root.clone(),
+            source,
+        }));
+    }
     let admin_listen = config.admin_listen;
     let (admin_tls, admin_identity) = (config.admin_tls, config.admin_identity.clone());
     let probe_token = config.probe_token.clone();
@@ -105,6 +136,22 @@ pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
         Err(e) => {
             service.shutdown().await;
             return Err(e);
+        }
+    };
+    let imports = match LiveImports::new(
+        service.pool().clone(),
+        service.state.clone(),
+        options.import_root.as_deref(),
+        options.import_scratch.clone(),
+    ) {
+        Ok(i) => i,
+        Err(source) => {
+            service.shutdown().await;
+            return Err(ServeError::Config(ConfigError::Read {
+                key: "--import-root".into(),
+                path: options.import_root.unwrap_or_default(),
+                source,
+            }));
         }
     };
     let admin_https = admin_listen.is_some_and(|a| admin_tls.encrypts(a));
@@ -139,12 +186,15 @@ pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
                     });
                 }
             };
-            let app = router(AdminContext {
-                state: service.state.clone(),
-                pool: service.pool().clone(),
-                token: admin_token.clone(),
-                probe_token,
-            });
+            let app = router_with_imports(
+                AdminContext {
+                    state: service.state.clone(),
+                    pool: service.pool().clone(),
+                    token: admin_token.clone(),
+                    probe_token,
+                },
+                Some(imports.clone()),
+            );
             if !admin_https && !local.ip().is_loopback() {
                 tracing::warn!(admin = %local, "admin API in cleartext off loopback (admin_tls = \"off\"): the token crosses the network unencrypted");
             }
@@ -171,6 +221,7 @@ pub async fn start(config: ServeConfig) -> Result<RunningServer, ServeError> {
         admin_token_origin,
         tls_origin: service.tls_origin.clone(),
         state: service.state.clone(),
+        imports,
         service,
         admin,
     })

@@ -19,7 +19,7 @@
 //!
 //! [`logging`] sets up the binaries' log lines (text, coloured only on a terminal, or JSON).
 //!
-//! Unsafe code is denied except for the two memory maps of scratch columns in [`source`].
+//! Unsafe code is denied except for the memory maps of scratch columns in [`source`].
 
 #![deny(unsafe_code)]
 
@@ -27,10 +27,12 @@ pub mod admin;
 pub mod daemon;
 pub mod import;
 pub mod logging;
+pub mod live_import;
 pub mod memory;
 pub mod octree;
 pub mod pipeline;
 pub mod pool;
+pub mod progress;
 pub mod prometheus;
 pub mod service;
 pub mod source;

@@ -2,13 +2,16 @@
 
 #![forbid(unsafe_code)]
 
+mod remote_import;
+
 use std::io::Write as _;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
-use arbor_server::daemon::AdminTokenOrigin;
+use arbor_server::daemon::{AdminTokenOrigin, DaemonOptions};
+use arbor_server::import::tiles::TileOptions;
 use arbor_server::import::{Format, ImportOptions, RawSpec, SampleType};
 use arbor_server::logging::LogFormat;
 use arbor_server::octree::{BuildOptions, DepthChoice};
@@ -46,8 +49,15 @@ struct Cli {
 #[derive(Args, Debug)]
 struct ImportArgs {
     /// Pool directory (created if missing).
-    #[arg(long)]
-    db: PathBuf,
+    #[arg(long, required_unless_present = "server")]
+    db: Option<PathBuf>,
+    /// Import into a running daemon instead: its admin API (`http://127.0.0.1:9090`). The
+    /// inputs are then paths under the daemon's `--import-root`, resolved by the daemon.
+    #[arg(long, conflicts_with_all = ["db", "scratch", "format", "raw_dims"])]
+    server: Option<remote_import::AdminUrl>,
+    /// The admin token, for `--server` (default: $ARBOR_ADMIN_TOKEN).
+    #[arg(long, requires = "server")]
+    token_file: Option<PathBuf>,
     /// Scene name: 1-128 characters of A-Z a-z 0-9 . _ -
     #[arg(long)]
     scene: String,
@@ -76,7 +86,7 @@ struct ImportArgs {
     #[arg(long)]
     raw_big_endian: bool,
     /// zstd compression level of stored blocks.
-    #[arg(long, default_value_t = 9, value_parser = clap::value_parser!(i32).range(1..=22))]
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(i32).range(1..=22))]
     zstd_level: i32,
     /// Do not train per-scene zstd dictionaries.
     #[arg(long)]
@@ -93,15 +103,25 @@ struct ImportArgs {
     /// Hide progress bars.
     #[arg(long)]
     quiet: bool,
-    /// Input file.
-    file: PathBuf,
+    /// Import tiles whose coordinate systems differ (by default a set whose LAS headers declare
+    /// different coordinate systems is refused, naming both files).
+    #[arg(long)]
+    allow_mixed_crs: bool,
+    /// Input file; or several files, directories (their LAS, LAZ and PLY files) or patterns
+    /// (`tiles/*.laz`, quoted so the shell leaves it) of point tiles, read as one scene.
+    #[arg(required = true, num_args = 1..)]
+    files: Vec<PathBuf>,
 }
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Import a scan (OBJ, PLY, LAS/LAZ, NRRD, raw volume) into the pool as a new scene.
+    /// Import a scan (OBJ, PLY, LAS/LAZ, NRRD, raw volume), or a set of point tiles, into the
+    /// pool as a new scene.
     #[command(after_help = "Examples:\n  \
         arbor-server import --db pool --scene lucy --treelet-bytes 1024 lucy.ply\n  \
+        arbor-server import --db pool --scene city tiles/            (every LAS/LAZ/PLY file in tiles/, one scene)\n  \
+        arbor-server import --db pool --scene city 'tiles/*.laz'     (a pattern, expanded by the server)\n  \
+        arbor-server import --server http://127.0.0.1:9090 --token-file pool/admin-token --scene city tiles/\n  \
         arbor-server import --db pool --scene ct --raw-dims 256,256,128 --raw-type u8 --iso 80 ct.raw")]
     Import(ImportArgs),
     /// List the scenes in a pool.
@@ -141,6 +161,7 @@ enum Command {
         arbor-server serve --db pool\n  \
         arbor-server serve --db pool --listen 0.0.0.0:4433 --admin 127.0.0.1:9090\n  \
         arbor-server serve --db pool --listen 127.0.0.1:0 --admin off --data-dir state\n  \
+        arbor-server serve --db pool --import-root /srv/scans   (admin API may import files under it)\n  \
         arbor-server serve --config /etc/arbor/serve.toml\n\n\
         Without --config every scene is public (development). The config file's keys are \
         documented in deploy/ and docs/config-schema.md; command-line flags override them.")]
@@ -165,6 +186,13 @@ enum Command {
         /// [default: the pool directory].
         #[arg(long)]
         data_dir: Option<PathBuf>,
+        /// Let the admin API import files under this directory into the served pool
+        /// (`POST /v1/scenes`, `arbor-server import --server`); without it imports are refused.
+        #[arg(long)]
+        import_root: Option<PathBuf>,
+        /// Where live imports put their scratch files [default: the system temp dir].
+        #[arg(long)]
+        import_scratch: Option<PathBuf>,
     },
 }
 
@@ -316,6 +344,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
             admin_tls,
             config,
             data_dir,
+            import_root,
+            import_scratch,
         } => {
             let overrides = ConfigOverrides {
                 db,
@@ -330,7 +360,11 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 .thread_name("arbor-serve")
                 .build()
                 .context("starting the tokio runtime")?;
-            let result = rt.block_on(serve(config));
+            let options = DaemonOptions {
+                import_root,
+                import_scratch,
+            };
+            let result = rt.block_on(serve(config, options));
             rt.shutdown_timeout(std::time::Duration::from_secs(1));
             result?;
             Ok(ExitCode::SUCCESS)
@@ -340,8 +374,13 @@ fn run(cli: Cli) -> Result<ExitCode> {
 
 /// `arbor-server import`: parse, build and commit one scene, then print its figures.
 fn import(args: ImportArgs) -> Result<ExitCode> {
+    if let Some(url) = &args.server {
+        return import_remote(url, &args);
+    }
     let ImportArgs {
         db,
+        server: _,
+        token_file: _,
         scene,
         depth,
         treelet_bytes,
@@ -357,18 +396,24 @@ fn import(args: ImportArgs) -> Result<ExitCode> {
         scratch,
         replace,
         quiet,
-        file,
+        allow_mixed_crs,
+        files,
     } = args;
+    let mut files = arbor_server::import::tiles::expand_inputs(&files)?.into_iter();
+    let file = files.next().context("no input file")?;
+    let more_tiles: Vec<PathBuf> = files.collect();
     arbor_proto::treelet::nodes_for_bytes(treelet_bytes)?;
     if let Some(i) = iso
         && !i.is_finite()
     {
         bail!("--iso {i} is not a finite number");
     }
+    let db = db.context("--db is required without --server")?;
     let pool = open(&db)?;
     let request = SceneImport {
         name: scene,
         input: file,
+        more_tiles,
         import: ImportOptions {
             format,
             raw: raw_dims.map(|dims| RawSpec {
@@ -377,6 +422,7 @@ fn import(args: ImportArgs) -> Result<ExitCode> {
                 spacing: raw_spacing,
                 big_endian: raw_big_endian,
             }),
+            tiles: TileOptions { allow_mixed_crs },
         },
         build: BuildOptions {
             depth,
@@ -395,13 +441,48 @@ fn import(args: ImportArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// `import --server`: the same import, run by a daemon on files under its import root.
+fn import_remote(url: &remote_import::AdminUrl, args: &ImportArgs) -> Result<ExitCode> {
+    let token = match &args.token_file {
+        Some(p) => std::fs::read_to_string(p)
+            .with_context(|| format!("reading the admin token from {}", p.display()))?,
+        None => std::env::var("ARBOR_ADMIN_TOKEN")
+            .context("no admin token: pass --token-file or set ARBOR_ADMIN_TOKEN")?,
+    };
+    let depth = match args.depth {
+        DepthChoice::Auto => serde_json::json!("auto"),
+        DepthChoice::Fixed(d) => serde_json::json!(d),
+    };
+    let inputs: Vec<String> = args.files.iter().map(|p| p.display().to_string()).collect();
+    let job = serde_json::json!({
+        "scene": args.scene,
+        "inputs": inputs,
+        "replace": args.replace,
+        "depth": depth,
+        "treelet_bytes": args.treelet_bytes,
+        "iso": args.iso,
+        "memory_budget_mib": args.memory_budget_mib,
+        "allow_mixed_crs": args.allow_mixed_crs,
+    });
+    let done = remote_import::run(url, token.trim(), &job)?;
+    println!(
+        "imported {}: {} treelets, {} voxels, {} primitives in {:.1} s",
+        args.scene,
+        done["treelets"],
+        done["voxels"],
+        done["primitives"],
+        done["seconds"].as_f64().unwrap_or(0.0)
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
 /// Runs the service until SIGINT or SIGTERM, then shuts it down gracefully.
-async fn serve(config: ServeConfig) -> Result<()> {
+async fn serve(config: ServeConfig, options: DaemonOptions) -> Result<()> {
     use tokio::signal::unix::{SignalKind, signal};
     // Handlers first, so a signal that arrives right after the addresses are printed is not lost.
     let mut term = signal(SignalKind::terminate()).context("installing the SIGTERM handler")?;
     let mut int = signal(SignalKind::interrupt()).context("installing the SIGINT handler")?;
-    let server = arbor_server::daemon::start(config).await?;
+    let server = arbor_server::daemon::start_with(config, options).await?;
     {
         let mut out = std::io::stdout().lock();
         writeln!(out, "quic {}", server.quic_addr)?;

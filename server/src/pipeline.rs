@@ -6,7 +6,7 @@
 //! behind are decided once:
 //!
 //! 1. the pool refuses a bad or taken name before any work ([`Pool::begin_import`]);
-//! 2. the file is parsed into disk-backed columns in a scratch directory (errors name the file
+//! 2. the file (or every tile of a point set) is parsed into disk-backed columns in a scratch directory (errors name the file
 //!    and the place, and the pool has not been touched yet);
 //! 3. the octree is built straight into the import transaction;
 //! 4. the memory figures are recorded in the description and the transaction commits — the
@@ -19,10 +19,12 @@ use arbor_proto::SceneDescription;
 use tempfile::TempDir;
 use thiserror::Error;
 
+use crate::import::tiles::import_tiles;
 use crate::import::{ImportError, ImportOptions, import_file};
 use crate::memory::{AnonPeakSampler, peak_rss_bytes};
-use crate::octree::{BuildError, BuildOptions, build_scene};
+use crate::octree::{BuildError, BuildOptions, BuildTarget, build_scene_observed};
 use crate::pool::{Pool, PoolError};
+use crate::progress::{ImportProgress, Phase};
 use crate::source::Source;
 
 /// What to import, and how.
@@ -30,8 +32,11 @@ use crate::source::Source;
 pub struct SceneImport {
     /// The scene's name in the pool.
     pub name: String,
-    /// The scan file.
+    /// The scan file (the first tile of a point set).
     pub input: PathBuf,
+    /// Further tiles of a point set, read after `input` as one scene, in this order (LAS/LAZ and
+    /// point PLY files; see [`crate::import::tiles`]).
+    pub more_tiles: Vec<PathBuf>,
     /// How to read it (format override, raw volume layout).
     pub import: ImportOptions,
     /// How to build the octree.
@@ -85,19 +90,51 @@ pub enum PipelineError {
 
 /// Parses `request.input`, builds it and commits it to `pool` as `request.name`.
 pub fn import_scene(pool: &Pool, request: &SceneImport) -> Result<ImportedScene, PipelineError> {
+    import_scene_observed(pool, request, &ImportProgress::default(), Superseded::Drop)
+        .map(|(scene, _)| scene)
+}
+
+/// What a replacing import does with the generation it supersedes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Superseded {
+    /// Drop it at once (nobody else reads the pool).
+    Drop,
+    /// Keep it and return it, for readers that opened it to finish on it (the serving daemon
+    /// drops it with [`Pool::drop_retired`] when its last session ended).
+    Keep,
+}
+
+/// [`import_scene`], reporting progress as it goes; with [`Superseded::Keep`] also returns the
+/// generation a replacement superseded.
+pub fn import_scene_observed(
+    pool: &Pool,
+    request: &SceneImport,
+    progress: &ImportProgress,
+    superseded: Superseded,
+) -> Result<(ImportedScene, Option<u64>), PipelineError> {
     let scratch = scratch_dir(request.scratch_parent.as_deref())?;
     // Checked again by `begin_import`; refusing here avoids parsing a file for nothing.
     if !request.replace && pool.contains(&request.name)? {
         return Err(PoolError::SceneExists(request.name.clone()).into());
     }
     let sampler = AnonPeakSampler::start();
-    let source = import_file(&request.input, &request.import, scratch.path())?;
+    progress.enter(Phase::Reading, 0);
+    let source = if request.more_tiles.is_empty() {
+        import_file(&request.input, &request.import, scratch.path())?
+    } else {
+        let mut files = vec![request.input.clone()];
+        files.extend(request.more_tiles.iter().cloned());
+        import_tiles(&files, &request.import.tiles, scratch.path())?
+    };
     tracing::info!("read {}: {}", request.input.display(), source.describe());
-    let label = request
+    let mut label = request
         .input
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
+    if !request.more_tiles.is_empty() {
+        label = format!("{label} + {} more tiles", request.more_tiles.len());
+    }
     let job = SourceImport {
         source: &source,
         name: &request.name,
@@ -106,12 +143,16 @@ pub fn import_scene(pool: &Pool, request: &SceneImport) -> Result<ImportedScene,
         scratch: scratch.path(),
         replace: request.replace,
     };
-    let description = build_into_pool(pool, &job, Some(sampler))?;
-    Ok(ImportedScene {
-        description,
-        source,
-        scratch,
-    })
+    let (description, retired) =
+        build_into_pool_observed(pool, &job, Some(sampler), progress, superseded)?;
+    Ok((
+        ImportedScene {
+            description,
+            source,
+            scratch,
+        },
+        retired,
+    ))
 }
 
 /// An already parsed source to build into a pool (callers that make or reuse a [`Source`]
@@ -139,25 +180,43 @@ pub fn build_into_pool(
     job: &SourceImport<'_>,
     sampler: Option<AnonPeakSampler>,
 ) -> Result<SceneDescription, PipelineError> {
+    let progress = ImportProgress::default();
+    build_into_pool_observed(pool, job, sampler, &progress, Superseded::Drop).map(|(d, _)| d)
+}
+
+/// [`build_into_pool`], reporting progress; returns the superseded generation when kept.
+pub fn build_into_pool_observed(
+    pool: &Pool,
+    job: &SourceImport<'_>,
+    sampler: Option<AnonPeakSampler>,
+    progress: &ImportProgress,
+    superseded: Superseded,
+) -> Result<(SceneDescription, Option<u64>), PipelineError> {
     let mut txn = pool.begin_import(job.name, job.replace)?;
-    let mut description = build_scene(
-        job.source,
-        job.name,
-        job.label,
-        job.build,
-        job.scratch,
-        &mut txn,
-    )
-    .map_err(|source| PipelineError::Build {
-        name: job.name.to_owned(),
-        source,
-    })?;
+    let target = BuildTarget {
+        name: job.name,
+        source_label: job.label,
+        scratch: job.scratch,
+    };
+    let mut description = build_scene_observed(job.source, &target, job.build, &mut txn, progress)
+        .map_err(|source| PipelineError::Build {
+            name: job.name.to_owned(),
+            source,
+        })?;
     description.stats.peak_rss_bytes = peak_rss_bytes();
     if let Some(sampler) = sampler {
         description.stats.peak_anon_bytes = sampler.finish();
     }
-    txn.commit(&description)?;
-    Ok(description)
+    progress.enter(Phase::Committing, 0);
+    let retired = match superseded {
+        Superseded::Drop => {
+            txn.commit(&description)?;
+            None
+        }
+        Superseded::Keep => txn.commit_retaining(&description)?,
+    };
+    progress.enter(Phase::Done, 0);
+    Ok((description, retired))
 }
 
 fn scratch_dir(parent: Option<&Path>) -> Result<TempDir, PipelineError> {

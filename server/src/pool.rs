@@ -38,6 +38,9 @@ pub enum PoolError {
     /// The scene name is not acceptable.
     #[error(transparent)]
     BadName(ProtoError),
+    /// A generation still named by the catalogue cannot be dropped as retired.
+    #[error("generation {0} is still published")]
+    GenerationLive(u64),
 }
 
 const CATALOGUE: &str = "catalogue";
@@ -222,14 +225,30 @@ impl Pool {
 
     /// Removes a scene: the catalogue entry first (atomic), then its trees.
     pub fn remove(&self, name: &str) -> Result<(), PoolError> {
+        let generation = self.unpublish(name)?;
+        self.drop_generation(generation)?;
+        Ok(())
+    }
+
+    /// Removes a scene's catalogue entry (atomic, flushed) and returns its generation, whose
+    /// trees stay until [`Pool::drop_retired`] (readers that opened the scene before keep
+    /// reading it; the next [`Pool::open`] drops them too).
+    pub fn unpublish(&self, name: &str) -> Result<u64, PoolError> {
         let v = self
             .catalogue
             .remove(name.as_bytes())?
             .ok_or_else(|| PoolError::NoSuchScene(name.to_owned()))?;
         self.catalogue.flush()?;
-        let (generation, _) = decode_entry(name.as_bytes(), &v)?;
-        self.drop_generation(generation)?;
-        Ok(())
+        Ok(decode_entry(name.as_bytes(), &v)?.0)
+    }
+
+    /// Drops the trees of a generation that no catalogue entry names any more (one retired by
+    /// [`Pool::unpublish`] or [`PoolImport::commit_retaining`]). A live generation is refused.
+    pub fn drop_retired(&self, generation: u64) -> Result<(), PoolError> {
+        if self.live_generations()?.contains(&generation) {
+            return Err(PoolError::GenerationLive(generation));
+        }
+        self.drop_generation(generation)
     }
 
     fn drop_generation(&self, generation: u64) -> Result<(), PoolError> {
@@ -318,8 +337,23 @@ impl PoolImport {
         Ok(())
     }
 
-    /// Flushes the data, then publishes the catalogue entry atomically.
-    pub fn commit(mut self, description: &SceneDescription) -> Result<(), PoolError> {
+    /// Flushes the data, then publishes the catalogue entry atomically; a replaced scene's
+    /// generation is dropped at once.
+    pub fn commit(self, description: &SceneDescription) -> Result<(), PoolError> {
+        let pool = self.pool.clone();
+        if let Some(old) = self.commit_retaining(description)? {
+            pool.drop_generation(old)?;
+        }
+        Ok(())
+    }
+
+    /// As [`PoolImport::commit`], but a replaced scene's generation is returned instead of
+    /// dropped, so that readers that opened it finish on it; drop it with
+    /// [`Pool::drop_retired`].
+    pub fn commit_retaining(
+        mut self,
+        description: &SceneDescription,
+    ) -> Result<Option<u64>, PoolError> {
         let encoded = description.encode().map_err(|source| PoolError::Corrupt {
             what: format!("new scene {:?}", self.name),
             source,
@@ -341,11 +375,10 @@ impl PoolImport {
         };
         self.pool.catalogue.flush()?;
         self.committed = true;
-        if let Some(old) = previous {
-            let (g, _) = decode_entry(self.name.as_bytes(), &old)?;
-            self.pool.drop_generation(g)?;
+        match previous {
+            Some(old) => Ok(Some(decode_entry(self.name.as_bytes(), &old)?.0)),
+            None => Ok(None),
         }
-        Ok(())
     }
 }
 

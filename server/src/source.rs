@@ -242,6 +242,37 @@ impl<T: Pod> std::fmt::Debug for Column<T> {
 }
 
 impl<T: Pod> Column<T> {
+    /// Maps `len` records of a scratch file that was written in place (e.g. sorted bucket by
+    /// bucket) and is never written again.
+    #[allow(unsafe_code)]
+    pub fn map_file(file: File, path: &Path, len: usize) -> Result<Self, ColumnError> {
+        let map = if len == 0 {
+            None
+        } else {
+            // SAFETY: the file is private to this import's scratch directory and is never
+            // written again after this point.
+            Some(
+                unsafe { memmap2::Mmap::map(&file) }.map_err(|source| ColumnError::Io {
+                    path: path.to_owned(),
+                    source,
+                })?,
+            )
+        };
+        if let Some(m) = &map
+            && m.len() < len * std::mem::size_of::<T>()
+        {
+            return Err(ColumnError::Io {
+                path: path.to_owned(),
+                source: std::io::Error::other("scratch file shorter than its records"),
+            });
+        }
+        Ok(Column {
+            map,
+            len,
+            _t: PhantomData,
+        })
+    }
+
     /// Writes `values` into a fresh column (tests and small inputs).
     pub fn from_slice(dir: &Path, name: &str, values: &[T]) -> Result<Self, ColumnError> {
         let mut w = ColumnWriter::create(dir, name)?;

@@ -20,7 +20,7 @@ use arbor_client_core::traverse::{Lod, trace};
 use arbor_client_net::{ClientConfig, ServerUrl, Trust};
 use arbor_client_session::headless::{HeadlessConfig, HeadlessRun, run_headless_with};
 use arbor_proto::SceneDescription;
-use arbor_server::daemon::{RunningServer, start};
+use arbor_server::daemon::{DaemonOptions, RunningServer, start_with};
 use arbor_server::octree::BuildOptions;
 use arbor_server::service::ServeConfig;
 use arbor_server::service::config::{AdminTokenSource, SceneAccess};
@@ -29,6 +29,8 @@ use tempfile::TempDir;
 use crate::support::{Built, build_file, decoded_treelets};
 
 pub const TOKEN: &str = "client-e2e";
+/// The admin token of the daemons [`serve_with`] starts.
+pub const ADMIN_TOKEN: &str = "admin-client-e2e";
 pub const SIZE: (u32, u32) = (96, 96);
 /// Feedback ratio of these runs: 4 → every pixel sampled once per 16 cycles.
 pub const RATIO: u32 = 4;
@@ -49,6 +51,17 @@ pub struct Served {
 
 /// Builds a real scan (`treelet_bytes` treelets) into a fresh pool and serves it.
 pub async fn serve(rel: &str, name: &str, treelet_bytes: u32) -> Served {
+    serve_with(rel, name, treelet_bytes, DaemonOptions::default()).await
+}
+
+/// [`serve`] by a daemon started with `options`; with an import root, the admin API listens on
+/// loopback (token [`ADMIN_TOKEN`]) and every scene is public.
+pub async fn serve_with(
+    rel: &str,
+    name: &str,
+    treelet_bytes: u32,
+    options: DaemonOptions,
+) -> Served {
     let rel = rel.to_owned();
     let name_owned = name.to_owned();
     let (built, treelets, wire_bytes) = tokio::task::spawn_blocking(move || {
@@ -80,10 +93,13 @@ pub async fn serve(rel: &str, name: &str, treelet_bytes: u32) -> Served {
     cfg.listen = "127.0.0.1:0".parse().unwrap();
     cfg.admin_listen = None;
     cfg.data_dir = Some(data_dir.path().to_owned());
-    cfg.admin_token = AdminTokenSource::Inline("admin-client-e2e".into());
+    cfg.admin_token = AdminTokenSource::Inline(ADMIN_TOKEN.into());
     cfg.scenes
         .insert(name.into(), SceneAccess::Tokens(vec![TOKEN.into()]));
-    let server = start(cfg).await.unwrap();
+    if options.import_root.is_some() {
+        cfg.admin_listen = Some("127.0.0.1:0".parse().unwrap());
+    }
+    let server = start_with(cfg, options).await.unwrap();
     Served {
         server,
         scene: description,
@@ -297,4 +313,31 @@ pub async fn converge_with(
     );
     assert!(run.peak_slots <= run.capacity);
     run
+}
+
+/// One request to a daemon's admin API (token [`ADMIN_TOKEN`]) on its own connection: the
+/// status and the JSON body (`Null` when the body is not JSON).
+pub async fn admin_request(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    body: &str,
+) -> (u16, serde_json::Value) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let req = format!(
+        "{method} {path} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {ADMIN_TOKEN}\r\n\
+         Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    s.write_all(req.as_bytes()).await.unwrap();
+    let mut raw = Vec::new();
+    s.read_to_end(&mut raw).await.unwrap();
+    let raw = String::from_utf8(raw).unwrap();
+    let (head, body) = raw.split_once("\r\n\r\n").unwrap();
+    let status = head.split(' ').nth(1).unwrap().parse().unwrap();
+    (
+        status,
+        serde_json::from_str(body).unwrap_or(serde_json::Value::Null),
+    )
 }

@@ -23,6 +23,7 @@ fn bad_inputs_are_rejected_with_clear_errors() {
         let opts = ImportOptions {
             format: None,
             raw: case.raw,
+            ..ImportOptions::default()
         };
         let result = catch_unwind(AssertUnwindSafe(|| import_file(&path, &opts, &scratch)));
         match result {

@@ -25,6 +25,7 @@ use arbor_client_net::{ClientConfig, ClientEvent, ClientStats, ReceivedTreelet, 
 use arbor_client_report::CycleRecord;
 
 use crate::RunError;
+use crate::reference::fetch_ids;
 use arbor_client_core::slots::{DecodedTreelet, SlotBuffer, SlotError};
 
 /// How a session connects.
@@ -316,15 +317,15 @@ fn ms(d: Duration) -> f64 {
 }
 
 /// What [`drain_events`] took.
-struct Drained {
-    treelets: Vec<DecodedTreelet>,
+pub(crate) struct Drained {
+    pub(crate) treelets: Vec<DecodedTreelet>,
     bytes: u64,
     /// Treelets that failed to decode (logged and dropped: the server is at fault).
-    undecodable: u32,
+    pub(crate) undecodable: u32,
 }
 
 /// Takes every queued event without waiting.
-fn drain_events(
+pub(crate) fn drain_events(
     client: &mut TreeletClient,
     scene: &SceneDescription,
     channels: &[Channel],
@@ -379,7 +380,7 @@ fn drain_events(
 }
 
 /// Connects without channels just to read the scene description.
-fn probe_scene(
+pub(crate) fn probe_scene(
     client: &ClientConfig,
     timeout: Duration,
     runtime: &tokio::runtime::Handle,
@@ -515,53 +516,9 @@ fn fetch_batches(
     channels: &[Channel],
     timeout: Duration,
 ) -> Result<Vec<DecodedTreelet>, RunError> {
-    let count = scene.treelet_count;
-    let batch = arbor_proto::limits::MAX_REQUEST_ITEMS as u32;
-    let mut got: Vec<Option<DecodedTreelet>> = vec![None; count as usize];
-    let mut have = 0u32;
-    let mut start = 0u32;
-    while start < count {
-        let end = (start + batch).min(count);
-        // Lower ids first: parents before children, so a partial fetch is still a valid cut.
-        let list = (start..end)
-            .map(|i| (TreeletId(i), (count - i) as f32))
-            .collect();
-        client.request(list)?;
-        let mut deadline = Instant::now() + timeout;
-        let mut missing = end - start;
-        while missing > 0 {
-            let drained = drain_events(client, scene, channels)?;
-            if drained.undecodable > 0 {
-                return Err(RunError::Refused(format!(
-                    "{} treelets from the server did not decode",
-                    drained.undecodable
-                )));
-            }
-            if drained.treelets.is_empty() {
-                if Instant::now() >= deadline {
-                    return Err(RunError::Timeout(format!(
-                        "fetched {have} of {count} treelets; nothing new within {timeout:?}"
-                    )));
-                }
-                std::thread::sleep(Duration::from_millis(1));
-                continue;
-            }
-            deadline = Instant::now() + timeout;
-            for t in drained.treelets {
-                let i = t.treelet.header.id.0 as usize;
-                if i < got.len() && got[i].is_none() {
-                    if (start..end).contains(&(i as u32)) {
-                        missing -= 1;
-                    }
-                    got[i] = Some(t);
-                    have += 1;
-                }
-            }
-        }
-        tracing::info!("fetched {have} of {count} treelets");
-        start = end;
-    }
-    Ok(got.into_iter().flatten().collect())
+    // Lower ids first: parents before children, so a partial fetch is still a valid cut.
+    let ids: Vec<TreeletId> = (0..scene.treelet_count).map(TreeletId).collect();
+    fetch_ids(client, scene, channels, &ids, timeout)
 }
 
 /// The reference image: what `camera` sees with the whole scene resident, rendered by

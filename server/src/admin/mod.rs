@@ -11,6 +11,10 @@
 //! | `GET /v1/scenes/{name}` | token  | one scene, `404` JSON error when unknown                 |
 //! | `GET /v1/sessions`      | token  | JSON array of live connections and their counters        |
 //! | `GET /v1/server`        | token  | fingerprint, readiness, shutting down, uptime, version   |
+//! | `POST /v1/scenes`       | token  | JSON import request: `202` + import id (see below)       |
+//! | `DELETE /v1/scenes/{name}` | token | removes a scene; its sessions finish on it            |
+//! | `GET /v1/imports`       | token  | JSON array of imports (queued, running, last finished)   |
+//! | `GET /v1/imports/{id}`  | token  | one import: phase, done/total, error or figures          |
 //! | `GET /`                 | token  | HTML status page; without credentials, `303` to `/login` |
 //! | `GET /login`            | none   | HTML form asking for the token                           |
 //! | `POST /login`           | none   | form field `token`: sets the `arbor_admin` cookie, `303` |
@@ -21,9 +25,16 @@
 //! (see `auth.rs`). Unauthenticated API requests get `401` with `WWW-Authenticate: Bearer` and a
 //! JSON error; every error is JSON `{"error": "..."}`; unknown routes are `404`. The token is never
 //! logged, and [`AdminContext`]'s `Debug` redacts it.
+//!
+//! Scene management ([`router_with_imports`], `imports.rs`, [`crate::live_import`]): `POST
+//! /v1/scenes` takes `{"scene", "inputs": [paths under the import root], "replace", "depth",
+//! "treelet_bytes", "iso", "format", "memory_budget_mib", "allow_mixed_crs"}`; `403` when imports
+//! are disabled or a path leaves the import root (`..`, symlinks), `400` for a missing file or a
+//! bad parameter, `409` for a taken name. Parse errors come later, in the import's status.
 
 mod auth;
 pub mod https;
+mod imports;
 mod metrics;
 mod page;
 mod views;
@@ -41,6 +52,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use serde::Deserialize;
 
+use crate::live_import::LiveImports;
 use crate::pool::{Pool, PoolError};
 use crate::service::state::ServiceState;
 
@@ -83,12 +95,19 @@ struct App {
     started: Instant,
     /// `Content-Security-Policy` of the HTML pages (hashes of their inline style and script).
     csp: HeaderValue,
+    /// Scene management; `None`: the routes answer `403`.
+    imports: Option<LiveImports>,
 }
 
 type Shared = Arc<App>;
 
-/// The admin HTTP routes.
+/// The admin HTTP routes, without scene management (its routes answer `403`).
 pub fn router(ctx: AdminContext) -> Router {
+    router_with_imports(ctx, None)
+}
+
+/// The admin HTTP routes, with scene management by `imports`.
+pub fn router_with_imports(ctx: AdminContext, imports: Option<LiveImports>) -> Router {
     if ctx.token.is_empty() {
         tracing::error!(
             "the admin token is empty: every authenticated admin route will answer 401"
@@ -101,13 +120,16 @@ pub fn router(ctx: AdminContext) -> Router {
         pool: ctx.pool,
         started: Instant::now(),
         csp: page::content_security_policy(),
+        imports,
     });
     let protected = Router::new()
         .route("/", get(index))
         .route("/readyz", get(readyz))
         .route("/metrics", get(prometheus))
-        .route("/v1/scenes", get(scenes))
-        .route("/v1/scenes/{name}", get(scene))
+        .route("/v1/scenes", get(scenes).post(imports::submit))
+        .route("/v1/scenes/{name}", get(scene).delete(imports::remove))
+        .route("/v1/imports", get(imports::list))
+        .route("/v1/imports/{id}", get(imports::status))
         .route("/v1/sessions", get(sessions))
         .route("/v1/server", get(server))
         .route_layer(middleware::from_fn_with_state(app.clone(), require_auth));
@@ -358,7 +380,12 @@ async fn server(State(app): State<Shared>) -> Response {
 
 async fn index(State(app): State<Shared>) -> Result<Response, ApiError> {
     let pool = with_pool(&app, metrics::PoolFigures::read).await?;
-    let body = page::status_page(&app.state, app.started.elapsed(), &pool);
+    let imports = app
+        .imports
+        .as_ref()
+        .map(LiveImports::list)
+        .unwrap_or_default();
+    let body = page::status_page(&app.state, app.started.elapsed(), &pool, &imports);
     Ok(html(&app, StatusCode::OK, body))
 }
 

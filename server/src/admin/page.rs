@@ -13,6 +13,7 @@ use ring::digest;
 
 use super::metrics::{PoolFigures, stream_bytes};
 use super::views::kind_name;
+use crate::live_import::ImportStatus;
 use crate::service::state::{ServiceState, SessionInfo};
 
 const STYLE: &str = r#"
@@ -168,7 +169,12 @@ pub(super) fn login_page(message: Option<&str>) -> String {
 }
 
 /// The status page.
-pub(super) fn status_page(state: &ServiceState, uptime: Duration, pool: &PoolFigures) -> String {
+pub(super) fn status_page(
+    state: &ServiceState,
+    uptime: Duration,
+    pool: &PoolFigures,
+    imports: &[ImportStatus],
+) -> String {
     let sessions = state.sessions();
     let mut out = head("Arbor server");
     let _ = writeln!(
@@ -182,6 +188,7 @@ pub(super) fn status_page(state: &ServiceState, uptime: Duration, pool: &PoolFig
     status_section(&mut out, state, uptime, pool);
     traffic_section(&mut out, state, &sessions);
     scenes_section(&mut out, pool);
+    imports_section(&mut out, imports);
     sessions_section(&mut out, &sessions);
     out.push_str("</main>\n");
     let _ = write!(
@@ -192,6 +199,48 @@ pub(super) fn status_page(state: &ServiceState, uptime: Duration, pool: &PoolFig
          <script>{SCRIPT}</script>\n</body></html>\n"
     );
     out
+}
+
+/// Imports running, queued and finished (nothing when there were none).
+fn imports_section(out: &mut String, imports: &[ImportStatus]) {
+    if imports.is_empty() {
+        return;
+    }
+    out.push_str(
+        "<h2>Imports</h2>\n<table><tr><th class=\"n\">id</th><th>scene</th><th>phase</th>\
+         <th class=\"n\">progress</th><th class=\"n\">time</th><th>inputs / result</th></tr>\n",
+    );
+    for i in imports.iter().rev() {
+        let p = &i.progress;
+        let progress = if p.total > 0 {
+            format!("{} / {}", p.done, p.total)
+        } else if p.done > 0 {
+            p.done.to_string()
+        } else {
+            String::new()
+        };
+        let result = match (&i.error, i.treelets) {
+            (Some(e), _) => format!("<span class=\"badge bad\">failed</span> {}", escape(e)),
+            (None, Some(t)) => format!("{t} treelets, {} voxels", i.voxels.unwrap_or(0)),
+            _ => escape(&i.inputs.join(", ")),
+        };
+        let phase = serde_json::to_value(p.phase)
+            .ok()
+            .and_then(|v| v.as_str().map(str::to_owned))
+            .unwrap_or_default();
+        let _ = writeln!(
+            out,
+            "<tr><td class=\"n\">{}</td><td>{}</td><td>{}</td><td class=\"n\">{}</td>\
+             <td class=\"n\">{:.1} s</td><td>{}</td></tr>",
+            i.id,
+            escape(&i.scene),
+            escape(&phase),
+            progress,
+            i.seconds,
+            result
+        );
+    }
+    out.push_str("</table>\n");
 }
 
 /// Readiness, certificate, uptime, pool size.

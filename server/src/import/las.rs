@@ -16,13 +16,15 @@ use std::path::Path;
 
 use ::las::raw;
 
-use super::{ImportError, names, push, show_bytes, writer};
-use crate::source::{ColumnWriter, PointSource, Source};
+use super::points_out::PointSetWriter;
+use super::{ImportError, show_bytes};
+use crate::source::Source;
 
-/// Most points decoded per batch.
-const BATCH: u64 = 1 << 16;
+/// Most points decoded per batch (several LAZ chunks, which the parallel decoder spreads over
+/// the cores).
+const BATCH: u64 = 1 << 18;
 /// Most bytes of decoded records held per batch (records can be up to 64 KiB long).
-const BATCH_BYTES: u64 = 8 << 20;
+const BATCH_BYTES: u64 = 16 << 20;
 /// Size of an EVLR header (reserved, user id, record id, length, description).
 const EVLR_HEADER: u64 = 60;
 
@@ -190,10 +192,22 @@ fn check_chunk_table(
 }
 
 pub(super) fn import(path: &Path, file: &str, scratch: &Path) -> Result<Source, ImportError> {
+    let mut out = PointSetWriter::new(file, scratch)?;
+    read_into(path, file, &mut out)?;
+    out.finish()
+}
+
+/// Appends every point of the LAS/LAZ file at `path` to `out` (positions scaled and offset by
+/// this file's own header; colour when the file has it).
+pub(super) fn read_into(
+    path: &Path,
+    file: &str,
+    out: &mut PointSetWriter<'_>,
+) -> Result<(), ImportError> {
     let (mut reader, header) = open(path, file)?;
     let format = *header.point_format();
     let n = header.number_of_points();
-    let mut columns = PointColumns::new(file, scratch, format.has_color)?;
+    out.begin_file(file, format.has_color, false)?;
     let mut pd = ::las::PointDataBuilder::new().for_header(&header).build();
     let batch = (BATCH_BYTES / u64::from(format.len()).max(1)).clamp(1, BATCH);
     let kind = if format.is_compressed { "LAZ" } else { "LAS" };
@@ -201,10 +215,88 @@ pub(super) fn import(path: &Path, file: &str, scratch: &Path) -> Result<Source, 
     while done < n {
         let want = batch.min(n - done);
         let got = read_batch(&mut reader, &mut pd, file, kind, done, want, n)?;
-        columns.push_batch(&pd, done)?;
+        push_batch(out, file, &pd, done)?;
         done += got;
     }
-    columns.finish()
+    out.end_las_file();
+    Ok(())
+}
+
+/// What a LAS/LAZ header says before any point is decoded.
+#[derive(Clone, Debug)]
+pub(super) struct LasSurvey {
+    /// Points declared (the 64-bit count of LAS 1.4, or the legacy 32-bit one).
+    pub points: u64,
+    /// Bounds declared in the header.
+    pub min: [f64; 3],
+    pub max: [f64; 3],
+    /// The coordinate system records, if any.
+    pub crs: Option<Crs>,
+}
+
+/// A file's coordinate system: its CRS records, compared byte for byte.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub(super) struct Crs {
+    /// (record id, data) of every `LASF_Projection` record, sorted.
+    records: Vec<(u16, Vec<u8>)>,
+    /// A short human description (the WKT's name, or the GeoTIFF key count).
+    pub description: String,
+}
+
+/// Reads and checks the header and VLRs of a LAS/LAZ file without decoding points.
+pub(super) fn survey(path: &Path, file: &str) -> Result<LasSurvey, ImportError> {
+    let (reader, header) = open(path, file)?;
+    drop(reader);
+    let b = header.bounds();
+    Ok(LasSurvey {
+        points: header.number_of_points(),
+        min: [b.min.x, b.min.y, b.min.z],
+        max: [b.max.x, b.max.y, b.max.z],
+        crs: crs_of(&header),
+    })
+}
+
+fn crs_of(header: &::las::Header) -> Option<Crs> {
+    let mut records: Vec<(u16, Vec<u8>)> = header
+        .all_vlrs()
+        .filter(|v| v.is_crs())
+        .map(|v| (v.record_id, v.data.clone()))
+        .collect();
+    if records.is_empty() {
+        return None;
+    }
+    records.sort();
+    let wkt = records
+        .iter()
+        .find(|(id, _)| *id == 2112)
+        .map(|(_, d)| String::from_utf8_lossy(d).trim_end_matches('\0').to_owned());
+    let description = match wkt {
+        // `PROJCS["NAD83 / Oregon GIC Lambert (ft)",...` → its first quoted name.
+        Some(w) => format!(
+            "WKT {:?}",
+            w.split('"')
+                .nth(1)
+                .unwrap_or(&w)
+                .chars()
+                .take(80)
+                .collect::<String>()
+        ),
+        None => {
+            let keys = records
+                .iter()
+                .find(|(id, _)| *id == 34735)
+                .map_or(0, |(_, d)| d.len() / 8);
+            format!(
+                "GeoTIFF keys ({} keys, {} bytes of records)",
+                keys.saturating_sub(1),
+                records.iter().map(|r| r.1.len()).sum::<usize>()
+            )
+        }
+    };
+    Some(Crs {
+        records,
+        description,
+    })
 }
 
 /// Opens the file after the header checks that need no decoder ([`precheck`]): the reader and
@@ -307,106 +399,44 @@ fn read_batch(
     }
 }
 
-/// Scratch name of the 16-bit colour column, converted to 8 bits at the end.
-const RGB16_COLUMN: &str = "src_rgb16";
-
-/// The columns a LAS file becomes: positions, and colours kept at 16 bits until the whole file
-/// says whether they hold 8-bit values.
-struct PointColumns<'a> {
-    file: &'a str,
-    scratch: &'a Path,
-    positions: ColumnWriter<[f64; 3]>,
-    rgb16: Option<ColumnWriter<[u16; 3]>>,
-    max_channel: u16,
-}
-
-impl<'a> PointColumns<'a> {
-    fn new(file: &'a str, scratch: &'a Path, has_color: bool) -> Result<Self, ImportError> {
-        Ok(Self {
-            file,
-            scratch,
-            positions: writer::<[f64; 3]>(file, scratch, names::POSITIONS)?,
-            rgb16: if has_color {
-                Some(writer::<[u16; 3]>(file, scratch, RGB16_COLUMN)?)
-            } else {
-                None
-            },
-            max_channel: 0,
-        })
-    }
-
-    /// Appends a decoded batch whose first point is point `first` of the file; coordinates
-    /// must be finite.
-    fn push_batch(&mut self, pd: &::las::PointData, first: u64) -> Result<(), ImportError> {
-        let file = self.file;
-        for (i, ((x, y), z)) in pd.x().zip(pd.y()).zip(pd.z()).enumerate() {
-            if let Some(value) = [x, y, z].into_iter().find(|c| !c.is_finite()) {
-                return Err(ImportError::NonFinite {
-                    file: file.to_owned(),
-                    line: None,
-                    record: format!(
-                        "point {} (check the header scale and offset)",
-                        first + i as u64
-                    ),
-                    value,
-                });
-            }
-            push(file, &mut self.positions, [x, y, z])?;
+/// Appends a decoded batch whose first point is point `first` of the file; coordinates must
+/// be finite.
+fn push_batch(
+    out: &mut PointSetWriter<'_>,
+    file: &str,
+    pd: &::las::PointData,
+    first: u64,
+) -> Result<(), ImportError> {
+    for (i, ((x, y), z)) in pd.x().zip(pd.y()).zip(pd.z()).enumerate() {
+        if let Some(value) = [x, y, z].into_iter().find(|c| !c.is_finite()) {
+            return Err(ImportError::NonFinite {
+                file: file.to_owned(),
+                line: None,
+                record: format!(
+                    "point {} (check the header scale and offset)",
+                    first + i as u64
+                ),
+                value,
+            });
         }
-        if let (Some(w), Some(rgb)) = (&mut self.rgb16, pd.rgb()) {
-            for (r, g, b) in rgb {
-                self.max_channel = self.max_channel.max(r).max(g).max(b);
-                push(file, w, [r, g, b])?;
-            }
+        out.push_position(file, [x, y, z])?;
+    }
+    if out.keeps_colour()
+        && let Some(rgb) = pd.rgb()
+    {
+        for (r, g, b) in rgb {
+            out.push_las_colour(file, [r, g, b])?;
         }
-        Ok(())
     }
-
-    fn finish(self) -> Result<Source, ImportError> {
-        let file = self.file;
-        let col = |e| ImportError::column(file, e);
-        let positions = self.positions.finish().map_err(col)?;
-        let colors = match self.rgb16 {
-            None => None,
-            Some(w) => {
-                let rgb16 = w.finish().map_err(col)?;
-                let shift = if is_8bit(self.max_channel) { 0 } else { 8 };
-                tracing::debug!(
-                    file,
-                    max_channel = self.max_channel,
-                    "LAS colour is {}",
-                    if shift == 0 {
-                        "8-bit values in 16-bit fields"
-                    } else {
-                        "true 16-bit"
-                    }
-                );
-                let mut out = writer::<[u8; 3]>(file, self.scratch, names::COLORS)?;
-                for c in rgb16.iter() {
-                    push(file, &mut out, c.map(|v| (v >> shift) as u8))?;
-                }
-                drop(rgb16);
-                let _ = std::fs::remove_file(self.scratch.join(format!("{RGB16_COLUMN}.col")));
-                Some(out.finish().map_err(col)?)
-            }
-        };
-        Ok(Source::Points(PointSource {
-            positions,
-            colors,
-            normals: None,
-        }))
-    }
-}
-
-/// Whether a LAS colour column with this largest channel value holds 8-bit values.
-pub(crate) fn is_8bit(max_channel: u16) -> bool {
-    max_channel <= 255
+    Ok(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::import::points_out::is_8bit;
     use crate::import::{ImportOptions, import_file};
+    use crate::source::PointSource;
 
     fn data(name: &str) -> std::path::PathBuf {
         Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -21,6 +21,8 @@ mod las;
 mod nrrd;
 mod obj;
 mod ply;
+pub mod points_out;
+pub mod tiles;
 
 /// Input file formats.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -145,6 +147,8 @@ pub struct ImportOptions {
     pub format: Option<Format>,
     /// Layout of a headerless raw volume (required for [`Format::Raw`]).
     pub raw: Option<RawSpec>,
+    /// How to read a tile set (several point files as one scene).
+    pub tiles: tiles::TileOptions,
 }
 
 /// Formats `Some(line)` as `" line N"` for messages of the form `"file line N: ..."`.
@@ -302,6 +306,42 @@ pub enum ImportError {
     /// Writing a scratch column failed.
     #[error("{file}: {error}")]
     Column { file: String, error: ColumnError },
+
+    /// Two tiles of one set declare different coordinate systems (`--allow-mixed-crs` reads
+    /// them anyway, as if they shared one).
+    #[error(
+        "{second}: coordinate system {second_crs} differs from {first_crs} of {first}; tiles of one scene must share one (pass --allow-mixed-crs to import them anyway)"
+    )]
+    MixedCoordinateSystems {
+        first: String,
+        first_crs: String,
+        second: String,
+        second_crs: String,
+    },
+
+    /// A file of a tile set is not a point cloud (a mesh, a volume).
+    #[error("{file}: a tile set takes point clouds only (LAS/LAZ, point PLY); this file is {kind}")]
+    NotPointTile { file: String, kind: String },
+
+    /// An input pattern, directory or list named no file to import.
+    #[error("{pattern}: no LAS, LAZ or PLY file {how}")]
+    NoInputs {
+        pattern: String,
+        /// e.g. "in this directory", "matches this pattern".
+        how: &'static str,
+    },
+
+    /// More primitives than one scene can index (primitive ids are 32-bit).
+    #[error(
+        "{file}: {count} {what} exceed the limit of {limit} primitives per scene (primitive ids are 32-bit); split the set into several scenes"
+    )]
+    TooManyPrimitives {
+        file: String,
+        /// "points (from the headers)", "points", ...
+        what: &'static str,
+        count: u64,
+        limit: u64,
+    },
 }
 
 impl ImportError {

@@ -765,6 +765,7 @@ mod tests {
                 spacing: [1.0, 1.0, 2.5],
                 big_endian: true,
             }),
+            ..ImportOptions::default()
         };
         match run("v.raw", &data, &opts).1 {
             Ok(Source::Volume(v)) => {

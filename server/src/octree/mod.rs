@@ -15,6 +15,7 @@ pub mod geometry;
 pub mod idlist;
 pub mod pending;
 pub mod points;
+pub mod sorted_points;
 pub mod treelet_builder;
 pub mod triangles;
 pub mod volume;
@@ -34,11 +35,12 @@ use arbor_proto::{
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 
-use crate::source::{ColumnError, Source};
+use crate::progress::{ImportProgress, Phase};
+use crate::source::{Column, ColumnError, ColumnWriter, Source};
 use geometry::{Frame, depth_for_resolution};
 use idlist::{Budget, IdList, Lists, SpillFile};
 use pending::PendingQueue;
-pub use treelet_builder::{AttributeGenerator, TreeletBuilder, fill_treelet};
+pub use treelet_builder::{AttributeGenerator, MAX_PRIMITIVES, TreeletBuilder, fill_treelet};
 use treelet_builder::{FilledTreelet, TreeletJob};
 
 /// Depth to build to.
@@ -72,7 +74,7 @@ impl Default for BuildOptions {
             depth: DepthChoice::Auto,
             treelet_bytes: arbor_proto::limits::DEFAULT_TREELET_BYTES,
             iso: None,
-            zstd_level: 9,
+            zstd_level: 3,
             dictionary: true,
             memory_budget: 256 << 20,
             progress: false,
@@ -101,9 +103,17 @@ pub enum BuildError {
     /// A parameter is out of range.
     #[error("invalid build parameter: {0}")]
     Parameter(String),
-    /// More treelets than ids.
-    #[error("scene needs more than {} treelets", arbor_proto::limits::MAX_TREELETS)]
+    /// More treelets than ids (treelet ids are 32-bit in the format).
+    #[error(
+        "scene needs more than {} treelets (treelet ids are 32-bit): use larger treelets (--treelet-bytes, up to 16384) or a coarser --depth",
+        arbor_proto::limits::MAX_TREELETS
+    )]
     TooManyTreelets,
+    /// More primitives than one build can index (primitive ids are 32-bit).
+    #[error(
+        "{count} primitives exceed the limit of {limit} per scene (primitive ids are 32-bit): split the input into several scenes"
+    )]
+    TooManyPrimitives { count: u64, limit: u64 },
     /// The treelet sink (the pool) refused a write.
     #[error("storing treelets: {0}")]
     Sink(String),
@@ -132,6 +142,38 @@ pub fn build_scene(
     scratch: &Path,
     sink: &mut dyn TreeletSink,
 ) -> Result<SceneDescription, BuildError> {
+    let target = BuildTarget {
+        name,
+        source_label,
+        scratch,
+    };
+    build_scene_observed(source, &target, opts, sink, &ImportProgress::default())
+}
+
+/// What a build makes and where its scratch files go.
+#[derive(Clone, Copy, Debug)]
+pub struct BuildTarget<'a> {
+    /// The scene's name.
+    pub name: &'a str,
+    /// What the input was, for the description.
+    pub source_label: &'a str,
+    /// Scratch directory for spill and record files.
+    pub scratch: &'a Path,
+}
+
+/// [`build_scene`], reporting its phases and counts to `progress` as it goes.
+pub fn build_scene_observed(
+    source: &Source,
+    target: &BuildTarget<'_>,
+    opts: &BuildOptions,
+    sink: &mut dyn TreeletSink,
+    progress: &ImportProgress,
+) -> Result<SceneDescription, BuildError> {
+    let BuildTarget {
+        name,
+        source_label,
+        scratch,
+    } = *target;
     let started = Instant::now();
     let capacity = nodes_for_bytes(opts.treelet_bytes)?;
     if let DepthChoice::Fixed(d) = opts.depth
@@ -145,6 +187,13 @@ pub fn build_scene(
     if source.primitive_count() == 0 {
         return Err(BuildError::Empty(source.describe()));
     }
+    if source.primitive_count() > MAX_PRIMITIVES {
+        return Err(BuildError::TooManyPrimitives {
+            count: source.primitive_count(),
+            limit: MAX_PRIMITIVES,
+        });
+    }
+    progress.enter(Phase::Placing, 0);
     let placed = place(source, opts, scratch)?;
     let frame = placed.frame;
     let depth = frame.depth;
@@ -156,14 +205,29 @@ pub fn build_scene(
         name,
         source.describe()
     );
-    let (layout, fill, iso_used) = fill_source(source, &placed, capacity, opts, scratch)?;
+    let phase = |what: &str, since: Instant| {
+        tracing::info!(seconds = since.elapsed().as_secs_f64(), "{what} done");
+        Instant::now()
+    };
+    let t = phase("placing (bounds, resolution)", started);
+    let (layout, fill, iso_used) = fill_source(source, &placed, capacity, opts, scratch, progress)?;
+    let t = phase("fill (with sorting and normals)", t);
 
     let records = RecordFile {
         file: fill.file,
-        capacity,
         bpv: layout.bytes_per_voxel(),
+        offsets: fill.offsets,
     };
-    average_bottom_up(&records, &layout, fill.treelets, depth, opts.progress)?;
+    progress.enter(Phase::Attributes, u64::from(fill.treelets));
+    average_bottom_up(
+        &records,
+        &layout,
+        &fill.level_starts,
+        depth,
+        opts.progress,
+        progress,
+    )?;
+    let t = phase("attributes", t);
     let mut stats = SceneStats {
         voxels: fill.used_nodes - u64::from(fill.treelets - 1),
         leaf_voxels: fill.leaf_voxels,
@@ -176,6 +240,8 @@ pub fn build_scene(
     } else {
         (None, vec![None; layout.channels().len()])
     };
+    let t = phase("dictionary training", t);
+    progress.enter(Phase::Packing, u64::from(fill.treelets));
     pack(
         &records,
         &layout,
@@ -185,7 +251,9 @@ pub fn build_scene(
         &channel_dictionaries,
         &mut stats,
         sink,
+        progress,
     )?;
+    phase("pack", t);
     stats.build_seconds = started.elapsed().as_secs_f64();
     let dictionary = node_dictionary.is_some();
     Ok(SceneDescription {
@@ -263,14 +331,53 @@ fn fill_source(
     capacity: u32,
     opts: &BuildOptions,
     scratch: &Path,
+    progress: &ImportProgress,
 ) -> Result<(AttributeLayout, Filled, Option<f32>), BuildError> {
     let frame = placed.frame;
-    let depth = frame.depth;
+    let fill_all = |b: &dyn TreeletBuilder, a: &dyn AttributeGenerator| {
+        progress.enter(Phase::Filling, 0);
+        fill_all(b, a, capacity, frame.depth, opts, scratch, progress)
+    };
     match source {
         Source::Mesh(m) => {
             let b = triangles::TriangleBuilder { mesh: m, frame };
             let a = triangles::MeshAttributes::new(m, frame);
-            let fill = fill_all(&b, &a, capacity, depth, opts, scratch)?;
+            let fill = fill_all(&b, &a)?;
+            Ok((a.layout.clone(), fill, None))
+        }
+        Source::Points(p) if frame.depth <= sorted_points::MAX_KEY_DEPTH => {
+            let t = Instant::now();
+            let (records, sorted) =
+                sorted_points::sort_points(p, &frame, opts.memory_budget, scratch)?;
+            tracing::info!(
+                seconds = t.elapsed().as_secs_f64(),
+                "points sorted by leaf cell"
+            );
+            let t = Instant::now();
+            let normals = match &p.normals {
+                Some(file) => {
+                    let mut w = ColumnWriter::create(scratch, "sorted-normals")?;
+                    for r in records.iter() {
+                        w.push(file[r.id as usize])?;
+                    }
+                    w.finish()?
+                }
+                None => {
+                    let centre = [0, 1, 2].map(|a| (placed.min[a] + placed.max[a]) * 0.5);
+                    sorted_points::cell_normals(&records, frame.depth, centre, scratch)?
+                }
+            };
+            tracing::info!(seconds = t.elapsed().as_secs_f64(), "normals");
+            let b = sorted_points::SortedPointBuilder {
+                records: &records,
+                depth: frame.depth,
+            };
+            let a =
+                sorted_points::SortedPointAttributes::new(&records, &normals, p.colors.is_some());
+            let mut fill = fill_all(&b, &a)?;
+            // The sort is this path's bounded working memory (it writes no id list).
+            fill.spilled_bytes += sorted.spilled_bytes;
+            fill.peak_list_bytes = fill.peak_list_bytes.max(sorted.peak_bytes);
             Ok((a.layout.clone(), fill, None))
         }
         Source::Points(p) => {
@@ -290,7 +397,7 @@ fn fill_source(
             };
             let b = points::PointBuilder { points: p, frame };
             let a = points::PointAttributes::new(p, normals);
-            let fill = fill_all(&b, &a, capacity, depth, opts, scratch)?;
+            let fill = fill_all(&b, &a)?;
             Ok((a.layout.clone(), fill, None))
         }
         Source::Volume(v) => {
@@ -318,7 +425,7 @@ fn fill_source(
                 frame,
             };
             let a = volume::VolumeAttributes::new(field, frame);
-            let fill = fill_all(&b, &a, capacity, depth, opts, scratch)?;
+            let fill = fill_all(&b, &a)?;
             Ok((a.layout.clone(), fill, Some(iso)))
         }
     }
@@ -374,27 +481,35 @@ fn bounds(source: &Source) -> Result<([f64; 3], [f64; 3]), BuildError> {
 /// Output of the fill pass.
 struct Filled {
     file: File,
+    /// Where each treelet's record starts in `file`, then the end (see [`RecordFile`]).
+    offsets: Column<u64>,
     treelets: u32,
+    /// First id of each treelet level (root = level 0), then the count: ids grow level by
+    /// level because jobs run in FIFO order.
+    level_starts: Vec<u32>,
     used_nodes: u64,
     leaf_voxels: u64,
     spilled_bytes: u64,
     peak_list_bytes: u64,
 }
 
-/// Fixed-size scratch records: raw treelet encoding padded to `HEADER + N·8`, then `N × bpv`
-/// attribute bytes.
+/// Scratch records, one per treelet in id order, packed: the raw treelet encoding (header and
+/// used node records), then `used × bpv` attribute bytes. Where each starts is in a memory-mapped
+/// column, so nothing here grows with the treelet count (treelets are 35–45 % full on average:
+/// fixed-size records wrote 2–3× the bytes).
 struct RecordFile {
     file: File,
-    capacity: u32,
     bpv: usize,
+    /// Byte offset of every record, then the end.
+    offsets: Column<u64>,
 }
 
 impl RecordFile {
-    fn node_bytes(capacity: u32) -> usize {
-        HEADER_BYTES + capacity as usize * 8
-    }
-    fn size(&self) -> usize {
-        Self::node_bytes(self.capacity) + self.capacity as usize * self.bpv
+    /// Byte range of a record and where its attributes start.
+    fn place(&self, id: u32) -> (u64, u64, u64) {
+        let (start, end) = (self.offsets[id as usize], self.offsets[id as usize + 1]);
+        let used = (end - start - HEADER_BYTES as u64) / (8 + self.bpv as u64);
+        (start, end, start + HEADER_BYTES as u64 + used * 8)
     }
     fn read(&self, id: u32, max_depth: u8) -> Result<(Treelet, Vec<u8>), BuildError> {
         self.read_with_places(id, max_depth).map(|(t, _, a)| (t, a))
@@ -404,17 +519,17 @@ impl RecordFile {
         id: u32,
         max_depth: u8,
     ) -> Result<(Treelet, Vec<NodePlace>, Vec<u8>), BuildError> {
-        let mut buf = vec![0u8; self.size()];
-        self.file
-            .read_exact_at(&mut buf, u64::from(id) * self.size() as u64)?;
-        let (header, _) = codec::decode_header(&buf)?;
-        let raw_len = HEADER_BYTES + usize::from(header.used_nodes) * 8;
+        let (start, end, attributes) = self.place(id);
+        let mut buf = vec![0u8; (end - start) as usize];
+        self.file.read_exact_at(&mut buf, start)?;
+        let raw_len = (attributes - start) as usize;
         let (t, places) = codec::decode_treelet_with_places(&buf[..raw_len], max_depth)?;
-        let attrs = buf.split_off(Self::node_bytes(self.capacity));
+        let attrs = buf.split_off(raw_len);
         Ok((t, places, attrs))
     }
     fn write_attributes(&self, id: u32, attrs: &[u8]) -> Result<(), BuildError> {
-        let at = u64::from(id) * self.size() as u64 + Self::node_bytes(self.capacity) as u64;
+        let (_, end, at) = self.place(id);
+        debug_assert_eq!(attrs.len() as u64, end - at);
         self.file.write_all_at(attrs, at)?;
         Ok(())
     }
@@ -456,6 +571,7 @@ fn fill_all(
     depth: u8,
     opts: &BuildOptions,
     scratch: &Path,
+    progress: &ImportProgress,
 ) -> Result<Filled, BuildError> {
     let file = File::options()
         .create(true)
@@ -463,11 +579,15 @@ fn fill_all(
         .read(true)
         .write(true)
         .open(scratch.join("treelets.records"))?;
-    let records = RecordFile {
-        file,
-        capacity,
-        bpv: attributes.bytes_per_voxel(),
-    };
+    let bpv = attributes.bytes_per_voxel();
+    let mut offsets = ColumnWriter::<u64>::create(scratch, "treelet-offsets")?;
+    offsets.push(0)?;
+    let mut end = 0u64;
+    let count = builder.primitive_count();
+    let count = u32::try_from(count).map_err(|_| BuildError::TooManyPrimitives {
+        count,
+        limit: MAX_PRIMITIVES,
+    })?;
     let lists = Lists {
         budget: Budget::new(opts.memory_budget),
         spill: SpillFile::create(scratch)?,
@@ -480,14 +600,16 @@ fn fill_all(
         parent_leaf_parent_index: 0,
         child_index_in_parent: 0,
         root: Cell::ROOT,
-        prims: IdList::Range(0..builder.primitive_count()),
+        prims: IdList::Range(0..count),
     })?;
     let mut next_id: u64 = 1;
+    // Level of every treelet (1 byte each), to find where each level starts.
+    let mut level_of: Vec<u8> = vec![0];
     let mut written = 0u32;
     let (mut used_nodes, mut leaf_voxels) = (0u64, 0u64);
     let pb = spinner(opts.progress, "fill");
     let batch_target = rayon::current_num_threads() * 4;
-    let mut buf = vec![0u8; records.size()];
+    let mut buf = Vec::new();
     while !queue.is_empty() {
         // A batch of independent jobs, bounded by count and by primitive-list bytes.
         let mut batch = Vec::new();
@@ -506,11 +628,9 @@ fn fill_all(
             let id = f.treelet.header.id;
             debug_assert_eq!(id.0, written);
             for leaf in f.pending.drain(..) {
-                if next_id > u64::from(arbor_proto::limits::MAX_TREELETS) {
-                    return Err(BuildError::TooManyTreelets);
-                }
-                let child = TreeletId(next_id as u32);
+                let child = treelet_id(next_id)?;
                 next_id += 1;
+                level_of.push(level_of[id.0 as usize].saturating_add(1));
                 f.treelet.nodes[usize::from(leaf.local_index)].first_child = child.0;
                 queue.push(TreeletJob {
                     id: child,
@@ -524,16 +644,16 @@ fn fill_all(
             }
             used_nodes += u64::from(f.treelet.header.used_nodes);
             leaf_voxels += f.leaf_voxels;
-            let raw = codec::encode_treelet(&f.treelet);
-            buf.fill(0);
-            buf[..raw.len()].copy_from_slice(&raw);
-            let nb = RecordFile::node_bytes(capacity);
-            buf[nb..].copy_from_slice(&f.attributes);
-            records
-                .file
-                .write_all_at(&buf, u64::from(written) * records.size() as u64)?;
+            buf.clear();
+            buf.extend_from_slice(&codec::encode_treelet(&f.treelet));
+            let used = usize::from(f.treelet.header.used_nodes);
+            buf.extend_from_slice(&f.attributes[..used * bpv]);
+            file.write_all_at(&buf, end)?;
+            end += buf.len() as u64;
+            offsets.push(end)?;
             written += 1;
         }
+        progress.set_done(u64::from(written));
         pb.set_message(format!(
             "{written} treelets, {leaf_voxels} leaf voxels, {} queued",
             queue.len()
@@ -549,9 +669,19 @@ fn fill_all(
             "primitive lists spilled to disk"
         );
     }
+    let mut level_starts = vec![0u32];
+    for (i, pair) in level_of.windows(2).enumerate() {
+        debug_assert!(pair[0] <= pair[1], "FIFO order keeps levels contiguous");
+        if pair[1] != pair[0] {
+            level_starts.push(i as u32 + 1);
+        }
+    }
+    level_starts.push(written);
     Ok(Filled {
-        file: records.file,
+        file,
+        offsets: offsets.finish()?,
         treelets: written,
+        level_starts,
         used_nodes,
         leaf_voxels,
         spilled_bytes,
@@ -559,63 +689,99 @@ fn fill_all(
     })
 }
 
+/// The id of the `next`-th treelet, or the format limit's error (ids are 32-bit).
+fn treelet_id(next: u64) -> Result<TreeletId, BuildError> {
+    match u32::try_from(next) {
+        Ok(id) if id <= arbor_proto::limits::MAX_TREELETS => Ok(TreeletId(id)),
+        _ => Err(BuildError::TooManyTreelets),
+    }
+}
+
 /// Pass 2: inner attributes as the mean of their children, treelets in reverse id order.
 fn average_bottom_up(
     records: &RecordFile,
     layout: &AttributeLayout,
-    count: u32,
+    level_starts: &[u32],
     depth: u8,
-    progress: bool,
+    bars: bool,
+    progress: &ImportProgress,
 ) -> Result<(), BuildError> {
-    let bpv = records.bpv;
-    let mut offsets = Vec::new();
-    let mut at = 0;
-    for c in layout.channels() {
-        offsets.push(at);
-        at += c.size();
-    }
-    // Root attributes of treelets whose parent has not been processed yet.
-    let mut child_roots: HashMap<u32, Vec<u8>> = HashMap::new();
-    let pb = bar(progress, "attributes", u64::from(count));
-    for id in (0..count).rev() {
-        let (t, places, mut attrs) = records.read_with_places(id, depth)?;
-        for i in (0..t.used().len()).rev() {
-            let n: Node = t.nodes[i];
-            let k = i * bpv;
-            if places[i].is_leaf {
-                if n.first_child != Node::NONE {
-                    let root = child_roots.remove(&n.first_child).ok_or_else(|| {
-                        BuildError::Sink(format!(
-                            "treelet {id} leaf {i}: child treelet {} was never built",
-                            n.first_child
-                        ))
-                    })?;
-                    attrs[k..k + bpv].copy_from_slice(&root);
-                }
-                continue;
-            }
-            let first = i + n.first_child as usize;
-            let kids = n.child_count() as usize;
-            for (ci, c) in layout.channels().iter().enumerate() {
-                let off = offsets[ci];
-                let size = c.size();
-                let mut out = vec![0u8; size];
-                let src = &attrs;
-                c.mean(
-                    (first..first + kids).map(|j| &src[j * bpv + off..j * bpv + off + size]),
-                    &mut out,
-                );
-                attrs[k + off..k + off + size].copy_from_slice(&out);
+    let count = level_starts.last().copied().unwrap_or(0);
+    // Root attributes of the treelets one level below, for their parents' refinable leaves.
+    let mut below: HashMap<u32, Vec<u8>> = HashMap::new();
+    let pb = bar(bars, "attributes", u64::from(count));
+    let mut done = 0u64;
+    for level in (0..level_starts.len().saturating_sub(1)).rev() {
+        // Treelets of one level are independent: their children are all one level deeper.
+        let ids = level_starts[level]..level_starts[level + 1];
+        let roots: Vec<Result<Option<RootAttribute>, BuildError>> = ids
+            .clone()
+            .into_par_iter()
+            .map(|id| average_treelet(records, layout, id, depth, &below))
+            .collect();
+        below = HashMap::with_capacity(roots.len());
+        for r in roots {
+            if let Some((id, root)) = r? {
+                below.insert(id, root);
             }
         }
-        if !t.header.parent_id.is_none() {
-            child_roots.insert(id, attrs[..bpv].to_vec());
-        }
-        records.write_attributes(id, &attrs)?;
-        pb.inc(1);
+        done += u64::from(ids.end - ids.start);
+        pb.set_position(done);
+        progress.set_done(done);
     }
     pb.finish_and_clear();
     Ok(())
+}
+
+/// A treelet id and its root voxel's attribute bytes.
+type RootAttribute = (u32, Vec<u8>);
+
+/// Averages one treelet's inner attributes bottom-up (its refinable leaves take their child
+/// treelet's root attribute from `below`), writes them back, and returns its own root attribute
+/// for its parent (none for the root treelet).
+fn average_treelet(
+    records: &RecordFile,
+    layout: &AttributeLayout,
+    id: u32,
+    depth: u8,
+    below: &HashMap<u32, Vec<u8>>,
+) -> Result<Option<RootAttribute>, BuildError> {
+    let bpv = records.bpv;
+    let (t, places, mut attrs) = records.read_with_places(id, depth)?;
+    let mut out = Vec::new();
+    for i in (0..t.used().len()).rev() {
+        let n: Node = t.nodes[i];
+        let k = i * bpv;
+        if places[i].is_leaf {
+            if n.first_child != Node::NONE {
+                let root = below.get(&n.first_child).ok_or_else(|| {
+                    BuildError::Sink(format!(
+                        "treelet {id} leaf {i}: child treelet {} was never built",
+                        n.first_child
+                    ))
+                })?;
+                attrs[k..k + bpv].copy_from_slice(root);
+            }
+            continue;
+        }
+        let first = i + n.first_child as usize;
+        let kids = n.child_count() as usize;
+        let mut off = 0;
+        for c in layout.channels() {
+            let size = c.size();
+            out.clear();
+            out.resize(size, 0);
+            let src = &attrs;
+            c.mean(
+                (first..first + kids).map(|j| &src[j * bpv + off..j * bpv + off + size]),
+                &mut out,
+            );
+            attrs[k + off..k + off + size].copy_from_slice(&out);
+            off += size;
+        }
+    }
+    records.write_attributes(id, &attrs)?;
+    Ok((!t.header.parent_id.is_none()).then(|| (id, attrs[..bpv].to_vec())))
 }
 
 /// Splits a record's attribute bytes into one block per channel (used records only).
@@ -682,6 +848,7 @@ fn pack(
     channel_dicts: &[Option<Vec<u8>>],
     stats: &mut SceneStats,
     sink: &mut dyn TreeletSink,
+    progress: &ImportProgress,
 ) -> Result<(), BuildError> {
     stats.channel_bytes = vec![0; layout.channels().len()];
     sink.start(layout)?;
@@ -727,7 +894,139 @@ fn pack(
             sink.put(id, nodes, chans)?;
         }
         pb.set_position(u64::from(end));
+        progress.set_done(u64::from(end));
     }
     pb.finish_and_clear();
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::source::PointSource;
+
+    /// A builder that only counts: no primitive exists, so nothing that large is allocated.
+    struct Counting(u64);
+
+    impl TreeletBuilder for Counting {
+        fn primitive_count(&self) -> u64 {
+            self.0
+        }
+        fn child_mask(&self, _prim: u32, _cell: Cell) -> u8 {
+            1
+        }
+    }
+
+    struct NoAttributes;
+
+    impl AttributeGenerator for NoAttributes {
+        fn bytes_per_voxel(&self) -> usize {
+            0
+        }
+        fn leaf(&self, _cell: Cell, _prims: &[u32], _out: &mut [u8]) {}
+    }
+
+    /// The sorted path (ranges, no id lists) fills exactly the treelets of the general path
+    /// (id lists partitioned point by point) on a real scan: same ids, same node records.
+    #[test]
+    fn sorted_points_fill_the_same_treelets_as_id_lists() {
+        let dir = tempfile::tempdir().unwrap();
+        let lion = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../shared/data/points/lion_takanawa.copc.laz");
+        let Source::Points(p) =
+            crate::import::import_file(&lion, &Default::default(), dir.path()).unwrap()
+        else {
+            panic!("points expected")
+        };
+        let opts = BuildOptions::default();
+        let (min, max) = bounds(&Source::Points(PointSource {
+            positions: Column::from_slice(dir.path(), "copy", &p.positions).unwrap(),
+            colors: None,
+            normals: None,
+        }))
+        .unwrap();
+        let frame = Frame::around(min, max, 10);
+        let progress = ImportProgress::default();
+        let general = fill_all(
+            &points::PointBuilder { points: &p, frame },
+            &NoAttributes,
+            512,
+            10,
+            &opts,
+            dir.path(),
+            &progress,
+        )
+        .unwrap();
+        let (records, _) = sorted_points::sort_points(&p, &frame, 1 << 20, dir.path()).unwrap();
+        let sorted = fill_all(
+            &sorted_points::SortedPointBuilder {
+                records: &records,
+                depth: 10,
+            },
+            &NoAttributes,
+            512,
+            10,
+            &opts,
+            dir.path(),
+            &progress,
+        );
+        let sorted = sorted.unwrap();
+        assert!(general.treelets > 100, "{}", general.treelets);
+        assert_eq!(general.treelets, sorted.treelets);
+        assert_eq!(general.used_nodes, sorted.used_nodes);
+        assert_eq!(general.leaf_voxels, sorted.leaf_voxels);
+        let records = |f: Filled| RecordFile {
+            file: f.file,
+            bpv: 0,
+            offsets: f.offsets,
+        };
+        let (a, b) = (records(general), records(sorted));
+        for id in 0..a.offsets.len() as u32 - 1 {
+            let (ta, _) = a.read(id, 10).unwrap();
+            let (tb, _) = b.read(id, 10).unwrap();
+            assert!(ta == tb, "treelet {id} differs");
+        }
+    }
+
+    #[test]
+    fn primitive_counts_past_32_bits_are_refused_not_wrapped() {
+        let dir = tempfile::tempdir().unwrap();
+        let opts = BuildOptions::default();
+        for count in [MAX_PRIMITIVES + 1, 1 << 32, u64::MAX] {
+            let progress = ImportProgress::default();
+            let e = fill_all(
+                &Counting(count),
+                &NoAttributes,
+                512,
+                10,
+                &opts,
+                dir.path(),
+                &progress,
+            )
+            .err()
+            .expect("refused");
+            assert!(
+                matches!(e, BuildError::TooManyPrimitives { count: c, limit } if c == count && limit == MAX_PRIMITIVES),
+                "{e}"
+            );
+            assert!(e.to_string().contains("4294967295 per scene"), "{e}");
+        }
+    }
+
+    #[test]
+    fn treelet_ids_stop_at_the_format_limit_naming_the_knob() {
+        let last = u64::from(arbor_proto::limits::MAX_TREELETS);
+        assert_eq!(
+            treelet_id(last).unwrap(),
+            TreeletId(arbor_proto::limits::MAX_TREELETS)
+        );
+        for next in [last + 1, 1 << 32, u64::MAX] {
+            let e = treelet_id(next).unwrap_err().to_string();
+            assert!(e.contains("treelet ids are 32-bit"), "{e}");
+            assert!(
+                e.contains("--treelet-bytes") && e.contains("--depth"),
+                "{e}"
+            );
+        }
+    }
 }

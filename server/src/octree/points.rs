@@ -16,8 +16,8 @@ pub struct PointBuilder<'a> {
 }
 
 impl TreeletBuilder for PointBuilder<'_> {
-    fn primitive_count(&self) -> u32 {
-        self.points.positions.len() as u32
+    fn primitive_count(&self) -> u64 {
+        self.points.positions.len() as u64
     }
 
     fn child_mask(&self, prim: u32, cell: Cell) -> u8 {
@@ -39,14 +39,10 @@ pub struct PointAttributes<'a> {
 
 impl<'a> PointAttributes<'a> {
     pub fn new(points: &'a PointSource, normals: &'a Column<[f32; 3]>) -> Self {
-        let mut ch = vec![Channel::Normal];
-        if points.colors.is_some() {
-            ch.push(Channel::Color);
-        }
         Self {
             points,
             normals,
-            layout: AttributeLayout::new(ch),
+            layout: point_layout(points.colors.is_some()),
         }
     }
 }
@@ -57,37 +53,63 @@ impl AttributeGenerator for PointAttributes<'_> {
     }
 
     fn leaf(&self, _cell: Cell, prims: &[u32], out: &mut [u8]) {
-        let mut n = [0f32; 3];
-        let mut c = [0f32; 3];
-        for &p in prims {
-            let v = self.normals[p as usize];
-            // Estimated normals have no consistent sign everywhere: align with the first.
-            let s = if n[0] * v[0] + n[1] * v[1] + n[2] * v[2] < 0.0 {
-                -1.0
-            } else {
-                1.0
-            };
+        let colors = self.points.colors.as_ref();
+        leaf_attributes(
+            &self.layout,
+            prims
+                .iter()
+                .map(|&p| (self.normals[p as usize], colors.map(|c| c[p as usize]))),
+            out,
+        );
+    }
+}
+
+/// The attribute layout of a point scene: normal, and colour when the source has it.
+pub(crate) fn point_layout(colour: bool) -> AttributeLayout {
+    let mut ch = vec![Channel::Normal];
+    if colour {
+        ch.push(Channel::Color);
+    }
+    AttributeLayout::new(ch)
+}
+
+/// A leaf voxel's attributes from its points' (normal, colour): the normals summed with their
+/// signs aligned to the first (estimated normals have no consistent sign everywhere), the mean
+/// colour; f32 sums in the given order.
+pub(crate) fn leaf_attributes(
+    layout: &AttributeLayout,
+    points: impl Iterator<Item = ([f32; 3], Option<[u8; 3]>)>,
+    out: &mut [u8],
+) {
+    let mut n = [0f32; 3];
+    let mut c = [0f32; 3];
+    let mut k = 0usize;
+    for (v, col) in points {
+        let s = if n[0] * v[0] + n[1] * v[1] + n[2] * v[2] < 0.0 {
+            -1.0
+        } else {
+            1.0
+        };
+        for a in 0..3 {
+            n[a] += s * v[a];
+        }
+        if let Some(col) = col {
             for a in 0..3 {
-                n[a] += s * v[a];
-            }
-            if let Some(cs) = &self.points.colors {
-                let col = cs[p as usize];
-                for a in 0..3 {
-                    c[a] += f32::from(col[a]) / 255.0;
-                }
+                c[a] += f32::from(col[a]) / 255.0;
             }
         }
-        let k = prims.len().max(1) as f32;
-        let mut at = 0;
-        for ch in self.layout.channels() {
-            let size = ch.size();
-            match ch {
-                Channel::Normal => ch.encode(&n, &mut out[at..at + size]),
-                Channel::Color => ch.encode(&c.map(|x| x / k), &mut out[at..at + size]),
-                Channel::Density => {}
-            }
-            at += size;
+        k += 1;
+    }
+    let k = k.max(1) as f32;
+    let mut at = 0;
+    for ch in layout.channels() {
+        let size = ch.size();
+        match ch {
+            Channel::Normal => ch.encode(&n, &mut out[at..at + size]),
+            Channel::Color => ch.encode(&c.map(|x| x / k), &mut out[at..at + size]),
+            Channel::Density => {}
         }
+        at += size;
     }
 }
 
@@ -124,8 +146,8 @@ impl Grid {
         m(c[0]) << 42 | m(c[1]) << 21 | m(c[2])
     }
 
-    /// Calls `f` for every point in the 3×3×3 cells around `p`.
-    fn around(&self, p: [f64; 3], mut f: impl FnMut(u32)) {
+    /// Calls `f` with the key of every grid cell of the 3×3×3 block around `p`.
+    fn cells_around(&self, p: [f64; 3], mut f: impl FnMut(u64)) {
         let c = self.coords(p);
         for dx in -1..=1 {
             for dy in -1..=1 {
@@ -134,17 +156,23 @@ impl Grid {
                     if cc.iter().any(|v| !(0..1 << 21).contains(v)) {
                         continue;
                     }
-                    let k = self.key(cc);
-                    let start = self.keys.partition_point(|e| e.0 < k);
-                    for e in &self.keys[start..] {
-                        if e.0 != k {
-                            break;
-                        }
-                        f(e.1);
-                    }
+                    f(self.key(cc));
                 }
             }
         }
+    }
+
+    /// Calls `f` for every point in the 3×3×3 cells around `p`.
+    fn around(&self, p: [f64; 3], mut f: impl FnMut(u32)) {
+        self.cells_around(p, |k| {
+            let start = self.keys.partition_point(|e| e.0 < k);
+            for e in &self.keys[start..] {
+                if e.0 != k {
+                    break;
+                }
+                f(e.1);
+            }
+        });
     }
 }
 
@@ -279,55 +307,63 @@ fn points_per_group(memory_budget: usize) -> usize {
     (memory_budget / 40).max(1 << 16)
 }
 
-/// Mean distance to the nearest neighbour, estimated from up to 20,000 evenly spread points.
+/// Mean distance to the nearest neighbour, estimated from up to 20,000 evenly spread points
+/// (every `n / 20,000`-th in file order). Their neighbours are searched in the 3×3×3 grid cells
+/// around each: one pass over the cloud keeps only the points in those cells (memory bounded by
+/// the samples, not by the cloud), then each sample's nearest is found among them.
 pub fn mean_point_spacing(
     pos: &[[f64; 3]],
     min: [f64; 3],
     max: [f64; 3],
-    memory_budget: usize,
-    scratch: &std::path::Path,
+    _memory_budget: usize,
+    _scratch: &std::path::Path,
 ) -> Result<f64, ColumnError> {
     if pos.len() < 2 {
         return Ok(0.0);
     }
     let cell = grid_cell(pos.len(), min, max, 4.0);
-    let step = (pos.len() / 20_000).max(1) as u32;
-    let (mut sum, mut n) = (0.0f64, 0u64);
-    for_each_slab_group(
-        pos,
-        min,
-        max,
+    let step = (pos.len() / 20_000).max(1);
+    let mut grid = Grid {
+        origin: min,
         cell,
-        points_per_group(memory_budget),
-        scratch,
-        |own, local| {
-            let grid = Grid::new(pos, local, min, cell);
-            let (s, k) = own
-                .par_iter()
-                .filter(|&&i| i % step == 0)
-                .map(|&i| {
-                    let p = pos[i as usize];
-                    let mut best = f64::INFINITY;
-                    grid.around(p, |j| {
-                        if j != i {
-                            let d = dist2(p, pos[j as usize]);
-                            if d > 0.0 && d < best {
-                                best = d;
-                            }
-                        }
-                    });
-                    if best.is_finite() {
-                        (best.sqrt(), 1u64)
-                    } else {
-                        (0.0, 0)
+        keys: Vec::new(),
+    };
+    let mut wanted = std::collections::HashSet::new();
+    for i in (0..pos.len()).step_by(step) {
+        grid.cells_around(pos[i], |k| {
+            wanted.insert(k);
+        });
+    }
+    let mut keys: Vec<(u64, u32)> = (0..pos.len())
+        .into_par_iter()
+        .filter_map(|i| {
+            let k = grid.key(grid.coords(pos[i]));
+            wanted.contains(&k).then_some((k, i as u32))
+        })
+        .collect();
+    keys.par_sort_unstable();
+    grid.keys = keys;
+    let (sum, n) = (0..pos.len())
+        .into_par_iter()
+        .step_by(step)
+        .map(|i| {
+            let p = pos[i];
+            let mut best = f64::INFINITY;
+            grid.around(p, |j| {
+                if j as usize != i {
+                    let d = dist2(p, pos[j as usize]);
+                    if d > 0.0 && d < best {
+                        best = d;
                     }
-                })
-                .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
-            sum += s;
-            n += k;
-            Ok(())
-        },
-    )?;
+                }
+            });
+            if best.is_finite() {
+                (best.sqrt(), 1u64)
+            } else {
+                (0.0, 0)
+            }
+        })
+        .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
     Ok(if n == 0 { 0.0 } else { sum / n as f64 })
 }
 
@@ -385,7 +421,7 @@ pub fn estimate_normals(
 
 /// Smallest-eigenvalue eigenvector of the covariance of `pts` around their mean (+Z when fewer
 /// than 3 points or degenerate).
-fn pca_normal(origin: [f64; 3], pts: impl Iterator<Item = [f64; 3]>) -> [f64; 3] {
+pub(crate) fn pca_normal(origin: [f64; 3], pts: impl Iterator<Item = [f64; 3]>) -> [f64; 3] {
     let rel: Vec<[f64; 3]> = pts
         .map(|p| [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]])
         .collect();

@@ -6,6 +6,7 @@
 //! target depth — is [`fill_treelet`].
 
 use std::collections::VecDeque;
+use std::ops::Range;
 
 use arbor_proto::{Cell, Node, Treelet, TreeletHeader, TreeletId};
 
@@ -16,12 +17,37 @@ use super::idlist::{IdList, ListWriter, Lists};
 /// such as millions of identical points).
 const MAX_LEAF_SAMPLE: usize = 1 << 20;
 
+/// Most primitives one build can index: primitive ids are `u32` (`0..count`), which keeps the
+/// id lists — the bulk of a build's memory — at 4 bytes a primitive.
+pub const MAX_PRIMITIVES: u64 = u32::MAX as u64;
+
 /// Classifies primitives against voxels. Implemented per input kind.
 pub trait TreeletBuilder: Sync {
-    /// Number of primitives; ids are `0..count`.
-    fn primitive_count(&self) -> u32;
+    /// Number of primitives; ids are `0..count`. A 64-bit count, so that a source past
+    /// [`MAX_PRIMITIVES`] is refused by the build instead of wrapping.
+    fn primitive_count(&self) -> u64;
     /// Bit `i` set when primitive `prim`, known to touch `cell`, touches child `i` of `cell`.
     fn child_mask(&self, prim: u32, cell: Cell) -> u8;
+
+    /// For builders whose primitives are sorted so that every cell's primitives are one id range
+    /// (points sorted by leaf cell): the ranges of `cell`'s eight children within `range`.
+    /// `None` (the default): primitives are partitioned one by one.
+    fn split_range(&self, _cell: Cell, _range: Range<u32>) -> Option<[Range<u32>; 8]> {
+        None
+    }
+
+    /// For builders that split ranges: the exact number of nodes strictly below `cell` down to
+    /// `max_depth` for its primitive `range`, `Some(None)` once it exceeds `limit` (what the
+    /// packing dry run needs, without partitioning). `None` (the default): not supported.
+    fn range_subtree_size(
+        &self,
+        _cell: Cell,
+        _range: Range<u32>,
+        _max_depth: u8,
+        _limit: u64,
+    ) -> Option<Option<u64>> {
+        None
+    }
 }
 
 /// Computes leaf attributes from the primitives touching a leaf voxel. Implemented per input kind.
@@ -30,6 +56,13 @@ pub trait AttributeGenerator: Sync {
     fn bytes_per_voxel(&self) -> usize;
     /// Writes the attributes of a final leaf voxel.
     fn leaf(&self, cell: Cell, prims: &[u32], out: &mut [u8]);
+
+    /// [`AttributeGenerator::leaf`] for primitives given as an id range (range-splitting
+    /// builders); the default lists the ids.
+    fn leaf_range(&self, cell: Cell, prims: Range<u32>, out: &mut [u8]) {
+        let ids: Vec<u32> = prims.collect();
+        self.leaf(cell, &ids, out);
+    }
 }
 
 /// Exact number of nodes strictly below `cell` down to `max_depth`, or `None` once it exceeds
@@ -117,6 +150,11 @@ fn partition_list(
     prims: &IdList,
     lists: &Lists,
 ) -> std::io::Result<[IdList; 8]> {
+    if let IdList::Range(r) = prims
+        && let Some(children) = b.split_range(cell, r.clone())
+    {
+        return Ok(children.map(IdList::Range));
+    }
     let mut out: [ListWriter; 8] = std::array::from_fn(|_| ListWriter::new(lists));
     prims.for_each_chunk(|chunk| {
         for &p in chunk {
@@ -270,9 +308,18 @@ impl TreeletFill<'_> {
         let free = self.capacity - self.used;
         let mut included = p.included;
         let mut cut = false;
+        let limit = u64::from(self.capacity);
+        let dry_run = !included && p.prims.len() <= 64 * limit;
+        let by_range = match &p.prims {
+            IdList::Range(r) if dry_run => {
+                self.builder
+                    .range_subtree_size(p.cell, r.clone(), self.max_depth, limit)
+            }
+            _ => None,
+        };
         // Only lists of up to 64·N ids get the dry run (bounded work); a spilled one is read back
         // for it, so the result never depends on the memory budget.
-        let small = if !included && p.prims.len() <= 64 * u64::from(self.capacity) {
+        let small = if dry_run && by_range.is_none() {
             Some(match p.prims.as_slice() {
                 Some(s) => std::borrow::Cow::Borrowed(s),
                 None => std::borrow::Cow::Owned(p.prims.prefix(p.prims.len() as usize)?),
@@ -280,9 +327,19 @@ impl TreeletFill<'_> {
         } else {
             None
         };
-        if let Some(prims) = small {
-            let limit = u64::from(self.capacity);
-            match subtree_size(self.builder, p.cell, &prims, self.max_depth, limit) {
+        let size = match (by_range, small) {
+            (Some(s), _) => Some(s),
+            (None, Some(prims)) => Some(subtree_size(
+                self.builder,
+                p.cell,
+                &prims,
+                self.max_depth,
+                limit,
+            )),
+            (None, None) => None,
+        };
+        if let Some(size) = size {
+            match size {
                 Some(s) if s <= u64::from(free.saturating_sub(self.reserved)) => {
                     included = true;
                     self.reserved += s as u32;
@@ -315,11 +372,15 @@ impl TreeletFill<'_> {
         self.mark_leaf(p);
         let k = p.local as usize * self.bpv;
         let out = &mut self.attrs[k..k + self.bpv];
-        match p.prims.as_slice() {
-            Some(s) => self
+        match (&p.prims, p.prims.as_slice()) {
+            (IdList::Range(r), _) => {
+                let end = r.end.min(r.start.saturating_add(MAX_LEAF_SAMPLE as u32));
+                self.attributes.leaf_range(p.cell, r.start..end, out);
+            }
+            (_, Some(s)) => self
                 .attributes
                 .leaf(p.cell, &s[..s.len().min(MAX_LEAF_SAMPLE)], out),
-            None => self
+            (_, None) => self
                 .attributes
                 .leaf(p.cell, &p.prims.prefix(MAX_LEAF_SAMPLE)?, out),
         }

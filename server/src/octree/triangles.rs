@@ -23,8 +23,8 @@ impl TriangleBuilder<'_> {
 }
 
 impl TreeletBuilder for TriangleBuilder<'_> {
-    fn primitive_count(&self) -> u32 {
-        self.mesh.triangles.len() as u32
+    fn primitive_count(&self) -> u64 {
+        self.mesh.triangles.len() as u64
     }
 
     fn child_mask(&self, prim: u32, cell: Cell) -> u8 {

@@ -159,8 +159,8 @@ impl VolumeBuilder<'_> {
 }
 
 impl TreeletBuilder for VolumeBuilder<'_> {
-    fn primitive_count(&self) -> u32 {
-        self.cells.len() as u32
+    fn primitive_count(&self) -> u64 {
+        self.cells.len() as u64
     }
 
     fn child_mask(&self, prim: u32, cell: Cell) -> u8 {

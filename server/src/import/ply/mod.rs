@@ -517,6 +517,20 @@ pub(super) fn import(path: &Path, file: &str, scratch: &Path) -> Result<Source, 
     sink.finish()
 }
 
+/// Checks the header of a PLY file meant as a tile of a point set: readable, and points only
+/// (no faces or triangle strips). Reads no body.
+pub(super) fn check_header(path: &Path, file: &str) -> Result<(), ImportError> {
+    let f = File::open(path).map_err(|e| ImportError::io(file, "opening the file", e))?;
+    let header = parse_header(&mut BufReader::new(f), file)?;
+    if BodyPlan::new(file, &header)?.is_mesh() {
+        return Err(ImportError::NotPointTile {
+            file: file.to_owned(),
+            kind: "a mesh (it has faces or triangle strips)".to_owned(),
+        });
+    }
+    Ok(())
+}
+
 /// What the body holds, decided from the header: where the vertex attributes are, and the index
 /// list of the `face` and `tristrips` elements. An element with no records (e.g. MeshLab's
 /// `element face 0` in point clouds) does not make the file a mesh.

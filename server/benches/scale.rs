@@ -1,0 +1,201 @@
+//! Scale: a city-sized tiled LAZ set made from the real scans (`scale/city.rs`), imported as one
+//! scene by the real `arbor-server import` binary in a fresh process, side by side with
+//! PotreeConverter 2 on the same tiles (alternating, best of N), then verified, served and
+//! streamed.
+//!
+//! `cargo bench -p arbor-server --bench scale` — 10⁸ points by default. Knobs (environment):
+//! * `ARBOR_SCALE_POINTS` — points in the set (default 100000000);
+//! * `ARBOR_SCALE_DIR` — where tiles, pools and outputs go (default `target/scale`; tiles are
+//!   made once per count and reused);
+//! * `ARBOR_SCALE_RUNS` — imports per tool, alternating, best kept (default 1);
+//! * `ARBOR_SCALE_BUDGET_MIB` — `--memory-budget-mib` of the import (default 256);
+//! * `ARBOR_POTREE_CONVERTER` — the PotreeConverter 2 binary (default
+//!   `target/peer/PotreeConverter`, built by hand: it is not part of this project). Without it
+//!   the comparison row says SKIPPED, loudly;
+//! * `ARBOR_SCALE_STREAM=0` — skip serving and streaming.
+//!
+//! Figures: points/s of each tool, peak anonymous RSS (sampled `RssAnon` of the child), peak
+//! scratch bytes on disk, pool bytes (compressed blocks), sled's size on disk, `verify` time;
+//! then a 1024×768 view streamed at a 64 MiB budget: client peak RSS and time to converge.
+
+#[path = "scale/city.rs"]
+mod city;
+#[path = "scale/monitor.rs"]
+mod monitor;
+#[path = "scale/stream.rs"]
+mod stream;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use monitor::{Measured, run_measured};
+
+fn env_u64(name: &str, default: u64) -> u64 {
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.replace('_', "").parse().ok())
+        .unwrap_or(default)
+}
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn potree() -> Option<PathBuf> {
+    let p = std::env::var_os("ARBOR_POTREE_CONVERTER")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| root().join("target/peer/PotreeConverter"));
+    p.is_file().then_some(p)
+}
+
+fn arbor_import(tiles: &Path, pool: &Path, scratch: &Path, budget: u64) -> Measured {
+    let _ = std::fs::remove_dir_all(pool);
+    let _ = std::fs::remove_dir_all(scratch);
+    std::fs::create_dir_all(scratch).unwrap();
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_arbor-server"));
+    cmd.args(["import", "--quiet", "--scene", "city", "--db"])
+        .arg(pool)
+        .arg("--scratch")
+        .arg(scratch)
+        .args(["--memory-budget-mib", &budget.to_string()])
+        .arg(tiles);
+    run_measured(cmd, Some(scratch))
+}
+
+fn potree_convert(bin: &Path, tiles: &Path, out: &Path) -> Measured {
+    let _ = std::fs::remove_dir_all(out);
+    let mut cmd = Command::new(bin);
+    cmd.arg(tiles).arg("-o").arg(out);
+    run_measured(cmd, None)
+}
+
+fn dir_bytes(dir: &Path) -> u64 {
+    monitor::dir_bytes(dir)
+}
+
+fn mib(b: u64) -> f64 {
+    b as f64 / f64::from(1 << 20)
+}
+
+fn main() {
+    let points = env_u64("ARBOR_SCALE_POINTS", 100_000_000);
+    let runs = env_u64("ARBOR_SCALE_RUNS", 1).max(1);
+    let budget = env_u64("ARBOR_SCALE_BUDGET_MIB", 256);
+    let base = std::env::var_os("ARBOR_SCALE_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| root().join("target/scale"));
+    let tiles_dir = base.join(format!("tiles-{points}"));
+    let t0 = std::time::Instant::now();
+    let tiles = city::city(&root().join("../shared/data"), &tiles_dir, points);
+    let input_bytes: u64 = tiles
+        .iter()
+        .map(|t| std::fs::metadata(t).unwrap().len())
+        .sum();
+    println!(
+        "input: {} LAZ tiles, {points} points, {:.1} MiB ({:.1} s to make or find)",
+        tiles.len(),
+        mib(input_bytes),
+        t0.elapsed().as_secs_f64()
+    );
+    let pool = base.join("pool");
+    let scratch = base.join("scratch");
+    let peer = potree();
+    if peer.is_none() {
+        println!(
+            "SKIPPED: PotreeConverter not found at {} (set ARBOR_POTREE_CONVERTER; build it by hand, it is not part of this project)",
+            std::env::var("ARBOR_POTREE_CONVERTER").unwrap_or_else(|_| root()
+                .join("target/peer/PotreeConverter")
+                .display()
+                .to_string())
+        );
+    }
+    let (mut best_arbor, mut best_peer): (Option<Measured>, Option<Measured>) = (None, None);
+    for run in 0..runs {
+        let a = arbor_import(&tiles_dir, &pool, &scratch, budget);
+        assert!(a.success, "arbor-server import failed:\n{}", a.stderr_tail);
+        println!(
+            "run {run}: arbor {:.2} s ({:.0} points/s), peak anon {:.1} MiB, scratch peak {:.1} MiB, CPU {:.0} %",
+            a.seconds,
+            points as f64 / a.seconds,
+            mib(a.peak_anon),
+            mib(a.peak_dir),
+            a.cpu_percent
+        );
+        if best_arbor.as_ref().is_none_or(|b| a.seconds < b.seconds) {
+            best_arbor = Some(a);
+        }
+        if let Some(bin) = &peer {
+            let p = potree_convert(bin, &tiles_dir, &base.join("potree"));
+            assert!(p.success, "PotreeConverter failed:\n{}", p.stderr_tail);
+            println!(
+                "run {run}: PotreeConverter {:.2} s ({:.0} points/s), peak anon {:.1} MiB, output {:.1} MiB, CPU {:.0} %",
+                p.seconds,
+                points as f64 / p.seconds,
+                mib(p.peak_anon),
+                mib(dir_bytes(&base.join("potree"))),
+                p.cpu_percent
+            );
+            if best_peer.as_ref().is_none_or(|b| p.seconds < b.seconds) {
+                best_peer = Some(p);
+            }
+        }
+    }
+    let a = best_arbor.expect("one run");
+    let figures = pool_figures(&pool);
+    let verify = std::time::Instant::now();
+    let out = Command::new(env!("CARGO_BIN_EXE_arbor-server"))
+        .args(["verify", "--scene", "city", "--db"])
+        .arg(&pool)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "verify failed: {}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+    let verify_s = verify.elapsed().as_secs_f64();
+    println!();
+    println!(
+        "| input | points | Arbor points/s | PotreeConverter points/s | ratio | Arbor peak anon RSS | scratch peak | pool bytes | sled on disk | verify |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    let (peer_rate, ratio) = match &best_peer {
+        Some(p) => (
+            format!("{:.0}", points as f64 / p.seconds),
+            format!("{:.2}", p.seconds / a.seconds),
+        ),
+        None => ("SKIPPED".into(), "—".into()),
+    };
+    println!(
+        "| city {} tiles | {points} | {:.0} | {peer_rate} | {ratio} | {:.1} MiB (budget {budget}) | {:.1} MiB | {} | {} | {:.1} s |",
+        tiles.len(),
+        points as f64 / a.seconds,
+        mib(a.peak_anon),
+        mib(a.peak_dir),
+        figures.0,
+        figures.1,
+        verify_s
+    );
+    println!("{}", figures.2);
+    if env_u64("ARBOR_SCALE_STREAM", 1) != 0 {
+        stream::serve_and_stream(env!("CARGO_BIN_EXE_arbor-server"), &pool, "city");
+    }
+}
+
+/// Pool bytes (compressed blocks), sled's size on disk, and `arbor-server info`'s lines.
+fn pool_figures(pool: &Path) -> (u64, u64, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_arbor-server"))
+        .args(["info", "--scene", "city", "--db"])
+        .arg(pool)
+        .output()
+        .unwrap();
+    let info = String::from_utf8_lossy(&out.stdout).into_owned();
+    let field = |prefix: &str| -> u64 {
+        info.lines()
+            .find_map(|l| l.strip_prefix(prefix))
+            .and_then(|r| r.split_whitespace().next())
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0)
+    };
+    (field("bytes            "), dir_bytes(pool), info)
+}

@@ -1,0 +1,581 @@
+//! Scene management in a running daemon: imports of server-side files into the pool the daemon
+//! serves, and removals, without stopping it (sled locks the pool per process, so the daemon is
+//! the only one that can write it).
+//!
+//! * **Where files may come from**: only under the configured import root. Every input is
+//!   resolved (`..` refused outright, then the path and every file it expands to canonicalized,
+//!   symlinks followed) and must stay inside the canonical root ([`resolve_inputs`]).
+//! * **One import at a time**, queued, on a worker thread whose build runs in its own rayon pool
+//!   at a lower CPU priority (nice 10), so the QUIC service's threads keep their share of the
+//!   cores and clients of other scenes keep streaming. Progress is readable at any time
+//!   ([`LiveImports::status`]).
+//! * **Generations**: a replacing import publishes the new generation atomically; sessions that
+//!   opened the old one keep reading it (never a mix: a session holds one generation's trees).
+//!   The old generation is dropped once every session that could have opened it has ended — the
+//!   sessions of that scene (or not yet greeted) live at the commit. Removal is the same:
+//!   unpublished at once, dropped when its last session ends. What is left at a crash is dropped
+//!   by the next `Pool::open`.
+
+use std::collections::BTreeMap;
+use std::path::{Component, Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, Weak, mpsc};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use serde::{Deserialize, Serialize};
+
+use crate::import::tiles::{TileOptions, expand_inputs};
+use crate::import::{Format, ImportOptions};
+use crate::octree::{BuildOptions, DepthChoice};
+use crate::pipeline::{SceneImport, Superseded, import_scene_observed};
+use crate::pool::{Pool, PoolError};
+use crate::progress::{ImportProgress, Phase, ProgressSnapshot};
+use crate::service::state::ServiceState;
+
+/// CPU priority (nice value) of the import threads: the service's threads go first.
+pub const IMPORT_NICE: i32 = 10;
+/// How often retired generations are checked for sessions still reading them.
+const REAP_EVERY: Duration = Duration::from_millis(250);
+/// Finished imports kept for `GET /v1/imports`.
+const KEEP_FINISHED: usize = 64;
+
+/// Why an import request was refused before it started. Each maps to an HTTP status in the
+/// admin API.
+#[derive(Debug, thiserror::Error)]
+pub enum LiveImportError {
+    /// The daemon was started without an import root.
+    #[error("imports are disabled: start the daemon with --import-root DIR")]
+    Disabled,
+    /// An input names a parent directory (`..`).
+    #[error("{input:?}: '..' is not allowed in import paths")]
+    Traversal { input: String },
+    /// An input resolves (symlinks followed) outside the import root.
+    #[error("{input:?} resolves to {resolved} outside the import root")]
+    OutsideRoot { input: String, resolved: String },
+    /// An input does not exist or cannot be read.
+    #[error("{input:?}: {error}")]
+    NotFound { input: String, error: String },
+    /// The request itself is malformed (empty inputs, bad depth, bad name...).
+    #[error("{0}")]
+    BadRequest(String),
+    /// The scene exists and `replace` was not asked for.
+    #[error("a scene named {0:?} already exists (pass \"replace\": true)")]
+    SceneExists(String),
+    /// The pool could not be read.
+    #[error(transparent)]
+    Pool(#[from] PoolError),
+}
+
+/// `POST /v1/scenes`: what to import. Paths are relative to the import root (or absolute
+/// inside it); several inputs, directories or patterns make a tile set.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImportRequest {
+    pub scene: String,
+    pub inputs: Vec<String>,
+    #[serde(default)]
+    pub replace: bool,
+    /// `"auto"` (default) or a depth.
+    #[serde(default)]
+    pub depth: Option<serde_json::Value>,
+    #[serde(default)]
+    pub treelet_bytes: Option<u32>,
+    #[serde(default)]
+    pub iso: Option<f32>,
+    #[serde(default)]
+    pub format: Option<String>,
+    #[serde(default)]
+    pub memory_budget_mib: Option<u64>,
+    #[serde(default)]
+    pub allow_mixed_crs: bool,
+}
+
+/// What `GET /v1/imports/{id}` answers.
+#[derive(Clone, Debug, Serialize)]
+pub struct ImportStatus {
+    pub id: u64,
+    pub scene: String,
+    pub inputs: Vec<String>,
+    #[serde(flatten)]
+    pub progress: ProgressSnapshot,
+    /// Seconds since the import was submitted (until it finished, when it did).
+    pub seconds: f64,
+    /// Submission time, seconds since the Unix epoch.
+    pub submitted_unix: f64,
+    /// The error, when it failed (names the file and the place).
+    pub error: Option<String>,
+    /// Figures of the stored scene, when done.
+    pub treelets: Option<u32>,
+    pub voxels: Option<u64>,
+    pub primitives: Option<u64>,
+}
+
+#[derive(Debug)]
+struct Job {
+    id: u64,
+    request: SceneImport,
+    inputs: Vec<String>,
+    progress: ImportProgress,
+    submitted: SystemTime,
+    clock: Instant,
+    outcome: Mutex<Option<Outcome>>,
+}
+
+#[derive(Debug, Clone)]
+struct Outcome {
+    seconds: f64,
+    result: Result<(u32, u64, u64), String>,
+}
+
+/// A generation no longer published, kept while sessions may read it.
+#[derive(Debug)]
+struct Retired {
+    generation: u64,
+    scene: String,
+    /// Sessions live when it was retired that may hold it.
+    sessions: Vec<u64>,
+}
+
+#[derive(Debug)]
+struct Inner {
+    pool: Pool,
+    root: Option<PathBuf>,
+    scratch: Option<PathBuf>,
+    state: Arc<ServiceState>,
+    jobs: Mutex<BTreeMap<u64, Arc<Job>>>,
+    next: AtomicU64,
+    queue: Mutex<mpsc::Sender<Arc<Job>>>,
+    retired: Mutex<Vec<Retired>>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// The daemon's scene manager (cheap to clone).
+#[derive(Clone, Debug)]
+pub struct LiveImports {
+    inner: Arc<Inner>,
+}
+
+impl LiveImports {
+    /// A manager for `pool`. `root`: the import root (`None`: imports disabled, removal still
+    /// works); `scratch`: where import scratch directories go (default: the system's).
+    pub fn new(
+        pool: Pool,
+        state: Arc<ServiceState>,
+        root: Option<&Path>,
+        scratch: Option<PathBuf>,
+    ) -> std::io::Result<LiveImports> {
+        let root = match root {
+            Some(r) => Some(std::fs::canonicalize(r)?),
+            None => None,
+        };
+        let (tx, rx) = mpsc::channel::<Arc<Job>>();
+        let inner = Arc::new(Inner {
+            pool,
+            root,
+            scratch,
+            state,
+            jobs: Mutex::new(BTreeMap::new()),
+            next: AtomicU64::new(1),
+            queue: Mutex::new(tx),
+            retired: Mutex::new(Vec::new()),
+        });
+        let weak = Arc::downgrade(&inner);
+        std::thread::Builder::new()
+            .name("arbor-import".into())
+            .spawn(move || run_worker(rx, weak))?;
+        let weak = Arc::downgrade(&inner);
+        std::thread::Builder::new()
+            .name("arbor-reaper".into())
+            .spawn(move || run_reaper(weak))?;
+        Ok(LiveImports { inner })
+    }
+
+    /// Whether imports are enabled (an import root is configured).
+    pub fn enabled(&self) -> bool {
+        self.inner.root.is_some()
+    }
+
+    /// Checks and queues an import; returns its id. Paths, the name and the parameters are
+    /// checked here; parsing errors come later, in the import's status.
+    pub fn submit(&self, req: ImportRequest) -> Result<u64, LiveImportError> {
+        let root = self
+            .inner
+            .root
+            .as_deref()
+            .ok_or(LiveImportError::Disabled)?;
+        arbor_proto::scene::validate_scene_name(&req.scene)
+            .map_err(|e| LiveImportError::BadRequest(e.to_string()))?;
+        if !req.replace && self.inner.pool.contains(&req.scene)? {
+            return Err(LiveImportError::SceneExists(req.scene));
+        }
+        let files = resolve_inputs(root, &req.inputs)?;
+        let request = scene_import(&req, files, self.inner.scratch.clone())?;
+        let id = self.inner.next.fetch_add(1, Ordering::Relaxed);
+        let job = Arc::new(Job {
+            id,
+            inputs: std::iter::once(&request.input)
+                .chain(&request.more_tiles)
+                .map(|p| p.display().to_string())
+                .collect(),
+            request,
+            progress: ImportProgress::default(),
+            submitted: SystemTime::now(),
+            clock: Instant::now(),
+            outcome: Mutex::new(None),
+        });
+        {
+            let mut jobs = lock(&self.inner.jobs);
+            jobs.insert(id, job.clone());
+            let finished: Vec<u64> = jobs
+                .values()
+                .filter(|j| lock(&j.outcome).is_some())
+                .map(|j| j.id)
+                .collect();
+            for old in finished
+                .iter()
+                .take(finished.len().saturating_sub(KEEP_FINISHED))
+            {
+                jobs.remove(old);
+            }
+        }
+        tracing::info!(id, scene = %job.request.name, files = job.inputs.len(), "import queued");
+        lock(&self.inner.queue)
+            .send(job)
+            .map_err(|_| LiveImportError::BadRequest("the import worker has stopped".into()))?;
+        Ok(id)
+    }
+
+    /// One import's status.
+    pub fn status(&self, id: u64) -> Option<ImportStatus> {
+        lock(&self.inner.jobs).get(&id).map(|j| status_of(j))
+    }
+
+    /// Every import kept (running, queued, and the last finished ones), by id.
+    pub fn list(&self) -> Vec<ImportStatus> {
+        lock(&self.inner.jobs)
+            .values()
+            .map(|j| status_of(j))
+            .collect()
+    }
+
+    /// Removes a scene: unpublished now; its trees dropped when its last session ended.
+    pub fn remove_scene(&self, name: &str) -> Result<(), PoolError> {
+        let generation = self.inner.pool.unpublish(name)?;
+        tracing::info!(scene = name, generation, "scene removed");
+        self.inner.retire(generation, name);
+        Ok(())
+    }
+
+    /// Generations retired but still read by live sessions.
+    pub fn retired_generations(&self) -> Vec<u64> {
+        lock(&self.inner.retired)
+            .iter()
+            .map(|r| r.generation)
+            .collect()
+    }
+}
+
+impl Inner {
+    fn retire(&self, generation: u64, scene: &str) {
+        let sessions = self
+            .state
+            .sessions()
+            .into_iter()
+            .filter(|s| s.scene == scene || s.scene.is_empty())
+            .map(|s| s.id)
+            .collect();
+        lock(&self.retired).push(Retired {
+            generation,
+            scene: scene.to_owned(),
+            sessions,
+        });
+        self.reap();
+    }
+
+    /// Drops every retired generation none of whose sessions is still live.
+    fn reap(&self) {
+        let live: Vec<u64> = self.state.sessions().iter().map(|s| s.id).collect();
+        let mut retired = lock(&self.retired);
+        retired.retain_mut(|r| {
+            r.sessions.retain(|s| live.contains(s));
+            if !r.sessions.is_empty() {
+                return true;
+            }
+            match self.pool.drop_retired(r.generation) {
+                Ok(()) => {
+                    tracing::info!(scene = %r.scene, generation = r.generation, "old generation dropped");
+                    false
+                }
+                Err(e) => {
+                    tracing::warn!(scene = %r.scene, generation = r.generation, "dropping an old generation: {e}");
+                    false
+                }
+            }
+        });
+    }
+}
+
+fn status_of(j: &Job) -> ImportStatus {
+    let outcome = lock(&j.outcome).clone();
+    let progress = j.progress.snapshot();
+    let seconds = outcome
+        .as_ref()
+        .map_or_else(|| j.clock.elapsed().as_secs_f64(), |o| o.seconds);
+    let figures = outcome
+        .as_ref()
+        .and_then(|o| o.result.as_ref().ok())
+        .copied();
+    ImportStatus {
+        id: j.id,
+        scene: j.request.name.clone(),
+        inputs: j.inputs.clone(),
+        progress,
+        seconds,
+        submitted_unix: j
+            .submitted
+            .duration_since(UNIX_EPOCH)
+            .map_or(0.0, |d| d.as_secs_f64()),
+        error: outcome.and_then(|o| o.result.err()),
+        treelets: figures.map(|f| f.0),
+        voxels: figures.map(|f| f.1),
+        primitives: figures.map(|f| f.2),
+    }
+}
+
+/// Lowers the calling thread's CPU priority (best effort: an unprivileged process may always
+/// lower its own).
+fn lower_priority() {
+    let tid = rustix::thread::gettid();
+    if let Err(e) = rustix::process::setpriority_process(Some(tid), IMPORT_NICE) {
+        tracing::warn!("could not lower the import thread's priority: {e}");
+    }
+}
+
+fn run_worker(rx: mpsc::Receiver<Arc<Job>>, inner: Weak<Inner>) {
+    lower_priority();
+    let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(|i| format!("arbor-import-{i}"))
+        .start_handler(|_| lower_priority())
+        .build();
+    let pool = match pool {
+        Ok(p) => p,
+        Err(e) => {
+            tracing::error!("no import thread pool: {e}");
+            return;
+        }
+    };
+    while let Ok(job) = rx.recv() {
+        let Some(inner) = inner.upgrade() else { return };
+        tracing::info!(id = job.id, scene = %job.request.name, "import started");
+        job.progress.enter(Phase::Reading, 0);
+        let result = pool.install(|| {
+            import_scene_observed(&inner.pool, &job.request, &job.progress, Superseded::Keep)
+        });
+        let seconds = job.clock.elapsed().as_secs_f64();
+        let result = match result {
+            Ok((scene, retired)) => {
+                let d = &scene.description;
+                tracing::info!(id = job.id, scene = %d.name, treelets = d.treelet_count, seconds, "import done");
+                if let Some(g) = retired {
+                    inner.retire(g, &d.name);
+                }
+                Ok((d.treelet_count, d.stats.voxels, d.primitives))
+            }
+            Err(e) => {
+                tracing::warn!(id = job.id, scene = %job.request.name, "import failed: {e}");
+                job.progress.enter(Phase::Failed, 0);
+                Err(e.to_string())
+            }
+        };
+        *lock(&job.outcome) = Some(Outcome { seconds, result });
+    }
+}
+
+fn run_reaper(inner: Weak<Inner>) {
+    loop {
+        std::thread::sleep(REAP_EVERY);
+        let Some(inner) = inner.upgrade() else { return };
+        if !lock(&inner.retired).is_empty() {
+            inner.reap();
+        }
+    }
+}
+
+/// The build and read options of a request.
+fn scene_import(
+    req: &ImportRequest,
+    files: Vec<PathBuf>,
+    scratch: Option<PathBuf>,
+) -> Result<SceneImport, LiveImportError> {
+    let bad = LiveImportError::BadRequest;
+    let depth = match &req.depth {
+        None => DepthChoice::Auto,
+        Some(serde_json::Value::String(s)) if s.eq_ignore_ascii_case("auto") => DepthChoice::Auto,
+        Some(serde_json::Value::Number(n)) => match n.as_u64() {
+            Some(d) if d <= u64::from(arbor_proto::limits::MAX_DEPTH) => {
+                DepthChoice::Fixed(d as u8)
+            }
+            _ => return Err(bad(format!("depth {n} is not 0..=31"))),
+        },
+        Some(v) => return Err(bad(format!("depth {v} is neither \"auto\" nor a number"))),
+    };
+    let defaults = BuildOptions::default();
+    let treelet_bytes = req.treelet_bytes.unwrap_or(defaults.treelet_bytes);
+    arbor_proto::treelet::nodes_for_bytes(treelet_bytes).map_err(|e| bad(e.to_string()))?;
+    if let Some(i) = req.iso
+        && !i.is_finite()
+    {
+        return Err(bad(format!("iso {i} is not finite")));
+    }
+    let memory_budget = match req.memory_budget_mib {
+        None => defaults.memory_budget,
+        Some(m @ 1..=1_048_576) => (m as usize) << 20,
+        Some(m) => return Err(bad(format!("memory_budget_mib {m} is not 1..=1048576"))),
+    };
+    let format = match &req.format {
+        None => None,
+        Some(f) => Some(f.parse::<Format>().map_err(bad)?),
+    };
+    let mut files = files.into_iter();
+    let input = files
+        .next()
+        .ok_or_else(|| bad("\"inputs\" names no file".into()))?;
+    Ok(SceneImport {
+        name: req.scene.clone(),
+        input,
+        more_tiles: files.collect(),
+        import: ImportOptions {
+            format,
+            raw: None,
+            tiles: TileOptions {
+                allow_mixed_crs: req.allow_mixed_crs,
+            },
+        },
+        build: BuildOptions {
+            depth,
+            treelet_bytes,
+            iso: req.iso,
+            memory_budget,
+            ..defaults
+        },
+        replace: req.replace,
+        scratch_parent: scratch,
+    })
+}
+
+/// Resolves the inputs of a request against the canonical import `root`: no `..`, and every
+/// path and every file it expands to (directories, patterns) must lie inside the root once
+/// symlinks are followed. Returns canonical file paths, in reading order.
+pub fn resolve_inputs(root: &Path, inputs: &[String]) -> Result<Vec<PathBuf>, LiveImportError> {
+    if inputs.is_empty() {
+        return Err(LiveImportError::BadRequest(
+            "\"inputs\" is empty: name at least one file, directory or pattern".into(),
+        ));
+    }
+    let mut files = Vec::new();
+    for input in inputs {
+        let path = Path::new(input);
+        if input.is_empty() || input.contains('\0') {
+            return Err(LiveImportError::BadRequest(format!(
+                "{input:?} is not a path"
+            )));
+        }
+        if path.components().any(|c| c == Component::ParentDir) {
+            return Err(LiveImportError::Traversal {
+                input: input.clone(),
+            });
+        }
+        let joined = root.join(path);
+        let name = joined
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let inside = |p: &Path| -> Result<PathBuf, LiveImportError> {
+            let canonical = std::fs::canonicalize(p).map_err(|e| LiveImportError::NotFound {
+                input: input.clone(),
+                error: e.to_string(),
+            })?;
+            if canonical.starts_with(root) {
+                Ok(canonical)
+            } else {
+                Err(LiveImportError::OutsideRoot {
+                    input: input.clone(),
+                    resolved: canonical.display().to_string(),
+                })
+            }
+        };
+        let start = if name.contains(['*', '?']) {
+            let parent = joined.parent().unwrap_or(root);
+            inside(parent)?.join(&name)
+        } else {
+            inside(&joined)?
+        };
+        let expanded = expand_inputs(&[start]).map_err(|e| LiveImportError::NotFound {
+            input: input.clone(),
+            error: e.to_string(),
+        })?;
+        for f in expanded {
+            files.push(inside(&f)?);
+        }
+    }
+    Ok(files)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn inputs_stay_inside_the_root() {
+        let top = tempfile::tempdir().unwrap();
+        let root = top.path().join("root");
+        let outside = top.path().join("outside");
+        std::fs::create_dir_all(root.join("tiles")).unwrap();
+        std::fs::create_dir_all(&outside).unwrap();
+        for f in ["tiles/a.laz", "tiles/b.laz", "one.las"] {
+            std::fs::write(root.join(f), b"x").unwrap();
+        }
+        std::fs::write(outside.join("secret.las"), b"x").unwrap();
+        std::os::unix::fs::symlink(outside.join("secret.las"), root.join("link.las")).unwrap();
+        std::os::unix::fs::symlink(&outside, root.join("linkdir")).unwrap();
+        let root = std::fs::canonicalize(&root).unwrap();
+        let ok = |inputs: &[&str]| {
+            let v: Vec<String> = inputs.iter().map(|s| s.to_string()).collect();
+            resolve_inputs(&root, &v)
+        };
+        let names = |v: Vec<PathBuf>| -> Vec<String> {
+            v.iter()
+                .map(|p| p.strip_prefix(&root).unwrap().display().to_string())
+                .collect()
+        };
+        assert_eq!(
+            names(ok(&["tiles"]).unwrap()),
+            ["tiles/a.laz", "tiles/b.laz"]
+        );
+        assert_eq!(
+            names(ok(&["tiles/*.laz", "one.las"]).unwrap()),
+            ["tiles/a.laz", "tiles/b.laz", "one.las"]
+        );
+        let absolute = root.join("one.las").display().to_string();
+        assert_eq!(names(ok(&[&absolute]).unwrap()), ["one.las"]);
+        for (input, want) in [
+            ("../outside/secret.las", "'..' is not allowed"),
+            ("tiles/../../outside", "'..' is not allowed"),
+            ("link.las", "outside the import root"),
+            ("linkdir", "outside the import root"),
+            ("linkdir/*.las", "outside the import root"),
+            ("/etc/passwd", "outside the import root"),
+            ("missing.las", "No such file"),
+            ("", "is not a path"),
+        ] {
+            let e = ok(&[input]).unwrap_err().to_string();
+            assert!(e.contains(want), "{input}: {e}");
+        }
+        assert!(ok(&[]).unwrap_err().to_string().contains("empty"));
+    }
+}

@@ -1,0 +1,379 @@
+//! Scene management in a live daemon, end to end: real sled pool, real QUIC service, admin API on
+//! a real port. Imports with and without the token, paths outside the import root, a bad file
+//! (clear error, pool untouched, serving goes on), a replacement while a session reads the old
+//! generation (it finishes on it; newcomers get the new one; the old trees go when it ends),
+//! removal, and the `arbor-server import --server` CLI.
+
+mod common;
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use arbor_proto::wire::Frame;
+use arbor_proto::{Channel, TreeletId};
+use arbor_server::daemon::{DaemonOptions, RunningServer};
+use arbor_server::service::ServeConfig;
+use arbor_server::service::config::SceneAccess;
+use common::{TestPool, connect, hello, receive};
+use serde_json::{Value, json};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+const ADMIN: &str = "admin-secret";
+const SCAN_TOKEN: &str = "scan-token";
+
+fn points(name: &str) -> PathBuf {
+    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/data/points")
+        .join(name);
+    assert!(p.exists(), "the real scans in ../shared/data are required");
+    p
+}
+
+/// An HTTP/1.1 request on its own connection; status and JSON body.
+async fn http(addr: SocketAddr, method: &str, path: &str, token: &str, body: &str) -> (u16, Value) {
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let auth = if token.is_empty() {
+        String::new()
+    } else {
+        format!("Authorization: Bearer {token}\r\n")
+    };
+    let req = format!(
+        "{method} {path} HTTP/1.1\r\nHost: x\r\n{auth}Content-Type: application/json\r\n\
+         Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    s.write_all(req.as_bytes()).await.unwrap();
+    let mut raw = Vec::new();
+    s.read_to_end(&mut raw).await.unwrap();
+    let raw = String::from_utf8(raw).unwrap();
+    let (head, body) = raw.split_once("\r\n\r\n").unwrap();
+    let status = head.split(' ').nth(1).unwrap().parse().unwrap();
+    (status, serde_json::from_str(body).unwrap_or(Value::Null))
+}
+
+struct Daemon {
+    server: RunningServer,
+    admin: SocketAddr,
+    root: tempfile::TempDir,
+    pool: TestPool,
+}
+
+impl Daemon {
+    async fn start(with_root: bool) -> Daemon {
+        let pool = TestPool::new();
+        let root = tempfile::tempdir().unwrap();
+        let mut config: ServeConfig = pool.config();
+        config.admin_token = arbor_server::service::config::AdminTokenSource::Inline(ADMIN.into());
+        for scene in ["autzen", "lion", "bad"] {
+            config
+                .scenes
+                .insert(scene.into(), SceneAccess::Tokens(vec![SCAN_TOKEN.into()]));
+        }
+        let options = DaemonOptions {
+            import_root: with_root.then(|| root.path().to_owned()),
+            import_scratch: None,
+        };
+        let t0 = Instant::now();
+        let server = loop {
+            match arbor_server::daemon::start_with(config.clone(), options.clone()).await {
+                Ok(s) => break s,
+                Err(arbor_server::service::ServeError::Pool { .. })
+                    if t0.elapsed() < Duration::from_secs(10) =>
+                {
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                }
+                Err(e) => panic!("daemon: {e}"),
+            }
+        };
+        let admin = server.admin_addr.unwrap();
+        Daemon {
+            server,
+            admin,
+            root,
+            pool,
+        }
+    }
+
+    async fn post(&self, job: Value, token: &str) -> (u16, Value) {
+        http(self.admin, "POST", "/v1/scenes", token, &job.to_string()).await
+    }
+
+    /// Polls an import until it is done or failed.
+    async fn wait(&self, id: u64) -> Value {
+        let t0 = Instant::now();
+        loop {
+            let (status, s) =
+                http(self.admin, "GET", &format!("/v1/imports/{id}"), ADMIN, "").await;
+            assert_eq!(status, 200, "{s}");
+            if s["phase"] == "done" || s["phase"] == "failed" {
+                return s;
+            }
+            assert!(
+                t0.elapsed() < Duration::from_secs(120),
+                "import {id} stuck: {s}"
+            );
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    }
+
+    async fn import(&self, job: Value) -> Value {
+        let (status, answer) = self.post(job, ADMIN).await;
+        assert_eq!(status, 202, "{answer}");
+        self.wait(answer["id"].as_u64().unwrap()).await
+    }
+
+    fn scenes(&self) -> Vec<String> {
+        let mut v: Vec<String> = self
+            .server
+            .pool()
+            .scenes()
+            .unwrap()
+            .into_iter()
+            .map(|d| d.name)
+            .collect();
+        v.sort();
+        v
+    }
+}
+
+/// The bunny's root still streams: serving went on.
+async fn bunny_streams(d: &Daemon) {
+    let client = connect(d.server.quic_addr, &d.server.fingerprint).await;
+    let (mut control, desc) = hello(&client.conn, common::SCENE, &[], common::TOKEN).await;
+    desc.expect("bunny SceneInfo");
+    control
+        .send(&Frame::RequestList {
+            seq: 1,
+            items: vec![(TreeletId::ROOT, 1.0)],
+        })
+        .await;
+    receive(&client.conn, 1, Duration::from_secs(10))
+        .await
+        .unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn imports_need_the_token_and_stay_inside_the_root() {
+    let d = Daemon::start(true).await;
+    std::fs::copy(points("autzen_trim.las"), d.root.path().join("autzen.las")).unwrap();
+    let outside = tempfile::tempdir().unwrap();
+    std::fs::copy(points("autzen_trim.las"), outside.path().join("x.las")).unwrap();
+    std::os::unix::fs::symlink(outside.path().join("x.las"), d.root.path().join("link.las"))
+        .unwrap();
+    let job = json!({"scene": "autzen", "inputs": ["autzen.las"]});
+    assert_eq!(d.post(job.clone(), "").await.0, 401);
+    assert_eq!(d.post(job.clone(), "wrong").await.0, 401);
+    for (input, status, want) in [
+        ("../x.las", 403, "'..' is not allowed"),
+        ("link.las", 403, "outside the import root"),
+        (
+            outside.path().join("x.las").to_str().unwrap(),
+            403,
+            "outside the import root",
+        ),
+        ("missing.las", 400, "No such file"),
+    ] {
+        let (s, e) = d
+            .post(json!({"scene": "autzen", "inputs": [input]}), ADMIN)
+            .await;
+        assert_eq!(s, status, "{input}: {e}");
+        assert!(e["error"].as_str().unwrap().contains(want), "{input}: {e}");
+    }
+    let (s, e) = d
+        .post(
+            json!({"scene": "autzen", "inputs": ["autzen.las"], "depth": 40}),
+            ADMIN,
+        )
+        .await;
+    assert_eq!(s, 400, "{e}");
+    let (s, e) = d
+        .post(json!({"scene": "bunny", "inputs": ["autzen.las"]}), ADMIN)
+        .await;
+    assert_eq!(s, 409, "{e}");
+    assert_eq!(d.scenes(), ["bunny"]);
+
+    let done = d.import(job).await;
+    assert_eq!(done["phase"], "done", "{done}");
+    assert_eq!(done["primitives"], 110_000);
+    assert_eq!(d.scenes(), ["autzen", "bunny"]);
+    let (s, listed) = http(d.admin, "GET", "/v1/scenes/autzen", ADMIN, "").await;
+    assert_eq!(s, 200, "{listed}");
+    assert_eq!(listed["treelets"], done["treelets"]);
+    let (s, all) = http(d.admin, "GET", "/v1/imports", ADMIN, "").await;
+    assert_eq!(s, 200);
+    assert_eq!(all.as_array().unwrap().len(), 1);
+    bunny_streams(&d).await;
+    d.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bad_file_fails_cleanly_and_serving_goes_on() {
+    let d = Daemon::start(true).await;
+    let bytes = std::fs::read(points("autzen_trim.las")).unwrap();
+    std::fs::write(d.root.path().join("bad.las"), &bytes[..bytes.len() - 3_000]).unwrap();
+    let generations = d.server.pool().stored_generations();
+    let failed = d
+        .import(json!({"scene": "bad", "inputs": ["bad.las"]}))
+        .await;
+    assert_eq!(failed["phase"], "failed", "{failed}");
+    let e = failed["error"].as_str().unwrap();
+    assert!(
+        e.contains("bad.las") && e.contains("truncated LAS point data"),
+        "{e}"
+    );
+    assert_eq!(d.scenes(), ["bunny"]);
+    assert_eq!(d.server.pool().stored_generations(), generations);
+    bunny_streams(&d).await;
+    // The status page shows the import and its error.
+    let mut s = tokio::net::TcpStream::connect(d.admin).await.unwrap();
+    s.write_all(
+        format!("GET / HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {ADMIN}\r\nConnection: close\r\n\r\n")
+            .as_bytes(),
+    )
+    .await
+    .unwrap();
+    let mut page = String::new();
+    s.read_to_string(&mut page).await.unwrap();
+    assert!(page.contains("<h2>Imports</h2>"), "{page}");
+    assert!(page.contains("truncated LAS point data"), "{page}");
+    d.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn without_an_import_root_imports_are_refused() {
+    let d = Daemon::start(false).await;
+    let (s, e) = d
+        .post(json!({"scene": "x", "inputs": ["a.las"]}), ADMIN)
+        .await;
+    assert_eq!(s, 403, "{e}");
+    assert!(
+        e["error"].as_str().unwrap().contains("--import-root"),
+        "{e}"
+    );
+    d.server.shutdown().await;
+}
+
+/// Every treelet of the session's scene, received and compared with what `stored` holds.
+async fn fetch_all_and_compare(
+    client: &common::Client,
+    control: &mut common::Control,
+    seq: u64,
+    stored: &arbor_server::pool::StoredScene,
+) {
+    let ids = common::all_ids(&stored.description);
+    let items = ids.iter().map(|&t| (t, 1.0)).collect();
+    control.send(&Frame::RequestList { seq, items }).await;
+    let got = receive(&client.conn, ids.len(), Duration::from_secs(30))
+        .await
+        .unwrap();
+    for (id, bytes) in got {
+        let m = arbor_proto::frame::decode_treelet_message(&bytes).unwrap();
+        assert_eq!(
+            m.nodes,
+            stored.nodes(id).unwrap().unwrap().as_ref(),
+            "treelet {} from another generation",
+            id.0
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replacing_a_scene_lets_sessions_finish_on_their_generation() {
+    let d = Daemon::start(true).await;
+    std::fs::copy(points("autzen_trim.las"), d.root.path().join("autzen.las")).unwrap();
+    let first = d
+        .import(json!({"scene": "autzen", "inputs": ["autzen.las"], "depth": 8}))
+        .await;
+    assert_eq!(first["phase"], "done", "{first}");
+    let old = d.server.pool().scene("autzen").unwrap();
+    let old_client = connect(d.server.quic_addr, &d.server.fingerprint).await;
+    let (mut old_control, desc) =
+        hello(&old_client.conn, "autzen", &[Channel::Color], SCAN_TOKEN).await;
+    assert_eq!(desc.unwrap().treelet_count, old.description.treelet_count);
+
+    let second = d
+        .import(json!({"scene": "autzen", "inputs": ["autzen.las"], "replace": true, "treelet_bytes": 1024}))
+        .await;
+    assert_eq!(second["phase"], "done", "{second}");
+    let new = d.server.pool().scene("autzen").unwrap();
+    assert_ne!(new.generation, old.generation);
+    assert_ne!(new.description.treelet_count, old.description.treelet_count);
+    assert_eq!(d.server.imports.retired_generations(), [old.generation]);
+
+    // The old session reads the old generation, all of it; a new one gets the new generation.
+    fetch_all_and_compare(&old_client, &mut old_control, 1, &old).await;
+    let new_client = connect(d.server.quic_addr, &d.server.fingerprint).await;
+    let (mut new_control, desc) = hello(&new_client.conn, "autzen", &[], SCAN_TOKEN).await;
+    assert_eq!(desc.unwrap().treelet_count, new.description.treelet_count);
+    fetch_all_and_compare(&new_client, &mut new_control, 1, &new).await;
+
+    // The old generation goes once its last session ended.
+    old_client.conn.close(0u32.into(), b"done");
+    let t0 = Instant::now();
+    while d
+        .server
+        .pool()
+        .stored_generations()
+        .contains(&old.generation)
+    {
+        assert!(
+            t0.elapsed() < Duration::from_secs(10),
+            "old generation kept"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert!(d.server.imports.retired_generations().is_empty());
+
+    // Removal: unpublished at once; the live session still finishes on it.
+    let (s, r) = http(d.admin, "DELETE", "/v1/scenes/autzen", ADMIN, "").await;
+    assert_eq!(s, 200, "{r}");
+    let (s, _) = http(d.admin, "GET", "/v1/scenes/autzen", ADMIN, "").await;
+    assert_eq!(s, 404);
+    assert_eq!(d.scenes(), ["bunny"]);
+    fetch_all_and_compare(&new_client, &mut new_control, 2, &new).await;
+    let (s, _) = http(d.admin, "DELETE", "/v1/scenes/autzen", ADMIN, "").await;
+    assert_eq!(s, 404);
+    new_client.conn.close(0u32.into(), b"done");
+    d.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_cli_drives_a_daemon_import() {
+    let d = Daemon::start(true).await;
+    let tiles = d.root.path().join("tiles");
+    std::fs::create_dir(&tiles).unwrap();
+    std::fs::copy(points("autzen_trim.las"), tiles.join("a.las")).unwrap();
+    let token_file = d.root.path().join("token");
+    std::fs::write(&token_file, ADMIN).unwrap();
+    let run = |scene: &'static str, input: &'static str| {
+        let admin = format!("http://{}", d.admin);
+        let token_file = token_file.clone();
+        tokio::task::spawn_blocking(move || {
+            std::process::Command::new(env!("CARGO_BIN_EXE_arbor-server"))
+                .args(["import", "--server", &admin, "--token-file"])
+                .arg(&token_file)
+                .args(["--scene", scene, "--depth", "8", input])
+                .output()
+                .unwrap()
+        })
+    };
+    let out = run("autzen", "tiles").await.unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("imported autzen"), "{stdout}");
+    assert_eq!(d.scenes(), ["autzen", "bunny"]);
+    let out = run("lion", "../etc").await.unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("refused the import (403)") && stderr.contains("'..'"),
+        "{stderr}"
+    );
+    d.server.shutdown().await;
+    drop(d.pool);
+}
