@@ -26,8 +26,8 @@
 pub mod admin;
 pub mod daemon;
 pub mod import;
-pub mod logging;
 pub mod live_import;
+pub mod logging;
 pub mod memory;
 pub mod octree;
 pub mod pipeline;
