@@ -83,16 +83,10 @@ impl<T: Pod> ColumnWriter<T> {
     pub fn create(dir: &Path, name: &str) -> Result<Self, ColumnError> {
         let path = dir.join(format!("{name}.col"));
         // Read access too: the file is memory-mapped once written.
-        let file = File::options()
-            .create(true)
-            .truncate(true)
-            .read(true)
-            .write(true)
-            .open(&path)
-            .map_err(|source| ColumnError::Io {
-                path: path.clone(),
-                source,
-            })?;
+        let file = scratch_file(&path).map_err(|source| ColumnError::Io {
+            path: path.clone(),
+            source,
+        })?;
         Ok(Self {
             path,
             out: BufWriter::with_capacity(1 << 20, file),
@@ -160,6 +154,16 @@ impl<T: Pod> std::fmt::Debug for ColumnMut<T> {
     }
 }
 
+/// Opens a scratch file for reading and writing, created or emptied.
+pub fn scratch_file(path: &Path) -> std::io::Result<File> {
+    File::options()
+        .create(true)
+        .truncate(true)
+        .read(true)
+        .write(true)
+        .open(path)
+}
+
 impl<T: Pod> ColumnMut<T> {
     #[allow(unsafe_code)]
     pub fn create(dir: &Path, name: &str, len: usize) -> Result<Self, ColumnError> {
@@ -168,13 +172,7 @@ impl<T: Pod> ColumnMut<T> {
             path: path.clone(),
             source,
         };
-        let file = File::options()
-            .create(true)
-            .truncate(true)
-            .read(true)
-            .write(true)
-            .open(&path)
-            .map_err(io)?;
+        let file = scratch_file(&path).map_err(io)?;
         let bytes = (len * std::mem::size_of::<T>()) as u64;
         file.set_len(bytes).map_err(io)?;
         let map = if len == 0 {

@@ -415,15 +415,23 @@ fn draw_panel(
             .label(line.label)
             .legend(legend_line(line.color));
     }
+    draw_legend(&mut chart, panel.legend)?;
+    Ok(plot)
+}
+
+/// Draws the legend box of a panel's series at `position`.
+pub(crate) fn draw_legend<'a, 'b: 'a, CT: plotters::coord::CoordTranslate>(
+    chart: &mut ChartContext<'a, BitMapBackend<'b>, CT>,
+    position: SeriesLabelPosition,
+) -> Result<(), ChartError> {
     chart
         .configure_series_labels()
-        .position(panel.legend)
+        .position(position)
         .label_font(("sans-serif", 14))
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
         .draw()
-        .map_err(draw_err)?;
-    Ok(plot)
+        .map_err(draw_err)
 }
 
 #[cfg(test)]

@@ -12,7 +12,9 @@ use std::path::Path;
 use plotters::prelude::*;
 
 use crate::RunReport;
-use crate::chart::{ChartError, HEIGHT, WIDTH, axis_range, clip, draw_err, ensure_font, save_png};
+use crate::chart::{
+    ChartError, HEIGHT, WIDTH, axis_range, clip, draw_err, draw_legend, ensure_font, save_png,
+};
 use crate::clip::{PlotArea, draw_clipped_line, legend_line};
 
 /// Colours of the runs, in order (repeated past ten runs).
@@ -128,14 +130,7 @@ fn draw_lines(
             .label(*label)
             .legend(legend_line(color));
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .label_font(("sans-serif", 14))
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(draw_err)?;
+    draw_legend(&mut chart, SeriesLabelPosition::UpperRight)?;
     Ok(plot)
 }
 

@@ -29,7 +29,7 @@ use arbor_client_net::{ClientConfig, TreeletClient};
 use arbor_proto::{Channel, SceneDescription, TreeletId};
 
 use crate::RunError;
-use crate::session::{drain_events, probe_scene};
+use crate::session::{drain_events, start_for_scene};
 
 /// What a streamed reference needs besides the connection.
 #[derive(Clone, Copy)]
@@ -78,16 +78,7 @@ pub fn streamed_reference(
     backend: &mut dyn Backend,
 ) -> Result<StreamedReference, RunError> {
     let started = Instant::now();
-    let scene = probe_scene(client_config, timeout, runtime)?;
-    let channels: Vec<Channel> = wanted
-        .iter()
-        .copied()
-        .filter(|c| scene.layout.contains(*c))
-        .collect();
-    let mut client = {
-        let _guard = runtime.enter();
-        TreeletClient::start(client_config.clone().with_channels(channels.clone()))?
-    };
+    let (scene, channels, mut client) = start_for_scene(client_config, wanted, timeout, runtime)?;
     let frame = SceneFrame::of(&scene);
     let camera = (view.camera)(&frame);
     let cut = refine_cut(

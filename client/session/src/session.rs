@@ -379,8 +379,29 @@ pub(crate) fn drain_events(
     Ok(out)
 }
 
+/// Probes the scene and starts a client for the channels asked for that the scene has: the
+/// scene, those channels, the client.
+pub(crate) fn start_for_scene(
+    client_config: &ClientConfig,
+    wanted: &[Channel],
+    timeout: Duration,
+    runtime: &tokio::runtime::Handle,
+) -> Result<(Arc<SceneDescription>, Vec<Channel>, TreeletClient), RunError> {
+    let scene = probe_scene(client_config, timeout, runtime)?;
+    let channels: Vec<Channel> = wanted
+        .iter()
+        .copied()
+        .filter(|c| scene.layout.contains(*c))
+        .collect();
+    let client = {
+        let _guard = runtime.enter();
+        TreeletClient::start(client_config.clone().with_channels(channels.clone()))?
+    };
+    Ok((scene, channels, client))
+}
+
 /// Connects without channels just to read the scene description.
-pub(crate) fn probe_scene(
+fn probe_scene(
     client: &ClientConfig,
     timeout: Duration,
     runtime: &tokio::runtime::Handle,
@@ -481,16 +502,7 @@ pub fn fetch_all(
     timeout: Duration,
     runtime: &tokio::runtime::Handle,
 ) -> Result<FetchedScene, RunError> {
-    let scene = probe_scene(client_config, timeout, runtime)?;
-    let channels: Vec<Channel> = wanted
-        .iter()
-        .copied()
-        .filter(|c| scene.layout.contains(*c))
-        .collect();
-    let mut client = {
-        let _guard = runtime.enter();
-        TreeletClient::start(client_config.clone().with_channels(channels.clone()))?
-    };
+    let (scene, channels, mut client) = start_for_scene(client_config, wanted, timeout, runtime)?;
     let result = fetch_batches(&mut client, &scene, &channels, timeout);
     runtime.block_on(client.close());
     Ok(FetchedScene {

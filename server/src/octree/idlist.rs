@@ -7,6 +7,7 @@
 //! So the ids held in memory never exceed the budget, plus fixed per-writer buffers
 //! ([`WRITE_CHUNK`] ids for each of the 8 children of a node being partitioned, per thread).
 
+use crate::source::scratch_file;
 use std::fs::File;
 use std::ops::Range;
 use std::os::unix::fs::FileExt;
@@ -83,12 +84,7 @@ pub struct SpillFile {
 
 impl SpillFile {
     pub fn create(dir: &Path) -> std::io::Result<Arc<Self>> {
-        let file = File::options()
-            .create(true)
-            .truncate(true)
-            .read(true)
-            .write(true)
-            .open(dir.join("idlists.spill"))?;
+        let file = scratch_file(&dir.join("idlists.spill"))?;
         Ok(Arc::new(Self {
             file,
             end: AtomicU64::new(0),

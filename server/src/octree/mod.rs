@@ -36,6 +36,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 
 use crate::progress::{ImportProgress, Phase};
+use crate::source::scratch_file;
 use crate::source::{Column, ColumnError, ColumnWriter, Source};
 use geometry::{Frame, depth_for_resolution};
 use idlist::{Budget, IdList, Lists, SpillFile};
@@ -573,12 +574,7 @@ fn fill_all(
     scratch: &Path,
     progress: &ImportProgress,
 ) -> Result<Filled, BuildError> {
-    let file = File::options()
-        .create(true)
-        .truncate(true)
-        .read(true)
-        .write(true)
-        .open(scratch.join("treelets.records"))?;
+    let file = scratch_file(&scratch.join("treelets.records"))?;
     let bpv = attributes.bytes_per_voxel();
     let mut offsets = ColumnWriter::<u64>::create(scratch, "treelet-offsets")?;
     offsets.push(0)?;

@@ -7,6 +7,7 @@ use rayon::prelude::*;
 
 use super::geometry::Frame;
 use super::treelet_builder::{AttributeGenerator, TreeletBuilder};
+use crate::source::scratch_file;
 use crate::source::{Column, ColumnError, ColumnMut, PointSource};
 
 #[derive(Debug)]
@@ -241,13 +242,7 @@ fn for_each_slab_group(
         start[g + 1] = start[g] + group_len[g];
     }
     // Pass 2: ids into the scratch file, grouped.
-    let file = std::fs::File::options()
-        .create(true)
-        .truncate(true)
-        .read(true)
-        .write(true)
-        .open(scratch.join("slabs.ids"))
-        .map_err(io)?;
+    let file = scratch_file(&scratch.join("slabs.ids")).map_err(io)?;
     {
         use std::os::unix::fs::FileExt;
         let mut cursor: Vec<u64> = start[..groups].to_vec();

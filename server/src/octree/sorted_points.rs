@@ -33,6 +33,7 @@ use arbor_proto::{AttributeLayout, Cell};
 use super::geometry::Frame;
 use super::points::{leaf_attributes, pca_normal, point_layout};
 use super::treelet_builder::{AttributeGenerator, TreeletBuilder};
+use crate::source::scratch_file;
 use crate::source::{Column, ColumnError, ColumnMut, PointSource};
 
 /// Deepest target depth whose leaf cells fit a 64-bit Morton key (3 × 21 bits).
@@ -178,12 +179,7 @@ impl Sorter<'_> {
         sub: impl Fn(u64) -> usize,
     ) -> std::io::Result<()> {
         if self.spare.is_none() {
-            let f = File::options()
-                .create(true)
-                .truncate(true)
-                .read(true)
-                .write(true)
-                .open(&self.spare_path)?;
+            let f = scratch_file(&self.spare_path)?;
             self.spare = Some(f);
         }
         let spare = self.spare.as_ref().expect("opened above");
@@ -282,13 +278,7 @@ pub fn sort_points(
     let (bucket_of, starts) = group(&counts, cap);
     drop(counts);
     // 3. Distribution into the buckets' regions, in file order.
-    let file = File::options()
-        .create(true)
-        .truncate(true)
-        .read(true)
-        .write(true)
-        .open(&path)
-        .map_err(io)?;
+    let file = scratch_file(&path).map_err(io)?;
     file.set_len((n * RECORD) as u64).map_err(io)?;
     let buckets = starts.len() - 1;
     let flush_at = (cap as usize / buckets).clamp(1, 1024);
