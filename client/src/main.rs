@@ -213,6 +213,9 @@ struct ViewArgs {
     /// Feedback buffer is 1/n of the frame per axis.
     #[arg(long, default_value_t = DEFAULT_FEEDBACK_RATIO)]
     feedback_ratio: u32,
+    /// Treelets inserted per cycle at most.
+    #[arg(long, default_value_t = DEFAULT_LOAD_LIMIT)]
+    load_limit: u32,
     /// Renderer: gpu (wgpu, drawn in place), cpu (CPU frames uploaded to the window) or auto
     /// (gpu: the window needs an adapter anyway).
     #[arg(long, default_value = "auto")]
@@ -370,6 +373,7 @@ fn view(mut a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
                     lod_bias: a.lod_bias,
                 },
                 budget_bytes: budget_bytes(a.budget_mib)?,
+                load_limit: a.load_limit,
                 channels: channels(&a.connection.channels)?,
                 ..CoreConfig::default()
             },
@@ -386,6 +390,8 @@ fn view(mut a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         hold_until_stdin_eof: a.hold_until_stdin_eof,
         timeout: a.timeout_s.map(timeout).transpose()?,
     };
+    // Absurd parameters are refused before a window opens.
+    config.session.core.validate()?;
     match arbor_client_viewer::run(config, runtime)? {
         Outcome::TimedOut { after, cycles } => bail!(
             "the view did not converge within {:.1} s ({cycles} cycles)",

@@ -167,6 +167,24 @@ fn view_takes_the_url_as_an_argument_or_with_server() {
     let (code, stderr) = run(&["view", "--cert-fingerprint", FP]);
     assert_eq!(code, 1, "{stderr}");
     assert!(stderr.contains("quic://HOST:PORT/SCENE"), "{stderr}");
+    for (extra, needle) in [
+        ("--load-limit=0", "load limit"),
+        ("--feedback-ratio=0", "feedback ratio"),
+        ("--lod-bias=NaN", "LOD bias"),
+    ] {
+        let (code, stderr) = run(&[
+            "view",
+            "quic://127.0.0.1:9/s",
+            "--cert-fingerprint",
+            FP,
+            extra,
+        ]);
+        assert_eq!(code, 1, "{extra}: {stderr}");
+        assert!(
+            stderr.contains(needle) && !stderr.contains("DISPLAY"),
+            "{extra}: refused before any window, naming {needle:?}: {stderr}"
+        );
+    }
 }
 
 #[test]
