@@ -4,8 +4,8 @@
 //! treelet), the server's RSS flat (its slope over the second half, after warm-up, is printed),
 //! and the p50/p99 latency from sending a list to the first treelet of it arriving.
 //!
-//! Ignored (it takes 10 minutes):
-//! `cargo build --release -p arbor-server && cargo test --release -p arbor-tests --test soak -- --ignored --nocapture`
+//! Ignored (it takes 10 minutes; `.config/nextest.toml` gives it 16 before it is stopped):
+//! `cargo build -p arbor-server && cargo nextest run -p arbor-tests --test soak --run-ignored only --no-capture`
 
 use std::collections::HashSet;
 use std::io::{BufRead as _, BufReader};

@@ -1,0 +1,115 @@
+//! A pipelined backend hands an analysis pass back a cycle late (the GPU backend reads feedback
+//! back without waiting). Under a camera that moves every cycle, each pass then describes the
+//! previous view: it must still steer the requests (as a hint), or a moving view would never ask
+//! for anything — found by the main job's orbit on lavapipe (240 cycles, 0 requests). It must
+//! not count as knowledge: a static camera still converges only on its own samples, exactly.
+
+use std::any::Any;
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use arbor_client_core::analysis::Feedback;
+use arbor_client_core::backend::{Backend, CpuBackend, PassInput};
+use arbor_client_core::camera::CameraPath;
+use arbor_client_core::cycle::{ClientCore, CoreConfig};
+use arbor_client_core::image::Image;
+use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
+use arbor_client_core::upload::UploadPlan;
+use arbor_proto::TreeletId;
+use arbor_server::octree::{BuildOptions, DepthChoice};
+use arbor_tests::support::{SCANS, build_file, decoded_treelets};
+
+/// The CPU twins, with every analysis pass handed back one call late.
+#[derive(Debug, Default)]
+struct LateCpu {
+    pending: Option<Feedback>,
+}
+
+impl Backend for LateCpu {
+    fn name(&self) -> String {
+        "cpu, feedback a cycle late".into()
+    }
+
+    fn analyse(&mut self, input: &PassInput<'_>, pixels: &[u32], cycle: u64, out: &mut Feedback) {
+        let mut now = Feedback::default();
+        CpuBackend.analyse(input, pixels, cycle, &mut now);
+        *out = self.pending.replace(now).unwrap_or_default();
+    }
+
+    fn upload(&mut self, _slots: &SlotBuffer, _plan: &UploadPlan) {}
+
+    fn render(&mut self, input: &PassInput<'_>) -> Image {
+        CpuBackend.render(input)
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+/// Runs `cycles` cycles of lion (1 KiB treelets) on the late backend along `path`, answering
+/// every request at once: requests sent, treelets inserted, the last plan's convergence.
+fn run(path: CameraPath, cycles: u32) -> (usize, u32, bool) {
+    let rel = SCANS.iter().find(|(n, _)| *n == "lion").unwrap().1;
+    let opts = BuildOptions {
+        depth: DepthChoice::Fixed(8),
+        treelet_bytes: 1024,
+        ..BuildOptions::default()
+    };
+    let built = build_file(rel, "lion", &opts);
+    let treelets: HashMap<TreeletId, DecodedTreelet> = decoded_treelets(&built.scene)
+        .into_iter()
+        .map(|t| (t.id(), t))
+        .collect();
+    let scene = Arc::new(built.scene.description.clone());
+    let channels = scene.layout.channels().to_vec();
+    let config = CoreConfig {
+        budget_bytes: 4096 * SlotBuffer::slot_bytes(scene.treelet_nodes, &channels),
+        channels,
+        deep_push: false,
+        ..CoreConfig::default()
+    };
+    let root = treelets[&TreeletId::ROOT].clone();
+    let mut core =
+        ClientCore::with_backend(scene, config, root, Box::new(LateCpu::default())).unwrap();
+    let (mut requested, mut inserted, mut converged) = (0, 0, false);
+    for cycle in 0..cycles {
+        let camera = path.camera(cycle, core.frame(), 3, 96, 96);
+        let plan = core.plan(&camera);
+        requested += plan.requests.len();
+        converged = plan.converged;
+        for (id, _) in &plan.requests {
+            core.handle_treelet(treelets[id].clone());
+        }
+        inserted += core.integrate().inserted;
+        if converged {
+            break;
+        }
+    }
+    (requested, inserted, converged)
+}
+
+#[test]
+fn a_moving_camera_refines_on_feedback_a_cycle_late() {
+    let (requested, inserted, converged) = run(
+        CameraPath::Orbit {
+            degrees_per_cycle: 2.0,
+        },
+        40,
+    );
+    assert!(!converged, "a moving view never converges");
+    assert!(
+        requested > 100 && inserted > 100,
+        "the orbit asked for {requested} treelets and inserted {inserted}"
+    );
+}
+
+#[test]
+fn a_static_camera_converges_on_feedback_a_cycle_late() {
+    let (requested, inserted, converged) = run(CameraPath::Static, 400);
+    assert!(
+        converged,
+        "no convergence ({requested} requested, {inserted} inserted)"
+    );
+    assert!(inserted > 100, "{inserted}");
+}
