@@ -334,7 +334,15 @@ impl Sink<'_> {
         Ok(())
     }
 
-    fn faces<V: Values>(&mut self, v: &mut V, e: &Element, list: usize) -> Result<(), ImportError> {
+    /// Reads every record of `e`, skipping each property but the list at index `list`, and hands
+    /// that list (place, length, item type) to `each`, which reads its items.
+    fn each_list<V: Values>(
+        &mut self,
+        v: &mut V,
+        e: &Element,
+        list: usize,
+        mut each: impl FnMut(&mut Self, &At<'_>, &mut V, u64, Scalar) -> Result<(), ImportError>,
+    ) -> Result<(), ImportError> {
         let file = self.file;
         for record in 0..e.count {
             for (pi, p) in e.props.iter().enumerate() {
@@ -353,25 +361,34 @@ impl Sink<'_> {
                     continue;
                 }
                 let n = at.list_len(v, count)?;
-                if n < 3 {
-                    return Err(at.bad(
-                        v,
-                        format!("face {record} has {n} vertex indices; a face needs at least 3"),
-                    ));
-                }
-                let name = || format!("face {record}");
-                let first = self.index(&at, v, item, name, false)?.unwrap_or(0);
-                let mut prev = self.index(&at, v, item, name, false)?.unwrap_or(0);
-                for _ in 2..n {
-                    let cur = self.index(&at, v, item, name, false)?.unwrap_or(0);
-                    if let Some(w) = &mut self.triangles {
-                        push(file, w, [first, prev, cur])?;
-                    }
-                    prev = cur;
-                }
+                each(self, &at, v, n, item)?;
             }
         }
         Ok(())
+    }
+
+    fn faces<V: Values>(&mut self, v: &mut V, e: &Element, list: usize) -> Result<(), ImportError> {
+        let file = self.file;
+        self.each_list(v, e, list, |this, at, v, n, item| {
+            let record = at.record;
+            if n < 3 {
+                return Err(at.bad(
+                    v,
+                    format!("face {record} has {n} vertex indices; a face needs at least 3"),
+                ));
+            }
+            let name = || format!("face {record}");
+            let first = this.index(at, v, item, name, false)?.unwrap_or(0);
+            let mut prev = this.index(at, v, item, name, false)?.unwrap_or(0);
+            for _ in 2..n {
+                let cur = this.index(at, v, item, name, false)?.unwrap_or(0);
+                if let Some(w) = &mut this.triangles {
+                    push(file, w, [first, prev, cur])?;
+                }
+                prev = cur;
+            }
+            Ok(())
+        })
     }
 
     fn strips<V: Values>(
@@ -382,54 +399,39 @@ impl Sink<'_> {
     ) -> Result<(), ImportError> {
         let file = self.file;
         let mut dropped = 0u64;
-        for record in 0..e.count {
-            for (pi, p) in e.props.iter().enumerate() {
-                let at = At {
-                    file,
-                    element: e,
-                    record,
-                    prop: &p.name,
-                };
-                let Kind::List { count, item } = p.kind else {
-                    at.skip(v, p.kind)?;
+        self.each_list(v, e, list, |this, at, v, n, item| {
+            let record = at.record;
+            // Sliding window over the strip; `parity` is the index of the next triangle within
+            // the current strip (odd triangles are flipped).
+            let mut a: Option<u32> = None;
+            let mut b: Option<u32> = None;
+            let mut parity = 0u64;
+            for entry in 0..n {
+                let name = || format!("tristrip {record} entry {entry}");
+                let Some(c) = this.index(at, v, item, name, true)? else {
+                    a = None;
+                    b = None;
+                    parity = 0;
                     continue;
                 };
-                if pi != list {
-                    at.skip(v, p.kind)?;
-                    continue;
-                }
-                let n = at.list_len(v, count)?;
-                // Sliding window over the strip; `parity` is the index of the next triangle
-                // within the current strip (odd triangles are flipped).
-                let mut a: Option<u32> = None;
-                let mut b: Option<u32> = None;
-                let mut parity = 0u64;
-                for entry in 0..n {
-                    let name = || format!("tristrip {record} entry {entry}");
-                    let Some(c) = self.index(&at, v, item, name, true)? else {
-                        a = None;
-                        b = None;
-                        parity = 0;
-                        continue;
+                if let (Some(va), Some(vb)) = (a, b) {
+                    let tri = if parity.is_multiple_of(2) {
+                        [va, vb, c]
+                    } else {
+                        [vb, va, c]
                     };
-                    if let (Some(va), Some(vb)) = (a, b) {
-                        let tri = if parity.is_multiple_of(2) {
-                            [va, vb, c]
-                        } else {
-                            [vb, va, c]
-                        };
-                        parity += 1;
-                        if va == vb || vb == c || va == c {
-                            dropped += 1;
-                        } else if let Some(w) = &mut self.triangles {
-                            push(file, w, tri)?;
-                        }
+                    parity += 1;
+                    if va == vb || vb == c || va == c {
+                        dropped += 1;
+                    } else if let Some(w) = &mut this.triangles {
+                        push(file, w, tri)?;
                     }
-                    a = b;
-                    b = Some(c);
                 }
+                a = b;
+                b = Some(c);
             }
-        }
+            Ok(())
+        })?;
         tracing::debug!(file, dropped, "dropped degenerate strip triangles");
         Ok(())
     }
@@ -843,38 +845,53 @@ mod tests {
         assert!(e.contains("truncated element 'face' data"), "{e}");
         assert!(e.contains("expected 2 records, got 1"), "{e}");
 
-        let e = err(b"plx\nformat ascii 1.0\nend_header\n");
-        assert!(e.contains("bad magic"), "{e}");
-        let e = err(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty int128 x\nend_header\n");
-        assert!(
-            e.contains("property 'x' of element 'vertex' has unsupported type 'int128'"),
-            "{e}"
-        );
-        let e = err(b"ply\nformat binary_little_endian 1.0\nelement vertex 4000000000\nproperty float x\nproperty float y\nproperty float z\nend_header\n\0\0\0\0");
-        assert!(
-            e.contains("count 4000000000 is larger than the file"),
-            "{e}"
-        );
-        let e = err(b"ply\nformat ascii 1.0\nelement vertex -3\nproperty float x\nend_header\n");
-        assert!(e.contains("negative count -3"), "{e}");
-        let e = err(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float y\nproperty float z\nend_header\n0 0\n");
-        assert!(e.contains("element 'vertex' has no property 'x'"), "{e}");
-        let e = err(b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 900\n");
-        assert!(
-            e.contains("face 0 has vertex index 900 but only 3 vertices"),
-            "{e}"
-        );
-        let e = err(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n1 nan 0\n");
-        assert!(e.contains("vertex 1 has non-finite value NaN"), "{e}");
-        let e = err(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n1 abc 0\n");
-        assert!(
-            e.contains("record 1, property 'y': 'abc' is not a valid number"),
-            "{e}"
-        );
-        let e = err(b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\nend_header\n");
-        assert!(e.contains("zero primitives"), "{e}");
-        let e = err(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n");
-        assert!(e.contains("before 'end_header'"), "{e}");
+        // Each malformed header or body, and the words its error must contain.
+        let cases: [(&[u8], &str); 10] = [
+            (
+                b"plx\nformat ascii 1.0\nend_header\n",
+                "bad magic",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 1\nproperty int128 x\nend_header\n",
+                "property 'x' of element 'vertex' has unsupported type 'int128'",
+            ),
+            (
+                b"ply\nformat binary_little_endian 1.0\nelement vertex 4000000000\nproperty float x\nproperty float y\nproperty float z\nend_header\n\0\0\0\0",
+                "count 4000000000 is larger than the file",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex -3\nproperty float x\nend_header\n",
+                "negative count -3",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float y\nproperty float z\nend_header\n0 0\n",
+                "element 'vertex' has no property 'x'",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 900\n",
+                "face 0 has vertex index 900 but only 3 vertices",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n1 nan 0\n",
+                "vertex 1 has non-finite value NaN",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n1 abc 0\n",
+                "record 1, property 'y': 'abc' is not a valid number",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\nend_header\n",
+                "zero primitives",
+            ),
+            (
+                b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n",
+                "before 'end_header'",
+            ),
+        ];
+        for (input, needle) in cases {
+            let e = err(input);
+            assert!(e.contains(needle), "{needle:?} not in {e}");
+        }
     }
 
     fn real(name: &str) -> Source {
