@@ -31,12 +31,16 @@
 //! Pipelined backends hand feedback back a cycle late: every plan is kept until its feedback
 //! arrives, and a plan whose feedback never comes (a skipped pass) is sampled again. Feedback of
 //! a cycle before the last reset describes another view: it never counts as knowledge (nor for
-//! convergence), but feedback of the view just before is kept as a **hint** for the pixels not
-//! yet sampled in this one — what a moving camera saw a cycle ago is what it nearly sees now.
+//! convergence), but the newest pass of the last [`HINT_VIEWS`] views is kept as a **hint** for
+//! the pixels not yet sampled in this one — what a moving camera saw a few cycles ago is what it
+//! nearly sees now (a software GPU hands passes back two to four cycles late).
 //! Without hints a pipelined backend under a camera that moves every cycle would never know a
 //! pixel and never ask for anything (measured: an orbit on lavapipe, 240 cycles, 0 requests).
 
 use std::collections::VecDeque;
+
+/// Views back (resets) whose feedback still serves as a hint.
+pub const HINT_VIEWS: usize = 4;
 
 use arbor_proto::TreeletId;
 
@@ -69,11 +73,13 @@ pub struct Coverage {
     retry: Vec<u32>,
     /// Feedback of earlier cycles describes another view.
     valid_from: u64,
-    /// `valid_from` before the last reset: feedback from here on describes the previous view.
-    hints_from: u64,
-    /// Samples of the previous view, `(pixel index, sample)`: requests and visibility for pixels
-    /// not sampled in this view yet.
+    /// Where the last [`HINT_VIEWS`] views began: feedback from the oldest on is a hint.
+    recent_views: VecDeque<u64>,
+    /// The newest pass of a recent earlier view, `(pixel index, sample)`: requests and
+    /// visibility for pixels not sampled in this view yet.
     hints: Vec<(u32, FeedbackSample)>,
+    /// The cycle of the pass in `hints`.
+    hints_cycle: u64,
     /// Pixels sampled since the last reset.
     sampled_since_reset: u64,
 }
@@ -97,8 +103,9 @@ impl Coverage {
             outstanding: VecDeque::new(),
             retry: Vec::new(),
             valid_from: 0,
-            hints_from: 0,
+            recent_views: VecDeque::from([0]),
             hints: Vec::new(),
+            hints_cycle: 0,
             sampled_since_reset: 0,
         }
     }
@@ -147,9 +154,11 @@ impl Coverage {
         self.element = 0;
         self.outstanding.clear();
         self.retry.clear();
-        self.hints.clear();
-        self.hints_from = self.valid_from;
         self.valid_from = cycle;
+        self.recent_views.push_back(cycle);
+        if self.recent_views.len() > HINT_VIEWS {
+            self.recent_views.pop_front();
+        }
         self.sampled_since_reset = 0;
     }
 
@@ -272,8 +281,11 @@ impl Coverage {
             self.outstanding.pop_front();
         }
         if feedback.cycle < self.valid_from {
-            if feedback.cycle >= self.hints_from && self.hints.len() < self.samples.len() {
+            let hints_from = self.recent_views.front().copied().unwrap_or(0);
+            if feedback.cycle >= hints_from && feedback.cycle >= self.hints_cycle {
                 let (width, height) = (self.width, self.height);
+                self.hints.clear();
+                self.hints_cycle = feedback.cycle;
                 self.hints.extend(
                     feedback
                         .pixels
@@ -317,10 +329,13 @@ impl Coverage {
             .enumerate()
             .filter(move |(i, _)| self.epochs[*i] == self.epoch)
             .map(|(i, s)| (i as u32, s));
+        let hints_from = self.recent_views.front().copied().unwrap_or(0);
         let hints = self
             .hints
             .iter()
-            .filter(move |(i, _)| self.epochs[*i as usize] != self.epoch)
+            .filter(move |(i, _)| {
+                self.hints_cycle >= hints_from && self.epochs[*i as usize] != self.epoch
+            })
             .map(|(i, s)| (*i, s));
         known.chain(hints)
     }
@@ -506,13 +521,20 @@ mod tests {
                 .count(),
             1
         );
-        // Two views back is no hint; the next reset drops the hints.
+        // A later pass of an earlier view replaces the hints; an older one does not.
         c.reset(2);
-        c.handle_feedback(&answer(0, &plan0, |_, _| sample(9, 3.0)));
-        assert_eq!(c.known_samples().count(), 0);
         c.handle_feedback(&answer(1, &plan1, |_, _| sample(9, 3.0)));
+        assert!(c.known_samples().all(|(_, s)| s.subtreelet == 9));
+        c.handle_feedback(&answer(0, &plan0, |_, _| sample(8, 3.0)));
+        assert!(c.known_samples().all(|(_, s)| s.subtreelet == 9));
         assert_eq!(c.known_samples().count(), 16);
+        // The hints describe the view begun at cycle 1: they serve while it is one of the last
+        // HINT_VIEWS views, then go.
+        assert_eq!(HINT_VIEWS, 4);
         c.reset(3);
+        c.reset(4);
+        assert_eq!(c.known_samples().count(), 16);
+        c.reset(5);
         assert_eq!(c.known_samples().count(), 0);
     }
 

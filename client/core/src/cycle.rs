@@ -263,6 +263,15 @@ pub struct ClientCore {
     backend: Box<dyn Backend>,
 }
 
+/// The fewest cycles a slot stays visible after it was last seen with adaptive sampling: feedback
+/// may come back a few cycles late.
+pub const MIN_VISIBILITY_CYCLES: usize = 8;
+
+/// Cycles of the thesis's full round: n² for a feedback ratio n (at most `u16::MAX`).
+fn grid_cycles(ratio: u32) -> usize {
+    (ratio as usize * ratio as usize).clamp(1, usize::from(u16::MAX))
+}
+
 impl ClientCore {
     /// A core holding only the root treelet, running its passes on the CPU twins.
     pub fn new(
@@ -304,8 +313,7 @@ impl ClientCore {
                 budget_bytes,
                 treelet_nodes: scene.treelet_nodes,
                 channels: config.channels.clone(),
-                visibility_max: (config.analysis.ratio * config.analysis.ratio)
-                    .min(u32::from(u16::MAX)) as u16,
+                visibility_max: grid_cycles(config.analysis.ratio) as u16,
                 load_limit: config.load_limit,
             },
             root,
@@ -398,6 +406,11 @@ impl ClientCore {
         }
     }
 
+    /// Cycles of the thesis's full round for this core's feedback ratio.
+    fn grid_cycles(&self) -> usize {
+        grid_cycles(self.config.analysis.ratio)
+    }
+
     /// Whether lists carry the view, so the server may push: an arrival named by no recent list
     /// is then a push.
     fn pushes_asked(&self) -> bool {
@@ -454,6 +467,16 @@ impl ClientCore {
         self.last_camera = Some(*camera);
         let pixels = match self.config.sampling {
             Sampling::Adaptive => {
+                // A slot stays visible for about two full looks at the view: the thesis's n²
+                // cycles when a cycle samples 1/n² of it, a few when it samples all of it (a
+                // moving camera's buffer would otherwise hold all it saw in the last n² cycles
+                // and never make room for what comes into view).
+                let per_look =
+                    (camera.width as usize * camera.height as usize).div_ceil(max_samples.max(1));
+                let span = (2 * per_look)
+                    .max(MIN_VISIBILITY_CYCLES)
+                    .min(self.grid_cycles());
+                self.slots.set_visibility_max(span as u16);
                 let slots = &self.slots;
                 self.coverage
                     .plan(cycle, max_samples, |id| slots.is_resident(id))

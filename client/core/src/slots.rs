@@ -518,9 +518,15 @@ impl SlotBuffer {
         self.capacity - self.free.len() as u32
     }
 
-    /// What the buffer was made with.
+    /// What the buffer was made with (the visibility span as last set).
     pub fn config(&self) -> &SlotConfig {
         &self.config
+    }
+
+    /// Sets how many cycles a slot stays visible after it was last seen (at least 1): about the
+    /// cycles a full look at the view takes, which depends on how much a cycle samples.
+    pub fn set_visibility_max(&mut self, cycles: u16) {
+        self.config.visibility_max = cycles.max(1);
     }
 
     /// The current cycle (number of [`begin_cycle`](Self::begin_cycle) calls).

@@ -233,23 +233,7 @@ impl Task {
             close_gracefully(&conn, Some(&mut send)).await;
             return failed(reason, true);
         }
-        {
-            let mut stats = self.shared.stats();
-            if self.last_server.as_ref().is_some_and(|s| s != url) {
-                stats.failovers += 1;
-            }
-            stats.server = Some(url.clone());
-        }
-        self.last_server = Some(url.clone());
-        if scene.name != url.scene {
-            tracing::warn!(asked = %url.scene, got = %scene.name, "server named the scene differently");
-        }
-        self.shared.set_scene(scene.clone());
-        self.shared.stats().connects += 1;
-        tracing::info!(url = %url, treelets = scene.treelet_count, "connected");
-        let _ = self
-            .events
-            .send(Queued::plain(ClientEvent::Connected(scene.clone())));
+        self.note_connected(url, &scene);
 
         let ctx = Arc::new(StreamContext {
             shared: self.shared.clone(),
@@ -283,6 +267,28 @@ impl Task {
         // No treelet event may follow the Disconnected event.
         readers.shutdown().await;
         Outcome::Ended(ending_from(err, &local_close, remote, true))
+    }
+
+    /// Records a greeted connection to `url` (counting a failover when the server changed) and
+    /// tells the application.
+    fn note_connected(&mut self, url: &ServerUrl, scene: &Arc<SceneDescription>) {
+        {
+            let mut stats = self.shared.stats();
+            if self.last_server.as_ref().is_some_and(|s| s != url) {
+                stats.failovers += 1;
+            }
+            stats.server = Some(url.clone());
+            stats.connects += 1;
+        }
+        self.last_server = Some(url.clone());
+        if scene.name != url.scene {
+            tracing::warn!(asked = %url.scene, got = %scene.name, "server named the scene differently");
+        }
+        self.shared.set_scene(scene.clone());
+        tracing::info!(url = %url, treelets = scene.treelet_count, "connected");
+        let _ = self
+            .events
+            .send(Queued::plain(ClientEvent::Connected(scene.clone())));
     }
 }
 
