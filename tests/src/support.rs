@@ -46,6 +46,18 @@ pub struct Built {
     pub scratch: TempDir,
 }
 
+/// The lion scan at depth 8 in 1 KiB treelets: a real tree of several treelet levels, quick to
+/// build, for tests of the client core without a server.
+pub fn small_lion() -> Built {
+    let rel = SCANS.iter().find(|(n, _)| *n == "lion").unwrap().1;
+    let opts = BuildOptions {
+        depth: arbor_server::octree::DepthChoice::Fixed(8),
+        treelet_bytes: 1024,
+        ..BuildOptions::default()
+    };
+    build_file(rel, "lion", &opts)
+}
+
 /// Imports a real scan and builds it into a fresh pool.
 pub fn build_file(rel: &str, name: &str, opts: &BuildOptions) -> Built {
     let pool_dir = tempfile::tempdir().unwrap();

@@ -8,19 +8,12 @@ use std::sync::Arc;
 use arbor_client_core::cycle::{ClientCore, CoreConfig};
 use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
 use arbor_proto::TreeletId;
-use arbor_server::octree::{BuildOptions, DepthChoice};
-use arbor_tests::support::{SCANS, build_file, decoded_treelets};
+use arbor_tests::support::{decoded_treelets, small_lion};
 
 /// The lion's treelets (small treelets, so the tree has several levels) and a core holding its
 /// root, with room for `slots` slots in all.
 fn lion_core(slots: u64) -> (Vec<DecodedTreelet>, ClientCore) {
-    let rel = SCANS.iter().find(|(n, _)| *n == "lion").unwrap().1;
-    let opts = BuildOptions {
-        depth: DepthChoice::Fixed(8),
-        treelet_bytes: 1024,
-        ..BuildOptions::default()
-    };
-    let built = build_file(rel, "lion", &opts);
+    let built = small_lion();
     let treelets = decoded_treelets(&built.scene);
     let scene = Arc::new(built.scene.description.clone());
     let channels = scene.layout.channels().to_vec();

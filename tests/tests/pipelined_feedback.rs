@@ -16,8 +16,7 @@ use arbor_client_core::image::Image;
 use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
 use arbor_client_core::upload::UploadPlan;
 use arbor_proto::TreeletId;
-use arbor_server::octree::{BuildOptions, DepthChoice};
-use arbor_tests::support::{SCANS, build_file, decoded_treelets};
+use arbor_tests::support::{decoded_treelets, small_lion};
 
 /// The CPU twins, with every analysis pass handed back one call late.
 #[derive(Debug, Default)]
@@ -63,13 +62,7 @@ struct Ran {
 /// Runs `cycles` cycles of lion (1 KiB treelets) on the late backend along `path` with room for
 /// `slots` slots, answering every request at once.
 fn run(path: CameraPath, cycles: u32, slots: u64) -> Ran {
-    let rel = SCANS.iter().find(|(n, _)| *n == "lion").unwrap().1;
-    let opts = BuildOptions {
-        depth: DepthChoice::Fixed(8),
-        treelet_bytes: 1024,
-        ..BuildOptions::default()
-    };
-    let built = build_file(rel, "lion", &opts);
+    let built = small_lion();
     let treelets: HashMap<TreeletId, DecodedTreelet> = decoded_treelets(&built.scene)
         .into_iter()
         .map(|t| (t.id(), t))
