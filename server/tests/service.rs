@@ -614,7 +614,10 @@ async fn shutdown_says_goodbye_and_returns_within_the_grace() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_replacement_list_cancels_obsolete_treelets_in_flight() {
     let tp = TestPool::new();
-    let server = start(tp.config()).await;
+    // The client does not read for a while on purpose: not a slow reader to be closed.
+    let mut config = tp.config();
+    config.slow_reader_timeout_ms = 10_000;
+    let server = start(config).await;
     let d = server.pool().scene(SCENE).unwrap().description;
     // One stream credit and not reading yet: the first treelet's stream is opened, the rest of
     // the window waits in flight for a credit.
@@ -651,14 +654,17 @@ async fn a_replacement_list_cancels_obsolete_treelets_in_flight() {
             items: new.iter().map(|&t| (t, 1.0)).collect(),
         })
         .await;
-    // Every batch but the one on the open stream is cancelled.
+    // The server has taken the new list (a stream credit returned before that could still
+    // carry the old list's next batch), and every batch but the one on the open stream is
+    // cancelled.
     let t0 = Instant::now();
-    while server
-        .state
-        .metrics
-        .treelets_cancelled
-        .load(Ordering::Relaxed)
-        < in_flight.saturating_sub(MAX_TREELETS_PER_STREAM as u64)
+    while server.state.sessions()[0].request_lists < 2
+        || server
+            .state
+            .metrics
+            .treelets_cancelled
+            .load(Ordering::Relaxed)
+            < in_flight.saturating_sub(MAX_TREELETS_PER_STREAM as u64)
     {
         assert!(t0.elapsed() < LONG, "obsolete treelets not cancelled");
         tokio::time::sleep(Duration::from_millis(10)).await;

@@ -275,8 +275,8 @@ pub fn code(c: ErrorCode) -> Result<u64, String> {
 /// A received treelet message: id and the whole message.
 pub type Received = (TreeletId, Vec<u8>);
 
-/// Accepts unidirectional streams until `n` complete treelet messages arrived (reset streams are
-/// skipped) or `within` passed.
+/// Accepts unidirectional streams until at least `n` complete treelet messages arrived (reset
+/// streams are skipped; streams accepted by then are read to their end too) or `within` passed.
 pub async fn receive(
     conn: &quinn::Connection,
     n: usize,
@@ -300,6 +300,15 @@ pub async fn receive(
             _ = tokio::time::sleep_until(deadline) => {
                 return Err(format!("{} of {n} treelets within {within:?}", got.len()));
             }
+        }
+    }
+    // Streams accepted while the last one was read carry treelets too: read them rather than
+    // drop them (a caller asking for one treelet would otherwise lose a whole batch).
+    while !readers.is_empty() {
+        match tokio::time::timeout_at(deadline, readers.join_next()).await {
+            Ok(Some(Ok(Ok(bytes)))) => got.extend(split_messages(&bytes)?),
+            Ok(Some(_)) => {}
+            Ok(None) | Err(_) => break,
         }
     }
     Ok(got)
