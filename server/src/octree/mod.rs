@@ -162,20 +162,9 @@ pub struct BuildTarget<'a> {
     pub scratch: &'a Path,
 }
 
-/// [`build_scene`], reporting its phases and counts to `progress` as it goes.
-pub fn build_scene_observed(
-    source: &Source,
-    target: &BuildTarget<'_>,
-    opts: &BuildOptions,
-    sink: &mut dyn TreeletSink,
-    progress: &ImportProgress,
-) -> Result<SceneDescription, BuildError> {
-    let BuildTarget {
-        name,
-        source_label,
-        scratch,
-    } = *target;
-    let started = Instant::now();
+/// Refuses what no build can take (a depth past the format's, no primitives, more than primitive
+/// ids can name); returns the nodes a treelet of `opts.treelet_bytes` holds.
+fn check_build_input(source: &Source, opts: &BuildOptions) -> Result<u32, BuildError> {
     let capacity = nodes_for_bytes(opts.treelet_bytes)?;
     if let DepthChoice::Fixed(d) = opts.depth
         && d > arbor_proto::limits::MAX_DEPTH
@@ -194,6 +183,24 @@ pub fn build_scene_observed(
             limit: MAX_PRIMITIVES,
         });
     }
+    Ok(capacity)
+}
+
+/// [`build_scene`], reporting its phases and counts to `progress` as it goes.
+pub fn build_scene_observed(
+    source: &Source,
+    target: &BuildTarget<'_>,
+    opts: &BuildOptions,
+    sink: &mut dyn TreeletSink,
+    progress: &ImportProgress,
+) -> Result<SceneDescription, BuildError> {
+    let BuildTarget {
+        name,
+        source_label,
+        scratch,
+    } = *target;
+    let started = Instant::now();
+    let capacity = check_build_input(source, opts)?;
     progress.enter(Phase::Placing, 0);
     let placed = place(source, opts, scratch)?;
     let frame = placed.frame;
