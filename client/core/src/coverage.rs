@@ -33,18 +33,19 @@
 //! a cycle before the last reset describes another view: it never counts as knowledge (nor for
 //! convergence), but the newest pass of the last [`HINT_VIEWS`] views is kept as a **hint** for
 //! the pixels not yet sampled in this one — what a moving camera saw a few cycles ago is what it
-//! nearly sees now (a software GPU hands passes back two to four cycles late).
+//! nearly sees now (a software GPU hands passes back two to four cycles late). A new LOD bias is
+//! another target, not another view: it drops the hints ([`Coverage::reset_target`]).
 //! Without hints a pipelined backend under a camera that moves every cycle would never know a
 //! pixel and never ask for anything (measured: an orbit on lavapipe, 240 cycles, 0 requests).
 
 use std::collections::VecDeque;
 
-/// Views back (resets) whose feedback still serves as a hint.
-pub const HINT_VIEWS: usize = 4;
-
 use arbor_proto::TreeletId;
 
 use crate::analysis::{Feedback, FeedbackSample, feedback_size, jitter, pack_pixel, unpack_pixel};
+
+/// Views back (resets) whose feedback still serves as a hint.
+pub const HINT_VIEWS: usize = 4;
 
 /// Plans, feedback and convergence over the pixels of one view.
 #[derive(Debug)]
@@ -159,7 +160,24 @@ impl Coverage {
         if self.recent_views.len() > HINT_VIEWS {
             self.recent_views.pop_front();
         }
+        if self.hints_cycle < self.hints_from() {
+            self.hints.clear();
+        }
         self.sampled_since_reset = 0;
+    }
+
+    /// [`reset`](Self::reset) for a new target (LOD bias) at `cycle`: earlier passes judged
+    /// refinement against the old one, so they are no hint either.
+    pub fn reset_target(&mut self, cycle: u64) {
+        self.reset(cycle);
+        self.recent_views.clear();
+        self.recent_views.push_back(cycle);
+        self.hints.clear();
+    }
+
+    /// The first cycle whose passes are hints: the start of the oldest recent view.
+    fn hints_from(&self) -> u64 {
+        self.recent_views.front().copied().unwrap_or(0)
     }
 
     /// The pixels to sample in `cycle`, at most `max_samples` (at least the 1/n grid's share
@@ -281,8 +299,7 @@ impl Coverage {
             self.outstanding.pop_front();
         }
         if feedback.cycle < self.valid_from {
-            let hints_from = self.recent_views.front().copied().unwrap_or(0);
-            if feedback.cycle >= hints_from && feedback.cycle >= self.hints_cycle {
+            if feedback.cycle >= self.hints_from() && feedback.cycle >= self.hints_cycle {
                 let (width, height) = (self.width, self.height);
                 self.hints.clear();
                 self.hints_cycle = feedback.cycle;
@@ -329,13 +346,10 @@ impl Coverage {
             .enumerate()
             .filter(move |(i, _)| self.epochs[*i] == self.epoch)
             .map(|(i, s)| (i as u32, s));
-        let hints_from = self.recent_views.front().copied().unwrap_or(0);
         let hints = self
             .hints
             .iter()
-            .filter(move |(i, _)| {
-                self.hints_cycle >= hints_from && self.epochs[*i as usize] != self.epoch
-            })
+            .filter(move |(i, _)| self.epochs[*i as usize] != self.epoch)
             .map(|(i, s)| (*i, s));
         known.chain(hints)
     }
@@ -536,6 +550,14 @@ mod tests {
         assert_eq!(c.known_samples().count(), 16);
         c.reset(5);
         assert_eq!(c.known_samples().count(), 0);
+        // A new target drops the hints, and passes from before it are none.
+        c.handle_feedback(&answer(4, &plan1, |_, _| sample(9, 3.0)));
+        assert_eq!(c.known_samples().count(), 16);
+        c.reset_target(6);
+        assert_eq!(c.known_samples().count(), 0);
+        c.handle_feedback(&answer(5, &plan1, |_, _| sample(9, 3.0)));
+        assert_eq!(c.known_samples().count(), 0);
+        assert!(!c.converged());
     }
 
     #[test]

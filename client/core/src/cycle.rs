@@ -537,7 +537,7 @@ impl ClientCore {
                 self.bias_unsettled = bias_changed;
                 if bias_changed {
                     tracing::debug!(cycle, bias = self.bias.bias(), ?need, "LOD bias adjusted");
-                    self.coverage.reset(cycle + 1);
+                    self.coverage.reset_target(cycle + 1);
                     self.forget_pins();
                     requests.clear();
                 }

@@ -93,8 +93,8 @@ struct Handler {
     /// Asks the opener for the next stream, in rank order.
     opens: mpsc::UnboundedSender<oneshot::Sender<OpenStream>>,
     opener: AbortOnDrop,
-    /// One task per batch in flight.
-    streams: JoinSet<(Vec<TreeletId>, Outcome)>,
+    /// One task per batch in flight, with its batch number.
+    streams: JoinSet<(u64, Vec<TreeletId>, Outcome)>,
     /// The batch of each treelet in flight.
     batch_of: HashMap<TreeletId, u64>,
     /// Per batch: how to cancel it, and how many of its treelets the latest list still wants.
@@ -190,7 +190,7 @@ impl Handler {
                 Some(t) = self.jobs.recv() => self.on_treelet(t),
                 Some(joined) = self.streams.join_next(), if !self.streams.is_empty() => {
                     match joined {
-                        Ok((batch, outcome)) => self.on_stream_end(&batch, outcome),
+                        Ok((id, batch, outcome)) => self.on_stream_end(id, &batch, outcome),
                         Err(_) => None,
                     }
                 }
@@ -356,18 +356,22 @@ impl Handler {
         let _ = self.opens.send(open_tx);
         let priority = self.rank.saturating_neg();
         self.rank = self.rank.saturating_add(batch.len() as i32);
-        self.streams
-            .spawn(send_batch(self.ctx.clone(), batch, priority, open_rx, rx));
+        let sending = send_batch(self.ctx.clone(), batch, priority, open_rx, rx);
+        self.streams.spawn(async move {
+            let (batch, outcome) = sending.await;
+            (id, batch, outcome)
+        });
         None
     }
 
-    /// A batch's stream task ended.
-    fn on_stream_end(&mut self, batch: &[TreeletId], outcome: Outcome) -> Option<End> {
-        if let Some(b) = batch.first().and_then(|t| self.batch_of.get(t)) {
-            self.batches.remove(b);
-        }
+    /// Batch `id`'s stream task ended. Its treelets may already be in a newer batch (the
+    /// scheduler hears of their end before this handler does): only entries of this batch go.
+    fn on_stream_end(&mut self, id: u64, batch: &[TreeletId], outcome: Outcome) -> Option<End> {
+        self.batches.remove(&id);
         for t in batch {
-            self.batch_of.remove(t);
+            if self.batch_of.get(t) == Some(&id) {
+                self.batch_of.remove(t);
+            }
         }
         match outcome {
             Outcome::Failed(reason) => {
@@ -447,8 +451,8 @@ impl Handler {
         while !self.streams.is_empty() {
             tokio::select! {
                 joined = self.streams.join_next() => {
-                    if let Some(Ok((batch, outcome))) = joined {
-                        self.on_stream_end(&batch, outcome);
+                    if let Some(Ok((id, batch, outcome))) = joined {
+                        self.on_stream_end(id, &batch, outcome);
                     }
                 }
                 _ = tokio::time::sleep_until(deadline) => break,
