@@ -114,17 +114,22 @@ async fn off_loopback_the_admin_api_is_https_with_the_daemon_certificate() {
     server.shutdown().await;
 }
 
+/// `/healthz` answers in cleartext on the admin port.
+async fn assert_cleartext_health(server: &RunningServer) {
+    let answer = get(
+        TcpStream::connect(loopback(server)).await.unwrap(),
+        "/healthz",
+    )
+    .await;
+    assert!(status_ok(&answer), "{answer}");
+}
+
 #[tokio::test]
 async fn on_loopback_the_admin_api_is_cleartext_unless_asked() {
     let dir = tempfile::tempdir().unwrap();
     let server = daemon(dir.path(), "127.0.0.1:0", AdminTls::Auto).await;
     assert!(!server.admin_https);
-    let answer = get(
-        TcpStream::connect(loopback(&server)).await.unwrap(),
-        "/healthz",
-    )
-    .await;
-    assert!(status_ok(&answer), "{answer}");
+    assert_cleartext_health(&server).await;
     server.shutdown().await;
 
     let dir = tempfile::tempdir().unwrap();
@@ -141,12 +146,7 @@ async fn an_explicit_flag_allows_cleartext_off_loopback() {
     let dir = tempfile::tempdir().unwrap();
     let server = daemon(dir.path(), "0.0.0.0:0", AdminTls::Off).await;
     assert!(!server.admin_https);
-    let answer = get(
-        TcpStream::connect(loopback(&server)).await.unwrap(),
-        "/healthz",
-    )
-    .await;
-    assert!(status_ok(&answer), "{answer}");
+    assert_cleartext_health(&server).await;
     server.shutdown().await;
 }
 

@@ -164,7 +164,8 @@ fn slot_bytes(scene: &SceneDescription, channels: &[Channel]) -> u64 {
 }
 
 fn decoded_bytes(t: &DecodedTreelet) -> u64 {
-    (t.treelet.nodes.len() * 8 + t.attributes.iter().map(|(_, a)| a.len()).sum::<usize>()) as u64
+    (std::mem::size_of_val(t.treelet.nodes.as_slice())
+        + t.attributes.iter().map(|(_, a)| a.len()).sum::<usize>()) as u64
 }
 
 /// A slot buffer holding exactly `kept` (sorted by id, so parents go first).
