@@ -13,7 +13,8 @@
 //! * over the link emulator (25 ms each way, 100 Mbit/s): time until the top 1,000 of a list
 //!   (random priorities over all treelets of the 4 KiB scene) have arrived.
 //!
-//! `cargo bench -p arbor-tests --bench serve` (ARBOR_BENCH_QUICK=1: fewer treelets per client).
+//! `cargo bench -p arbor-tests --bench serve` (ARBOR_BENCH_QUICK=1: fewer treelets per client;
+//! ARBOR_BENCH_WHOLE=N: only the whole-scene row, N runs in turns, for experiments).
 //! Never run in CI.
 
 use std::net::SocketAddr;
@@ -561,6 +562,13 @@ fn cost_breakdown(dir: &std::path::Path, scene: &str) {
     );
 }
 
+/// The median MB/s of some runs.
+fn median(runs: &[(f64, f64)]) -> f64 {
+    let mut v: Vec<f64> = runs.iter().map(|r| r.1).collect();
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(0.0)
+}
+
 /// The best of `ROUNDS` (rate, MB/s) pairs by rate.
 fn best(runs: &[(f64, f64)]) -> (f64, f64) {
     runs.iter()
@@ -571,6 +579,9 @@ fn best(runs: &[(f64, f64)]) -> (f64, f64) {
 #[tokio::main(flavor = "multi_thread")]
 async fn main() {
     let quick = std::env::var("ARBOR_BENCH_QUICK").is_ok();
+    let whole_only: Option<usize> = std::env::var("ARBOR_BENCH_WHOLE")
+        .ok()
+        .and_then(|n| n.parse().ok());
     let pool_dir = tempfile::tempdir().unwrap();
     let data_dir = tempfile::tempdir().unwrap();
     let dir = pool_dir.path().to_owned();
@@ -605,7 +616,7 @@ async fn main() {
         return;
     }
     let raw = raw::start();
-    let nginx = nginx::start(&files);
+    let nginx = whole_only.is_none().then(|| nginx::start(&files)).flatten();
 
     println!(
         "Arbor serving benchmark (loopback, release, {} cores; all channels; {} streams or \
@@ -629,7 +640,7 @@ async fn main() {
         "÷nginx",
         "÷raw"
     );
-    for d in &scenes {
+    for d in scenes.iter().filter(|_| whole_only.is_none()) {
         for clients in [1usize, 8, 64] {
             let per_client = if quick {
                 200
@@ -703,13 +714,14 @@ async fn main() {
     let (mut a, mut r) = (Vec::new(), Vec::new());
     let mut total = 0;
     // A whole scene is a few megabytes, tens of milliseconds: more runs than the rows above.
-    for _ in 0..WHOLE_ROUNDS {
+    for _ in 0..whole_only.unwrap_or(WHOLE_ROUNDS) {
         let (secs, bytes) = arbor_run(addr, &fp, d, 1, whole).await;
         total = bytes;
         a.push((whole as f64 / secs, bytes as f64 / secs / 1e6));
         let (rsecs, rbytes) = raw::run(&raw, 1, 1, bytes as u32, 1).await;
         r.push((1.0 / rsecs, rbytes as f64 / rsecs / 1e6));
     }
+    let (a_median, r_median) = (median(&a), median(&r));
     let (a, r) = (best(&a), best(&r));
     println!(
         "whole {} by one client ({} treelets, {:.1} MB): Arbor {:.1} MB/s, raw quinn one stream \
@@ -722,6 +734,14 @@ async fn main() {
         a.1 / r.1,
         a.1 / bulk
     );
+    println!(
+        "  medians: Arbor {a_median:.1} MB/s, raw quinn one stream {r_median:.1} MB/s: {:.2}x",
+        a_median / r_median
+    );
+    if whole_only.is_some() {
+        server.shutdown().await;
+        return;
+    }
     let link = LinkEmulator::start(
         addr,
         LinkConfig::wan(Duration::from_millis(25), 100_000_000 / 8),

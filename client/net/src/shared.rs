@@ -1,7 +1,7 @@
 //! State shared by the caller's handle and the connection task: counters, the current scene,
 //! the received-bytes budget (backpressure) and request times (latency).
 
-use std::collections::HashMap;
+use rustc_hash::FxHashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -131,14 +131,14 @@ impl Drop for BufferLease {
 /// be in flight), so it never grows beyond two lists.
 #[derive(Debug, Default)]
 pub(crate) struct LatencyTracker {
-    current: HashMap<TreeletId, Instant>,
-    previous: HashMap<TreeletId, Instant>,
+    current: FxHashMap<TreeletId, Instant>,
+    previous: FxHashMap<TreeletId, Instant>,
 }
 
 impl LatencyTracker {
     /// A list naming `ids` was sent at `now`.
     pub fn list_sent(&mut self, ids: impl IntoIterator<Item = TreeletId>, now: Instant) {
-        let mut next = HashMap::new();
+        let mut next = FxHashMap::default();
         for id in ids {
             if next.contains_key(&id) {
                 continue;

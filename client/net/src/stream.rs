@@ -1,11 +1,13 @@
 //! Reading treelet messages from server-opened unidirectional streams.
 //!
-//! A stream carries one or more treelet messages back to back. Each is read in three bounded
-//! steps: the fixed header start, then the rest of the header (its length follows from the
-//! channel count), which is validated before any block byte is read; then budget for the whole
-//! message (at most [`MAX_TREELET_MESSAGE_BYTES`]) is reserved from the client's buffer bound,
-//! waiting while the caller has not taken enough earlier treelets, and only then the blocks are
-//! read. A reset stream (the server cancelled a treelet nobody wants any more) is dropped
+//! A stream carries one or more treelet messages back to back. The stream is read a chunk (one
+//! received STREAM frame, at most a datagram) at a time into one buffer, and each message is
+//! taken from it in three bounded steps: the fixed header start, then the rest of the header (its
+//! length follows from the channel count), which is validated before any block byte is needed;
+//! then budget for the whole message (at most [`MAX_TREELET_MESSAGE_BYTES`]) is reserved from the
+//! client's buffer bound, waiting while the caller has not taken enough earlier treelets, and only
+//! then are the blocks read. A stream is thus read at most one chunk ahead of what is reserved,
+//! and a message costs about one read from quinn instead of three. A reset stream (the server cancelled a treelet nobody wants any more) is dropped
 //! quietly; anything malformed or unasked-for closes the connection with
 //! [`ErrorCode::ProtocolViolation`].
 
@@ -14,10 +16,11 @@ use std::time::Instant;
 
 use arbor_proto::Channel;
 use arbor_proto::frame::{decode_treelet_message, parse_treelet_header};
-use arbor_proto::limits::{MAX_TREELET_MESSAGE_BYTES, MAX_TREELET_MESSAGE_HEADER};
+use arbor_proto::limits::MAX_TREELET_MESSAGE_BYTES;
 use arbor_proto::wire::ErrorCode;
 use bytes::Bytes;
-use quinn::{ReadError, ReadExactError, RecvStream, VarInt};
+use bytes::BytesMut;
+use quinn::{ReadError, RecvStream, VarInt};
 use tokio::sync::mpsc;
 
 use super::event::{ClientEvent, ReceivedTreelet};
@@ -93,31 +96,61 @@ pub(crate) async fn read_stream(mut recv: RecvStream, ctx: Arc<StreamContext>) {
     }
 }
 
+/// A stream's bytes read from quinn and not yet taken as messages.
+struct Incoming<'a> {
+    recv: &'a mut RecvStream,
+    buf: BytesMut,
+}
+
+/// Why [`Incoming::fill`] could not provide the bytes asked for.
+enum FillError {
+    /// The stream finished with this many bytes left unparsed.
+    Finished(usize),
+    Read(ReadError),
+}
+
+impl Incoming<'_> {
+    /// Reads chunks until at least `n` bytes are buffered.
+    async fn fill(&mut self, n: usize) -> Result<(), FillError> {
+        while self.buf.len() < n {
+            match self.recv.read_chunk(usize::MAX, true).await {
+                Ok(Some(chunk)) => self.buf.extend_from_slice(&chunk.bytes),
+                Ok(None) => return Err(FillError::Finished(self.buf.len())),
+                Err(e) => return Err(FillError::Read(e)),
+            }
+        }
+        Ok(())
+    }
+}
+
 async fn read_messages(recv: &mut RecvStream, ctx: &Arc<StreamContext>) -> StreamEnd {
-    let mut head = [0u8; MAX_TREELET_MESSAGE_HEADER];
+    let mut incoming = Incoming {
+        recv,
+        buf: BytesMut::new(),
+    };
     loop {
-        match recv.read_exact(&mut head[..FIXED_HEADER]).await {
+        match incoming.fill(FIXED_HEADER).await {
             Ok(()) => {}
             // A clean end between messages.
-            Err(ReadExactError::FinishedEarly(0)) => return StreamEnd::Quiet,
-            Err(ReadExactError::FinishedEarly(n)) => {
+            Err(FillError::Finished(0)) => return StreamEnd::Quiet,
+            Err(FillError::Finished(n)) => {
                 return StreamEnd::Violation(format!("stream ends {n} bytes into a message"));
             }
-            Err(ReadExactError::ReadError(e)) => return read_failed(e),
+            Err(FillError::Read(e)) => return read_failed(e),
         }
         // Rejects a bad id, node count or channel count before reading further.
-        if let Err(e) = parse_treelet_header(&head[..FIXED_HEADER]) {
+        if let Err(e) = parse_treelet_header(&incoming.buf[..FIXED_HEADER]) {
             return StreamEnd::Violation(e.to_string());
         }
-        let header_len = FIXED_HEADER + 5 * usize::from(head[6]) + 4;
-        match recv.read_exact(&mut head[FIXED_HEADER..header_len]).await {
+        let header_len = FIXED_HEADER + 5 * usize::from(incoming.buf[6]) + 4;
+        match incoming.fill(header_len).await {
             Ok(()) => {}
-            Err(ReadExactError::FinishedEarly(_)) => {
+            Err(FillError::Finished(_)) => {
                 return StreamEnd::Violation("stream ends inside a message header".into());
             }
-            Err(ReadExactError::ReadError(e)) => return read_failed(e),
+            Err(FillError::Read(e)) => return read_failed(e),
         }
-        let header = match parse_treelet_header(&head[..header_len]) {
+        let header = match parse_treelet_header(&incoming.buf[..header_len]) {
             Ok(Some(h)) => h,
             Ok(None) => return StreamEnd::Violation("incomplete message header".into()),
             Err(e) => return StreamEnd::Violation(e.to_string()),
@@ -152,21 +185,19 @@ async fn read_messages(recv: &mut RecvStream, ctx: &Arc<StreamContext>) -> Strea
         }
 
         // Backpressure: wait for room before reading the blocks.
+        let (id, block_bytes) = (header.id, total - header_len);
         let lease = ctx.shared.reserve(total).await;
-        let mut buf = vec![0u8; total];
-        buf[..header_len].copy_from_slice(&head[..header_len]);
-        match recv.read_exact(&mut buf[header_len..]).await {
+        match incoming.fill(total).await {
             Ok(()) => {}
-            Err(ReadExactError::FinishedEarly(n)) => {
+            Err(FillError::Finished(n)) => {
                 return StreamEnd::Violation(format!(
-                    "stream ends after {n} of the {} block bytes of treelet {}",
-                    total - header_len,
-                    header.id
+                    "stream ends after {} of the {block_bytes} block bytes of treelet {id}",
+                    n - header_len
                 ));
             }
-            Err(ReadExactError::ReadError(e)) => return read_failed(e),
+            Err(FillError::Read(e)) => return read_failed(e),
         }
-        let bytes = Bytes::from(buf);
+        let bytes: Bytes = incoming.buf.split_to(total).freeze();
         let treelet = match decode_treelet_message(&bytes) {
             Ok(m) => {
                 // Slice the blocks out of the one buffer without copying.

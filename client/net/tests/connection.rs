@@ -403,6 +403,57 @@ async fn an_unrequested_channel_is_a_protocol_violation() {
 }
 
 #[tokio::test]
+async fn messages_on_one_stream_split_at_any_byte_arrive_whole() {
+    let id = Identity::self_signed();
+    let mut behaviour = Behaviour::new(TOKEN);
+    // 916 bytes per message (16 of header, 600 node bytes, 300 colour bytes) written 97 bytes
+    // at a time: messages start and end inside chunks, and headers straddle chunks.
+    behaviour.one_stream_pieces = Some(97);
+    let node_bytes = behaviour.node_bytes;
+    let server = FakeServer::start(&id, loopback(), behaviour).await;
+    let mut client = TreeletClient::start(config(&server, &id)).unwrap();
+    let list: Vec<(TreeletId, f32)> = (1..=12).map(|i| (TreeletId(i), 100.0 - i as f32)).collect();
+    client.request(list.clone()).unwrap();
+    connected(&mut client).await;
+    let got = treelets(&mut client, list.len()).await;
+    // One stream carries them in the list's order.
+    assert_eq!(got.iter().map(|t| t.id.0).collect::<Vec<_>>(), ids(&list));
+    for t in &got {
+        check_bytes(t, node_bytes);
+    }
+    assert_eq!(client.stats().treelets_received, list.len() as u64);
+    client.close().await;
+    server.stop(ErrorCode::NoError).await;
+}
+
+#[tokio::test]
+async fn a_stream_cut_inside_a_message_is_a_protocol_violation() {
+    let id = Identity::self_signed();
+    let mut behaviour = Behaviour::new(TOKEN);
+    behaviour.one_stream_pieces = Some(500);
+    behaviour.cut_last = 10;
+    let server = FakeServer::start(&id, loopback(), behaviour).await;
+    let mut client = TreeletClient::start(config(&server, &id)).unwrap();
+    client
+        .request(vec![(TreeletId(1), 2.0), (TreeletId(2), 1.0)])
+        .unwrap();
+    connected(&mut client).await;
+    // The first message is whole and arrives; the second ends 10 bytes short.
+    let ClientEvent::Treelet(first) = event(&mut client).await else {
+        panic!("expected the whole first treelet");
+    };
+    assert_eq!(first.id, TreeletId(1));
+    let ClientEvent::Disconnected { code, reason, .. } = event(&mut client).await else {
+        panic!("expected Disconnected, not a cut treelet");
+    };
+    assert_eq!(code, Some(ErrorCode::ProtocolViolation), "{reason}");
+    assert!(reason.contains("block bytes of treelet 2"), "{reason}");
+    assert_eq!(client.stats().treelets_received, 1);
+    client.close().await;
+    server.stop(ErrorCode::NoError).await;
+}
+
+#[tokio::test]
 async fn certificate_trust_pin_and_ca() {
     // A CA-signed server, trusted through its CA, by IP address and by name.
     let ca_signed = Identity::ca_signed();

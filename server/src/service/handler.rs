@@ -4,7 +4,7 @@
 //! mini-redis style. [`serve`] runs `Hello`, registers the connection with the scheduler and
 //! drives the loop; each event method returns `Some(end)` when the connection must end.
 
-use std::collections::HashMap;
+use rustc_hash::FxHashMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
@@ -96,9 +96,9 @@ struct Handler {
     /// One task per batch in flight, with its batch number.
     streams: JoinSet<(u64, Vec<TreeletId>, Outcome)>,
     /// The batch of each treelet in flight.
-    batch_of: HashMap<TreeletId, u64>,
+    batch_of: FxHashMap<TreeletId, u64>,
     /// Per batch: how to cancel it, and how many of its treelets the latest list still wants.
-    batches: HashMap<u64, (oneshot::Sender<ErrorCode>, usize)>,
+    batches: FxHashMap<u64, (oneshot::Sender<ErrorCode>, usize)>,
     next_batch: u64,
     /// Rank of the next treelet started under the current list (0 = the list's first).
     rank: i32,
@@ -170,8 +170,8 @@ impl Handler {
             opens,
             opener,
             streams: JoinSet::new(),
-            batch_of: HashMap::new(),
-            batches: HashMap::new(),
+            batch_of: FxHashMap::default(),
+            batches: FxHashMap::default(),
             next_batch: 0,
             rank: 0,
             reading: true,
@@ -381,9 +381,13 @@ impl Handler {
                     format!("treelets {batch:?} unavailable"),
                 ))
             }
-            Outcome::Lost | Outcome::Delivered | Outcome::Cancelled | Outcome::StoppedByPeer => {
+            Outcome::Delivered => {
+                // A delivery is news of the path: the window follows the congestion window
+                // now, not at the next tick (a small scene is sent whole before a tick).
+                self.update_window();
                 None
             }
+            Outcome::Lost | Outcome::Cancelled | Outcome::StoppedByPeer => None,
         }
     }
 
@@ -401,6 +405,24 @@ impl Handler {
                 ),
             ));
         }
+        let rtt = self.update_window();
+        let stats = {
+            let mut core = self.shared.core();
+            let _ = core.sched.set_redelivery_guard(self.id, rtt + CLIENT_CYCLE);
+            core.sched.stats(self.id)
+        };
+        if let Some(st) = stats {
+            self.shared.state.update_session(self.id.0, |s| {
+                s.queue_depth = st.queue_depth as u64;
+                s.in_flight = st.in_flight as u64;
+            });
+        }
+        None
+    }
+
+    /// The window from quinn's RTT and congestion window; returns the RTT.
+    fn update_window(&mut self) -> Duration {
+        let config = &self.shared.config;
         let rtt = self.conn.rtt();
         let cwnd = self.conn.stats().path.cwnd;
         // Twice the congestion window per round trip: a connection kept within its window is
@@ -414,26 +436,13 @@ impl Handler {
             config.window_min,
             config.window_max,
         );
-        let stats = {
-            let mut core = self.shared.core();
-            if w != self.window {
-                let _ = core.sched.set_window(self.id, w);
-            }
-            let _ = core.sched.set_redelivery_guard(self.id, rtt + CLIENT_CYCLE);
-            core.sched.stats(self.id)
-        };
         if w != self.window {
+            let _ = self.shared.core().sched.set_window(self.id, w);
             tracing::trace!(window = w, rtt_us = rtt.as_micros() as u64, cwnd, "window");
             self.window = w;
             self.shared.wake.notify_one();
         }
-        if let Some(st) = stats {
-            self.shared.state.update_session(self.id.0, |s| {
-                s.queue_depth = st.queue_depth as u64;
-                s.in_flight = st.in_flight as u64;
-            });
-        }
-        None
+        rtt
     }
 
     /// Shutdown of one connection: stop taking lists, let in-flight streams finish until the

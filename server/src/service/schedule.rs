@@ -62,7 +62,9 @@
 
 use std::cmp::Ordering;
 use std::collections::hash_map::Entry;
-use std::collections::{BinaryHeap, HashMap, VecDeque};
+use std::collections::{BinaryHeap, VecDeque};
+
+use rustc_hash::FxHashMap;
 use std::fmt;
 use std::time::{Duration, Instant};
 
@@ -249,10 +251,10 @@ struct Conn {
     cursor: usize,
     /// Cancelled treelets the current list still wants.
     retry: BinaryHeap<Retry>,
-    in_flight: HashMap<TreeletId, Flight>,
+    in_flight: FxHashMap<TreeletId, Flight>,
     /// Deliveries within the redelivery guard, oldest first, and the latest time per id.
     recent: VecDeque<(Instant, TreeletId)>,
-    recent_at: HashMap<TreeletId, Instant>,
+    recent_at: FxHashMap<TreeletId, Instant>,
     in_ring: bool,
     stats: ConnectionStats,
 }
@@ -265,9 +267,9 @@ impl Conn {
             queue: Vec::new(),
             cursor: 0,
             retry: BinaryHeap::new(),
-            in_flight: HashMap::new(),
+            in_flight: FxHashMap::default(),
             recent: VecDeque::new(),
-            recent_at: HashMap::new(),
+            recent_at: FxHashMap::default(),
             in_ring: false,
             stats: ConnectionStats::default(),
         }
@@ -353,7 +355,7 @@ impl Conn {
 #[derive(Debug)]
 pub struct Scheduler {
     config: SchedulerConfig,
-    conns: HashMap<ConnectionId, Conn>,
+    conns: FxHashMap<ConnectionId, Conn>,
     /// Connections that have work and window room, in round-robin order.
     ring: VecDeque<ConnectionId>,
     total_in_flight: usize,
@@ -369,7 +371,7 @@ impl Scheduler {
     pub fn new(config: SchedulerConfig) -> Self {
         Self {
             config,
-            conns: HashMap::new(),
+            conns: FxHashMap::default(),
             ring: VecDeque::new(),
             total_in_flight: 0,
         }

@@ -8,7 +8,9 @@
 //! after an eviction — costs no pool read, no decompression and no copy: the cached [`Bytes`]
 //! go to the wire as they are. Nothing is ever recompressed.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::VecDeque;
+
+use rustc_hash::FxHashMap;
 use std::sync::{Arc, Mutex};
 
 use arbor_proto::codec::{self, MAX_RAW_TREELET};
@@ -64,7 +66,7 @@ pub struct MessageCache {
 
 #[derive(Debug, Default)]
 struct CacheInner {
-    map: HashMap<MessageKey, Bytes>,
+    map: FxHashMap<MessageKey, Bytes>,
     order: VecDeque<MessageKey>,
     bytes: usize,
     hits: u64,

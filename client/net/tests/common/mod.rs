@@ -157,6 +157,11 @@ pub struct Behaviour {
     pub all_channels: bool,
     /// Bytes of each treelet's node block; channel blocks are half of it.
     pub node_bytes: usize,
+    /// Send all treelets newly named by a list on one stream, written in pieces of this many
+    /// bytes a moment apart (so the client reads them in chunks that split messages anywhere).
+    pub one_stream_pieces: Option<usize>,
+    /// Bytes cut off the end of that one stream (a message cut short).
+    pub cut_last: usize,
 }
 
 impl Behaviour {
@@ -168,6 +173,8 @@ impl Behaviour {
             close_after_lists: None,
             all_channels: false,
             node_bytes: 600,
+            one_stream_pieces: None,
+            cut_last: 0,
         }
     }
 
@@ -339,6 +346,30 @@ async fn serve(conn: Connection, b: Behaviour, log: Arc<Mutex<Log>>, index: usiz
                 let mut order = items.clone();
                 order.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
                 let mut streams = Vec::new();
+                if let Some(piece) = b.one_stream_pieces {
+                    let fresh: Vec<TreeletId> = order
+                        .iter()
+                        .map(|o| o.0)
+                        .filter(|&id| sent.insert(id))
+                        .collect();
+                    let mut bytes: Vec<u8> = fresh
+                        .iter()
+                        .flat_map(|&id| b.message(id, &channels))
+                        .collect();
+                    bytes.truncate(bytes.len().saturating_sub(b.cut_last));
+                    let Ok(mut s) = conn.open_uni().await else {
+                        return;
+                    };
+                    for part in bytes.chunks(piece.max(1)) {
+                        if s.write_all(part).await.is_err() {
+                            return;
+                        }
+                        tokio::time::sleep(Duration::from_millis(1)).await;
+                    }
+                    let _ = s.finish();
+                    log.lock().unwrap().sent.extend(fresh);
+                    continue;
+                }
                 for (id, _) in order {
                     if !sent.insert(id) {
                         continue;
