@@ -1,11 +1,11 @@
 //! State shared by the caller's handle and the connection task: counters, the current scene,
 //! the received-bytes budget (backpressure) and request times (latency).
 
-use rustc_hash::FxHashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use arbor_proto::{SceneDescription, TreeletId};
+use rustc_hash::FxHashMap;
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 use super::event::{ClientEvent, ClientStats};

@@ -24,10 +24,10 @@
 //!    Finishing a stream reports `handle_sent` (and the request-to-send latency), its
 //!    acknowledgement `handle_delivered`, a reset or failure `handle_cancelled`. A stream that
 //!    ends unfinished is always reset, never left looking complete.
-//! 5. Every 50 ms the window is recomputed from quinn's RTT and congestion window
-//!    (bandwidth ≈ cwnd / RTT, so the window is about one congestion window of treelets), and
-//!    the slow-reader watchdog runs: treelets in flight and no stream progress (opened, written,
-//!    acknowledged) for `slow_reader_timeout_ms` → `SlowReader`.
+//! 5. On every delivered batch and every 50 ms the window is recomputed from quinn's RTT and
+//!    congestion window (bandwidth ≈ cwnd / RTT, so the window is about one congestion window of
+//!    treelets); every 50 ms the slow-reader watchdog runs: treelets in flight and no stream
+//!    progress (opened, written, acknowledged) for `slow_reader_timeout_ms` → `SlowReader`.
 //! 6. Closing with a code first writes an `Error` (or `Goodbye`) frame on the control stream and
 //!    waits up to `CLOSE_FLUSH` (300 ms) for it to be acknowledged, then closes the connection with the
 //!    same code and counts it in `errors_total`.

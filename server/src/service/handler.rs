@@ -4,7 +4,6 @@
 //! mini-redis style. [`serve`] runs `Hello`, registers the connection with the scheduler and
 //! drives the loop; each event method returns `Some(end)` when the connection must end.
 
-use rustc_hash::FxHashMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
@@ -12,6 +11,7 @@ use std::time::{Duration, Instant};
 use arbor_proto::limits::MAX_REQUEST_ITEMS;
 use arbor_proto::wire::{ErrorCode, Frame, ViewHint};
 use arbor_proto::{Channel, TreeletId};
+use rustc_hash::FxHashMap;
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 

@@ -63,13 +63,12 @@
 use std::cmp::Ordering;
 use std::collections::hash_map::Entry;
 use std::collections::{BinaryHeap, VecDeque};
-
-use rustc_hash::FxHashMap;
 use std::fmt;
 use std::time::{Duration, Instant};
 
 use arbor_proto::TreeletId;
 use arbor_proto::limits::MAX_REQUEST_ITEMS;
+use rustc_hash::FxHashMap;
 
 /// A connection, as the service numbers them.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]

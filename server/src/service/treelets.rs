@@ -9,14 +9,13 @@
 //! go to the wire as they are. Nothing is ever recompressed.
 
 use std::collections::VecDeque;
-
-use rustc_hash::FxHashMap;
 use std::sync::{Arc, Mutex};
 
 use arbor_proto::codec::{self, MAX_RAW_TREELET};
 use arbor_proto::frame::{FrameError, encode_treelet_header};
 use arbor_proto::{Channel, ProtoError, TreeletId};
 use bytes::Bytes;
+use rustc_hash::FxHashMap;
 
 use super::push::TreeIndex;
 use crate::pool::{PoolError, StoredScene};
