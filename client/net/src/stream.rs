@@ -1,25 +1,28 @@
 //! Reading treelet messages from server-opened unidirectional streams.
 //!
 //! A stream carries one or more treelet messages back to back. The stream is read a chunk (one
-//! received STREAM frame, at most a datagram) at a time into one buffer, and each message is
-//! taken from it in three bounded steps: the fixed header start, then the rest of the header (its
-//! length follows from the channel count), which is validated before any block byte is needed;
-//! then budget for the whole message (at most [`MAX_TREELET_MESSAGE_BYTES`]) is reserved from the
-//! client's buffer bound, waiting while the caller has not taken enough earlier treelets, and only
-//! then are the blocks read. A stream is thus read at most one chunk ahead of what is reserved,
-//! and a message costs about one read from quinn instead of three. A reset stream (the server cancelled a treelet nobody wants any more) is dropped
-//! quietly; anything malformed or unasked-for closes the connection with
+//! received STREAM frame, at most a datagram) at a time, the chunks kept as quinn hands them
+//! over, and each message is taken from them in three bounded steps: the fixed header start,
+//! then the rest of the header (its length follows from the channel count), which is validated
+//! before any block byte is needed; then budget for the whole message (at most
+//! [`MAX_TREELET_MESSAGE_BYTES`]) is reserved from the client's buffer bound, waiting while the
+//! caller has not taken enough earlier treelets, and only then are the blocks read. A stream is
+//! thus read at most one chunk ahead of what is reserved, and a message costs about one read from
+//! quinn. A message that lies within one chunk (most do: a compressed treelet is usually smaller
+//! than a datagram) is a slice of that chunk, not a copy; one that straddles chunks is copied
+//! together once. A reset stream (the server cancelled a treelet nobody wants any more) is
+//! dropped quietly; anything malformed or unasked-for closes the connection with
 //! [`ErrorCode::ProtocolViolation`].
 
+use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use arbor_proto::Channel;
-use arbor_proto::frame::{decode_treelet_message, parse_treelet_header};
+use arbor_proto::frame::parse_treelet_header;
 use arbor_proto::limits::MAX_TREELET_MESSAGE_BYTES;
 use arbor_proto::wire::ErrorCode;
-use bytes::Bytes;
-use bytes::BytesMut;
+use bytes::{Buf, Bytes, BytesMut};
 use quinn::{ReadError, RecvStream, VarInt};
 use tokio::sync::mpsc;
 
@@ -96,10 +99,15 @@ pub(crate) async fn read_stream(mut recv: RecvStream, ctx: Arc<StreamContext>) {
     }
 }
 
-/// A stream's bytes read from quinn and not yet taken as messages.
+/// A stream's bytes read from quinn and not yet taken as messages: the received chunks as
+/// quinn handed them over, oldest first (the first may be partly taken).
 struct Incoming<'a> {
     recv: &'a mut RecvStream,
-    buf: BytesMut,
+    chunks: VecDeque<Bytes>,
+    /// Bytes in `chunks`.
+    len: usize,
+    /// A header that straddles chunks, copied together.
+    scratch: Vec<u8>,
 }
 
 /// Why [`Incoming::fill`] could not provide the bytes asked for.
@@ -112,21 +120,71 @@ enum FillError {
 impl Incoming<'_> {
     /// Reads chunks until at least `n` bytes are buffered.
     async fn fill(&mut self, n: usize) -> Result<(), FillError> {
-        while self.buf.len() < n {
+        while self.len < n {
             match self.recv.read_chunk(usize::MAX, true).await {
-                Ok(Some(chunk)) => self.buf.extend_from_slice(&chunk.bytes),
-                Ok(None) => return Err(FillError::Finished(self.buf.len())),
+                Ok(Some(chunk)) => {
+                    self.len += chunk.bytes.len();
+                    self.chunks.push_back(chunk.bytes);
+                }
+                Ok(None) => return Err(FillError::Finished(self.len)),
                 Err(e) => return Err(FillError::Read(e)),
             }
         }
         Ok(())
+    }
+
+    /// The first `n` buffered bytes (`n` ≤ what [`Incoming::fill`] provided) as one slice:
+    /// borrowed from the first chunk when they lie in it, else copied together.
+    fn peek(&mut self, n: usize) -> &[u8] {
+        if self.chunks.front().is_some_and(|c| c.len() >= n) {
+            return &self.chunks[0][..n];
+        }
+        self.scratch.clear();
+        for c in &self.chunks {
+            let take = (n - self.scratch.len()).min(c.len());
+            self.scratch.extend_from_slice(&c[..take]);
+            if self.scratch.len() == n {
+                break;
+            }
+        }
+        &self.scratch
+    }
+
+    /// Takes the first `n` buffered bytes (`n` ≤ what [`Incoming::fill`] provided): a slice of
+    /// the chunk that holds them all without a copy (the common case: most messages are smaller
+    /// than a datagram), else copied together once.
+    fn take(&mut self, n: usize) -> Bytes {
+        self.len -= n;
+        match self.chunks.front_mut() {
+            Some(front) if front.len() > n => return front.split_to(n),
+            Some(front) if front.len() == n => {
+                return self.chunks.pop_front().unwrap_or_default();
+            }
+            _ => {}
+        }
+        let mut out = BytesMut::with_capacity(n);
+        while out.len() < n {
+            let Some(front) = self.chunks.front_mut() else {
+                break;
+            };
+            let take = (n - out.len()).min(front.len());
+            out.extend_from_slice(&front[..take]);
+            if take == front.len() {
+                self.chunks.pop_front();
+            } else {
+                front.advance(take);
+            }
+        }
+        out.freeze()
     }
 }
 
 async fn read_messages(recv: &mut RecvStream, ctx: &Arc<StreamContext>) -> StreamEnd {
     let mut incoming = Incoming {
         recv,
-        buf: BytesMut::new(),
+        chunks: VecDeque::new(),
+        len: 0,
+        scratch: Vec::new(),
     };
     loop {
         match incoming.fill(FIXED_HEADER).await {
@@ -139,10 +197,11 @@ async fn read_messages(recv: &mut RecvStream, ctx: &Arc<StreamContext>) -> Strea
             Err(FillError::Read(e)) => return read_failed(e),
         }
         // Rejects a bad id, node count or channel count before reading further.
-        if let Err(e) = parse_treelet_header(&incoming.buf[..FIXED_HEADER]) {
+        let fixed = incoming.peek(FIXED_HEADER);
+        if let Err(e) = parse_treelet_header(fixed) {
             return StreamEnd::Violation(e.to_string());
         }
-        let header_len = FIXED_HEADER + 5 * usize::from(incoming.buf[6]) + 4;
+        let header_len = FIXED_HEADER + 5 * usize::from(fixed[6]) + 4;
         match incoming.fill(header_len).await {
             Ok(()) => {}
             Err(FillError::Finished(_)) => {
@@ -150,7 +209,7 @@ async fn read_messages(recv: &mut RecvStream, ctx: &Arc<StreamContext>) -> Strea
             }
             Err(FillError::Read(e)) => return read_failed(e),
         }
-        let header = match parse_treelet_header(&incoming.buf[..header_len]) {
+        let header = match parse_treelet_header(incoming.peek(header_len)) {
             Ok(Some(h)) => h,
             Ok(None) => return StreamEnd::Violation("incomplete message header".into()),
             Err(e) => return StreamEnd::Violation(e.to_string()),
@@ -197,31 +256,37 @@ async fn read_messages(recv: &mut RecvStream, ctx: &Arc<StreamContext>) -> Strea
             }
             Err(FillError::Read(e)) => return read_failed(e),
         }
-        let bytes: Bytes = incoming.buf.split_to(total).freeze();
-        let treelet = match decode_treelet_message(&bytes) {
-            Ok(m) => {
-                // Slice the blocks out of the one buffer without copying.
-                let slice = |part: &[u8]| bytes.slice_ref(part);
-                ReceivedTreelet {
-                    id: m.id,
-                    used_nodes: m.used_nodes,
-                    nodes: slice(m.nodes),
-                    channels: m.channels.iter().map(|&(c, b)| (c, slice(b))).collect(),
-                    latency: Default::default(),
-                    wire_bytes: total,
-                }
-            }
-            Err(e) => return StreamEnd::Violation(e.to_string()),
+        // The header is validated and the message is exactly `total` bytes: the blocks are
+        // sliced out of it by the header's lengths, without a copy.
+        let bytes = incoming.take(total);
+        let mut at = header_len;
+        let mut block = |len: usize| {
+            let b = bytes.slice(at..at + len);
+            at += len;
+            b
         };
-        let now = Instant::now();
-        let latency = ctx.shared.latency().arrived(treelet.id, now);
+        let nodes = block(header.node_len);
+        let channels = header
+            .channels
+            .iter()
+            .map(|&(c, len)| (c, block(len)))
+            .collect();
+        let latency = ctx.shared.latency().arrived(id, Instant::now());
+        let treelet = ReceivedTreelet {
+            id,
+            used_nodes: header.used_nodes,
+            nodes,
+            channels,
+            latency,
+            wire_bytes: total,
+        };
         {
             let mut s = ctx.shared.stats();
             s.treelets_received += 1;
             s.bytes_received += total as u64;
         }
         let queued = Queued {
-            event: ClientEvent::Treelet(ReceivedTreelet { latency, ..treelet }),
+            event: ClientEvent::Treelet(treelet),
             _lease: Some(lease),
         };
         if ctx.events.send(queued).is_err() {

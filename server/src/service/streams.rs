@@ -169,13 +169,10 @@ async fn transfer(
     cancel: &mut oneshot::Receiver<ErrorCode>,
 ) -> Outcome {
     // Read (or take from the cache) while the stream is being opened.
-    let mut messages = Vec::with_capacity(batch.len());
-    for &t in batch {
-        match ctx.scene.message(t, &ctx.channels) {
-            Ok(m) => messages.push(m),
-            Err(e) => return Outcome::Failed(e.to_string()),
-        }
-    }
+    let mut messages = match ctx.scene.messages(batch, &ctx.channels) {
+        Ok(m) => m,
+        Err(e) => return Outcome::Failed(e.to_string()),
+    };
     let len: u64 = messages.iter().map(|m| m.len() as u64).sum();
     let cancelled = |r: Result<ErrorCode, oneshot::error::RecvError>| r.unwrap_or(CANCEL_CODE);
     let step = tokio::select! {

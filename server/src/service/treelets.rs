@@ -96,6 +96,16 @@ impl MessageCache {
         hit
     }
 
+    /// Hits for `keys`, in order, under one lock (a batch of a stream is looked up at once).
+    fn get_many(&self, keys: impl Iterator<Item = MessageKey>) -> Vec<Option<Bytes>> {
+        let mut inner = self.lock();
+        let found: Vec<Option<Bytes>> = keys.map(|k| inner.map.get(&k).cloned()).collect();
+        let hits = found.iter().filter(|m| m.is_some()).count() as u64;
+        inner.hits += hits;
+        inner.misses += found.len() as u64 - hits;
+        found
+    }
+
     fn insert(&self, key: MessageKey, message: Bytes) {
         if message.len() > self.capacity {
             return;
@@ -199,13 +209,45 @@ impl ServedScene {
     /// by the scene): header + node block + channel blocks, byte for byte as stored; from the
     /// cache when it was built before.
     pub fn message(&self, id: TreeletId, channels: &[Channel]) -> Result<Bytes, MessageError> {
-        let mask = channels
-            .iter()
-            .fold(0u32, |m, c| m | 1 << (c.id() as u32 & 31));
-        let key = (self.stored.generation, id.0, mask);
+        let key = self.key(id, channels);
         if let Some(hit) = self.cache.get(&key) {
             return Ok(hit);
         }
+        self.build_and_cache(key, id, channels)
+    }
+
+    /// [`ServedScene::message`] for each of `ids`, in order; the cache is asked for all of them
+    /// under one lock.
+    pub fn messages(
+        &self,
+        ids: &[TreeletId],
+        channels: &[Channel],
+    ) -> Result<Vec<Bytes>, MessageError> {
+        let found = self
+            .cache
+            .get_many(ids.iter().map(|&id| self.key(id, channels)));
+        ids.iter()
+            .zip(found)
+            .map(|(&id, hit)| match hit {
+                Some(m) => Ok(m),
+                None => self.build_and_cache(self.key(id, channels), id, channels),
+            })
+            .collect()
+    }
+
+    fn key(&self, id: TreeletId, channels: &[Channel]) -> MessageKey {
+        let mask = channels
+            .iter()
+            .fold(0u32, |m, c| m | 1 << (c.id() as u32 & 31));
+        (self.stored.generation, id.0, mask)
+    }
+
+    fn build_and_cache(
+        &self,
+        key: MessageKey,
+        id: TreeletId,
+        channels: &[Channel],
+    ) -> Result<Bytes, MessageError> {
         let message = Bytes::from(self.build(id, channels)?);
         self.cache.insert(key, message.clone());
         Ok(message)
