@@ -183,18 +183,11 @@ impl ServedScene {
     /// `used_nodes` of a treelet, from its node block.
     fn used_nodes(&self, id: TreeletId, nodes: &[u8]) -> Result<u16, MessageError> {
         let corrupt = |source| MessageError::Corrupt { id: id.0, source };
-        let compression = |e: std::io::Error| {
-            corrupt(ProtoError::Compression {
-                what: "decompress",
-                detail: e.to_string(),
-            })
-        };
-        let mut d = match &self.dictionary {
-            Some(dict) => zstd::bulk::Decompressor::with_prepared_dictionary(dict),
-            None => zstd::bulk::Decompressor::new(),
+        let raw = match &self.dictionary {
+            Some(dict) => codec::decompress_prepared(nodes, MAX_RAW_TREELET, dict),
+            None => codec::decompress(nodes, MAX_RAW_TREELET, None),
         }
-        .map_err(compression)?;
-        let raw = d.decompress(nodes, MAX_RAW_TREELET).map_err(compression)?;
+        .map_err(corrupt)?;
         let (header, _) = codec::decode_header(&raw).map_err(corrupt)?;
         if header.id != id {
             return Err(corrupt(ProtoError::OutOfRange {
