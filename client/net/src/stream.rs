@@ -10,9 +10,11 @@
 //! thus read at most one chunk ahead of what is reserved, and a message costs about one read from
 //! quinn. A message that lies within one chunk (most do: a compressed treelet is usually smaller
 //! than a datagram) is a slice of that chunk, not a copy; one that straddles chunks is copied
-//! together once. A reset stream (the server cancelled a treelet nobody wants any more) is
-//! dropped quietly; anything malformed or unasked-for closes the connection with
-//! [`ErrorCode::ProtocolViolation`].
+//! together once. A slice keeps the buffer quinn received it in (a datagram, or a batch of them)
+//! alive until the caller drops the treelet, so a caller holding received treelets holds a little
+//! more than the budget counts; the session decodes each arrival in the cycle it comes. A reset
+//! stream (the server cancelled a treelet nobody wants any more) is dropped quietly; anything
+//! malformed or unasked-for closes the connection with [`ErrorCode::ProtocolViolation`].
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
