@@ -262,15 +262,8 @@ mod raw {
 
     async fn connect(raw_addr: SocketAddr, cc: quinn::ClientConfig) -> Connected {
         // The same UDP socket as Arbor's client (its larger receive buffer included).
-        let socket =
-            arbor_client_net::transport::client_socket("127.0.0.1:0".parse().unwrap()).unwrap();
-        let mut ep = quinn::Endpoint::new(
-            quinn::EndpointConfig::default(),
-            None,
-            socket,
-            quinn::default_runtime().unwrap(),
-        )
-        .unwrap();
+        let mut ep =
+            arbor_client_net::transport::client_endpoint("127.0.0.1:0".parse().unwrap()).unwrap();
         ep.set_default_client_config(cc);
         let conn = ep.connect(raw_addr, "localhost").unwrap().await.unwrap();
         (ep, conn)

@@ -21,7 +21,7 @@ use super::event::ClientEvent;
 use super::replicas::Replicas;
 use super::shared::{Queued, Shared};
 use super::stream::{LocalClose, StreamContext, close_locally, read_stream};
-use super::transport::{CLOSE_TIMEOUT, HANDSHAKE_TIMEOUT, HELLO_TIMEOUT, client_socket};
+use super::transport::{CLOSE_TIMEOUT, HANDSHAKE_TIMEOUT, HELLO_TIMEOUT, client_endpoint};
 use super::url::ServerUrl;
 
 /// The latest request list, shared between the handle and the task.
@@ -304,14 +304,7 @@ fn endpoint_for(slot: &mut Option<Endpoint>, addr: SocketAddr) -> std::io::Resul
     } else {
         (Ipv4Addr::UNSPECIFIED, 0).into()
     };
-    let runtime =
-        quinn::default_runtime().ok_or_else(|| std::io::Error::other("no async runtime"))?;
-    let ep = Endpoint::new(
-        quinn::EndpointConfig::default(),
-        None,
-        client_socket(bind)?,
-        runtime,
-    )?;
+    let ep = client_endpoint(bind)?;
     if let Some(old) = slot.replace(ep.clone()) {
         old.close(VarInt::from_u32(ErrorCode::NoError.to_u32()), b"");
     }

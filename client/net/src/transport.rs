@@ -55,13 +55,26 @@ pub fn transport_config(idle_timeout: Duration) -> TransportConfig {
 /// The client's UDP socket on `bind`, with a receive buffer of [`SOCKET_RECEIVE_BUFFER`] or as
 /// much of it as the system allows (less is not an error: the connection works, it just drops
 /// more under bursts).
-pub fn client_socket(bind: std::net::SocketAddr) -> std::io::Result<std::net::UdpSocket> {
+fn client_socket(bind: std::net::SocketAddr) -> std::io::Result<std::net::UdpSocket> {
     let socket = std::net::UdpSocket::bind(bind)?;
     let state = quinn::udp::UdpSocketState::new((&socket).into())?;
     if let Err(e) = state.set_recv_buffer_size((&socket).into(), SOCKET_RECEIVE_BUFFER) {
         tracing::debug!("the UDP receive buffer stays at the system default: {e}");
     }
     Ok(socket)
+}
+
+/// A client endpoint on `bind` over [`client_socket`]'s socket (quinn's `Endpoint::client` with a
+/// larger receive buffer). Needs a tokio runtime.
+pub fn client_endpoint(bind: std::net::SocketAddr) -> std::io::Result<quinn::Endpoint> {
+    let runtime =
+        quinn::default_runtime().ok_or_else(|| std::io::Error::other("no async runtime"))?;
+    quinn::Endpoint::new(
+        quinn::EndpointConfig::default(),
+        None,
+        client_socket(bind)?,
+        runtime,
+    )
 }
 
 /// The quinn client configuration for `trust` (TLS from [`rustls_client_config`]) with

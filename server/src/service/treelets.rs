@@ -85,21 +85,10 @@ impl MessageCache {
         self.inner.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    fn get(&self, key: &MessageKey) -> Option<Bytes> {
+    /// Hits for `keys`, in order, under one lock (a stream's batch is looked up at once).
+    fn get(&self, keys: &[MessageKey]) -> Vec<Option<Bytes>> {
         let mut inner = self.lock();
-        let hit = inner.map.get(key).cloned();
-        if hit.is_some() {
-            inner.hits += 1;
-        } else {
-            inner.misses += 1;
-        }
-        hit
-    }
-
-    /// Hits for `keys`, in order, under one lock (a batch of a stream is looked up at once).
-    fn get_many(&self, keys: impl Iterator<Item = MessageKey>) -> Vec<Option<Bytes>> {
-        let mut inner = self.lock();
-        let found: Vec<Option<Bytes>> = keys.map(|k| inner.map.get(&k).cloned()).collect();
+        let found: Vec<Option<Bytes>> = keys.iter().map(|k| inner.map.get(k).cloned()).collect();
         let hits = found.iter().filter(|m| m.is_some()).count() as u64;
         inner.hits += hits;
         inner.misses += found.len() as u64 - hits;
@@ -202,11 +191,9 @@ impl ServedScene {
     /// by the scene): header + node block + channel blocks, byte for byte as stored; from the
     /// cache when it was built before.
     pub fn message(&self, id: TreeletId, channels: &[Channel]) -> Result<Bytes, MessageError> {
-        let key = self.key(id, channels);
-        if let Some(hit) = self.cache.get(&key) {
-            return Ok(hit);
-        }
-        self.build_and_cache(key, id, channels)
+        Ok(self
+            .messages(std::slice::from_ref(&id), channels)?
+            .swap_remove(0))
     }
 
     /// [`ServedScene::message`] for each of `ids`, in order; the cache is asked for all of them
@@ -216,23 +203,22 @@ impl ServedScene {
         ids: &[TreeletId],
         channels: &[Channel],
     ) -> Result<Vec<Bytes>, MessageError> {
-        let found = self
-            .cache
-            .get_many(ids.iter().map(|&id| self.key(id, channels)));
-        ids.iter()
-            .zip(found)
-            .map(|(&id, hit)| match hit {
-                Some(m) => Ok(m),
-                None => self.build_and_cache(self.key(id, channels), id, channels),
-            })
-            .collect()
-    }
-
-    fn key(&self, id: TreeletId, channels: &[Channel]) -> MessageKey {
         let mask = channels
             .iter()
             .fold(0u32, |m, c| m | 1 << (c.id() as u32 & 31));
-        (self.stored.generation, id.0, mask)
+        let keys: Vec<MessageKey> = ids
+            .iter()
+            .map(|id| (self.stored.generation, id.0, mask))
+            .collect();
+        let found = self.cache.get(&keys);
+        keys.iter()
+            .zip(ids)
+            .zip(found)
+            .map(|((&key, &id), hit)| match hit {
+                Some(m) => Ok(m),
+                None => self.build_and_cache(key, id, channels),
+            })
+            .collect()
     }
 
     fn build_and_cache(
@@ -278,6 +264,10 @@ impl ServedScene {
 mod tests {
     use super::*;
 
+    fn hit(cache: &MessageCache, key: MessageKey) -> bool {
+        cache.get(&[key])[0].is_some()
+    }
+
     #[test]
     fn the_cache_stays_within_its_bytes_and_evicts_the_oldest() {
         let cache = MessageCache::new(100);
@@ -286,15 +276,21 @@ mod tests {
             assert!(cache.figures().0 <= 100);
         }
         // The last three fit; older ones are gone.
-        assert!(cache.get(&(1, 9, 1)).is_some());
-        assert!(cache.get(&(1, 7, 1)).is_some());
-        assert!(cache.get(&(1, 6, 1)).is_none());
+        assert!(hit(&cache, (1, 9, 1)));
+        assert!(hit(&cache, (1, 7, 1)));
+        assert!(!hit(&cache, (1, 6, 1)));
         // Another channel set or generation is another message.
-        assert!(cache.get(&(1, 9, 3)).is_none());
-        assert!(cache.get(&(2, 9, 1)).is_none());
+        assert!(!hit(&cache, (1, 9, 3)));
+        assert!(!hit(&cache, (2, 9, 1)));
+        // A batch comes back in its order, hits and misses counted.
+        let (_, hits, misses) = cache.figures();
+        let batch = cache.get(&[(1, 9, 1), (1, 6, 1), (1, 8, 1)]);
+        let firsts: Vec<Option<u8>> = batch.iter().map(|m| m.as_ref().map(|b| b[0])).collect();
+        assert_eq!(firsts, [Some(9), None, Some(8)]);
+        assert_eq!(cache.figures(), (90, hits + 2, misses + 1));
         // Larger than the whole cache: not kept.
         cache.insert((1, 99, 1), Bytes::from(vec![0; 101]));
-        assert!(cache.get(&(1, 99, 1)).is_none());
+        assert!(!hit(&cache, (1, 99, 1)));
         let none = MessageCache::new(0);
         none.insert((1, 1, 1), Bytes::from_static(b"x"));
         assert_eq!(none.figures().0, 0);
