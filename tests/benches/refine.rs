@@ -12,7 +12,8 @@
 //! * **RMSE 0**: the truth, found afterwards: the first cycle whose resident treelets render the
 //!   fully resident reference exactly (a binary search over the cycles' resident sets, rendered
 //!   by the CPU twin; the last cycle is checked too);
-//! * bytes received and treelets dropped in the phase;
+//! * bytes received, treelets dropped and treelets received twice (already resident or
+//!   waiting) in the phase;
 //! * the **physical limit** over the link: the wire bytes of the treelets the view needs (those
 //!   holding a pixel's hit in the fully resident scene, and their ancestors; after a jump, those
 //!   not already resident) at 100 Mbit/s, plus one round trip for the request, plus one for the
@@ -135,6 +136,8 @@ struct Outcome {
     rmse0: Option<f64>,
     bytes: u64,
     dropped: u32,
+    /// Treelets received that were already resident or waiting.
+    twice: u32,
     limit: Option<f64>,
 }
 
@@ -155,7 +158,7 @@ fn main() {
         BUDGET >> 20
     );
     println!(
-        "{:<7} {:<6} {:<8} {:<24} {:>8} {:>8} {:>8} {:>9} {:>7} {:>8} {:>7}",
+        "{:<7} {:<6} {:<8} {:<24} {:>8} {:>8} {:>8} {:>9} {:>7} {:>6} {:>8} {:>7}",
         "scene",
         "path",
         "link",
@@ -165,6 +168,7 @@ fn main() {
         "RMSE0 s",
         "MB",
         "dropped",
+        "twice",
         "limit s",
         "×limit"
     );
@@ -281,7 +285,7 @@ fn print_row(scene: &str, jump: bool, transport: Transport, v: Variant, o: &Outc
         _ => "-".to_owned(),
     };
     println!(
-        "{:<7} {:<6} {:<8} {:<24} {:>8} {:>8} {:>8} {:>9.3} {:>7} {:>8} {:>7}",
+        "{:<7} {:<6} {:<8} {:<24} {:>8} {:>8} {:>8} {:>9.3} {:>7} {:>6} {:>8} {:>7}",
         scene,
         if jump { "jump" } else { "static" },
         if transport == Transport::Link {
@@ -295,6 +299,7 @@ fn print_row(scene: &str, jump: bool, transport: Transport, v: Variant, o: &Outc
         s(o.rmse0),
         o.bytes as f64 / 1e6,
         o.dropped,
+        o.twice,
         s(o.limit),
         ratio
     );
@@ -490,6 +495,7 @@ fn judge(
         rmse0,
         bytes: r.iter().map(|c| c.bytes_received).sum(),
         dropped: r.iter().map(|c| c.dropped).sum(),
+        twice: r.iter().map(|c| c.received_twice).sum(),
         limit,
     }
 }

@@ -1,7 +1,8 @@
 //! Pushed treelets on the client side (docs/design.md §10), on a real scan's treelets: a push
 //! is kept only in a free slot with its parent resident (or arriving in the same batch); an
 //! orphan, or a push that finds no free slot, is dropped and counted, and never displaces what
-//! the client holds.
+//! the client holds. Arrivals not yet handed over are not listed again; second copies are
+//! counted.
 
 use std::sync::Arc;
 
@@ -99,4 +100,45 @@ fn pushes_take_only_free_slots_and_never_displace() {
         before.iter().all(|&id| core.slots().is_resident(id)),
         "what was resident stays"
     );
+}
+
+/// What the connection has received but the caller has not decoded yet is not listed again
+/// (the session takes arrivals off the connection before the presort and decodes them after
+/// the list is sent); an arrival already resident or already waiting is counted as received
+/// twice.
+#[test]
+fn arriving_treelets_are_not_listed_and_second_copies_are_counted() {
+    use arbor_client_core::camera::CameraPath;
+
+    let (treelets, mut core) = lion_core(4096);
+    let camera = CameraPath::Static.camera(0, core.frame(), 3, 96, 96);
+    let listed = |core: &mut ClientCore| -> Vec<TreeletId> {
+        core.plan(&camera).requests.iter().map(|r| r.0).collect()
+    };
+    let first = listed(&mut core);
+    let wanted = *first.first().expect("the root's view wants its children");
+    assert!(
+        listed(&mut core).contains(&wanted),
+        "still wanted a cycle later"
+    );
+
+    core.note_arriving([wanted]);
+    assert!(
+        !listed(&mut core).contains(&wanted),
+        "arriving, so not listed"
+    );
+    // Never handed over (say it failed to decode): wanted again after the integration.
+    let i = core.integrate();
+    assert_eq!((i.inserted, i.received_twice), (0, 0));
+    assert!(listed(&mut core).contains(&wanted));
+
+    let t = treelets[wanted.0 as usize].clone();
+    core.handle_treelet(t.clone());
+    core.handle_treelet(t.clone());
+    let i = core.integrate();
+    assert_eq!((i.inserted, i.received_twice), (1, 1));
+    core.handle_treelet(t);
+    let i = core.integrate();
+    assert_eq!((i.inserted, i.received_twice), (0, 1));
+    assert!(!listed(&mut core).contains(&wanted), "resident");
 }

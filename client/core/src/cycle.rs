@@ -227,6 +227,8 @@ pub struct Integration {
     pub pushed: u32,
     /// Pushed treelets dropped: parent not resident, or no free slot.
     pub push_dropped: u32,
+    /// Arrivals already resident or already waiting: bytes the link carried for nothing.
+    pub received_twice: u32,
 }
 
 /// The client's cycle state: slot buffer, presort, what is known of the view, the LOD bias,
@@ -249,6 +251,8 @@ pub struct ClientCore {
     evicted_outside: u32,
     /// No pushes are announced before this cycle ([`PUSH_PAUSE_CYCLES`] after an eviction).
     pushes_paused_until: u64,
+    /// Arrivals already resident or waiting, since the last integration.
+    received_twice: u32,
     /// Treelets evicted since the view last changed: one asked for again is needed by the
     /// view although no pixel hits it, and is pinned ([`SlotBuffer::pin`]).
     evicted_in_view: HashSet<TreeletId>,
@@ -258,6 +262,8 @@ pub struct ClientCore {
     last_camera: Option<Camera>,
     backlog: VecDeque<DecodedTreelet>,
     backlog_ids: HashSet<TreeletId>,
+    /// Received and not yet handed over ([`ClientCore::note_arriving`]): not to be listed.
+    arriving: HashSet<TreeletId>,
     backlog_dropped: u32,
     cycle: u64,
     backend: Box<dyn Backend>,
@@ -327,6 +333,7 @@ impl ClientCore {
             bias_unsettled: false,
             evicted_outside: 0,
             pushes_paused_until: 0,
+            received_twice: 0,
             evicted_in_view: HashSet::new(),
             listed: HashSet::new(),
             listed_previous: HashSet::new(),
@@ -337,6 +344,7 @@ impl ClientCore {
             feedback: Feedback::default(),
             backlog: VecDeque::new(),
             backlog_ids: HashSet::new(),
+            arriving: HashSet::new(),
             backlog_dropped: 0,
             cycle: 0,
             backend,
@@ -388,12 +396,24 @@ impl ClientCore {
         self.backlog.len()
     }
 
+    /// Treelets the connection has received and the caller has yet to decode and hand over with
+    /// [`handle_treelet`](Self::handle_treelet): the next [`presort`](Self::presort) does not
+    /// list them. Taking arrivals off the connection just before the presort and decoding them
+    /// after the list is sent keeps the list from naming what is already here without delaying
+    /// it by the decoding (named, a treelet delivered longer ago than the server's redelivery
+    /// guard is sent again). Forgotten at the next [`integrate`](Self::integrate).
+    pub fn note_arriving(&mut self, ids: impl IntoIterator<Item = TreeletId>) {
+        self.arriving.extend(ids);
+    }
+
     /// Queues an arrived treelet for the next [`integrate`](Self::integrate). Duplicates and
-    /// treelets already resident are ignored. The backlog is bounded (a few cycles of the load
-    /// limit): past that the oldest arrival is dropped, to be requested again if still needed.
+    /// treelets already resident are ignored (and counted as received twice). The backlog is
+    /// bounded (a few cycles of the load limit): past that the oldest arrival is dropped, to be
+    /// requested again if still needed.
     pub fn handle_treelet(&mut self, treelet: DecodedTreelet) {
         let id = treelet.treelet.header.id;
         if self.slots.is_resident(id) || !self.backlog_ids.insert(id) {
+            self.received_twice += 1;
             return;
         }
         self.backlog.push_back(treelet);
@@ -597,6 +617,7 @@ impl ClientCore {
     fn select_from_feedback(&mut self) -> (Vec<u32>, Vec<RequestItem>, usize) {
         let slots = &self.slots;
         let backlog = &self.backlog_ids;
+        let arriving = &self.arriving;
         let (w, h) = self.coverage.size();
         let centre = self.config.policy == PriorityPolicy::Centre;
         let weighted = self.coverage.known_samples().map(|(i, s)| {
@@ -612,7 +633,7 @@ impl ClientCore {
             self.scene.treelet_nodes,
             slots.capacity(),
             |s| slots.parent_slot(s),
-            |id| backlog.contains(&id) || slots.is_resident(id),
+            |id| backlog.contains(&id) || arriving.contains(&id) || slots.is_resident(id),
         );
         (
             sorted.visible_slots,
@@ -631,8 +652,9 @@ impl ClientCore {
         };
         let slots = &self.slots;
         let backlog = &self.backlog_ids;
+        let arriving = &self.arriving;
         let (visible, requests) = frustum.select(&self.frame, &camera, self.bias.bias(), |id| {
-            backlog.contains(&id) || slots.is_resident(id)
+            backlog.contains(&id) || arriving.contains(&id) || slots.is_resident(id)
         });
         let mut visible: Vec<u32> = visible.iter().filter_map(|&id| slots.slot_of(id)).collect();
         visible.sort_unstable();
@@ -724,6 +746,7 @@ impl ClientCore {
     /// slot is free. An eviction can uncover a coarse leaf in front of a known pixel, so it
     /// starts the view's knowledge afresh.
     pub fn integrate(&mut self) -> Integration {
+        self.arriving.clear();
         let mut inserted = 0;
         let mut evicted = 0;
         let mut pushed = 0;
@@ -787,6 +810,7 @@ impl ClientCore {
             dropped,
             pushed,
             push_dropped,
+            received_twice: std::mem::take(&mut self.received_twice),
         }
     }
 

@@ -12,12 +12,14 @@
 //! # CSV format
 //!
 //! ```text
-//! # arbor run report v1
+//! # arbor run report v2
 //! # scene=…            (one `# key=value` line per RunMeta field, see META_KEYS)
 //! cycle,time_s,analysis_ms,…,differing_share      (the header: CSV_COLUMNS)
 //! 0,0.016,1.2,…,                                   (one row per cycle)
 //! ```
 //!
+//! * v2 added `received_twice` after `push_dropped`; a v1 file has one column fewer and is
+//!   refused with [`ReportError::ColumnCount`].
 //! * Column names carry their unit (`_s`, `_ms`, `_levels`, …); see [`CSV_COLUMNS`].
 //! * Numbers are written with Rust's shortest round-trip formatting, so reading gives back the
 //!   identical bits (`NaN`, `inf` and `-inf` included).
@@ -105,6 +107,7 @@ report_columns! {
     "dropped" => dropped: u32,
     "pushed" => pushed: u32,
     "push_dropped" => push_dropped: u32,
+    "received_twice" => received_twice: u32,
     "upload_ranges" => upload_ranges: u32,
     "upload_bytes" => upload_bytes: u64,
     "samples" => samples: u32,
@@ -155,7 +158,7 @@ pub const META_KEYS: [&str; 8] = [
 ];
 
 /// The first line of every report file (a comment, so readers need not require it).
-const MAGIC_LINE: &str = "# arbor run report v1";
+const MAGIC_LINE: &str = "# arbor run report v2";
 
 /// What happened in one client cycle.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -196,6 +199,9 @@ pub struct CycleRecord {
     pub pushed: u32,
     /// Pushed treelets dropped this cycle: parent not resident, or no free slot.
     pub push_dropped: u32,
+    /// Treelets received this cycle that were already resident or already waiting: the link
+    /// carried them for nothing (a list built before they arrived, a stream reset too late).
+    pub received_twice: u32,
     /// Contiguous ranges uploaded this cycle.
     pub upload_ranges: u32,
     /// Bytes uploaded this cycle.
@@ -739,6 +745,7 @@ mod tests {
             dropped: 1,
             pushed: 2,
             push_dropped: 0,
+            received_twice: 4,
             upload_ranges: 3,
             upload_bytes: 720_896,
             samples: 32_400,

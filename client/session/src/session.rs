@@ -164,8 +164,10 @@ impl Session {
         self.started
     }
 
-    /// One cycle (docs/design.md §1): analysis → presort → request list → take arrivals → integrate →
-    /// upload → render. Never waits on the network. `reference`, if given, is compared with
+    /// One cycle (docs/design.md §1): analysis → presort → request list → take arrivals →
+    /// integrate → upload → render. Never waits on the network. Arrivals are taken off the
+    /// connection before the presort too, so the list does not name them, and decoded after
+    /// the list is sent. `reference`, if given, is compared with
     /// the rendered image (RenderMode::Image only).
     pub fn step(
         &mut self,
@@ -185,6 +187,10 @@ impl Session {
             .analysis_cost()
             .unwrap_or((analysis.sampled, analysis_time.as_secs_f64()));
         self.budget.record(measured, seconds);
+        // What arrived during the analysis is not to be listed again; it is decoded after the
+        // list is on its way.
+        let mut received = take_events(&mut self.client, &self.scene)?;
+        self.core.note_arriving(received.iter().map(|t| t.id));
         let t_presort = Instant::now();
         let plan = self.core.presort();
         let presort_time = t_presort.elapsed();
@@ -204,7 +210,8 @@ impl Session {
         }
         let request_time = t_request.elapsed();
         let t_drain = Instant::now();
-        let drained = drain_events(&mut self.client, &self.scene, &self.channels)?;
+        received.extend(take_events(&mut self.client, &self.scene)?);
+        let drained = decode_all(&received, &self.scene, &self.channels);
         for t in drained.treelets {
             self.core.handle_treelet(t);
         }
@@ -260,6 +267,7 @@ impl Session {
             dropped: integration.dropped + drained.undecodable,
             pushed: integration.pushed,
             push_dropped: integration.push_dropped,
+            received_twice: integration.received_twice,
             upload_ranges: upload.ranges.len() as u32,
             upload_bytes: upload.bytes,
             samples: plan.samples,
@@ -324,24 +332,25 @@ pub(crate) struct Drained {
     pub(crate) undecodable: u32,
 }
 
-/// Takes every queued event without waiting.
+/// Takes every queued event without waiting and decodes the treelets among them.
 pub(crate) fn drain_events(
     client: &mut TreeletClient,
     scene: &SceneDescription,
     channels: &[Channel],
 ) -> Result<Drained, RunError> {
-    let mut out = Drained {
-        treelets: Vec::new(),
-        bytes: 0,
-        undecodable: 0,
-    };
+    let received = take_events(client, scene)?;
+    Ok(decode_all(&received, scene, channels))
+}
+
+/// Takes every queued event without waiting: the treelets received, undecoded.
+pub(crate) fn take_events(
+    client: &mut TreeletClient,
+    scene: &SceneDescription,
+) -> Result<Vec<ReceivedTreelet>, RunError> {
     let mut received = Vec::new();
     while let Some(event) = client.try_next_event() {
         match event {
-            ClientEvent::Treelet(t) => {
-                out.bytes += t.wire_bytes as u64;
-                received.push(t);
-            }
+            ClientEvent::Treelet(t) => received.push(t),
             ClientEvent::Connected(s) => {
                 if s.name != scene.name || s.treelet_count != scene.treelet_count {
                     return Err(RunError::Refused(format!(
@@ -361,6 +370,20 @@ pub(crate) fn drain_events(
             }
         }
     }
+    Ok(received)
+}
+
+/// Decodes received treelets, keeping their order; undecodable ones are logged and counted.
+pub(crate) fn decode_all(
+    received: &[ReceivedTreelet],
+    scene: &SceneDescription,
+    channels: &[Channel],
+) -> Drained {
+    let mut out = Drained {
+        treelets: Vec::with_capacity(received.len()),
+        bytes: received.iter().map(|t| t.wire_bytes as u64).sum(),
+        undecodable: 0,
+    };
     // Decompression is most of a cycle's work while a link delivers hundreds of treelets per
     // cycle: spread it over the cores, keeping the arrival order.
     let decoded: Vec<_> = received
@@ -376,7 +399,7 @@ pub(crate) fn drain_events(
             }
         }
     }
-    Ok(out)
+    out
 }
 
 /// Probes the scene and starts a client for the channels asked for that the scene has: the

@@ -11,10 +11,10 @@ use std::time::{Duration, Instant};
 use arbor_proto::limits::MAX_REQUEST_ITEMS;
 use arbor_proto::wire::{ErrorCode, Frame, ViewHint};
 use arbor_proto::{Channel, TreeletId};
-use rustc_hash::FxHashMap;
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 
+use super::batches::Batches;
 use super::connection::{ControlReader, End, Greeting, close, hello};
 use super::push::{WorldCube, deep_list};
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
@@ -95,11 +95,8 @@ struct Handler {
     opener: AbortOnDrop,
     /// One task per batch in flight, with its batch number.
     streams: JoinSet<(u64, Vec<TreeletId>, Outcome)>,
-    /// The batch of each treelet in flight.
-    batch_of: FxHashMap<TreeletId, u64>,
-    /// Per batch: how to cancel it, and how many of its treelets the latest list still wants.
-    batches: FxHashMap<u64, (oneshot::Sender<ErrorCode>, usize)>,
-    next_batch: u64,
+    /// The batches in flight, each with how to cancel it.
+    batches: Batches<oneshot::Sender<ErrorCode>>,
     /// Rank of the next treelet started under the current list (0 = the list's first).
     rank: i32,
     /// The client may still send frames.
@@ -170,9 +167,7 @@ impl Handler {
             opens,
             opener,
             streams: JoinSet::new(),
-            batch_of: FxHashMap::default(),
-            batches: FxHashMap::default(),
-            next_batch: 0,
+            batches: Batches::default(),
             rank: 0,
             reading: true,
             window,
@@ -310,18 +305,8 @@ impl Handler {
     /// Resets the streams of batches the latest list wants nothing of any more; a batch with
     /// a treelet still wanted goes on (the few unwanted ones in it arrive anyway).
     fn cancel_obsolete(&mut self, obsolete: &[TreeletId]) {
-        for t in obsolete {
-            let Some(b) = self.batch_of.get(t) else {
-                continue;
-            };
-            if let Some((_, wanted)) = self.batches.get_mut(b) {
-                *wanted = wanted.saturating_sub(1);
-                if *wanted == 0
-                    && let Some((tx, _)) = self.batches.remove(b)
-                {
-                    let _ = tx.send(CANCEL_CODE);
-                }
-            }
+        for tx in self.batches.obsolete(obsolete) {
+            let _ = tx.send(CANCEL_CODE);
         }
     }
 
@@ -346,12 +331,7 @@ impl Handler {
             batch.push(next);
         }
         let (tx, rx) = oneshot::channel();
-        let id = self.next_batch;
-        self.next_batch += 1;
-        for &t in &batch {
-            self.batch_of.insert(t, id);
-        }
-        self.batches.insert(id, (tx, batch.len()));
+        let id = self.batches.start(&batch, tx);
         let (open_tx, open_rx) = oneshot::channel();
         let _ = self.opens.send(open_tx);
         let priority = self.rank.saturating_neg();
@@ -367,12 +347,7 @@ impl Handler {
     /// Batch `id`'s stream task ended. Its treelets may already be in a newer batch (the
     /// scheduler hears of their end before this handler does): only entries of this batch go.
     fn on_stream_end(&mut self, id: u64, batch: &[TreeletId], outcome: Outcome) -> Option<End> {
-        self.batches.remove(&id);
-        for t in batch {
-            if self.batch_of.get(t) == Some(&id) {
-                self.batch_of.remove(t);
-            }
-        }
+        self.batches.end(id, batch);
         match outcome {
             Outcome::Failed(reason) => {
                 tracing::error!(treelets = ?batch, "{reason}");
@@ -387,7 +362,10 @@ impl Handler {
                 self.update_window();
                 None
             }
-            Outcome::Lost | Outcome::Cancelled | Outcome::StoppedByPeer => None,
+            Outcome::Lost
+            | Outcome::Cancelled
+            | Outcome::ResetAfterWrite
+            | Outcome::StoppedByPeer => None,
         }
     }
 
@@ -468,7 +446,7 @@ impl Handler {
             }
         }
         let left = self.streams.len();
-        for (_, (tx, _)) in self.batches.drain() {
+        for tx in self.batches.drain() {
             let _ = tx.send(ErrorCode::ShuttingDown);
         }
         tracing::debug!(in_flight, reset = left, "drained for shutdown");
@@ -485,7 +463,7 @@ impl Handler {
             End::Close { code, .. } => *code,
             End::Lost(_) => CANCEL_CODE,
         };
-        for (_, (tx, _)) in self.batches.drain() {
+        for tx in self.batches.drain() {
             let _ = tx.send(code);
         }
         let streams = &mut self.streams;

@@ -11,11 +11,13 @@
 //! * [`server`]: [`start_service`] → [`RunningService`]: QUIC endpoint, connection cap,
 //!   dispatcher, graceful shutdown; [`connection`]: one client; [`shutdown`]: the broadcast and
 //!   drop-to-finish plumbing; [`treelets`]: treelet messages from the pool and their cache
-//!   bounded in bytes; `streams`: a few treelets per stream; `shared`: what the tasks share
+//!   bounded in bytes; `streams`: a few treelets per stream; `batches`: which stream carries
+//!   which treelets and which streams a new list makes obsolete (plain data); `shared`: what the tasks share
 //!   (scheduler, routes, scenes, message cache).
 //!
 //! The daemon ([`crate::daemon`]) starts this service and mounts the admin API beside it.
 //! * [`state`]: metrics, sessions and readiness shared with the admin API.
+mod batches;
 pub mod config;
 pub mod connection;
 mod handler;

@@ -65,6 +65,9 @@ pub(super) enum Outcome {
     Delivered,
     /// Reset by us (cancel or shutdown), or never opened because it was cancelled first.
     Cancelled,
+    /// Reset by us after every byte was handed to the transport: most of it is likely on its
+    /// way, only what was still buffered is saved.
+    ResetAfterWrite,
     /// The peer stopped the stream.
     StoppedByPeer,
     /// The connection went away.
@@ -144,13 +147,19 @@ pub(super) async fn send_batch(
                 Outcome::Delivered => {
                     core.sched.handle_delivered(ctx.id, t, now);
                 }
+                Outcome::ResetAfterWrite => {
+                    core.sched.handle_reset_after_write(ctx.id, t, now);
+                }
                 _ => {
                     core.sched.handle_cancelled(ctx.id, t);
                 }
             }
         }
     }
-    if matches!(outcome, Outcome::Cancelled | Outcome::StoppedByPeer) {
+    if matches!(
+        outcome,
+        Outcome::Cancelled | Outcome::ResetAfterWrite | Outcome::StoppedByPeer
+    ) {
         ctx.shared
             .state
             .metrics
@@ -228,7 +237,7 @@ async fn transfer(
                 .reset(quinn::VarInt::from_u32(code.to_u32()))
                 .is_ok()
             {
-                Outcome::Cancelled
+                Outcome::ResetAfterWrite
             } else {
                 // Already fully acknowledged: nothing left to cancel.
                 Outcome::Delivered
