@@ -11,7 +11,8 @@ use arbor_client_core::analysis::{AnalysisConfig, DEFAULT_FEEDBACK_RATIO};
 use arbor_client_core::backend::Backend;
 use arbor_client_core::camera::CameraPath;
 use arbor_client_core::cycle::{
-    CoreConfig, DEFAULT_ANALYSIS_BUDGET_MS, DEFAULT_LOAD_LIMIT, DEFAULT_MAX_REQUESTS, Sampling,
+    CoreConfig, DEFAULT_ANALYSIS_BUDGET_MS, DEFAULT_LOAD_LIMIT, DEFAULT_MAX_REQUESTS,
+    DEFAULT_PREFETCH_BELOW, Sampling,
 };
 use arbor_client_core::image::Image;
 use arbor_client_core::presort::PriorityPolicy;
@@ -149,6 +150,11 @@ struct RenderArgs {
     /// beyond what is listed (by default it also sends the descendants the view would refine).
     #[arg(long)]
     no_deep_push: bool,
+    /// Frustum prefetch: while the list from the view's samples is shorter than this and the
+    /// view is fully known, top free slots up with what lies in the frustum (lowest priority,
+    /// never evicting); makes the next camera move cheap. 0 turns it off.
+    #[arg(long, default_value_t = DEFAULT_PREFETCH_BELOW)]
+    prefetch_below: usize,
     /// Keep the LOD bias fixed even when the view needs more slots than the budget holds
     /// (by default it is raised until the view fits, and the run converges to that target).
     #[arg(long)]
@@ -441,6 +447,7 @@ fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
             adjust_bias: !a.fixed_bias,
             deep_push: !a.no_deep_push,
             analysis_budget_ms: a.analysis_budget_ms,
+            prefetch_below: a.prefetch_below,
         },
         camera_path,
         seed: a.view.seed,

@@ -46,7 +46,7 @@ use std::time::{Duration, Instant};
 use arbor_client_core::analysis::AnalysisConfig;
 use arbor_client_core::backend::{CpuBackend, render_resident};
 use arbor_client_core::camera::{Camera, CameraPath};
-use arbor_client_core::cycle::{CoreConfig, Sampling};
+use arbor_client_core::cycle::{CoreConfig, DEFAULT_PREFETCH_BELOW, Sampling};
 use arbor_client_core::image::Image;
 use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::presort::PriorityPolicy;
@@ -76,15 +76,18 @@ struct Variant {
     sampling: Sampling,
     deep_push: bool,
     adjust_bias: bool,
+    /// [`CoreConfig::prefetch_below`].
+    prefetch_below: usize,
 }
 
-const VARIANTS: [Variant; 5] = [
+const VARIANTS: [Variant; 6] = [
     Variant {
         name: "thesis: max-error, grid",
         policy: PriorityPolicy::MaxError,
         sampling: Sampling::Grid,
         deep_push: false,
         adjust_bias: false,
+        prefetch_below: 0,
     },
     Variant {
         name: "max-error",
@@ -92,6 +95,7 @@ const VARIANTS: [Variant; 5] = [
         sampling: Sampling::Adaptive,
         deep_push: true,
         adjust_bias: true,
+        prefetch_below: DEFAULT_PREFETCH_BELOW,
     },
     Variant {
         name: "error-pixels (default)",
@@ -99,6 +103,7 @@ const VARIANTS: [Variant; 5] = [
         sampling: Sampling::Adaptive,
         deep_push: true,
         adjust_bias: true,
+        prefetch_below: DEFAULT_PREFETCH_BELOW,
     },
     Variant {
         name: "centre",
@@ -106,6 +111,7 @@ const VARIANTS: [Variant; 5] = [
         sampling: Sampling::Adaptive,
         deep_push: true,
         adjust_bias: true,
+        prefetch_below: DEFAULT_PREFETCH_BELOW,
     },
     Variant {
         name: "frustum (peers)",
@@ -113,6 +119,15 @@ const VARIANTS: [Variant; 5] = [
         sampling: Sampling::Adaptive,
         deep_push: false,
         adjust_bias: true,
+        prefetch_below: 0,
+    },
+    Variant {
+        name: "no-prefetch default",
+        policy: PriorityPolicy::ErrorTimesPixels,
+        sampling: Sampling::Adaptive,
+        deep_push: true,
+        adjust_bias: true,
+        prefetch_below: 0,
     },
 ];
 
@@ -358,6 +373,7 @@ fn run_case(
         sampling: v.sampling,
         deep_push: v.deep_push,
         adjust_bias: v.adjust_bias,
+        prefetch_below: v.prefetch_below,
         budget_bytes: BUDGET,
         ..CoreConfig::default()
     };
@@ -617,6 +633,7 @@ fn oversubscribed(runtime: &tokio::runtime::Runtime, out: &std::path::Path) {
             sampling: v.sampling,
             deep_push: v.deep_push,
             adjust_bias: v.adjust_bias,
+            prefetch_below: v.prefetch_below,
             budget_bytes: 3 << 20,
             ..CoreConfig::default()
         };

@@ -2,7 +2,8 @@
 //! is kept only in a free slot with its parent resident (or arriving in the same batch); an
 //! orphan, or a push that finds no free slot, is dropped and counted, and never displaces what
 //! the client holds. Arrivals not yet handed over are not listed again; second copies are
-//! counted.
+//! counted. In the tail of a view's refinement a short list is topped up with the frustum's
+//! candidates (prefetch), only into the half of the buffer the view does not need.
 
 use std::sync::Arc;
 
@@ -14,6 +15,10 @@ use arbor_tests::support::{decoded_treelets, small_lion};
 /// The lion's treelets (small treelets, so the tree has several levels) and a core holding its
 /// root, with room for `slots` slots in all.
 fn lion_core(slots: u64) -> (Vec<DecodedTreelet>, ClientCore) {
+    lion_core_with(slots, CoreConfig::default())
+}
+
+fn lion_core_with(slots: u64, config: CoreConfig) -> (Vec<DecodedTreelet>, ClientCore) {
     let built = small_lion();
     let treelets = decoded_treelets(&built.scene);
     let scene = Arc::new(built.scene.description.clone());
@@ -21,7 +26,7 @@ fn lion_core(slots: u64) -> (Vec<DecodedTreelet>, ClientCore) {
     let config = CoreConfig {
         budget_bytes: slots * SlotBuffer::slot_bytes(scene.treelet_nodes, &channels),
         channels,
-        ..CoreConfig::default()
+        ..config
     };
     let core = ClientCore::new(scene, config, treelets[0].clone()).expect("core");
     (treelets, core)
@@ -141,4 +146,113 @@ fn arriving_treelets_are_not_listed_and_second_copies_are_counted() {
     let i = core.integrate();
     assert_eq!((i.inserted, i.received_twice), (0, 1));
     assert!(!listed(&mut core).contains(&wanted), "resident");
+}
+
+/// Cycles of a core whose every request arrives before the next cycle (a perfect server): the
+/// plans, until the view converged.
+fn refine(
+    core: &mut ClientCore,
+    treelets: &[DecodedTreelet],
+) -> Vec<arbor_client_core::cycle::Plan> {
+    use arbor_client_core::camera::CameraPath;
+
+    let camera = CameraPath::Static.camera(0, core.frame(), 3, 96, 96);
+    let mut plans = Vec::new();
+    for _ in 0..400 {
+        let plan = core.plan(&camera);
+        for (id, _) in &plan.requests {
+            core.handle_treelet(treelets[id.0 as usize].clone());
+        }
+        core.integrate();
+        let converged = plan.converged;
+        plans.push(plan);
+        if converged {
+            return plans;
+        }
+    }
+    panic!("no convergence in 400 cycles");
+}
+
+/// The prefetched items of a plan: listed without an error (sampled items carry theirs).
+fn prefetched(plan: &arbor_client_core::cycle::Plan) -> Vec<(TreeletId, f32)> {
+    plan.requests
+        .iter()
+        .zip(&plan.errors)
+        .filter(|(_, e)| **e == 0.0)
+        .map(|(r, _)| *r)
+        .collect()
+}
+
+#[test]
+fn the_tail_of_a_roomy_view_is_topped_up_from_the_frustum_below_every_sampled_item() {
+    let (treelets, mut core) = lion_core(4096);
+    let capacity = core.slots().capacity() as usize;
+    let plans = refine(&mut core, &treelets);
+    let with_prefetch: Vec<_> = plans.iter().filter(|p| !prefetched(p).is_empty()).collect();
+    assert!(
+        !with_prefetch.is_empty(),
+        "a roomy buffer gets a prefetch in the tail ({} cycles)",
+        plans.len()
+    );
+    for plan in with_prefetch {
+        let sampled = plan.requests.len() - prefetched(plan).len();
+        assert!(
+            sampled < CoreConfig::default().prefetch_below,
+            "only a short list is topped up"
+        );
+        let lowest_sampled = plan.requests[..sampled]
+            .iter()
+            .map(|r| r.1)
+            .fold(f32::INFINITY, f32::min);
+        assert!(
+            plan.errors[..sampled].iter().all(|&e| e > 0.0),
+            "the sampled items come first"
+        );
+        for (id, priority) in prefetched(plan) {
+            assert!(
+                priority > 0.0 && priority < lowest_sampled,
+                "{id}: {priority}"
+            );
+        }
+        assert!(
+            plan.requests.len() <= capacity / 2,
+            "at most half the buffer"
+        );
+    }
+    assert!(
+        core.slots().used_slots() as usize <= capacity / 2 + CoreConfig::default().prefetch_below
+    );
+
+    // Off: the same view lists only what its samples need.
+    let (treelets, mut core) = lion_core_with(
+        4096,
+        CoreConfig {
+            prefetch_below: 0,
+            ..CoreConfig::default()
+        },
+    );
+    let plans = refine(&mut core, &treelets);
+    assert!(plans.iter().all(|p| prefetched(p).is_empty()));
+}
+
+#[test]
+fn a_tight_buffer_is_never_prefetched_into() {
+    // First the view's own need, from a roomy run without prefetch.
+    let (treelets, mut core) = lion_core_with(
+        4096,
+        CoreConfig {
+            prefetch_below: 0,
+            ..CoreConfig::default()
+        },
+    );
+    refine(&mut core, &treelets);
+    let needed = u64::from(core.slots().used_slots());
+    // A buffer the view fills more than half of.
+    let (treelets, mut core) = lion_core(needed * 3 / 2);
+    let plans = refine(&mut core, &treelets);
+    assert!(
+        plans.iter().all(|p| prefetched(p).is_empty()),
+        "the view needs {needed} of {} slots",
+        core.slots().capacity()
+    );
 }
