@@ -321,6 +321,16 @@ impl Conn {
 
     /// Forgets deliveries older than the guard (and keeps the record bounded however `now`
     /// moves).
+    /// `treelet` reached the client (or is about to) at `now`: lists within the redelivery guard
+    /// do not get it again.
+    fn remember_delivery(&mut self, treelet: TreeletId, now: Instant) {
+        if !self.config.redelivery_guard.is_zero() {
+            self.recent.push_back((now, treelet));
+            self.recent_at.insert(treelet, now);
+            self.prune_recent(now);
+        }
+    }
+
     fn prune_recent(&mut self, now: Instant) {
         let guard = self.config.redelivery_guard;
         let cap = self
@@ -586,15 +596,9 @@ impl Scheduler {
         treelet: TreeletId,
         now: Instant,
     ) -> Option<Duration> {
-        let conn = self.conns.get_mut(&id)?;
-        let flight = conn.in_flight.remove(&treelet)?;
-        self.total_in_flight -= 1;
+        let (conn, flight) = self.leave_window(id, treelet)?;
         conn.stats.treelets_delivered += 1;
-        if !conn.config.redelivery_guard.is_zero() {
-            conn.recent.push_back((now, treelet));
-            conn.recent_at.insert(treelet, now);
-            conn.prune_recent(now);
-        }
+        conn.remember_delivery(treelet, now);
         self.wake(id);
         Some(now.saturating_duration_since(flight.since))
     }
@@ -611,19 +615,11 @@ impl Scheduler {
         treelet: TreeletId,
         now: Instant,
     ) -> bool {
-        let Some(conn) = self.conns.get_mut(&id) else {
+        let Some((conn, _)) = self.leave_window(id, treelet) else {
             return false;
         };
-        if conn.in_flight.remove(&treelet).is_none() {
-            return false;
-        }
-        self.total_in_flight -= 1;
         conn.stats.treelets_cancelled += 1;
-        if !conn.config.redelivery_guard.is_zero() {
-            conn.recent.push_back((now, treelet));
-            conn.recent_at.insert(treelet, now);
-            conn.prune_recent(now);
-        }
+        conn.remember_delivery(treelet, now);
         self.wake(id);
         true
     }
@@ -632,19 +628,28 @@ impl Scheduler {
     /// and, if the current list still names it, is queued again. Returns whether it was in
     /// flight.
     pub fn handle_cancelled(&mut self, id: ConnectionId, treelet: TreeletId) -> bool {
-        let Some(conn) = self.conns.get_mut(&id) else {
+        let Some((conn, _)) = self.leave_window(id, treelet) else {
             return false;
         };
-        if conn.in_flight.remove(&treelet).is_none() {
-            return false;
-        }
-        self.total_in_flight -= 1;
         conn.stats.treelets_cancelled += 1;
         if let Some(w) = conn.wanted(treelet) {
             conn.retry.push(Retry(w.id, w.priority));
         }
         self.wake(id);
         true
+    }
+
+    /// Takes `treelet` out of connection `id`'s window: the connection and its flight, if it was
+    /// in flight there.
+    fn leave_window(
+        &mut self,
+        id: ConnectionId,
+        treelet: TreeletId,
+    ) -> Option<(&mut Conn, Flight)> {
+        let conn = self.conns.get_mut(&id)?;
+        let flight = conn.in_flight.remove(&treelet)?;
+        self.total_in_flight -= 1;
+        Some((conn, flight))
     }
 
     /// Puts a connection in the ring if it can send and is not there yet.
@@ -859,10 +864,11 @@ mod tests {
         assert_eq!(drain(&mut s, now), vec![(A, 1)]);
     }
 
-    #[test]
-    fn redelivery_guard_covers_lists_built_before_the_client_saw_the_treelet() {
+    /// A connection with a 100 ms redelivery guard that has started treelets 1 and 2 at 0 ms,
+    /// and the clock in ms from then.
+    fn guarded_with_two_in_flight() -> (Scheduler, impl Fn(u64) -> Instant) {
         let t0 = Instant::now();
-        let ms = |m: u64| t0 + Duration::from_millis(m);
+        let ms = move |m: u64| t0 + Duration::from_millis(m);
         let mut s = Scheduler::default();
         s.add_connection(
             A,
@@ -875,6 +881,12 @@ mod tests {
         s.handle_request_list(A, 1, list(&[(1, 1.0), (2, 1.0)]), ms(0))
             .unwrap();
         assert_eq!(drain(&mut s, ms(0)).len(), 2);
+        (s, ms)
+    }
+
+    #[test]
+    fn redelivery_guard_covers_lists_built_before_the_client_saw_the_treelet() {
+        let (mut s, ms) = guarded_with_two_in_flight();
         s.handle_delivered(A, t(1), ms(10));
         s.handle_delivered(A, t(2), ms(10));
         // Lists built before the client saw them still name them: not resent within the guard.
@@ -892,20 +904,7 @@ mod tests {
 
     #[test]
     fn a_treelet_reset_after_its_bytes_were_written_is_guarded_like_a_delivery() {
-        let t0 = Instant::now();
-        let ms = |m: u64| t0 + Duration::from_millis(m);
-        let mut s = Scheduler::default();
-        s.add_connection(
-            A,
-            ConnectionConfig {
-                redelivery_guard: Duration::from_millis(100),
-                ..cfg(10)
-            },
-        )
-        .unwrap();
-        s.handle_request_list(A, 1, list(&[(1, 1.0), (2, 1.0)]), ms(0))
-            .unwrap();
-        assert_eq!(drain(&mut s, ms(0)).len(), 2);
+        let (mut s, ms) = guarded_with_two_in_flight();
         // A shorter list leaves both out; their stream, already written, is reset.
         s.handle_request_list(A, 2, list(&[]), ms(20)).unwrap();
         assert!(s.handle_reset_after_write(A, t(1), ms(21)));
