@@ -101,8 +101,8 @@ pub struct CoreConfig {
 pub const DEFAULT_ANALYSIS_BUDGET_MS: f64 = 20.0;
 
 /// Default [`CoreConfig::prefetch_below`]: over the link emulator (25 ms each way, 100 Mbit/s,
-/// 512², 64 MiB) 64 made lion's camera jump 0.29 → 0.007 s and engine's 0.41 → 0.16 s for a
-/// third more bytes on engine's first view (two thirds of the frustum policy's); 256 fetched
+/// 512², 64 MiB) 64 made lion's camera jump 0.34 → 0.006 s and engine's 0.42 → 0.30 s for
+/// 40 % more bytes on engine's first view (two thirds of the frustum policy's); 256 fetched
 /// nearly the whole frustum on engine and slowed its first view.
 pub const DEFAULT_PREFETCH_BELOW: usize = 64;
 
