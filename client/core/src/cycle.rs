@@ -279,6 +279,9 @@ pub struct ClientCore {
     backlog_ids: HashSet<TreeletId>,
     /// Received and not yet handed over ([`ClientCore::note_arriving`]): not to be listed.
     arriving: HashSet<TreeletId>,
+    /// The last prefetch found nothing left in the frustum. Holds until the view or the
+    /// resident set changes, so a converged view does not walk the frustum every cycle.
+    frustum_exhausted: bool,
     backlog_dropped: u32,
     cycle: u64,
     backend: Box<dyn Backend>,
@@ -361,6 +364,7 @@ impl ClientCore {
             backlog: VecDeque::new(),
             backlog_ids: HashSet::new(),
             arriving: HashSet::new(),
+            frustum_exhausted: false,
             backlog_dropped: 0,
             cycle: 0,
             backend,
@@ -476,6 +480,7 @@ impl ClientCore {
     fn forget_pins(&mut self) {
         self.slots.unpin_all();
         self.evicted_in_view.clear();
+        self.frustum_exhausted = false;
     }
 
     /// The analysis config of this cycle: the configured ratio, the bias in effect.
@@ -668,9 +673,11 @@ impl ClientCore {
     /// to be evicted for the view would restart what the view knows (measured with all free
     /// slots open to it, at 1.5× the view's need on loopback: convergence at cycle 90 instead
     /// of 27, hundreds dropped). Prefetched items carry no error, so the server pushes nothing
-    /// below them.
-    fn prefetch(&self, requests: &mut Vec<RequestItem>) {
+    /// below them. A walk that finds nothing is not repeated until the view or the resident set
+    /// changes.
+    fn prefetch(&mut self, requests: &mut Vec<RequestItem>) {
         if self.config.policy == PriorityPolicy::Frustum
+            || self.frustum_exhausted
             || requests.len() >= self.config.prefetch_below
             || self.bias_unsettled
             || self.coverage.known() != self.coverage.pixels()
@@ -682,12 +689,7 @@ impl ClientCore {
         };
         // The tail: at most 1 % of the view still wants refinement. (A short list alone also
         // happens in the first cycles, when only the root's children can be named.)
-        let wanting = self
-            .coverage
-            .known_samples()
-            .filter(|(_, s)| s.refinable_error() > 0.0)
-            .count();
-        if wanting * 100 > self.coverage.pixels() as usize {
+        if u64::from(self.coverage.dirty()) * 100 > u64::from(self.coverage.pixels()) {
             return;
         }
         // Only into the half of the buffer the view does not need: with a tight budget every
@@ -709,6 +711,7 @@ impl ClientCore {
                 || arriving.contains(&id)
                 || slots.is_resident(id)
         });
+        self.frustum_exhausted = candidates.is_empty();
         // Below every listed item, larger projections first; priorities stay > 0.
         let lowest = requests.iter().map(|r| r.priority).fold(1.0f32, f32::min);
         requests.extend(candidates.iter().take(free).map(|c| RequestItem {
@@ -881,6 +884,10 @@ impl ClientCore {
         self.note_evictions();
         if evicted + self.evicted_outside > 0 {
             self.pushes_paused_until = self.cycle + PUSH_PAUSE_CYCLES;
+        }
+        if inserted + evicted + self.evicted_outside > 0 {
+            // New refinable leaves, or old ones uncovered.
+            self.frustum_exhausted = false;
         }
         Integration {
             inserted,

@@ -319,8 +319,6 @@ impl Conn {
             .map(|i| &self.by_id[i])
     }
 
-    /// Forgets deliveries older than the guard (and keeps the record bounded however `now`
-    /// moves).
     /// `treelet` reached the client (or is about to) at `now`: lists within the redelivery guard
     /// do not get it again.
     fn remember_delivery(&mut self, treelet: TreeletId, now: Instant) {
@@ -331,6 +329,8 @@ impl Conn {
         }
     }
 
+    /// Forgets deliveries older than the guard (and keeps the record bounded however `now`
+    /// moves).
     fn prune_recent(&mut self, now: Instant) {
         let guard = self.config.redelivery_guard;
         let cap = self
