@@ -14,7 +14,7 @@ use std::path::Path;
 use arbor_proto::scene::validate_scene_name;
 use arbor_proto::{AttributeLayout, Channel, ProtoError, SceneDescription, TreeletId};
 
-use crate::octree::{BuildError, TreeletSink};
+use crate::octree::{BuildError, PackedTreelet, TreeletSink};
 
 /// Errors of the pool.
 #[derive(Debug, thiserror::Error)]
@@ -418,5 +418,57 @@ impl TreeletSink for PoolImport {
             t.insert(key, c).map_err(err)?;
         }
         Ok(())
+    }
+
+    /// Each tree (nodes, every channel) is written by a thread of its own: sled's inserts were
+    /// the import's slowest serial step, and its trees take concurrent writers.
+    fn put_many(&mut self, treelets: Vec<PackedTreelet>) -> Result<(), BuildError> {
+        if let Some(t) = treelets
+            .iter()
+            .find(|t| t.channels.len() != self.channels.len())
+        {
+            return Err(BuildError::Sink(format!(
+                "treelet {}: {} channel blocks for {} channel trees",
+                t.id.0,
+                t.channels.len(),
+                self.channels.len()
+            )));
+        }
+        let mut columns: Vec<Vec<([u8; 4], Vec<u8>)>> =
+            vec![Vec::with_capacity(treelets.len()); self.channels.len() + 1];
+        for t in treelets {
+            let key = t.id.0.to_be_bytes();
+            columns[0].push((key, t.nodes));
+            for (column, c) in columns[1..].iter_mut().zip(t.channels) {
+                column.push((key, c));
+            }
+        }
+        let trees: Vec<&sled::Tree> = std::iter::once(&self.nodes)
+            .chain(self.channels.iter())
+            .collect();
+        let write = |tree: &sled::Tree, column: Vec<([u8; 4], Vec<u8>)>| {
+            for (key, value) in column {
+                tree.insert(key, value)
+                    .map_err(|e| BuildError::Sink(e.to_string()))?;
+            }
+            Ok::<(), BuildError>(())
+        };
+        std::thread::scope(|scope| {
+            let mut columns = columns.into_iter();
+            let first = columns.next().unwrap_or_default();
+            let others: Vec<_> = trees[1..]
+                .iter()
+                .zip(columns)
+                .map(|(&tree, column)| scope.spawn(move || write(tree, column)))
+                .collect();
+            let mut result = write(trees[0], first);
+            for h in others {
+                let r = h
+                    .join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+                result = result.and(r);
+            }
+            result
+        })
     }
 }

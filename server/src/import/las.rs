@@ -208,16 +208,49 @@ pub(super) fn read_into(
     let format = *header.point_format();
     let n = header.number_of_points();
     out.begin_file(file, format.has_color, false)?;
-    let mut pd = ::las::PointDataBuilder::new().for_header(&header).build();
     let batch = (BATCH_BYTES / u64::from(format.len()).max(1)).clamp(1, BATCH);
     let kind = if format.is_compressed { "LAZ" } else { "LAS" };
-    let mut done = 0u64;
-    while done < n {
-        let want = batch.min(n - done);
-        let got = read_batch(&mut reader, &mut pd, file, kind, done, want, n)?;
-        push_batch(out, file, &pd, done)?;
-        done += got;
-    }
+    // Decoding (this thread, the LAZ chunks spread over rayon) and appending to the scratch
+    // columns (a scoped thread) overlap: appended one after the other, the columns left a core
+    // idle for a third of the read. At most three batches exist at once.
+    let appending = &mut *out;
+    std::thread::scope(|scope| {
+        let (full_tx, full_rx) = std::sync::mpsc::sync_channel::<(::las::PointData, u64)>(1);
+        let (empty_tx, empty_rx) = std::sync::mpsc::channel::<::las::PointData>();
+        let appender = scope.spawn(move || {
+            for (pd, first) in full_rx {
+                push_batch(appending, file, &pd, first)?;
+                let _ = empty_tx.send(pd);
+            }
+            Ok::<(), ImportError>(())
+        });
+        let mut decoded = Ok(());
+        let mut done = 0u64;
+        while done < n {
+            let mut pd = empty_rx
+                .try_recv()
+                .unwrap_or_else(|_| ::las::PointDataBuilder::new().for_header(&header).build());
+            let want = batch.min(n - done);
+            match read_batch(&mut reader, &mut pd, file, kind, done, want, n) {
+                Ok(got) => {
+                    // A closed channel: the appender failed; its error is the one to report.
+                    if full_tx.send((pd, done)).is_err() {
+                        break;
+                    }
+                    done += got;
+                }
+                Err(e) => {
+                    decoded = Err(e);
+                    break;
+                }
+            }
+        }
+        drop(full_tx);
+        let appended = appender
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        appended.and(decoded)
+    })?;
     out.end_las_file();
     Ok(())
 }

@@ -131,6 +131,23 @@ pub trait TreeletSink {
         nodes: Vec<u8>,
         channels: Vec<Vec<u8>>,
     ) -> Result<(), BuildError>;
+    /// Several treelets in ascending id order; a sink may store them concurrently (the pool
+    /// writes its trees in parallel).
+    fn put_many(&mut self, treelets: Vec<PackedTreelet>) -> Result<(), BuildError> {
+        for t in treelets {
+            self.put(t.id, t.nodes, t.channels)?;
+        }
+        Ok(())
+    }
+}
+
+/// One treelet's compressed blocks, as a [`TreeletSink`] receives them.
+#[derive(Clone, Debug)]
+pub struct PackedTreelet {
+    pub id: TreeletId,
+    pub nodes: Vec<u8>,
+    /// In layout order.
+    pub channels: Vec<Vec<u8>>,
 }
 
 /// Builds `source` into a scene named `name`, handing treelets to `sink`. Returns the scene
@@ -227,15 +244,35 @@ pub fn build_scene_observed(
         offsets: fill.offsets,
     };
     progress.enter(Phase::Attributes, u64::from(fill.treelets));
-    average_bottom_up(
-        &records,
-        &layout,
-        &fill.level_starts,
-        depth,
-        opts.progress,
-        progress,
-    )?;
-    let t = phase("attributes", t);
+    // The node streams are final after the fill, so the dictionary (one thread in zstd) is
+    // trained beside the attribute pass, which leaves part of a core idle between levels.
+    let (averaged, trained) = std::thread::scope(|scope| {
+        let training = scope.spawn(|| {
+            let t = Instant::now();
+            let trained = if opts.dictionary {
+                train_dictionaries(&records, &layout, fill.treelets)
+            } else {
+                Ok((None, vec![None; layout.channels().len()]))
+            };
+            tracing::info!(seconds = t.elapsed().as_secs_f64(), "dictionary training");
+            trained
+        });
+        let averaged = average_bottom_up(
+            &records,
+            &layout,
+            &fill.level_starts,
+            depth,
+            opts.progress,
+            progress,
+        );
+        let trained = training
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        (averaged, trained)
+    });
+    averaged?;
+    let (node_dictionary, channel_dictionaries) = trained?;
+    let t = phase("attributes and dictionary training", t);
     let mut stats = SceneStats {
         voxels: fill.used_nodes - u64::from(fill.treelets - 1),
         leaf_voxels: fill.leaf_voxels,
@@ -243,12 +280,6 @@ pub fn build_scene_observed(
         peak_list_bytes: fill.peak_list_bytes,
         ..SceneStats::default()
     };
-    let (node_dictionary, channel_dictionaries) = if opts.dictionary {
-        train_dictionaries(&records, &layout, fill.treelets)?
-    } else {
-        (None, vec![None; layout.channels().len()])
-    };
-    let t = phase("dictionary training", t);
     progress.enter(Phase::Packing, u64::from(fill.treelets));
     pack(
         &records,
@@ -519,8 +550,15 @@ impl RecordFile {
         let used = (end - start - HEADER_BYTES as u64) / (8 + self.bpv as u64);
         (start, end, start + HEADER_BYTES as u64 + used * 8)
     }
-    fn read(&self, id: u32, max_depth: u8) -> Result<(Treelet, Vec<u8>), BuildError> {
-        self.read_with_places(id, max_depth).map(|(t, _, a)| (t, a))
+    /// A record as stored: the raw treelet encoding (final once filled: the attribute pass
+    /// rewrites attributes only), the length of that encoding and the used node count.
+    fn read_raw(&self, id: u32) -> Result<(Vec<u8>, usize, usize), BuildError> {
+        let (start, end, attributes) = self.place(id);
+        let mut buf = vec![0u8; (end - start) as usize];
+        self.file.read_exact_at(&mut buf, start)?;
+        let raw_len = (attributes - start) as usize;
+        let used = (raw_len - HEADER_BYTES) / 8;
+        Ok((buf, raw_len, used))
     }
     fn read_with_places(
         &self,
@@ -571,7 +609,71 @@ fn bar(enabled: bool, what: &str, len: u64) -> ProgressBar {
     pb
 }
 
-/// Pass 1: fill every treelet, FIFO, in parallel batches.
+/// Independent jobs taken from the queue at once, per rayon thread.
+const JOBS_PER_THREAD: usize = 8;
+
+/// What pass 1 has written so far: the records, their offsets, and the counts the scene's
+/// statistics need. Filled treelets are handed to it in id order.
+struct RecordWriter<'a> {
+    file: &'a File,
+    offsets: ColumnWriter<u64>,
+    end: u64,
+    bpv: usize,
+    next_id: u64,
+    /// Level of every treelet (1 byte each), to find where each level starts.
+    level_of: Vec<u8>,
+    written: u32,
+    used_nodes: u64,
+    leaf_voxels: u64,
+    buf: Vec<u8>,
+}
+
+impl RecordWriter<'_> {
+    /// Names the filled treelets' children (ids in FIFO order), queues them and appends the
+    /// records.
+    fn write(
+        &mut self,
+        filled: Vec<std::io::Result<FilledTreelet>>,
+        queue: &mut PendingQueue,
+    ) -> Result<(), BuildError> {
+        for f in filled {
+            let mut f = f?;
+            let id = f.treelet.header.id;
+            debug_assert_eq!(id.0, self.written);
+            for leaf in f.pending.drain(..) {
+                let child = treelet_id(self.next_id)?;
+                self.next_id += 1;
+                self.level_of
+                    .push(self.level_of[id.0 as usize].saturating_add(1));
+                f.treelet.nodes[usize::from(leaf.local_index)].first_child = child.0;
+                queue.push(TreeletJob {
+                    id: child,
+                    parent_id: id,
+                    parent_leaf_index: leaf.local_index,
+                    parent_leaf_parent_index: leaf.parent_local_index,
+                    child_index_in_parent: leaf.child_index,
+                    root: leaf.cell,
+                    prims: leaf.prims,
+                })?;
+            }
+            self.used_nodes += u64::from(f.treelet.header.used_nodes);
+            self.leaf_voxels += f.leaf_voxels;
+            self.buf.clear();
+            self.buf
+                .extend_from_slice(&codec::encode_treelet(&f.treelet));
+            let used = usize::from(f.treelet.header.used_nodes);
+            self.buf.extend_from_slice(&f.attributes[..used * self.bpv]);
+            self.file.write_all_at(&self.buf, self.end)?;
+            self.end += self.buf.len() as u64;
+            self.offsets.push(self.end)?;
+            self.written += 1;
+        }
+        Ok(())
+    }
+}
+
+/// Pass 1: fill every treelet, FIFO, in parallel batches. While one batch's records are
+/// written and its children queued (serial), the next batch — jobs queued before — is filled.
 fn fill_all(
     builder: &dyn TreeletBuilder,
     attributes: &dyn AttributeGenerator,
@@ -582,10 +684,8 @@ fn fill_all(
     progress: &ImportProgress,
 ) -> Result<Filled, BuildError> {
     let file = scratch_file(&scratch.join("treelets.records"))?;
-    let bpv = attributes.bytes_per_voxel();
     let mut offsets = ColumnWriter::<u64>::create(scratch, "treelet-offsets")?;
     offsets.push(0)?;
-    let mut end = 0u64;
     let count = builder.primitive_count();
     let count = u32::try_from(count).map_err(|_| BuildError::TooManyPrimitives {
         count,
@@ -605,16 +705,22 @@ fn fill_all(
         root: Cell::ROOT,
         prims: IdList::Range(0..count),
     })?;
-    let mut next_id: u64 = 1;
-    // Level of every treelet (1 byte each), to find where each level starts.
-    let mut level_of: Vec<u8> = vec![0];
-    let mut written = 0u32;
-    let (mut used_nodes, mut leaf_voxels) = (0u64, 0u64);
+    let mut out = RecordWriter {
+        file: &file,
+        offsets,
+        end: 0,
+        bpv: attributes.bytes_per_voxel(),
+        next_id: 1,
+        level_of: vec![0],
+        written: 0,
+        used_nodes: 0,
+        leaf_voxels: 0,
+        buf: Vec::new(),
+    };
     let pb = spinner(opts.progress, "fill");
-    let batch_target = rayon::current_num_threads() * 4;
-    let mut buf = Vec::new();
-    while !queue.is_empty() {
-        // A batch of independent jobs, bounded by count and by primitive-list bytes.
+    let batch_target = rayon::current_num_threads() * JOBS_PER_THREAD;
+    // A batch of independent jobs, bounded by count and by primitive-list bytes.
+    let take_batch = |queue: &mut PendingQueue| -> Result<Vec<TreeletJob>, BuildError> {
         let mut batch = Vec::new();
         let mut batch_bytes = 0usize;
         while batch.len() < batch_target && batch_bytes < opts.memory_budget.max(1 << 20) {
@@ -622,43 +728,29 @@ fn fill_all(
             batch_bytes += job.prims.memory_bytes();
             batch.push(job);
         }
-        let filled: Vec<std::io::Result<FilledTreelet>> = batch
+        Ok(batch)
+    };
+    let fill = |batch: Vec<TreeletJob>| -> Vec<std::io::Result<FilledTreelet>> {
+        batch
             .into_par_iter()
             .map(|job| fill_treelet(builder, attributes, job, capacity, depth, &lists))
-            .collect();
-        for f in filled {
-            let mut f = f?;
-            let id = f.treelet.header.id;
-            debug_assert_eq!(id.0, written);
-            for leaf in f.pending.drain(..) {
-                let child = treelet_id(next_id)?;
-                next_id += 1;
-                level_of.push(level_of[id.0 as usize].saturating_add(1));
-                f.treelet.nodes[usize::from(leaf.local_index)].first_child = child.0;
-                queue.push(TreeletJob {
-                    id: child,
-                    parent_id: id,
-                    parent_leaf_index: leaf.local_index,
-                    parent_leaf_parent_index: leaf.parent_local_index,
-                    child_index_in_parent: leaf.child_index,
-                    root: leaf.cell,
-                    prims: leaf.prims,
-                })?;
-            }
-            used_nodes += u64::from(f.treelet.header.used_nodes);
-            leaf_voxels += f.leaf_voxels;
-            buf.clear();
-            buf.extend_from_slice(&codec::encode_treelet(&f.treelet));
-            let used = usize::from(f.treelet.header.used_nodes);
-            buf.extend_from_slice(&f.attributes[..used * bpv]);
-            file.write_all_at(&buf, end)?;
-            end += buf.len() as u64;
-            offsets.push(end)?;
-            written += 1;
+            .collect()
+    };
+    let mut filled = fill(take_batch(&mut queue)?);
+    loop {
+        // Jobs queued before this batch's children: independent of the batch being written.
+        let next = take_batch(&mut queue)?;
+        if filled.is_empty() && next.is_empty() {
+            break;
         }
-        progress.set_done(u64::from(written));
+        let (written, next_filled) = rayon::join(|| out.write(filled, &mut queue), || fill(next));
+        written?;
+        filled = next_filled;
+        progress.set_done(u64::from(out.written));
         pb.set_message(format!(
-            "{written} treelets, {leaf_voxels} leaf voxels, {} queued",
+            "{} treelets, {} leaf voxels, {} queued",
+            out.written,
+            out.leaf_voxels,
             queue.len()
         ));
         pb.tick();
@@ -672,6 +764,14 @@ fn fill_all(
             "primitive lists spilled to disk"
         );
     }
+    let RecordWriter {
+        offsets,
+        written,
+        level_of,
+        used_nodes,
+        leaf_voxels,
+        ..
+    } = out;
     let mut level_starts = vec![0u32];
     for (i, pair) in level_of.windows(2).enumerate() {
         debug_assert!(pair[0] <= pair[1], "FIFO order keeps levels contiguous");
@@ -681,8 +781,8 @@ fn fill_all(
     }
     level_starts.push(written);
     Ok(Filled {
-        file,
         offsets: offsets.finish()?,
+        file,
         treelets: written,
         level_starts,
         used_nodes,
@@ -795,9 +895,10 @@ fn channel_blocks(layout: &AttributeLayout, attrs: &[u8], bpv: usize, used: usiz
         .iter()
         .map(|c| {
             let size = c.size();
-            let block = (0..used)
-                .flat_map(|i| attrs[i * bpv + at..i * bpv + at + size].iter().copied())
-                .collect();
+            let mut block = Vec::with_capacity(used * size);
+            for voxel in attrs.chunks_exact(bpv).take(used) {
+                block.extend_from_slice(&voxel[at..at + size]);
+            }
             at += size;
             block
         })
@@ -827,8 +928,9 @@ fn train_dictionaries(
     let step = (count / DICTIONARY_SAMPLES).max(1);
     let mut samples = Vec::new();
     for id in (0..count).step_by(step as usize) {
-        let (t, _) = records.read(id, arbor_proto::limits::MAX_DEPTH)?;
-        samples.push(codec::encode_treelet(&t));
+        let (mut raw, raw_len, _) = records.read_raw(id)?;
+        raw.truncate(raw_len);
+        samples.push(raw);
     }
     let dictionary = match zstd::dict::from_samples(&samples, DICTIONARY_BYTES) {
         Ok(d) => Some(d),
@@ -840,7 +942,95 @@ fn train_dictionaries(
     Ok((dictionary, channels))
 }
 
-/// Pass 3: compress nodes and channels and hand them to the sink in id order.
+/// One compressor per stream (nodes, then each channel), kept for the whole pass: building
+/// one loads its dictionary into zstd's tables, which cost as much as compressing a few
+/// treelets.
+struct Compressors {
+    nodes: BlockCompressor,
+    channels: Vec<BlockCompressor>,
+}
+
+/// Compressor sets returned by the rayon jobs that used them, for the next jobs to take.
+struct CompressorPool<'a> {
+    level: i32,
+    node_dict: Option<&'a [u8]>,
+    channel_dicts: &'a [Option<Vec<u8>>],
+    idle: std::sync::Mutex<Vec<Compressors>>,
+}
+
+impl CompressorPool<'_> {
+    fn take(&self) -> Result<Compressors, ProtoError> {
+        if let Some(c) = self.idle.lock().unwrap_or_else(|e| e.into_inner()).pop() {
+            return Ok(c);
+        }
+        Ok(Compressors {
+            nodes: BlockCompressor::new(self.level, self.node_dict)?,
+            channels: self
+                .channel_dicts
+                .iter()
+                .map(|d| BlockCompressor::new(self.level, d.as_deref()))
+                .collect::<Result<_, _>>()?,
+        })
+    }
+
+    fn give_back(&self, c: Compressors) {
+        self.idle.lock().unwrap_or_else(|e| e.into_inner()).push(c);
+    }
+}
+
+/// A set taken from the pool for one rayon split, given back when the split ends.
+struct Lease<'p, 'a> {
+    pool: &'p CompressorPool<'a>,
+    set: Result<Compressors, ProtoError>,
+}
+
+impl Drop for Lease<'_, '_> {
+    fn drop(&mut self) {
+        let given_back = Err(ProtoError::Compression {
+            what: "compressor",
+            detail: "given back to the pool".into(),
+        });
+        if let Ok(c) = std::mem::replace(&mut self.set, given_back) {
+            self.pool.give_back(c);
+        }
+    }
+}
+
+/// A treelet's compressed blocks and its raw bytes.
+type Packed = (PackedTreelet, u64);
+
+/// Compresses record `id`: its stored treelet encoding as it is, its attributes split per
+/// channel.
+fn pack_one(
+    records: &RecordFile,
+    layout: &AttributeLayout,
+    comp: &mut Compressors,
+    id: u32,
+) -> Result<Packed, BuildError> {
+    let (buf, raw_len, used) = records.read_raw(id)?;
+    let (raw, attrs) = buf.split_at(raw_len);
+    let blocks = channel_blocks(layout, attrs, records.bpv, used);
+    let raw_bytes = (raw.len() + blocks.iter().map(Vec::len).sum::<usize>()) as u64;
+    let nodes = comp.nodes.compress(raw)?;
+    let chans = blocks
+        .iter()
+        .zip(comp.channels.iter_mut())
+        .map(|(b, c)| c.compress(b))
+        .collect::<Result<Vec<_>, _>>()?;
+    let packed = PackedTreelet {
+        id: TreeletId(id),
+        nodes,
+        channels: chans,
+    };
+    Ok((packed, raw_bytes))
+}
+
+/// Treelets compressed per step of the pack pass.
+const PACK_CHUNK: u32 = 512;
+
+/// Pass 3: compress nodes and channels and hand them to the sink in id order. A scoped thread
+/// compresses chunk after chunk on the rayon pool while this thread hands the previous chunk to
+/// the sink (sled's inserts were a serial step between chunks, leaving a core idle).
 #[allow(clippy::too_many_arguments)]
 fn pack(
     records: &RecordFile,
@@ -856,49 +1046,61 @@ fn pack(
     stats.channel_bytes = vec![0; layout.channels().len()];
     sink.start(layout)?;
     let pb = bar(opts.progress, "pack", u64::from(count));
-    const CHUNK: u32 = 256;
-    for start in (0..count).step_by(CHUNK as usize) {
-        let end = (start + CHUNK).min(count);
-        type Packed = (TreeletId, Vec<u8>, Vec<Vec<u8>>, u64);
-        let packed: Vec<Result<Packed, BuildError>> = (start..end)
-            .into_par_iter()
-            .map_init(
-                || {
-                    let n = BlockCompressor::new(opts.zstd_level, node_dict);
-                    let c: Result<Vec<_>, _> = channel_dicts
-                        .iter()
-                        .map(|d| BlockCompressor::new(opts.zstd_level, d.as_deref()))
-                        .collect();
-                    n.and_then(|n| c.map(|c| (n, c)))
-                },
-                |comp, id| {
-                    let (nc, cc) = comp.as_mut().map_err(|e| BuildError::Proto(e.clone()))?;
-                    let (t, attrs) = records.read(id, arbor_proto::limits::MAX_DEPTH)?;
-                    let raw = codec::encode_treelet(&t);
-                    let blocks = channel_blocks(layout, &attrs, records.bpv, t.used().len());
-                    let raw_bytes = (raw.len() + blocks.iter().map(Vec::len).sum::<usize>()) as u64;
-                    let nodes = nc.compress(&raw)?;
-                    let chans = blocks
-                        .iter()
-                        .zip(cc.iter_mut())
-                        .map(|(b, c)| c.compress(b))
-                        .collect::<Result<Vec<_>, _>>()?;
-                    Ok((TreeletId(id), nodes, chans, raw_bytes))
-                },
-            )
-            .collect();
-        for p in packed {
-            let (id, nodes, chans, raw) = p?;
-            stats.raw_bytes += raw;
-            stats.node_bytes += nodes.len() as u64;
-            for (s, c) in stats.channel_bytes.iter_mut().zip(&chans) {
-                *s += c.len() as u64;
+    let pool = CompressorPool {
+        level: opts.zstd_level,
+        node_dict,
+        channel_dicts,
+        idle: std::sync::Mutex::new(Vec::new()),
+    };
+    std::thread::scope(|scope| {
+        // Two chunks ahead at most: bounded memory, and the sink never waits.
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Result<Vec<Packed>, BuildError>>(2);
+        let pool = &pool;
+        scope.spawn(move || {
+            for start in (0..count).step_by(PACK_CHUNK as usize) {
+                let end = (start + PACK_CHUNK).min(count);
+                let packed: Result<Vec<Packed>, BuildError> = (start..end)
+                    .into_par_iter()
+                    .map_init(
+                        || Lease {
+                            pool,
+                            set: pool.take(),
+                        },
+                        |lease, id| {
+                            let comp = lease
+                                .set
+                                .as_mut()
+                                .map_err(|e| BuildError::Proto(e.clone()))?;
+                            pack_one(records, layout, comp, id)
+                        },
+                    )
+                    .collect();
+                let failed = packed.is_err();
+                // A closed channel: the sink failed and the pass is over.
+                if tx.send(packed).is_err() || failed {
+                    break;
+                }
             }
-            sink.put(id, nodes, chans)?;
+        });
+        let mut done = 0u64;
+        for chunk in rx {
+            let chunk = chunk?;
+            done += chunk.len() as u64;
+            let mut treelets = Vec::with_capacity(chunk.len());
+            for (t, raw) in chunk {
+                stats.raw_bytes += raw;
+                stats.node_bytes += t.nodes.len() as u64;
+                for (s, c) in stats.channel_bytes.iter_mut().zip(&t.channels) {
+                    *s += c.len() as u64;
+                }
+                treelets.push(t);
+            }
+            sink.put_many(treelets)?;
+            pb.set_position(done);
+            progress.set_done(done);
         }
-        pb.set_position(u64::from(end));
-        progress.set_done(u64::from(end));
-    }
+        Ok::<(), BuildError>(())
+    })?;
     pb.finish_and_clear();
     Ok(())
 }
@@ -985,9 +1187,12 @@ mod tests {
         };
         let (a, b) = (records(general), records(sorted));
         for id in 0..a.offsets.len() as u32 - 1 {
-            let (ta, _) = a.read(id, 10).unwrap();
-            let (tb, _) = b.read(id, 10).unwrap();
-            assert!(ta == tb, "treelet {id} differs");
+            let (ra, len, used) = a.read_raw(id).unwrap();
+            let (rb, _, _) = b.read_raw(id).unwrap();
+            assert!(ra == rb, "treelet {id} differs");
+            // Pack compresses the stored encoding as it is: it must be a whole, valid treelet.
+            let t = codec::decode_treelet(&ra[..len], 10).unwrap();
+            assert_eq!(t.used().len(), used, "treelet {id}");
         }
     }
 
