@@ -41,6 +41,8 @@ type BenchResult<T> = Result<T, Box<dyn std::error::Error>>;
 #[derive(Debug, Default)]
 struct CountingSink {
     treelets: u64,
+    /// Treelets whose channel blocks arrived.
+    with_channels: u64,
     node_bytes: u64,
     channel_bytes: Vec<u64>,
     last_id: Option<u32>,
@@ -53,27 +55,31 @@ impl TreeletSink for CountingSink {
         Ok(())
     }
 
-    fn put(
-        &mut self,
-        id: TreeletId,
-        nodes: Vec<u8>,
-        channels: Vec<Vec<u8>>,
-    ) -> Result<(), BuildError> {
-        if channels.len() != self.channel_bytes.len() {
-            return Err(BuildError::Sink(format!(
-                "{} channel blocks for {} channels",
-                channels.len(),
-                self.channel_bytes.len()
-            )));
+    fn put_nodes(&mut self, blocks: Vec<(TreeletId, Vec<u8>)>) -> Result<(), BuildError> {
+        for (id, b) in blocks {
+            if self.last_id.is_some_and(|last| id.0 <= last) {
+                self.out_of_order = true;
+            }
+            self.last_id = Some(id.0);
+            self.treelets += 1;
+            self.node_bytes += b.len() as u64;
         }
-        if self.last_id.is_some_and(|last| id.0 <= last) {
-            self.out_of_order = true;
-        }
-        self.last_id = Some(id.0);
-        self.treelets += 1;
-        self.node_bytes += nodes.len() as u64;
-        for (s, c) in self.channel_bytes.iter_mut().zip(&channels) {
-            *s += c.len() as u64;
+        Ok(())
+    }
+
+    fn put_channels(&mut self, blocks: Vec<(TreeletId, Vec<Vec<u8>>)>) -> Result<(), BuildError> {
+        for (_, channels) in blocks {
+            if channels.len() != self.channel_bytes.len() {
+                return Err(BuildError::Sink(format!(
+                    "{} channel blocks for {} channels",
+                    channels.len(),
+                    self.channel_bytes.len()
+                )));
+            }
+            self.with_channels += 1;
+            for (s, c) in self.channel_bytes.iter_mut().zip(&channels) {
+                *s += c.len() as u64;
+            }
         }
         Ok(())
     }
@@ -256,10 +262,11 @@ fn bench_file(
         let build = best.ok_or("no run")?;
         if sink.out_of_order {
             anomalies.push(format!(
-                "{name} {treelet_bytes} B: treelets reached the sink out of id order"
+                "{name} {treelet_bytes} B: node blocks reached the sink out of id order"
             ));
         }
         if sink.treelets != u64::from(desc.treelet_count)
+            || sink.with_channels != sink.treelets
             || sink.node_bytes != desc.stats.node_bytes
             || sink.channel_bytes != desc.stats.channel_bytes
         {

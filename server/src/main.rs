@@ -22,6 +22,12 @@ use arbor_server::service::{ConfigOverrides, ServeConfig};
 use arbor_server::verify;
 use clap::{Args, Parser, Subcommand};
 
+/// mimalloc rather than glibc's malloc: an import's threads (sled's inserts, the compressors,
+/// the sort's rounds) waited on glibc's arena locks, and its pages are reused rather than
+/// returned and faulted in again.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 #[derive(Parser, Debug)]
 #[command(
     name = "arbor-server",

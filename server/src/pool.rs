@@ -14,7 +14,7 @@ use std::path::Path;
 use arbor_proto::scene::validate_scene_name;
 use arbor_proto::{AttributeLayout, Channel, ProtoError, SceneDescription, TreeletId};
 
-use crate::octree::{BuildError, PackedTreelet, TreeletSink};
+use crate::octree::{BuildError, TreeletSink};
 
 /// Errors of the pool.
 #[derive(Debug, thiserror::Error)]
@@ -398,70 +398,35 @@ impl TreeletSink for PoolImport {
             .map_err(|e| BuildError::Sink(e.to_string()))
     }
 
-    fn put(
-        &mut self,
-        id: TreeletId,
-        nodes: Vec<u8>,
-        channels: Vec<Vec<u8>>,
-    ) -> Result<(), BuildError> {
-        let key = id.0.to_be_bytes();
-        let err = |e: sled::Error| BuildError::Sink(e.to_string());
-        self.nodes.insert(key, nodes).map_err(err)?;
-        if channels.len() != self.channels.len() {
-            return Err(BuildError::Sink(format!(
-                "{} channel blocks for {} channel trees",
-                channels.len(),
-                self.channels.len()
-            )));
-        }
-        for (t, c) in self.channels.iter().zip(channels) {
-            t.insert(key, c).map_err(err)?;
-        }
-        Ok(())
+    fn put_nodes(&mut self, blocks: Vec<(TreeletId, Vec<u8>)>) -> Result<(), BuildError> {
+        write_column(&self.nodes, blocks)
     }
 
-    /// Each tree (nodes, every channel) is written by a thread of its own: sled's inserts were
-    /// the import's slowest serial step, and its trees take concurrent writers.
-    fn put_many(&mut self, treelets: Vec<PackedTreelet>) -> Result<(), BuildError> {
-        if let Some(t) = treelets
-            .iter()
-            .find(|t| t.channels.len() != self.channels.len())
-        {
+    /// Each channel's tree is written by a thread of its own: sled's inserts were the import's
+    /// slowest serial step, and its trees take concurrent writers.
+    fn put_channels(&mut self, blocks: Vec<(TreeletId, Vec<Vec<u8>>)>) -> Result<(), BuildError> {
+        if let Some((id, b)) = blocks.iter().find(|(_, b)| b.len() != self.channels.len()) {
             return Err(BuildError::Sink(format!(
                 "treelet {}: {} channel blocks for {} channel trees",
-                t.id.0,
-                t.channels.len(),
+                id.0,
+                b.len(),
                 self.channels.len()
             )));
         }
-        let mut columns: Vec<Vec<([u8; 4], Vec<u8>)>> =
-            vec![Vec::with_capacity(treelets.len()); self.channels.len() + 1];
-        for t in treelets {
-            let key = t.id.0.to_be_bytes();
-            columns[0].push((key, t.nodes));
-            for (column, c) in columns[1..].iter_mut().zip(t.channels) {
-                column.push((key, c));
+        let mut columns: Vec<Vec<(TreeletId, Vec<u8>)>> =
+            vec![Vec::with_capacity(blocks.len()); self.channels.len()];
+        for (id, per_channel) in blocks {
+            for (column, b) in columns.iter_mut().zip(per_channel) {
+                column.push((id, b));
             }
         }
-        let trees: Vec<&sled::Tree> = std::iter::once(&self.nodes)
-            .chain(self.channels.iter())
-            .collect();
-        let write = |tree: &sled::Tree, column: Vec<([u8; 4], Vec<u8>)>| {
-            for (key, value) in column {
-                tree.insert(key, value)
-                    .map_err(|e| BuildError::Sink(e.to_string()))?;
-            }
-            Ok::<(), BuildError>(())
-        };
         std::thread::scope(|scope| {
-            let mut columns = columns.into_iter();
-            let first = columns.next().unwrap_or_default();
-            let others: Vec<_> = trees[1..]
-                .iter()
-                .zip(columns)
-                .map(|(&tree, column)| scope.spawn(move || write(tree, column)))
+            let mut pairs = self.channels.iter().zip(columns);
+            let first = pairs.next();
+            let others: Vec<_> = pairs
+                .map(|(tree, column)| scope.spawn(move || write_column(tree, column)))
                 .collect();
-            let mut result = write(trees[0], first);
+            let mut result = first.map_or(Ok(()), |(tree, column)| write_column(tree, column));
             for h in others {
                 let r = h
                     .join()
@@ -471,4 +436,13 @@ impl TreeletSink for PoolImport {
             result
         })
     }
+}
+
+/// Inserts `(treelet, block)` pairs into one of an import's trees.
+fn write_column(tree: &sled::Tree, column: Vec<(TreeletId, Vec<u8>)>) -> Result<(), BuildError> {
+    for (id, block) in column {
+        tree.insert(id.0.to_be_bytes(), block)
+            .map_err(|e| BuildError::Sink(e.to_string()))?;
+    }
+    Ok(())
 }

@@ -122,8 +122,9 @@ impl<T: Pod> ColumnWriter<T> {
             path: path.clone(),
             source,
         };
+        // No sync: a scratch column is read back through the page cache and deleted with the
+        // import; forcing it to disk made every column's writer wait for the device.
         let file = self.out.into_inner().map_err(|e| io(e.into_error()))?;
-        file.sync_data().ok();
         let map = if self.len == 0 {
             None
         } else {

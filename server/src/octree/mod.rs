@@ -1,36 +1,36 @@
 //! The generalized builder (docs/design.md §3): a build manager drives a [`TreeletBuilder`] chosen by
 //! input kind and an [`AttributeGenerator`] chosen by the channels the source has.
 //!
-//! Three passes, each bounded in memory:
+//! Two passes, each bounded in memory:
 //! 1. **fill** — treelets are filled breadth-first from a FIFO of jobs (top-down, so every child
 //!    id is higher than its parent's); independent jobs of one batch run in parallel; finished
-//!    treelets are appended to a scratch file of fixed-size records;
-//! 2. **attributes** — records are read back in reverse id order and inner attributes averaged
-//!    bottom-up, a child treelet's root attribute feeding its parent's refinable leaf;
-//! 3. **pack** — optional per-stream zstd dictionaries are trained on evenly spread records, then
-//!    nodes and each attribute channel are compressed in parallel and handed to a [`TreeletSink`]
-//!    (the pool) in id order.
+//!    treelets are appended to a scratch file of packed records;
+//! 2. **store** ([`store`]) — two streams at once into a [`TreeletSink`] (the pool): the node
+//!    blocks, compressed in id order with a zstd dictionary trained on evenly spread records; and
+//!    the attribute blocks, treelets read back level by level, deepest first, inner attributes
+//!    averaged bottom-up (a child treelet's root attribute feeding its parent's refinable leaf)
+//!    and compressed per channel.
 
 pub mod geometry;
 pub mod idlist;
 pub mod pending;
 pub mod points;
 pub mod sorted_points;
+mod store;
 pub mod treelet_builder;
 pub mod triangles;
 pub mod volume;
 
-use std::collections::HashMap;
 use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::path::Path;
 use std::time::Instant;
 
-use arbor_proto::codec::{self, BlockCompressor, HEADER_BYTES};
-use arbor_proto::treelet::{NodePlace, nodes_for_bytes};
+use arbor_proto::codec::{self, HEADER_BYTES};
+use arbor_proto::treelet::nodes_for_bytes;
 use arbor_proto::{
-    AttributeLayout, BuildParameters, Cell, Node, ProtoError, SceneDescription, SceneStats,
-    SourceKind, Treelet, TreeletId,
+    AttributeLayout, BuildParameters, Cell, ProtoError, SceneDescription, SceneStats, SourceKind,
+    TreeletId,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
@@ -120,34 +120,16 @@ pub enum BuildError {
     Sink(String),
 }
 
-/// Receives the compressed blocks of each treelet, in ascending id order.
+/// Receives the compressed blocks of every treelet, as two streams that arrive interleaved: the
+/// node blocks in ascending id order, and the channel blocks treelet level by level, deepest
+/// level first (each treelet's channels together). Every treelet appears once in each stream.
 pub trait TreeletSink {
-    /// Called once with the scene's attribute layout before the first `put`.
+    /// Called once with the scene's attribute layout before the first block.
     fn start(&mut self, layout: &AttributeLayout) -> Result<(), BuildError>;
-    /// `channels` are in layout order.
-    fn put(
-        &mut self,
-        id: TreeletId,
-        nodes: Vec<u8>,
-        channels: Vec<Vec<u8>>,
-    ) -> Result<(), BuildError>;
-    /// Several treelets in ascending id order; a sink may store them concurrently (the pool
-    /// writes its trees in parallel).
-    fn put_many(&mut self, treelets: Vec<PackedTreelet>) -> Result<(), BuildError> {
-        for t in treelets {
-            self.put(t.id, t.nodes, t.channels)?;
-        }
-        Ok(())
-    }
-}
-
-/// One treelet's compressed blocks, as a [`TreeletSink`] receives them.
-#[derive(Clone, Debug)]
-pub struct PackedTreelet {
-    pub id: TreeletId,
-    pub nodes: Vec<u8>,
-    /// In layout order.
-    pub channels: Vec<Vec<u8>>,
+    /// Node blocks of consecutive treelets, ascending.
+    fn put_nodes(&mut self, blocks: Vec<(TreeletId, Vec<u8>)>) -> Result<(), BuildError>;
+    /// Channel blocks (layout order) of several treelets of one level, ascending.
+    fn put_channels(&mut self, blocks: Vec<(TreeletId, Vec<Vec<u8>>)>) -> Result<(), BuildError>;
 }
 
 /// Builds `source` into a scene named `name`, handing treelets to `sink`. Returns the scene
@@ -243,36 +225,6 @@ pub fn build_scene_observed(
         bpv: layout.bytes_per_voxel(),
         offsets: fill.offsets,
     };
-    progress.enter(Phase::Attributes, u64::from(fill.treelets));
-    // The node streams are final after the fill, so the dictionary (one thread in zstd) is
-    // trained beside the attribute pass, which leaves part of a core idle between levels.
-    let (averaged, trained) = std::thread::scope(|scope| {
-        let training = scope.spawn(|| {
-            let t = Instant::now();
-            let trained = if opts.dictionary {
-                train_dictionaries(&records, &layout, fill.treelets)
-            } else {
-                Ok((None, vec![None; layout.channels().len()]))
-            };
-            tracing::info!(seconds = t.elapsed().as_secs_f64(), "dictionary training");
-            trained
-        });
-        let averaged = average_bottom_up(
-            &records,
-            &layout,
-            &fill.level_starts,
-            depth,
-            opts.progress,
-            progress,
-        );
-        let trained = training
-            .join()
-            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
-        (averaged, trained)
-    });
-    averaged?;
-    let (node_dictionary, channel_dictionaries) = trained?;
-    let t = phase("attributes and dictionary training", t);
     let mut stats = SceneStats {
         voxels: fill.used_nodes - u64::from(fill.treelets - 1),
         leaf_voxels: fill.leaf_voxels,
@@ -280,19 +232,14 @@ pub fn build_scene_observed(
         peak_list_bytes: fill.peak_list_bytes,
         ..SceneStats::default()
     };
-    progress.enter(Phase::Packing, u64::from(fill.treelets));
-    pack(
-        &records,
-        &layout,
-        fill.treelets,
-        opts,
-        node_dictionary.as_deref(),
-        &channel_dictionaries,
-        &mut stats,
-        sink,
-        progress,
-    )?;
-    phase("pack", t);
+    let filled = store::FilledScene {
+        records: &records,
+        layout: &layout,
+        level_starts: &fill.level_starts,
+    };
+    let (node_dictionary, channel_dictionaries) =
+        store::store(&filled, opts, &mut stats, sink, progress)?;
+    phase("store (attributes, dictionary, compression)", t);
     stats.build_seconds = started.elapsed().as_secs_f64();
     let dictionary = node_dictionary.is_some();
     Ok(SceneDescription {
@@ -496,11 +443,7 @@ fn bounds(source: &Source) -> Result<([f64; 3], [f64; 3]), BuildError> {
                 }
             }
         }
-        Source::Points(p) => {
-            for (i, &q) in p.positions.iter().enumerate() {
-                add(q, "point", i)?;
-            }
-        }
+        Source::Points(p) => return point_bounds(&p.positions),
         Source::Volume(v) => {
             let far =
                 [0, 1, 2].map(|a| v.origin[a] + f64::from(v.dims[a].max(1) - 1) * v.spacing[a]);
@@ -515,6 +458,45 @@ fn bounds(source: &Source) -> Result<([f64; 3], [f64; 3]), BuildError> {
         }
     }
     Ok((min, max))
+}
+
+/// [`bounds`] of a point cloud, both cores over chunks of it (a serial pass over every point
+/// between reading and sorting); a non-finite point is named by its lowest index.
+fn point_bounds(positions: &[[f64; 3]]) -> Result<([f64; 3], [f64; 3]), BuildError> {
+    const CHUNK: usize = 1 << 16;
+    type Partial = Result<([f64; 3], [f64; 3]), usize>;
+    let empty: Partial = Ok(([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]));
+    let merged = positions
+        .par_chunks(CHUNK)
+        .enumerate()
+        .map(|(c, chunk)| {
+            let (mut min, mut max) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+            for (i, p) in chunk.iter().enumerate() {
+                if !p.iter().all(|v| v.is_finite()) {
+                    return Err(c * CHUNK + i);
+                }
+                for a in 0..3 {
+                    min[a] = min[a].min(p[a]);
+                    max[a] = max[a].max(p[a]);
+                }
+            }
+            Ok((min, max))
+        })
+        .reduce(
+            || empty,
+            |a, b| match (a, b) {
+                (Err(i), Err(j)) => Err(i.min(j)),
+                (Err(i), Ok(_)) | (Ok(_), Err(i)) => Err(i),
+                (Ok((amin, amax)), Ok((bmin, bmax))) => Ok((
+                    [0, 1, 2].map(|k| amin[k].min(bmin[k])),
+                    [0, 1, 2].map(|k| amax[k].max(bmax[k])),
+                )),
+            },
+        );
+    merged.map_err(|index| BuildError::NonFinite {
+        what: "point",
+        index: index as u64,
+    })
 }
 
 /// Output of the fill pass.
@@ -550,34 +532,19 @@ impl RecordFile {
         let used = (end - start - HEADER_BYTES as u64) / (8 + self.bpv as u64);
         (start, end, start + HEADER_BYTES as u64 + used * 8)
     }
-    /// A record as stored: the raw treelet encoding (final once filled: the attribute pass
-    /// rewrites attributes only), the length of that encoding and the used node count.
-    fn read_raw(&self, id: u32) -> Result<(Vec<u8>, usize, usize), BuildError> {
+    /// A record's stored treelet encoding (header and used node records), final once filled.
+    fn read_nodes(&self, id: u32) -> Result<Vec<u8>, BuildError> {
+        let (start, _, attributes) = self.place(id);
+        let mut buf = vec![0u8; (attributes - start) as usize];
+        self.file.read_exact_at(&mut buf, start)?;
+        Ok(buf)
+    }
+    /// A whole record, and where its attributes start in it.
+    fn read_record(&self, id: u32) -> Result<(Vec<u8>, usize), BuildError> {
         let (start, end, attributes) = self.place(id);
         let mut buf = vec![0u8; (end - start) as usize];
         self.file.read_exact_at(&mut buf, start)?;
-        let raw_len = (attributes - start) as usize;
-        let used = (raw_len - HEADER_BYTES) / 8;
-        Ok((buf, raw_len, used))
-    }
-    fn read_with_places(
-        &self,
-        id: u32,
-        max_depth: u8,
-    ) -> Result<(Treelet, Vec<NodePlace>, Vec<u8>), BuildError> {
-        let (start, end, attributes) = self.place(id);
-        let mut buf = vec![0u8; (end - start) as usize];
-        self.file.read_exact_at(&mut buf, start)?;
-        let raw_len = (attributes - start) as usize;
-        let (t, places) = codec::decode_treelet_with_places(&buf[..raw_len], max_depth)?;
-        let attrs = buf.split_off(raw_len);
-        Ok((t, places, attrs))
-    }
-    fn write_attributes(&self, id: u32, attrs: &[u8]) -> Result<(), BuildError> {
-        let (_, end, at) = self.place(id);
-        debug_assert_eq!(attrs.len() as u64, end - at);
-        self.file.write_all_at(attrs, at)?;
-        Ok(())
+        Ok((buf, (attributes - start) as usize))
     }
 }
 
@@ -800,311 +767,6 @@ fn treelet_id(next: u64) -> Result<TreeletId, BuildError> {
     }
 }
 
-/// Pass 2: inner attributes as the mean of their children, treelets in reverse id order.
-fn average_bottom_up(
-    records: &RecordFile,
-    layout: &AttributeLayout,
-    level_starts: &[u32],
-    depth: u8,
-    bars: bool,
-    progress: &ImportProgress,
-) -> Result<(), BuildError> {
-    let count = level_starts.last().copied().unwrap_or(0);
-    // Root attributes of the treelets one level below, for their parents' refinable leaves.
-    let mut below: HashMap<u32, Vec<u8>> = HashMap::new();
-    let pb = bar(bars, "attributes", u64::from(count));
-    let mut done = 0u64;
-    for level in (0..level_starts.len().saturating_sub(1)).rev() {
-        // Treelets of one level are independent: their children are all one level deeper.
-        let ids = level_starts[level]..level_starts[level + 1];
-        let roots: Vec<Result<Option<RootAttribute>, BuildError>> = ids
-            .clone()
-            .into_par_iter()
-            .map(|id| average_treelet(records, layout, id, depth, &below))
-            .collect();
-        below = HashMap::with_capacity(roots.len());
-        for r in roots {
-            if let Some((id, root)) = r? {
-                below.insert(id, root);
-            }
-        }
-        done += u64::from(ids.end - ids.start);
-        pb.set_position(done);
-        progress.set_done(done);
-    }
-    pb.finish_and_clear();
-    Ok(())
-}
-
-/// A treelet id and its root voxel's attribute bytes.
-type RootAttribute = (u32, Vec<u8>);
-
-/// Averages one treelet's inner attributes bottom-up (its refinable leaves take their child
-/// treelet's root attribute from `below`), writes them back, and returns its own root attribute
-/// for its parent (none for the root treelet).
-fn average_treelet(
-    records: &RecordFile,
-    layout: &AttributeLayout,
-    id: u32,
-    depth: u8,
-    below: &HashMap<u32, Vec<u8>>,
-) -> Result<Option<RootAttribute>, BuildError> {
-    let bpv = records.bpv;
-    let (t, places, mut attrs) = records.read_with_places(id, depth)?;
-    let mut out = Vec::new();
-    for i in (0..t.used().len()).rev() {
-        let n: Node = t.nodes[i];
-        let k = i * bpv;
-        if places[i].is_leaf {
-            if n.first_child != Node::NONE {
-                let root = below.get(&n.first_child).ok_or_else(|| {
-                    BuildError::Sink(format!(
-                        "treelet {id} leaf {i}: child treelet {} was never built",
-                        n.first_child
-                    ))
-                })?;
-                attrs[k..k + bpv].copy_from_slice(root);
-            }
-            continue;
-        }
-        let first = i + n.first_child as usize;
-        let kids = n.child_count() as usize;
-        let mut off = 0;
-        for c in layout.channels() {
-            let size = c.size();
-            out.clear();
-            out.resize(size, 0);
-            let src = &attrs;
-            c.mean(
-                (first..first + kids).map(|j| &src[j * bpv + off..j * bpv + off + size]),
-                &mut out,
-            );
-            attrs[k + off..k + off + size].copy_from_slice(&out);
-            off += size;
-        }
-    }
-    records.write_attributes(id, &attrs)?;
-    Ok((!t.header.parent_id.is_none()).then(|| (id, attrs[..bpv].to_vec())))
-}
-
-/// Splits a record's attribute bytes into one block per channel (used records only).
-fn channel_blocks(layout: &AttributeLayout, attrs: &[u8], bpv: usize, used: usize) -> Vec<Vec<u8>> {
-    let mut at = 0;
-    layout
-        .channels()
-        .iter()
-        .map(|c| {
-            let size = c.size();
-            let mut block = Vec::with_capacity(used * size);
-            for voxel in attrs.chunks_exact(bpv).take(used) {
-                block.extend_from_slice(&voxel[at..at + size]);
-            }
-            at += size;
-            block
-        })
-        .collect()
-}
-
-/// Dictionary size per stream.
-const DICTIONARY_BYTES: usize = 16 * 1024;
-/// At most this many records are sampled for training.
-const DICTIONARY_SAMPLES: u32 = 4000;
-
-type Dictionaries = (Option<Vec<u8>>, Vec<Option<Vec<u8>>>);
-
-/// Trains a dictionary for the node stream on evenly spread records. Attribute channels get
-/// none: measured on the six real scans (`cargo bench --bench build`) a channel dictionary saved
-/// at most 5 % and sometimes grew the stream, while node dictionaries save 22–35 %.
-/// Too few treelets to learn from gives no dictionary.
-fn train_dictionaries(
-    records: &RecordFile,
-    layout: &AttributeLayout,
-    count: u32,
-) -> Result<Dictionaries, BuildError> {
-    let channels = vec![None; layout.channels().len()];
-    if count < 32 {
-        return Ok((None, channels));
-    }
-    let step = (count / DICTIONARY_SAMPLES).max(1);
-    let mut samples = Vec::new();
-    for id in (0..count).step_by(step as usize) {
-        let (mut raw, raw_len, _) = records.read_raw(id)?;
-        raw.truncate(raw_len);
-        samples.push(raw);
-    }
-    let dictionary = match zstd::dict::from_samples(&samples, DICTIONARY_BYTES) {
-        Ok(d) => Some(d),
-        Err(e) => {
-            tracing::warn!("dictionary training failed, compressing without: {e}");
-            None
-        }
-    };
-    Ok((dictionary, channels))
-}
-
-/// One compressor per stream (nodes, then each channel), kept for the whole pass: building
-/// one loads its dictionary into zstd's tables, which cost as much as compressing a few
-/// treelets.
-struct Compressors {
-    nodes: BlockCompressor,
-    channels: Vec<BlockCompressor>,
-}
-
-/// Compressor sets returned by the rayon jobs that used them, for the next jobs to take.
-struct CompressorPool<'a> {
-    level: i32,
-    node_dict: Option<&'a [u8]>,
-    channel_dicts: &'a [Option<Vec<u8>>],
-    idle: std::sync::Mutex<Vec<Compressors>>,
-}
-
-impl CompressorPool<'_> {
-    fn take(&self) -> Result<Compressors, ProtoError> {
-        if let Some(c) = self.idle.lock().unwrap_or_else(|e| e.into_inner()).pop() {
-            return Ok(c);
-        }
-        Ok(Compressors {
-            nodes: BlockCompressor::new(self.level, self.node_dict)?,
-            channels: self
-                .channel_dicts
-                .iter()
-                .map(|d| BlockCompressor::new(self.level, d.as_deref()))
-                .collect::<Result<_, _>>()?,
-        })
-    }
-
-    fn give_back(&self, c: Compressors) {
-        self.idle.lock().unwrap_or_else(|e| e.into_inner()).push(c);
-    }
-}
-
-/// A set taken from the pool for one rayon split, given back when the split ends.
-struct Lease<'p, 'a> {
-    pool: &'p CompressorPool<'a>,
-    set: Result<Compressors, ProtoError>,
-}
-
-impl Drop for Lease<'_, '_> {
-    fn drop(&mut self) {
-        let given_back = Err(ProtoError::Compression {
-            what: "compressor",
-            detail: "given back to the pool".into(),
-        });
-        if let Ok(c) = std::mem::replace(&mut self.set, given_back) {
-            self.pool.give_back(c);
-        }
-    }
-}
-
-/// A treelet's compressed blocks and its raw bytes.
-type Packed = (PackedTreelet, u64);
-
-/// Compresses record `id`: its stored treelet encoding as it is, its attributes split per
-/// channel.
-fn pack_one(
-    records: &RecordFile,
-    layout: &AttributeLayout,
-    comp: &mut Compressors,
-    id: u32,
-) -> Result<Packed, BuildError> {
-    let (buf, raw_len, used) = records.read_raw(id)?;
-    let (raw, attrs) = buf.split_at(raw_len);
-    let blocks = channel_blocks(layout, attrs, records.bpv, used);
-    let raw_bytes = (raw.len() + blocks.iter().map(Vec::len).sum::<usize>()) as u64;
-    let nodes = comp.nodes.compress(raw)?;
-    let chans = blocks
-        .iter()
-        .zip(comp.channels.iter_mut())
-        .map(|(b, c)| c.compress(b))
-        .collect::<Result<Vec<_>, _>>()?;
-    let packed = PackedTreelet {
-        id: TreeletId(id),
-        nodes,
-        channels: chans,
-    };
-    Ok((packed, raw_bytes))
-}
-
-/// Treelets compressed per step of the pack pass.
-const PACK_CHUNK: u32 = 512;
-
-/// Pass 3: compress nodes and channels and hand them to the sink in id order. A scoped thread
-/// compresses chunk after chunk on the rayon pool while this thread hands the previous chunk to
-/// the sink (sled's inserts were a serial step between chunks, leaving a core idle).
-#[allow(clippy::too_many_arguments)]
-fn pack(
-    records: &RecordFile,
-    layout: &AttributeLayout,
-    count: u32,
-    opts: &BuildOptions,
-    node_dict: Option<&[u8]>,
-    channel_dicts: &[Option<Vec<u8>>],
-    stats: &mut SceneStats,
-    sink: &mut dyn TreeletSink,
-    progress: &ImportProgress,
-) -> Result<(), BuildError> {
-    stats.channel_bytes = vec![0; layout.channels().len()];
-    sink.start(layout)?;
-    let pb = bar(opts.progress, "pack", u64::from(count));
-    let pool = CompressorPool {
-        level: opts.zstd_level,
-        node_dict,
-        channel_dicts,
-        idle: std::sync::Mutex::new(Vec::new()),
-    };
-    std::thread::scope(|scope| {
-        // Two chunks ahead at most: bounded memory, and the sink never waits.
-        let (tx, rx) = std::sync::mpsc::sync_channel::<Result<Vec<Packed>, BuildError>>(2);
-        let pool = &pool;
-        scope.spawn(move || {
-            for start in (0..count).step_by(PACK_CHUNK as usize) {
-                let end = (start + PACK_CHUNK).min(count);
-                let packed: Result<Vec<Packed>, BuildError> = (start..end)
-                    .into_par_iter()
-                    .map_init(
-                        || Lease {
-                            pool,
-                            set: pool.take(),
-                        },
-                        |lease, id| {
-                            let comp = lease
-                                .set
-                                .as_mut()
-                                .map_err(|e| BuildError::Proto(e.clone()))?;
-                            pack_one(records, layout, comp, id)
-                        },
-                    )
-                    .collect();
-                let failed = packed.is_err();
-                // A closed channel: the sink failed and the pass is over.
-                if tx.send(packed).is_err() || failed {
-                    break;
-                }
-            }
-        });
-        let mut done = 0u64;
-        for chunk in rx {
-            let chunk = chunk?;
-            done += chunk.len() as u64;
-            let mut treelets = Vec::with_capacity(chunk.len());
-            for (t, raw) in chunk {
-                stats.raw_bytes += raw;
-                stats.node_bytes += t.nodes.len() as u64;
-                for (s, c) in stats.channel_bytes.iter_mut().zip(&t.channels) {
-                    *s += c.len() as u64;
-                }
-                treelets.push(t);
-            }
-            sink.put_many(treelets)?;
-            pb.set_position(done);
-            progress.set_done(done);
-        }
-        Ok::<(), BuildError>(())
-    })?;
-    pb.finish_and_clear();
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1187,12 +849,43 @@ mod tests {
         };
         let (a, b) = (records(general), records(sorted));
         for id in 0..a.offsets.len() as u32 - 1 {
-            let (ra, len, used) = a.read_raw(id).unwrap();
-            let (rb, _, _) = b.read_raw(id).unwrap();
+            let ra = a.read_nodes(id).unwrap();
+            let rb = b.read_nodes(id).unwrap();
             assert!(ra == rb, "treelet {id} differs");
-            // Pack compresses the stored encoding as it is: it must be a whole, valid treelet.
-            let t = codec::decode_treelet(&ra[..len], 10).unwrap();
-            assert_eq!(t.used().len(), used, "treelet {id}");
+            // The store compresses the encoding as it is: it must be a whole, valid treelet.
+            let t = codec::decode_treelet(&ra, 10).unwrap();
+            assert_eq!(
+                (ra.len() - HEADER_BYTES) / 8,
+                t.used().len(),
+                "treelet {id}"
+            );
+        }
+    }
+
+    #[test]
+    fn point_bounds_in_parallel_equal_a_serial_pass_and_name_the_first_bad_point() {
+        let mut rng = arbor_proto::rng::SplitMix64::new(5);
+        let mut pts: Vec<[f64; 3]> = (0..300_000)
+            .map(|_| [0, 1, 2].map(|a| (rng.next_f64() - 0.5) * 1e6 * (a + 1) as f64 + 6e5))
+            .collect();
+        let mut min = [f64::INFINITY; 3];
+        let mut max = [f64::NEG_INFINITY; 3];
+        for p in &pts {
+            for a in 0..3 {
+                min[a] = min[a].min(p[a]);
+                max[a] = max[a].max(p[a]);
+            }
+        }
+        assert_eq!(point_bounds(&pts).unwrap(), (min, max));
+        assert_eq!(point_bounds(&[]).unwrap().0, [f64::INFINITY; 3]);
+        // Two bad points in different chunks: the first in file order is named.
+        pts[250_001][2] = f64::NAN;
+        pts[70_000][0] = f64::INFINITY;
+        match point_bounds(&pts) {
+            Err(BuildError::NonFinite { what, index }) => {
+                assert_eq!((what, index), ("point", 70_000));
+            }
+            other => panic!("{other:?}"),
         }
     }
 

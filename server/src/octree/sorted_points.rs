@@ -20,9 +20,7 @@
 //! through a spare file, recursively; a single leaf cell needs no sorting (every pass keeps file
 //! order). Memory: one bucket of records (≤ the budget) and two counting tables of 2²¹ entries.
 
-use std::fs::File;
 use std::ops::Range;
-use std::os::unix::fs::FileExt;
 use std::path::Path;
 
 use bytemuck::{Pod, Zeroable};
@@ -33,7 +31,6 @@ use arbor_proto::{AttributeLayout, Cell};
 use super::geometry::Frame;
 use super::points::{leaf_attributes, pca_normal, point_layout};
 use super::treelet_builder::{AttributeGenerator, TreeletBuilder};
-use crate::source::scratch_file;
 use crate::source::{Column, ColumnError, ColumnMut, PointSource};
 
 /// Deepest target depth whose leaf cells fit a 64-bit Morton key (3 × 21 bits).
@@ -111,135 +108,77 @@ fn group(counts: &[u32], cap: u64) -> (Vec<u32>, Vec<u64>) {
     (bucket_of, starts)
 }
 
-/// The sort's scratch files and limits.
+/// The sort's working arrays and limits.
 struct Sorter<'a> {
-    file: &'a File,
-    /// Same size as `file`: where oversized buckets are redistributed.
-    spare: Option<File>,
-    spare_path: std::path::PathBuf,
+    /// Every record, mapped from its scratch file; buckets are sorted where they lie.
+    records: &'a mut [PointRecord],
+    /// Same length as `records`, mapped on first need: where oversized buckets are
+    /// redistributed.
+    spare: Option<ColumnMut<PointRecord>>,
+    scratch: &'a Path,
     depth: u8,
     cap: u64,
     stats: SortStats,
 }
 
 impl Sorter<'_> {
-    fn read(&self, from: u64, n: usize) -> std::io::Result<Vec<PointRecord>> {
-        let mut v = vec![PointRecord::default(); n];
-        self.file
-            .read_exact_at(bytemuck::cast_slice_mut(&mut v), from * RECORD as u64)?;
-        Ok(v)
-    }
-
     /// Sorts records `start..end`, all in one cell of `level`, by (key, id).
-    fn sort_bucket(&mut self, start: u64, end: u64, level: u8) -> std::io::Result<()> {
-        let len = end - start;
+    fn sort_bucket(&mut self, start: usize, end: usize, level: u8) -> Result<(), ColumnError> {
+        let len = (end - start) as u64;
         if len <= self.cap {
             self.stats.peak_bytes = self.stats.peak_bytes.max(len * RECORD as u64);
-            return self.sort_in_place(start, end);
+            self.records[start..end].par_sort_unstable_by_key(|r| (r.key, r.id));
+            return Ok(());
         }
         if level >= self.depth {
             // One leaf cell: the records are in file order already (every pass is stable).
             return Ok(());
         }
-        // Too big for memory: a counting sort one step deeper, through the spare file.
+        // Too big to sort at once: a counting sort one step deeper, through the spare array.
         let next = (level + COUNT_LEVEL).min(self.depth);
         let shift = 3 * u32::from(self.depth - next);
         let mask = (1u64 << (3 * u32::from(next - level))) - 1;
         let sub = |key: u64| ((key >> shift) & mask) as usize;
-        let chunk = self.cap.max(1);
         let mut counts = vec![0u32; mask as usize + 1];
-        let mut at = start;
-        while at < end {
-            let n = chunk.min(end - at);
-            for r in self.read(at, n as usize)? {
-                counts[sub(r.key)] += 1;
-            }
-            at += n;
+        for r in &self.records[start..end] {
+            counts[sub(r.key)] += 1;
         }
         let (bucket_of, starts) = group(&counts, self.cap);
         drop(counts);
         self.distribute(start, end, &bucket_of, &starts, sub)?;
         for b in 0..starts.len() - 1 {
-            self.sort_bucket(start + starts[b], start + starts[b + 1], next)?;
+            let (from, to) = (start + starts[b] as usize, start + starts[b + 1] as usize);
+            self.sort_bucket(from, to, next)?;
         }
         Ok(())
     }
 
-    /// Sorts records `start..end` by (key, id) where they lie, in a shared mapping of the file:
-    /// reading them into a buffer and writing them back copied every record twice and faulted
-    /// in fresh anonymous pages for every bucket (a third of the sort's time).
-    #[allow(unsafe_code)]
-    fn sort_in_place(&self, start: u64, end: u64) -> std::io::Result<()> {
-        if end <= start {
-            return Ok(());
-        }
-        let bytes = ((end - start) * RECORD as u64) as usize;
-        // SAFETY: the file is this import's own scratch file, sized before the sort; nothing
-        // else maps or writes this range while the mapping lives.
-        let mut map = unsafe {
-            memmap2::MmapOptions::new()
-                .offset(start * RECORD as u64)
-                .len(bytes)
-                .map_mut(self.file)?
-        };
-        // memmap2 maps from the page below the offset and points at the offset itself: a
-        // multiple of the record size, so of the record's 8-byte alignment.
-        let records: &mut [PointRecord] = bytemuck::cast_slice_mut(&mut map[..]);
-        records.par_sort_unstable_by_key(|r| (r.key, r.id));
-        Ok(())
-    }
-
-    /// Moves records `start..end` into their buckets (stable), through the spare file.
+    /// Moves records `start..end` into their buckets (stable), through the spare array.
     fn distribute(
         &mut self,
-        start: u64,
-        end: u64,
+        start: usize,
+        end: usize,
         bucket_of: &[u32],
         starts: &[u64],
         sub: impl Fn(u64) -> usize,
-    ) -> std::io::Result<()> {
+    ) -> Result<(), ColumnError> {
         if self.spare.is_none() {
-            let f = scratch_file(&self.spare_path)?;
-            self.spare = Some(f);
+            let spare = ColumnMut::create(self.scratch, "points-spare", self.records.len())?;
+            self.spare = Some(spare);
         }
-        let spare = self.spare.as_ref().expect("opened above");
+        let spare = self.spare.as_mut().expect("created above");
         let buckets = starts.len() - 1;
-        let flush_at = (self.cap as usize / buckets).clamp(1, 1024);
-        let mut cursor: Vec<u64> = starts[..buckets].iter().map(|s| start + s).collect();
-        let mut pending: Vec<Vec<PointRecord>> = vec![Vec::new(); buckets];
-        let mut flush = |b: usize, buf: &mut Vec<PointRecord>| {
-            spare.write_all_at(bytemuck::cast_slice(buf), cursor[b] * RECORD as u64)?;
-            cursor[b] += buf.len() as u64;
-            buf.clear();
-            Ok::<(), std::io::Error>(())
-        };
-        let chunk = self.cap.max(1);
-        let mut at = start;
-        while at < end {
-            let n = chunk.min(end - at);
-            for r in self.read(at, n as usize)? {
-                let b = bucket_of[sub(r.key)] as usize;
-                pending[b].push(r);
-                if pending[b].len() >= flush_at {
-                    flush(b, &mut pending[b])?;
-                }
-            }
-            at += n;
+        let mut cursor: Vec<usize> = starts[..buckets]
+            .iter()
+            .map(|&s| start + s as usize)
+            .collect();
+        for r in &self.records[start..end] {
+            let b = bucket_of[sub(r.key)] as usize;
+            spare[cursor[b]] = *r;
+            cursor[b] += 1;
         }
-        for (b, buf) in pending.iter_mut().enumerate() {
-            flush(b, buf)?;
-        }
-        // Back into place.
-        let mut at = start;
-        while at < end {
-            let n = chunk.min(end - at) as usize;
-            let mut v = vec![PointRecord::default(); n];
-            spare.read_exact_at(bytemuck::cast_slice_mut(&mut v), at * RECORD as u64)?;
-            self.file
-                .write_all_at(bytemuck::cast_slice(&v), at * RECORD as u64)?;
-            at += n as u64;
-        }
-        self.stats.spilled_bytes += 2 * (end - start) * RECORD as u64;
+        self.records[start..end].copy_from_slice(&spare[start..end]);
+        self.stats.spilled_bytes += 2 * (end - start) as u64 * RECORD as u64;
         Ok(())
     }
 }
@@ -247,17 +186,17 @@ impl Sorter<'_> {
 /// Sorts `points` by leaf cell of `frame` into a scratch file under `scratch`, holding at most
 /// `budget` bytes of records at once (plus fixed counting tables); returns the sorted records,
 /// memory-mapped, and what the sort held and spilled.
+///
+/// The records live in a shared mapping of the scratch file (page cache, which the kernel
+/// writes back and evicts as it needs), not in anonymous memory: distributing through buffers
+/// and `pwrite`, then reading each bucket back and writing it again, copied every record four
+/// times and was a third of the sort.
 pub fn sort_points(
     points: &PointSource,
     frame: &Frame,
     budget: usize,
     scratch: &Path,
 ) -> Result<(Column<PointRecord>, SortStats), ColumnError> {
-    let path = scratch.join("points.sorted");
-    let io = |source| ColumnError::Io {
-        path: path.clone(),
-        source,
-    };
     let n = points.positions.len();
     let depth = frame.depth.min(MAX_KEY_DEPTH);
     let level = depth.min(COUNT_LEVEL);
@@ -297,43 +236,41 @@ pub fn sort_points(
     let cap = (budget / RECORD).max(1) as u64;
     let (bucket_of, starts) = group(&counts, cap);
     drop(counts);
-    // 3. Distribution into the buckets' regions, in file order.
-    let file = scratch_file(&path).map_err(io)?;
-    file.set_len((n * RECORD) as u64).map_err(io)?;
+    // 3. Distribution into the buckets' regions, in file order: records of the next round
+    //    are made (both cores) while this round's are placed.
+    let mut sorted = ColumnMut::<PointRecord>::create(scratch, "points-sorted", n)?;
     let buckets = starts.len() - 1;
-    let flush_at = (cap as usize / buckets).clamp(1, 1024);
-    let mut cursor: Vec<u64> = starts[..buckets].to_vec();
-    let mut pending: Vec<Vec<PointRecord>> = vec![Vec::new(); buckets];
-    let flush = |b: usize, buf: &mut Vec<PointRecord>, cursor: &mut [u64]| {
-        file.write_all_at(bytemuck::cast_slice(buf), cursor[b] * RECORD as u64)?;
-        cursor[b] += buf.len() as u64;
-        buf.clear();
-        Ok::<(), std::io::Error>(())
-    };
-    let step = STEP.min(cap as usize).max(1);
-    for s in 0..n.div_ceil(step) {
-        let records: Vec<PointRecord> = (s * step..((s + 1) * step).min(n))
+    let mut cursor: Vec<usize> = starts[..buckets].iter().map(|&s| s as usize).collect();
+    let round = (cap as usize / 2).clamp(1, rayon::current_num_threads() * STEP);
+    // Two round buffers, filled and placed in turns: a fresh vector per round cost a page
+    // fault per 4 KiB and an unmap per round.
+    let make = |from: usize, into: &mut Vec<PointRecord>| {
+        into.clear();
+        (from..(from + round).min(n))
             .into_par_iter()
             .map(record)
-            .collect();
-        for r in records {
-            let b = bucket_of[(r.key >> shift) as usize] as usize;
-            pending[b].push(r);
-            if pending[b].len() >= flush_at {
-                flush(b, &mut pending[b], &mut cursor).map_err(io)?;
-            }
-        }
+            .collect_into_vec(into);
+    };
+    let bucket = |r: &PointRecord| bucket_of[(r.key >> shift) as usize] as usize;
+    let (mut made, mut spare) = (Vec::with_capacity(round), Vec::with_capacity(round));
+    make(0, &mut made);
+    let mut from = round;
+    while from < n {
+        rayon::join(
+            || place_round(&mut sorted, &mut cursor, &made, bucket),
+            || make(from, &mut spare),
+        );
+        std::mem::swap(&mut made, &mut spare);
+        from += round;
     }
-    for (b, buf) in pending.iter_mut().enumerate() {
-        flush(b, buf, &mut cursor).map_err(io)?;
-    }
-    drop(pending);
+    place_round(&mut sorted, &mut cursor, &made, bucket);
+    drop((made, spare));
     drop(bucket_of);
-    // 4. Each bucket sorted in memory (oversized ones one level deeper first).
+    // 4. Each bucket sorted where it lies (oversized ones one level deeper first).
     let mut sorter = Sorter {
-        file: &file,
+        records: &mut sorted,
         spare: None,
-        spare_path: scratch.join("points.spare"),
+        scratch,
         depth,
         cap,
         stats: SortStats {
@@ -342,14 +279,68 @@ pub fn sort_points(
         },
     };
     for b in 0..buckets {
-        sorter
-            .sort_bucket(starts[b], starts[b + 1], level)
-            .map_err(io)?;
+        sorter.sort_bucket(starts[b] as usize, starts[b + 1] as usize, level)?;
     }
     let stats = sorter.stats;
     drop(sorter);
-    let _ = std::fs::remove_file(scratch.join("points.spare"));
-    Ok((Column::map_file(file, &path, n)?, stats))
+    let _ = std::fs::remove_file(scratch.join("points-spare.col"));
+    Ok((sorted.finish()?, stats))
+}
+
+/// Places one round of records at their buckets' cursors, every thread a contiguous part of
+/// the round (so the order within a bucket stays the round's order), and moves the cursors.
+/// Placing was the one serial stretch of the sort; each thread takes its own disjoint regions
+/// of `sorted` (one per bucket), so it needs no locking.
+fn place_round(
+    sorted: &mut [PointRecord],
+    cursor: &mut [usize],
+    records: &[PointRecord],
+    bucket: impl Fn(&PointRecord) -> usize + Sync,
+) {
+    let buckets = cursor.len();
+    let parts = rayon::current_num_threads().clamp(1, records.len().max(1));
+    let part_len = records.len().div_ceil(parts).max(1);
+    let chunks: Vec<&[PointRecord]> = records.chunks(part_len).collect();
+    let counts: Vec<Vec<usize>> = chunks
+        .par_iter()
+        .map(|chunk| {
+            let mut c = vec![0usize; buckets];
+            for r in *chunk {
+                c[bucket(r)] += 1;
+            }
+            c
+        })
+        .collect();
+    // Each bucket's region of this round, split into the parts' pieces in part order.
+    let mut pieces: Vec<Vec<&mut [PointRecord]>> = (0..chunks.len())
+        .map(|_| Vec::with_capacity(buckets))
+        .collect();
+    let mut rest: &mut [PointRecord] = sorted;
+    let mut at = 0;
+    for b in 0..buckets {
+        let here = std::mem::take(&mut rest).split_at_mut(cursor[b] - at).1;
+        let total: usize = counts.iter().map(|c| c[b]).sum();
+        let (mut region, after) = here.split_at_mut(total);
+        for (part, c) in counts.iter().enumerate() {
+            let (piece, tail) = std::mem::take(&mut region).split_at_mut(c[b]);
+            pieces[part].push(piece);
+            region = tail;
+        }
+        rest = after;
+        at = cursor[b] + total;
+        cursor[b] += total;
+    }
+    chunks
+        .into_par_iter()
+        .zip(pieces)
+        .for_each(|(chunk, mut pieces)| {
+            let mut next = vec![0usize; buckets];
+            for r in chunk {
+                let b = bucket(r);
+                pieces[b][next[b]] = *r;
+                next[b] += 1;
+            }
+        });
 }
 
 /// The point builder over sorted records: ranges split by binary search, subtrees counted from

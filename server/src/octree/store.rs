@@ -1,0 +1,444 @@
+//! Pass 2 of the build: every filled treelet's blocks compressed and handed to the
+//! [`TreeletSink`], as two streams made at the same time:
+//!
+//! * **nodes** — a zstd dictionary is trained on evenly spread node records (final since the
+//!   fill), then each treelet's stored encoding is compressed as it is, in id order;
+//! * **attributes** — treelets are read back level by level, deepest first, their inner
+//!   attributes averaged bottom-up (a child treelet's root attribute feeding its parent's
+//!   refinable leaf), and each channel's block is compressed as soon as its treelet is averaged.
+//!
+//! Why one pass and not three (average, train, pack): apart, the single-threaded training and the
+//! sink's writes each left a core idle, and every record's attributes were written back to the
+//! scratch file only to be read again for packing. Now the averaging, the training, the node
+//! compression and the sink's writes overlap on both cores, and attributes never go back to disk.
+//! Memory stays bounded: each producer is at most a few chunks ahead of the sink, and the
+//! averaging keeps only one level's root attributes.
+
+use std::sync::Mutex;
+use std::sync::mpsc::{SyncSender, sync_channel};
+use std::time::Instant;
+
+use arbor_proto::codec::{self, BlockCompressor, HEADER_BYTES};
+use arbor_proto::limits::NODE_BYTES;
+use arbor_proto::{AttributeLayout, Node, ProtoError, SceneStats, TreeletId};
+use rayon::prelude::*;
+use rustc_hash::FxHashMap;
+
+use super::{BuildError, BuildOptions, RecordFile, TreeletSink, bar};
+use crate::progress::{ImportProgress, Phase};
+
+/// Treelets per message from a producer to the sink.
+const CHUNK: u32 = 512;
+/// Messages a producer may be ahead of the sink.
+const AHEAD: usize = 4;
+/// Dictionary size per stream.
+const DICTIONARY_BYTES: usize = 16 * 1024;
+/// At most this many records are sampled for training.
+const DICTIONARY_SAMPLES: u32 = 4000;
+
+/// The node stream's dictionary (if one was trained) and one per channel.
+pub(super) type Dictionaries = (Option<Vec<u8>>, Vec<Option<Vec<u8>>>);
+
+/// The scene being stored: where its records are and how they are laid out.
+pub(super) struct FilledScene<'a> {
+    pub records: &'a RecordFile,
+    pub layout: &'a AttributeLayout,
+    /// First id of each treelet level (root = level 0), then the count.
+    pub level_starts: &'a [u32],
+}
+
+/// A message from a producer to the thread that feeds the sink.
+enum Stored {
+    /// Node blocks of consecutive treelets, and their raw bytes.
+    Nodes(Vec<(TreeletId, Vec<u8>)>, u64),
+    /// Channel blocks of treelets of one level, and their raw bytes.
+    Channels(Vec<(TreeletId, Vec<Vec<u8>>)>, u64),
+}
+
+type Message = Result<Stored, BuildError>;
+
+/// Stores every treelet of `scene` into `sink`, filling the byte counts of `stats`; returns the
+/// dictionaries used.
+pub(super) fn store(
+    scene: &FilledScene<'_>,
+    opts: &BuildOptions,
+    stats: &mut SceneStats,
+    sink: &mut dyn TreeletSink,
+    progress: &ImportProgress,
+) -> Result<Dictionaries, BuildError> {
+    let count = scene.level_starts.last().copied().unwrap_or(0);
+    let channels = scene.layout.channels().len();
+    stats.channel_bytes = vec![0; channels];
+    sink.start(scene.layout)?;
+    progress.enter(Phase::Packing, u64::from(count));
+    let pb = bar(opts.progress, "store", u64::from(count));
+    let dictionary = std::thread::scope(|scope| {
+        let (tx, rx) = sync_channel::<Message>(AHEAD);
+        let node_tx = tx.clone();
+        let nodes = scope.spawn(move || {
+            let t = Instant::now();
+            let d = report(store_nodes(scene.records, count, opts, &node_tx), &node_tx);
+            tracing::info!(
+                seconds = t.elapsed().as_secs_f64(),
+                "node blocks compressed"
+            );
+            d.flatten()
+        });
+        let attributes = scope.spawn(move || {
+            let t = Instant::now();
+            report(store_attributes(scene, opts, &tx), &tx);
+            tracing::info!(
+                seconds = t.elapsed().as_secs_f64(),
+                "attributes averaged and compressed"
+            );
+        });
+        let (mut nodes_done, mut channels_done) = (0u64, 0u64);
+        let mut consume = || {
+            for message in &rx {
+                match message? {
+                    Stored::Nodes(blocks, raw) => {
+                        nodes_done += blocks.len() as u64;
+                        stats.raw_bytes += raw;
+                        stats.node_bytes += blocks.iter().map(|(_, b)| b.len() as u64).sum::<u64>();
+                        sink.put_nodes(blocks)?;
+                    }
+                    Stored::Channels(blocks, raw) => {
+                        channels_done += blocks.len() as u64;
+                        stats.raw_bytes += raw;
+                        for (_, per_channel) in &blocks {
+                            for (s, b) in stats.channel_bytes.iter_mut().zip(per_channel) {
+                                *s += b.len() as u64;
+                            }
+                        }
+                        sink.put_channels(blocks)?;
+                    }
+                }
+                let done = nodes_done.min(channels_done);
+                pb.set_position(done);
+                progress.set_done(done);
+            }
+            Ok::<(), BuildError>(())
+        };
+        let consumed = consume();
+        // A failed sink ends the producers at their next send.
+        drop(rx);
+        let dictionary = nodes
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        attributes
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        consumed.map(|()| dictionary)
+    })?;
+    pb.finish_and_clear();
+    Ok((dictionary, vec![None; channels]))
+}
+
+/// A producer's result: its value, or its error handed to the sink's thread (which stops there).
+fn report<T>(result: Result<T, BuildError>, tx: &SyncSender<Message>) -> Option<T> {
+    match result {
+        Ok(v) => Some(v),
+        Err(e) => {
+            // A closed channel: the sink failed first, and its error is the one reported.
+            let _ = tx.send(Err(e));
+            None
+        }
+    }
+}
+
+/// The node stream: trains the dictionary, then compresses every record's stored encoding in id
+/// order. Returns the dictionary.
+fn store_nodes(
+    records: &RecordFile,
+    count: u32,
+    opts: &BuildOptions,
+    tx: &SyncSender<Message>,
+) -> Result<Option<Vec<u8>>, BuildError> {
+    let dictionary = if opts.dictionary {
+        let t = Instant::now();
+        let d = train_node_dictionary(records, count)?;
+        tracing::info!(seconds = t.elapsed().as_secs_f64(), "dictionary training");
+        d
+    } else {
+        None
+    };
+    let pool = CompressorPool::new(opts.zstd_level, vec![dictionary.as_deref()]);
+    for start in (0..count).step_by(CHUNK as usize) {
+        let end = (start + CHUNK).min(count);
+        let compressed: Vec<(TreeletId, Vec<u8>, u64)> = (start..end)
+            .into_par_iter()
+            .map_init(
+                || pool.lease(),
+                |lease, id| {
+                    let raw = records.read_nodes(id)?;
+                    let block = lease.get()?[0].compress(&raw)?;
+                    Ok((TreeletId(id), block, raw.len() as u64))
+                },
+            )
+            .collect::<Result<_, BuildError>>()?;
+        let raw = compressed.iter().map(|(_, _, r)| r).sum();
+        let blocks = compressed.into_iter().map(|(id, b, _)| (id, b)).collect();
+        if tx.send(Ok(Stored::Nodes(blocks, raw))).is_err() {
+            break;
+        }
+    }
+    Ok(dictionary)
+}
+
+/// Trains the node stream's dictionary on evenly spread records. Attribute channels get none:
+/// measured on the six real scans (`cargo bench --bench build`) a channel dictionary saved at
+/// most 5 % and sometimes grew the stream, while node dictionaries save 22–35 % (and a channel
+/// dictionary would hold back the attribute stream until it is trained). Too few treelets to
+/// learn from gives no dictionary.
+fn train_node_dictionary(records: &RecordFile, count: u32) -> Result<Option<Vec<u8>>, BuildError> {
+    if count < 32 {
+        return Ok(None);
+    }
+    let step = (count / DICTIONARY_SAMPLES).max(1);
+    let samples = (0..count)
+        .step_by(step as usize)
+        .map(|id| records.read_nodes(id))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(match zstd::dict::from_samples(&samples, DICTIONARY_BYTES) {
+        Ok(d) => Some(d),
+        Err(e) => {
+            tracing::warn!("dictionary training failed, compressing without: {e}");
+            None
+        }
+    })
+}
+
+/// A treelet's id, its root attribute for its parent (none for the scene's root), its
+/// compressed channel blocks and their raw bytes.
+type Averaged = (u32, Option<Vec<u8>>, Vec<Vec<u8>>, u64);
+
+/// The attribute stream: levels deepest first, each treelet averaged and its channels
+/// compressed.
+fn store_attributes(
+    scene: &FilledScene<'_>,
+    opts: &BuildOptions,
+    tx: &SyncSender<Message>,
+) -> Result<(), BuildError> {
+    let layout = scene.layout;
+    let pool = CompressorPool::new(opts.zstd_level, vec![None; layout.channels().len()]);
+    // Root attributes of the treelets one level below, for their parents' refinable leaves.
+    let mut below: FxHashMap<u32, Vec<u8>> = FxHashMap::default();
+    for level in (0..scene.level_starts.len().saturating_sub(1)).rev() {
+        // Treelets of one level are independent: their children are all one level deeper.
+        let ids = scene.level_starts[level]..scene.level_starts[level + 1];
+        let mut roots = FxHashMap::default();
+        roots.reserve(ids.len());
+        for start in ids.clone().step_by(CHUNK as usize) {
+            let end = (start + CHUNK).min(ids.end);
+            let averaged: Vec<Averaged> = (start..end)
+                .into_par_iter()
+                .map_init(
+                    || pool.lease(),
+                    |lease, id| {
+                        let a = average_treelet(scene, id, &below)?;
+                        let blocks = channel_blocks(layout, &a.attrs, scene.records.bpv, a.used);
+                        let raw = blocks.iter().map(|b| b.len() as u64).sum();
+                        let compressed = blocks
+                            .iter()
+                            .zip(lease.get()?.iter_mut())
+                            .map(|(b, c)| c.compress(b))
+                            .collect::<Result<Vec<_>, _>>()?;
+                        Ok((id, a.root, compressed, raw))
+                    },
+                )
+                .collect::<Result<_, BuildError>>()?;
+            let mut raw = 0;
+            let mut blocks = Vec::with_capacity(averaged.len());
+            for (id, root, compressed, r) in averaged {
+                if let Some(root) = root {
+                    roots.insert(id, root);
+                }
+                blocks.push((TreeletId(id), compressed));
+                raw += r;
+            }
+            if tx.send(Ok(Stored::Channels(blocks, raw))).is_err() {
+                return Ok(());
+            }
+        }
+        below = roots;
+    }
+    Ok(())
+}
+
+/// Averages one treelet's inner attributes bottom-up (its refinable leaves take their child
+/// treelet's root attribute from `below`); returns its root attribute for its parent (none for
+/// the scene's root) with its attribute bytes.
+///
+/// The record is read without the full validation of a received treelet: the fill wrote it in
+/// this process (its encoding is checked by the build's tests and by `verify` on the stored
+/// scene), and validating every record was a tenth of this pass. What the walk relies on is
+/// still checked: child blocks inside the used records and attributes for each.
+fn average_treelet(
+    scene: &FilledScene<'_>,
+    id: u32,
+    below: &FxHashMap<u32, Vec<u8>>,
+) -> Result<AveragedRecord, BuildError> {
+    let bpv = scene.records.bpv;
+    let (mut buf, attributes) = scene.records.read_record(id)?;
+    let (header, _) = codec::decode_header(&buf)?;
+    let nodes: Vec<Node> = buf[HEADER_BYTES..attributes]
+        .chunks_exact(NODE_BYTES as usize)
+        .map(|r| Node {
+            first_child: u32::from_le_bytes([r[0], r[1], r[2], r[3]]),
+            valid_mask: r[4],
+            leaf_mask: r[5],
+            spare: u16::from_le_bytes([r[6], r[7]]),
+        })
+        .collect();
+    let mut attrs = buf.split_off(attributes);
+    let used = nodes.len();
+    let malformed = |node: usize, detail: &str| {
+        BuildError::Proto(ProtoError::MalformedTreelet {
+            id: TreeletId(id),
+            node: node as u32,
+            detail: detail.into(),
+        })
+    };
+    if used == 0 || attrs.len() != used * bpv {
+        return Err(malformed(0, "record sizes disagree"));
+    }
+    // Leafness comes from the parent's leaf mask (the root: a node without children).
+    let mut is_leaf = vec![false; used];
+    is_leaf[0] = nodes[0].valid_mask == 0;
+    for (i, n) in nodes.iter().enumerate() {
+        if is_leaf[i] {
+            continue;
+        }
+        let first = i + n.first_child as usize;
+        if n.valid_mask == 0 || first <= i || first + n.child_count() as usize > used {
+            return Err(malformed(i, "child block outside the used records"));
+        }
+        for (bit, k) in n.children() {
+            is_leaf[first + k as usize] = n.leaf_mask & (1 << bit) != 0;
+        }
+    }
+    let mut out = Vec::new();
+    for i in (0..used).rev() {
+        let n = nodes[i];
+        let k = i * bpv;
+        if is_leaf[i] {
+            if n.first_child != Node::NONE {
+                let root = below.get(&n.first_child).ok_or_else(|| {
+                    BuildError::Sink(format!(
+                        "treelet {id} leaf {i}: child treelet {} was never built",
+                        n.first_child
+                    ))
+                })?;
+                attrs[k..k + bpv].copy_from_slice(root);
+            }
+            continue;
+        }
+        let first = i + n.first_child as usize;
+        let kids = n.child_count() as usize;
+        let mut off = 0;
+        for c in scene.layout.channels() {
+            let size = c.size();
+            out.clear();
+            out.resize(size, 0);
+            let src = &attrs;
+            c.mean(
+                (first..first + kids).map(|j| &src[j * bpv + off..j * bpv + off + size]),
+                &mut out,
+            );
+            attrs[k + off..k + off + size].copy_from_slice(&out);
+            off += size;
+        }
+    }
+    let root = (!header.parent_id.is_none()).then(|| attrs[..bpv].to_vec());
+    Ok(AveragedRecord { root, attrs, used })
+}
+
+/// A treelet's attributes after [`average_treelet`].
+struct AveragedRecord {
+    /// Its root voxel's attribute bytes, for its parent (none for the scene's root).
+    root: Option<Vec<u8>>,
+    /// `used` × bytes per voxel.
+    attrs: Vec<u8>,
+    used: usize,
+}
+
+/// Splits a record's attribute bytes into one block per channel (used records only).
+fn channel_blocks(layout: &AttributeLayout, attrs: &[u8], bpv: usize, used: usize) -> Vec<Vec<u8>> {
+    let mut at = 0;
+    layout
+        .channels()
+        .iter()
+        .map(|c| {
+            let size = c.size();
+            let mut block = Vec::with_capacity(used * size);
+            for voxel in attrs.chunks_exact(bpv).take(used) {
+                block.extend_from_slice(&voxel[at..at + size]);
+            }
+            at += size;
+            block
+        })
+        .collect()
+}
+
+/// Compressor sets (one compressor per dictionary) kept for the whole pass and handed from one
+/// rayon job to the next: building one loads its dictionary into zstd's tables, which costs as
+/// much as compressing a few treelets.
+struct CompressorPool<'a> {
+    level: i32,
+    dictionaries: Vec<Option<&'a [u8]>>,
+    idle: Mutex<Vec<Vec<BlockCompressor>>>,
+}
+
+impl<'a> CompressorPool<'a> {
+    fn new(level: i32, dictionaries: Vec<Option<&'a [u8]>>) -> Self {
+        CompressorPool {
+            level,
+            dictionaries,
+            idle: Mutex::new(Vec::new()),
+        }
+    }
+
+    fn take(&self) -> Result<Vec<BlockCompressor>, ProtoError> {
+        if let Some(set) = self.idle.lock().unwrap_or_else(|e| e.into_inner()).pop() {
+            return Ok(set);
+        }
+        self.dictionaries
+            .iter()
+            .map(|d| BlockCompressor::new(self.level, *d))
+            .collect()
+    }
+
+    /// A set for one rayon split, given back when the split ends.
+    fn lease(&self) -> Lease<'_, 'a> {
+        Lease {
+            pool: self,
+            set: self.take(),
+        }
+    }
+}
+
+/// A compressor set taken from a [`CompressorPool`] for one rayon split.
+struct Lease<'p, 'a> {
+    pool: &'p CompressorPool<'a>,
+    set: Result<Vec<BlockCompressor>, ProtoError>,
+}
+
+impl Lease<'_, '_> {
+    fn get(&mut self) -> Result<&mut [BlockCompressor], BuildError> {
+        self.set
+            .as_deref_mut()
+            .map_err(|e| BuildError::Proto(e.clone()))
+    }
+}
+
+impl Drop for Lease<'_, '_> {
+    fn drop(&mut self) {
+        if let Ok(set) = std::mem::replace(&mut self.set, Ok(Vec::new())) {
+            self.pool
+                .idle
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .push(set);
+        }
+    }
+}
