@@ -50,6 +50,7 @@ impl Channel {
     }
 
     /// Dequantizes one record into `out[..components()]`.
+    #[inline]
     pub fn decode(self, bytes: &[u8], out: &mut [f32]) {
         match self {
             Channel::Color => {
@@ -70,6 +71,7 @@ impl Channel {
 
     /// Quantizes `value[..components()]` into one record. Non-finite input is clamped to a valid
     /// record (zero colour/density, +Z normal) so the output is always well formed.
+    #[inline]
     pub fn encode(self, value: &[f32], out: &mut [u8]) {
         match self {
             Channel::Color => {
@@ -155,6 +157,7 @@ fn round_unsigned(w: f32) -> u32 {
     }
 }
 
+#[inline]
 fn unorm8(v: f32) -> u8 {
     if v.is_finite() {
         round_unsigned(v.clamp(0.0, 1.0) * 255.0) as u8
@@ -163,6 +166,7 @@ fn unorm8(v: f32) -> u8 {
     }
 }
 
+#[inline]
 fn unorm16(v: f32) -> u16 {
     if v.is_finite() {
         round_unsigned(v.clamp(0.0, 1.0) * 65535.0) as u16
@@ -172,6 +176,7 @@ fn unorm16(v: f32) -> u16 {
 }
 
 /// Octahedral normal encoding into two 16-bit unorms. A zero or non-finite vector encodes +Z.
+#[inline]
 pub fn oct_encode(n: [f32; 3]) -> (u16, u16) {
     let l1 = n[0].abs() + n[1].abs() + n[2].abs();
     if !(l1.is_finite() && l1 > 1e-20) {
@@ -188,6 +193,7 @@ pub fn oct_encode(n: [f32; 3]) -> (u16, u16) {
 }
 
 /// Inverse of [`oct_encode`]; always returns a unit vector.
+#[inline]
 pub fn oct_decode(u: u16, v: u16) -> [f32; 3] {
     let x = f32::from(u) / 65535.0 * 2.0 - 1.0;
     let y = f32::from(v) / 65535.0 * 2.0 - 1.0;

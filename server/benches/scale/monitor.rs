@@ -53,7 +53,10 @@ fn children_cpu_ticks() -> u64 {
     f.get(13).copied().unwrap_or(0) + f.get(14).copied().unwrap_or(0)
 }
 
+/// Runs `cmd` to its end, sampling it. Every dirty page is written back first, so that the
+/// writeback of one run's output (the other tool's, alternating) is not billed to the next.
 pub fn run_measured(mut cmd: Command, watch_dir: Option<&Path>) -> Measured {
+    rustix::fs::sync();
     let cpu0 = children_cpu_ticks();
     let t0 = Instant::now();
     let mut child = cmd

@@ -21,10 +21,10 @@ use super::{ImportError, show_bytes};
 use crate::source::Source;
 
 /// Most points decoded per batch (several LAZ chunks, which the parallel decoder spreads over
-/// the cores).
-const BATCH: u64 = 1 << 18;
+/// the cores: with 2¹⁸ points, five chunks of 50,000 left a core idle for the last one).
+const BATCH: u64 = 1 << 20;
 /// Most bytes of decoded records held per batch (records can be up to 64 KiB long).
-const BATCH_BYTES: u64 = 16 << 20;
+const BATCH_BYTES: u64 = 32 << 20;
 /// Size of an EVLR header (reserved, user id, record id, length, description).
 const EVLR_HEADER: u64 = 60;
 

@@ -11,7 +11,8 @@ use std::path::Path;
 
 use super::{ImportError, names, push, writer};
 use crate::octree::MAX_PRIMITIVES;
-use crate::source::{Column, ColumnWriter, PointSource, Source};
+use crate::source::{Column, ColumnMut, ColumnWriter, PointSource, Source};
+use rayon::prelude::*;
 
 /// Scratch name of the 16-bit colour column, converted to 8 bits at the end.
 const RGB16_COLUMN: &str = "src_rgb16";
@@ -213,7 +214,12 @@ fn to_8bit(
             "true 16-bit"
         }
     );
-    let mut out = writer::<[u8; 3]>(label, scratch, names::COLORS)?;
+    // Converted on every core into a mapped column (a serial pass over every point between
+    // reading and sorting): each run's part is cut into chunks written independently.
+    let mut out = ColumnMut::<[u8; 3]>::create(scratch, names::COLORS, rgb16.len())
+        .map_err(|e| ImportError::column(label, e))?;
+    let mut parts = Vec::new();
+    let mut rest: &mut [[u8; 3]] = &mut out;
     let mut start = 0usize;
     for run in runs {
         let shift = match run.depth {
@@ -221,11 +227,23 @@ fn to_8bit(
             ColourDepth::Eight => 0,
         };
         let end = run.end as usize;
-        for c in &rgb16[start..end] {
-            push(label, &mut out, c.map(|v| (v >> shift) as u8))?;
-        }
+        let (part, tail) = std::mem::take(&mut rest).split_at_mut(end - start);
+        parts.push((start, part, shift));
+        rest = tail;
         start = end;
     }
+    const CHUNK: usize = 1 << 16;
+    parts.into_par_iter().for_each(|(start, part, shift)| {
+        part.par_chunks_mut(CHUNK)
+            .enumerate()
+            .for_each(|(k, chunk)| {
+                let from = start + k * CHUNK;
+                let source = &rgb16[from..from + chunk.len()];
+                for (o, c) in chunk.iter_mut().zip(source) {
+                    *o = c.map(|v| (v >> shift) as u8);
+                }
+            });
+    });
     drop(rgb16);
     let _ = std::fs::remove_file(scratch.join(format!("{RGB16_COLUMN}.col")));
     out.finish().map_err(|e| ImportError::column(label, e))
@@ -234,4 +252,67 @@ fn to_8bit(
 /// Whether a LAS colour column with this largest channel value holds 8-bit values.
 pub(crate) fn is_8bit(max_channel: u16) -> bool {
     max_channel <= 255
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn colours(s: &Source) -> Vec<[u8; 3]> {
+        match s {
+            Source::Points(p) => p.colors.as_ref().expect("colour kept").to_vec(),
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn colour_runs_are_converted_by_their_own_depth_across_chunks() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = PointSetWriter::new("set", dir.path()).unwrap();
+        // A true 16-bit LAS run, longer than a conversion chunk, then an 8-bit (PLY) run, then
+        // LAS again.
+        let las = |i: u64| [(i * 37 % 65536) as u16, 65535, (i % 300) as u16 * 200];
+        let n1 = (1 << 16) + 123;
+        w.begin_file("a.las", true, false).unwrap();
+        for i in 0..n1 {
+            w.push_position("a.las", [i as f64, 0.0, 0.0]).unwrap();
+            w.push_las_colour("a.las", las(i)).unwrap();
+        }
+        w.end_las_file();
+        let ply_dir = tempfile::tempdir().unwrap();
+        let ply: Vec<[u8; 3]> = (0..1000u32).map(|i| [i as u8, 7, 255]).collect();
+        let positions: Vec<[f64; 3]> = (0..1000).map(|i| [f64::from(i), 1.0, 0.0]).collect();
+        let source = PointSource {
+            positions: Column::from_slice(ply_dir.path(), "p", &positions).unwrap(),
+            colors: Some(Column::from_slice(ply_dir.path(), "c", &ply).unwrap()),
+            normals: None,
+        };
+        w.append_source("b.ply", &source).unwrap();
+        w.begin_file("c.las", true, false).unwrap();
+        for i in 0..10 {
+            w.push_position("c.las", [0.0, 0.0, i as f64]).unwrap();
+            w.push_las_colour("c.las", las(i)).unwrap();
+        }
+        w.end_las_file();
+        let got = colours(&w.finish().unwrap());
+        let mut want: Vec<[u8; 3]> = (0..n1).map(|i| las(i).map(|v| (v >> 8) as u8)).collect();
+        want.extend(&ply);
+        want.extend((0..10).map(|i| las(i).map(|v| (v >> 8) as u8)));
+        assert_eq!(got, want);
+    }
+
+    #[test]
+    fn eight_bit_values_in_las_fields_are_kept_as_they_are() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = PointSetWriter::new("set", dir.path()).unwrap();
+        w.begin_file("a.las", true, false).unwrap();
+        for i in 0..300u16 {
+            w.push_position("a.las", [f64::from(i), 0.0, 0.0]).unwrap();
+            w.push_las_colour("a.las", [i % 256, 255, 0]).unwrap();
+        }
+        w.end_las_file();
+        let got = colours(&w.finish().unwrap());
+        let want: Vec<[u8; 3]> = (0..300u16).map(|i| [(i % 256) as u8, 255, 0]).collect();
+        assert_eq!(got, want);
+    }
 }

@@ -163,7 +163,7 @@ impl Sorter<'_> {
         sub: impl Fn(u64) -> usize,
     ) -> Result<(), ColumnError> {
         if self.spare.is_none() {
-            let spare = ColumnMut::create(self.scratch, "points-spare", self.records.len())?;
+            let spare = ColumnMut::create_sparse(self.scratch, "points-spare", self.records.len())?;
             self.spare = Some(spare);
         }
         let spare = self.spare.as_mut().expect("created above");
@@ -211,6 +211,7 @@ pub fn sort_points(
             _pad: 0,
         }
     };
+    let started = std::time::Instant::now();
     // 1. Points per count cell.
     let cells = 1usize << (3 * u32::from(level));
     let counts = (0..n.div_ceil(STEP))
@@ -266,6 +267,12 @@ pub fn sort_points(
     place_round(&mut sorted, &mut cursor, &made, bucket);
     drop((made, spare));
     drop(bucket_of);
+    tracing::debug!(
+        seconds = started.elapsed().as_secs_f64(),
+        buckets,
+        "points counted and placed in buckets"
+    );
+    let started = std::time::Instant::now();
     // 4. Each bucket sorted where it lies (oversized ones one level deeper first).
     let mut sorter = Sorter {
         records: &mut sorted,
@@ -282,6 +289,7 @@ pub fn sort_points(
         sorter.sort_bucket(starts[b] as usize, starts[b + 1] as usize, level)?;
     }
     let stats = sorter.stats;
+    tracing::debug!(seconds = started.elapsed().as_secs_f64(), "buckets sorted");
     drop(sorter);
     let _ = std::fs::remove_file(scratch.join("points-spare.col"));
     Ok((sorted.finish()?, stats))
@@ -480,15 +488,19 @@ pub fn cell_normals(
         };
         starts.push(end);
     }
-    for window in starts.windows(2).collect::<Vec<_>>().chunks(64) {
-        let normals: Vec<Vec<[f32; 3]>> = window
-            .par_iter()
-            .map(|w| step_normals(records, w[0]..w[1], depth, level, centre))
-            .collect();
-        for (w, n) in window.iter().zip(normals) {
-            out[w[0]..w[1]].copy_from_slice(&n);
-        }
+    // Each step writes its own part of the column, on whichever core runs it: copying every
+    // step's normals in from one thread left the other core idle while the first faulted in
+    // the column's fresh pages.
+    let mut parts = Vec::with_capacity(starts.len());
+    let mut rest: &mut [[f32; 3]] = &mut out;
+    for w in starts.windows(2) {
+        let (part, tail) = std::mem::take(&mut rest).split_at_mut(w[1] - w[0]);
+        parts.push((w[0]..w[1], part));
+        rest = tail;
     }
+    parts.into_par_iter().for_each(|(step, part)| {
+        part.copy_from_slice(&step_normals(records, step, depth, level, centre));
+    });
     out.finish()
 }
 
