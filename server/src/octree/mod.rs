@@ -889,6 +889,92 @@ mod tests {
         }
     }
 
+    /// A sink that counts what it gets and fails on the `fail_at`-th message of one stream.
+    struct FailingSink {
+        fail_nodes_at: Option<usize>,
+        fail_channels_at: Option<usize>,
+        nodes: usize,
+        channels: usize,
+    }
+
+    impl TreeletSink for FailingSink {
+        fn start(&mut self, _layout: &AttributeLayout) -> Result<(), BuildError> {
+            Ok(())
+        }
+        fn put_nodes(&mut self, _blocks: Vec<(TreeletId, Vec<u8>)>) -> Result<(), BuildError> {
+            self.nodes += 1;
+            if self.fail_nodes_at == Some(self.nodes) {
+                return Err(BuildError::Sink("disk full (nodes)".into()));
+            }
+            Ok(())
+        }
+        fn put_channels(
+            &mut self,
+            _blocks: Vec<(TreeletId, Vec<Vec<u8>>)>,
+        ) -> Result<(), BuildError> {
+            self.channels += 1;
+            if self.fail_channels_at == Some(self.channels) {
+                return Err(BuildError::Sink("disk full (channels)".into()));
+            }
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_failing_sink_ends_the_store_pass_with_its_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut rng = arbor_proto::rng::SplitMix64::new(21);
+        let pts: Vec<[f64; 3]> = (0..200_000)
+            .map(|_| {
+                [
+                    rng.next_f64() * 100.0,
+                    rng.next_f64() * 100.0,
+                    rng.next_f64(),
+                ]
+            })
+            .collect();
+        let source = Source::Points(PointSource {
+            positions: Column::from_slice(dir.path(), "p", &pts).unwrap(),
+            colors: None,
+            normals: None,
+        });
+        let opts = BuildOptions {
+            treelet_bytes: 1024,
+            ..BuildOptions::default()
+        };
+        let mut whole = FailingSink {
+            fail_nodes_at: None,
+            fail_channels_at: None,
+            nodes: 0,
+            channels: 0,
+        };
+        let d = build_scene(&source, "t", "t", &opts, dir.path(), &mut whole).unwrap();
+        assert!(d.treelet_count > 2 * 512, "{}", d.treelet_count);
+        assert!(whole.nodes >= 3 && whole.channels >= 3, "{}", whole.nodes);
+        for (nodes, channels, want) in [
+            (Some(2), None, "disk full (nodes)"),
+            (None, Some(2), "disk full (channels)"),
+        ] {
+            let mut sink = FailingSink {
+                fail_nodes_at: nodes,
+                fail_channels_at: channels,
+                nodes: 0,
+                channels: 0,
+            };
+            match build_scene(&source, "t", "t", &opts, dir.path(), &mut sink) {
+                Err(BuildError::Sink(m)) => assert_eq!(m, want),
+                other => panic!("{other:?}"),
+            }
+            // Nothing of the failed stream was handed over after the failure.
+            let failed = if nodes.is_some() {
+                sink.nodes
+            } else {
+                sink.channels
+            };
+            assert_eq!(failed, 2);
+        }
+    }
+
     #[test]
     fn primitive_counts_past_32_bits_are_refused_not_wrapped() {
         let dir = tempfile::tempdir().unwrap();

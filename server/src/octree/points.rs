@@ -302,10 +302,17 @@ fn points_per_group(memory_budget: usize) -> usize {
     (memory_budget / 40).max(1 << 16)
 }
 
+/// Most points the spacing estimate holds at once (16 bytes each): the points around its samples
+/// are gathered for a group of samples at a time, as many groups as that takes.
+const SPACING_POINTS: usize = 4 << 20;
+
 /// Mean distance to the nearest neighbour, estimated from up to 20,000 evenly spread points
 /// (every `n / 20,000`-th in file order). Their neighbours are searched in the 3×3×3 grid cells
-/// around each: one pass over the cloud keeps only the points in those cells (memory bounded by
-/// the samples, not by the cloud), then each sample's nearest is found among them.
+/// around each: a pass over the cloud keeps only the points in those cells, then each sample's
+/// nearest is found among them. How many points that keeps depends on the cloud's shape, not
+/// only its size (13 M of 10⁸ city points, where the grid's surface estimate is coarse), so
+/// the samples are split into as many groups as keep each gathering under [`SPACING_POINTS`]
+/// (counted first); the estimate is the same whatever the grouping.
 pub fn mean_point_spacing(
     pos: &[[f64; 3]],
     min: [f64; 3],
@@ -316,51 +323,88 @@ pub fn mean_point_spacing(
     if pos.len() < 2 {
         return Ok(0.0);
     }
-    let cell = grid_cell(pos.len(), min, max, 4.0);
-    let step = (pos.len() / 20_000).max(1);
-    let mut grid = Grid {
+    let grid = Grid {
         origin: min,
-        cell,
+        cell: grid_cell(pos.len(), min, max, 4.0),
         keys: Vec::new(),
     };
-    // Probed once per point of the whole cloud: a fast hash (SipHash was most of this pass).
+    let step = (pos.len() / 20_000).max(1);
+    let samples: Vec<usize> = (0..pos.len()).step_by(step).collect();
+    let gathered = count_around(pos, &grid, &wanted_cells(pos, &grid, &samples));
+    let groups = gathered.div_ceil(SPACING_POINTS).max(1);
+    tracing::debug!(
+        points = gathered,
+        groups,
+        cell = grid.cell,
+        "spacing samples"
+    );
+    let nearest = nearest_in_groups(pos, &grid, &samples, groups);
+    // Summed in sample order: the same figure whatever the grouping and the threads.
+    let (sum, n) = nearest
+        .iter()
+        .filter(|d| d.is_finite())
+        .fold((0.0, 0u64), |(s, n), d| (s + d.sqrt(), n + 1));
+    Ok(if n == 0 { 0.0 } else { sum / n as f64 })
+}
+
+/// Squared distance from each sample to its nearest other point in the 3×3×3 cells around it
+/// (infinite when there is none), the samples taken in `groups` interleaved groups.
+fn nearest_in_groups(pos: &[[f64; 3]], grid: &Grid, samples: &[usize], groups: usize) -> Vec<f64> {
+    let mut nearest = vec![f64::INFINITY; samples.len()];
+    for g in 0..groups {
+        let members: Vec<usize> = (g..samples.len()).step_by(groups).collect();
+        let group: Vec<usize> = members.iter().map(|&m| samples[m]).collect();
+        let wanted = wanted_cells(pos, grid, &group);
+        let mut keys: Vec<(u64, u32)> = pos
+            .par_iter()
+            .enumerate()
+            .filter_map(|(i, &p)| {
+                let k = grid.key(grid.coords(p));
+                wanted.contains(&k).then_some((k, i as u32))
+            })
+            .collect();
+        keys.par_sort_unstable();
+        let near = Grid { keys, ..*grid };
+        let found: Vec<f64> = group
+            .par_iter()
+            .map(|&i| {
+                let p = pos[i];
+                let mut best = f64::INFINITY;
+                near.around(p, |j| {
+                    if j as usize != i {
+                        let d = dist2(p, pos[j as usize]);
+                        if d > 0.0 && d < best {
+                            best = d;
+                        }
+                    }
+                });
+                best
+            })
+            .collect();
+        for (m, d) in members.into_iter().zip(found) {
+            nearest[m] = d;
+        }
+    }
+    nearest
+}
+
+/// The grid cells around `samples`. Probed once per point of the whole cloud: a fast hash
+/// (SipHash was most of the spacing pass).
+fn wanted_cells(pos: &[[f64; 3]], grid: &Grid, samples: &[usize]) -> rustc_hash::FxHashSet<u64> {
     let mut wanted = rustc_hash::FxHashSet::default();
-    for i in (0..pos.len()).step_by(step) {
+    for &i in samples {
         grid.cells_around(pos[i], |k| {
             wanted.insert(k);
         });
     }
-    let mut keys: Vec<(u64, u32)> = (0..pos.len())
-        .into_par_iter()
-        .filter_map(|i| {
-            let k = grid.key(grid.coords(pos[i]));
-            wanted.contains(&k).then_some((k, i as u32))
-        })
-        .collect();
-    keys.par_sort_unstable();
-    grid.keys = keys;
-    let (sum, n) = (0..pos.len())
-        .into_par_iter()
-        .step_by(step)
-        .map(|i| {
-            let p = pos[i];
-            let mut best = f64::INFINITY;
-            grid.around(p, |j| {
-                if j as usize != i {
-                    let d = dist2(p, pos[j as usize]);
-                    if d > 0.0 && d < best {
-                        best = d;
-                    }
-                }
-            });
-            if best.is_finite() {
-                (best.sqrt(), 1u64)
-            } else {
-                (0.0, 0)
-            }
-        })
-        .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
-    Ok(if n == 0 { 0.0 } else { sum / n as f64 })
+    wanted
+}
+
+/// Points of the cloud in `wanted` cells.
+fn count_around(pos: &[[f64; 3]], grid: &Grid, wanted: &rustc_hash::FxHashSet<u64>) -> usize {
+    pos.par_iter()
+        .filter(|&&p| wanted.contains(&grid.key(grid.coords(p))))
+        .count()
 }
 
 /// `v.floor() as i64` without the libm call `floor` is on baseline x86-64 (this runs for
@@ -726,8 +770,48 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let s = mean_point_spacing(&pts, [0.0; 3], [49.5, 49.5, 0.0], 1 << 30, dir.path()).unwrap();
         assert!((s - 0.5).abs() < 1e-9, "{s}");
-        // A budget far too small for the cloud gives the same answer through slab groups.
+        // The budget does not enter the estimate.
         let s = mean_point_spacing(&pts, [0.0; 3], [49.5, 49.5, 0.0], 1, dir.path()).unwrap();
         assert!((s - 0.5).abs() < 1e-9, "{s}");
+    }
+
+    #[test]
+    fn spacing_samples_gathered_in_groups_find_the_same_neighbours() {
+        // A long thin strip, the shape whose neighbourhoods gather many points per cell.
+        let mut rng = arbor_proto::rng::SplitMix64::new(11);
+        let pts: Vec<[f64; 3]> = (0..60_000)
+            .map(|_| {
+                [
+                    rng.next_f64() * 1000.0,
+                    rng.next_f64() * 2.0,
+                    rng.next_f64() * 0.1,
+                ]
+            })
+            .collect();
+        let (min, max) = ([0.0; 3], [1000.0, 2.0, 0.1]);
+        let grid = Grid {
+            origin: min,
+            cell: grid_cell(pts.len(), min, max, 4.0),
+            keys: Vec::new(),
+        };
+        let samples: Vec<usize> = (0..pts.len()).step_by(7).collect();
+        let whole = nearest_in_groups(&pts, &grid, &samples, 1);
+        assert!(whole.iter().all(|d| d.is_finite()));
+        for groups in [2, 5, 64] {
+            assert_eq!(
+                nearest_in_groups(&pts, &grid, &samples, groups),
+                whole,
+                "{groups}"
+            );
+        }
+        // Brute force for a few samples: the true nearest neighbour.
+        for &m in &[0usize, 1000, 8000] {
+            let i = samples[m];
+            let best = (0..pts.len())
+                .filter(|&j| j != i)
+                .map(|j| dist2(pts[i], pts[j]))
+                .fold(f64::INFINITY, f64::min);
+            assert_eq!(whole[m], best, "sample {m}");
+        }
     }
 }

@@ -163,7 +163,7 @@ impl Sorter<'_> {
         sub: impl Fn(u64) -> usize,
     ) -> Result<(), ColumnError> {
         if self.spare.is_none() {
-            let spare = ColumnMut::create_sparse(self.scratch, "points-spare", self.records.len())?;
+            let spare = ColumnMut::create(self.scratch, "points-spare", self.records.len())?;
             self.spare = Some(spare);
         }
         let spare = self.spare.as_mut().expect("created above");

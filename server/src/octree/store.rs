@@ -22,7 +22,6 @@ use arbor_proto::codec::{self, BlockCompressor, HEADER_BYTES};
 use arbor_proto::limits::NODE_BYTES;
 use arbor_proto::{AttributeLayout, Node, ProtoError, SceneStats, TreeletId};
 use rayon::prelude::*;
-use rustc_hash::FxHashMap;
 
 use super::{BuildError, BuildOptions, RecordFile, TreeletSink, bar};
 use crate::progress::{ImportProgress, Phase};
@@ -208,9 +207,9 @@ fn train_node_dictionary(records: &RecordFile, count: u32) -> Result<Option<Vec<
     })
 }
 
-/// A treelet's id, its root attribute for its parent (none for the scene's root), its
-/// compressed channel blocks and their raw bytes.
-type Averaged = (u32, Option<Vec<u8>>, Vec<Vec<u8>>, u64);
+/// A treelet's id, its root voxel's attribute bytes, its compressed channel blocks and their
+/// raw bytes.
+type Averaged = (u32, Vec<u8>, Vec<Vec<u8>>, u64);
 
 /// The attribute stream: levels deepest first, each treelet averaged and its channels
 /// compressed.
@@ -221,13 +220,19 @@ fn store_attributes(
 ) -> Result<(), BuildError> {
     let layout = scene.layout;
     let pool = CompressorPool::new(opts.zstd_level, vec![None; layout.channels().len()]);
-    // Root attributes of the treelets one level below, for their parents' refinable leaves.
-    let mut below: FxHashMap<u32, Vec<u8>> = FxHashMap::default();
+    // Root attributes of the treelets one level below, for their parents' refinable leaves:
+    // one level's treelets are one id range, so a flat array indexed by id (a map of small
+    // vectors cost 6× the bytes and grew with the scene).
+    let mut below = LevelRoots::default();
     for level in (0..scene.level_starts.len().saturating_sub(1)).rev() {
         // Treelets of one level are independent: their children are all one level deeper.
         let ids = scene.level_starts[level]..scene.level_starts[level + 1];
-        let mut roots = FxHashMap::default();
-        roots.reserve(ids.len());
+        let bpv = scene.records.bpv;
+        let mut roots = LevelRoots {
+            first: ids.start,
+            bpv,
+            bytes: Vec::with_capacity(ids.len() * bpv),
+        };
         for start in ids.clone().step_by(CHUNK as usize) {
             let end = (start + CHUNK).min(ids.end);
             let averaged: Vec<Averaged> = (start..end)
@@ -236,23 +241,21 @@ fn store_attributes(
                     || pool.lease(),
                     |lease, id| {
                         let a = average_treelet(scene, id, &below)?;
-                        let blocks = channel_blocks(layout, &a.attrs, scene.records.bpv, a.used);
+                        let blocks = channel_blocks(layout, &a.attrs, bpv, a.used);
                         let raw = blocks.iter().map(|b| b.len() as u64).sum();
                         let compressed = blocks
                             .iter()
                             .zip(lease.get()?.iter_mut())
                             .map(|(b, c)| c.compress(b))
                             .collect::<Result<Vec<_>, _>>()?;
-                        Ok((id, a.root, compressed, raw))
+                        Ok((id, a.attrs[..bpv].to_vec(), compressed, raw))
                     },
                 )
                 .collect::<Result<_, BuildError>>()?;
             let mut raw = 0;
             let mut blocks = Vec::with_capacity(averaged.len());
             for (id, root, compressed, r) in averaged {
-                if let Some(root) = root {
-                    roots.insert(id, root);
-                }
+                roots.bytes.extend_from_slice(&root);
                 blocks.push((TreeletId(id), compressed));
                 raw += r;
             }
@@ -265,9 +268,24 @@ fn store_attributes(
     Ok(())
 }
 
+/// The root voxel's attribute bytes of every treelet of one level, in id order.
+#[derive(Default)]
+struct LevelRoots {
+    /// The level's first treelet id.
+    first: u32,
+    bpv: usize,
+    bytes: Vec<u8>,
+}
+
+impl LevelRoots {
+    fn get(&self, id: u32) -> Option<&[u8]> {
+        let at = (id.checked_sub(self.first)? as usize).checked_mul(self.bpv)?;
+        self.bytes.get(at..at + self.bpv)
+    }
+}
+
 /// Averages one treelet's inner attributes bottom-up (its refinable leaves take their child
-/// treelet's root attribute from `below`); returns its root attribute for its parent (none for
-/// the scene's root) with its attribute bytes.
+/// treelet's root attribute from `below`) and returns its attribute bytes.
 ///
 /// The record is read without the full validation of a received treelet: the fill wrote it in
 /// this process (its encoding is checked by the build's tests and by `verify` on the stored
@@ -276,11 +294,11 @@ fn store_attributes(
 fn average_treelet(
     scene: &FilledScene<'_>,
     id: u32,
-    below: &FxHashMap<u32, Vec<u8>>,
+    below: &LevelRoots,
 ) -> Result<AveragedRecord, BuildError> {
     let bpv = scene.records.bpv;
     let (mut buf, attributes) = scene.records.read_record(id)?;
-    let (header, _) = codec::decode_header(&buf)?;
+    codec::decode_header(&buf)?;
     let nodes: Vec<Node> = buf[HEADER_BYTES..attributes]
         .chunks_exact(NODE_BYTES as usize)
         .map(|r| Node {
@@ -323,7 +341,7 @@ fn average_treelet(
         let k = i * bpv;
         if is_leaf[i] {
             if n.first_child != Node::NONE {
-                let root = below.get(&n.first_child).ok_or_else(|| {
+                let root = below.get(n.first_child).ok_or_else(|| {
                     BuildError::Sink(format!(
                         "treelet {id} leaf {i}: child treelet {} was never built",
                         n.first_child
@@ -349,15 +367,12 @@ fn average_treelet(
             off += size;
         }
     }
-    let root = (!header.parent_id.is_none()).then(|| attrs[..bpv].to_vec());
-    Ok(AveragedRecord { root, attrs, used })
+    Ok(AveragedRecord { attrs, used })
 }
 
 /// A treelet's attributes after [`average_treelet`].
 struct AveragedRecord {
-    /// Its root voxel's attribute bytes, for its parent (none for the scene's root).
-    root: Option<Vec<u8>>,
-    /// `used` × bytes per voxel.
+    /// `used` × bytes per voxel, the root voxel's first.
     attrs: Vec<u8>,
     used: usize,
 }
