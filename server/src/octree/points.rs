@@ -2,6 +2,8 @@
 //! on its leaf cell; attributes average colour and normals (file normals, or estimated from each
 //! point's neighbourhood by PCA).
 
+use std::sync::atomic::{AtomicUsize, Ordering};
+
 use arbor_proto::{AttributeLayout, Cell, Channel};
 use rayon::prelude::*;
 
@@ -330,15 +332,21 @@ pub fn mean_point_spacing(
     };
     let step = (pos.len() / 20_000).max(1);
     let samples: Vec<usize> = (0..pos.len()).step_by(step).collect();
-    let gathered = count_around(pos, &grid, &wanted_cells(pos, &grid, &samples));
-    let groups = gathered.div_ceil(SPACING_POINTS).max(1);
-    tracing::debug!(
-        points = gathered,
-        groups,
-        cell = grid.cell,
-        "spacing samples"
-    );
-    let nearest = nearest_in_groups(pos, &grid, &samples, groups);
+    // One group when its points fit (the common case: no extra pass); otherwise counted, and
+    // as many groups as that takes.
+    let nearest = match nearest_in_groups(pos, &grid, &samples, 1, Some(SPACING_POINTS)) {
+        Some(nearest) => nearest,
+        None => {
+            let gathered = count_around(pos, &grid, &wanted_cells(pos, &grid, &samples));
+            let groups = gathered.div_ceil(SPACING_POINTS).max(1);
+            tracing::debug!(
+                points = gathered,
+                groups,
+                "spacing samples gathered in groups"
+            );
+            nearest_in_groups(pos, &grid, &samples, groups, None).expect("no limit, no refusal")
+        }
+    };
     // Summed in sample order: the same figure whatever the grouping and the threads.
     let (sum, n) = nearest
         .iter()
@@ -348,21 +356,47 @@ pub fn mean_point_spacing(
 }
 
 /// Squared distance from each sample to its nearest other point in the 3×3×3 cells around it
-/// (infinite when there is none), the samples taken in `groups` interleaved groups.
-fn nearest_in_groups(pos: &[[f64; 3]], grid: &Grid, samples: &[usize], groups: usize) -> Vec<f64> {
+/// (infinite when there is none), the samples taken in `groups` interleaved groups; `None` when
+/// a group's cells hold more than `limit` points (found as they are gathered).
+fn nearest_in_groups(
+    pos: &[[f64; 3]],
+    grid: &Grid,
+    samples: &[usize],
+    groups: usize,
+    limit: Option<usize>,
+) -> Option<Vec<f64>> {
+    const CHUNK: usize = 1 << 16;
     let mut nearest = vec![f64::INFINITY; samples.len()];
     for g in 0..groups {
         let members: Vec<usize> = (g..samples.len()).step_by(groups).collect();
         let group: Vec<usize> = members.iter().map(|&m| samples[m]).collect();
         let wanted = wanted_cells(pos, grid, &group);
-        let mut keys: Vec<(u64, u32)> = pos
-            .par_iter()
+        let gathered = AtomicUsize::new(0);
+        let over = |n: usize| limit.is_some_and(|l| n > l);
+        let parts: Vec<Vec<(u64, u32)>> = pos
+            .par_chunks(CHUNK)
             .enumerate()
-            .filter_map(|(i, &p)| {
-                let k = grid.key(grid.coords(p));
-                wanted.contains(&k).then_some((k, i as u32))
+            .map(|(c, chunk)| {
+                if over(gathered.load(Ordering::Relaxed)) {
+                    return None;
+                }
+                let part: Vec<(u64, u32)> = chunk
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(j, &p)| {
+                        let k = grid.key(grid.coords(p));
+                        wanted.contains(&k).then_some((k, (c * CHUNK + j) as u32))
+                    })
+                    .collect();
+                gathered.fetch_add(part.len(), Ordering::Relaxed);
+                Some(part)
             })
-            .collect();
+            .collect::<Option<_>>()?;
+        if over(gathered.into_inner()) {
+            return None;
+        }
+        let mut keys = parts.concat();
+        drop(parts);
         keys.par_sort_unstable();
         let near = Grid { keys, ..*grid };
         let found: Vec<f64> = group
@@ -385,7 +419,7 @@ fn nearest_in_groups(pos: &[[f64; 3]], grid: &Grid, samples: &[usize], groups: u
             nearest[m] = d;
         }
     }
-    nearest
+    Some(nearest)
 }
 
 /// The grid cells around `samples`. Probed once per point of the whole cloud: a fast hash
@@ -795,14 +829,13 @@ mod tests {
             keys: Vec::new(),
         };
         let samples: Vec<usize> = (0..pts.len()).step_by(7).collect();
-        let whole = nearest_in_groups(&pts, &grid, &samples, 1);
+        let whole = nearest_in_groups(&pts, &grid, &samples, 1, None).unwrap();
+        // A limit below what the cells hold is refused, not truncated.
+        assert!(nearest_in_groups(&pts, &grid, &samples, 1, Some(1000)).is_none());
         assert!(whole.iter().all(|d| d.is_finite()));
         for groups in [2, 5, 64] {
-            assert_eq!(
-                nearest_in_groups(&pts, &grid, &samples, groups),
-                whole,
-                "{groups}"
-            );
+            let grouped = nearest_in_groups(&pts, &grid, &samples, groups, None).unwrap();
+            assert_eq!(grouped, whole, "{groups}");
         }
         // Brute force for a few samples: the true nearest neighbour.
         for &m in &[0usize, 1000, 8000] {
