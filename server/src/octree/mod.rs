@@ -220,11 +220,12 @@ pub fn build_scene_observed(
     let (layout, fill, iso_used) = fill_source(source, &placed, capacity, opts, scratch, progress)?;
     let t = phase("fill (with sorting and normals)", t);
 
-    let records = RecordFile {
-        file: fill.file,
-        bpv: layout.bytes_per_voxel(),
-        offsets: fill.offsets,
-    };
+    let records = RecordFile::map(
+        fill.file,
+        &scratch.join(RECORDS_FILE),
+        layout.bytes_per_voxel(),
+        fill.offsets,
+    )?;
     let mut stats = SceneStats {
         voxels: fill.used_nodes - u64::from(fill.treelets - 1),
         leaf_voxels: fill.leaf_voxels,
@@ -514,37 +515,48 @@ struct Filled {
     peak_list_bytes: u64,
 }
 
+/// Name of the records file in the scratch directory.
+const RECORDS_FILE: &str = "treelets.records";
+
 /// Scratch records, one per treelet in id order, packed: the raw treelet encoding (header and
 /// used node records), then `used × bpv` attribute bytes. Where each starts is in a memory-mapped
 /// column, so nothing here grows with the treelet count (treelets are 35–45 % full on average:
-/// fixed-size records wrote 2–3× the bytes).
+/// fixed-size records wrote 2–3× the bytes). Read through a mapping: the store pass reads every
+/// record twice (nodes, then attributes), which cost a system call, an allocation and a copy
+/// each time.
 struct RecordFile {
-    file: File,
+    bytes: Column<u8>,
     bpv: usize,
     /// Byte offset of every record, then the end.
     offsets: Column<u64>,
 }
 
 impl RecordFile {
+    /// Maps the records the fill wrote to `file`.
+    fn map(file: File, path: &Path, bpv: usize, offsets: Column<u64>) -> Result<Self, BuildError> {
+        let len = offsets.last().copied().unwrap_or(0) as usize;
+        Ok(RecordFile {
+            bytes: Column::map_file(file, path, len)?,
+            bpv,
+            offsets,
+        })
+    }
     /// Byte range of a record and where its attributes start.
-    fn place(&self, id: u32) -> (u64, u64, u64) {
+    fn place(&self, id: u32) -> (usize, usize, usize) {
         let (start, end) = (self.offsets[id as usize], self.offsets[id as usize + 1]);
         let used = (end - start - HEADER_BYTES as u64) / (8 + self.bpv as u64);
-        (start, end, start + HEADER_BYTES as u64 + used * 8)
+        let attributes = start + HEADER_BYTES as u64 + used * 8;
+        (start as usize, end as usize, attributes as usize)
     }
     /// A record's stored treelet encoding (header and used node records), final once filled.
-    fn read_nodes(&self, id: u32) -> Result<Vec<u8>, BuildError> {
+    fn nodes(&self, id: u32) -> &[u8] {
         let (start, _, attributes) = self.place(id);
-        let mut buf = vec![0u8; (attributes - start) as usize];
-        self.file.read_exact_at(&mut buf, start)?;
-        Ok(buf)
+        &self.bytes[start..attributes]
     }
-    /// A whole record, and where its attributes start in it.
-    fn read_record(&self, id: u32) -> Result<(Vec<u8>, usize), BuildError> {
+    /// A record's stored treelet encoding and its attribute bytes.
+    fn record(&self, id: u32) -> (&[u8], &[u8]) {
         let (start, end, attributes) = self.place(id);
-        let mut buf = vec![0u8; (end - start) as usize];
-        self.file.read_exact_at(&mut buf, start)?;
-        Ok((buf, (attributes - start) as usize))
+        (&self.bytes[start..attributes], &self.bytes[attributes..end])
     }
 }
 
@@ -650,7 +662,7 @@ fn fill_all(
     scratch: &Path,
     progress: &ImportProgress,
 ) -> Result<Filled, BuildError> {
-    let file = scratch_file(&scratch.join("treelets.records"))?;
+    let file = scratch_file(&scratch.join(RECORDS_FILE))?;
     let mut offsets = ColumnWriter::<u64>::create(scratch, "treelet-offsets")?;
     offsets.push(0)?;
     let count = builder.primitive_count();
@@ -842,18 +854,15 @@ mod tests {
         assert_eq!(general.treelets, sorted.treelets);
         assert_eq!(general.used_nodes, sorted.used_nodes);
         assert_eq!(general.leaf_voxels, sorted.leaf_voxels);
-        let records = |f: Filled| RecordFile {
-            file: f.file,
-            bpv: 0,
-            offsets: f.offsets,
-        };
+        let path = dir.path().join(RECORDS_FILE);
+        let records = |f: Filled| RecordFile::map(f.file, &path, 0, f.offsets).unwrap();
         let (a, b) = (records(general), records(sorted));
         for id in 0..a.offsets.len() as u32 - 1 {
-            let ra = a.read_nodes(id).unwrap();
-            let rb = b.read_nodes(id).unwrap();
+            let ra = a.nodes(id);
+            let rb = b.nodes(id);
             assert!(ra == rb, "treelet {id} differs");
             // The store compresses the encoding as it is: it must be a whole, valid treelet.
-            let t = codec::decode_treelet(&ra, 10).unwrap();
+            let t = codec::decode_treelet(ra, 10).unwrap();
             assert_eq!(
                 (ra.len() - HEADER_BYTES) / 8,
                 t.used().len(),

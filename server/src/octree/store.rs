@@ -169,8 +169,8 @@ fn store_nodes(
             .map_init(
                 || pool.lease(),
                 |lease, id| {
-                    let raw = records.read_nodes(id)?;
-                    let block = lease.get()?[0].compress(&raw)?;
+                    let raw = records.nodes(id);
+                    let block = lease.get()?[0].compress(raw)?;
                     Ok((TreeletId(id), block, raw.len() as u64))
                 },
             )
@@ -194,10 +194,10 @@ fn train_node_dictionary(records: &RecordFile, count: u32) -> Result<Option<Vec<
         return Ok(None);
     }
     let step = (count / DICTIONARY_SAMPLES).max(1);
-    let samples = (0..count)
+    let samples: Vec<&[u8]> = (0..count)
         .step_by(step as usize)
-        .map(|id| records.read_nodes(id))
-        .collect::<Result<Vec<_>, _>>()?;
+        .map(|id| records.nodes(id))
+        .collect();
     Ok(match zstd::dict::from_samples(&samples, DICTIONARY_BYTES) {
         Ok(d) => Some(d),
         Err(e) => {
@@ -297,9 +297,9 @@ fn average_treelet(
     below: &LevelRoots,
 ) -> Result<AveragedRecord, BuildError> {
     let bpv = scene.records.bpv;
-    let (mut buf, attributes) = scene.records.read_record(id)?;
-    codec::decode_header(&buf)?;
-    let nodes: Vec<Node> = buf[HEADER_BYTES..attributes]
+    let (raw, attrs) = scene.records.record(id);
+    codec::decode_header(raw)?;
+    let nodes: Vec<Node> = raw[HEADER_BYTES..]
         .chunks_exact(NODE_BYTES as usize)
         .map(|r| Node {
             first_child: u32::from_le_bytes([r[0], r[1], r[2], r[3]]),
@@ -308,7 +308,7 @@ fn average_treelet(
             spare: u16::from_le_bytes([r[6], r[7]]),
         })
         .collect();
-    let mut attrs = buf.split_off(attributes);
+    let mut attrs = attrs.to_vec();
     let used = nodes.len();
     let malformed = |node: usize, detail: &str| {
         BuildError::Proto(ProtoError::MalformedTreelet {
