@@ -96,7 +96,7 @@ mod tests {
                 .unwrap();
             assert_eq!(got, (i * 100_000..i * 100_000 + 60_000).collect::<Vec<_>>());
             assert!(
-                matches!(j.prims, IdList::Memory { .. }),
+                matches!(j.prims, IdList::Memory(_)),
                 "loaded back when room"
             );
         }
