@@ -9,16 +9,19 @@
 //! level). Ties keep file order (records sort by key, then original id), so each leaf sees its
 //! points in the same order as the general path and the scene is the same.
 //!
-//! The sort is a counting sort into buckets followed by an in-memory sort per bucket:
+//! The sort is a counting sort into buckets followed by a sort per bucket:
 //! 1. count the points per cell at level `min(depth, 7)` (at most 2²¹ counters);
 //! 2. group consecutive cells (Morton order) into buckets of at most `budget / 40` points;
-//! 3. append each point's [`PointRecord`] (key, position, colour, id) to its bucket's region of
-//!    one scratch file;
-//! 4. sort each bucket in memory (both cores) and write it back.
+//! 3. place each point's [`PointRecord`] (key, position, colour, id) in its bucket's region of
+//!    one mapped scratch file, a round of records at a time, both cores each placing a part of
+//!    the round (the next round is made meanwhile);
+//! 4. sort each bucket where it lies in the mapping (both cores).
 //!
 //! A cell with more points than a bucket holds is counting-sorted one step (7 levels) deeper
-//! through a spare file, recursively; a single leaf cell needs no sorting (every pass keeps file
-//! order). Memory: one bucket of records (≤ the budget) and two counting tables of 2²¹ entries.
+//! through a spare mapping, recursively; a single leaf cell needs no sorting (every pass keeps
+//! file order). Memory: two rounds of records (each ≤ half the budget), the counting
+//! tables of 2²¹ entries, and one bucket's pages of the mapping at a time (page cache, which the
+//! kernel writes back and evicts as it needs).
 
 use std::ops::Range;
 use std::path::Path;
