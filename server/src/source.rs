@@ -81,7 +81,7 @@ pub struct ColumnWriter<T: Pod> {
 impl<T: Pod> ColumnWriter<T> {
     /// Creates `dir/name.col`.
     pub fn create(dir: &Path, name: &str) -> Result<Self, ColumnError> {
-        let path = dir.join(format!("{name}.col"));
+        let path = column_path(dir, name);
         // Read access too: the file is memory-mapped once written.
         let file = scratch_file(&path).map_err(|source| ColumnError::Io {
             path: path.clone(),
@@ -155,6 +155,18 @@ impl<T: Pod> std::fmt::Debug for ColumnMut<T> {
     }
 }
 
+/// Where the column `name` of a scratch directory lives.
+pub fn column_path(dir: &Path, name: &str) -> PathBuf {
+    dir.join(format!("{name}.col"))
+}
+
+/// Deletes the column `name` of a scratch directory once nothing maps it any more: its pages
+/// not yet written back are discarded and its memory is free for what comes next, instead of
+/// lingering until the whole scratch directory goes.
+pub fn remove_column(dir: &Path, name: &str) {
+    let _ = std::fs::remove_file(column_path(dir, name));
+}
+
 /// Opens a scratch file for reading and writing, created or emptied.
 pub fn scratch_file(path: &Path) -> std::io::Result<File> {
     File::options()
@@ -172,7 +184,7 @@ impl<T: Pod> ColumnMut<T> {
     /// even.
     #[allow(unsafe_code)]
     pub fn create(dir: &Path, name: &str, len: usize) -> Result<Self, ColumnError> {
-        let path = dir.join(format!("{name}.col"));
+        let path = column_path(dir, name);
         let io = |source| ColumnError::Io {
             path: path.clone(),
             source,

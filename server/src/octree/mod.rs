@@ -37,7 +37,7 @@ use rayon::prelude::*;
 
 use crate::progress::{ImportProgress, Phase};
 use crate::source::scratch_file;
-use crate::source::{Column, ColumnError, ColumnWriter, Source};
+use crate::source::{Column, ColumnError, ColumnWriter, Source, remove_column};
 use geometry::{Frame, depth_for_resolution};
 use idlist::{Budget, IdList, Lists, SpillFile};
 use pending::PendingQueue;
@@ -241,6 +241,11 @@ pub fn build_scene_observed(
     let (node_dictionary, channel_dictionaries) =
         store::store(&filled, opts, &mut stats, sink, progress)?;
     phase("store (attributes, dictionary, compression)", t);
+    // The records are in the pool now; their pages go before the pool's final flush.
+    drop(filled);
+    drop(records);
+    let _ = std::fs::remove_file(scratch.join(RECORDS_FILE));
+    remove_column(scratch, OFFSETS_COLUMN);
     stats.build_seconds = started.elapsed().as_secs_f64();
     let dictionary = node_dictionary.is_some();
     Ok(SceneDescription {
@@ -343,7 +348,7 @@ fn fill_source(
             let t = Instant::now();
             let normals = match &p.normals {
                 Some(file) => {
-                    let mut w = ColumnWriter::create(scratch, "sorted-normals")?;
+                    let mut w = ColumnWriter::create(scratch, sorted_points::NORMALS_COLUMN)?;
                     for r in records.iter() {
                         w.push(file[r.id as usize])?;
                     }
@@ -365,7 +370,15 @@ fn fill_source(
             // The sort is this path's bounded working memory (it writes no id list).
             fill.spilled_bytes += sorted.spilled_bytes;
             fill.peak_list_bytes = fill.peak_list_bytes.max(sorted.peak_bytes);
-            Ok((a.layout.clone(), fill, None))
+            let layout = a.layout.clone();
+            // Dead once the treelets are filled: 5 GB at 10⁸ points, which the store pass
+            // would otherwise find in the page cache, partly still to be written back.
+            drop(a);
+            drop(b);
+            drop((normals, records));
+            remove_column(scratch, sorted_points::SORTED_COLUMN);
+            remove_column(scratch, sorted_points::NORMALS_COLUMN);
+            Ok((layout, fill, None))
         }
         Source::Points(p) => {
             let estimated;
@@ -517,6 +530,8 @@ struct Filled {
 
 /// Name of the records file in the scratch directory.
 const RECORDS_FILE: &str = "treelets.records";
+/// Scratch column of where each record starts.
+const OFFSETS_COLUMN: &str = "treelet-offsets";
 
 /// Scratch records, one per treelet in id order, packed: the raw treelet encoding (header and
 /// used node records), then `used × bpv` attribute bytes. Where each starts is in a memory-mapped
@@ -663,7 +678,7 @@ fn fill_all(
     progress: &ImportProgress,
 ) -> Result<Filled, BuildError> {
     let file = scratch_file(&scratch.join(RECORDS_FILE))?;
-    let mut offsets = ColumnWriter::<u64>::create(scratch, "treelet-offsets")?;
+    let mut offsets = ColumnWriter::<u64>::create(scratch, OFFSETS_COLUMN)?;
     offsets.push(0)?;
     let count = builder.primitive_count();
     let count = u32::try_from(count).map_err(|_| BuildError::TooManyPrimitives {

@@ -34,7 +34,15 @@ use arbor_proto::{AttributeLayout, Cell};
 use super::geometry::Frame;
 use super::points::{leaf_attributes, pca_normal, point_layout};
 use super::treelet_builder::{AttributeGenerator, TreeletBuilder};
-use crate::source::{Column, ColumnError, ColumnMut, PointSource};
+use crate::source::{Column, ColumnError, ColumnMut, PointSource, remove_column};
+
+/// Scratch column of the sorted records.
+pub const SORTED_COLUMN: &str = "points-sorted";
+/// Scratch column of the sorted records' normals (estimated, or taken from the file).
+pub const NORMALS_COLUMN: &str = "point-normals";
+
+/// Scratch column where oversized buckets are redistributed.
+const SPARE_COLUMN: &str = "points-spare";
 
 /// Deepest target depth whose leaf cells fit a 64-bit Morton key (3 × 21 bits).
 pub const MAX_KEY_DEPTH: u8 = 21;
@@ -166,7 +174,7 @@ impl Sorter<'_> {
         sub: impl Fn(u64) -> usize,
     ) -> Result<(), ColumnError> {
         if self.spare.is_none() {
-            let spare = ColumnMut::create(self.scratch, "points-spare", self.records.len())?;
+            let spare = ColumnMut::create(self.scratch, SPARE_COLUMN, self.records.len())?;
             self.spare = Some(spare);
         }
         let spare = self.spare.as_mut().expect("created above");
@@ -242,7 +250,7 @@ pub fn sort_points(
     drop(counts);
     // 3. Distribution into the buckets' regions, in file order: records of the next round
     //    are made (both cores) while this round's are placed.
-    let mut sorted = ColumnMut::<PointRecord>::create(scratch, "points-sorted", n)?;
+    let mut sorted = ColumnMut::<PointRecord>::create(scratch, SORTED_COLUMN, n)?;
     let buckets = starts.len() - 1;
     let mut cursor: Vec<usize> = starts[..buckets].iter().map(|&s| s as usize).collect();
     let round = (cap as usize / 2).clamp(1, rayon::current_num_threads() * STEP);
@@ -294,7 +302,7 @@ pub fn sort_points(
     let stats = sorter.stats;
     tracing::debug!(seconds = started.elapsed().as_secs_f64(), "buckets sorted");
     drop(sorter);
-    let _ = std::fs::remove_file(scratch.join("points-spare.col"));
+    remove_column(scratch, SPARE_COLUMN);
     Ok((sorted.finish()?, stats))
 }
 
@@ -473,7 +481,7 @@ pub fn cell_normals(
     centre: [f64; 3],
     scratch: &Path,
 ) -> Result<Column<[f32; 3]>, ColumnError> {
-    let mut out = ColumnMut::<[f32; 3]>::create(scratch, "point-normals", records.len())?;
+    let mut out = ColumnMut::<[f32; 3]>::create(scratch, NORMALS_COLUMN, records.len())?;
     let level = depth.saturating_sub(NORMAL_LEVELS_UP);
     let cell_of = |key: u64, l: u8| key >> (3 * u32::from(depth - l));
     // Work in steps of about STEP points ending on cell boundaries.
