@@ -242,7 +242,6 @@ pub fn build_scene_observed(
         store::store(&filled, opts, &mut stats, sink, progress)?;
     phase("store (attributes, dictionary, compression)", t);
     // The records are in the pool now; their pages go before the pool's final flush.
-    drop(filled);
     drop(records);
     let _ = std::fs::remove_file(scratch.join(RECORDS_FILE));
     remove_column(scratch, OFFSETS_COLUMN);
@@ -374,7 +373,6 @@ fn fill_source(
             // Dead once the treelets are filled: 5 GB at 10⁸ points, which the store pass
             // would otherwise find in the page cache, partly still to be written back.
             drop(a);
-            drop(b);
             drop((normals, records));
             remove_column(scratch, sorted_points::SORTED_COLUMN);
             remove_column(scratch, sorted_points::NORMALS_COLUMN);
