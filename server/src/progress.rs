@@ -18,9 +18,8 @@ pub enum Phase {
     Placing,
     /// Filling treelets (`done` counts treelets; the total is unknown until the end).
     Filling,
-    /// Averaging inner attributes (`done` of `total` treelets).
-    Attributes,
-    /// Compressing and storing (`done` of `total` treelets).
+    /// Averaging inner attributes, compressing and storing (`done` of `total` treelets: those
+    /// whose node and attribute blocks are both stored).
     Packing,
     /// Flushing and publishing the scene.
     Committing,
@@ -30,12 +29,11 @@ pub enum Phase {
     Failed,
 }
 
-const PHASES: [Phase; 9] = [
+const PHASES: [Phase; 8] = [
     Phase::Queued,
     Phase::Reading,
     Phase::Placing,
     Phase::Filling,
-    Phase::Attributes,
     Phase::Packing,
     Phase::Committing,
     Phase::Done,
