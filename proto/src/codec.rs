@@ -143,6 +143,20 @@ pub fn decode_treelet(bytes: &[u8], max_depth: u8) -> Result<Treelet, ProtoError
     decode_treelet_with_places(bytes, max_depth).map(|(t, _)| t)
 }
 
+/// The node records of an encoded treelet's body (what follows the header), unvalidated: for
+/// callers that wrote the bytes themselves; [`decode_treelet`] checks them.
+pub fn node_records(body: &[u8]) -> impl Iterator<Item = Node> + '_ {
+    body.chunks_exact(NODE_BYTES as usize).map(|record| {
+        let mut r = Reader { b: record, at: 0 };
+        Node {
+            first_child: r.u32(),
+            valid_mask: r.u8(),
+            leaf_mask: r.u8(),
+            spare: r.u16(),
+        }
+    })
+}
+
 /// [`decode_treelet`], also returning every node's place, found by the validation walk (so
 /// callers that need cells or leafness do not walk the tree a second time).
 pub fn decode_treelet_with_places(
@@ -167,17 +181,8 @@ pub fn decode_treelet_with_places(
         });
     }
     let mut nodes = vec![Node::default(); capacity as usize];
-    let mut r = Reader {
-        b: bytes,
-        at: HEADER_BYTES,
-    };
-    for n in nodes.iter_mut().take(usize::from(header.used_nodes)) {
-        *n = Node {
-            first_child: r.u32(),
-            valid_mask: r.u8(),
-            leaf_mask: r.u8(),
-            spare: r.u16(),
-        };
+    for (n, record) in nodes.iter_mut().zip(node_records(&bytes[HEADER_BYTES..])) {
+        *n = record;
     }
     let t = Treelet { header, nodes };
     let places = t.validate(max_depth)?;

@@ -9,10 +9,11 @@
 
 use std::path::Path;
 
+use rayon::prelude::*;
+
 use super::{ImportError, names, push, writer};
 use crate::octree::MAX_PRIMITIVES;
-use crate::source::{Column, ColumnMut, ColumnWriter, PointSource, Source};
-use rayon::prelude::*;
+use crate::source::{Column, ColumnMut, ColumnWriter, PointSource, Source, remove_column};
 
 /// Scratch name of the 16-bit colour column, converted to 8 bits at the end.
 const RGB16_COLUMN: &str = "src_rgb16";
@@ -89,12 +90,12 @@ impl<'a> PointSetWriter<'a> {
         self.files += 1;
         if !has_colour && self.rgb16.take().is_some() {
             self.colourless = Some(file.to_owned());
-            let _ = std::fs::remove_file(self.scratch.join(format!("{RGB16_COLUMN}.col")));
+            remove_column(self.scratch, RGB16_COLUMN);
         }
         if first && has_normals {
             self.normals = Some(writer(file, self.scratch, names::NORMALS)?);
         } else if !has_normals && self.normals.take().is_some() {
-            let _ = std::fs::remove_file(self.scratch.join(format!("{}.col", names::NORMALS)));
+            remove_column(self.scratch, names::NORMALS);
         }
         if !has_normals && !first && self.normal_less.is_none() {
             self.normal_less = Some(file.to_owned());
@@ -245,7 +246,7 @@ fn to_8bit(
             });
     });
     drop(rgb16);
-    let _ = std::fs::remove_file(scratch.join(format!("{RGB16_COLUMN}.col")));
+    remove_column(scratch, RGB16_COLUMN);
     out.finish().map_err(|e| ImportError::column(label, e))
 }
 

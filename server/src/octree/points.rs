@@ -313,8 +313,9 @@ const SPACING_POINTS: usize = 4 << 20;
 /// around each: a pass over the cloud keeps only the points in those cells, then each sample's
 /// nearest is found among them. How many points that keeps depends on the cloud's shape, not
 /// only its size (13 M of 10⁸ city points, where the grid's surface estimate is coarse), so
-/// the samples are split into as many groups as keep each gathering under [`SPACING_POINTS`]
-/// (counted first); the estimate is the same whatever the grouping.
+/// when one gathering would pass [`SPACING_POINTS`], the points are counted and the samples
+/// split into as many groups as keep each gathering under it; the estimate is the same
+/// whatever the grouping.
 pub fn mean_point_spacing(
     pos: &[[f64; 3]],
     min: [f64; 3],

@@ -164,30 +164,27 @@ impl Sorter<'_> {
         Ok(())
     }
 
-    /// Moves records `start..end` into their buckets (stable), through the spare array.
+    /// Moves records `start..end` into their buckets (stable, both cores), through the spare
+    /// array.
     fn distribute(
         &mut self,
         start: usize,
         end: usize,
         bucket_of: &[u32],
         starts: &[u64],
-        sub: impl Fn(u64) -> usize,
+        sub: impl Fn(u64) -> usize + Sync,
     ) -> Result<(), ColumnError> {
         if self.spare.is_none() {
             let spare = ColumnMut::create(self.scratch, SPARE_COLUMN, self.records.len())?;
             self.spare = Some(spare);
         }
         let spare = self.spare.as_mut().expect("created above");
-        let buckets = starts.len() - 1;
-        let mut cursor: Vec<usize> = starts[..buckets]
+        let mut cursor: Vec<usize> = starts[..starts.len() - 1]
             .iter()
             .map(|&s| start + s as usize)
             .collect();
-        for r in &self.records[start..end] {
-            let b = bucket_of[sub(r.key)] as usize;
-            spare[cursor[b]] = *r;
-            cursor[b] += 1;
-        }
+        let bucket = |r: &PointRecord| bucket_of[sub(r.key)] as usize;
+        place_round(spare, &mut cursor, &self.records[start..end], bucket);
         self.records[start..end].copy_from_slice(&spare[start..end]);
         self.stats.spilled_bytes += 2 * (end - start) as u64 * RECORD as u64;
         Ok(())

@@ -19,7 +19,6 @@ use std::sync::mpsc::{SyncSender, sync_channel};
 use std::time::Instant;
 
 use arbor_proto::codec::{self, BlockCompressor, HEADER_BYTES};
-use arbor_proto::limits::NODE_BYTES;
 use arbor_proto::{AttributeLayout, Node, ProtoError, SceneStats, TreeletId};
 use rayon::prelude::*;
 
@@ -299,15 +298,7 @@ fn average_treelet(
     let bpv = scene.records.bpv;
     let (raw, attrs) = scene.records.record(id);
     codec::decode_header(raw)?;
-    let nodes: Vec<Node> = raw[HEADER_BYTES..]
-        .chunks_exact(NODE_BYTES as usize)
-        .map(|r| Node {
-            first_child: u32::from_le_bytes([r[0], r[1], r[2], r[3]]),
-            valid_mask: r[4],
-            leaf_mask: r[5],
-            spare: u16::from_le_bytes([r[6], r[7]]),
-        })
-        .collect();
+    let nodes: Vec<Node> = codec::node_records(&raw[HEADER_BYTES..]).collect();
     let mut attrs = attrs.to_vec();
     let used = nodes.len();
     let malformed = |node: usize, detail: &str| {
