@@ -15,6 +15,7 @@ use arbor_client_core::cycle::{
     DEFAULT_PREFETCH_BELOW, Sampling,
 };
 use arbor_client_core::image::Image;
+use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::presort::PriorityPolicy;
 use arbor_client_core::render::Light;
 use arbor_client_core::upload::DEFAULT_FILL_RATIO;
@@ -384,6 +385,13 @@ fn view(mut a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
                 ..CoreConfig::default()
             },
             connect_timeout: timeout(a.connection.connect_timeout)?,
+            first_camera: Some(CameraPath::Static.camera(
+                0,
+                &SceneFrame::UNIT,
+                a.seed,
+                width,
+                height,
+            )),
         },
         seed: a.seed,
         width,

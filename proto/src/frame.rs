@@ -41,7 +41,10 @@ use crate::limits::{
 };
 use crate::scene::{SceneDescription, validate_scene_name};
 use crate::treelet::TreeletId;
-use crate::wire::{ErrorCode, Frame, FrameType, HELLO_FLAGS, PROTOCOL_VERSION, ViewHint};
+use crate::wire::{
+    ErrorCode, Frame, FrameType, HELLO_FLAGS, HELLO_SEND_ROOT, HELLO_VIEW, PROTOCOL_VERSION,
+    ViewHint,
+};
 
 /// Everything that can be wrong with bytes claiming to be a control frame or a treelet message
 /// (and with a value handed to an encoder).
@@ -159,9 +162,13 @@ pub enum FrameError {
     /// `Hello` sets a flag this build does not know.
     #[error("unknown Hello flags {0:#04x}")]
     UnknownFlags(u8),
-    /// A deep request list's view hint is unusable (see [`ViewHint::check`]).
-    #[error("deep request list view: {0}")]
+    /// A deep request list's or a `Hello`'s view hint is unusable (see [`ViewHint::check`]).
+    #[error("view hint: {0}")]
     BadView(String),
+    /// `Hello`'s [`HELLO_VIEW`] flag without [`HELLO_SEND_ROOT`] (the view refines below the
+    /// root), or a view without the flag (encoding only).
+    #[error("Hello: {0}")]
+    BadHelloView(&'static str),
     /// A deep request list item's error is not finite or beyond ±[`ViewHint::MAX_ERROR`].
     #[error(
         "request item {index} (treelet {treelet}): error {} is not a finite level count within ±64",
@@ -204,6 +211,7 @@ impl FrameError {
             | FrameError::BadBlockLength { .. }
             | FrameError::BadUsedNodes(_)
             | FrameError::BadView(_)
+            | FrameError::BadHelloView(_)
             | FrameError::UnknownFlags(_)
             | FrameError::BadError { .. } => ErrorCode::ProtocolViolation,
         }
@@ -339,13 +347,75 @@ fn parse_hello(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
     if flags & !HELLO_FLAGS != 0 {
         return Err(FrameError::UnknownFlags(flags));
     }
+    check_hello_flags(flags)?;
+    let view = if flags & HELLO_VIEW != 0 {
+        Some(parse_view(r)?)
+    } else {
+        None
+    };
     Ok(Frame::Hello {
         version,
         scene: scene.to_owned(),
         channels,
         token: token.to_owned(),
         flags,
+        view,
     })
+}
+
+fn check_hello_flags(flags: u8) -> Result<(), FrameError> {
+    if flags & HELLO_VIEW != 0 && flags & HELLO_SEND_ROOT == 0 {
+        return Err(FrameError::BadHelloView(
+            "the view flag needs the send-root flag (the view refines below the root)",
+        ));
+    }
+    Ok(())
+}
+
+/// A [`ViewHint`] (layout: see [`ViewHint::BYTES`]), checked.
+fn parse_view(r: &mut Reader<'_>) -> Result<ViewHint, FrameError> {
+    let f64s = |r: &mut Reader<'_>, what| -> Result<[f64; 3], FrameError> {
+        Ok([
+            f64::from_bits(r.u64(what)?),
+            f64::from_bits(r.u64(what)?),
+            f64::from_bits(r.u64(what)?),
+        ])
+    };
+    let f32s = |r: &mut Reader<'_>, what| -> Result<[f32; 3], FrameError> {
+        Ok([
+            f32::from_bits(r.u32(what)?),
+            f32::from_bits(r.u32(what)?),
+            f32::from_bits(r.u32(what)?),
+        ])
+    };
+    let view = ViewHint {
+        eye: f64s(r, "view eye")?,
+        forward: f32s(r, "view forward")?,
+        up: f32s(r, "view up")?,
+        tan_half_fov_y: f32::from_bits(r.u32("view fov")?),
+        aspect: f32::from_bits(r.u32("view aspect")?),
+        footprint: f32::from_bits(r.u32("view footprint")?),
+        free_slots: r.u32("view free slots")?,
+    };
+    view.check().map_err(FrameError::BadView)?;
+    Ok(view)
+}
+
+/// Appends `view` (checked) in [`parse_view`]'s layout.
+fn put_view(out: &mut Vec<u8>, view: &ViewHint) -> Result<(), FrameError> {
+    view.check().map_err(FrameError::BadView)?;
+    for c in view.eye {
+        out.extend_from_slice(&c.to_bits().to_le_bytes());
+    }
+    for c in view.forward.iter().chain(&view.up).chain(&[
+        view.tan_half_fov_y,
+        view.aspect,
+        view.footprint,
+    ]) {
+        out.extend_from_slice(&c.to_bits().to_le_bytes());
+    }
+    out.extend_from_slice(&view.free_slots.to_le_bytes());
+    Ok(())
 }
 
 /// Reads a list's item count and checks it against the protocol's limit and against the bytes
@@ -388,30 +458,7 @@ fn parse_request_list(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
 
 fn parse_deep_request_list(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
     let seq = r.u64("list seq")?;
-    let f64s = |r: &mut Reader<'_>, what| -> Result<[f64; 3], FrameError> {
-        Ok([
-            f64::from_bits(r.u64(what)?),
-            f64::from_bits(r.u64(what)?),
-            f64::from_bits(r.u64(what)?),
-        ])
-    };
-    let f32s = |r: &mut Reader<'_>, what| -> Result<[f32; 3], FrameError> {
-        Ok([
-            f32::from_bits(r.u32(what)?),
-            f32::from_bits(r.u32(what)?),
-            f32::from_bits(r.u32(what)?),
-        ])
-    };
-    let view = ViewHint {
-        eye: f64s(r, "view eye")?,
-        forward: f32s(r, "view forward")?,
-        up: f32s(r, "view up")?,
-        tan_half_fov_y: f32::from_bits(r.u32("view fov")?),
-        aspect: f32::from_bits(r.u32("view aspect")?),
-        footprint: f32::from_bits(r.u32("view footprint")?),
-        free_slots: r.u32("view free slots")?,
-    };
-    view.check().map_err(FrameError::BadView)?;
+    let view = parse_view(r)?;
     let count = list_length(r, 12, "deep request list items")?;
     let mut items = Vec::with_capacity(count);
     for index in 0..count {
@@ -463,9 +510,16 @@ pub fn encode(frame: &Frame) -> Result<Vec<u8>, FrameError> {
             channels,
             token,
             flags,
+            view,
         } => {
             if flags & !HELLO_FLAGS != 0 {
                 return Err(FrameError::UnknownFlags(*flags));
+            }
+            check_hello_flags(*flags)?;
+            if view.is_some() != (flags & HELLO_VIEW != 0) {
+                return Err(FrameError::BadHelloView(
+                    "a view is sent exactly when the view flag is set",
+                ));
             }
             if *version != PROTOCOL_VERSION {
                 return Err(FrameError::UnsupportedVersion { found: *version });
@@ -489,6 +543,9 @@ pub fn encode(frame: &Frame) -> Result<Vec<u8>, FrameError> {
             put_string(&mut out, "access token", token, MAX_TOKEN_BYTES)?;
             if *flags != 0 {
                 out.push(*flags);
+            }
+            if let Some(view) = view {
+                put_view(&mut out, view)?;
             }
         }
         Frame::SceneInfo { description } => {
@@ -520,20 +577,9 @@ pub fn encode(frame: &Frame) -> Result<Vec<u8>, FrameError> {
                     limit: MAX_REQUEST_ITEMS,
                 });
             }
-            view.check().map_err(FrameError::BadView)?;
             out.reserve(12 + ViewHint::BYTES + 12 * items.len());
             out.extend_from_slice(&seq.to_le_bytes());
-            for c in view.eye {
-                out.extend_from_slice(&c.to_bits().to_le_bytes());
-            }
-            for c in view.forward.iter().chain(&view.up).chain(&[
-                view.tan_half_fov_y,
-                view.aspect,
-                view.footprint,
-            ]) {
-                out.extend_from_slice(&c.to_bits().to_le_bytes());
-            }
-            out.extend_from_slice(&view.free_slots.to_le_bytes());
+            put_view(&mut out, view)?;
             out.extend_from_slice(&(items.len() as u32).to_le_bytes());
             for (index, &(treelet, priority, error)) in items.iter().enumerate() {
                 check_deep_item(index, treelet, priority, error)?;
@@ -1025,6 +1071,7 @@ mod tests {
             channels: vec![Channel::Normal, Channel::Color],
             token: "s3cret-ü".into(),
             flags: 0,
+            view: None,
         }
     }
 
@@ -1037,6 +1084,7 @@ mod tests {
                 channels: vec![],
                 token: String::new(),
                 flags: 0,
+                view: None,
             },
             Frame::Hello {
                 version: PROTOCOL_VERSION,
@@ -1044,6 +1092,15 @@ mod tests {
                 channels: vec![Channel::Color],
                 token: String::new(),
                 flags: crate::wire::HELLO_GRANT_AVAILABLE | crate::wire::HELLO_SEND_ROOT,
+                view: None,
+            },
+            Frame::Hello {
+                version: PROTOCOL_VERSION,
+                scene: "c".into(),
+                channels: vec![],
+                token: String::new(),
+                flags: HELLO_SEND_ROOT | HELLO_VIEW,
+                view: Some(view()),
             },
             Frame::SceneInfo {
                 description: Box::new(scene()),
@@ -1121,6 +1178,54 @@ mod tests {
             footprint: 0.002,
             free_slots: 900,
         }
+    }
+
+    #[test]
+    fn hello_views_go_with_their_flag_and_hostile_ones_are_refused() {
+        let with_view = |flags: u8, view: Option<ViewHint>| Frame::Hello {
+            version: PROTOCOL_VERSION,
+            scene: "lion".into(),
+            channels: vec![Channel::Color],
+            token: String::new(),
+            flags,
+            view,
+        };
+        let f = with_view(HELLO_SEND_ROOT | HELLO_VIEW, Some(view()));
+        let bytes = encode(&f).unwrap();
+        assert_eq!(parse(&bytes).unwrap(), f);
+        // The view is the last field: cut it short and the frame is truncated.
+        let len = bytes.len() - FRAME_HEADER_BYTES - 1;
+        let mut short = bytes[..bytes.len() - 1].to_vec();
+        short[..4].copy_from_slice(&(len as u32).to_le_bytes());
+        assert!(matches!(
+            parse(&short).unwrap_err(),
+            FrameError::Truncated { .. }
+        ));
+        // Flag and view go together; the view needs the root sent.
+        for bad in [
+            with_view(HELLO_SEND_ROOT, Some(view())),
+            with_view(HELLO_SEND_ROOT | HELLO_VIEW, None),
+            with_view(HELLO_VIEW, Some(view())),
+        ] {
+            let e = encode(&bad).unwrap_err();
+            assert!(matches!(e, FrameError::BadHelloView(_)), "{e}");
+        }
+        let mut forged = bytes.clone();
+        let flags_at = forged.len() - ViewHint::BYTES - 1;
+        forged[flags_at] = HELLO_VIEW;
+        let e = parse(&forged).unwrap_err();
+        assert!(matches!(e, FrameError::BadHelloView(_)), "{e}");
+        assert_eq!(e.code(), ErrorCode::ProtocolViolation);
+        // A hostile view (NaN eye) is refused by the decoder as in a deep list.
+        let mut forged = bytes.clone();
+        let eye_at = forged.len() - ViewHint::BYTES;
+        forged[eye_at..eye_at + 8].copy_from_slice(&f64::NAN.to_bits().to_le_bytes());
+        let e = parse(&forged).unwrap_err();
+        assert!(matches!(e, FrameError::BadView(_)), "{e}");
+        let mut hostile = view();
+        hostile.free_slots = u32::MAX;
+        let e = encode(&with_view(HELLO_SEND_ROOT | HELLO_VIEW, Some(hostile))).unwrap_err();
+        assert!(matches!(e, FrameError::BadView(_)), "{e}");
     }
 
     #[test]
@@ -1460,6 +1565,7 @@ mod tests {
             channels: vec![],
             token: "a".repeat(MAX_TOKEN_BYTES + 1),
             flags: 0,
+            view: None,
         };
         assert!(encode(&f).is_err());
         // Over-long error message.
@@ -1507,6 +1613,7 @@ mod tests {
             channels: vec![Channel::Color; 9],
             token: String::new(),
             flags: 0,
+            view: None,
         };
         assert_eq!(encode(&f).unwrap_err().code(), ErrorCode::TooManyChannels);
     }

@@ -34,8 +34,16 @@ pub const HELLO_GRANT_AVAILABLE: u8 = 1;
 /// `Hello` flag: send the root treelet right after `SceneInfo`, unasked (saves the client the
 /// round trip of requesting it).
 pub const HELLO_SEND_ROOT: u8 = 2;
+/// `Hello` flag: a [`ViewHint`] follows the flags, and the server sends along with the root
+/// the descendants that view would refine ([`Frame::DeepRequestList`]'s pushes below the root,
+/// as deep as the view refines, within the hint's free slots). Only with [`HELLO_SEND_ROOT`].
+/// Bytes then flow while the client still builds its first list, one round trip earlier. The
+/// client does not know where the scene lies before `SceneInfo`, so this view's eye is in
+/// units of the scene's root cube: world = origin + eye × edge (directions and angles are the
+/// same in both).
+pub const HELLO_VIEW: u8 = 4;
 /// Every `Hello` flag this build knows.
-pub const HELLO_FLAGS: u8 = HELLO_GRANT_AVAILABLE | HELLO_SEND_ROOT;
+pub const HELLO_FLAGS: u8 = HELLO_GRANT_AVAILABLE | HELLO_SEND_ROOT | HELLO_VIEW;
 
 /// QUIC ALPN of this protocol. A connection that negotiates anything else is refused by the TLS
 /// handshake.
@@ -188,7 +196,8 @@ impl FrameType {
 pub enum Frame {
     /// Client → server, first frame. Layout: `u16 version`, `u16 len + scene name`,
     /// `u8 count + channel ids`, `u16 len + token`, then `u8 flags` when any flag is set (a
-    /// Hello without the byte has no flags).
+    /// Hello without the byte has no flags), then the [`ViewHint`] when the flags have
+    /// [`HELLO_VIEW`].
     Hello {
         /// Must be [`PROTOCOL_VERSION`].
         version: u16,
@@ -200,8 +209,12 @@ pub enum Frame {
         /// Access token for the scene (empty when the scene needs none), at most
         /// [`crate::limits::MAX_TOKEN_BYTES`].
         token: String,
-        /// [`HELLO_GRANT_AVAILABLE`] and [`HELLO_SEND_ROOT`]; other bits must be zero.
+        /// [`HELLO_GRANT_AVAILABLE`], [`HELLO_SEND_ROOT`] and [`HELLO_VIEW`]; other bits must
+        /// be zero.
         flags: u8,
+        /// The view to push the root's refinement for, its eye in root-cube units: present
+        /// exactly when `flags` has [`HELLO_VIEW`].
+        view: Option<ViewHint>,
     },
     /// Server → client answer to `Hello`: the scene as stored. Payload: the bytes of
     /// [`SceneDescription::encode`].

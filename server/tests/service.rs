@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use arbor_proto::frame::{self, decode_treelet_message};
 use arbor_proto::limits::{MAX_FRAME_BYTES, MAX_REQUEST_ITEMS};
-use arbor_proto::wire::{ErrorCode, Frame, ViewHint};
+use arbor_proto::wire::{ErrorCode, Frame, HELLO_SEND_ROOT, HELLO_VIEW, ViewHint};
 use arbor_proto::{Channel, TreeletId, codec};
 use arbor_server::service::treelets::MAX_TREELETS_PER_STREAM;
 use common::*;
@@ -144,6 +144,54 @@ async fn a_list_arrives_exactly_and_byte_identical_to_the_pool() {
     server.shutdown().await;
 }
 
+/// A `Hello` with a view (eye in root-cube units) gets the root and the view's refinement
+/// below it before any list, exactly as many as the free slots it announced; the same `Hello`
+/// without the view gets the root alone.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_hello_view_pushes_the_roots_refinement_within_its_free_slots() {
+    let tp = TestPool::new();
+    let server = start(tp.config()).await;
+    let d = server.pool().scene(SCENE).unwrap().description;
+    let view = ViewHint {
+        // Two edges in front of the cube's centre, looking at it, 512 pixels high.
+        eye: [0.5, 0.5, 2.5],
+        forward: [0.0, 0.0, -1.0],
+        up: [0.0, 1.0, 0.0],
+        tan_half_fov_y: 0.5,
+        aspect: 1.0,
+        footprint: 1.0 / 512.0,
+        free_slots: 24,
+    };
+    let greet = |view: Option<ViewHint>| {
+        let flags = HELLO_SEND_ROOT | if view.is_some() { HELLO_VIEW } else { 0 };
+        hello_frame_with(SCENE, &[Channel::Normal], TOKEN, flags, view)
+    };
+    for (view, expected) in [(Some(view), 24), (None, 1)] {
+        let c = connect(server.quic_addr, &server.fingerprint).await;
+        let mut control = Control::open(&c.conn).await;
+        control.send(&greet(view)).await;
+        assert!(matches!(
+            control.read().await,
+            Some(Frame::SceneInfo { .. })
+        ));
+        let got = receive(&c.conn, expected, LONG).await.unwrap();
+        assert!(got.iter().any(|(id, _)| *id == d.root_treelet));
+        let mut ids: Vec<TreeletId> = got.iter().map(|(id, _)| *id).collect();
+        ids.sort_unstable();
+        ids.dedup();
+        assert_eq!(ids.len(), expected, "{view:?}");
+        // Nothing beyond the free slots follows.
+        let more = receive(&c.conn, 1, Duration::from_millis(300)).await;
+        assert!(more.is_err(), "{view:?}: more than announced: {more:?}");
+        c.conn.close(0u32.into(), b"done");
+    }
+    assert_eq!(
+        server.state.metrics.pushes_planned.load(Ordering::Relaxed),
+        23
+    );
+    server.shutdown().await;
+}
+
 /// Connects a hostile client with `opts`, says Hello (unless `hello` is false) and returns it.
 async fn hostile(
     server: &arbor_server::daemon::RunningServer,
@@ -256,6 +304,22 @@ async fn hostile_clients_end_only_their_own_connection() {
     })
     .unwrap();
 
+    // A Hello view (root-cube units) forged past the encoder: a NaN eye, and the view flag
+    // without the send-root flag.
+    let hello_view = frame::encode(&hello_frame_with(
+        SCENE,
+        &[Channel::Normal],
+        TOKEN,
+        HELLO_SEND_ROOT | HELLO_VIEW,
+        Some(view),
+    ))
+    .unwrap();
+    let view_at = hello_view.len() - ViewHint::BYTES;
+    let mut hello_nan_view = hello_view.clone();
+    hello_nan_view[view_at..view_at + 8].copy_from_slice(&f64::NAN.to_bits().to_le_bytes());
+    let mut hello_view_no_root = hello_view.clone();
+    hello_view_no_root[view_at - 1] = HELLO_VIEW;
+
     // (name, say Hello first, bytes to send, expected code)
     let cases: Vec<(&str, bool, Vec<u8>, ErrorCode)> = vec![
         (
@@ -292,6 +356,18 @@ async fn hostile_clients_end_only_their_own_connection() {
             "deep list with a NaN camera",
             true,
             nan_eye,
+            ErrorCode::ProtocolViolation,
+        ),
+        (
+            "Hello view with a NaN eye",
+            false,
+            hello_nan_view,
+            ErrorCode::ProtocolViolation,
+        ),
+        (
+            "Hello view without the root",
+            false,
+            hello_view_no_root,
             ErrorCode::ProtocolViolation,
         ),
         (
@@ -484,8 +560,9 @@ async fn hostile_clients_end_only_their_own_connection() {
     assert_eq!(server.state.sessions().len(), 1);
     let m = &server.state.metrics;
     assert_eq!(m.errors(ErrorCode::SlowReader), 1);
-    // Garbage twice, a second Hello, three forged deep lists, the silent client.
-    assert_eq!(m.errors(ErrorCode::ProtocolViolation), 7);
+    // Garbage twice, a second Hello, three forged deep lists, two forged Hello views, the
+    // silent client.
+    assert_eq!(m.errors(ErrorCode::ProtocolViolation), 9);
     server.shutdown().await;
 }
 

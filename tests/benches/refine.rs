@@ -377,7 +377,8 @@ fn run_case(
         budget_bytes: BUDGET,
         ..CoreConfig::default()
     };
-    let mut session = connect(runtime, served, addr, core);
+    let unit_first = CameraPath::Static.camera(0, &SceneFrame::UNIT, SEED, size, size);
+    let mut session = connect(runtime, served, addr, core, unit_first);
     let frame = *session.core().frame();
     let first = CameraPath::Static.camera(0, &frame, SEED, size, size);
     // The first phase counts from the moment the session started connecting (handshake, Hello,
@@ -426,6 +427,7 @@ fn connect(
     served: &Served,
     addr: SocketAddr,
     core: CoreConfig,
+    first_camera: Camera,
 ) -> Session {
     let url = ServerUrl {
         host: addr.ip().to_string(),
@@ -439,6 +441,7 @@ fn connect(
             client,
             core,
             connect_timeout: Duration::from_secs(30),
+            first_camera: Some(first_camera),
         },
         runtime.handle(),
         Box::new(CpuBackend),
@@ -637,7 +640,8 @@ fn oversubscribed(runtime: &tokio::runtime::Runtime, out: &std::path::Path) {
             budget_bytes: 3 << 20,
             ..CoreConfig::default()
         };
-        let mut session = connect(runtime, &served, served.server.quic_addr, core);
+        let unit_camera = CameraPath::Static.camera(0, &SceneFrame::UNIT, SEED, SMALL, SMALL);
+        let mut session = connect(runtime, &served, served.server.quic_addr, core, unit_camera);
         let frame = *session.core().frame();
         let camera = CameraPath::Static.camera(0, &frame, SEED, SMALL, SMALL);
         let mut records = Vec::new();

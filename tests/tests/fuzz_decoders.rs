@@ -146,6 +146,15 @@ fn seeds() -> Seeds {
                 channels: channels.clone(),
                 token: "bunny-token".into(),
                 flags: HELLO_FLAGS,
+                view: Some(ViewHint {
+                    eye: [0.5, -1.5, 0.25],
+                    forward: [0.0, 1.0, 0.0],
+                    up: [0.0, 0.0, 1.0],
+                    tan_half_fov_y: 0.5,
+                    aspect: 1.0,
+                    footprint: 1.0 / 512.0,
+                    free_slots: 64,
+                }),
             })
             .unwrap(),
         );

@@ -19,6 +19,7 @@
 use std::collections::{HashSet, VecDeque};
 use std::sync::Arc;
 
+use arbor_proto::limits::{MAX_TREELET_BYTES, NODE_BYTES};
 use arbor_proto::wire::ViewHint;
 use arbor_proto::{Channel, SceneDescription, TreeletId};
 use thiserror::Error;
@@ -28,7 +29,7 @@ use crate::backend::{Backend, CpuBackend, PassInput};
 use crate::bias::{LodBiasControl, ViewNeed};
 use crate::camera::Camera;
 use crate::coverage::Coverage;
-use crate::frustum::FrustumSelector;
+use crate::frustum::{FrustumRequest, FrustumSelector, screen_rect, world_box};
 use crate::image::Image;
 use crate::incore::SceneFrame;
 use crate::presort::{Presort, PriorityPolicy, RequestItem, centre_weight};
@@ -105,6 +106,86 @@ pub const DEFAULT_ANALYSIS_BUDGET_MS: f64 = 20.0;
 /// 40 % more bytes on engine's first view (two thirds of the frustum policy's); 256 fetched
 /// nearly the whole frustum on engine and slowed its first view.
 pub const DEFAULT_PREFETCH_BELOW: usize = 64;
+
+/// Largest share of the view still wanting refinement at which the prefetch around those
+/// pixels starts.
+const DIRTY_PREFETCH_SHARE: f64 = 0.1;
+
+/// Side of the screen tiles [`DirtyTiles`] marks, pixels.
+pub const DIRTY_TILE: u32 = 8;
+
+/// The screen tiles holding a known pixel that still wants refinement, and their neighbours.
+struct DirtyTiles {
+    /// Tiles per row and column.
+    cols: u32,
+    rows: u32,
+    marked: Vec<bool>,
+    any: bool,
+}
+
+impl DirtyTiles {
+    fn of(coverage: &Coverage) -> Self {
+        let (w, h) = coverage.size();
+        let (cols, rows) = (w.div_ceil(DIRTY_TILE).max(1), h.div_ceil(DIRTY_TILE).max(1));
+        let mut marked = vec![false; (cols * rows) as usize];
+        let mut any = false;
+        for (i, s) in coverage.known_samples() {
+            if s.refinable_error() <= 0.0 {
+                continue;
+            }
+            any = true;
+            let (tx, ty) = ((i % w.max(1)) / DIRTY_TILE, (i / w.max(1)) / DIRTY_TILE);
+            for y in ty.saturating_sub(1)..(ty + 2).min(rows) {
+                for x in tx.saturating_sub(1)..(tx + 2).min(cols) {
+                    marked[(y * cols + x) as usize] = true;
+                }
+            }
+        }
+        Self {
+            cols,
+            rows,
+            marked,
+            any,
+        }
+    }
+
+    fn is_empty(&self) -> bool {
+        !self.any
+    }
+
+    /// Whether the pixel rectangle `[x0, y0, x1, y1]` touches a marked tile (a rectangle with
+    /// a non-finite bound touches every tile).
+    fn covers(&self, rect: [f64; 4]) -> bool {
+        if !self.any || !rect.iter().all(|v| v.is_finite()) {
+            return self.any;
+        }
+        let tile = f64::from(DIRTY_TILE);
+        let (width, height) = (f64::from(self.cols) * tile, f64::from(self.rows) * tile);
+        if rect[2] < 0.0 || rect[3] < 0.0 || rect[0] >= width || rect[1] >= height {
+            return false;
+        }
+        let index = |v: f64, n: u32| (v / tile).floor().clamp(0.0, f64::from(n - 1)) as u32;
+        let (x0, x1) = (index(rect[0], self.cols), index(rect[2], self.cols));
+        let (y0, y1) = (index(rect[1], self.rows), index(rect[3], self.rows));
+        (y0..=y1).any(|y| (x0..=x1).any(|x| self.marked[(y * self.cols + x) as usize]))
+    }
+}
+
+/// The [`ViewHint`] of `camera` at `bias` with `free_slots` (capped at the protocol's limit);
+/// `None` when it would not pass [`ViewHint::check`].
+fn view_hint(camera: &Camera, bias: f64, free_slots: u32) -> Option<ViewHint> {
+    let f32s = |v: glam::DVec3| [v.x as f32, v.y as f32, v.z as f32];
+    let hint = ViewHint {
+        eye: camera.position.to_array(),
+        forward: f32s(camera.forward),
+        up: f32s(camera.up),
+        tan_half_fov_y: (camera.fov_y * 0.5).tan() as f32,
+        aspect: (f64::from(camera.width) / f64::from(camera.height.max(1))) as f32,
+        footprint: (camera.pixel_angle() * bias) as f32,
+        free_slots: free_slots.min(ViewHint::MAX_FREE_SLOTS),
+    };
+    hint.check().is_ok().then_some(hint)
+}
 
 /// How the analysis pass picks its pixels each cycle.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -666,19 +747,27 @@ impl ClientCore {
         )
     }
 
-    /// In the tail of a view's refinement (a short list, at most 1 % of the view wanting more),
-    /// tops the list up with the frustum's candidates ([`CoreConfig::prefetch_below`]), at
-    /// priorities below every listed item, while the resident treelets, the backlog and what
-    /// the list is predicted to need fill less than half the buffer. A prefetch that later had
-    /// to be evicted for the view would restart what the view knows (measured with all free
-    /// slots open to it, at 1.5× the view's need on loopback: convergence at cycle 90 instead
-    /// of 27, hundreds dropped). Prefetched items carry no error, so the server pushes nothing
-    /// below them. A walk that finds nothing is not repeated until the view or the resident set
-    /// changes.
+    /// In the tail of a view's refinement (at most 1 % of the view wanting more), tops the list
+    /// up from the frustum ([`CoreConfig::prefetch_below`]), at priorities below every listed
+    /// item, while the resident treelets, the backlog and what the list is predicted to need
+    /// fill less than half the buffer:
+    ///
+    /// * around the pixels still wanting refinement, every frustum candidate whose box covers
+    ///   one (within [`DIRTY_TILE`] pixels), with its projected error, so the server pushes
+    ///   its refinement too. Refining a coarse voxel opens gaps through which a pixel's ray
+    ///   reaches surfaces behind it, in subtrees no sample has named yet: without this each
+    ///   such surface costs a round trip of its own, and the tail of a view is a chain of them;
+    /// * when the list is also short, the rest of the frustum, without errors (no pushes below
+    ///   them): what the next camera move needs first.
+    ///
+    /// A prefetch that later had to be evicted for the view would restart what the view knows
+    /// (measured with all free slots open to it, at 1.5× the view's need on loopback:
+    /// convergence at cycle 90 instead of 27, hundreds dropped). A walk that finds nothing is
+    /// not repeated until the view or the resident set changes.
     fn prefetch(&mut self, requests: &mut Vec<RequestItem>) {
         if self.config.policy == PriorityPolicy::Frustum
+            || self.config.prefetch_below == 0
             || self.frustum_exhausted
-            || requests.len() >= self.config.prefetch_below
             || self.bias_unsettled
             || self.coverage.known() != self.coverage.pixels()
         {
@@ -689,7 +778,9 @@ impl ClientCore {
         };
         // The tail: at most 1 % of the view still wants refinement. (A short list alone also
         // happens in the first cycles, when only the root's children can be named.)
-        if u64::from(self.coverage.dirty()) * 100 > u64::from(self.coverage.pixels()) {
+        let dirty_share =
+            f64::from(self.coverage.dirty()) / f64::from(self.coverage.pixels().max(1));
+        if dirty_share > DIRTY_PREFETCH_SHARE {
             return;
         }
         // Only into the half of the buffer the view does not need: with a tight budget every
@@ -703,6 +794,11 @@ impl ClientCore {
         if free == 0 {
             return;
         }
+        let whole_frustum = requests.len() < self.config.prefetch_below && dirty_share <= 0.01;
+        let dirty = DirtyTiles::of(&self.coverage);
+        if !whole_frustum && dirty.is_empty() {
+            return;
+        }
         let listed: HashSet<TreeletId> = requests.iter().map(|r| r.id).collect();
         let (slots, backlog, arriving) = (&self.slots, &self.backlog_ids, &self.arriving);
         let (_, candidates) = frustum.select(&self.frame, &camera, self.bias.bias(), |id| {
@@ -711,16 +807,36 @@ impl ClientCore {
                 || arriving.contains(&id)
                 || slots.is_resident(id)
         });
-        self.frustum_exhausted = candidates.is_empty();
-        // Below every listed item, larger projections first; priorities stay > 0.
+        if whole_frustum {
+            self.frustum_exhausted = candidates.is_empty();
+        }
+        // Below every listed item: around dirty pixels first, larger projections first;
+        // priorities stay > 0.
         let lowest = requests.iter().map(|r| r.priority).fold(1.0f32, f32::min);
-        requests.extend(candidates.iter().take(free).map(|c| RequestItem {
+        let frame = self.frame;
+        let (near, rest): (Vec<&FrustumRequest>, Vec<&FrustumRequest>) =
+            candidates.iter().partition(|c| {
+                let (min, max) = world_box(&frame, c.cell);
+                screen_rect(&camera, min, max).is_some_and(|r| dirty.covers(r))
+            });
+        let near = near.into_iter().map(|c| RequestItem {
             id: c.id,
-            error: 0.0,
+            error: c.error.min(ViewHint::MAX_ERROR),
             samples: 0,
             weight: 0.0,
-            priority: lowest * 0.5 * c.error / (1.0 + c.error),
-        }));
+            priority: lowest * 0.5 * (0.5 + 0.5 * c.error / (1.0 + c.error)),
+        });
+        let rest = rest
+            .into_iter()
+            .filter(|_| whole_frustum)
+            .map(|c| RequestItem {
+                id: c.id,
+                error: 0.0,
+                samples: 0,
+                weight: 0.0,
+                priority: lowest * 0.25 * c.error / (1.0 + c.error),
+            });
+        requests.extend(near.chain(rest).take(free));
     }
 
     /// Visible slots and requests of the frustum policy.
@@ -769,25 +885,37 @@ impl ClientCore {
             push_budget
         };
         let c = self.last_camera?;
-        let f32s = |v: glam::DVec3| [v.x as f32, v.y as f32, v.z as f32];
-        let hint = ViewHint {
-            eye: c.position.to_array(),
-            forward: f32s(c.forward),
-            up: f32s(c.up),
-            tan_half_fov_y: (c.fov_y * 0.5).tan() as f32,
-            aspect: (f64::from(c.width) / f64::from(c.height.max(1))) as f32,
-            footprint: (c.pixel_angle() * self.bias.bias()) as f32,
-            // Free slots, but no more than the backlog can take in: an arrival beyond it would
-            // only be dropped.
-            free_slots: self
-                .slots
-                .free_slots()
-                .min(self.backlog_cap() as u32)
-                .saturating_sub(self.backlog.len() as u32)
-                .min(push_budget.saturating_add(self.listed.len() as u32))
-                .min(ViewHint::MAX_FREE_SLOTS),
-        };
-        hint.check().is_ok().then_some(hint)
+        // Free slots, but no more than the backlog can take in: an arrival beyond it would
+        // only be dropped.
+        let free_slots = self
+            .slots
+            .free_slots()
+            .min(self.backlog_cap() as u32)
+            .saturating_sub(self.backlog.len() as u32)
+            .min(push_budget.saturating_add(self.listed.len() as u32));
+        view_hint(&c, self.bias.bias(), free_slots)
+    }
+
+    /// The view for the first connection's `Hello` ([`arbor_proto::wire::HELLO_VIEW`]), of
+    /// `camera` placed in [`SceneFrame::UNIT`]: the server then pushes the root's refinement
+    /// for it before the client has sampled anything, one round trip before its first list
+    /// could ask. `None` when the
+    /// configuration asks for no pushes. The scene (and so the slot size) is not known yet: the
+    /// free slots are a quarter of what the budget holds at the largest treelet size, as the
+    /// backlog's quarter of the buffer later; the client's first list replaces the pushes
+    /// anyway.
+    pub fn first_view_hint(config: &CoreConfig, camera: &Camera) -> Option<ViewHint> {
+        if !config.deep_push || config.policy == PriorityPolicy::Frustum {
+            return None;
+        }
+        let largest = SlotBuffer::slot_bytes(MAX_TREELET_BYTES / NODE_BYTES, &config.channels);
+        let surely_held = config.budget_bytes / largest.max(1);
+        let free_slots = (surely_held / 4).max(64).min(surely_held);
+        view_hint(
+            camera,
+            config.analysis.lod_bias,
+            u32::try_from(free_slots).unwrap_or(u32::MAX),
+        )
     }
 
     /// Slots the wanted treelets are predicted to take at the current bias, subtrees included:
@@ -944,5 +1072,77 @@ impl ClientCore {
     /// Which backend runs the passes.
     pub fn backend_name(&self) -> String {
         self.backend.name()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::CameraPath;
+
+    #[test]
+    fn dirty_tiles_cover_rectangles_touching_a_marked_tile_only() {
+        // 4 × 3 tiles of 8 pixels, the tile (2, 1) marked.
+        let mut marked = vec![false; 12];
+        marked[4 + 2] = true;
+        let tiles = DirtyTiles {
+            cols: 4,
+            rows: 3,
+            marked,
+            any: true,
+        };
+        assert!(tiles.covers([16.0, 8.0, 16.5, 8.5]));
+        assert!(tiles.covers([0.0, 0.0, 31.9, 23.9]));
+        assert!(tiles.covers([23.9, 15.9, 100.0, 100.0]));
+        assert!(!tiles.covers([0.0, 0.0, 15.9, 23.9]));
+        assert!(!tiles.covers([24.0, 0.0, 31.0, 23.0]));
+        // Wholly off the frame: not covered; a non-finite bound: covered.
+        assert!(!tiles.covers([-50.0, -50.0, -1.0, 10.0]));
+        assert!(!tiles.covers([32.0, 0.0, 40.0, 10.0]));
+        assert!(tiles.covers([f64::NAN, 0.0, 1.0, 1.0]));
+        let none = DirtyTiles {
+            cols: 4,
+            rows: 3,
+            marked: vec![false; 12],
+            any: false,
+        };
+        assert!(none.is_empty() && !none.covers([0.0, 0.0, 32.0, 24.0]));
+    }
+
+    #[test]
+    fn the_first_view_hint_is_the_unit_frame_camera_within_what_the_budget_surely_holds() {
+        let camera = CameraPath::Static.camera(0, &SceneFrame::UNIT, 7, 512, 256);
+        let config = CoreConfig::default();
+        let hint = ClientCore::first_view_hint(&config, &camera).unwrap();
+        assert_eq!(hint.eye, camera.position.to_array());
+        assert_eq!(hint.aspect, 2.0);
+        assert!((f64::from(hint.footprint) - camera.pixel_angle()).abs() < 1e-9);
+        let largest = SlotBuffer::slot_bytes(MAX_TREELET_BYTES / NODE_BYTES, &config.channels);
+        let surely = config.budget_bytes / largest;
+        assert_eq!(u64::from(hint.free_slots), surely / 4);
+        // A budget of a few slots: no more than it holds; the peers' policy and a client
+        // without pushes send no view.
+        let tiny = CoreConfig {
+            budget_bytes: 3 * largest,
+            ..CoreConfig::default()
+        };
+        assert_eq!(
+            ClientCore::first_view_hint(&tiny, &camera)
+                .unwrap()
+                .free_slots,
+            3
+        );
+        for config in [
+            CoreConfig {
+                policy: PriorityPolicy::Frustum,
+                ..CoreConfig::default()
+            },
+            CoreConfig {
+                deep_push: false,
+                ..CoreConfig::default()
+            },
+        ] {
+            assert_eq!(ClientCore::first_view_hint(&config, &camera), None);
+        }
     }
 }

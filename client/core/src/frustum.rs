@@ -76,6 +76,50 @@ impl Frustum {
     }
 }
 
+/// The pixel rectangle `[x0, y0, x1, y1]` (may reach past the frame) that the box `[min, max]`
+/// covers on `camera`'s image: the bounds of its corners' projections. A box reaching behind
+/// the eye's plane covers the whole frame (conservative); `None` when it lies wholly behind.
+pub fn screen_rect(camera: &Camera, min: DVec3, max: DVec3) -> Option<[f64; 4]> {
+    let h = (camera.fov_y * 0.5).tan();
+    let (width, height) = (f64::from(camera.width), f64::from(camera.height.max(1)));
+    let w = h * width / height;
+    let right = camera.right();
+    let mut rect = [
+        f64::INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::NEG_INFINITY,
+    ];
+    let mut behind = 0;
+    for corner in 0..8 {
+        let p = DVec3::new(
+            if corner & 1 == 0 { min.x } else { max.x },
+            if corner & 2 == 0 { min.y } else { max.y },
+            if corner & 4 == 0 { min.z } else { max.z },
+        );
+        let v = p - camera.position;
+        let z = v.dot(camera.forward);
+        if !(z > 1e-12 * v.length().max(f64::MIN_POSITIVE)) {
+            behind += 1;
+            continue;
+        }
+        // Inverse of `Camera::ray`: sx = (2·px/W − 1)·w, sy = (1 − 2·py/H)·h.
+        let px = (v.dot(right) / z / w + 1.0) * 0.5 * width;
+        let py = (1.0 - v.dot(camera.up) / z / h) * 0.5 * height;
+        rect = [
+            rect[0].min(px),
+            rect[1].min(py),
+            rect[2].max(px),
+            rect[3].max(py),
+        ];
+    }
+    match behind {
+        8 => None,
+        0 => Some(rect),
+        _ => Some([0.0, 0.0, width, height]),
+    }
+}
+
 /// A voxel's box in world coordinates.
 pub fn world_box(frame: &SceneFrame, cell: Cell) -> (DVec3, DVec3) {
     let size = frame.edge / (1u64 << cell.depth.min(63)) as f64;
@@ -101,6 +145,8 @@ pub struct FrustumRequest {
     /// `log2` of the leaf's projected size in pixels (times the LOD bias): how many levels it is
     /// coarser than a pixel; > 0.
     pub error: f32,
+    /// The leaf's voxel (the requested treelet's root voxel).
+    pub cell: Cell,
 }
 
 /// The frustum policy's state: the refinable leaves of every resident treelet.
@@ -171,6 +217,7 @@ impl FrustumSelector {
                     requests.push(FrustumRequest {
                         id: child,
                         error: error as f32,
+                        cell,
                     });
                 }
             }
@@ -237,5 +284,48 @@ mod tests {
         );
         assert_eq!(min, DVec3::new(16.0, 0.0, 2.0));
         assert_eq!(max, DVec3::new(18.0, 2.0, 4.0));
+    }
+
+    /// `screen_rect` inverts `Camera::ray`: a small box around a point on a pixel's ray covers
+    /// that pixel, at every pixel of a grid, whatever the aspect and distance; boxes behind
+    /// the eye are `None`, and a box around the eye covers the whole frame.
+    #[test]
+    fn screen_rects_cover_the_pixels_whose_rays_cross_the_box() {
+        for (w, h, distance) in [(64, 64, 0.5), (96, 40, 7.0), (33, 200, 1e4)] {
+            let c = Camera::look_at(
+                DVec3::new(3.0, -2.0, 1.0),
+                DVec3::new(3.5, 1.0, 0.0),
+                DVec3::Z,
+                50f64.to_radians(),
+                w,
+                h,
+            )
+            .unwrap();
+            for py in (0..h).step_by(7) {
+                for px in (0..w).step_by(5) {
+                    let (x, y) = (f64::from(px) + 0.5, f64::from(py) + 0.5);
+                    let r = c.ray(x, y);
+                    let p = r.origin + r.dir * distance;
+                    let e = distance * 1e-6;
+                    let rect = screen_rect(&c, p - DVec3::splat(e), p + DVec3::splat(e)).unwrap();
+                    assert!(
+                        rect[0] <= x + 1e-6 && x - 1e-6 <= rect[2],
+                        "{w}×{h} at {distance}: x {x} not in {rect:?}"
+                    );
+                    assert!(
+                        rect[1] <= y + 1e-6 && y - 1e-6 <= rect[3],
+                        "{w}×{h} at {distance}: y {y} not in {rect:?}"
+                    );
+                    assert!(rect[2] - rect[0] < 1.0 && rect[3] - rect[1] < 1.0);
+                }
+            }
+            let behind = c.position - c.forward * 2.0;
+            assert_eq!(
+                screen_rect(&c, behind - DVec3::splat(0.5), behind + DVec3::splat(0.5)),
+                None
+            );
+            let around = screen_rect(&c, c.position - DVec3::ONE, c.position + DVec3::ONE);
+            assert_eq!(around, Some([0.0, 0.0, f64::from(w), f64::from(h)]));
+        }
     }
 }

@@ -60,6 +60,15 @@ pub struct SceneFrame {
 }
 
 impl SceneFrame {
+    /// The unit root cube (origin 0, edge 1). Camera paths are placed relative to the root
+    /// cube, so a path's camera in this frame is the view a client can name before it knows
+    /// the scene: `Hello`'s view ([`arbor_proto::wire::HELLO_VIEW`]).
+    pub const UNIT: SceneFrame = SceneFrame {
+        origin: [0.0; 3],
+        edge: 1.0,
+        max_depth: 0,
+    };
+
     /// The frame of `scene`.
     pub fn of(scene: &SceneDescription) -> Self {
         Self {

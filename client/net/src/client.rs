@@ -4,7 +4,7 @@ use std::sync::Arc;
 
 use arbor_proto::frame::encode;
 use arbor_proto::limits::MAX_REQUEST_ITEMS;
-use arbor_proto::wire::{Frame, PROTOCOL_VERSION, ViewHint};
+use arbor_proto::wire::{Frame, HELLO_VIEW, PROTOCOL_VERSION, ViewHint};
 use arbor_proto::{SceneDescription, TreeletId};
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
@@ -51,14 +51,20 @@ impl TreeletClient {
         let runtime = tokio::runtime::Handle::try_current().map_err(|_| ClientError::NoRuntime)?;
         install_crypto_provider();
         let quinn_config = quinn_client_config(&config.trust, config.idle_timeout())?;
-        let hello = encode(&Frame::Hello {
-            version: PROTOCOL_VERSION,
-            scene: config.url.scene.clone(),
-            channels: config.channels.clone(),
-            token: config.token.clone(),
-            flags: config.hello_flags,
-        })
-        .map_err(|e| ClientError::InvalidConfig(format!("Hello: {e}")))?;
+        let hello = |view: Option<ViewHint>| {
+            let flags = config.hello_flags | if view.is_some() { HELLO_VIEW } else { 0 };
+            encode(&Frame::Hello {
+                version: PROTOCOL_VERSION,
+                scene: config.url.scene.clone(),
+                channels: config.channels.clone(),
+                token: config.token.clone(),
+                flags,
+                view,
+            })
+            .map_err(|e| ClientError::InvalidConfig(format!("Hello: {e}")))
+        };
+        let first_hello = config.hello_view.map(|v| hello(Some(v))).transpose()?;
+        let hello = hello(None)?;
         let shared = Arc::new(Shared::new(config.max_buffered_bytes));
         let (lists_tx, lists_rx) = watch::channel(None);
         let (shutdown_tx, shutdown_rx) = watch::channel(false);
@@ -67,6 +73,7 @@ impl TreeletClient {
             replicas: Replicas::new(config.servers()),
             config,
             quinn_config,
+            first_hello,
             hello,
             shared: shared.clone(),
             events: events_tx,

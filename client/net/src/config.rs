@@ -4,6 +4,7 @@ use std::time::Duration;
 
 use arbor_proto::Channel;
 use arbor_proto::limits::{MAX_CHANNELS, MAX_TOKEN_BYTES, MAX_TREELET_MESSAGE_BYTES};
+use arbor_proto::wire::{HELLO_SEND_ROOT, HELLO_VIEW, ViewHint};
 
 use super::backoff::Backoff;
 use super::error::ClientError;
@@ -53,6 +54,10 @@ pub struct ClientConfig {
     /// `Hello` flags ([`arbor_proto::wire::HELLO_GRANT_AVAILABLE`],
     /// [`arbor_proto::wire::HELLO_SEND_ROOT`]); 0 by default.
     pub hello_flags: u8,
+    /// The view to send in the first connection's `Hello` ([`arbor_proto::wire::HELLO_VIEW`],
+    /// needs [`arbor_proto::wire::HELLO_SEND_ROOT`]): the server then pushes the root's
+    /// refinement for it right away. A reconnection (the slot buffer is kept) sends none.
+    pub hello_view: Option<ViewHint>,
 }
 
 impl ClientConfig {
@@ -69,6 +74,7 @@ impl ClientConfig {
             backoff: Backoff::default(),
             max_buffered_bytes: DEFAULT_MAX_BUFFERED_BYTES,
             hello_flags: 0,
+            hello_view: None,
         }
     }
 
@@ -126,6 +132,12 @@ impl ClientConfig {
         self
     }
 
+    /// Sets the first connection's `Hello` view ([`Self::hello_view`]).
+    pub fn with_hello_view(mut self, view: Option<ViewHint>) -> Self {
+        self.hello_view = view;
+        self
+    }
+
     /// Checks every field the protocol or the client limits.
     pub fn validate(&self) -> Result<(), ClientError> {
         if self.channels.len() > MAX_CHANNELS {
@@ -153,6 +165,20 @@ impl ClientConfig {
                 "unknown Hello flags {:#04x}",
                 self.hello_flags
             )));
+        }
+        if self.hello_flags & HELLO_VIEW != 0 {
+            return Err(ClientError::InvalidConfig(
+                "the Hello view flag is set by with_hello_view, not by the flags".into(),
+            ));
+        }
+        if let Some(view) = &self.hello_view {
+            if self.hello_flags & HELLO_SEND_ROOT == 0 {
+                return Err(ClientError::InvalidConfig(
+                    "a Hello view needs the send-root flag (it refines below the root)".into(),
+                ));
+            }
+            view.check()
+                .map_err(|e| ClientError::InvalidConfig(format!("Hello view: {e}")))?;
         }
         self.validate_replicas()?;
         if self.max_buffered_bytes == 0 {

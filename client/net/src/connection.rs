@@ -83,6 +83,8 @@ pub(crate) struct Task {
     /// The URL and its replicas, and which one is in use.
     pub replicas: Replicas,
     pub quinn_config: quinn::ClientConfig,
+    /// The encoded `Hello` frame with the view, for connections until one is established.
+    pub first_hello: Option<Vec<u8>>,
     /// The encoded `Hello` frame.
     pub hello: Vec<u8>,
     pub shared: Arc<Shared>,
@@ -203,7 +205,7 @@ impl Task {
         let local_close = LocalClose::default();
         let mut remote: Option<(ErrorCode, String)> = None;
         let setup = tokio::select! {
-            r = setup(&conn, &self.hello) => r,
+            r = setup(&conn, self.first_hello.as_ref().unwrap_or(&self.hello)) => r,
             _ = shutdown_requested(&mut self.shutdown) => {
                 close_gracefully(&conn, None).await;
                 return Outcome::Shutdown;
@@ -272,6 +274,8 @@ impl Task {
     /// Records a greeted connection to `url` (counting a failover when the server changed) and
     /// tells the application.
     fn note_connected(&mut self, url: &ServerUrl, scene: &Arc<SceneDescription>) {
+        // A reconnection keeps the slot buffer: the root's refinement is not pushed again.
+        self.first_hello = None;
         {
             let mut stats = self.shared.stats();
             if self.last_server.as_ref().is_some_and(|s| s != url) {

@@ -12,6 +12,7 @@ use arbor_client_core::backend::{Backend, CpuBackend};
 use arbor_client_core::camera::{Camera, CameraPath};
 use arbor_client_core::cycle::CoreConfig;
 use arbor_client_core::image::Image;
+use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::slots::SlotBuffer;
 use arbor_client_net::{ClientConfig, ClientStats};
 use arbor_client_report::{CycleRecord, RunMeta, RunReport};
@@ -106,6 +107,13 @@ pub fn run_headless_with(
             client: config.client.clone(),
             core: config.core.clone(),
             connect_timeout: config.connect_timeout,
+            first_camera: Some(config.camera_path.camera(
+                0,
+                &SceneFrame::UNIT,
+                config.seed,
+                config.width,
+                config.height,
+            )),
         },
         runtime,
         backend,

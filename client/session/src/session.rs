@@ -1,10 +1,11 @@
 //! A streaming session: a [`TreeletClient`] connection feeding a [`ClientCore`], stepped one
 //! cycle at a time by whoever owns the clock — the headless runner or the window viewer.
 //!
-//! Connecting is the only place that waits on the network (bounded by a timeout): first a
-//! probe learns the scene's channels (the server refuses channels a scene lacks, and a client
-//! asks only for the wanted channels the scene has, docs/design.md §7), then the real connection fetches
-//! the root treelet. After that, [`Session::step`] never waits: it takes whatever has arrived.
+//! Connecting is the only place that waits on the network (bounded by a timeout): one
+//! connection whose `Hello` asks for the wanted channels the scene has (docs/design.md §7), the
+//! root unasked and, given the first camera, the root's refinement for it; the session is
+//! built once the root has arrived. After that, [`Session::step`] never waits: it takes
+//! whatever has arrived.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -36,6 +37,10 @@ pub struct SessionConfig {
     pub core: CoreConfig,
     /// How long to wait for `SceneInfo` and the root treelet.
     pub connect_timeout: Duration,
+    /// The first cycle's camera placed in [`SceneFrame::UNIT`] (a camera path's camera for
+    /// that frame), if known before connecting: sent in `Hello` so the server pushes its
+    /// refinement at once ([`ClientCore::first_view_hint`]).
+    pub first_camera: Option<Camera>,
 }
 
 /// What a step draws.
@@ -74,6 +79,9 @@ pub struct Session {
     budget: SampleBudget,
     converged_at: Option<u32>,
     peak_slots: u32,
+    /// Treelets that arrived before the root (pushes for `Hello`'s view may overtake it),
+    /// handed to the first step.
+    early: Vec<ReceivedTreelet>,
 }
 
 impl Session {
@@ -97,10 +105,16 @@ impl Session {
                     .client
                     .clone()
                     .with_channels(wanted.clone())
-                    .with_hello_flags(HELLO_GRANT_AVAILABLE | HELLO_SEND_ROOT),
+                    .with_hello_flags(HELLO_GRANT_AVAILABLE | HELLO_SEND_ROOT)
+                    .with_hello_view(
+                        config
+                            .first_camera
+                            .as_ref()
+                            .and_then(|c| ClientCore::first_view_hint(&config.core, c)),
+                    ),
             )?
         };
-        let (scene, channels, root) = match bootstrap(&mut client, &wanted, &config) {
+        let (scene, channels, root, early) = match bootstrap(&mut client, &wanted, &config) {
             Ok(x) => x,
             Err(e) => {
                 runtime.block_on(client.close());
@@ -129,6 +143,7 @@ impl Session {
             cycle: 0,
             budget: SampleBudget::new(config_budget_s),
             converged_at: None,
+            early,
         })
     }
 
@@ -189,7 +204,8 @@ impl Session {
         self.budget.record(measured, seconds);
         // What arrived during the analysis is not to be listed again; it is decoded after the
         // list is on its way.
-        let mut received = take_events(&mut self.client, &self.scene)?;
+        let mut received = std::mem::take(&mut self.early);
+        received.extend(take_events(&mut self.client, &self.scene)?);
         self.core.note_arriving(received.iter().map(|t| t.id));
         let t_presort = Instant::now();
         let plan = self.core.presort();
@@ -463,13 +479,22 @@ fn probe_scene(
 
 /// Waits (bounded) for `SceneInfo` and the root treelet the server sends unasked; returns the
 /// scene, the channels granted (the wanted ones the scene stores) and the root.
+/// The scene, the channels held, the decoded root and what arrived before it.
+type Bootstrapped = (
+    Arc<SceneDescription>,
+    Vec<Channel>,
+    DecodedTreelet,
+    Vec<ReceivedTreelet>,
+);
+
 fn bootstrap(
     client: &mut TreeletClient,
     wanted: &[Channel],
     config: &SessionConfig,
-) -> Result<(Arc<SceneDescription>, Vec<Channel>, DecodedTreelet), RunError> {
+) -> Result<Bootstrapped, RunError> {
     let deadline = Instant::now() + config.connect_timeout;
     let mut scene: Option<(Arc<SceneDescription>, Vec<Channel>)> = None;
+    let mut early = Vec::new();
     loop {
         while let Some(event) = client.try_next_event() {
             match event {
@@ -481,14 +506,13 @@ fn bootstrap(
                         .collect();
                     scene = Some((s, channels));
                 }
-                ClientEvent::Treelet(t) => {
-                    if let Some((s, channels)) = &scene
-                        && t.id == s.root_treelet
-                    {
+                ClientEvent::Treelet(t) => match &scene {
+                    Some((s, channels)) if t.id == s.root_treelet => {
                         let root = decode_received(&t, s, channels)?;
-                        return Ok((s.clone(), channels.clone(), root));
+                        return Ok((s.clone(), channels.clone(), root, early));
                     }
-                }
+                    _ => early.push(t),
+                },
                 ClientEvent::Disconnected {
                     reason,
                     reconnect_in: None,

@@ -38,7 +38,7 @@ use std::sync::atomic::Ordering;
 use arbor_proto::Channel;
 use arbor_proto::frame::{FrameDecoder, encode};
 use arbor_proto::wire::{
-    ErrorCode, Frame, HELLO_GRANT_AVAILABLE, HELLO_SEND_ROOT, PROTOCOL_VERSION,
+    ErrorCode, Frame, HELLO_GRANT_AVAILABLE, HELLO_SEND_ROOT, PROTOCOL_VERSION, ViewHint,
 };
 use bytes::Bytes;
 use tracing::Instrument as _;
@@ -236,6 +236,9 @@ pub(super) struct Greeting {
     pub channels: Vec<Channel>,
     /// It asked for the root treelet unasked ([`HELLO_SEND_ROOT`]).
     pub send_root: bool,
+    /// The view to push the root's refinement for ([`arbor_proto::wire::HELLO_VIEW`]; the
+    /// decoder checked it and that it comes with [`HELLO_SEND_ROOT`]).
+    pub view: Option<ViewHint>,
 }
 
 pub(super) async fn hello(
@@ -265,6 +268,7 @@ pub(super) async fn hello(
         mut channels,
         token,
         flags,
+        view,
     } = frame
     else {
         return Err(close(
@@ -333,5 +337,6 @@ pub(super) async fn hello(
         scene: served,
         channels,
         send_root: flags & HELLO_SEND_ROOT != 0,
+        view,
     })
 }

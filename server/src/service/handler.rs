@@ -63,6 +63,7 @@ pub(super) async fn serve(
         scene,
         channels,
         send_root,
+        view,
     } = match greeted {
         Ok(g) => g,
         Err(end) => return end,
@@ -73,8 +74,14 @@ pub(super) async fn serve(
         Err(end) => return end,
     };
     // The root, unasked: as a list of sequence 0, which the client's first list (1 or more)
-    // replaces.
-    if send_root && let Some(end) = handler.on_request_list(0, vec![(root, f32::MAX)]) {
+    // replaces; with a view, as a deep list whose pushes are the view's refinement below the
+    // root, as deep as the view refines (the client has measured nothing yet).
+    let first = match (send_root, view) {
+        (false, _) => None,
+        (true, None) => handler.on_request_list(0, vec![(root, f32::MAX)]),
+        (true, Some(view)) => handler.on_hello_view(root, &view),
+    };
+    if let Some(end) = first {
         return end;
     }
     let end = handler.run(&mut reader, &mut shutdown).await;
@@ -300,6 +307,23 @@ impl Handler {
             .pushes_planned
             .fetch_add(pushed as u64, Ordering::Relaxed);
         self.on_request_list(seq, list)
+    }
+
+    /// `Hello`'s view ([`arbor_proto::wire::HELLO_VIEW`], eye in root-cube units): the root
+    /// and the view's refinement below it, as a deep list of sequence 0.
+    fn on_hello_view(&mut self, root: TreeletId, view: &ViewHint) -> Option<End> {
+        let d = &self.ctx.scene.stored.description;
+        let view = ViewHint {
+            eye: std::array::from_fn(|i| d.origin[i] + view.eye[i] * d.edge),
+            ..*view
+        };
+        if let Err(e) = view.check() {
+            return Some(close(
+                ErrorCode::ProtocolViolation,
+                format!("Hello view in this scene's world: {e}"),
+            ));
+        }
+        self.on_deep_request_list(0, &view, &[(root, f32::MAX, ViewHint::MAX_ERROR)])
     }
 
     /// Resets the streams of batches the latest list wants nothing of any more; a batch with

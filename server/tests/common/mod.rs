@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use arbor_client_net::tls::{PinnedCertVerifier, parse_fingerprint};
 use arbor_proto::frame::{self, FrameDecoder};
 use arbor_proto::limits::MAX_TREELET_MESSAGE_BYTES;
-use arbor_proto::wire::{ALPN, ErrorCode, Frame, PROTOCOL_VERSION};
+use arbor_proto::wire::{ALPN, ErrorCode, Frame, PROTOCOL_VERSION, ViewHint};
 use arbor_proto::{Channel, SceneDescription, TreeletId};
 use arbor_server::daemon::RunningServer;
 use arbor_server::octree::{BuildOptions, DepthChoice};
@@ -232,12 +232,24 @@ impl Control {
 }
 
 pub fn hello_frame(scene: &str, channels: &[Channel], token: &str) -> Frame {
+    hello_frame_with(scene, channels, token, 0, None)
+}
+
+/// A `Hello` with `flags` and a view.
+pub fn hello_frame_with(
+    scene: &str,
+    channels: &[Channel],
+    token: &str,
+    flags: u8,
+    view: Option<ViewHint>,
+) -> Frame {
     Frame::Hello {
         version: PROTOCOL_VERSION,
         scene: scene.into(),
         channels: channels.to_vec(),
         token: token.into(),
-        flags: 0,
+        flags,
+        view,
     }
 }
 
