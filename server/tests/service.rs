@@ -152,15 +152,12 @@ async fn a_hello_view_pushes_the_roots_refinement_within_its_free_slots() {
     let tp = TestPool::new();
     let server = start(tp.config()).await;
     let d = server.pool().scene(SCENE).unwrap().description;
+    // Two edges in front of the cube's centre, looking at it, 512 pixels high.
     let view = ViewHint {
-        // Two edges in front of the cube's centre, looking at it, 512 pixels high.
         eye: [0.5, 0.5, 2.5],
-        forward: [0.0, 0.0, -1.0],
-        up: [0.0, 1.0, 0.0],
-        tan_half_fov_y: 0.5,
-        aspect: 1.0,
         footprint: 1.0 / 512.0,
         free_slots: 24,
+        ..looking_down_z()
     };
     let greet = |view: Option<ViewHint>| {
         let flags = HELLO_SEND_ROOT | if view.is_some() { HELLO_VIEW } else { 0 };
@@ -190,6 +187,19 @@ async fn a_hello_view_pushes_the_roots_refinement_within_its_free_slots() {
         23
     );
     server.shutdown().await;
+}
+
+/// A view from `z = 10` looking down `-z`, 1 mrad per pixel, 64 free slots.
+fn looking_down_z() -> ViewHint {
+    ViewHint {
+        eye: [0.0, 0.0, 10.0],
+        forward: [0.0, 0.0, -1.0],
+        up: [0.0, 1.0, 0.0],
+        tan_half_fov_y: 0.5,
+        aspect: 1.0,
+        footprint: 0.001,
+        free_slots: 64,
+    }
 }
 
 /// Connects a hostile client with `opts`, says Hello (unless `hello` is false) and returns it.
@@ -258,15 +268,7 @@ async fn hostile_clients_end_only_their_own_connection() {
     .unwrap();
 
     // Deep request lists (docs/design.md §10) forged past the encoder's checks.
-    let view = ViewHint {
-        eye: [0.0, 0.0, 10.0],
-        forward: [0.0, 0.0, -1.0],
-        up: [0.0, 1.0, 0.0],
-        tan_half_fov_y: 0.5,
-        aspect: 1.0,
-        footprint: 0.001,
-        free_slots: 64,
-    };
+    let view = looking_down_z();
     let deep = frame::encode(&Frame::DeepRequestList {
         seq: 1,
         view,

@@ -139,6 +139,15 @@ fn seeds() -> Seeds {
             messages.push(served.message(TreeletId(id), &channels).unwrap().to_vec());
         }
         let ids: Vec<TreeletId> = (0..count.min(300)).map(TreeletId).collect();
+        let view = ViewHint {
+            eye: [0.5, -1.5, 0.25],
+            forward: [0.0, 1.0, 0.0],
+            up: [0.0, 0.0, 1.0],
+            tan_half_fov_y: 0.5,
+            aspect: 1.0,
+            footprint: 1.0 / 512.0,
+            free_slots: 64,
+        };
         frames.push(
             encode(&Frame::Hello {
                 version: PROTOCOL_VERSION,
@@ -146,15 +155,7 @@ fn seeds() -> Seeds {
                 channels: channels.clone(),
                 token: "bunny-token".into(),
                 flags: HELLO_FLAGS,
-                view: Some(ViewHint {
-                    eye: [0.5, -1.5, 0.25],
-                    forward: [0.0, 1.0, 0.0],
-                    up: [0.0, 0.0, 1.0],
-                    tan_half_fov_y: 0.5,
-                    aspect: 1.0,
-                    footprint: 1.0 / 512.0,
-                    free_slots: 64,
-                }),
+                view: Some(view),
             })
             .unwrap(),
         );
@@ -170,19 +171,13 @@ fn seeds() -> Seeds {
                 })
                 .unwrap(),
             );
-            let view = ViewHint {
-                eye: [0.5, -1.5, 0.25],
-                forward: [0.0, 1.0, 0.0],
-                up: [0.0, 0.0, 1.0],
-                tan_half_fov_y: 0.5,
-                aspect: 1.0,
-                footprint: 1.0 / 512.0,
-                free_slots: 400,
-            };
             frames.push(
                 encode(&Frame::DeepRequestList {
                     seq: len as u64 + 1,
-                    view,
+                    view: ViewHint {
+                        free_slots: 400,
+                        ..view
+                    },
                     items: items.iter().map(|&(t, p)| (t, p, 2.5)).collect(),
                 })
                 .unwrap(),
