@@ -494,7 +494,16 @@ impl ClientCore {
 
     /// Arrivals waiting for a slot (beyond the load limit).
     pub fn backlog_len(&self) -> usize {
-        self.backlog.len()
+        self.backlog.len() + self.arriving.len()
+    }
+
+    /// Arrivals that will want a slot: the backlog and what was taken off the connection this
+    /// cycle but is decoded only after the list is sent ([`Self::note_arriving`]). Room for
+    /// requests and pushes is what the buffer has beyond these (a burst of arrivals, such as
+    /// the pushes for `Hello`'s view on loopback, otherwise makes the next list ask for slots
+    /// already spoken for, and the surplus is dropped on arrival).
+    fn pending(&self) -> usize {
+        self.backlog.len() + self.arriving.len()
     }
 
     /// Treelets the connection has received and the caller has yet to decode and hand over with
@@ -652,7 +661,7 @@ impl ClientCore {
                     room: self
                         .slots
                         .room_outside(&visible)
-                        .saturating_sub(self.backlog.len() as u32),
+                        .saturating_sub(self.pending() as u32),
                     capacity: self.slots.capacity(),
                 };
                 bias_changed = self.bias.update(cycle, need);
@@ -665,7 +674,7 @@ impl ClientCore {
                 }
             }
             // The whole view is known: make room from what no pixel reaches.
-            let free = self.slots.room().saturating_sub(self.backlog.len() as u32);
+            let free = self.slots.room().saturating_sub(self.pending() as u32);
             if !bias_changed && distinct as u32 > free {
                 evicted = self.slots.evict_outside(&visible, distinct as u32 - free);
                 // A ray may pass through the gaps of an evicted subtree on its way to another
@@ -689,7 +698,7 @@ impl ClientCore {
             self.slots.room()
         };
         let room = (room as usize).min(self.backlog_cap());
-        requests.truncate(room.saturating_sub(self.backlog.len()));
+        requests.truncate(room.saturating_sub(self.pending()));
         self.evicted_outside += evicted;
         let errors: Vec<f32> = self
             .coverage
@@ -786,7 +795,7 @@ impl ClientCore {
         // Only into the half of the buffer the view does not need: with a tight budget every
         // slot stays the view's.
         let taken = self.slots.used_slots() as usize
-            + self.backlog.len()
+            + self.pending()
             + self.predicted_slots(requests, true) as usize;
         let free = (self.slots.capacity() as usize / 2)
             .saturating_sub(taken)
@@ -891,7 +900,7 @@ impl ClientCore {
             .slots
             .free_slots()
             .min(self.backlog_cap() as u32)
-            .saturating_sub(self.backlog.len() as u32)
+            .saturating_sub(self.pending() as u32)
             .min(push_budget.saturating_add(self.listed.len() as u32));
         view_hint(&c, self.bias.bias(), free_slots)
     }
