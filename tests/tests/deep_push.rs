@@ -209,18 +209,18 @@ fn refine(
     panic!("no convergence in 400 cycles");
 }
 
-/// The prefetched items of a plan: listed without an error (sampled items carry theirs).
-fn prefetched(plan: &arbor_client_core::cycle::Plan) -> Vec<(TreeletId, f32)> {
-    plan.requests
+/// The prefetched items of a plan, with their errors: listed after the sampled ones.
+fn prefetched(plan: &arbor_client_core::cycle::Plan) -> Vec<(TreeletId, f32, f32)> {
+    let sampled = plan.distinct_requests.min(plan.requests.len());
+    plan.requests[sampled..]
         .iter()
-        .zip(&plan.errors)
-        .filter(|(_, e)| **e == 0.0)
-        .map(|(r, _)| *r)
+        .zip(&plan.errors[sampled..])
+        .map(|(&(id, priority), &error)| (id, priority, error))
         .collect()
 }
 
 #[test]
-fn the_tail_of_a_roomy_view_is_topped_up_from_the_frustum_below_every_sampled_item() {
+fn a_roomy_view_is_topped_up_from_the_frustum_below_every_sampled_item() {
     let (treelets, mut core) = lion_core(4096);
     let capacity = core.slots().capacity() as usize;
     let plans = refine(&mut core, &treelets);
@@ -230,12 +230,9 @@ fn the_tail_of_a_roomy_view_is_topped_up_from_the_frustum_below_every_sampled_it
         "a roomy buffer gets a prefetch in the tail ({} cycles)",
         plans.len()
     );
+    let (mut whole_frustum, mut with_errors) = (0, 0);
     for plan in with_prefetch {
-        let sampled = plan.requests.len() - prefetched(plan).len();
-        assert!(
-            sampled < CoreConfig::default().prefetch_below,
-            "only a short list is topped up"
-        );
+        let sampled = plan.distinct_requests;
         let lowest_sampled = plan.requests[..sampled]
             .iter()
             .map(|r| r.1)
@@ -244,17 +241,34 @@ fn the_tail_of_a_roomy_view_is_topped_up_from_the_frustum_below_every_sampled_it
             plan.errors[..sampled].iter().all(|&e| e > 0.0),
             "the sampled items come first"
         );
-        for (id, priority) in prefetched(plan) {
+        for (id, priority, error) in prefetched(plan) {
             assert!(
                 priority > 0.0 && priority < lowest_sampled,
                 "{id}: {priority}"
             );
+            assert!((0.0..=64.0).contains(&error), "{id}: error {error}");
+            // The rest of the frustum, without errors, only on a short list; what the view is
+            // open to or lies around dirty pixels comes with its projected error.
+            if error > 0.0 {
+                with_errors += 1;
+            } else {
+                whole_frustum += 1;
+                assert!(
+                    sampled < CoreConfig::default().prefetch_below,
+                    "only a short list is topped up with the whole frustum"
+                );
+            }
         }
         assert!(
             plan.requests.len() <= capacity / 2,
             "at most half the buffer"
         );
     }
+    eprintln!("prefetched: {with_errors} with errors, {whole_frustum} of the rest of the frustum");
+    assert!(
+        with_errors > 0,
+        "an open view (and dirty pixels) are prefetched with their projected errors"
+    );
     assert!(
         core.slots().used_slots() as usize <= capacity / 2 + CoreConfig::default().prefetch_below
     );
