@@ -108,8 +108,11 @@ pub const DEFAULT_ANALYSIS_BUDGET_MS: f64 = 20.0;
 pub const DEFAULT_PREFETCH_BELOW: usize = 64;
 
 /// Largest share of the view still wanting refinement at which the prefetch around those
-/// pixels starts.
+/// pixels starts, when the whole scene fits in half the buffer.
 const DIRTY_PREFETCH_SHARE: f64 = 0.1;
+
+/// The tail proper: at most this share of the view still wants refinement.
+const TAIL_SHARE: f64 = 0.01;
 
 /// Share of the frustum's refinable leaves the sampled list names at which a view counts as
 /// open (little hidden) and the frustum is prefetched at once. Measured at 512² over the link:
@@ -803,7 +806,14 @@ impl ClientCore {
         // buffer: then nothing prefetched can ever stand in the view's way (early in a view,
         // `used` is still small and says nothing about what the view will need).
         let scene_fits = self.scene.treelet_count as usize <= self.slots.capacity() as usize / 2;
-        if free == 0 || (!scene_fits && dirty_share > DIRTY_PREFETCH_SHARE) {
+        // Around dirty pixels from 10 % on when the scene fits, else only in the tail proper
+        // (at 10 % a large scene's view may still need most of its slots).
+        let dirty_from = if scene_fits {
+            DIRTY_PREFETCH_SHARE
+        } else {
+            TAIL_SHARE
+        };
+        if free == 0 || (!scene_fits && dirty_share > dirty_from) {
             return;
         }
         let listed: HashSet<TreeletId> = requests.iter().map(|r| r.id).collect();
@@ -818,13 +828,14 @@ impl ClientCore {
         // hidden), so the rest of the frustum is mostly what refined gaps will reveal.
         let named = requests.len() as f64 / (requests.len() + candidates.len()).max(1) as f64;
         let open = scene_fits && named >= OPEN_VIEW_SHARE;
-        if !open && dirty_share > DIRTY_PREFETCH_SHARE {
+        if !open && dirty_share > dirty_from {
             return;
         }
         // The tail proper: a short list, at most 1 % of the view still wanting refinement. (A
         // short list alone also happens in the first cycles, when only the root's children can
         // be named.)
-        let whole_frustum = requests.len() < self.config.prefetch_below && dirty_share <= 0.01;
+        let whole_frustum =
+            requests.len() < self.config.prefetch_below && dirty_share <= TAIL_SHARE;
         if whole_frustum {
             self.frustum_exhausted = candidates.is_empty();
         }
