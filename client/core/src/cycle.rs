@@ -119,6 +119,9 @@ const TAIL_SHARE: f64 = 0.01;
 /// lion 0.31–0.46 in every cycle, engine (a casing hiding its insides) 0.01–0.22.
 const OPEN_VIEW_SHARE: f64 = 0.25;
 
+/// Share of the view that must be known before it can count as open.
+const OPEN_VIEW_KNOWN: f64 = 0.25;
+
 /// Side of the screen tiles [`DirtyTiles`] marks, pixels.
 pub const DIRTY_TILE: u32 = 8;
 
@@ -761,7 +764,8 @@ impl ClientCore {
     }
 
     /// Tops the list up from the frustum ([`CoreConfig::prefetch_below`]) once the whole view
-    /// is known, at priorities below every listed item, while the resident treelets, the
+    /// is known (an open view once [`OPEN_VIEW_KNOWN`] of it is), at priorities below every
+    /// listed item, while the resident treelets, the
     /// arrivals and what the list is predicted to need fill less than half the buffer:
     ///
     /// * in an **open** view — the samples name at least [`OPEN_VIEW_SHARE`] of the frustum's
@@ -785,15 +789,25 @@ impl ClientCore {
             || self.config.prefetch_below == 0
             || self.frustum_exhausted
             || self.bias_unsettled
-            || self.coverage.known() != self.coverage.pixels()
         {
             return;
         }
         let (Some(camera), Some(frustum)) = (self.last_camera, &self.frustum) else {
             return;
         };
-        let dirty_share =
-            f64::from(self.coverage.dirty()) / f64::from(self.coverage.pixels().max(1));
+        let pixels = f64::from(self.coverage.pixels().max(1));
+        let known_share = f64::from(self.coverage.known()) / pixels;
+        let dirty_share = f64::from(self.coverage.dirty()) / pixels;
+        // An open view is prefetched only when the whole scene fits in that half of the
+        // buffer: then nothing prefetched can ever stand in the view's way (early in a view,
+        // `used` is still small and says nothing about what the view will need). Then it may
+        // start once a quarter of the view is known; everything else waits for the whole view.
+        let scene_fits = self.scene.treelet_count as usize <= self.slots.capacity() as usize / 2;
+        let whole_view = known_share >= 1.0;
+        let may_open = scene_fits && known_share >= OPEN_VIEW_KNOWN;
+        if !(whole_view || may_open) {
+            return;
+        }
         // Only into the half of the buffer the view does not need: with a tight budget every
         // slot stays the view's.
         let taken = self.slots.used_slots() as usize
@@ -802,10 +816,6 @@ impl ClientCore {
         let free = (self.slots.capacity() as usize / 2)
             .saturating_sub(taken)
             .min(self.config.max_requests.saturating_sub(requests.len()));
-        // An open view is prefetched only when the whole scene fits in that half of the
-        // buffer: then nothing prefetched can ever stand in the view's way (early in a view,
-        // `used` is still small and says nothing about what the view will need).
-        let scene_fits = self.scene.treelet_count as usize <= self.slots.capacity() as usize / 2;
         // Around dirty pixels from 10 % on when the scene fits, else only in the tail proper
         // (at 10 % a large scene's view may still need most of its slots).
         let dirty_from = if scene_fits {
@@ -813,7 +823,7 @@ impl ClientCore {
         } else {
             TAIL_SHARE
         };
-        if free == 0 || (!scene_fits && dirty_share > dirty_from) {
+        if free == 0 || (!scene_fits && (!whole_view || dirty_share > dirty_from)) {
             return;
         }
         let listed: HashSet<TreeletId> = requests.iter().map(|r| r.id).collect();
@@ -826,16 +836,18 @@ impl ClientCore {
         });
         // An open view: the samples name a good share of what the frustum offers (little is
         // hidden), so the rest of the frustum is mostly what refined gaps will reveal.
-        let named = requests.len() as f64 / (requests.len() + candidates.len()).max(1) as f64;
+        // The samples name what the known part of the view wants: scaled to the whole view.
+        let sampled = requests.len() as f64 / known_share;
+        let named = sampled / (sampled + candidates.len() as f64).max(1.0);
         let open = scene_fits && named >= OPEN_VIEW_SHARE;
-        if !open && dirty_share > dirty_from {
+        if !open && (!whole_view || dirty_share > dirty_from) {
             return;
         }
         // The tail proper: a short list, at most 1 % of the view still wanting refinement. (A
         // short list alone also happens in the first cycles, when only the root's children can
         // be named.)
         let whole_frustum =
-            requests.len() < self.config.prefetch_below && dirty_share <= TAIL_SHARE;
+            whole_view && requests.len() < self.config.prefetch_below && dirty_share <= TAIL_SHARE;
         if whole_frustum {
             self.frustum_exhausted = candidates.is_empty();
         }

@@ -386,10 +386,7 @@ impl Handler {
                 self.update_window();
                 None
             }
-            Outcome::Lost
-            | Outcome::Cancelled
-            | Outcome::ResetAfterWrite
-            | Outcome::StoppedByPeer => None,
+            Outcome::Lost | Outcome::Cancelled | Outcome::StoppedByPeer => None,
         }
     }
 

@@ -36,11 +36,10 @@
 //!   treelets of the old list that the new one lacks can still *arrive* only if they were already
 //!   in flight; [`ListOutcome::Applied::obsolete_in_flight`] names them so the service may reset
 //!   their streams.
-//! * **Written, then reset.** A stream reset after all of its bytes went to the transport
-//!   ([`Scheduler::handle_reset_after_write`]) mostly arrives anyway: its treelets fall under the
-//!   redelivery guard like delivered ones, so a list built before the client saw them does not
-//!   get them sent twice (measured over the link emulator: a client whose list briefly shrank
-//!   received 2 % of lion's treelets twice).
+//! * **Written, then not wanted.** The service does not reset a stream whose bytes all went to
+//!   the transport (a reset would abandon what is unsent or unacknowledged, and the client
+//!   drops what it has not read yet): it completes and counts as delivered, under the
+//!   redelivery guard.
 //! * **Re-requests.** A treelet started under the current list is not started again under that
 //!   list (the cursor has passed it) unless its transfer was cancelled. A *new* list may request
 //!   a delivered treelet again — the client may have evicted it — and it is then sent again,
@@ -603,27 +602,6 @@ impl Scheduler {
         Some(now.saturating_duration_since(flight.since))
     }
 
-    /// The stream of `treelet` was reset at `now` after all of its bytes had been handed to the
-    /// transport (a newer list wanted nothing of its batch): it leaves the window and counts as
-    /// cancelled, but, since what was already on the wire still arrives, it is treated like a
-    /// delivery for the redelivery guard — a list built before the client saw it does not get it
-    /// sent again; a list naming it after the guard does (it was cut off after all). Returns
-    /// whether it was in flight.
-    pub fn handle_reset_after_write(
-        &mut self,
-        id: ConnectionId,
-        treelet: TreeletId,
-        now: Instant,
-    ) -> bool {
-        let Some((conn, _)) = self.leave_window(id, treelet) else {
-            return false;
-        };
-        conn.stats.treelets_cancelled += 1;
-        conn.remember_delivery(treelet, now);
-        self.wake(id);
-        true
-    }
-
     /// The transfer of `treelet` was cancelled (stream reset, write failed): it leaves the window
     /// and, if the current list still names it, is queued again. Returns whether it was in
     /// flight.
@@ -900,34 +878,6 @@ mod tests {
             .unwrap();
         assert_eq!(drain(&mut s, ms(200)), vec![(A, 1)]);
         assert!(s.conns[&A].recent.len() <= 1, "old deliveries forgotten");
-    }
-
-    #[test]
-    fn a_treelet_reset_after_its_bytes_were_written_is_guarded_like_a_delivery() {
-        let (mut s, ms) = guarded_with_two_in_flight();
-        // A shorter list leaves both out; their stream, already written, is reset.
-        s.handle_request_list(A, 2, list(&[]), ms(20)).unwrap();
-        assert!(s.handle_reset_after_write(A, t(1), ms(21)));
-        assert!(s.handle_reset_after_write(A, t(2), ms(21)));
-        assert!(
-            !s.handle_reset_after_write(A, t(2), ms(21)),
-            "no longer in flight"
-        );
-        assert_eq!(s.stats(A).unwrap().in_flight, 0);
-        // The next list, built before they arrived, names them again: not sent twice.
-        s.handle_request_list(A, 3, list(&[(1, 1.0), (2, 1.0), (3, 0.0)]), ms(40))
-            .unwrap();
-        assert_eq!(drain(&mut s, ms(40)), vec![(A, 3)]);
-        // After the guard the client still asks for 2: the reset cut it off, so it goes again.
-        s.handle_request_list(A, 4, list(&[(2, 1.0)]), ms(150))
-            .unwrap();
-        assert_eq!(drain(&mut s, ms(150)), vec![(A, 2)]);
-        // A plain cancellation (never written) is retried at once while still wanted.
-        s.handle_request_list(A, 5, list(&[(4, 1.0)]), ms(160))
-            .unwrap();
-        assert_eq!(drain(&mut s, ms(160)), vec![(A, 4)]);
-        assert!(s.handle_cancelled(A, t(4)));
-        assert_eq!(drain(&mut s, ms(161)), vec![(A, 4)]);
     }
 
     #[test]
