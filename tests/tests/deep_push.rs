@@ -1,13 +1,14 @@
 //! Pushed treelets on the client side (docs/design.md §10), on a real scan's treelets: a push
-//! is kept only in a free slot with its parent resident (or arriving in the same batch); an
-//! orphan, or a push that finds no free slot, is dropped and counted, and never displaces what
+//! is kept only in a free slot with its parent resident (or arriving in the same batch, or
+//! within a few integrations); an orphan whose parent does not come, or a push that finds no
+//! free slot, is dropped and counted, and never displaces what
 //! the client holds. Arrivals not yet handed over are not listed again; second copies are
 //! counted. In the tail of a view's refinement a short list is topped up with the frustum's
 //! candidates (prefetch), only into the half of the buffer the view does not need.
 
 use std::sync::Arc;
 
-use arbor_client_core::cycle::{ClientCore, CoreConfig};
+use arbor_client_core::cycle::{ClientCore, CoreConfig, ORPHAN_WAIT_INTEGRATIONS};
 use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
 use arbor_proto::TreeletId;
 use arbor_tests::support::{decoded_treelets, small_lion};
@@ -37,7 +38,7 @@ fn parent(t: &DecodedTreelet) -> TreeletId {
 }
 
 #[test]
-fn pushed_orphans_are_dropped_and_counted() {
+fn pushed_orphans_wait_for_their_parent_then_are_dropped_and_counted() {
     let (treelets, mut core) = lion_core(64);
     // A grandchild of the root: its parent is not resident. Nothing was listed yet, so every
     // arrival counts as pushed.
@@ -52,17 +53,30 @@ fn pushed_orphans_are_dropped_and_counted() {
     let middle = treelets[parent(&grandchild).0 as usize].clone();
     let used = core.slots().used_slots();
 
+    // Alone, it waits in the backlog (taking no slot) for its parent...
     core.handle_treelet(grandchild.clone());
+    for _ in 0..ORPHAN_WAIT_INTEGRATIONS {
+        let i = core.integrate();
+        assert_eq!(
+            (i.push_dropped, i.pushed, i.inserted, i.dropped),
+            (0, 0, 0, 0)
+        );
+        assert_eq!(core.backlog_len(), 1, "waiting");
+        assert_eq!(core.slots().used_slots(), used, "an orphan takes no slot");
+    }
+    // ...and is dropped, and counted, when it does not come.
     let i = core.integrate();
     assert_eq!(
         (i.push_dropped, i.pushed, i.inserted, i.dropped),
         (1, 0, 0, 0)
     );
+    assert_eq!(core.backlog_len(), 0);
     assert!(!core.slots().is_resident(grandchild.id()));
-    assert_eq!(core.slots().used_slots(), used, "an orphan takes no slot");
 
-    // Child before parent in one batch: both kept, the parent first.
+    // A parent arriving while the child waits: both kept.
     core.handle_treelet(grandchild.clone());
+    let i = core.integrate();
+    assert_eq!((i.push_dropped, i.inserted), (0, 0));
     core.handle_treelet(middle.clone());
     let i = core.integrate();
     assert_eq!(

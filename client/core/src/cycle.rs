@@ -16,7 +16,7 @@
 //! [`upload`]: ClientCore::upload
 //! [`render`]: ClientCore::render
 
-use std::collections::{HashSet, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::sync::Arc;
 
 use arbor_proto::limits::{MAX_TREELET_BYTES, NODE_BYTES};
@@ -42,6 +42,11 @@ use crate::upload::{DEFAULT_FILL_RATIO, UploadPlan};
 pub const DEFAULT_LOAD_LIMIT: u32 = 1024;
 /// Default cap on the request list.
 pub const DEFAULT_MAX_REQUESTS: usize = 4096;
+/// Integrations a pushed treelet waits in the backlog for its parent before it is dropped as an
+/// orphan: treelets sent parent first travel on different streams and may arrive the other
+/// way round, and a dropped push is not sent again within the server's redelivery guard (over
+/// the link emulator the last treelets of a view came 100 ms late that way).
+pub const ORPHAN_WAIT_INTEGRATIONS: u64 = 16;
 /// Cycles without pushes after an eviction made room: the buffer is full, and a push would only
 /// take a slot the next listed arrival evicts again (and the server would push it again).
 pub const PUSH_PAUSE_CYCLES: u64 = 16;
@@ -354,6 +359,9 @@ pub struct ClientCore {
     evicted_outside: u32,
     /// No pushes are announced before this cycle ([`PUSH_PAUSE_CYCLES`] after an eviction).
     pushes_paused_until: u64,
+    /// Integrations so far, and since which one each waiting orphan push has waited.
+    integrations: u64,
+    orphans_since: HashMap<TreeletId, u64>,
     /// Arrivals already resident or waiting, since the last integration.
     received_twice: u32,
     /// Treelets evicted since the view last changed: one asked for again is needed by the
@@ -440,6 +448,8 @@ impl ClientCore {
             bias_unsettled: false,
             evicted_outside: 0,
             pushes_paused_until: 0,
+            integrations: 0,
+            orphans_since: HashMap::new(),
             received_twice: 0,
             evicted_in_view: HashSet::new(),
             listed: HashSet::new(),
@@ -538,6 +548,7 @@ impl ClientCore {
         while self.backlog.len() > cap {
             if let Some(old) = self.backlog.pop_front() {
                 self.backlog_ids.remove(&old.treelet.header.id);
+                self.orphans_since.remove(&old.treelet.header.id);
                 self.backlog_dropped += 1;
             }
         }
@@ -993,9 +1004,10 @@ impl ClientCore {
     /// parents before children (ids ascend down the tree), so a pushed treelet whose parent
     /// arrived in the same batch finds it. A pushed
     /// treelet (named by neither of the last two lists) takes only a free slot — it never
-    /// displaces anything — and is dropped, and counted, when its parent is not resident or no
-    /// slot is free. An eviction can uncover a coarse leaf in front of a known pixel, so it
-    /// starts the view's knowledge afresh.
+    /// displaces anything — and is dropped, and counted, when no slot is free, or when its
+    /// parent is still not resident after [`ORPHAN_WAIT_INTEGRATIONS`] integrations (it waits
+    /// in the backlog until then). An eviction can uncover a coarse leaf in front of a known
+    /// pixel, so it starts the view's knowledge afresh.
     pub fn integrate(&mut self) -> Integration {
         self.arriving.clear();
         let mut inserted = 0;
@@ -1012,6 +1024,8 @@ impl ClientCore {
             let id = t.treelet.header.id;
             (is_push(&id), id)
         });
+        self.integrations += 1;
+        let mut orphans = Vec::new();
         // Only as many as the load limit allows leave the backlog; the rest wait, in order.
         while self.slots.loads_left() > 0 {
             let Some(t) = self.backlog.pop_front() else {
@@ -1021,9 +1035,23 @@ impl ClientCore {
             self.backlog_ids.remove(&id);
             let is_push = is_push(&id);
             if is_push && self.slots.free_slots() == 0 {
+                self.orphans_since.remove(&id);
                 push_dropped += 1;
                 continue;
             }
+            let parent = t.treelet.header.parent_id;
+            if is_push && !parent.is_none() && !self.slots.is_resident(parent) {
+                // Its parent may still be on its way: wait a few integrations for it.
+                let since = *self.orphans_since.entry(id).or_insert(self.integrations);
+                if self.integrations - since < ORPHAN_WAIT_INTEGRATIONS {
+                    orphans.push(t);
+                } else {
+                    self.orphans_since.remove(&id);
+                    push_dropped += 1;
+                }
+                continue;
+            }
+            self.orphans_since.remove(&id);
             if let Some(f) = &mut self.frustum {
                 f.add(&t.treelet, self.scene.max_depth);
             }
@@ -1043,6 +1071,10 @@ impl ClientCore {
                     dropped += 1
                 }
             }
+        }
+        for t in orphans {
+            self.backlog_ids.insert(t.treelet.header.id);
+            self.backlog.push_back(t);
         }
         if let Some(f) = &mut self.frustum {
             let slots = &self.slots;
