@@ -509,9 +509,9 @@ impl ClientCore {
         self.cycle
     }
 
-    /// Arrivals waiting for a slot (beyond the load limit).
+    /// Arrivals waiting for a slot (beyond the load limit, or a pushed one for its parent).
     pub fn backlog_len(&self) -> usize {
-        self.backlog.len() + self.arriving.len()
+        self.backlog.len()
     }
 
     /// Arrivals that will want a slot: the backlog and what was taken off the connection this
@@ -776,14 +776,15 @@ impl ClientCore {
 
     /// Tops the list up from the frustum ([`CoreConfig::prefetch_below`]) once the whole view
     /// is known (an open view once [`OPEN_VIEW_KNOWN`] of it is), at priorities below every
-    /// listed item, while the resident treelets, the
-    /// arrivals and what the list is predicted to need fill less than half the buffer:
+    /// listed item, while the resident treelets, the arrivals and what the list is predicted
+    /// to need fill less than half the buffer:
     ///
     /// * in an **open** view — the samples name at least [`OPEN_VIEW_SHARE`] of the frustum's
     ///   refinable leaves, little is hidden — every frustum candidate, with its projected
     ///   error, so the server pushes its refinement too; only while the whole scene fits in
     ///   that half of the buffer, so nothing prefetched can stand in the view's way;
-    /// * once at most [`DIRTY_PREFETCH_SHARE`] of the view wants refinement, the candidates
+    /// * once at most [`DIRTY_PREFETCH_SHARE`] of the view wants refinement ([`TAIL_SHARE`]
+    ///   when the scene does not fit in half the buffer), the candidates
     ///   whose box covers a pixel still wanting it (within [`DIRTY_TILE`] pixels), with their
     ///   projected errors. Refining a coarse voxel opens gaps through which a pixel's ray
     ///   reaches surfaces behind it, in subtrees no sample has named yet: without this each
@@ -793,8 +794,8 @@ impl ClientCore {
     ///
     /// A prefetch that later had to be evicted for the view would restart what the view knows
     /// (measured with all free slots open to it, at 1.5× the view's need on loopback:
-    /// convergence at cycle 90 instead of 27, hundreds dropped). A walk that finds nothing is
-    /// not repeated until the view or the resident set changes.
+    /// convergence at cycle 90 instead of 27, hundreds dropped). A tail walk that finds nothing
+    /// is not repeated until the view or the resident set changes.
     fn prefetch(&mut self, requests: &mut Vec<RequestItem>) {
         if self.config.policy == PriorityPolicy::Frustum
             || self.config.prefetch_below == 0
@@ -846,8 +847,8 @@ impl ClientCore {
                 || slots.is_resident(id)
         });
         // An open view: the samples name a good share of what the frustum offers (little is
-        // hidden), so the rest of the frustum is mostly what refined gaps will reveal.
-        // The samples name what the known part of the view wants: scaled to the whole view.
+        // hidden), so the rest of the frustum is mostly what refined gaps will reveal. The
+        // samples name what the known part of the view wants: scaled to the whole view.
         let sampled = requests.len() as f64 / known_share;
         let named = sampled / (sampled + candidates.len() as f64).max(1.0);
         let open = scene_fits && named >= OPEN_VIEW_SHARE;
@@ -952,11 +953,10 @@ impl ClientCore {
     /// The view for the first connection's `Hello` ([`arbor_proto::wire::HELLO_VIEW`]), of
     /// `camera` placed in [`SceneFrame::UNIT`]: the server then pushes the root's refinement
     /// for it before the client has sampled anything, one round trip before its first list
-    /// could ask. `None` when the
-    /// configuration asks for no pushes. The scene (and so the slot size) is not known yet: the
-    /// free slots are a quarter of what the budget holds at the largest treelet size, as the
-    /// backlog's quarter of the buffer later; the client's first list replaces the pushes
-    /// anyway.
+    /// could ask. `None` when the configuration asks for no pushes. The scene (and so the slot
+    /// size) is not known yet: the free slots are a quarter of what the budget holds at the
+    /// largest treelet size, as the backlog's quarter of the buffer later; the client's first
+    /// list replaces the pushes anyway.
     pub fn first_view_hint(config: &CoreConfig, camera: &Camera) -> Option<ViewHint> {
         if !config.deep_push || config.policy == PriorityPolicy::Frustum {
             return None;
