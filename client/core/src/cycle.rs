@@ -863,15 +863,19 @@ impl ClientCore {
         if whole_frustum {
             self.frustum_exhausted = candidates.is_empty();
         }
-        let dirty = DirtyTiles::of(&self.coverage);
+        // An open view takes every candidate: the dirty tiles are only needed otherwise.
+        let dirty = (!open).then(|| DirtyTiles::of(&self.coverage));
         // Below every listed item: the open view's frustum or what lies around dirty pixels
         // first, larger projections first; priorities stay > 0.
         let lowest = requests.iter().map(|r| r.priority).fold(1.0f32, f32::min);
         let frame = self.frame;
         let (near, rest): (Vec<&FrustumRequest>, Vec<&FrustumRequest>) =
             candidates.iter().partition(|c| {
+                let Some(dirty) = &dirty else {
+                    return true;
+                };
                 let (min, max) = world_box(&frame, c.cell);
-                open || screen_rect(&camera, min, max).is_some_and(|r| dirty.covers(r))
+                screen_rect(&camera, min, max).is_some_and(|r| dirty.covers(r))
             });
         let near = near.into_iter().map(|c| RequestItem {
             id: c.id,

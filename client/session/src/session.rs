@@ -477,8 +477,6 @@ fn probe_scene(
     result
 }
 
-/// Waits (bounded) for `SceneInfo` and the root treelet the server sends unasked; returns the
-/// scene, the channels granted (the wanted ones the scene stores) and the root.
 /// The scene, the channels held, the decoded root and what arrived before it.
 type Bootstrapped = (
     Arc<SceneDescription>,
@@ -487,6 +485,9 @@ type Bootstrapped = (
     Vec<ReceivedTreelet>,
 );
 
+/// Waits (bounded) for `SceneInfo` and the root treelet the server sends unasked; returns the
+/// scene, the channels granted (the wanted ones the scene stores), the root and the treelets
+/// that overtook it.
 fn bootstrap(
     client: &mut TreeletClient,
     wanted: &[Channel],
