@@ -14,7 +14,9 @@
 //!   (random priorities over all treelets of the 4 KiB scene) have arrived.
 //!
 //! `cargo bench -p arbor-tests --bench serve` (ARBOR_BENCH_QUICK=1: fewer treelets per client;
-//! ARBOR_BENCH_WHOLE=N: only the whole-scene row, N runs in turns, for experiments).
+//! ARBOR_BENCH_WHOLE=N: only the whole-scene row, N runs in turns, for experiments;
+//! ARBOR_BENCH_PROFILE=N / ARBOR_BENCH_PROFILE_RAW=N: N whole-scene fetches by Arbor / by one
+//! raw quinn stream of the same size, nothing else, for a profiler or `/usr/bin/time`).
 //! Never run in CI.
 
 use std::net::SocketAddr;
@@ -118,19 +120,27 @@ async fn wait_connected(c: &mut TreeletClient) {
     }
 }
 
-/// Receives `n` treelets; returns wire bytes.
+/// Receives `n` treelets; returns wire bytes. One deadline for the whole run, not a timer per
+/// event: the loop stands for a consumer, and its own overhead should be small.
 async fn receive(c: &mut TreeletClient, n: usize) -> u64 {
     let mut got = 0;
     let mut bytes = 0u64;
+    let deadline = tokio::time::sleep(Duration::from_secs(120));
+    tokio::pin!(deadline);
     while got < n {
-        match tokio::time::timeout(Duration::from_secs(120), c.next_event()).await {
-            Ok(Some(ClientEvent::Treelet(t))) => {
+        let event = tokio::select! {
+            biased;
+            e = c.next_event() => e,
+            () = &mut deadline => None,
+        };
+        match event {
+            Some(ClientEvent::Treelet(t)) => {
                 got += 1;
                 bytes += t.wire_bytes as u64;
             }
-            Ok(Some(ClientEvent::Disconnected { reason, .. })) => panic!("disconnected: {reason}"),
-            Ok(Some(_)) => {}
-            Ok(None) | Err(_) => panic!("stalled after {got} of {n}"),
+            Some(ClientEvent::Disconnected { reason, .. }) => panic!("disconnected: {reason}"),
+            Some(_) => {}
+            None => panic!("stalled after {got} of {n}"),
         }
     }
     bytes
@@ -608,16 +618,24 @@ async fn main() {
         .unwrap();
     let fp = server.fingerprint.clone();
     let addr = server.quic_addr;
-    if std::env::var("ARBOR_BENCH_PROFILE").is_ok() {
+    if let Ok(runs) = std::env::var("ARBOR_BENCH_PROFILE") {
         // One client fetching lion-4k again and again, for a profiler.
         let n = scenes[1].treelet_count as usize;
-        for _ in 0..300 {
+        for _ in 0..runs.parse().unwrap_or(300) {
             let (secs, _) = arbor_run(addr, &fp, &scenes[1], 1, n).await;
             println!("{:.0} treelets/s", n as f64 / secs);
         }
         return;
     }
     let raw = raw::start();
+    if let Ok(runs) = std::env::var("ARBOR_BENCH_PROFILE_RAW") {
+        // One raw stream of lion-4k's bytes again and again: the profiler's reference.
+        for _ in 0..runs.parse().unwrap_or(300) {
+            let (secs, b) = raw::run(&raw, 1, 1, 2_600_000, 1).await;
+            println!("{:.0} MB/s", b as f64 / secs / 1e6);
+        }
+        return;
+    }
     let nginx = whole_only.is_none().then(|| nginx::start(&files)).flatten();
 
     println!(
@@ -705,7 +723,15 @@ async fn main() {
 
     // Over the emulated WAN: the top 1,000 of a list of all treelets, random priorities; the
     // window adapts to RTT × bandwidth between 8 and 1024.
-    let server = start(serve_config(pool_dir.path(), data_dir.path(), (8, 1024)))
+    let wmax = std::env::var("WMAX")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1024);
+    let wmin = std::env::var("WMIN")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(8);
+    let server = start(serve_config(pool_dir.path(), data_dir.path(), (wmin, wmax)))
         .await
         .unwrap();
     let addr = server.quic_addr;

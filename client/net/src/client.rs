@@ -1,5 +1,6 @@
 //! The caller's handle: [`TreeletClient`].
 
+use std::collections::VecDeque;
 use std::sync::Arc;
 
 use arbor_proto::frame::encode;
@@ -38,6 +39,9 @@ pub struct TreeletClient {
     shared: Arc<Shared>,
     lists: watch::Sender<Option<RequestList>>,
     events: mpsc::UnboundedReceiver<Queued>,
+    /// The batch being taken from: its events not yet taken, and the budget it holds until
+    /// the last one is.
+    taking: Queued,
     shutdown: watch::Sender<bool>,
     task: Option<JoinHandle<()>>,
 }
@@ -88,6 +92,10 @@ impl TreeletClient {
             shared,
             lists: lists_tx,
             events: events_rx,
+            taking: Queued {
+                events: VecDeque::new(),
+                lease: None,
+            },
             shutdown: shutdown_tx,
             task: Some(task),
         })
@@ -155,13 +163,33 @@ impl TreeletClient {
 
     /// The next event if one is queued.
     pub fn try_next_event(&mut self) -> Option<ClientEvent> {
-        self.events.try_recv().ok().map(|q| q.event)
+        loop {
+            if let Some(e) = self.take_queued() {
+                return Some(e);
+            }
+            self.taking = self.events.try_recv().ok()?;
+        }
     }
 
     /// Waits for the next event; `None` once the client has given up (after a final
     /// [`ClientEvent::Disconnected`]) or was closed, and every event was taken.
     pub async fn next_event(&mut self) -> Option<ClientEvent> {
-        self.events.recv().await.map(|q| q.event)
+        loop {
+            if let Some(e) = self.take_queued() {
+                return Some(e);
+            }
+            self.taking = self.events.recv().await?;
+        }
+    }
+
+    /// The next event of the batch being taken; the batch's budget is given back with its
+    /// last event.
+    fn take_queued(&mut self) -> Option<ClientEvent> {
+        let event = self.taking.events.pop_front();
+        if self.taking.events.is_empty() {
+            self.taking.lease = None;
+        }
+        event
     }
 
     /// The scene of the current (or last) connection. With replicas it is the same on every

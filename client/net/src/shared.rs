@@ -1,6 +1,7 @@
 //! State shared by the caller's handle and the connection task: counters, the current scene,
 //! the received-bytes budget (backpressure) and request times (latency).
 
+use std::collections::VecDeque;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -10,18 +11,20 @@ use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 use super::event::{ClientEvent, ClientStats};
 
-/// An event on its way to the caller, with the budget its treelet bytes hold until taken.
+/// Events on their way to the caller, with the budget their treelet bytes hold until the last
+/// of them is taken. A stream reader sends the treelets it found complete in what it read at
+/// once as one entry: one channel operation and one budget release per batch, not per treelet.
 #[derive(Debug)]
 pub(crate) struct Queued {
-    pub event: ClientEvent,
-    pub _lease: Option<BufferLease>,
+    pub events: VecDeque<ClientEvent>,
+    pub lease: Option<BufferLease>,
 }
 
 impl Queued {
     pub fn plain(event: ClientEvent) -> Self {
         Self {
-            event,
-            _lease: None,
+            events: VecDeque::from([event]),
+            lease: None,
         }
     }
 }
@@ -77,18 +80,37 @@ impl Shared {
         );
     }
 
-    /// Takes `bytes` of budget for a message about to be read (all of it for a message larger
-    /// than the whole budget), waiting while the buffer is full.
-    pub async fn reserve(self: &Arc<Self>, bytes: usize) -> BufferLease {
+    /// Budget for a message about to be read (all of it for a message larger than the whole
+    /// budget), if it is free now.
+    pub fn try_permit(&self, bytes: usize) -> Option<OwnedSemaphorePermit> {
         let permits = bytes.min(self.capacity) as u32;
-        let permit = self
-            .budget
+        self.budget.clone().try_acquire_many_owned(permits).ok()
+    }
+
+    /// Budget for a message about to be read (all of it for a message larger than the whole
+    /// budget), waiting while the buffer is full.
+    pub async fn permit(&self, bytes: usize) -> OwnedSemaphorePermit {
+        let permits = bytes.min(self.capacity) as u32;
+        self.budget
             .clone()
             .acquire_many_owned(permits)
             .await
-            .expect("the budget is never closed");
+            .expect("the budget is never closed")
+    }
+
+    /// `permit` now holds `bytes` of `treelets` received treelets on their way to the caller:
+    /// the counters are updated under one lock, and the lease gives the budget back when it
+    /// drops.
+    pub fn lease(
+        self: &Arc<Self>,
+        permit: OwnedSemaphorePermit,
+        bytes: usize,
+        treelets: usize,
+    ) -> BufferLease {
         {
             let mut s = self.stats();
+            s.treelets_received += treelets as u64;
+            s.bytes_received += bytes as u64;
             s.buffered_bytes += bytes;
             s.peak_buffered_bytes = s.peak_buffered_bytes.max(s.buffered_bytes);
         }
@@ -190,21 +212,25 @@ mod tests {
     #[tokio::test]
     async fn budget_is_given_back_when_leases_drop() {
         let s = Arc::new(Shared::new(100));
-        let a = s.reserve(60).await;
-        let b = s.reserve(40).await;
+        let a = s.lease(s.permit(60).await, 60, 1);
+        let b = s.lease(s.try_permit(40).unwrap(), 40, 2);
         assert_eq!(s.stats().buffered_bytes, 100);
-        // Full: a third reservation waits.
-        let pending = tokio::time::timeout(Duration::from_millis(50), s.reserve(1)).await;
+        assert_eq!(s.stats().treelets_received, 3);
+        assert_eq!(s.stats().bytes_received, 100);
+        // Full: a third reservation fails at once or waits.
+        assert!(s.try_permit(1).is_none());
+        let pending = tokio::time::timeout(Duration::from_millis(50), s.permit(1)).await;
         assert!(pending.is_err());
         drop(a);
         assert_eq!(s.stats().buffered_bytes, 40);
         // Larger than the budget: waits until all of it is free, then takes it alone.
         let big = tokio::spawn({
             let s = s.clone();
-            async move { s.reserve(500).await }
+            async move { s.lease(s.permit(500).await, 500, 1) }
         });
         tokio::time::sleep(Duration::from_millis(20)).await;
         assert!(!big.is_finished());
+        assert!(s.try_permit(500).is_none());
         drop(b);
         let c = big.await.unwrap();
         assert_eq!(s.stats().buffered_bytes, 500);
