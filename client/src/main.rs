@@ -11,8 +11,8 @@ use arbor_client_core::analysis::{AnalysisConfig, DEFAULT_FEEDBACK_RATIO};
 use arbor_client_core::backend::Backend;
 use arbor_client_core::camera::CameraPath;
 use arbor_client_core::cycle::{
-    CoreConfig, DEFAULT_ANALYSIS_BUDGET_MS, DEFAULT_LOAD_LIMIT, DEFAULT_MAX_REQUESTS,
-    DEFAULT_PREFETCH_BELOW, Sampling,
+    CoreConfig, DEFAULT_ANALYSIS_BUDGET_MS, DEFAULT_LOAD_LIMIT, DEFAULT_LOOK_PAST,
+    DEFAULT_MAX_REQUESTS, DEFAULT_PREFETCH_BELOW, Sampling,
 };
 use arbor_client_core::image::Image;
 use arbor_client_core::incore::SceneFrame;
@@ -156,6 +156,12 @@ struct RenderArgs {
     /// never evicting); makes the next camera move cheap. 0 turns it off.
     #[arg(long, default_value_t = DEFAULT_PREFETCH_BELOW)]
     prefetch_below: usize,
+    /// Look-past requests: once the view is fully known, trace the rays of pixels still wanting
+    /// refinement past their coarse hit, up to this many coarse hits deep, and request what
+    /// they meet behind (below every sampled item). Saves round trips where refined gaps reveal
+    /// surfaces in other subtrees. 0 turns it off.
+    #[arg(long, default_value_t = DEFAULT_LOOK_PAST)]
+    look_past: u8,
     /// Keep the LOD bias fixed even when the view needs more slots than the budget holds
     /// (by default it is raised until the view fits, and the run converges to that target).
     #[arg(long)]
@@ -456,6 +462,7 @@ fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
             deep_push: !a.no_deep_push,
             analysis_budget_ms: a.analysis_budget_ms,
             prefetch_below: a.prefetch_below,
+            look_past: a.look_past,
         },
         camera_path,
         seed: a.view.seed,

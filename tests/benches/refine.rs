@@ -46,7 +46,7 @@ use std::time::{Duration, Instant};
 use arbor_client_core::analysis::AnalysisConfig;
 use arbor_client_core::backend::{CpuBackend, render_resident};
 use arbor_client_core::camera::{Camera, CameraPath};
-use arbor_client_core::cycle::{CoreConfig, DEFAULT_PREFETCH_BELOW, Sampling};
+use arbor_client_core::cycle::{CoreConfig, DEFAULT_LOOK_PAST, DEFAULT_PREFETCH_BELOW, Sampling};
 use arbor_client_core::image::Image;
 use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::presort::PriorityPolicy;
@@ -78,15 +78,18 @@ struct Variant {
     adjust_bias: bool,
     /// [`CoreConfig::prefetch_below`].
     prefetch_below: usize,
+    /// [`CoreConfig::look_past`].
+    look_past: u8,
 }
 
-const VARIANTS: [Variant; 6] = [
+const VARIANTS: [Variant; 7] = [
     Variant {
         name: "thesis: max-error, grid",
         policy: PriorityPolicy::MaxError,
         sampling: Sampling::Grid,
         deep_push: false,
         adjust_bias: false,
+        look_past: 0,
         prefetch_below: 0,
     },
     Variant {
@@ -95,6 +98,7 @@ const VARIANTS: [Variant; 6] = [
         sampling: Sampling::Adaptive,
         deep_push: true,
         adjust_bias: true,
+        look_past: DEFAULT_LOOK_PAST,
         prefetch_below: DEFAULT_PREFETCH_BELOW,
     },
     Variant {
@@ -103,6 +107,7 @@ const VARIANTS: [Variant; 6] = [
         sampling: Sampling::Adaptive,
         deep_push: true,
         adjust_bias: true,
+        look_past: DEFAULT_LOOK_PAST,
         prefetch_below: DEFAULT_PREFETCH_BELOW,
     },
     Variant {
@@ -111,6 +116,7 @@ const VARIANTS: [Variant; 6] = [
         sampling: Sampling::Adaptive,
         deep_push: true,
         adjust_bias: true,
+        look_past: DEFAULT_LOOK_PAST,
         prefetch_below: DEFAULT_PREFETCH_BELOW,
     },
     Variant {
@@ -119,7 +125,17 @@ const VARIANTS: [Variant; 6] = [
         sampling: Sampling::Adaptive,
         deep_push: false,
         adjust_bias: true,
+        look_past: 0,
         prefetch_below: 0,
+    },
+    Variant {
+        name: "no-look-past default",
+        policy: PriorityPolicy::ErrorTimesPixels,
+        sampling: Sampling::Adaptive,
+        deep_push: true,
+        adjust_bias: true,
+        look_past: 0,
+        prefetch_below: DEFAULT_PREFETCH_BELOW,
     },
     Variant {
         name: "no-prefetch default",
@@ -127,6 +143,7 @@ const VARIANTS: [Variant; 6] = [
         sampling: Sampling::Adaptive,
         deep_push: true,
         adjust_bias: true,
+        look_past: DEFAULT_LOOK_PAST,
         prefetch_below: 0,
     },
 ];
@@ -374,6 +391,7 @@ fn run_case(
         deep_push: v.deep_push,
         adjust_bias: v.adjust_bias,
         prefetch_below: v.prefetch_below,
+        look_past: v.look_past,
         budget_bytes: BUDGET,
         ..CoreConfig::default()
     };
@@ -637,6 +655,7 @@ fn oversubscribed(runtime: &tokio::runtime::Runtime, out: &std::path::Path) {
             deep_push: v.deep_push,
             adjust_bias: v.adjust_bias,
             prefetch_below: v.prefetch_below,
+            look_past: v.look_past,
             budget_bytes: 3 << 20,
             ..CoreConfig::default()
         };

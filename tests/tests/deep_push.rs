@@ -4,7 +4,9 @@
 //! free slot, is dropped and counted, and never displaces what
 //! the client holds. Arrivals not yet handed over are not listed again; second copies are
 //! counted. In the tail of a view's refinement a short list is topped up with the frustum's
-//! candidates (prefetch), only into the half of the buffer the view does not need.
+//! candidates (prefetch), only into the half of the buffer the view does not need; once the
+//! whole view is known, what rays meet behind their coarse hits is listed below the sampled
+//! items (look-past), which saves rounds of discovery.
 
 use std::sync::Arc;
 
@@ -292,6 +294,7 @@ fn a_roomy_view_is_topped_up_from_the_frustum_below_every_sampled_item() {
         4096,
         CoreConfig {
             prefetch_below: 0,
+            look_past: 0,
             ..CoreConfig::default()
         },
     );
@@ -306,6 +309,7 @@ fn a_tight_buffer_is_never_prefetched_into() {
         4096,
         CoreConfig {
             prefetch_below: 0,
+            look_past: 0,
             ..CoreConfig::default()
         },
     );
@@ -319,4 +323,62 @@ fn a_tight_buffer_is_never_prefetched_into() {
         "the view needs {needed} of {} slots",
         core.slots().capacity()
     );
+}
+
+#[test]
+fn looking_past_coarse_hits_lists_what_lies_behind_below_every_sampled_item() {
+    let only_look_past = |look_past| {
+        lion_core_with(
+            4096,
+            CoreConfig {
+                prefetch_below: 0,
+                look_past,
+                ..CoreConfig::default()
+            },
+        )
+    };
+    let (treelets, mut core) = only_look_past(CoreConfig::default().look_past);
+    let capacity = core.slots().capacity() as usize;
+    let plans = refine(&mut core, &treelets);
+    let mut looked_past = 0;
+    for plan in &plans {
+        let sampled = plan.distinct_requests.min(plan.requests.len());
+        let lowest_sampled = plan.requests[..sampled]
+            .iter()
+            .map(|r| r.1)
+            .fold(f32::INFINITY, f32::min);
+        let mut ids: Vec<TreeletId> = plan.requests.iter().map(|r| r.0).collect();
+        ids.sort_unstable();
+        ids.dedup();
+        assert_eq!(ids.len(), plan.requests.len(), "an id listed twice");
+        for (id, priority, error) in prefetched(plan) {
+            looked_past += 1;
+            // Below every sampled item, above where the prefetch starts.
+            assert!(
+                priority > 0.0 && priority <= 0.75 * lowest_sampled,
+                "{id}: {priority} vs {lowest_sampled}"
+            );
+            assert!(error > 0.0 && error <= 64.0, "{id}: error {error}");
+        }
+        assert!(
+            plan.requests.len() <= capacity / 2,
+            "at most half the buffer"
+        );
+    }
+    let rounds_with = plans.len();
+    assert!(
+        looked_past > 0,
+        "lion's coarse hulls hide surfaces behind them"
+    );
+
+    // Off: only what the samples need, and more rounds to converge (each round here delivers
+    // everything listed, so rounds count the round trips of discovery).
+    let (treelets, mut core) = only_look_past(0);
+    let plans = refine(&mut core, &treelets);
+    assert!(plans.iter().all(|p| prefetched(p).is_empty()));
+    eprintln!(
+        "{looked_past} look-past items; rounds to converge {rounds_with} with, {} without",
+        plans.len()
+    );
+    assert!(rounds_with < plans.len());
 }

@@ -22,6 +22,7 @@ use std::sync::Arc;
 use arbor_proto::limits::{MAX_TREELET_BYTES, NODE_BYTES};
 use arbor_proto::wire::ViewHint;
 use arbor_proto::{Channel, SceneDescription, TreeletId};
+use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::analysis::{AnalysisConfig, Feedback, grid_pixels};
@@ -31,11 +32,12 @@ use crate::camera::Camera;
 use crate::coverage::Coverage;
 use crate::frustum::{FrustumRequest, FrustumSelector, screen_rect, world_box};
 use crate::image::Image;
-use crate::incore::SceneFrame;
+use crate::incore::{IncoreView, SceneFrame};
 use crate::presort::{Presort, PriorityPolicy, RequestItem, centre_weight};
 use crate::render::Light;
 use crate::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig, SlotError};
 use crate::summary::ErrorSummary;
+use crate::traverse::{Lod, Ray, trace_past};
 use crate::upload::{DEFAULT_FILL_RATIO, UploadPlan};
 
 /// Default per-cycle load limit (treelets inserted per cycle).
@@ -101,7 +103,23 @@ pub struct CoreConfig {
     /// for it; 0 turns it off. Ignored by [`PriorityPolicy::Frustum`], which lists the frustum
     /// anyway.
     pub prefetch_below: usize,
+    /// Look-past requests: once the whole view is known, the rays of pixels still wanting
+    /// refinement are traced again on the CPU as if their coarse hit were empty
+    /// ([`crate::traverse::trace_past`]), up to this many coarse hits deep, and the treelets
+    /// refining what they meet behind are requested below every sampled item. A coarse voxel
+    /// is a hull of what it holds: once refined, the ray often passes through and meets a
+    /// surface in another subtree, whose treelet the sampled list could only name one round
+    /// trip later. 0 turns it off; ignored by [`PriorityPolicy::Frustum`].
+    pub look_past: u8,
 }
+
+/// Default [`CoreConfig::look_past`].
+pub const DEFAULT_LOOK_PAST: u8 = 2;
+
+/// Most pixels whose rays are traced again for [`CoreConfig::look_past`] in one cycle (an even
+/// spread of the pixels still wanting refinement): the tail's pixels are few, and this bounds the
+/// cycle's extra CPU work elsewhere.
+const LOOK_PAST_PIXELS: usize = 1024;
 
 /// Default [`CoreConfig::analysis_budget_ms`].
 pub const DEFAULT_ANALYSIS_BUDGET_MS: f64 = 20.0;
@@ -237,6 +255,7 @@ impl Default for CoreConfig {
             deep_push: true,
             analysis_budget_ms: DEFAULT_ANALYSIS_BUDGET_MS,
             prefetch_below: DEFAULT_PREFETCH_BELOW,
+            look_past: DEFAULT_LOOK_PAST,
         }
     }
 }
@@ -704,6 +723,7 @@ impl ClientCore {
         }
         self.note_evictions();
         if !bias_changed {
+            self.look_past(&mut requests);
             self.prefetch(&mut requests);
         }
         // Ask for no more than could be inserted: with an oversubscribed budget the rest would
@@ -796,6 +816,80 @@ impl ClientCore {
     /// (measured with all free slots open to it, at 1.5× the view's need on loopback:
     /// convergence at cycle 90 instead of 27, hundreds dropped). A tail walk that finds nothing
     /// is not repeated until the view or the resident set changes.
+    /// Look-past requests ([`CoreConfig::look_past`]), appended below every sampled item,
+    /// into the half of the buffer the view does not need (as the prefetch); with a scene
+    /// larger than that half, only in the tail proper.
+    fn look_past(&mut self, requests: &mut Vec<RequestItem>) {
+        let depth = usize::from(self.config.look_past);
+        if self.config.policy == PriorityPolicy::Frustum || depth == 0 || self.bias_unsettled {
+            return;
+        }
+        let Some(camera) = self.last_camera else {
+            return;
+        };
+        let pixels = self.coverage.pixels().max(1);
+        let dirty = self.coverage.dirty();
+        if self.coverage.known() < pixels || dirty == 0 {
+            return;
+        }
+        let scene_fits = self.scene.treelet_count as usize <= self.slots.capacity() as usize / 2;
+        if !scene_fits && f64::from(dirty) > TAIL_SHARE * f64::from(pixels) {
+            return;
+        }
+        let taken = self.slots.used_slots() as usize
+            + self.pending()
+            + self.predicted_slots(requests, true) as usize;
+        let free = (self.slots.capacity() as usize / 2)
+            .saturating_sub(taken)
+            .min(self.config.max_requests.saturating_sub(requests.len()));
+        if free == 0 {
+            return;
+        }
+        let width = self.coverage.size().0.max(1);
+        let wanting: Vec<u32> = self
+            .coverage
+            .known_samples()
+            .filter(|(_, s)| s.wants_refinement())
+            .map(|(i, _)| i)
+            .collect();
+        let stride = wanting.len().div_ceil(LOOK_PAST_PIXELS).max(1);
+        let wanting: Vec<u32> = wanting.into_iter().step_by(stride).collect();
+        let lod = Lod {
+            pixel_angle: camera.pixel_angle(),
+            lod_bias: self.bias.bias(),
+            max_depth: self.frame.max_depth,
+        };
+        let (view, frame) = (self.slots.view(), self.frame);
+        let behind: Vec<(TreeletId, f32)> = wanting
+            .par_iter()
+            .flat_map_iter(|&i| {
+                let ray = camera.ray(f64::from(i % width) + 0.5, f64::from(i / width) + 0.5);
+                looked_past(&view, &frame, &ray, &lod, depth)
+            })
+            .collect();
+        let lowest = requests.iter().map(|r| r.priority).fold(1.0f32, f32::min);
+        let mut seen: HashSet<TreeletId> = requests.iter().map(|r| r.id).collect();
+        let (slots, backlog, arriving) = (&self.slots, &self.backlog_ids, &self.arriving);
+        let items = behind
+            .into_iter()
+            .filter(|&(id, _)| {
+                !backlog.contains(&id)
+                    && !arriving.contains(&id)
+                    && !slots.is_resident(id)
+                    && seen.insert(id)
+            })
+            .take(free)
+            .map(|(id, error)| RequestItem {
+                id,
+                error: error.min(ViewHint::MAX_ERROR),
+                samples: 0,
+                weight: 0.0,
+                // Below every sampled item, above the prefetch.
+                priority: lowest * 0.75 * (0.5 + 0.5 * error / (1.0 + error)),
+            });
+        requests.extend(items);
+    }
+
     fn prefetch(&mut self, requests: &mut Vec<RequestItem>) {
         if self.config.policy == PriorityPolicy::Frustum
             || self.config.prefetch_below == 0
@@ -1151,6 +1245,34 @@ impl ClientCore {
     pub fn backend_name(&self) -> String {
         self.backend.name()
     }
+}
+
+/// The treelets a ray needs behind its first coarse hit: it is traced again past each coarse
+/// refinable leaf it stops at, up to `depth` more, and the subtreelet of each coarse leaf met
+/// behind is named with its error. Stops at the first hit that is not a coarse refinable leaf
+/// (a final leaf or a fine enough voxel: the ray really ends there).
+fn looked_past(
+    view: &IncoreView<'_>,
+    frame: &SceneFrame,
+    ray: &Ray,
+    lod: &Lod,
+    depth: usize,
+) -> Vec<(TreeletId, f32)> {
+    let mut passed = Vec::with_capacity(depth + 1);
+    let mut behind = Vec::new();
+    while passed.len() <= depth {
+        let Some(hit) = trace_past(view, frame, ray, lod, &passed) else {
+            break;
+        };
+        if !(hit.leaf && hit.subtreelet != TreeletId::NONE && hit.error > 0.0) {
+            break;
+        }
+        if !passed.is_empty() {
+            behind.push((hit.subtreelet, hit.error));
+        }
+        passed.push(hit.node);
+    }
+    behind
 }
 
 #[cfg(test)]

@@ -329,6 +329,21 @@ fn make_hit(
 /// Casts `ray` into the incore octree and returns the nearest voxel where it stops (module
 /// docs, steps 1–7), or `None` on a miss. Never panics, whatever the buffer or ray holds.
 pub fn trace(view: &IncoreView<'_>, frame: &SceneFrame, ray: &Ray, lod: &Lod) -> Option<Hit> {
+    trace_past(view, frame, ray, lod, &[])
+}
+
+/// [`trace`] as if the voxels stopped at `skip` (node indices of earlier hits) were empty: the
+/// nearest stop behind them. A coarse voxel is a conservative hull of what it holds, so a ray
+/// that stops at one may well pass through once it is refined; what it would meet then is what
+/// the ray needs next (the look-past requests of [`crate::cycle`]). Descendants of a skipped
+/// voxel are not visited (it stops the ray's descent, it is just not a hit).
+pub fn trace_past(
+    view: &IncoreView<'_>,
+    frame: &SceneFrame,
+    ray: &Ray,
+    lod: &Lod,
+    skip: &[u32],
+) -> Option<Hit> {
     let setup = Setup::new(frame, ray)?;
     let root = *view.nodes.first()?;
     let max_depth = u32::from(lod.max_depth.min(MAX_DEPTH));
@@ -337,6 +352,9 @@ pub fn trace(view: &IncoreView<'_>, frame: &SceneFrame, ray: &Ray, lod: &Lod) ->
     let root_t = root_slab.t_enter.max(0.0);
     let root_leaf = root.valid_mask == 0;
     if root_leaf || max_depth == 0 || projects_small(setup.edge, root_t, lod) {
+        if skip.contains(&0) {
+            return None;
+        }
         return Some(make_hit(
             0, &root, root_leaf, [0; 3], 0, setup.edge, &root_slab, lod,
         ));
@@ -418,7 +436,7 @@ pub fn trace(view: &IncoreView<'_>, frame: &SceneFrame, ray: &Ray, lod: &Lod) ->
         };
         let leaf = parent.leaf_mask & (1 << i) != 0;
         if leaf || child_depth >= max_depth || projects_small(size, t, lod) {
-            if t < best_t {
+            if t < best_t && !skip.contains(&child_index) {
                 best_t = t;
                 best = Some(make_hit(
                     child_index,

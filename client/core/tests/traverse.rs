@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 use std::sync::Mutex;
 
 use arbor_client_core::incore::SceneFrame;
-use arbor_client_core::traverse::{Lod, MAX_SCREEN_ERROR, Ray, screen_error, trace};
+use arbor_client_core::traverse::{Lod, MAX_SCREEN_ERROR, Ray, screen_error, trace, trace_past};
 use arbor_proto::{Cell, Node, TreeletId};
 use glam::DVec3;
 use synth::{Buffer, Reference, Rng, random_cells, single, single_refinable};
@@ -142,6 +142,54 @@ fn random_rays_with_lod_stops_match_brute_force() {
     }
     // Every stop depth occurs, intermediate ones included.
     assert!(depths.iter().all(|&n| n > 20), "{depths:?}");
+}
+
+/// Looking past earlier hits: each further stop is brute force's nearest stop with the voxels
+/// passed taken as empty, with and without LOD stops, until the ray leaves the data.
+#[test]
+fn looking_past_hits_matches_brute_force() {
+    let (b, r, frame) = mixed_scene(11);
+    let view = b.view();
+    let mut rng = Rng::new(12);
+    let mut behind = 0;
+    for i in 0..1500 {
+        let ray = ray_to(rng.point_in(&frame, 2.0), rng.point_in(&frame, 0.0));
+        let l = if i % 2 == 0 {
+            lod(NO_LOD, 4)
+        } else {
+            Lod {
+                pixel_angle: rng.range(0.0, 0.2),
+                lod_bias: 1.0,
+                max_depth: 4,
+            }
+        };
+        let (mut nodes, mut cells) = (Vec::new(), Vec::new());
+        let mut last_t = 0.0;
+        for k in 0..6 {
+            let got = trace_past(&view, &frame, &ray, &l, &nodes);
+            let want = r.query_past(&frame, &ray, &l, &cells);
+            match (got, want) {
+                (None, None) => break,
+                (Some(h), Some((t, tied))) => {
+                    assert!((h.t - t).abs() / frame.edge <= 1e-12, "{} vs {t}", h.t);
+                    assert!(tied.contains(&h.cell), "{:?} not in {tied:?}", h.cell);
+                    assert!(h.t >= last_t, "looking past went backwards");
+                    assert!(!nodes.contains(&h.node), "a skipped voxel was hit again");
+                    if k > 0 {
+                        behind += 1;
+                    }
+                    last_t = h.t;
+                    nodes.push(h.node);
+                    cells.push(h.cell);
+                }
+                (got, want) => panic!("hit/miss disagree past {k} hits: {got:?} vs {want:?}"),
+            }
+        }
+        if nodes.is_empty() {
+            assert!(trace(&view, &frame, &ray, &l).is_none());
+        }
+    }
+    assert!(behind > 1000, "only {behind} hits behind others: vacuous");
 }
 
 /// Camera far away: every voxel is at about the same distance, so the projection stop picks

@@ -248,6 +248,18 @@ impl Reference {
     /// tied at it. A voxel is terminal when it is hit and stops (leaf, depth limit, or projects
     /// to at most `pixel_angle · lod_bias · t`) and no ancestor is hit and stops.
     pub fn query(&self, frame: &SceneFrame, ray: &Ray, lod: &Lod) -> Option<(f64, Vec<Cell>)> {
+        self.query_past(frame, ray, lod, &[])
+    }
+
+    /// [`Reference::query`] with the voxels `skip` taken as empty: they stop the descent to
+    /// their descendants but are no hit.
+    pub fn query_past(
+        &self,
+        frame: &SceneFrame,
+        ray: &Ray,
+        lod: &Lod,
+        skip: &[Cell],
+    ) -> Option<(f64, Vec<Cell>)> {
         let max_depth = lod.max_depth.min(31);
         let mut blocked = HashMap::new();
         let mut best: Option<(f64, Vec<Cell>)> = None;
@@ -274,7 +286,7 @@ impl Reference {
                 || c.depth == max_depth
                 || (lod.pixel_angle > 0.0 && size <= t * lod.pixel_angle * lod.lod_bias);
             blocked.insert(c, stops);
-            if !stops {
+            if !stops || skip.contains(&c) {
                 continue;
             }
             match &mut best {
