@@ -794,28 +794,6 @@ impl ClientCore {
         )
     }
 
-    /// Tops the list up from the frustum ([`CoreConfig::prefetch_below`]) once the whole view
-    /// is known (an open view once [`OPEN_VIEW_KNOWN`] of it is), at priorities below every
-    /// listed item, while the resident treelets, the arrivals and what the list is predicted
-    /// to need fill less than half the buffer:
-    ///
-    /// * in an **open** view — the samples name at least [`OPEN_VIEW_SHARE`] of the frustum's
-    ///   refinable leaves, little is hidden — every frustum candidate, with its projected
-    ///   error, so the server pushes its refinement too; only while the whole scene fits in
-    ///   that half of the buffer, so nothing prefetched can stand in the view's way;
-    /// * once at most [`DIRTY_PREFETCH_SHARE`] of the view wants refinement ([`TAIL_SHARE`]
-    ///   when the scene does not fit in half the buffer), the candidates
-    ///   whose box covers a pixel still wanting it (within [`DIRTY_TILE`] pixels), with their
-    ///   projected errors. Refining a coarse voxel opens gaps through which a pixel's ray
-    ///   reaches surfaces behind it, in subtrees no sample has named yet: without this each
-    ///   such surface costs a round trip of its own, and the tail of a view is a chain of them;
-    /// * in the tail proper (a short list, at most 1 % wanting more), the rest of the frustum,
-    ///   without errors (no pushes below them): what the next camera move needs first.
-    ///
-    /// A prefetch that later had to be evicted for the view would restart what the view knows
-    /// (measured with all free slots open to it, at 1.5× the view's need on loopback:
-    /// convergence at cycle 90 instead of 27, hundreds dropped). A tail walk that finds nothing
-    /// is not repeated until the view or the resident set changes.
     /// Look-past requests ([`CoreConfig::look_past`]), appended below every sampled item,
     /// into the half of the buffer the view does not need (as the prefetch); with a scene
     /// larger than that half, only in the tail proper.
@@ -890,6 +868,28 @@ impl ClientCore {
         requests.extend(items);
     }
 
+    /// Tops the list up from the frustum ([`CoreConfig::prefetch_below`]) once the whole view
+    /// is known (an open view once [`OPEN_VIEW_KNOWN`] of it is), at priorities below every
+    /// listed item, while the resident treelets, the arrivals and what the list is predicted
+    /// to need fill less than half the buffer:
+    ///
+    /// * in an **open** view — the samples name at least [`OPEN_VIEW_SHARE`] of the frustum's
+    ///   refinable leaves, little is hidden — every frustum candidate, with its projected
+    ///   error, so the server pushes its refinement too; only while the whole scene fits in
+    ///   that half of the buffer, so nothing prefetched can stand in the view's way;
+    /// * once at most [`DIRTY_PREFETCH_SHARE`] of the view wants refinement ([`TAIL_SHARE`]
+    ///   when the scene does not fit in half the buffer), the candidates
+    ///   whose box covers a pixel still wanting it (within [`DIRTY_TILE`] pixels), with their
+    ///   projected errors. Refining a coarse voxel opens gaps through which a pixel's ray
+    ///   reaches surfaces behind it, in subtrees no sample has named yet: without this each
+    ///   such surface costs a round trip of its own, and the tail of a view is a chain of them;
+    /// * in the tail proper (a short list, at most 1 % wanting more), the rest of the frustum,
+    ///   without errors (no pushes below them): what the next camera move needs first.
+    ///
+    /// A prefetch that later had to be evicted for the view would restart what the view knows
+    /// (measured with all free slots open to it, at 1.5× the view's need on loopback:
+    /// convergence at cycle 90 instead of 27, hundreds dropped). A tail walk that finds nothing
+    /// is not repeated until the view or the resident set changes.
     fn prefetch(&mut self, requests: &mut Vec<RequestItem>) {
         if self.config.policy == PriorityPolicy::Frustum
             || self.config.prefetch_below == 0

@@ -13,9 +13,8 @@
 //!   Priorities are computed by the selected [`PriorityPolicy`]; the list is sorted highest
 //!   first (ties by lower id, the server's own tie rule), then capped.
 
-use std::collections::HashMap;
-
 use arbor_proto::TreeletId;
+use rustc_hash::FxHashMap;
 
 use crate::analysis::FeedbackSample;
 
@@ -105,7 +104,7 @@ pub struct Presort {
     max_requests: usize,
     seen_slots: Vec<bool>,
     /// Per requested treelet: largest error, samples, summed weight.
-    requests: HashMap<TreeletId, (f32, u32, f32)>,
+    requests: FxHashMap<TreeletId, (f32, u32, f32)>,
 }
 
 impl Presort {
@@ -115,7 +114,7 @@ impl Presort {
             policy,
             max_requests: max_requests.max(1),
             seen_slots: Vec::new(),
-            requests: HashMap::new(),
+            requests: FxHashMap::default(),
         }
     }
 
@@ -159,6 +158,7 @@ impl Presort {
         self.seen_slots.resize(slot_count as usize, false);
         self.requests.clear();
         let mut visible = Vec::new();
+        let mut run: Option<Run> = None;
         for (weight, s) in samples.filter(|(_, s)| s.is_hit()) {
             let mut slot = s.node / treelet_nodes;
             // Walk up until a slot already marked: its ancestors are marked too.
@@ -173,15 +173,28 @@ impl Presort {
                     None => break,
                 }
             }
-            if s.wants_refinement() && !skip(TreeletId(s.subtreelet)) {
-                let e = self
-                    .requests
-                    .entry(TreeletId(s.subtreelet))
-                    .or_insert((s.error, 0, 0.0));
-                e.0 = e.0.max(s.error);
-                e.1 += 1;
-                e.2 += weight;
+            if !s.wants_refinement() {
+                continue;
             }
+            // Neighbouring pixels mostly want the same treelet: a run of them is looked up
+            // and checked once, and adds to its entry in the same order as one by one.
+            let id = TreeletId(s.subtreelet);
+            if run.as_ref().is_none_or(|r| r.id != id) {
+                if let Some(r) = run.take() {
+                    r.store(&mut self.requests);
+                }
+                let skipped = skip(id);
+                let sums = self.requests.get(&id).copied().unwrap_or((s.error, 0, 0.0));
+                run = Some(Run { id, skipped, sums });
+            }
+            if let Some(r) = run.as_mut().filter(|r| !r.skipped) {
+                r.sums.0 = r.sums.0.max(s.error);
+                r.sums.1 += 1;
+                r.sums.2 += weight;
+            }
+        }
+        if let Some(r) = run {
+            r.store(&mut self.requests);
         }
         visible.sort_unstable();
         let policy = self.policy;
@@ -208,6 +221,22 @@ impl Presort {
             visible_slots: visible,
             requests,
             distinct_requests,
+        }
+    }
+}
+
+/// Consecutive samples wanting the same treelet: whether it is skipped, and its sums so far
+/// (largest error, samples, summed weight).
+struct Run {
+    id: TreeletId,
+    skipped: bool,
+    sums: (f32, u32, f32),
+}
+
+impl Run {
+    fn store(self, requests: &mut FxHashMap<TreeletId, (f32, u32, f32)>) {
+        if !self.skipped {
+            requests.insert(self.id, self.sums);
         }
     }
 }
@@ -337,5 +366,42 @@ mod tests {
         let out = p.run(&[hit(1000, 2, 1.0)], 16, 4, parent, |_| false);
         assert!(out.visible_slots.is_empty());
         assert_eq!(out.requests.len(), 1);
+    }
+
+    proptest::proptest! {
+        /// Runs of one treelet are looked up once: the result equals summing sample by sample,
+        /// weights included bit for bit, with runs, interleavings, misses, fine hits and skips.
+        #[test]
+        fn runs_sum_as_sample_by_sample(
+            samples in proptest::collection::vec(
+                (0u32..64, 0u32..6, -1.0f32..4.0, 0.0f32..1.0, proptest::bool::ANY),
+                0..300,
+            ),
+        ) {
+            let samples: Vec<(f32, FeedbackSample)> = samples
+                .into_iter()
+                .map(|(node, sub, error, weight, miss)| {
+                    let s = if miss { FeedbackSample::MISS } else { hit(node, sub, error) };
+                    (weight, s)
+                })
+                .collect();
+            let skip = |id: TreeletId| id.0 == 3;
+            let mut p = Presort::new(PriorityPolicy::Centre, 100);
+            let got = p.run_weighted(samples.iter().map(|(w, s)| (*w, s)), 16, 4, parent, skip);
+            let mut want: std::collections::BTreeMap<u32, (f32, u32, f32)> = Default::default();
+            for (w, s) in &samples {
+                if s.wants_refinement() && !skip(TreeletId(s.subtreelet)) {
+                    let e = want.entry(s.subtreelet).or_insert((s.error, 0, 0.0));
+                    e.0 = e.0.max(s.error);
+                    e.1 += 1;
+                    e.2 += w;
+                }
+            }
+            proptest::prop_assert_eq!(got.requests.len(), want.len());
+            for r in &got.requests {
+                let (error, count, weight) = want[&r.id.0];
+                proptest::prop_assert_eq!((r.error, r.samples, r.weight.to_bits()), (error, count, weight.to_bits()));
+            }
+        }
     }
 }
