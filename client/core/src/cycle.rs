@@ -21,7 +21,7 @@ use std::sync::Arc;
 
 use arbor_proto::limits::{MAX_TREELET_BYTES, NODE_BYTES};
 use arbor_proto::wire::ViewHint;
-use arbor_proto::{Channel, SceneDescription, TreeletId};
+use arbor_proto::{Cell, Channel, SceneDescription, TreeletId};
 use rayon::prelude::*;
 use thiserror::Error;
 
@@ -603,6 +603,43 @@ impl ClientCore {
         self.evicted_in_view.extend(self.slots.take_evicted());
     }
 
+    /// The pixels whose rays may meet the leaves an eviction restored at `roots`: each cell's
+    /// screen rectangle, one pixel wider on every side (rays go through pixel centres; the
+    /// margin covers rounding), clamped to the frame; none for a cell wholly behind the eye.
+    /// `None` — forget the whole view — when the rectangles would cover a quarter of it or
+    /// more, or there is no camera yet.
+    fn eviction_rects(&self, roots: &[Cell]) -> Option<Vec<[u32; 4]>> {
+        let camera = self.last_camera?;
+        let (w, h) = (f64::from(camera.width), f64::from(camera.height));
+        let mut rects = Vec::with_capacity(roots.len());
+        let mut area = 0.0;
+        for &cell in roots {
+            let (min, max) = world_box(&self.frame, cell);
+            let Some(rect) = screen_rect(&camera, min, max) else {
+                continue;
+            };
+            if rect.iter().any(|v| v.is_nan()) {
+                return None;
+            }
+            let [x0, y0, x1, y1] = rect;
+            let (x0, y0) = ((x0 - 1.5).floor().max(0.0), (y0 - 1.5).floor().max(0.0));
+            let (x1, y1) = (
+                (x1 + 0.5).ceil().min(w - 1.0),
+                (y1 + 0.5).ceil().min(h - 1.0),
+            );
+            if x0 > x1 || y0 > y1 {
+                // Off the frame: no pixel's ray meets it.
+                continue;
+            }
+            area += (x1 - x0 + 1.0) * (y1 - y0 + 1.0);
+            if area * 4.0 >= w * h {
+                return None;
+            }
+            rects.push([x0 as u32, y0 as u32, x1 as u32, y1 as u32]);
+        }
+        Some(rects)
+    }
+
     /// The view changed (camera or LOD bias): what it needed no longer says anything.
     fn forget_pins(&mut self) {
         self.slots.unpin_all();
@@ -713,11 +750,15 @@ impl ClientCore {
             // The whole view is known: make room from what no pixel reaches.
             let free = self.slots.room().saturating_sub(self.pending() as u32);
             if !bias_changed && distinct as u32 > free {
-                evicted = self.slots.evict_outside(&visible, distinct as u32 - free);
+                let roots;
+                (evicted, roots) = self.slots.evict_outside(&visible, distinct as u32 - free);
                 // A ray may pass through the gaps of an evicted subtree on its way to another
-                // voxel; the restored leaf is solid, so what was known is known no more.
+                // voxel; the restored leaf is solid, so what was known there is known no more.
                 if evicted > 0 {
-                    self.coverage.reset(cycle + 1);
+                    match self.eviction_rects(&roots) {
+                        Some(rects) => self.coverage.forget(cycle + 1, &rects),
+                        None => self.coverage.reset(cycle + 1),
+                    }
                 }
             }
         }

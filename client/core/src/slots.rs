@@ -19,7 +19,7 @@
 use std::fmt;
 
 use arbor_proto::codec;
-use arbor_proto::{Channel, Node, ProtoError, SceneDescription, Treelet, TreeletId};
+use arbor_proto::{Cell, Channel, Node, ProtoError, SceneDescription, Treelet, TreeletId};
 
 use crate::incore::IncoreView;
 
@@ -303,6 +303,8 @@ struct SlotRecord {
     parent_leaf_parent_index: u16,
     child_index_in_parent: u8,
     flags: u8,
+    /// The cell of the treelet's root voxel: what its eviction restores as one leaf.
+    root: Cell,
 }
 
 impl SlotRecord {
@@ -324,6 +326,7 @@ impl SlotRecord {
         parent_leaf_parent_index: 0,
         child_index_in_parent: 0,
         flags: 0,
+        root: Cell::ROOT,
     };
 
     fn is_free(&self) -> bool {
@@ -627,7 +630,9 @@ impl SlotBuffer {
     /// view last changed), so no pixel's hit lies in the treelet. A ray may still have passed
     /// through the gaps of the evicted subtree on its way to its hit, and the restored leaf is
     /// solid, so the caller must sample the view again.
-    pub fn evict_outside(&mut self, visible: &[u32], count: u32) -> u32 {
+    /// Returns the treelets freed and the root cells of the evicted subtrees (where a leaf was
+    /// restored: only rays through those cells can see anything change).
+    pub fn evict_outside(&mut self, visible: &[u32], count: u32) -> (u32, Vec<Cell>) {
         let seen = |slot: u32| visible.binary_search(&slot).is_ok();
         let mut victims: Vec<(u64, u32)> = self
             .records
@@ -638,17 +643,18 @@ impl SlotBuffer {
             .map(|(s, r)| (r.last_visible, s as u32))
             .collect();
         victims.sort_unstable();
-        let mut freed = 0;
+        let (mut freed, mut roots) = (0, Vec::new());
         for (_, slot) in victims {
             if freed >= count {
                 break;
             }
             // An earlier victim may have freed this one as its descendant.
             if !self.records[slot as usize].is_free() {
+                roots.push(self.records[slot as usize].root);
                 freed += self.evict(slot);
             }
         }
-        freed
+        (freed, roots)
     }
 
     /// Keeps treelet `id` (if resident) from eviction until [`SlotBuffer::unpin_all`]: for a
@@ -794,6 +800,7 @@ impl SlotBuffer {
             parent_leaf_parent_index: h.parent_leaf_parent_index,
             child_index_in_parent: h.child_index_in_parent,
             flags: 0,
+            root: h.root_cell(),
         };
         let old_first = self.records[parent as usize].first_child;
         if old_first != NO_SLOT {
@@ -1400,7 +1407,12 @@ mod tests {
         b.pin(TreeletId(6));
         b.begin_cycle();
         b.begin_cycle();
-        assert_eq!(b.evict_outside(&[], 1), 2, "5, and 6 below it");
+        let (freed, roots) = b.evict_outside(&[], 1);
+        assert_eq!(freed, 2, "5, and 6 below it");
+        assert_eq!(
+            roots,
+            vec![treelet(5, Some((0, 2)), &[6]).treelet.header.root_cell()]
+        );
         let mut gone = b.take_evicted();
         gone.sort_unstable();
         assert_eq!(gone, vec![TreeletId(5), TreeletId(6)]);
