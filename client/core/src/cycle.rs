@@ -879,13 +879,15 @@ impl ClientCore {
             max_depth: self.frame.max_depth,
         };
         let (view, frame) = (self.slots.view(), self.frame);
-        let behind: Vec<(TreeletId, f32)> = wanting
+        let mut behind: Vec<(TreeletId, f32)> = wanting
             .par_iter()
             .flat_map_iter(|&i| {
                 let ray = camera.ray(f64::from(i % width) + 0.5, f64::from(i / width) + 0.5);
                 looked_past(&view, &frame, &ray, &lod, depth)
             })
             .collect();
+        // The coarsest first, should the room not take them all.
+        behind.sort_by(|a, b| b.1.total_cmp(&a.1));
         let lowest = requests.iter().map(|r| r.priority).fold(1.0f32, f32::min);
         let mut seen: HashSet<TreeletId> = requests.iter().map(|r| r.id).collect();
         let (slots, backlog, arriving) = (&self.slots, &self.backlog_ids, &self.arriving);
