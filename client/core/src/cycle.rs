@@ -835,6 +835,19 @@ impl ClientCore {
         )
     }
 
+    /// How many more requests the look-past and the prefetch may add to `requests`: only into
+    /// the half of the buffer the view does not need (with a tight budget every slot stays the
+    /// view's), counting what is resident, arriving and predicted below the list, and within
+    /// the list's cap.
+    fn room_beside_the_view(&self, requests: &[RequestItem]) -> usize {
+        let taken = self.slots.used_slots() as usize
+            + self.pending()
+            + self.predicted_slots(requests, true) as usize;
+        (self.slots.capacity() as usize / 2)
+            .saturating_sub(taken)
+            .min(self.config.max_requests.saturating_sub(requests.len()))
+    }
+
     /// Look-past requests ([`CoreConfig::look_past`]), appended below every sampled item,
     /// into the half of the buffer the view does not need (as the prefetch); with a scene
     /// larger than that half, only in the tail proper.
@@ -855,12 +868,7 @@ impl ClientCore {
         if !scene_fits && f64::from(dirty) > TAIL_SHARE * f64::from(pixels) {
             return;
         }
-        let taken = self.slots.used_slots() as usize
-            + self.pending()
-            + self.predicted_slots(requests, true) as usize;
-        let free = (self.slots.capacity() as usize / 2)
-            .saturating_sub(taken)
-            .min(self.config.max_requests.saturating_sub(requests.len()));
+        let free = self.room_beside_the_view(requests);
         if free == 0 {
             return;
         }
@@ -957,14 +965,7 @@ impl ClientCore {
         if !(whole_view || may_open) {
             return;
         }
-        // Only into the half of the buffer the view does not need: with a tight budget every
-        // slot stays the view's.
-        let taken = self.slots.used_slots() as usize
-            + self.pending()
-            + self.predicted_slots(requests, true) as usize;
-        let free = (self.slots.capacity() as usize / 2)
-            .saturating_sub(taken)
-            .min(self.config.max_requests.saturating_sub(requests.len()));
+        let free = self.room_beside_the_view(requests);
         // Around dirty pixels from 10 % on when the scene fits, else only in the tail proper
         // (at 10 % a large scene's view may still need most of its slots).
         let dirty_from = if scene_fits {
