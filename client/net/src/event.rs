@@ -60,6 +60,9 @@ pub struct ClientStats {
     pub disconnects: u64,
     /// Request lists written to the control stream.
     pub lists_sent: u64,
+    /// Request lists not written because they said exactly what the last one sent on this
+    /// connection said.
+    pub lists_unchanged: u64,
     /// Treelet messages received and validated.
     pub treelets_received: u64,
     /// Their bytes on the wire ([`ReceivedTreelet::wire_bytes`] summed).

@@ -175,6 +175,82 @@ async fn a_new_list_replaces_the_old_one_with_a_higher_seq() {
     server.stop(ErrorCode::NoError).await;
 }
 
+/// Waits until the connection task has taken `n` lists (sent or found unchanged).
+async fn wait_handled(c: &TreeletClient, n: u64) {
+    tokio::time::timeout(WAIT, async {
+        while c.stats().lists_sent + c.stats().lists_unchanged < n {
+            tokio::time::sleep(Duration::from_millis(2)).await;
+        }
+    })
+    .await
+    .expect("the list was taken");
+}
+
+#[tokio::test]
+async fn a_list_saying_exactly_what_the_last_said_is_not_sent_again() {
+    let id = Identity::self_signed();
+    let server = FakeServer::start(&id, loopback(), Behaviour::new(TOKEN)).await;
+    let mut client = TreeletClient::start(config(&server, &id)).unwrap();
+    connected(&mut client).await;
+    let list = vec![(TreeletId(1), 1.0), (TreeletId(2), 1.0)];
+    client.request(list.clone()).unwrap();
+    treelets(&mut client, 2).await;
+    client.request(list.clone()).unwrap();
+    wait_handled(&client, 2).await;
+    assert_eq!(
+        (client.stats().lists_sent, client.stats().lists_unchanged),
+        (1, 1)
+    );
+    // A priority differing in one bit is a different list.
+    client
+        .request(vec![
+            (TreeletId(1), 1.0),
+            (TreeletId(2), f32::from_bits(1.0f32.to_bits() + 1)),
+        ])
+        .unwrap();
+    wait_handled(&client, 3).await;
+    // The same items with a view are a deep list: different again.
+    let view = arbor_proto::wire::ViewHint {
+        eye: [0.5, 0.5, 3.0],
+        forward: [0.0, 0.0, -1.0],
+        up: [0.0, 1.0, 0.0],
+        tan_half_fov_y: 0.5,
+        aspect: 1.0,
+        footprint: 0.001,
+        free_slots: 8,
+    };
+    let deep = vec![(TreeletId(1), 1.0, 2.0), (TreeletId(2), 1.0, 2.0)];
+    client.request_deep(deep.clone(), view).unwrap();
+    wait_handled(&client, 4).await;
+    client.request_deep(deep.clone(), view).unwrap();
+    wait_handled(&client, 5).await;
+    assert_eq!(
+        (client.stats().lists_sent, client.stats().lists_unchanged),
+        (3, 2)
+    );
+    // Fewer free slots change the view: sent.
+    client
+        .request_deep(
+            deep,
+            arbor_proto::wire::ViewHint {
+                free_slots: 7,
+                ..view
+            },
+        )
+        .unwrap();
+    tokio::time::timeout(WAIT, async {
+        while server.log().lists.len() < 4 {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    })
+    .await
+    .unwrap();
+    assert_eq!(server.log().lists.len(), 4);
+    assert_eq!(client.stats().lists_sent, 4);
+    client.close().await;
+    server.stop(ErrorCode::NoError).await;
+}
+
 #[tokio::test]
 async fn reconnects_after_shutting_down_and_sends_the_latest_list_again() {
     let id = Identity::self_signed();

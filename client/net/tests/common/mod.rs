@@ -397,6 +397,12 @@ async fn serve(conn: Connection, b: Behaviour, log: Arc<Mutex<Log>>, index: usiz
                     return;
                 }
             }
+            // Logged (as id and priority) but not answered: the fake server pushes nothing.
+            Frame::DeepRequestList { seq, items, .. } => log.lock().unwrap().lists.push((
+                index,
+                seq,
+                items.iter().map(|&(id, p, _)| (id, p)).collect(),
+            )),
             Frame::Goodbye { .. } => log.lock().unwrap().goodbyes += 1,
             _ => {}
         }
