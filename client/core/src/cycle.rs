@@ -378,6 +378,8 @@ pub struct ClientCore {
     evicted_outside: u32,
     /// No pushes are announced before this cycle ([`PUSH_PAUSE_CYCLES`] after an eviction).
     pushes_paused_until: u64,
+    /// The look-past's last traces and what they depended on ([`LookPastKey`]).
+    look_past_memo: Option<(LookPastKey, Vec<(TreeletId, f32)>)>,
     /// Integrations so far, and since which one each waiting orphan push has waited.
     integrations: u64,
     orphans_since: HashMap<TreeletId, u64>,
@@ -467,6 +469,7 @@ impl ClientCore {
             bias_unsettled: false,
             evicted_outside: 0,
             pushes_paused_until: 0,
+            look_past_memo: None,
             integrations: 0,
             orphans_since: HashMap::new(),
             received_twice: 0,
@@ -601,6 +604,21 @@ impl ClientCore {
             self.evicted_in_view.clear();
         }
         self.evicted_in_view.extend(self.slots.take_evicted());
+    }
+
+    /// Forgets, from `cycle` on, what the view knew where evictions since the last call restored
+    /// a leaf: a ray may have passed through the gaps of an evicted subtree on its way to
+    /// another voxel, and the restored leaf is solid. Only the pixels whose rays may meet those
+    /// leaves ([`Self::eviction_rects`]), or the whole view when that is not bounded.
+    fn forget_evicted(&mut self, cycle: u64) {
+        let roots = self.slots.take_evicted_roots();
+        if roots.is_empty() {
+            return;
+        }
+        match self.eviction_rects(&roots) {
+            Some(rects) => self.coverage.forget(cycle, &rects),
+            None => self.coverage.reset(cycle),
+        }
     }
 
     /// The pixels whose rays may meet the leaves an eviction restored at `roots`: each cell's
@@ -750,16 +768,8 @@ impl ClientCore {
             // The whole view is known: make room from what no pixel reaches.
             let free = self.slots.room().saturating_sub(self.pending() as u32);
             if !bias_changed && distinct as u32 > free {
-                let roots;
-                (evicted, roots) = self.slots.evict_outside(&visible, distinct as u32 - free);
-                // A ray may pass through the gaps of an evicted subtree on its way to another
-                // voxel; the restored leaf is solid, so what was known there is known no more.
-                if evicted > 0 {
-                    match self.eviction_rects(&roots) {
-                        Some(rects) => self.coverage.forget(cycle + 1, &rects),
-                        None => self.coverage.reset(cycle + 1),
-                    }
-                }
+                evicted = self.slots.evict_outside(&visible, distinct as u32 - free);
+                self.forget_evicted(cycle + 1);
             }
         }
         self.note_evictions();
@@ -835,6 +845,12 @@ impl ClientCore {
         )
     }
 
+    /// Whether the whole scene fits in half the buffer: then nothing the look-past or the
+    /// prefetch adds can ever stand in the view's way.
+    fn scene_fits_half(&self) -> bool {
+        self.scene.treelet_count as usize <= self.slots.capacity() as usize / 2
+    }
+
     /// How many more requests the look-past and the prefetch may add to `requests`: only into
     /// the half of the buffer the view does not need (with a tight budget every slot stays the
     /// view's), counting what is resident, arriving and predicted below the list, and within
@@ -864,14 +880,57 @@ impl ClientCore {
         if self.coverage.known() < pixels || dirty == 0 {
             return;
         }
-        let scene_fits = self.scene.treelet_count as usize <= self.slots.capacity() as usize / 2;
-        if !scene_fits && f64::from(dirty) > TAIL_SHARE * f64::from(pixels) {
+        if !self.scene_fits_half() && f64::from(dirty) > TAIL_SHARE * f64::from(pixels) {
             return;
         }
         let free = self.room_beside_the_view(requests);
         if free == 0 {
             return;
         }
+        // In the tail most cycles wait for arrivals: nothing sampled, nothing inserted, the
+        // same rays would meet the same treelets.
+        let stats = self.slots.stats();
+        let key = LookPastKey {
+            camera,
+            bias: self.bias.bias().to_bits(),
+            inserted: stats.inserted,
+            evicted: stats.evicted,
+            sampled: self.coverage.sampled_since_reset(),
+            known: self.coverage.known(),
+        };
+        if self.look_past_memo.as_ref().is_none_or(|(k, _)| *k != key) {
+            let behind = self.trace_behind(&camera, depth);
+            self.look_past_memo = Some((key, behind));
+        }
+        let behind = self.look_past_memo.as_ref().map_or(&[][..], |(_, b)| b);
+        let lowest = requests.iter().map(|r| r.priority).fold(1.0f32, f32::min);
+        let mut seen: HashSet<TreeletId> = requests.iter().map(|r| r.id).collect();
+        let (slots, backlog, arriving) = (&self.slots, &self.backlog_ids, &self.arriving);
+        let items = behind
+            .iter()
+            .copied()
+            .filter(|&(id, _)| {
+                !backlog.contains(&id)
+                    && !arriving.contains(&id)
+                    && !slots.is_resident(id)
+                    && seen.insert(id)
+            })
+            .take(free)
+            .map(|(id, error)| RequestItem {
+                id,
+                error: error.min(ViewHint::MAX_ERROR),
+                samples: 0,
+                weight: 0.0,
+                // Below every sampled item, above the prefetch.
+                priority: lowest * 0.75 * (0.5 + 0.5 * error / (1.0 + error)),
+            });
+        requests.extend(items);
+    }
+
+    /// What the rays of (an even spread of at most [`LOOK_PAST_PIXELS`] of) the pixels still
+    /// wanting refinement meet behind their coarse hits, up to `depth` coarse hits deep, the
+    /// coarsest first; a treelet met by several rays comes several times.
+    fn trace_behind(&self, camera: &Camera, depth: usize) -> Vec<(TreeletId, f32)> {
         let width = self.coverage.size().0.max(1);
         let wanting: Vec<u32> = self
             .coverage
@@ -896,27 +955,7 @@ impl ClientCore {
             .collect();
         // The coarsest first, should the room not take them all.
         behind.sort_by(|a, b| b.1.total_cmp(&a.1));
-        let lowest = requests.iter().map(|r| r.priority).fold(1.0f32, f32::min);
-        let mut seen: HashSet<TreeletId> = requests.iter().map(|r| r.id).collect();
-        let (slots, backlog, arriving) = (&self.slots, &self.backlog_ids, &self.arriving);
-        let items = behind
-            .into_iter()
-            .filter(|&(id, _)| {
-                !backlog.contains(&id)
-                    && !arriving.contains(&id)
-                    && !slots.is_resident(id)
-                    && seen.insert(id)
-            })
-            .take(free)
-            .map(|(id, error)| RequestItem {
-                id,
-                error: error.min(ViewHint::MAX_ERROR),
-                samples: 0,
-                weight: 0.0,
-                // Below every sampled item, above the prefetch.
-                priority: lowest * 0.75 * (0.5 + 0.5 * error / (1.0 + error)),
-            });
-        requests.extend(items);
+        behind
     }
 
     /// Tops the list up from the frustum ([`CoreConfig::prefetch_below`]) once the whole view
@@ -959,7 +998,7 @@ impl ClientCore {
         // buffer: then nothing prefetched can ever stand in the view's way (early in a view,
         // `used` is still small and says nothing about what the view will need). Then it may
         // start once a quarter of the view is known; everything else waits for the whole view.
-        let scene_fits = self.scene.treelet_count as usize <= self.slots.capacity() as usize / 2;
+        let scene_fits = self.scene_fits_half();
         let whole_view = known_share >= 1.0;
         let may_open = scene_fits && known_share >= OPEN_VIEW_KNOWN;
         if !(whole_view || may_open) {
@@ -1149,7 +1188,7 @@ impl ClientCore {
     /// displaces anything — and is dropped, and counted, when no slot is free, or when its
     /// parent is still not resident after [`ORPHAN_WAIT_INTEGRATIONS`] integrations (it waits
     /// in the backlog until then). An eviction can uncover a coarse leaf in front of a known
-    /// pixel, so it starts the view's knowledge afresh.
+    /// pixel, so the pixels that may see it are forgotten ([`Self::forget_evicted`]).
     pub fn integrate(&mut self) -> Integration {
         self.arriving.clear();
         let mut inserted = 0;
@@ -1222,9 +1261,7 @@ impl ClientCore {
             let slots = &self.slots;
             f.retain(|id| slots.is_resident(id));
         }
-        if evicted > 0 {
-            self.coverage.reset(self.cycle);
-        }
+        self.forget_evicted(self.cycle);
         self.note_evictions();
         if evicted + self.evicted_outside > 0 {
             self.pushes_paused_until = self.cycle + PUSH_PAUSE_CYCLES;
@@ -1289,6 +1326,19 @@ impl ClientCore {
     pub fn backend_name(&self) -> String {
         self.backend.name()
     }
+}
+
+/// What the look-past's traces depend on: the camera and bias, the resident set (inserted and
+/// evicted only grow), and the view's samples (the count since the last reset only grows, and
+/// a forgetting lowers what is known).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct LookPastKey {
+    camera: Camera,
+    bias: u64,
+    inserted: u64,
+    evicted: u64,
+    sampled: u64,
+    known: u32,
 }
 
 /// The treelets a ray needs behind its first coarse hit: it is traced again past each coarse

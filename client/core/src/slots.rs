@@ -361,6 +361,9 @@ pub struct SlotBuffer {
     stats: SlotStats,
     /// Treelets evicted since the last [`SlotBuffer::take_evicted`].
     evicted_log: Vec<TreeletId>,
+    /// Root cells of the subtrees evicted since the last [`SlotBuffer::take_evicted_roots`]:
+    /// where a leaf was restored, so only rays through them can see anything change.
+    evicted_roots: Vec<Cell>,
 }
 
 impl fmt::Debug for SlotBuffer {
@@ -437,6 +440,7 @@ impl SlotBuffer {
             cycle: 0,
             loaded_this_cycle: 0,
             evicted_log: Vec::new(),
+            evicted_roots: Vec::new(),
             stats: SlotStats::default(),
             config,
         };
@@ -630,9 +634,8 @@ impl SlotBuffer {
     /// view last changed), so no pixel's hit lies in the treelet. A ray may still have passed
     /// through the gaps of the evicted subtree on its way to its hit, and the restored leaf is
     /// solid, so the caller must sample the view again.
-    /// Returns the treelets freed and the root cells of the evicted subtrees (where a leaf was
-    /// restored: only rays through those cells can see anything change).
-    pub fn evict_outside(&mut self, visible: &[u32], count: u32) -> (u32, Vec<Cell>) {
+    /// Returns the treelets freed.
+    pub fn evict_outside(&mut self, visible: &[u32], count: u32) -> u32 {
         let seen = |slot: u32| visible.binary_search(&slot).is_ok();
         let mut victims: Vec<(u64, u32)> = self
             .records
@@ -643,18 +646,17 @@ impl SlotBuffer {
             .map(|(s, r)| (r.last_visible, s as u32))
             .collect();
         victims.sort_unstable();
-        let (mut freed, mut roots) = (0, Vec::new());
+        let mut freed = 0;
         for (_, slot) in victims {
             if freed >= count {
                 break;
             }
             // An earlier victim may have freed this one as its descendant.
             if !self.records[slot as usize].is_free() {
-                roots.push(self.records[slot as usize].root);
                 freed += self.evict(slot);
             }
         }
-        (freed, roots)
+        freed
     }
 
     /// Keeps treelet `id` (if resident) from eviction until [`SlotBuffer::unpin_all`]: for a
@@ -683,6 +685,13 @@ impl SlotBuffer {
     /// The treelets evicted (descendants included) since the last call.
     pub fn take_evicted(&mut self) -> Vec<TreeletId> {
         std::mem::take(&mut self.evicted_log)
+    }
+
+    /// The root cells of the subtrees evicted since the last call (by an insertion or by
+    /// [`SlotBuffer::evict_outside`]), each once: a restored leaf fills each, so only rays
+    /// through them can see anything change.
+    pub fn take_evicted_roots(&mut self) -> Vec<Cell> {
+        std::mem::take(&mut self.evicted_roots)
     }
 
     /// Starts a cycle: every slot's visibility ages by one, the load counter resets.
@@ -1022,6 +1031,7 @@ impl SlotBuffer {
             self.mark_dirty(leaf_parent / n);
         }
         self.mark_dirty(site / n);
+        self.evicted_roots.push(r.root);
         self.unlink(victim);
         // Free the subtree depth-first through the child links, no stack needed: descend to a
         // slot without children, free it, continue at its parent.
@@ -1403,16 +1413,22 @@ mod tests {
         assert_eq!(inserted(&mut b, treelet(6, Some((5, 1)), &[NONE])), (1, 1));
         assert_eq!(b.take_evicted(), vec![TreeletId(1)]);
         assert!(b.take_evicted().is_empty(), "taken once");
+        assert_eq!(
+            b.take_evicted_roots(),
+            vec![treelet(1, Some((0, 1)), &[NONE]).treelet.header.root_cell()],
+            "an insertion's eviction restores a leaf too"
+        );
         // A pinned treelet freed as the descendant of an evicted one leaves its slot unpinned.
         b.pin(TreeletId(6));
         b.begin_cycle();
         b.begin_cycle();
-        let (freed, roots) = b.evict_outside(&[], 1);
-        assert_eq!(freed, 2, "5, and 6 below it");
+        assert_eq!(b.evict_outside(&[], 1), 2, "5, and 6 below it");
         assert_eq!(
-            roots,
-            vec![treelet(5, Some((0, 2)), &[6]).treelet.header.root_cell()]
+            b.take_evicted_roots(),
+            vec![treelet(5, Some((0, 2)), &[6]).treelet.header.root_cell()],
+            "one subtree (6 below 5), one restored leaf"
         );
+        assert!(b.take_evicted_roots().is_empty(), "taken once");
         let mut gone = b.take_evicted();
         gone.sort_unstable();
         assert_eq!(gone, vec![TreeletId(5), TreeletId(6)]);
