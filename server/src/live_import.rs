@@ -377,22 +377,26 @@ fn run_worker(rx: mpsc::Receiver<Arc<Job>>, inner: Weak<Inner>) {
             import_scene_observed(&inner.pool, &job.request, &job.progress, Superseded::Keep)
         });
         let seconds = job.clock.elapsed().as_secs_f64();
-        let result = match result {
+        let (result, phase) = match result {
             Ok((scene, retired)) => {
                 let d = &scene.description;
                 tracing::info!(id = job.id, scene = %d.name, treelets = d.treelet_count, seconds, "import done");
                 if let Some(g) = retired {
                     inner.retire(g, &d.name);
                 }
-                Ok((d.treelet_count, d.stats.voxels, d.primitives))
+                (
+                    Ok((d.treelet_count, d.stats.voxels, d.primitives)),
+                    Phase::Done,
+                )
             }
             Err(e) => {
                 tracing::warn!(id = job.id, scene = %job.request.name, "import failed: {e}");
-                job.progress.enter(Phase::Failed, 0);
-                Err(e.to_string())
+                (Err(e.to_string()), Phase::Failed)
             }
         };
         *lock(&job.outcome) = Some(Outcome { seconds, result });
+        // Last: a watcher that sees the final phase also sees the outcome and the retirement.
+        job.progress.enter(phase, 0);
     }
 }
 

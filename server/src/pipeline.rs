@@ -185,6 +185,10 @@ pub fn build_into_pool(
 }
 
 /// [`build_into_pool`], reporting progress; returns the superseded generation when kept.
+///
+/// The progress stays at [`Phase::Committing`]: the caller enters [`Phase::Done`] once its own
+/// bookkeeping (retiring the old generation, recording the outcome) is finished, so whoever
+/// watches the phase never sees "done" before the import's effects are all visible.
 pub fn build_into_pool_observed(
     pool: &Pool,
     job: &SourceImport<'_>,
@@ -215,7 +219,6 @@ pub fn build_into_pool_observed(
         }
         Superseded::Keep => txn.commit_retaining(&description)?,
     };
-    progress.enter(Phase::Done, 0);
     Ok((description, retired))
 }
 
