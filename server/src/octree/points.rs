@@ -2,8 +2,6 @@
 //! on its leaf cell; attributes average colour and normals (file normals, or estimated from each
 //! point's neighbourhood by PCA).
 
-use std::sync::atomic::{AtomicUsize, Ordering};
-
 use arbor_proto::{AttributeLayout, Cell, Channel};
 use rayon::prelude::*;
 
@@ -304,18 +302,14 @@ fn points_per_group(memory_budget: usize) -> usize {
     (memory_budget / 40).max(1 << 16)
 }
 
-/// Most points the spacing estimate holds at once (16 bytes each): the points around its samples
-/// are gathered for a group of samples at a time, as many groups as that takes.
-const SPACING_POINTS: usize = 4 << 20;
-
 /// Mean distance to the nearest neighbour, estimated from up to 20,000 evenly spread points
-/// (every `n / 20,000`-th in file order). Their neighbours are searched in the 3×3×3 grid cells
-/// around each: a pass over the cloud keeps only the points in those cells, then each sample's
-/// nearest is found among them. How many points that keeps depends on the cloud's shape, not
-/// only its size (13 M of 10⁸ city points, where the grid's surface estimate is coarse), so
-/// when one gathering would pass [`SPACING_POINTS`], the points are counted and the samples
-/// split into as many groups as keep each gathering under it; the estimate is the same
-/// whatever the grouping.
+/// (every `n / 20,000`-th in file order). Each sample's nearest neighbour is searched in the 3×3×3
+/// grid cells around it, in one streaming pass over the cloud: every point whose cell lies around
+/// some sample updates those samples' nearest distances (a table of the samples' cells, a
+/// running minimum per sample and thread). Nothing is gathered, so memory is fixed (≈ 30 bytes per
+/// sample cell and 8 bytes per sample and thread) and one pass suffices whatever the cloud's
+/// shape: gathering the points around the samples first held 13 M of 10⁸ city points and needed
+/// six passes over the cloud to stay bounded.
 pub fn mean_point_spacing(
     pos: &[[f64; 3]],
     min: [f64; 3],
@@ -333,22 +327,8 @@ pub fn mean_point_spacing(
     };
     let step = (pos.len() / 20_000).max(1);
     let samples: Vec<usize> = (0..pos.len()).step_by(step).collect();
-    // One group when its points fit (the common case: no extra pass); otherwise counted, and
-    // as many groups as that takes.
-    let nearest = match nearest_in_groups(pos, &grid, &samples, 1, Some(SPACING_POINTS)) {
-        Some(nearest) => nearest,
-        None => {
-            let gathered = count_around(pos, &grid, &wanted_cells(pos, &grid, &samples));
-            let groups = gathered.div_ceil(SPACING_POINTS).max(1);
-            tracing::debug!(
-                points = gathered,
-                groups,
-                "spacing samples gathered in groups"
-            );
-            nearest_in_groups(pos, &grid, &samples, groups, None).expect("no limit, no refusal")
-        }
-    };
-    // Summed in sample order: the same figure whatever the grouping and the threads.
+    let nearest = nearest_around(pos, &grid, &samples);
+    // Summed in sample order: the same figure whatever the threads.
     let (sum, n) = nearest
         .iter()
         .filter(|d| d.is_finite())
@@ -356,90 +336,47 @@ pub fn mean_point_spacing(
     Ok(if n == 0 { 0.0 } else { sum / n as f64 })
 }
 
-/// Squared distance from each sample to its nearest other point in the 3×3×3 cells around it
-/// (infinite when there is none), the samples taken in `groups` interleaved groups; `None` when
-/// a group's cells hold more than `limit` points (found as they are gathered).
-fn nearest_in_groups(
-    pos: &[[f64; 3]],
-    grid: &Grid,
-    samples: &[usize],
-    groups: usize,
-    limit: Option<usize>,
-) -> Option<Vec<f64>> {
+/// Squared distance from each sample to its nearest point at a positive distance in the 3×3×3
+/// grid cells around it (infinite when there is none), in one pass over `pos`.
+fn nearest_around(pos: &[[f64; 3]], grid: &Grid, samples: &[usize]) -> Vec<f64> {
     const CHUNK: usize = 1 << 16;
-    let mut nearest = vec![f64::INFINITY; samples.len()];
-    for g in 0..groups {
-        let members: Vec<usize> = (g..samples.len()).step_by(groups).collect();
-        let group: Vec<usize> = members.iter().map(|&m| samples[m]).collect();
-        let wanted = wanted_cells(pos, grid, &group);
-        let gathered = AtomicUsize::new(0);
-        let over = |n: usize| limit.is_some_and(|l| n > l);
-        let parts: Vec<Vec<(u64, u32)>> = pos
-            .par_chunks(CHUNK)
-            .enumerate()
-            .map(|(c, chunk)| {
-                if over(gathered.load(Ordering::Relaxed)) {
-                    return None;
-                }
-                let part: Vec<(u64, u32)> = chunk
-                    .iter()
-                    .enumerate()
-                    .filter_map(|(j, &p)| {
-                        let k = grid.key(grid.coords(p));
-                        wanted.contains(&k).then_some((k, (c * CHUNK + j) as u32))
-                    })
-                    .collect();
-                gathered.fetch_add(part.len(), Ordering::Relaxed);
-                Some(part)
-            })
-            .collect::<Option<_>>()?;
-        if over(gathered.into_inner()) {
-            return None;
-        }
-        let mut keys = parts.concat();
-        drop(parts);
-        keys.par_sort_unstable();
-        let near = Grid { keys, ..*grid };
-        let found: Vec<f64> = group
-            .par_iter()
-            .map(|&i| {
-                let p = pos[i];
-                let mut best = f64::INFINITY;
-                near.around(p, |j| {
-                    if j as usize != i {
-                        let d = dist2(p, pos[j as usize]);
-                        if d > 0.0 && d < best {
-                            best = d;
-                        }
+    // (cell, sample) for every cell around every sample, sorted by cell; the table maps a cell
+    // to its run. Probed once per point of the whole cloud: a fast hash.
+    let mut pairs: Vec<(u64, u32)> = Vec::with_capacity(samples.len() * 27);
+    for (s, &i) in samples.iter().enumerate() {
+        grid.cells_around(pos[i], |k| pairs.push((k, s as u32)));
+    }
+    pairs.sort_unstable();
+    let mut runs: rustc_hash::FxHashMap<u64, (u32, u32)> = rustc_hash::FxHashMap::default();
+    for (at, &(k, _)) in pairs.iter().enumerate() {
+        runs.entry(k)
+            .and_modify(|r| r.1 = at as u32 + 1)
+            .or_insert((at as u32, at as u32 + 1));
+    }
+    let sample_pos: Vec<[f64; 3]> = samples.iter().map(|&i| pos[i]).collect();
+    let fresh = || vec![f64::INFINITY; samples.len()];
+    pos.par_chunks(CHUNK)
+        .fold(fresh, |mut best, chunk| {
+            for &p in chunk {
+                let Some(&(from, to)) = runs.get(&grid.key(grid.coords(p))) else {
+                    continue;
+                };
+                for &(_, s) in &pairs[from as usize..to as usize] {
+                    let d = dist2(p, sample_pos[s as usize]);
+                    // The sample itself, and duplicates of it, are at distance 0.
+                    if d > 0.0 && d < best[s as usize] {
+                        best[s as usize] = d;
                     }
-                });
-                best
-            })
-            .collect();
-        for (m, d) in members.into_iter().zip(found) {
-            nearest[m] = d;
-        }
-    }
-    Some(nearest)
-}
-
-/// The grid cells around `samples`. Probed once per point of the whole cloud: a fast hash
-/// (SipHash was most of the spacing pass).
-fn wanted_cells(pos: &[[f64; 3]], grid: &Grid, samples: &[usize]) -> rustc_hash::FxHashSet<u64> {
-    let mut wanted = rustc_hash::FxHashSet::default();
-    for &i in samples {
-        grid.cells_around(pos[i], |k| {
-            wanted.insert(k);
-        });
-    }
-    wanted
-}
-
-/// Points of the cloud in `wanted` cells.
-fn count_around(pos: &[[f64; 3]], grid: &Grid, wanted: &rustc_hash::FxHashSet<u64>) -> usize {
-    pos.par_iter()
-        .filter(|&&p| wanted.contains(&grid.key(grid.coords(p))))
-        .count()
+                }
+            }
+            best
+        })
+        .reduce(fresh, |mut a, b| {
+            for (x, y) in a.iter_mut().zip(b) {
+                *x = x.min(y);
+            }
+            a
+        })
 }
 
 /// `v.floor() as i64` without the libm call `floor` is on baseline x86-64 (this runs for
@@ -811,10 +748,11 @@ mod tests {
     }
 
     #[test]
-    fn spacing_samples_gathered_in_groups_find_the_same_neighbours() {
-        // A long thin strip, the shape whose neighbourhoods gather many points per cell.
+    fn spacing_pass_finds_each_samples_nearest_neighbour_like_brute_force() {
+        // A long thin strip, the shape whose sample neighbourhoods hold many points per cell,
+        // with duplicated points (distance 0 is not a neighbour).
         let mut rng = arbor_proto::rng::SplitMix64::new(11);
-        let pts: Vec<[f64; 3]> = (0..60_000)
+        let mut pts: Vec<[f64; 3]> = (0..20_000)
             .map(|_| {
                 [
                     rng.next_f64() * 1000.0,
@@ -823,6 +761,7 @@ mod tests {
                 ]
             })
             .collect();
+        pts.extend_from_within(..500);
         let (min, max) = ([0.0; 3], [1000.0, 2.0, 0.1]);
         let grid = Grid {
             origin: min,
@@ -830,22 +769,28 @@ mod tests {
             keys: Vec::new(),
         };
         let samples: Vec<usize> = (0..pts.len()).step_by(7).collect();
-        let whole = nearest_in_groups(&pts, &grid, &samples, 1, None).unwrap();
-        // A limit below what the cells hold is refused, not truncated.
-        assert!(nearest_in_groups(&pts, &grid, &samples, 1, Some(1000)).is_none());
-        assert!(whole.iter().all(|d| d.is_finite()));
-        for groups in [2, 5, 64] {
-            let grouped = nearest_in_groups(&pts, &grid, &samples, groups, None).unwrap();
-            assert_eq!(grouped, whole, "{groups}");
-        }
-        // Brute force for a few samples: the true nearest neighbour.
-        for &m in &[0usize, 1000, 8000] {
-            let i = samples[m];
-            let best = (0..pts.len())
-                .filter(|&j| j != i)
-                .map(|j| dist2(pts[i], pts[j]))
+        let found = nearest_around(&pts, &grid, &samples);
+        let mut true_nearest = 0;
+        for (m, &i) in samples.iter().enumerate() {
+            let mut cells = Vec::new();
+            grid.cells_around(pts[i], |k| cells.push(k));
+            let d2 = |j: usize| dist2(pts[i], pts[j]);
+            let positive = |d: &f64| *d > 0.0;
+            // The reference: every point of the cells around the sample, by brute force.
+            let in_cells = (0..pts.len())
+                .filter(|&j| cells.contains(&grid.key(grid.coords(pts[j]))))
+                .map(d2)
+                .filter(positive)
                 .fold(f64::INFINITY, f64::min);
-            assert_eq!(whole[m], best, "sample {m}");
+            assert_eq!(found[m], in_cells, "sample {m}");
+            let anywhere = (0..pts.len())
+                .map(d2)
+                .filter(positive)
+                .fold(f64::INFINITY, f64::min);
+            assert!(found[m] >= anywhere, "sample {m}");
+            true_nearest += usize::from(found[m] == anywhere);
         }
+        // The cells are large enough that the search almost never misses the true nearest.
+        assert!(true_nearest * 100 >= samples.len() * 99, "{true_nearest}");
     }
 }
