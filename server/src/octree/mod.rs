@@ -355,7 +355,13 @@ fn fill_source(
                 }
                 None => {
                     let centre = [0, 1, 2].map(|a| (placed.min[a] + placed.max[a]) * 0.5);
-                    sorted_points::cell_normals(&records, frame.depth, centre, scratch)?
+                    sorted_points::cell_normals(
+                        &records,
+                        &p.positions,
+                        frame.depth,
+                        centre,
+                        scratch,
+                    )?
                 }
             };
             tracing::info!(seconds = t.elapsed().as_secs_f64(), "normals");

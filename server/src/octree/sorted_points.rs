@@ -11,8 +11,8 @@
 //!
 //! The sort is a counting sort into buckets followed by a sort per bucket:
 //! 1. count the points per cell at level `min(depth, 7)` (at most 2²¹ counters);
-//! 2. group consecutive cells (Morton order) into buckets of at most `budget / 40` points;
-//! 3. place each point's [`PointRecord`] (key, position, colour, id) in its bucket's region of
+//! 2. group consecutive cells (Morton order) into buckets of at most `budget / 16` points;
+//! 3. place each point's [`PointRecord`] (key, colour, id) in its bucket's region of
 //!    one mapped scratch file, a round of records at a time, both cores each placing a part of
 //!    the round (the next round is made meanwhile);
 //! 4. sort each bucket where it lies in the mapping (both cores).
@@ -51,13 +51,15 @@ const COUNT_LEVEL: u8 = 7;
 /// Points read per step of the passes.
 const STEP: usize = 1 << 16;
 
-/// One point, as the sorted builder reads it.
+/// One point, as the sorted builder reads it: 16 bytes. The position stays in the source's
+/// column (only the normals read it, by `id`): with it the record was 40 bytes, and writing,
+/// sorting and searching 2.5× the bytes was most of the sort at 10⁸ points (4 GB of fresh
+/// scratch pages).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
 pub struct PointRecord {
     /// Morton key of the leaf cell.
     pub key: u64,
-    pub position: [f64; 3],
     /// The point's index in the source (file order).
     pub id: u32,
     /// 8-bit colour (zero when the source has none).
@@ -209,15 +211,11 @@ pub fn sort_points(
     let depth = frame.depth.min(MAX_KEY_DEPTH);
     let level = depth.min(COUNT_LEVEL);
     let shift = 3 * u32::from(depth - level);
-    let record = |i: usize| {
-        let position = points.positions[i];
-        PointRecord {
-            key: morton(frame.leaf_cell(position)),
-            position,
-            id: i as u32,
-            rgb: points.colors.as_ref().map_or([0; 3], |c| c[i]),
-            _pad: 0,
-        }
+    let record = |i: usize| PointRecord {
+        key: morton(frame.leaf_cell(points.positions[i])),
+        id: i as u32,
+        rgb: points.colors.as_ref().map_or([0; 3], |c| c[i]),
+        _pad: 0,
     };
     let started = std::time::Instant::now();
     // 1. Points per count cell.
@@ -474,6 +472,7 @@ const NORMAL_MAX_POINTS: usize = 256;
 /// [`NORMAL_MIN_POINTS`]; oriented away from the cloud's centre like the general path's.
 pub fn cell_normals(
     records: &[PointRecord],
+    positions: &[[f64; 3]],
     depth: u8,
     centre: [f64; 3],
     scratch: &Path,
@@ -507,7 +506,9 @@ pub fn cell_normals(
         rest = tail;
     }
     parts.into_par_iter().for_each(|(step, part)| {
-        part.copy_from_slice(&step_normals(records, step, depth, level, centre));
+        part.copy_from_slice(&step_normals(
+            records, positions, step, depth, level, centre,
+        ));
     });
     out.finish()
 }
@@ -552,6 +553,7 @@ fn gallop_forward(
 
 fn step_normals(
     records: &[PointRecord],
+    positions: &[[f64; 3]],
     step: Range<usize>,
     depth: u8,
     level: u8,
@@ -581,14 +583,15 @@ fn step_normals(
         let n = match last {
             Some((l, h, n)) if (l, h) == (lo, hi) => n,
             _ => {
-                let origin = records[lo].position;
-                let n = pca_normal(origin, records[lo..hi].iter().map(|r| r.position));
+                let at = |r: &PointRecord| positions[r.id as usize];
+                let n = pca_normal(at(&records[lo]), records[lo..hi].iter().map(at));
                 last = Some((lo, hi, n));
                 n
             }
         };
         for r in &records[at..end] {
-            let dir = [0, 1, 2].map(|a| r.position[a] - centre[a]);
+            let p = positions[r.id as usize];
+            let dir = [0, 1, 2].map(|a| p[a] - centre[a]);
             let flip = n[0] * dir[0] + n[1] * dir[1] + n[2] * dir[2] < 0.0;
             out.push(n.map(|v| if flip { -v } else { v } as f32));
         }
@@ -672,6 +675,5 @@ mod tests {
         want.sort_unstable();
         let got: Vec<(u64, u32)> = sorted.iter().map(|r| (r.key, r.id)).collect();
         assert_eq!(got, want);
-        assert!(sorted.iter().all(|r| r.position == pts[r.id as usize]));
     }
 }
