@@ -835,10 +835,55 @@ pub struct TreeletMessageHeader {
     /// Compressed node block length.
     pub node_len: usize,
     /// `(channel, compressed block length)` in ascending channel id order.
-    pub channels: Vec<(Channel, usize)>,
+    pub channels: ChannelBlocks,
     /// Bytes of the header itself.
     pub header_len: usize,
 }
+
+/// A message's `(channel, compressed block length)` pairs, held inline: a client parses a
+/// header per treelet (twice: the fixed part first), and a vector there was an allocation and a
+/// free per parse. Dereferences to the pairs as a slice.
+#[derive(Clone, Copy)]
+pub struct ChannelBlocks {
+    len: u8,
+    items: [(Channel, usize); MAX_CHANNELS],
+}
+
+impl ChannelBlocks {
+    fn new() -> Self {
+        ChannelBlocks {
+            len: 0,
+            items: [(Channel::Color, 0); MAX_CHANNELS],
+        }
+    }
+
+    /// Appends a pair; the parser checks the count against [`MAX_CHANNELS`] first.
+    fn push(&mut self, item: (Channel, usize)) {
+        self.items[usize::from(self.len)] = item;
+        self.len += 1;
+    }
+}
+
+impl std::ops::Deref for ChannelBlocks {
+    type Target = [(Channel, usize)];
+    fn deref(&self) -> &Self::Target {
+        &self.items[..usize::from(self.len)]
+    }
+}
+
+impl std::fmt::Debug for ChannelBlocks {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_list().entries(self.iter()).finish()
+    }
+}
+
+impl PartialEq for ChannelBlocks {
+    fn eq(&self, other: &Self) -> bool {
+        **self == **other
+    }
+}
+
+impl Eq for ChannelBlocks {}
 
 impl TreeletMessageHeader {
     /// Header plus all blocks.
@@ -896,7 +941,7 @@ pub fn parse_treelet_header(buf: &[u8]) -> Result<Option<TreeletMessageHeader>, 
             limit: MAX_CHANNELS,
         });
     }
-    let mut channels: Vec<(Channel, usize)> = Vec::with_capacity(count);
+    let mut channels = ChannelBlocks::new();
     for _ in 0..count {
         let id = match r.u8("channel id") {
             Ok(v) => v,
@@ -963,7 +1008,7 @@ pub fn decode_treelet_message(buf: &[u8]) -> Result<TreeletMessage<'_>, FrameErr
     let nodes = &buf[at..at + h.node_len];
     at += h.node_len;
     let mut channels = Vec::with_capacity(h.channels.len());
-    for &(c, len) in &h.channels {
+    for &(c, len) in h.channels.iter() {
         channels.push((c, &buf[at..at + len]));
         at += len;
     }
@@ -1738,9 +1783,13 @@ mod tests {
             id: TreeletId(0),
             used_nodes: 1,
             node_len: MAX_COMPRESSED_BLOCK,
-            channels: (0..MAX_CHANNELS)
-                .map(|_| (Channel::Color, MAX_COMPRESSED_BLOCK))
-                .collect(),
+            channels: {
+                let mut c = ChannelBlocks::new();
+                for _ in 0..MAX_CHANNELS {
+                    c.push((Channel::Color, MAX_COMPRESSED_BLOCK));
+                }
+                c
+            },
             header_len: crate::limits::MAX_TREELET_MESSAGE_HEADER,
         };
         assert_eq!(h.total_len(), MAX_TREELET_MESSAGE_BYTES);
