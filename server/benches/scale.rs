@@ -10,8 +10,9 @@
 //! * `ARBOR_SCALE_RUNS` — imports per tool, alternating, best kept (default 1);
 //! * `ARBOR_SCALE_BUDGET_MIB` — `--memory-budget-mib` of the import (default 256);
 //! * `ARBOR_POTREE_CONVERTER` — the PotreeConverter 2 binary (default
-//!   `target/peer/PotreeConverter`, built by hand: it is not part of this project). Without it
-//!   the comparison row says SKIPPED, loudly;
+//!   `target/peer/PotreeConverter`, built there by `scripts/build-potree-converter` when missing,
+//!   from `ARBOR_POTREE_SRC` or a clone of its public repository: it is not part of this
+//!   project). When it cannot be had the comparison row says SKIPPED, loudly;
 //! * `ARBOR_SCALE_STREAM=0` — skip serving and streaming.
 //!
 //! Figures: points/s of each tool, peak anonymous RSS (sampled `RssAnon` of the child), peak
@@ -41,10 +42,23 @@ fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
 }
 
+/// The PotreeConverter 2 binary: `ARBOR_POTREE_CONVERTER`, else `target/peer/PotreeConverter`,
+/// built there first by `scripts/build-potree-converter` when it is missing (from
+/// `ARBOR_POTREE_SRC` or a clone of the public repository; installs cmake, g++ and TBB). `None`
+/// when it cannot be had: the row is then skipped, loudly.
 fn potree() -> Option<PathBuf> {
-    let p = std::env::var_os("ARBOR_POTREE_CONVERTER")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| root().join("target/peer/PotreeConverter"));
+    if let Some(p) = std::env::var_os("ARBOR_POTREE_CONVERTER").map(PathBuf::from) {
+        return p.is_file().then_some(p);
+    }
+    let p = root().join("target/peer/PotreeConverter");
+    if !p.is_file() {
+        println!("PotreeConverter is not built yet: running scripts/build-potree-converter");
+        match Command::new(root().join("scripts/build-potree-converter")).status() {
+            Ok(s) if s.success() => {}
+            Ok(s) => println!("scripts/build-potree-converter failed ({s})"),
+            Err(e) => println!("scripts/build-potree-converter did not run: {e}"),
+        }
+    }
     p.is_file().then_some(p)
 }
 
@@ -102,7 +116,7 @@ fn main() {
     let peer = potree();
     if peer.is_none() {
         println!(
-            "SKIPPED: PotreeConverter not found at {} (set ARBOR_POTREE_CONVERTER; build it by hand, it is not part of this project)",
+            "SKIPPED: PotreeConverter not found at {} and it could not be built (set ARBOR_POTREE_CONVERTER, or ARBOR_POTREE_SRC for scripts/build-potree-converter; it is not part of this project)",
             std::env::var("ARBOR_POTREE_CONVERTER").unwrap_or_else(|_| root()
                 .join("target/peer/PotreeConverter")
                 .display()
