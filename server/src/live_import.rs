@@ -319,8 +319,10 @@ impl Inner {
 }
 
 fn status_of(j: &Job) -> ImportStatus {
-    let outcome = lock(&j.outcome).clone();
+    // The phase first: the worker records the outcome before it enters the final phase, so a
+    // final phase read here always comes with its outcome.
     let progress = j.progress.snapshot();
+    let outcome = lock(&j.outcome).clone();
     let seconds = outcome
         .as_ref()
         .map_or_else(|| j.clock.elapsed().as_secs_f64(), |o| o.seconds);
