@@ -187,11 +187,18 @@ impl Coverage {
             return;
         }
         self.forgotten_at = cycle;
+        // A pixel forgotten before and still in the set is forgotten again all the same: the
+        // pass that resamples it may have been planned before this cycle, and is then ignored
+        // (stale) when it comes back. Skipping it left the pixel unknown and never planned
+        // again (the progressive order visits a pixel once per reset): the view never became
+        // wholly known, nothing outside it could be evicted, and a full buffer stalled.
+        let mut queued = FxHashSet::default();
         for &[x0, y0, x1, y1] in rects {
             for y in y0.min(h - 1)..=y1.min(h - 1) {
                 for x in x0.min(w - 1)..=x1.min(w - 1) {
                     let i = y * w + x;
-                    if !self.forgotten.insert(i) {
+                    self.forgotten.insert(i);
+                    if !queued.insert(i) {
                         continue;
                     }
                     let i = i as usize;
@@ -583,6 +590,31 @@ mod tests {
         c.handle_feedback(&answer(3, &second, |_, _| sample(Node::NONE, 0.0)));
         assert_eq!((c.known(), c.dirty()), (64, 6));
         assert!(c.plan(4, 64, |_| false).is_empty());
+    }
+
+    #[test]
+    fn a_pixel_forgotten_again_before_its_resample_returns_is_planned_again() {
+        let mut c = Coverage::new(8, 8, 8);
+        let plan = c.plan(0, 64, |_| false);
+        c.handle_feedback(&answer(0, &plan, |_, _| sample(Node::NONE, 0.0)));
+        assert!(c.converged());
+        // An eviction at cycle 1 forgets pixel (0, 0); its resample is planned at cycle 1 ...
+        c.forget(1, &[[0, 0, 0, 0]]);
+        let retry = c.plan(1, 64, |_| false);
+        assert_eq!(retry, vec![pack_pixel(0, 0)]);
+        // ... and before that pass comes back, an eviction at cycle 2 forgets it again.
+        c.forget(2, &[[0, 0, 0, 0]]);
+        // The pass of cycle 1 predates the second eviction: it does not count.
+        c.handle_feedback(&answer(1, &retry, |_, _| sample(Node::NONE, 0.0)));
+        assert_eq!(c.known(), 63);
+        assert!(!c.converged());
+        // The pixel is planned again (it used to be lost here: unknown for good), and its new
+        // pass counts.
+        let again = c.plan(2, 64, |_| false);
+        assert_eq!(again, vec![pack_pixel(0, 0)]);
+        c.handle_feedback(&answer(2, &again, |_, _| sample(Node::NONE, 0.0)));
+        assert!(c.converged());
+        assert!(c.plan(3, 64, |_| false).is_empty());
     }
 
     #[test]
