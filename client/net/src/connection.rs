@@ -438,13 +438,20 @@ async fn send_lists(
             // The handle is gone; the shutdown signal ends the session.
             std::future::pending::<()>().await;
         }
-        let latest = lists.borrow_and_update().clone();
-        let Some(list) = latest else { continue };
-        if last.as_ref().is_some_and(|l| l.same_as(&list)) {
-            shared.stats().lists_unchanged += 1;
-            continue;
-        }
-        last = Some(list.clone());
+        // Compared while borrowed: an unchanged list is neither copied nor sent, and a new one
+        // is copied once, into `last`, and sent from there.
+        let list = {
+            let latest = lists.borrow_and_update();
+            let Some(list) = latest.as_ref() else {
+                continue;
+            };
+            if last.as_ref().is_some_and(|l| l.same_as(list)) {
+                shared.stats().lists_unchanged += 1;
+                continue;
+            }
+            list.clone()
+        };
+        let list = &*last.insert(list);
         let keep = |id: TreeletId| id.0 < scene.treelet_count;
         let kept = list.items.iter().filter(|(id, _)| keep(*id)).count();
         if kept < list.items.len() {
