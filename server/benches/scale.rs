@@ -15,8 +15,8 @@
 //!   project). When it cannot be had the comparison row says SKIPPED, loudly;
 //! * `ARBOR_SCALE_STREAM=0` — skip serving and streaming.
 //!
-//! Figures: points/s of each tool, peak anonymous RSS (sampled `RssAnon` of the child), peak
-//! scratch bytes on disk, pool bytes (compressed blocks), sled's size on disk, `verify` time;
+//! Figures: points/s of each tool, Arbor's time per phase of each run (from its log's phase
+//! lines), peak anonymous RSS (sampled `RssAnon` of the child), peak scratch bytes on disk, pool bytes (compressed blocks), sled's size on disk, `verify` time;
 //! then a 1024×768 view streamed at a 64 MiB budget: client peak RSS and time to converge.
 
 #[path = "scale/city.rs"]
@@ -83,6 +83,44 @@ fn potree_convert(bin: &Path, tiles: &Path, out: &Path) -> Measured {
     run_measured(cmd, None)
 }
 
+/// Where an import's time went, from the phase lines of its log (`seconds=` fields): reading
+/// and decoding ends where placing starts (the placing line's arrival less its seconds); the
+/// fill line's seconds include the sort and the normals; the rest is commit and exit.
+fn phases(m: &Measured) -> String {
+    let find = |message: &str| {
+        m.stderr_lines.iter().find_map(|(at, line)| {
+            if !line.contains(message) {
+                return None;
+            }
+            let seconds = line.split("seconds=").nth(1)?.split_whitespace().next()?;
+            Some((*at, seconds.parse::<f64>().ok()?))
+        })
+    };
+    let (
+        Some((placed_at, placing)),
+        Some((_, sort)),
+        Some((_, normals)),
+        Some((_, fill)),
+        Some((stored_at, store)),
+    ) = (
+        find("placing (bounds, resolution) done"),
+        find("points sorted by leaf cell"),
+        find(": normals seconds="),
+        find("fill (with sorting and normals) done"),
+        find("store (attributes, dictionary, compression) done"),
+    )
+    else {
+        return "not in its log (RUST_LOG must let `info` through)".into();
+    };
+    format!(
+        "read and decode {:.1} s, placing {placing:.1}, sort {sort:.1}, normals {normals:.1}, \
+         fill {:.1}, store {store:.1}, commit and exit {:.1}",
+        placed_at - placing,
+        fill - sort - normals,
+        m.seconds - stored_at
+    )
+}
+
 fn dir_bytes(dir: &Path) -> u64 {
     monitor::dir_bytes(dir)
 }
@@ -135,6 +173,7 @@ fn main() {
             mib(a.peak_dir),
             a.cpu_percent
         );
+        println!("run {run}: arbor phases: {}", phases(&a));
         if best_arbor.as_ref().is_none_or(|b| a.seconds < b.seconds) {
             best_arbor = Some(a);
         }

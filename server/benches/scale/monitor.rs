@@ -1,7 +1,7 @@
 //! Runs a child process and samples it: wall time, CPU share, peak anonymous RSS (`RssAnon` from
 //! /proc, every 50 ms) and the peak size of a directory it writes (scratch files).
 
-use std::io::Read;
+use std::io::BufRead;
 use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -16,6 +16,9 @@ pub struct Measured {
     /// User + system CPU over wall time, percent (200 = both cores).
     pub cpu_percent: f64,
     pub stderr_tail: String,
+    /// Every line the child wrote to stderr, with the seconds since its start at which the line
+    /// arrived.
+    pub stderr_lines: Vec<(f64, String)>,
 }
 
 /// Bytes of the files under `dir` (allocated blocks, so sparse files count what they hold).
@@ -65,11 +68,13 @@ pub fn run_measured(mut cmd: Command, watch_dir: Option<&Path>) -> Measured {
         .spawn()
         .expect("starting the child");
     let pid = child.id();
-    let mut stderr = child.stderr.take().unwrap();
+    let stderr = child.stderr.take().unwrap();
     let reader = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = stderr.read_to_string(&mut s);
-        s
+        std::io::BufReader::new(stderr)
+            .lines()
+            .map_while(Result::ok)
+            .map(|line| (t0.elapsed().as_secs_f64(), line))
+            .collect::<Vec<_>>()
     });
     let (mut peak_anon, mut peak_dir) = (0u64, 0u64);
     let status = loop {
@@ -86,14 +91,10 @@ pub fn run_measured(mut cmd: Command, watch_dir: Option<&Path>) -> Measured {
     };
     let seconds = t0.elapsed().as_secs_f64();
     let ticks = children_cpu_ticks() - cpu0;
-    let stderr = reader.join().unwrap_or_default();
-    let tail: String = stderr
-        .lines()
-        .rev()
-        .take(30)
-        .collect::<Vec<_>>()
-        .into_iter()
-        .rev()
+    let stderr_lines = reader.join().unwrap_or_default();
+    let tail = stderr_lines[stderr_lines.len().saturating_sub(30)..]
+        .iter()
+        .map(|(_, l)| l.as_str())
         .collect::<Vec<_>>()
         .join("\n");
     Measured {
@@ -103,5 +104,6 @@ pub fn run_measured(mut cmd: Command, watch_dir: Option<&Path>) -> Measured {
         peak_dir,
         cpu_percent: ticks as f64 / 100.0 / seconds * 100.0,
         stderr_tail: tail,
+        stderr_lines,
     }
 }
