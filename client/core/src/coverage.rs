@@ -88,10 +88,12 @@ pub struct Coverage {
     hints_cycle: u64,
     /// Pixels sampled since the last reset.
     sampled_since_reset: u64,
-    /// Pixels forgotten at `forgotten_at` ([`Coverage::forget`]): feedback of an earlier cycle
-    /// for them describes the view before an eviction. Emptied once no such plan is pending.
-    forgotten: FxHashSet<u32>,
-    forgotten_at: u64,
+    /// Per pixel: the cycle it was last forgotten at ([`Coverage::forget`]; 0 if never):
+    /// feedback of an earlier cycle for it describes the view before an eviction. Per pixel,
+    /// not one cycle for a set of pixels: with one, a later eviction elsewhere made the pending
+    /// resample of a pixel forgotten earlier look stale too, and the pixel was never planned
+    /// again (the view never became wholly known, and a full buffer stalled).
+    forgotten_at: Vec<u64>,
 }
 
 impl Coverage {
@@ -117,8 +119,7 @@ impl Coverage {
             hints: Vec::new(),
             hints_cycle: 0,
             sampled_since_reset: 0,
-            forgotten: FxHashSet::default(),
-            forgotten_at: 0,
+            forgotten_at: vec![0; pixels],
         }
     }
 
@@ -166,7 +167,6 @@ impl Coverage {
         self.element = 0;
         self.outstanding.clear();
         self.retry.clear();
-        self.forgotten.clear();
         self.valid_from = cycle;
         self.recent_views.push_back(cycle);
         if self.recent_views.len() > HINT_VIEWS {
@@ -186,22 +186,21 @@ impl Coverage {
         if w == 0 || h == 0 {
             return;
         }
-        self.forgotten_at = cycle;
-        // A pixel forgotten before and still in the set is forgotten again all the same: the
-        // pass that resamples it may have been planned before this cycle, and is then ignored
-        // (stale) when it comes back. Skipping it left the pixel unknown and never planned
-        // again (the progressive order visits a pixel once per reset): the view never became
-        // wholly known, nothing outside it could be evicted, and a full buffer stalled.
+        // A pixel forgotten before whose resample is still in flight is queued again all the
+        // same: that pass was planned before this cycle and is ignored (stale) when it comes
+        // back. Skipping it left the pixel unknown and never planned again (the progressive
+        // order visits a pixel once per reset): the view never became wholly known, nothing
+        // outside it could be evicted, and a full buffer stalled.
         let mut queued = FxHashSet::default();
         for &[x0, y0, x1, y1] in rects {
             for y in y0.min(h - 1)..=y1.min(h - 1) {
                 for x in x0.min(w - 1)..=x1.min(w - 1) {
                     let i = y * w + x;
-                    self.forgotten.insert(i);
                     if !queued.insert(i) {
                         continue;
                     }
                     let i = i as usize;
+                    self.forgotten_at[i] = cycle;
                     if self.epochs[i] == self.epoch {
                         self.known -= 1;
                         if self.samples[i].wants_refinement() {
@@ -365,17 +364,16 @@ impl Coverage {
             }
             return;
         }
-        // Feedback planned before pixels were forgotten saw what an eviction has changed.
-        let stale = feedback.cycle < self.forgotten_at && !self.forgotten.is_empty();
         for (&p, s) in feedback.pixels.iter().zip(&feedback.samples) {
             let (x, y) = unpack_pixel(p);
             if x >= self.width || y >= self.height {
                 continue;
             }
-            if stale && self.forgotten.contains(&(y * self.width + x)) {
+            let i = (y * self.width + x) as usize;
+            // Planned before the pixel was forgotten: it saw what an eviction has changed.
+            if feedback.cycle < self.forgotten_at[i] {
                 continue;
             }
-            let i = (y * self.width + x) as usize;
             if self.epochs[i] == self.epoch {
                 if self.samples[i].wants_refinement() {
                     self.dirty -= 1;
@@ -389,14 +387,6 @@ impl Coverage {
                 self.dirty += 1;
             }
             self.sampled_since_reset += 1;
-        }
-        // No plan from before the forgetting is pending any more.
-        if self
-            .outstanding
-            .front()
-            .is_none_or(|(c, _)| *c >= self.forgotten_at)
-        {
-            self.forgotten.clear();
         }
     }
 
@@ -613,6 +603,30 @@ mod tests {
         let again = c.plan(2, 64, |_| false);
         assert_eq!(again, vec![pack_pixel(0, 0)]);
         c.handle_feedback(&answer(2, &again, |_, _| sample(Node::NONE, 0.0)));
+        assert!(c.converged());
+        assert!(c.plan(3, 64, |_| false).is_empty());
+    }
+
+    #[test]
+    fn a_resample_in_flight_counts_when_another_pixel_is_forgotten_meanwhile() {
+        let mut c = Coverage::new(8, 8, 8);
+        let plan = c.plan(0, 64, |_| false);
+        c.handle_feedback(&answer(0, &plan, |_, _| sample(Node::NONE, 0.0)));
+        assert!(c.converged());
+        // An eviction at cycle 1 forgets pixel (0, 0); its resample is planned at cycle 1 ...
+        c.forget(1, &[[0, 0, 0, 0]]);
+        let first = c.plan(1, 64, |_| false);
+        assert_eq!(first, vec![pack_pixel(0, 0)]);
+        // ... and before that pass comes back (a pipelined backend), an eviction at cycle 2
+        // forgets another pixel, whose resample is planned at cycle 2.
+        c.forget(2, &[[5, 5, 5, 5]]);
+        let second = c.plan(2, 64, |_| false);
+        assert_eq!(second, vec![pack_pixel(5, 5)]);
+        // The pass of cycle 1 came after (0, 0) was forgotten: it counts. (It used to be
+        // ignored as older than the latest forgetting, and (0, 0) was never planned again.)
+        c.handle_feedback(&answer(1, &first, |_, _| sample(Node::NONE, 0.0)));
+        assert_eq!(c.known(), 63);
+        c.handle_feedback(&answer(2, &second, |_, _| sample(Node::NONE, 0.0)));
         assert!(c.converged());
         assert!(c.plan(3, 64, |_| false).is_empty());
     }
