@@ -16,8 +16,9 @@
 //! * `ARBOR_SCALE_STREAM=0` — skip serving and streaming.
 //!
 //! Figures: points/s of each tool, Arbor's time per phase of each run (from its log's phase
-//! lines), peak anonymous RSS (sampled `RssAnon` of the child), peak scratch bytes on disk, pool bytes (compressed blocks), sled's size on disk, `verify` time;
-//! then a 1024×768 view streamed at a 64 MiB budget: client peak RSS and time to converge.
+//! lines), peak anonymous RSS (sampled `RssAnon` of the child), peak scratch bytes on disk, pool
+//! bytes (compressed blocks), sled's size on disk, `verify` time; then a 1024×768 view streamed
+//! at a 64 MiB budget: client peak RSS and time to converge.
 
 #[path = "scale/city.rs"]
 mod city;
@@ -164,7 +165,11 @@ fn main() {
     let (mut best_arbor, mut best_peer): (Option<Measured>, Option<Measured>) = (None, None);
     for run in 0..runs {
         let a = arbor_import(&tiles_dir, &pool, &scratch, budget);
-        assert!(a.success, "arbor-server import failed:\n{}", a.stderr_tail);
+        assert!(
+            a.success,
+            "arbor-server import failed:\n{}",
+            a.stderr_tail()
+        );
         println!(
             "run {run}: arbor {:.2} s ({:.0} points/s), peak anon {:.1} MiB, scratch peak {:.1} MiB, CPU {:.0} %",
             a.seconds,
@@ -179,7 +184,7 @@ fn main() {
         }
         if let Some(bin) = &peer {
             let p = potree_convert(bin, &tiles_dir, &base.join("potree"));
-            assert!(p.success, "PotreeConverter failed:\n{}", p.stderr_tail);
+            assert!(p.success, "PotreeConverter failed:\n{}", p.stderr_tail());
             println!(
                 "run {run}: PotreeConverter {:.2} s ({:.0} points/s), peak anon {:.1} MiB, output {:.1} MiB, CPU {:.0} %",
                 p.seconds,

@@ -582,16 +582,23 @@ mod tests {
         assert!(c.plan(4, 64, |_| false).is_empty());
     }
 
-    #[test]
-    fn a_pixel_forgotten_again_before_its_resample_returns_is_planned_again() {
+    /// An 8×8 view known and clean at cycle 0; at cycle 1 an eviction forgets pixel (0, 0) and
+    /// its resample is planned (returned), its pass not back yet.
+    fn converged_then_resampling_the_corner() -> (Coverage, Vec<u32>) {
         let mut c = Coverage::new(8, 8, 8);
         let plan = c.plan(0, 64, |_| false);
         c.handle_feedback(&answer(0, &plan, |_, _| sample(Node::NONE, 0.0)));
         assert!(c.converged());
-        // An eviction at cycle 1 forgets pixel (0, 0); its resample is planned at cycle 1 ...
         c.forget(1, &[[0, 0, 0, 0]]);
-        let retry = c.plan(1, 64, |_| false);
-        assert_eq!(retry, vec![pack_pixel(0, 0)]);
+        let resample = c.plan(1, 64, |_| false);
+        assert_eq!(resample, vec![pack_pixel(0, 0)]);
+        (c, resample)
+    }
+
+    #[test]
+    fn a_pixel_forgotten_again_before_its_resample_returns_is_planned_again() {
+        // An eviction at cycle 1 forgets pixel (0, 0); its resample is planned at cycle 1 ...
+        let (mut c, retry) = converged_then_resampling_the_corner();
         // ... and before that pass comes back, an eviction at cycle 2 forgets it again.
         c.forget(2, &[[0, 0, 0, 0]]);
         // The pass of cycle 1 predates the second eviction: it does not count.
@@ -609,14 +616,8 @@ mod tests {
 
     #[test]
     fn a_resample_in_flight_counts_when_another_pixel_is_forgotten_meanwhile() {
-        let mut c = Coverage::new(8, 8, 8);
-        let plan = c.plan(0, 64, |_| false);
-        c.handle_feedback(&answer(0, &plan, |_, _| sample(Node::NONE, 0.0)));
-        assert!(c.converged());
         // An eviction at cycle 1 forgets pixel (0, 0); its resample is planned at cycle 1 ...
-        c.forget(1, &[[0, 0, 0, 0]]);
-        let first = c.plan(1, 64, |_| false);
-        assert_eq!(first, vec![pack_pixel(0, 0)]);
+        let (mut c, first) = converged_then_resampling_the_corner();
         // ... and before that pass comes back (a pipelined backend), an eviction at cycle 2
         // forgets another pixel, whose resample is planned at cycle 2.
         c.forget(2, &[[5, 5, 5, 5]]);

@@ -15,7 +15,6 @@ pub struct Measured {
     pub peak_dir: u64,
     /// User + system CPU over wall time, percent (200 = both cores).
     pub cpu_percent: f64,
-    pub stderr_tail: String,
     /// Every line the child wrote to stderr, with the seconds since its start at which the line
     /// arrived.
     pub stderr_lines: Vec<(f64, String)>,
@@ -92,18 +91,24 @@ pub fn run_measured(mut cmd: Command, watch_dir: Option<&Path>) -> Measured {
     let seconds = t0.elapsed().as_secs_f64();
     let ticks = children_cpu_ticks() - cpu0;
     let stderr_lines = reader.join().unwrap_or_default();
-    let tail = stderr_lines[stderr_lines.len().saturating_sub(30)..]
-        .iter()
-        .map(|(_, l)| l.as_str())
-        .collect::<Vec<_>>()
-        .join("\n");
     Measured {
         success: status.success(),
         seconds,
         peak_anon,
         peak_dir,
         cpu_percent: ticks as f64 / 100.0 / seconds * 100.0,
-        stderr_tail: tail,
         stderr_lines,
+    }
+}
+
+impl Measured {
+    /// The last 30 lines the child wrote to stderr (for a failure's message).
+    pub fn stderr_tail(&self) -> String {
+        let lines = &self.stderr_lines[self.stderr_lines.len().saturating_sub(30)..];
+        lines
+            .iter()
+            .map(|(_, l)| l.as_str())
+            .collect::<Vec<_>>()
+            .join("\n")
     }
 }
