@@ -197,7 +197,7 @@ fn build_pool(
     pool.flush()?;
     let elapsed = t.elapsed();
     let bytes = pool.disk_bytes()?;
-    let stored = pool.scene(name)?.stored_treelets();
+    let stored = pool.scene(name)?.stored_treelets()?;
     if stored != desc.treelet_count as usize {
         eprintln!(
             "ANOMALY {name}: pool holds {stored} node blocks for {} treelets",

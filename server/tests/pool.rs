@@ -6,7 +6,7 @@ use std::path::Path;
 use arbor_proto::{Channel, TreeletId, codec};
 use arbor_server::import::{ImportOptions, import_file};
 use arbor_server::octree::{BuildOptions, DepthChoice, build_scene};
-use arbor_server::pool::{Pool, PoolError};
+use arbor_server::pool::{Pool, PoolError, pack};
 use arbor_server::source::Source;
 use arbor_server::verify::verify_scene;
 
@@ -31,14 +31,19 @@ fn opts() -> BuildOptions {
 }
 
 /// Opens a pool, waiting for sled's flusher thread of a just-dropped handle to let go of the lock.
-fn reopen(dir: &Path) -> Pool {
+/// Opens a pool, waiting while the process's previous handle still holds sled's lock.
+fn open_when_unlocked(dir: &Path) -> Result<Pool, PoolError> {
     for _ in 0..100 {
         match Pool::open(dir) {
-            Ok(p) => return p,
-            Err(_) => std::thread::sleep(std::time::Duration::from_millis(50)),
+            Err(PoolError::Sled(_)) => std::thread::sleep(std::time::Duration::from_millis(50)),
+            opened => return opened,
         }
     }
-    Pool::open(dir).unwrap()
+    Pool::open(dir)
+}
+
+fn reopen(dir: &Path) -> Pool {
+    open_when_unlocked(dir).unwrap()
 }
 
 fn import(pool: &Pool, source: &Source, scratch: &Path, name: &str, replace: bool) {
@@ -169,13 +174,7 @@ fn damaged(damage: impl FnOnce(&sled::Db, u64, &arbor_proto::SceneDescription)) 
         (s.generation, s.description.clone())
     };
     {
-        let db = (0..100)
-            .find_map(|_| {
-                sled::open(dir.path())
-                    .map_err(|_| std::thread::sleep(std::time::Duration::from_millis(50)))
-                    .ok()
-            })
-            .expect("sled lock released");
+        let db = raw_sled(dir.path());
         damage(&db, generation, &desc);
         db.flush().unwrap();
     }
@@ -185,16 +184,76 @@ fn damaged(damage: impl FnOnce(&sled::Db, u64, &arbor_proto::SceneDescription)) 
     r.problems
 }
 
+/// The pool's database opened directly, once the pool that had it has let go of its lock.
+fn raw_sled(dir: &Path) -> sled::Db {
+    (0..100)
+        .find_map(|_| {
+            sled::open(dir)
+                .map_err(|_| std::thread::sleep(std::time::Duration::from_millis(50)))
+                .ok()
+        })
+        .expect("sled lock released")
+}
+
+#[test]
+fn a_pool_of_another_format_is_refused_naming_both() {
+    let scratch = tempfile::tempdir().unwrap();
+    let source = bunny(scratch.path());
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let pool = Pool::open(dir.path()).unwrap();
+        import(&pool, &source, scratch.path(), "f", false);
+    }
+    // No format key beside scenes: a pool of format 1 (one value per block); a later number:
+    // a newer build's pool.
+    for (stored, found) in [(None, 1), (Some(3u32), 3)] {
+        {
+            let db = raw_sled(dir.path());
+            match stored {
+                None => db.remove(b"arbor.pool.format").unwrap(),
+                Some(v) => db.insert(b"arbor.pool.format", &v.to_be_bytes()).unwrap(),
+            };
+            db.flush().unwrap();
+        }
+        let e = open_when_unlocked(dir.path()).unwrap_err();
+        assert!(
+            matches!(e, PoolError::Format { found: f, expected: 2 } if f == found),
+            "{e}"
+        );
+        assert!(e.to_string().contains("import the scenes again"), "{e}");
+    }
+    // A new, empty pool takes this build's format.
+    let fresh = tempfile::tempdir().unwrap();
+    drop(Pool::open(fresh.path()).unwrap());
+    assert!(open_when_unlocked(fresh.path()).is_ok());
+}
+
 fn nodes_tree(db: &sled::Db, g: u64) -> sled::Tree {
     db.open_tree(format!("g{g}:nodes")).unwrap()
+}
+
+/// A treelet's stored block, read from its pack.
+fn stored_block(t: &sled::Tree, id: u32) -> Vec<u8> {
+    let (key, slot) = pack::locate(TreeletId(id));
+    let p = t.get(key).unwrap().expect("pack stored");
+    pack::block(&p, slot)
+        .unwrap()
+        .expect("block stored")
+        .to_vec()
+}
+
+/// Rewrites a treelet's block in its pack (empty: the treelet is absent).
+fn store_block(t: &sled::Tree, id: u32, block: Vec<u8>) {
+    let (key, slot) = pack::locate(TreeletId(id));
+    let mut blocks = pack::blocks(&t.get(key).unwrap().expect("pack stored")).unwrap();
+    blocks[slot] = block;
+    t.insert(key, pack::encode(&blocks)).unwrap();
 }
 
 #[test]
 fn verify_catches_garbage_blocks() {
     let p = damaged(|db, g, _| {
-        nodes_tree(db, g)
-            .insert(3u32.to_be_bytes(), vec![0xAB; 40])
-            .unwrap();
+        store_block(&nodes_tree(db, g), 3, vec![0xAB; 40]);
     });
     assert!(p.iter().any(|p| p.starts_with("treelet 3:")), "{p:?}");
 }
@@ -202,9 +261,7 @@ fn verify_catches_garbage_blocks() {
 #[test]
 fn verify_catches_missing_subtreelets() {
     let p = damaged(|db, g, d| {
-        nodes_tree(db, g)
-            .remove((d.treelet_count - 1).to_be_bytes())
-            .unwrap();
+        store_block(&nodes_tree(db, g), d.treelet_count - 1, Vec::new());
     });
     assert!(p.iter().any(|p| p.contains("does not exist")), "{p:?}");
 }
@@ -213,10 +270,9 @@ fn verify_catches_missing_subtreelets() {
 fn verify_catches_swapped_treelets() {
     let p = damaged(|db, g, _| {
         let t = nodes_tree(db, g);
-        let a = t.get(5u32.to_be_bytes()).unwrap().unwrap();
-        let b = t.get(6u32.to_be_bytes()).unwrap().unwrap();
-        t.insert(5u32.to_be_bytes(), b).unwrap();
-        t.insert(6u32.to_be_bytes(), a).unwrap();
+        let (a, b) = (stored_block(&t, 5), stored_block(&t, 6));
+        store_block(&t, 5, b);
+        store_block(&t, 6, a);
     });
     assert!(p.iter().any(|p| p.contains("says it is")), "{p:?}");
 }
@@ -227,22 +283,22 @@ fn verify_catches_wrong_links_and_attributes() {
     let p = damaged(|db, g, d| {
         let t = nodes_tree(db, g);
         let dict = d.node_dictionary.as_deref();
-        let stored = t.get(1u32.to_be_bytes()).unwrap().unwrap();
+        let stored = stored_block(&t, 1);
         let mut tr = codec::decode_compressed_treelet(&stored, d.max_depth, dict).unwrap();
         tr.header.parent_leaf_index ^= 1;
         let packed = codec::compress(&codec::encode_treelet(&tr), 3, dict).unwrap();
-        t.insert(1u32.to_be_bytes(), packed).unwrap();
+        store_block(&t, 1, packed);
     });
     assert!(p.iter().any(|p| p.contains("header says parent")), "{p:?}");
     // Flip an inner node's normal in the root treelet.
     let p = damaged(|db, g, d| {
         let c = db.open_tree(format!("g{g}:ch:normal")).unwrap();
         let dict = d.channel_dictionary(Channel::Normal);
-        let nodes = nodes_tree(db, g).get(0u32.to_be_bytes()).unwrap().unwrap();
+        let nodes = stored_block(&nodes_tree(db, g), 0);
         let tr =
             codec::decode_compressed_treelet(&nodes, d.max_depth, d.node_dictionary.as_deref())
                 .unwrap();
-        let stored = c.get(0u32.to_be_bytes()).unwrap().unwrap();
+        let stored = stored_block(&c, 0);
         let mut block = codec::decode_compressed_attributes(
             &stored,
             Channel::Normal,
@@ -252,11 +308,7 @@ fn verify_catches_wrong_links_and_attributes() {
         .unwrap();
         block[0] ^= 0x80;
         block[1] ^= 0x80;
-        c.insert(
-            0u32.to_be_bytes(),
-            codec::compress(&block, 3, dict).unwrap(),
-        )
-        .unwrap();
+        store_block(&c, 0, codec::compress(&block, 3, dict).unwrap());
     });
     assert!(p.iter().any(|p| p.contains("is not the mean")), "{p:?}");
 }

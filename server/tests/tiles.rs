@@ -82,7 +82,7 @@ fn assert_same_scene(pool: &Pool, a: &str, b: &str) {
             );
         }
     }
-    assert_eq!(sa.stored_treelets(), sb.stored_treelets());
+    assert_eq!(sa.stored_treelets().unwrap(), sb.stored_treelets().unwrap());
 }
 
 /// Lion split into three tiles (LAZ, LAS, LAZ) in file order imports to the very scene the

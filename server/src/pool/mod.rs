@@ -2,12 +2,16 @@
 //!
 //! Layout: a `catalogue` tree maps a scene name to its *generation* (a fresh id per import) and
 //! encoded [`SceneDescription`]. A generation `g` owns the trees `g{g}:nodes` and
-//! `g{g}:ch:{channel}`, keyed by big-endian treelet id, so a channel is read without touching the
-//! others. An import writes its generation's trees, flushes them, and only then inserts the
+//! `g{g}:ch:{channel}`, so a channel is read without touching the others. Their values are
+//! [`pack`]s of 16 consecutive treelets' blocks, keyed by big-endian pack index. The default tree
+//! holds the pool's format number; a pool of another format is refused when opened, naming
+//! both. An import writes its generation's trees, flushes them, and only then inserts the
 //! catalogue entry (one atomic sled insert, then flushed): a scene is visible only when complete.
 //! Trees of a generation that no catalogue entry names are leftovers of a killed import; they are
 //! dropped when the pool is opened. sled holds an exclusive lock on the directory, so no live
 //! import can be mistaken for a leftover.
+
+pub mod pack;
 
 use std::path::Path;
 
@@ -15,6 +19,8 @@ use arbor_proto::scene::validate_scene_name;
 use arbor_proto::{AttributeLayout, Channel, ProtoError, SceneDescription, TreeletId};
 
 use crate::octree::{BuildError, TreeletSink};
+pub use pack::PACK_TREELETS;
+use pack::PackWriter;
 
 /// Errors of the pool.
 #[derive(Debug, thiserror::Error)]
@@ -41,9 +47,21 @@ pub enum PoolError {
     /// A generation still named by the catalogue cannot be dropped as retired.
     #[error("generation {0} is still published")]
     GenerationLive(u64),
+    /// The pool was written in a format this build does not read (format 1 kept one value per
+    /// block; format 2 packs them).
+    #[error(
+        "pool format {found}, this build reads format {expected}: import the scenes again into a new pool directory"
+    )]
+    Format { found: u32, expected: u32 },
 }
 
 const CATALOGUE: &str = "catalogue";
+
+/// Key of the pool's format number (u32, big-endian) in the default tree.
+const FORMAT_KEY: &[u8] = b"arbor.pool.format";
+/// The format this build writes and reads: 2, treelet blocks in packs. A pool without the key
+/// but with scenes predates it (format 1).
+const FORMAT: u32 = 2;
 
 /// sled page cache size.
 pub const POOL_CACHE_BYTES: u64 = 128 << 20;
@@ -81,7 +99,7 @@ pub struct StoredScene {
 impl StoredScene {
     /// The compressed node block of a treelet.
     pub fn nodes(&self, id: TreeletId) -> Result<Option<sled::IVec>, PoolError> {
-        Ok(self.nodes.get(id.0.to_be_bytes())?)
+        packed_block(&self.nodes, "nodes", id)
     }
 
     /// The compressed attribute block of one channel of a treelet; `None` if the scene lacks the
@@ -92,32 +110,58 @@ impl StoredScene {
         id: TreeletId,
     ) -> Result<Option<sled::IVec>, PoolError> {
         match self.channels.iter().find(|(c, _)| *c == channel) {
-            Some((_, t)) => Ok(t.get(id.0.to_be_bytes())?),
+            Some((c, t)) => packed_block(t, c.name(), id),
             None => Ok(None),
         }
     }
 
     /// Number of node blocks stored.
-    pub fn stored_treelets(&self) -> usize {
-        self.nodes.len()
+    pub fn stored_treelets(&self) -> Result<usize, PoolError> {
+        self.stored_ids().try_fold(0, |n, id| id.map(|_| n + 1))
     }
 
     /// Ids of the stored node blocks, ascending.
     pub fn stored_ids(&self) -> impl Iterator<Item = Result<TreeletId, PoolError>> + '_ {
-        self.nodes.iter().keys().map(|k| {
-            let k = k?;
-            let id = <[u8; 4]>::try_from(k.as_ref())
-                .map(u32::from_be_bytes)
-                .map_err(|_| PoolError::Corrupt {
-                    what: format!("key {:?}", k.as_ref()),
-                    source: ProtoError::OutOfRange {
-                        what: "treelet key",
-                        detail: "not 4 bytes".into(),
-                    },
+        self.nodes.iter().flat_map(|entry| {
+            let ids = entry.map_err(PoolError::from).and_then(|(k, v)| {
+                let corrupt = |source| PoolError::Corrupt {
+                    what: format!("nodes pack key {:?}", k.as_ref()),
+                    source,
+                };
+                let first = pack::first_id(&k).ok_or_else(|| {
+                    corrupt(ProtoError::OutOfRange {
+                        what: "pack key",
+                        detail: "not a 4-byte pack index".into(),
+                    })
                 })?;
-            Ok(TreeletId(id))
+                let slots = pack::present(&v).map_err(corrupt)?;
+                Ok(slots
+                    .into_iter()
+                    .map(move |s| Ok(TreeletId(first + s as u32)))
+                    .collect::<Vec<_>>())
+            });
+            match ids {
+                Ok(ids) => ids,
+                Err(e) => vec![Err(e)],
+            }
         })
     }
+}
+
+/// The block of `id` in a tree of packs (`stream` names the tree in errors).
+fn packed_block(
+    tree: &sled::Tree,
+    stream: &str,
+    id: TreeletId,
+) -> Result<Option<sled::IVec>, PoolError> {
+    let (key, slot) = pack::locate(id);
+    let Some(p) = tree.get(key)? else {
+        return Ok(None);
+    };
+    pack::block(&p, slot).map_err(|source| PoolError::Corrupt {
+        what: format!("{stream} pack of treelet {}", id.0),
+        source,
+    })
 }
 
 impl Pool {
@@ -130,6 +174,7 @@ impl Pool {
             .cache_capacity(POOL_CACHE_BYTES)
             .open()?;
         let catalogue = db.open_tree(CATALOGUE)?;
+        check_format(&db, &catalogue)?;
         let pool = Pool { db, catalogue };
         let cleaned = pool.drop_leftovers()?;
         if cleaned > 0 {
@@ -211,7 +256,7 @@ impl Pool {
             return Err(PoolError::SceneExists(name.to_owned()));
         }
         let generation = self.db.generate_id()?;
-        let nodes = self.db.open_tree(nodes_tree(generation))?;
+        let nodes = PackWriter::new(self.db.open_tree(nodes_tree(generation))?);
         Ok(PoolImport {
             pool: self.clone(),
             name: name.to_owned(),
@@ -286,6 +331,38 @@ impl Pool {
     }
 }
 
+/// Refuses a pool of another format; marks a new one with this build's.
+fn check_format(db: &sled::Db, catalogue: &sled::Tree) -> Result<(), PoolError> {
+    let found = match db.get(FORMAT_KEY)? {
+        Some(v) => match <[u8; 4]>::try_from(v.as_ref()) {
+            Ok(b) => u32::from_be_bytes(b),
+            Err(_) => {
+                return Err(PoolError::Corrupt {
+                    what: "pool format".into(),
+                    source: ProtoError::Truncated {
+                        what: "pool format",
+                        need: 4,
+                        have: v.len(),
+                    },
+                });
+            }
+        },
+        None if catalogue.is_empty() => {
+            db.insert(FORMAT_KEY, &FORMAT.to_be_bytes())?;
+            db.flush()?;
+            FORMAT
+        }
+        None => 1,
+    };
+    if found != FORMAT {
+        return Err(PoolError::Format {
+            found,
+            expected: FORMAT,
+        });
+    }
+    Ok(())
+}
+
 fn decode_entry(key: &[u8], v: &[u8]) -> Result<(u64, SceneDescription), PoolError> {
     let what = || format!("catalogue {:?}", String::from_utf8_lossy(key));
     if v.len() < 8 {
@@ -314,8 +391,8 @@ pub struct PoolImport {
     name: String,
     replace: bool,
     generation: u64,
-    nodes: sled::Tree,
-    channels: Vec<sled::Tree>,
+    nodes: PackWriter,
+    channels: Vec<PackWriter>,
     committed: bool,
 }
 
@@ -324,7 +401,10 @@ impl PoolImport {
     pub fn set_channels(&mut self, channels: &[Channel]) -> Result<(), PoolError> {
         self.channels = channels
             .iter()
-            .map(|&c| self.pool.db.open_tree(channel_tree(self.generation, c)))
+            .map(|&c| {
+                let tree = self.pool.db.open_tree(channel_tree(self.generation, c))?;
+                Ok::<_, PoolError>(PackWriter::new(tree))
+            })
             .collect::<Result<_, _>>()?;
         Ok(())
     }
@@ -358,6 +438,10 @@ impl PoolImport {
             what: format!("new scene {:?}", self.name),
             source,
         })?;
+        self.nodes.finish()?;
+        for c in &mut self.channels {
+            c.finish()?;
+        }
         self.pool.db.flush()?;
         let mut entry = self.generation.to_be_bytes().to_vec();
         entry.extend_from_slice(&encoded);
@@ -399,7 +483,7 @@ impl TreeletSink for PoolImport {
     }
 
     fn put_nodes(&mut self, blocks: Vec<(TreeletId, Vec<u8>)>) -> Result<(), BuildError> {
-        write_column(&self.nodes, blocks)
+        write_column(&mut self.nodes, blocks)
     }
 
     /// Each channel's tree is written by a thread of its own: sled's inserts were the import's
@@ -421,7 +505,7 @@ impl TreeletSink for PoolImport {
             }
         }
         std::thread::scope(|scope| {
-            let mut pairs = self.channels.iter().zip(columns);
+            let mut pairs = self.channels.iter_mut().zip(columns);
             let first = pairs.next();
             let others: Vec<_> = pairs
                 .map(|(tree, column)| scope.spawn(move || write_column(tree, column)))
@@ -438,10 +522,14 @@ impl TreeletSink for PoolImport {
     }
 }
 
-/// Inserts `(treelet, block)` pairs into one of an import's trees.
-fn write_column(tree: &sled::Tree, column: Vec<(TreeletId, Vec<u8>)>) -> Result<(), BuildError> {
+/// Hands `(treelet, block)` pairs to one of an import's pack writers.
+fn write_column(
+    packs: &mut PackWriter,
+    column: Vec<(TreeletId, Vec<u8>)>,
+) -> Result<(), BuildError> {
     for (id, block) in column {
-        tree.insert(id.0.to_be_bytes(), block)
+        packs
+            .put(id, block)
             .map_err(|e| BuildError::Sink(e.to_string()))?;
     }
     Ok(())
