@@ -206,6 +206,34 @@ impl<T: Pod> ColumnMut<T> {
         })
     }
 
+    /// Maps, writable, `len` elements of a scratch file that was written whole already (its
+    /// pages are in the page cache, so writes through the mapping fault no holes in).
+    #[allow(unsafe_code)]
+    pub fn map_written(file: File, path: &Path, len: usize) -> Result<Self, ColumnError> {
+        let io = |source| ColumnError::Io {
+            path: path.to_owned(),
+            source,
+        };
+        let bytes = (len * std::mem::size_of::<T>()) as u64;
+        if file.metadata().map_err(io)?.len() < bytes {
+            return Err(io(std::io::Error::other(
+                "scratch file shorter than its records",
+            )));
+        }
+        let map = if len == 0 {
+            None
+        } else {
+            // SAFETY: the file is private to this import's scratch directory.
+            Some(unsafe { memmap2::MmapMut::map_mut(&file) }.map_err(io)?)
+        };
+        Ok(Self {
+            path: path.to_owned(),
+            map,
+            len,
+            _t: PhantomData,
+        })
+    }
+
     /// Flushes and turns the mapping read-only.
     pub fn finish(self) -> Result<Column<T>, ColumnError> {
         let path = self.path;
