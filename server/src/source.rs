@@ -182,7 +182,6 @@ impl<T: Pod> ColumnMut<T> {
     /// `fallocate`d mapping took 9.4 s to fill on these machines against 2.1 s for a sparse
     /// one (unwritten extents converted page by page at writeback), though at 1 GiB they were
     /// even.
-    #[allow(unsafe_code)]
     pub fn create(dir: &Path, name: &str, len: usize) -> Result<Self, ColumnError> {
         let path = column_path(dir, name);
         let io = |source| ColumnError::Io {
@@ -190,24 +189,14 @@ impl<T: Pod> ColumnMut<T> {
             source,
         };
         let file = scratch_file(&path).map_err(io)?;
-        let bytes = (len * std::mem::size_of::<T>()) as u64;
-        file.set_len(bytes).map_err(io)?;
-        let map = if len == 0 {
-            None
-        } else {
-            // SAFETY: the file is private to this import's scratch directory.
-            Some(unsafe { memmap2::MmapMut::map_mut(&file) }.map_err(io)?)
-        };
-        Ok(Self {
-            path,
-            map,
-            len,
-            _t: PhantomData,
-        })
+        file.set_len((len * std::mem::size_of::<T>()) as u64)
+            .map_err(io)?;
+        Self::map_written(file, &path, len)
     }
 
-    /// Maps, writable, `len` elements of a scratch file that was written whole already (its
-    /// pages are in the page cache, so writes through the mapping fault no holes in).
+    /// Maps, writable, `len` elements of a scratch file at least that long. One written whole
+    /// already (e.g. with `pwrite`) has its pages in the page cache, so writes through the
+    /// mapping fault no holes in.
     #[allow(unsafe_code)]
     pub fn map_written(file: File, path: &Path, len: usize) -> Result<Self, ColumnError> {
         let io = |source| ColumnError::Io {

@@ -19,7 +19,6 @@ use arbor_proto::scene::validate_scene_name;
 use arbor_proto::{AttributeLayout, Channel, ProtoError, SceneDescription, TreeletId};
 
 use crate::octree::{BuildError, TreeletSink};
-pub use pack::PACK_TREELETS;
 use pack::PackWriter;
 
 /// Errors of the pool.
@@ -131,7 +130,7 @@ impl StoredScene {
                 let first = pack::first_id(&k).ok_or_else(|| {
                     corrupt(ProtoError::OutOfRange {
                         what: "pack key",
-                        detail: "not a 4-byte pack index".into(),
+                        detail: "not a 4-byte pack index of ids below 2³²".into(),
                     })
                 })?;
                 let slots = pack::present(&v).map_err(corrupt)?;

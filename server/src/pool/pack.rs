@@ -28,12 +28,15 @@ const COUNT_BYTES: usize = 2;
 /// Bytes of one end offset.
 const OFFSET_BYTES: usize = 4;
 
+/// The index of the pack holding `id`, and the slot within it.
+fn split(id: TreeletId) -> (u32, usize) {
+    (id.0 / PACK_TREELETS, (id.0 % PACK_TREELETS) as usize)
+}
+
 /// The sled key of the pack holding `id`, and the slot within it.
 pub fn locate(id: TreeletId) -> ([u8; 4], usize) {
-    (
-        (id.0 / PACK_TREELETS).to_be_bytes(),
-        (id.0 % PACK_TREELETS) as usize,
-    )
+    let (pack, slot) = split(id);
+    (pack.to_be_bytes(), slot)
 }
 
 /// The first treelet id of the pack stored under `key`; `None` for a key that is not 4 bytes or
@@ -186,8 +189,7 @@ impl PackWriter {
 
     /// Adds the block of `id`; a block given twice replaces the first.
     pub fn put(&mut self, id: TreeletId, block: Vec<u8>) -> Result<(), sled::Error> {
-        let pack = id.0 / PACK_TREELETS;
-        let slot = (id.0 % PACK_TREELETS) as usize;
+        let (pack, slot) = split(id);
         let (blocks, filled) = self
             .open
             .entry(pack)
