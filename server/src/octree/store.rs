@@ -206,8 +206,8 @@ fn train_node_dictionary(records: &RecordFile, count: u32) -> Result<Option<Vec<
     })
 }
 
-/// A treelet's id, its root voxel's attribute bytes, its compressed channel blocks and their
-/// raw bytes.
+/// A treelet's id, its root voxel's attribute bytes (channels in layout order), its compressed
+/// channel blocks and their raw bytes.
 type Averaged = (u32, Vec<u8>, Vec<Vec<u8>>, u64);
 
 /// The attribute stream: levels deepest first, each treelet averaged and its channels
@@ -239,15 +239,21 @@ fn store_attributes(
                 .map_init(
                     || pool.lease(),
                     |lease, id| {
-                        let a = average_treelet(scene, id, &below)?;
-                        let blocks = channel_blocks(layout, &a.attrs, bpv, a.used);
+                        let blocks = average_treelet(scene, id, &below)?;
                         let raw = blocks.iter().map(|b| b.len() as u64).sum();
+                        let root = layout
+                            .channels()
+                            .iter()
+                            .zip(&blocks)
+                            .flat_map(|(c, b)| &b[..c.size()])
+                            .copied()
+                            .collect();
                         let compressed = blocks
                             .iter()
                             .zip(lease.get()?.iter_mut())
                             .map(|(b, c)| c.compress(b))
                             .collect::<Result<Vec<_>, _>>()?;
-                        Ok((id, a.attrs[..bpv].to_vec(), compressed, raw))
+                        Ok((id, root, compressed, raw))
                     },
                 )
                 .collect::<Result<_, BuildError>>()?;
@@ -284,7 +290,12 @@ impl LevelRoots {
 }
 
 /// Averages one treelet's inner attributes bottom-up (its refinable leaves take their child
-/// treelet's root attribute from `below`) and returns its attribute bytes.
+/// treelet's root attribute from `below`) and returns its channel blocks (used records each,
+/// the root voxel's first).
+///
+/// Each channel is averaged in its own block, children being consecutive records: per inner
+/// node one pass over a contiguous slice, instead of gathering each child's bytes from the
+/// interleaved record and splitting the record into blocks afterwards one voxel at a time.
 ///
 /// The record is read without the full validation of a received treelet: the fill wrote it in
 /// this process (its encoding is checked by the build's tests and by `verify` on the stored
@@ -294,12 +305,11 @@ fn average_treelet(
     scene: &FilledScene<'_>,
     id: u32,
     below: &LevelRoots,
-) -> Result<AveragedRecord, BuildError> {
+) -> Result<Vec<Vec<u8>>, BuildError> {
     let bpv = scene.records.bpv;
     let (raw, attrs) = scene.records.record(id);
     codec::decode_header(raw)?;
     let nodes: Vec<Node> = codec::node_records(&raw[HEADER_BYTES..]).collect();
-    let mut attrs = attrs.to_vec();
     let used = nodes.len();
     let malformed = |node: usize, detail: &str| {
         BuildError::Proto(ProtoError::MalformedTreelet {
@@ -326,64 +336,72 @@ fn average_treelet(
             is_leaf[first + k as usize] = n.leaf_mask & (1 << bit) != 0;
         }
     }
-    let mut out = Vec::new();
-    for i in (0..used).rev() {
-        let n = nodes[i];
-        let k = i * bpv;
-        if is_leaf[i] {
-            if n.first_child != Node::NONE {
-                let root = below.get(n.first_child).ok_or_else(|| {
-                    BuildError::Sink(format!(
-                        "treelet {id} leaf {i}: child treelet {} was never built",
-                        n.first_child
-                    ))
-                })?;
-                attrs[k..k + bpv].copy_from_slice(root);
-            }
+    let channels = scene.layout.channels();
+    let mut blocks = channel_blocks(scene.layout, attrs, bpv, used);
+    // Refinable leaves first: they feed the means above them.
+    for (i, n) in nodes.iter().enumerate() {
+        if !is_leaf[i] || n.first_child == Node::NONE {
             continue;
         }
-        let first = i + n.first_child as usize;
-        let kids = n.child_count() as usize;
+        let root = below.get(n.first_child).ok_or_else(|| {
+            BuildError::Sink(format!(
+                "treelet {id} leaf {i}: child treelet {} was never built",
+                n.first_child
+            ))
+        })?;
         let mut off = 0;
-        for c in scene.layout.channels() {
+        for (c, block) in channels.iter().zip(&mut blocks) {
             let size = c.size();
-            out.clear();
-            out.resize(size, 0);
-            let src = &attrs;
-            c.mean(
-                (first..first + kids).map(|j| &src[j * bpv + off..j * bpv + off + size]),
-                &mut out,
-            );
-            attrs[k + off..k + off + size].copy_from_slice(&out);
+            block[i * size..(i + 1) * size].copy_from_slice(&root[off..off + size]);
             off += size;
         }
     }
-    Ok(AveragedRecord { attrs, used })
+    for (c, block) in channels.iter().zip(&mut blocks) {
+        let size = c.size();
+        for i in (0..used).rev() {
+            if is_leaf[i] {
+                continue;
+            }
+            let n = nodes[i];
+            // Children come after their parent (checked above), so the split keeps them apart.
+            let first = i + n.first_child as usize;
+            let (head, tail) = block.split_at_mut(first * size);
+            let kids = &tail[..n.child_count() as usize * size];
+            c.mean(kids.chunks_exact(size), &mut head[i * size..(i + 1) * size]);
+        }
+    }
+    Ok(blocks)
 }
 
-/// A treelet's attributes after [`average_treelet`].
-struct AveragedRecord {
-    /// `used` × bytes per voxel, the root voxel's first.
-    attrs: Vec<u8>,
-    used: usize,
-}
-
-/// Splits a record's attribute bytes into one block per channel (used records only).
+/// Splits a record's interleaved attribute bytes into one block per channel (used records only).
 fn channel_blocks(layout: &AttributeLayout, attrs: &[u8], bpv: usize, used: usize) -> Vec<Vec<u8>> {
     let mut at = 0;
     layout
         .channels()
         .iter()
         .map(|c| {
-            let size = c.size();
-            let mut block = Vec::with_capacity(used * size);
-            for voxel in attrs.chunks_exact(bpv).take(used) {
-                block.extend_from_slice(&voxel[at..at + size]);
-            }
-            at += size;
+            let voxels = attrs.chunks_exact(bpv).take(used);
+            let block = match c.size() {
+                2 => gather::<2>(voxels, at),
+                3 => gather::<3>(voxels, at),
+                4 => gather::<4>(voxels, at),
+                size => voxels.flat_map(|v| &v[at..at + size]).copied().collect(),
+            };
+            at += c.size();
             block
         })
         .collect()
+}
+
+/// Bytes `at..at + S` of every voxel, one fixed-size copy each (a slice copy of unknown
+/// length is a `memmove` call per voxel).
+fn gather<'a, const S: usize>(voxels: impl Iterator<Item = &'a [u8]>, at: usize) -> Vec<u8> {
+    let mut block = Vec::with_capacity(voxels.size_hint().0 * S);
+    for v in voxels {
+        let bytes: [u8; S] = v[at..at + S].try_into().expect("S bytes");
+        block.extend_from_slice(&bytes);
+    }
+    block
 }
 
 /// Compressor sets (one compressor per dictionary) kept for the whole pass and handed from one
