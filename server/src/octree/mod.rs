@@ -15,6 +15,7 @@ pub mod geometry;
 pub mod idlist;
 pub mod pending;
 pub mod points;
+mod records;
 pub mod sorted_points;
 mod store;
 pub mod treelet_builder;
@@ -22,11 +23,10 @@ pub mod triangles;
 pub mod volume;
 
 use std::fs::File;
-use std::os::unix::fs::FileExt;
 use std::path::Path;
 use std::time::Instant;
 
-use arbor_proto::codec::{self, HEADER_BYTES};
+use arbor_proto::codec;
 use arbor_proto::treelet::nodes_for_bytes;
 use arbor_proto::{
     AttributeLayout, BuildParameters, Cell, ProtoError, SceneDescription, SceneStats, SourceKind,
@@ -36,11 +36,11 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 
 use crate::progress::{ImportProgress, Phase};
-use crate::source::scratch_file;
 use crate::source::{Column, ColumnError, ColumnWriter, Source, remove_column};
 use geometry::{Frame, depth_for_resolution};
 use idlist::{Budget, IdList, Lists, SpillFile};
 use pending::PendingQueue;
+use records::{RecordFile, RecordSink};
 pub use treelet_builder::{AttributeGenerator, MAX_PRIMITIVES, TreeletBuilder, fill_treelet};
 use treelet_builder::{FilledTreelet, TreeletJob};
 
@@ -220,12 +220,7 @@ pub fn build_scene_observed(
     let (layout, fill, iso_used) = fill_source(source, &placed, capacity, opts, scratch, progress)?;
     let t = phase("fill (with sorting and normals)", t);
 
-    let records = RecordFile::map(
-        fill.file,
-        &scratch.join(RECORDS_FILE),
-        layout.bytes_per_voxel(),
-        fill.offsets,
-    )?;
+    let records = RecordFile::open(fill.file, layout.bytes_per_voxel(), fill.offsets);
     let mut stats = SceneStats {
         voxels: fill.used_nodes - u64::from(fill.treelets - 1),
         leaf_voxels: fill.leaf_voxels,
@@ -537,48 +532,6 @@ const RECORDS_FILE: &str = "treelets.records";
 /// Scratch column of where each record starts.
 const OFFSETS_COLUMN: &str = "treelet-offsets";
 
-/// Scratch records, one per treelet in id order, packed: the raw treelet encoding (header and
-/// used node records), then `used × bpv` attribute bytes. Where each starts is in a memory-mapped
-/// column, so nothing here grows with the treelet count (treelets are 35–45 % full on average:
-/// fixed-size records wrote 2–3× the bytes). Read through a mapping: the store pass reads every
-/// record twice (nodes, then attributes), which cost a system call, an allocation and a copy
-/// each time.
-struct RecordFile {
-    bytes: Column<u8>,
-    bpv: usize,
-    /// Byte offset of every record, then the end.
-    offsets: Column<u64>,
-}
-
-impl RecordFile {
-    /// Maps the records the fill wrote to `file`.
-    fn map(file: File, path: &Path, bpv: usize, offsets: Column<u64>) -> Result<Self, BuildError> {
-        let len = offsets.last().copied().unwrap_or(0) as usize;
-        Ok(RecordFile {
-            bytes: Column::map_file(file, path, len)?,
-            bpv,
-            offsets,
-        })
-    }
-    /// Byte range of a record and where its attributes start.
-    fn place(&self, id: u32) -> (usize, usize, usize) {
-        let (start, end) = (self.offsets[id as usize], self.offsets[id as usize + 1]);
-        let used = (end - start - HEADER_BYTES as u64) / (8 + self.bpv as u64);
-        let attributes = start + HEADER_BYTES as u64 + used * 8;
-        (start as usize, end as usize, attributes as usize)
-    }
-    /// A record's stored treelet encoding (header and used node records), final once filled.
-    fn nodes(&self, id: u32) -> &[u8] {
-        let (start, _, attributes) = self.place(id);
-        &self.bytes[start..attributes]
-    }
-    /// A record's stored treelet encoding and its attribute bytes.
-    fn record(&self, id: u32) -> (&[u8], &[u8]) {
-        let (start, end, attributes) = self.place(id);
-        (&self.bytes[start..attributes], &self.bytes[attributes..end])
-    }
-}
-
 fn spinner(enabled: bool, what: &str) -> ProgressBar {
     if !enabled {
         return ProgressBar::hidden();
@@ -615,8 +568,8 @@ const JOBS_PER_THREAD: usize = 64;
 
 /// What pass 1 has written so far: the records, their offsets, and the counts the scene's
 /// statistics need. Filled treelets are handed to it in id order.
-struct RecordWriter<'a> {
-    file: &'a File,
+struct RecordWriter {
+    sink: RecordSink,
     offsets: ColumnWriter<u64>,
     end: u64,
     bpv: usize,
@@ -626,16 +579,9 @@ struct RecordWriter<'a> {
     written: u32,
     used_nodes: u64,
     leaf_voxels: u64,
-    /// Records not yet written, from byte `end - buf.len()` of the file.
-    buf: Vec<u8>,
 }
 
-/// Bytes of records gathered before one write. Written one record (≈ 3 KiB) at a time, every
-/// fresh page of the file was zero-filled by the kernel around the record before the copy, a
-/// sixth of the fill's samples at 10⁸ points; whole pages are copied as they are.
-const RECORD_WRITE_BYTES: usize = 1 << 20;
-
-impl RecordWriter<'_> {
+impl RecordWriter {
     /// Names the filled treelets' children (ids in FIFO order), queues them and appends the
     /// records.
     fn write(
@@ -665,26 +611,15 @@ impl RecordWriter<'_> {
             }
             self.used_nodes += u64::from(f.treelet.header.used_nodes);
             self.leaf_voxels += f.leaf_voxels;
-            let before = self.buf.len();
-            self.buf
-                .extend_from_slice(&codec::encode_treelet(&f.treelet));
+            let nodes = codec::encode_treelet(&f.treelet);
             let used = usize::from(f.treelet.header.used_nodes);
-            self.buf.extend_from_slice(&f.attributes[..used * self.bpv]);
-            self.end += (self.buf.len() - before) as u64;
+            let attributes = &f.attributes[..used * self.bpv];
+            self.sink.push(&nodes)?;
+            self.sink.push(attributes)?;
+            self.end += (nodes.len() + attributes.len()) as u64;
             self.offsets.push(self.end)?;
             self.written += 1;
-            if self.buf.len() >= RECORD_WRITE_BYTES {
-                self.flush()?;
-            }
         }
-        Ok(())
-    }
-
-    /// Writes the gathered records.
-    fn flush(&mut self) -> std::io::Result<()> {
-        let at = self.end - self.buf.len() as u64;
-        self.file.write_all_at(&self.buf, at)?;
-        self.buf.clear();
         Ok(())
     }
 }
@@ -700,7 +635,8 @@ fn fill_all(
     scratch: &Path,
     progress: &ImportProgress,
 ) -> Result<Filled, BuildError> {
-    let file = scratch_file(&scratch.join(RECORDS_FILE))?;
+    let sink = RecordSink::create(&scratch.join(RECORDS_FILE))?;
+    tracing::debug!(direct = sink.direct(), "scratch records");
     let mut offsets = ColumnWriter::<u64>::create(scratch, OFFSETS_COLUMN)?;
     offsets.push(0)?;
     let count = builder.primitive_count();
@@ -723,7 +659,7 @@ fn fill_all(
         prims: IdList::Range(0..count),
     })?;
     let mut out = RecordWriter {
-        file: &file,
+        sink,
         offsets,
         end: 0,
         bpv: attributes.bytes_per_voxel(),
@@ -732,7 +668,6 @@ fn fill_all(
         written: 0,
         used_nodes: 0,
         leaf_voxels: 0,
-        buf: Vec::with_capacity(2 * RECORD_WRITE_BYTES),
     };
     let pb = spinner(opts.progress, "fill");
     let batch_target = rayon::current_num_threads() * JOBS_PER_THREAD;
@@ -772,7 +707,6 @@ fn fill_all(
         ));
         pb.tick();
     }
-    out.flush()?;
     pb.finish_and_clear();
     let spilled_bytes = lists.spill.bytes_written();
     if spilled_bytes > 0 {
@@ -783,6 +717,7 @@ fn fill_all(
         );
     }
     let RecordWriter {
+        sink,
         offsets,
         written,
         level_of,
@@ -800,7 +735,7 @@ fn fill_all(
     level_starts.push(written);
     Ok(Filled {
         offsets: offsets.finish()?,
-        file,
+        file: sink.finish()?,
         treelets: written,
         level_starts,
         used_nodes,
@@ -893,17 +828,22 @@ mod tests {
         assert_eq!(general.treelets, sorted.treelets);
         assert_eq!(general.used_nodes, sorted.used_nodes);
         assert_eq!(general.leaf_voxels, sorted.leaf_voxels);
-        let path = dir.path().join(RECORDS_FILE);
-        let records = |f: Filled| RecordFile::map(f.file, &path, 0, f.offsets).unwrap();
+        let general_treelets = general.treelets;
+        let records = |f: Filled| RecordFile::open(f.file, 0, f.offsets);
         let (a, b) = (records(general), records(sorted));
-        for id in 0..a.offsets.len() as u32 - 1 {
+        let (mut buf_a, mut buf_b) = (Default::default(), Default::default());
+        let (a, b) = (
+            a.read(0..a.count(), &mut buf_a).unwrap(),
+            b.read(0..b.count(), &mut buf_b).unwrap(),
+        );
+        for id in 0..general_treelets {
             let ra = a.nodes(id);
             let rb = b.nodes(id);
             assert!(ra == rb, "treelet {id} differs");
             // The store compresses the encoding as it is: it must be a whole, valid treelet.
             let t = codec::decode_treelet(ra, 10).unwrap();
             assert_eq!(
-                (ra.len() - HEADER_BYTES) / 8,
+                (ra.len() - codec::HEADER_BYTES) / 8,
                 t.used().len(),
                 "treelet {id}"
             );

@@ -22,7 +22,8 @@ use arbor_proto::codec::{self, BlockCompressor, HEADER_BYTES};
 use arbor_proto::{AttributeLayout, Node, ProtoError, SceneStats, TreeletId};
 use rayon::prelude::*;
 
-use super::{BuildError, BuildOptions, RecordFile, TreeletSink, bar};
+use super::records::{AlignedBuf, RecordFile, Records};
+use super::{BuildError, BuildOptions, TreeletSink, bar};
 use crate::progress::{ImportProgress, Phase};
 
 /// Treelets per message from a producer to the sink.
@@ -161,14 +162,17 @@ fn store_nodes(
         None
     };
     let pool = CompressorPool::new(opts.zstd_level, vec![dictionary.as_deref()]);
-    for start in (0..count).step_by(CHUNK as usize) {
-        let end = (start + CHUNK).min(count);
-        let compressed: Vec<(TreeletId, Vec<u8>, u64)> = (start..end)
+    let chunks = (0..count)
+        .step_by(CHUNK as usize)
+        .map(|start| start..(start + CHUNK).min(count))
+        .collect();
+    records.for_each(chunks, |ids, chunk| {
+        let compressed: Vec<(TreeletId, Vec<u8>, u64)> = ids
             .into_par_iter()
             .map_init(
                 || pool.lease(),
                 |lease, id| {
-                    let raw = records.nodes(id);
+                    let raw = chunk.nodes(id);
                     let block = lease.get()?[0].compress(raw)?;
                     Ok((TreeletId(id), block, raw.len() as u64))
                 },
@@ -176,10 +180,8 @@ fn store_nodes(
             .collect::<Result<_, BuildError>>()?;
         let raw = compressed.iter().map(|(_, _, r)| r).sum();
         let blocks = compressed.into_iter().map(|(id, b, _)| (id, b)).collect();
-        if tx.send(Ok(Stored::Nodes(blocks, raw))).is_err() {
-            break;
-        }
-    }
+        Ok::<_, BuildError>(tx.send(Ok(Stored::Nodes(blocks, raw))).is_ok())
+    })?;
     Ok(dictionary)
 }
 
@@ -193,10 +195,14 @@ fn train_node_dictionary(records: &RecordFile, count: u32) -> Result<Option<Vec<
         return Ok(None);
     }
     let step = (count / DICTIONARY_SAMPLES).max(1);
-    let samples: Vec<&[u8]> = (0..count)
+    // Each sample is a read of its own: two at a time.
+    let samples: Vec<Vec<u8>> = (0..count)
+        .into_par_iter()
         .step_by(step as usize)
-        .map(|id| records.nodes(id))
-        .collect();
+        .map_init(AlignedBuf::default, |buf, id| {
+            Ok(records.read(id..id + 1, buf)?.nodes(id).to_vec())
+        })
+        .collect::<Result<_, BuildError>>()?;
     Ok(match zstd::dict::from_samples(&samples, DICTIONARY_BYTES) {
         Ok(d) => Some(d),
         Err(e) => {
@@ -223,54 +229,61 @@ fn store_attributes(
     // one level's treelets are one id range, so a flat array indexed by id (a map of small
     // vectors cost 6× the bytes and grew with the scene).
     let mut below = LevelRoots::default();
+    let bpv = scene.records.bpv;
+    let mut roots = LevelRoots::default();
+    // Levels deepest first; treelets of one level are independent (their children are all one
+    // level deeper), so each level is read and averaged in chunks.
+    let mut chunks = Vec::new();
     for level in (0..scene.level_starts.len().saturating_sub(1)).rev() {
-        // Treelets of one level are independent: their children are all one level deeper.
-        let ids = scene.level_starts[level]..scene.level_starts[level + 1];
-        let bpv = scene.records.bpv;
-        let mut roots = LevelRoots {
-            first: ids.start,
-            bpv,
-            bytes: Vec::with_capacity(ids.len() * bpv),
-        };
-        for start in ids.clone().step_by(CHUNK as usize) {
-            let end = (start + CHUNK).min(ids.end);
-            let averaged: Vec<Averaged> = (start..end)
-                .into_par_iter()
-                .map_init(
-                    || pool.lease(),
-                    |lease, id| {
-                        let blocks = average_treelet(scene, id, &below)?;
-                        let raw = blocks.iter().map(|b| b.len() as u64).sum();
-                        let root = layout
-                            .channels()
-                            .iter()
-                            .zip(&blocks)
-                            .flat_map(|(c, b)| &b[..c.size()])
-                            .copied()
-                            .collect();
-                        let compressed = blocks
-                            .iter()
-                            .zip(lease.get()?.iter_mut())
-                            .map(|(b, c)| c.compress(b))
-                            .collect::<Result<Vec<_>, _>>()?;
-                        Ok((id, root, compressed, raw))
-                    },
-                )
-                .collect::<Result<_, BuildError>>()?;
-            let mut raw = 0;
-            let mut blocks = Vec::with_capacity(averaged.len());
-            for (id, root, compressed, r) in averaged {
-                roots.bytes.extend_from_slice(&root);
-                blocks.push((TreeletId(id), compressed));
-                raw += r;
-            }
-            if tx.send(Ok(Stored::Channels(blocks, raw))).is_err() {
-                return Ok(());
-            }
-        }
-        below = roots;
+        let (first, end) = (scene.level_starts[level], scene.level_starts[level + 1]);
+        chunks.extend(
+            (first..end)
+                .step_by(CHUNK as usize)
+                .map(|start| start..(start + CHUNK).min(end)),
+        );
     }
-    Ok(())
+    scene.records.for_each(chunks, |ids, chunk| {
+        if scene.level_starts.contains(&ids.start) {
+            // A new level: the one just averaged is the level below it.
+            let next = LevelRoots {
+                first: ids.start,
+                bpv,
+                bytes: Vec::new(),
+            };
+            below = std::mem::replace(&mut roots, next);
+        }
+        let averaged: Vec<Averaged> = ids
+            .into_par_iter()
+            .map_init(
+                || pool.lease(),
+                |lease, id| {
+                    let blocks = average_treelet(&chunk, layout, id, &below)?;
+                    let raw = blocks.iter().map(|b| b.len() as u64).sum();
+                    let root = layout
+                        .channels()
+                        .iter()
+                        .zip(&blocks)
+                        .flat_map(|(c, b)| &b[..c.size()])
+                        .copied()
+                        .collect();
+                    let compressed = blocks
+                        .iter()
+                        .zip(lease.get()?.iter_mut())
+                        .map(|(b, c)| c.compress(b))
+                        .collect::<Result<Vec<_>, _>>()?;
+                    Ok((id, root, compressed, raw))
+                },
+            )
+            .collect::<Result<_, BuildError>>()?;
+        let mut raw = 0;
+        let mut blocks = Vec::with_capacity(averaged.len());
+        for (id, root, compressed, r) in averaged {
+            roots.bytes.extend_from_slice(&root);
+            blocks.push((TreeletId(id), compressed));
+            raw += r;
+        }
+        Ok::<_, BuildError>(tx.send(Ok(Stored::Channels(blocks, raw))).is_ok())
+    })
 }
 
 /// The root voxel's attribute bytes of every treelet of one level, in id order.
@@ -302,12 +315,13 @@ impl LevelRoots {
 /// scene), and validating every record was a tenth of this pass. What the walk relies on is
 /// still checked: child blocks inside the used records and attributes for each.
 fn average_treelet(
-    scene: &FilledScene<'_>,
+    records: &Records<'_>,
+    layout: &AttributeLayout,
     id: u32,
     below: &LevelRoots,
 ) -> Result<Vec<Vec<u8>>, BuildError> {
-    let bpv = scene.records.bpv;
-    let (raw, attrs) = scene.records.record(id);
+    let bpv = layout.bytes_per_voxel();
+    let (raw, attrs) = records.record(id);
     codec::decode_header(raw)?;
     let nodes: Vec<Node> = codec::node_records(&raw[HEADER_BYTES..]).collect();
     let used = nodes.len();
@@ -336,8 +350,8 @@ fn average_treelet(
             is_leaf[first + k as usize] = n.leaf_mask & (1 << bit) != 0;
         }
     }
-    let channels = scene.layout.channels();
-    let mut blocks = channel_blocks(scene.layout, attrs, bpv, used);
+    let channels = layout.channels();
+    let mut blocks = channel_blocks(layout, attrs, bpv, used);
     // Refinable leaves first: they feed the means above them.
     for (i, n) in nodes.iter().enumerate() {
         if !is_leaf[i] || n.first_child == Node::NONE {
