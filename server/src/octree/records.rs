@@ -84,15 +84,24 @@ fn create(path: &Path, direct: bool) -> io::Result<(File, bool)> {
     }
 }
 
-/// Appends records to the scratch file in whole pages.
+/// A buffer of whole pages for the writer thread, and the file offset they go to.
+type Pages = (AlignedBuf, usize, u64);
+
+/// Appends records to the scratch file in whole pages, written by a thread of its own while the
+/// next buffer fills (a direct write waits for the device; on the fill's own thread that wait
+/// left a core idle).
 pub struct RecordSink {
-    file: File,
     direct: bool,
     buf: AlignedBuf,
     /// Bytes in `buf`; they belong at file offset `at`.
     len: usize,
     /// File offset of `buf`'s first byte (always a whole number of pages).
     at: u64,
+    /// Full buffers to the writer thread.
+    to_writer: Option<std::sync::mpsc::SyncSender<Pages>>,
+    /// Written buffers back for reuse.
+    written: std::sync::mpsc::Receiver<AlignedBuf>,
+    writer: Option<std::thread::JoinHandle<io::Result<File>>>,
 }
 
 impl RecordSink {
@@ -106,14 +115,32 @@ impl RecordSink {
     /// as on a file system that refuses it).
     fn create_with(path: &Path, direct: bool) -> io::Result<Self> {
         let (file, direct) = create(path, direct)?;
+        let (to_writer, full) = std::sync::mpsc::sync_channel::<Pages>(1);
+        let (back, written) = std::sync::mpsc::channel::<AlignedBuf>();
+        // Two buffers in turn: one filling, one being written.
+        let mut spare = AlignedBuf::default();
+        spare.pages_for(WRITE_BYTES + PAGE);
+        let _ = back.send(spare);
+        let writer = std::thread::Builder::new()
+            .name("arbor-records".into())
+            .spawn(move || {
+                for (buf, len, at) in full {
+                    file.write_all_at(&buf.bytes()[..len], at)?;
+                    // Closed: the sink is finishing.
+                    let _ = back.send(buf);
+                }
+                Ok(file)
+            })?;
         let mut buf = AlignedBuf::default();
         buf.pages_for(WRITE_BYTES + PAGE);
         Ok(RecordSink {
-            file,
             direct,
             buf,
             len: 0,
             at: 0,
+            to_writer: Some(to_writer),
+            written,
+            writer: Some(writer),
         })
     }
 
@@ -136,18 +163,39 @@ impl RecordSink {
         Ok(())
     }
 
-    /// Writes the whole pages gathered and keeps the partial last one.
+    /// Hands the whole pages gathered to the writer and keeps the partial last one.
     fn write_pages(&mut self) -> io::Result<()> {
         let whole = self.len / PAGE * PAGE;
         if whole == 0 {
             return Ok(());
         }
-        self.file
-            .write_all_at(&self.buf.bytes()[..whole], self.at)?;
+        let Ok(mut next) = self.written.recv() else {
+            return Err(self.writer_error());
+        };
+        let tail = self.len - whole;
+        next.pages_for(tail.max(WRITE_BYTES + PAGE))[..tail]
+            .copy_from_slice(&self.buf.bytes()[whole..self.len]);
+        let full = std::mem::replace(&mut self.buf, next);
+        let sent = self
+            .to_writer
+            .as_ref()
+            .map(|w| w.send((full, whole, self.at)));
+        if !matches!(sent, Some(Ok(()))) {
+            return Err(self.writer_error());
+        }
         self.at += whole as u64;
-        self.buf.bytes_mut().copy_within(whole..self.len, 0);
-        self.len -= whole;
+        self.len = tail;
         Ok(())
+    }
+
+    /// The writer thread's error, once it has stopped.
+    fn writer_error(&mut self) -> io::Error {
+        self.to_writer = None;
+        match self.writer.take().map(|w| w.join()) {
+            Some(Ok(Err(e))) => e,
+            Some(Err(panic)) => std::panic::resume_unwind(panic),
+            _ => io::Error::other("the scratch records' writer stopped"),
+        }
     }
 
     /// Writes what is left, its last page padded with zeros, and returns the file.
@@ -157,7 +205,19 @@ impl RecordSink {
         self.buf.bytes_mut()[self.len..padded].fill(0);
         self.len = padded;
         self.write_pages()?;
-        Ok(self.file)
+        self.to_writer = None;
+        match self.writer.take().map(|w| w.join()) {
+            Some(Ok(result)) => result,
+            Some(Err(panic)) => std::panic::resume_unwind(panic),
+            None => Err(io::Error::other("the scratch records' writer stopped")),
+        }
+    }
+}
+
+impl Drop for RecordSink {
+    fn drop(&mut self) {
+        // Ends the writer thread (an abandoned import) without waiting for its last write.
+        self.to_writer = None;
     }
 }
 

@@ -274,6 +274,25 @@ impl TreeletFill<'_> {
             return Ok(());
         }
         let (included, room) = self.room_for(&p)?;
+        // Sorted points: the children are ranges, split without building lists.
+        if room > 0
+            && let IdList::Range(r) = &p.prims
+            && let Some(ranges) = self.builder.split_range(p.cell, r.clone())
+        {
+            let count = ranges.iter().filter(|r| !r.is_empty()).count() as u32;
+            if count == 0 {
+                return self.final_leaf(&p);
+            }
+            if count > room {
+                self.refinable_leaf(p);
+                return Ok(());
+            }
+            if included {
+                self.reserved = self.reserved.saturating_sub(count);
+            }
+            self.split(p, ranges.map(IdList::Range), included);
+            return Ok(());
+        }
         // A split needs at least one free record; without any the node is a refinable leaf.
         let children = if room > 0 {
             Some(partition_list(self.builder, p.cell, &p.prims, self.lists)?)
