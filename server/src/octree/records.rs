@@ -115,6 +115,11 @@ impl RecordSink {
     /// as on a file system that refuses it).
     fn create_with(path: &Path, direct: bool) -> io::Result<Self> {
         let (file, direct) = create(path, direct)?;
+        Self::with_file(file, direct)
+    }
+
+    /// A sink appending to `file` (opened for direct I/O if `direct`).
+    fn with_file(file: File, direct: bool) -> io::Result<Self> {
         let (to_writer, full) = std::sync::mpsc::sync_channel::<Pages>(1);
         let (back, written) = std::sync::mpsc::channel::<AlignedBuf>();
         // Two buffers in turn: one filling, one being written.
@@ -365,6 +370,27 @@ mod tests {
         for direct in [true, false] {
             records_read_back(direct);
         }
+    }
+
+    /// A write that fails on the writer thread (here: a file opened read-only) is the error of
+    /// the next push or of `finish`, not lost and not a hang.
+    #[test]
+    fn a_failed_write_is_the_next_push_or_finish_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("r");
+        std::fs::write(&path, b"").unwrap();
+        let mut sink = RecordSink::with_file(File::open(&path).unwrap(), false).unwrap();
+        let chunk = vec![7u8; 64 * 1024];
+        let pushed = (0..64).try_for_each(|_| sink.push(&chunk));
+        let err = match pushed {
+            Err(e) => e,
+            Ok(()) => sink.finish().unwrap_err(),
+        };
+        assert_eq!(
+            err.raw_os_error(),
+            Some(rustix::io::Errno::BADF.raw_os_error()),
+            "{err}"
+        );
     }
 
     /// The read-ahead thread hands ranges over in order, stops when the consumer says so, and
