@@ -583,7 +583,6 @@ const JOBS_PER_THREAD: usize = 64;
 struct RecordWriter {
     sink: RecordSink,
     offsets: ColumnWriter<u64>,
-    end: u64,
     bpv: usize,
     next_id: u64,
     /// Level of every treelet (1 byte each), to find where each level starts.
@@ -628,8 +627,7 @@ impl RecordWriter {
             let attributes = &f.attributes[..used * self.bpv];
             self.sink.push(&nodes)?;
             self.sink.push(attributes)?;
-            self.end += (nodes.len() + attributes.len()) as u64;
-            self.offsets.push(self.end)?;
+            self.offsets.push(self.sink.position())?;
             self.written += 1;
         }
         Ok(())
@@ -673,7 +671,6 @@ fn fill_all(
     let mut out = RecordWriter {
         sink,
         offsets,
-        end: 0,
         bpv: attributes.bytes_per_voxel(),
         next_id: 1,
         level_of: vec![0],

@@ -149,6 +149,11 @@ impl RecordSink {
         })
     }
 
+    /// Bytes pushed so far: where the next record starts.
+    pub fn position(&self) -> u64 {
+        self.at + self.len as u64
+    }
+
     /// Whether the file is written with direct I/O.
     pub fn direct(&self) -> bool {
         self.direct
@@ -193,13 +198,21 @@ impl RecordSink {
         Ok(())
     }
 
-    /// The writer thread's error, once it has stopped.
-    fn writer_error(&mut self) -> io::Error {
+    /// Ends the writer thread once it has written what it was given: the file, or its error.
+    fn stop_writer(&mut self) -> io::Result<File> {
         self.to_writer = None;
         match self.writer.take().map(|w| w.join()) {
-            Some(Ok(Err(e))) => e,
+            Some(Ok(result)) => result,
             Some(Err(panic)) => std::panic::resume_unwind(panic),
-            _ => io::Error::other("the scratch records' writer stopped"),
+            None => Err(io::Error::other("the scratch records' writer stopped")),
+        }
+    }
+
+    /// The writer thread's error, once it has stopped.
+    fn writer_error(&mut self) -> io::Error {
+        match self.stop_writer() {
+            Err(e) => e,
+            Ok(_) => io::Error::other("the scratch records' writer stopped"),
         }
     }
 
@@ -210,19 +223,7 @@ impl RecordSink {
         self.buf.bytes_mut()[self.len..padded].fill(0);
         self.len = padded;
         self.write_pages()?;
-        self.to_writer = None;
-        match self.writer.take().map(|w| w.join()) {
-            Some(Ok(result)) => result,
-            Some(Err(panic)) => std::panic::resume_unwind(panic),
-            None => Err(io::Error::other("the scratch records' writer stopped")),
-        }
-    }
-}
-
-impl Drop for RecordSink {
-    fn drop(&mut self) {
-        // Ends the writer thread (an abandoned import) without waiting for its last write.
-        self.to_writer = None;
+        self.stop_writer()
     }
 }
 

@@ -162,11 +162,7 @@ fn store_nodes(
         None
     };
     let pool = CompressorPool::new(opts.zstd_level, vec![dictionary.as_deref()]);
-    let chunks = (0..count)
-        .step_by(CHUNK as usize)
-        .map(|start| start..(start + CHUNK).min(count))
-        .collect();
-    records.for_each(chunks, |ids, chunk| {
+    records.for_each(chunks(0..count).collect(), |ids, chunk| {
         let compressed: Vec<(TreeletId, Vec<u8>, u64)> = ids
             .into_par_iter()
             .map_init(
@@ -212,6 +208,13 @@ fn train_node_dictionary(records: &RecordFile, count: u32) -> Result<Option<Vec<
     })
 }
 
+/// `ids` in consecutive ranges of [`CHUNK`] (the last one shorter).
+fn chunks(ids: std::ops::Range<u32>) -> impl Iterator<Item = std::ops::Range<u32>> {
+    let end = ids.end;
+    ids.step_by(CHUNK as usize)
+        .map(move |start| start..(start + CHUNK).min(end))
+}
+
 /// A treelet's id, its root voxel's attribute bytes (channels in layout order), its compressed
 /// channel blocks and their raw bytes.
 type Averaged = (u32, Vec<u8>, Vec<Vec<u8>>, u64);
@@ -233,22 +236,18 @@ fn store_attributes(
     let mut roots = LevelRoots::default();
     // Levels deepest first; treelets of one level are independent (their children are all one
     // level deeper), so each level is read and averaged in chunks.
-    let mut chunks = Vec::new();
-    for level in (0..scene.level_starts.len().saturating_sub(1)).rev() {
-        let (first, end) = (scene.level_starts[level], scene.level_starts[level + 1]);
-        chunks.extend(
-            (first..end)
-                .step_by(CHUNK as usize)
-                .map(|start| start..(start + CHUNK).min(end)),
-        );
-    }
-    scene.records.for_each(chunks, |ids, chunk| {
-        if scene.level_starts.contains(&ids.start) {
+    let starts = scene.level_starts;
+    let levels = (0..starts.len().saturating_sub(1)).rev();
+    let ranges = levels
+        .flat_map(|l| chunks(starts[l]..starts[l + 1]))
+        .collect();
+    scene.records.for_each(ranges, |ids, chunk| {
+        if let Ok(level) = starts.binary_search(&ids.start) {
             // A new level: the one just averaged is the level below it.
             let next = LevelRoots {
                 first: ids.start,
                 bpv,
-                bytes: Vec::new(),
+                bytes: Vec::with_capacity((starts[level + 1] - ids.start) as usize * bpv),
             };
             below = std::mem::replace(&mut roots, next);
         }

@@ -274,34 +274,13 @@ impl TreeletFill<'_> {
             return Ok(());
         }
         let (included, room) = self.room_for(&p)?;
-        // Sorted points: the children are ranges, split without building lists.
-        if room > 0
-            && let IdList::Range(r) = &p.prims
-            && let Some(ranges) = self.builder.split_range(p.cell, r.clone())
-        {
-            let count = ranges.iter().filter(|r| !r.is_empty()).count() as u32;
-            if count == 0 {
-                return self.final_leaf(&p);
-            }
-            if count > room {
-                self.refinable_leaf(p);
-                return Ok(());
-            }
-            if included {
-                self.reserved = self.reserved.saturating_sub(count);
-            }
-            self.split(p, ranges.map(IdList::Range), included);
+        // A split needs at least one free record; without any the node is a refinable leaf.
+        if room == 0 {
+            self.refinable_leaf(p);
             return Ok(());
         }
-        // A split needs at least one free record; without any the node is a refinable leaf.
-        let children = if room > 0 {
-            Some(partition_list(self.builder, p.cell, &p.prims, self.lists)?)
-        } else {
-            None
-        };
-        let count = children.as_ref().map_or(u32::MAX, |c| {
-            c.iter().filter(|l| !l.is_empty()).count() as u32
-        });
+        let children = partition_list(self.builder, p.cell, &p.prims, self.lists)?;
+        let count = children.iter().filter(|l| !l.is_empty()).count() as u32;
         if count == 0 {
             // Rounding left no child touched: the voxel is final at this depth.
             return self.final_leaf(&p);
@@ -314,7 +293,7 @@ impl TreeletFill<'_> {
         if included {
             self.reserved = self.reserved.saturating_sub(count);
         }
-        self.split(p, children.expect("partitioned above"), included);
+        self.split(p, children, included);
         Ok(())
     }
 
