@@ -189,6 +189,94 @@ async fn a_hello_view_pushes_the_roots_refinement_within_its_free_slots() {
     server.shutdown().await;
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_timeline_records_what_was_listed_pushed_sent_and_acknowledged() {
+    use arbor_server::service::timeline::{Breakdown, Event, NamedBy};
+    use std::collections::HashSet;
+    let tp = TestPool::new();
+    let server = start(tp.config()).await;
+    let d = server.pool().scene(SCENE).unwrap().description;
+    let view = ViewHint {
+        eye: [0.5, 0.5, 2.5],
+        footprint: 1.0 / 512.0,
+        free_slots: 24,
+        ..looking_down_z()
+    };
+    let timeline = &server.state.timeline;
+    timeline.start();
+    let start = Instant::now();
+    let c = connect(server.quic_addr, &server.fingerprint).await;
+    let mut control = Control::open(&c.conn).await;
+    let flags = HELLO_SEND_ROOT | HELLO_VIEW;
+    control
+        .send(&hello_frame_with(
+            SCENE,
+            &[Channel::Normal],
+            TOKEN,
+            flags,
+            Some(view),
+        ))
+        .await;
+    let got = receive(&c.conn, 24, LONG).await.unwrap();
+    let received: HashSet<TreeletId> = got.iter().map(|(id, _)| *id).collect();
+    // A batch ends (acknowledged) at the server a little after its last byte arrived here.
+    let delivered = |events: &[Event]| -> HashSet<TreeletId> {
+        events
+            .iter()
+            .filter_map(|e| match e {
+                Event::Ended {
+                    batch,
+                    delivered: true,
+                    ..
+                } => Some(batch.clone()),
+                _ => None,
+            })
+            .flatten()
+            .collect()
+    };
+    let deadline = Instant::now() + LONG;
+    while delivered(&timeline.snapshot().events) != received && Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let recording = timeline.take();
+    assert!(!recording.truncated);
+    let lists: Vec<(&Vec<TreeletId>, &Vec<TreeletId>)> = recording
+        .events
+        .iter()
+        .filter_map(|e| match e {
+            Event::Listed { listed, pushed, .. } => Some((listed, pushed)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(lists.len(), 1, "one list: the Hello's");
+    assert_eq!(lists[0].0, &vec![d.root_treelet]);
+    assert_eq!(lists[0].1.len(), 23);
+    let dispatched: HashSet<TreeletId> = recording
+        .events
+        .iter()
+        .filter_map(|e| match e {
+            Event::Dispatched { batch, .. } => Some(batch.clone()),
+            _ => None,
+        })
+        .flatten()
+        .collect();
+    assert_eq!(dispatched, received);
+    assert_eq!(delivered(&recording.events), received);
+    let session = match recording.events[0] {
+        Event::Listed { session, .. } => session,
+        ref e => panic!("the first event is the list, not {e:?}"),
+    };
+    let b = Breakdown::of(&recording, session, start, &received, |_| 10);
+    assert_eq!(b.needed_missing, 0);
+    assert_eq!(b.before_last[&(NamedBy::List, true)], (1, 10));
+    assert_eq!(b.before_last[&(NamedBy::Push, true)], (23, 230));
+    let (_, m) = b.last_needed.unwrap();
+    let (named, sent, acked) = (m.named.unwrap().0, m.sent.unwrap(), m.delivered.unwrap());
+    assert!(named <= sent && sent <= acked, "{m:?}");
+    c.conn.close(0u32.into(), b"done");
+    server.shutdown().await;
+}
+
 /// A view from `z = 10` looking down `-z`, 1 mrad per pixel, 64 free slots.
 fn looking_down_z() -> ViewHint {
     ViewHint {

@@ -30,6 +30,11 @@
 //! cycles, bytes of the treelets resident at the end, the LOD bias reached and whether the
 //! picture equals the reference rendered at that bias.
 //!
+//! `ARBOR_REFINE_TIMELINE=1` records the server's per-treelet timeline
+//! (`arbor_server::service::timeline`) in every case and prints under its row when the view's
+//! last needed treelet was named, sent and acknowledged, and the bytes acknowledged up to then
+//! by who named them (the client's list or a push) and whether the view needed them.
+//!
 //! `ARBOR_REFINE_RUNS=N` runs every case of the main table N times (default 1) and prints the
 //! run with the median RMSE-0 time, with the range of all N in the *RMSE0 range* column: over
 //! the link the same code spreads by ±15 % on this 2-core machine, more than many changes move
@@ -57,6 +62,7 @@ use arbor_client_net::{ClientConfig, ServerUrl, Trust};
 use arbor_client_report::{CycleRecord, RunMeta, RunReport};
 use arbor_client_session::session::{RenderMode, Session, SessionConfig};
 use arbor_proto::TreeletId;
+use arbor_server::service::timeline::{Breakdown, Event as TimelineEvent};
 use arbor_tests::link::{LinkConfig, LinkEmulator};
 use arbor_tests::streaming::{Served, TOKEN, full, serve};
 
@@ -174,6 +180,8 @@ struct Outcome {
     /// Treelets received that were already resident or waiting.
     twice: u32,
     limit: Option<f64>,
+    /// With `ARBOR_REFINE_TIMELINE=1`: where the time to the last needed treelet went.
+    timeline: Option<String>,
 }
 
 fn main() {
@@ -243,6 +251,9 @@ fn main() {
                     let range = (repeats > 1).then(|| (key(&runs[0].0), key(&runs[repeats - 1].0)));
                     let (o, report) = runs.swap_remove(repeats / 2);
                     print_row(name, jump, transport, v, &o, range);
+                    if let Some(t) = &o.timeline {
+                        println!("    {t}");
+                    }
                     let file = format!(
                         "{name}-{}-{}-{}.csv",
                         if jump { "jump" } else { "static" },
@@ -395,8 +406,14 @@ fn run_case(
         budget_bytes: BUDGET,
         ..CoreConfig::default()
     };
+    let timeline = &served.server.state.timeline;
+    let trace = std::env::var("ARBOR_REFINE_TIMELINE").as_deref() == Ok("1");
+    if trace {
+        timeline.start();
+    }
     let unit_first = CameraPath::Static.camera(0, &SceneFrame::UNIT, SEED, size, size);
     let mut session = connect(runtime, served, addr, core, unit_first);
+    let mut phase_start = session.started();
     let frame = *session.core().frame();
     let first = CameraPath::Static.camera(0, &frame, SEED, size, size);
     // The first phase counts from the moment the session started connecting (handshake, Hello,
@@ -408,6 +425,10 @@ fn run_case(
     if jump {
         already = phase.resident.last().unwrap().iter().copied().collect();
         camera = CameraPath::Jump { every: 1 }.camera(1, &frame, SEED, size, size);
+        if trace {
+            timeline.start();
+        }
+        phase_start = Instant::now();
         phase = run_phase(&mut session, &camera, false);
         handshake = false;
     }
@@ -415,9 +436,31 @@ fn run_case(
     if let Some(l) = link {
         runtime.block_on(l.shutdown());
     }
-    let outcome = judge(
+    let mut outcome = judge(
         served, full, &frame, &camera, &phase, transport, handshake, &already,
     );
+    if trace {
+        let recording = timeline.take();
+        let bias = phase.records.last().map_or(1.0, |r| r.lod_bias);
+        let needed: HashSet<TreeletId> = needed(served, full, &frame, &camera, bias)
+            .into_iter()
+            .filter(|id| !already.contains(id))
+            .collect();
+        // One connection per case: the session of its events.
+        let session = recording.events.iter().find_map(|e| match e {
+            TimelineEvent::Listed { session, .. } => Some(*session),
+            _ => None,
+        });
+        outcome.timeline = Some(session.map_or_else(
+            || "nothing listed in this phase".to_owned(),
+            |s| {
+                Breakdown::of(&recording, s, phase_start, &needed, |id| {
+                    served.wire_bytes[id.0 as usize]
+                })
+                .summary()
+            },
+        ));
+    }
     let report = RunReport {
         meta: RunMeta {
             scene: served.scene.name.clone(),
@@ -559,6 +602,7 @@ fn judge(
         dropped: r.iter().map(|c| c.dropped).sum(),
         twice: r.iter().map(|c| c.received_twice).sum(),
         limit,
+        timeline: None,
     }
 }
 

@@ -21,6 +21,7 @@ use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
 use super::shared::Shared;
 use super::shutdown::Shutdown;
 use super::streams::{CANCEL_CODE, OpenStream, Outcome, StreamCtx, open_in_order, send_batch};
+use super::timeline::Event;
 use super::treelets::{MAX_TREELETS_PER_STREAM, ServedScene};
 
 /// How often the window and the slow-reader watchdog are updated.
@@ -78,7 +79,7 @@ pub(super) async fn serve(
     // root, as deep as the view refines (the client has measured nothing yet).
     let first = match (send_root, view) {
         (false, _) => None,
-        (true, None) => handler.on_request_list(0, vec![(root, f32::MAX)]),
+        (true, None) => handler.on_request_list(0, vec![(root, f32::MAX)], 0),
         (true, Some(view)) => handler.on_hello_view(root, &view),
     };
     if let Some(end) = first {
@@ -209,7 +210,7 @@ impl Handler {
     /// A control frame from the client (or the end of its control stream).
     fn on_frame(&mut self, frame: Result<Option<Frame>, End>) -> Option<End> {
         match frame {
-            Ok(Some(Frame::RequestList { seq, items })) => self.on_request_list(seq, items),
+            Ok(Some(Frame::RequestList { seq, items })) => self.on_request_list(seq, items, 0),
             Ok(Some(Frame::DeepRequestList { seq, view, items })) => {
                 self.on_deep_request_list(seq, &view, &items)
             }
@@ -235,9 +236,14 @@ impl Handler {
         }
     }
 
-    /// A new request list: replaces the scheduler's queue and resets the streams of treelets in
-    /// flight that it no longer names.
-    fn on_request_list(&mut self, seq: u64, items: Vec<(TreeletId, f32)>) -> Option<End> {
+    /// A new request list (its last `pushed` items planned by the server): replaces the
+    /// scheduler's queue and resets the streams of treelets in flight that it no longer names.
+    fn on_request_list(
+        &mut self,
+        seq: u64,
+        items: Vec<(TreeletId, f32)>,
+        pushed: usize,
+    ) -> Option<End> {
         let count = self.treelet_count;
         if let Some((t, _)) = items.iter().find(|(t, _)| t.0 >= count) {
             return Some(close(
@@ -249,6 +255,8 @@ impl Handler {
         m.request_lists.fetch_add(1, Ordering::Relaxed);
         m.request_items
             .fetch_add(items.len() as u64, Ordering::Relaxed);
+        let named = (self.shared.state.timeline.is_on())
+            .then(|| items.iter().map(|&(id, _)| id).collect::<Vec<_>>());
         let outcome =
             self.shared
                 .core()
@@ -260,6 +268,16 @@ impl Handler {
             }) => {
                 self.rank = 0;
                 self.cancel_obsolete(&obsolete_in_flight);
+                if let Some(mut listed) = named {
+                    let pushed = listed.split_off(listed.len().saturating_sub(pushed));
+                    let session = self.id.0;
+                    self.shared.state.timeline.record(|| Event::Listed {
+                        session,
+                        at: Instant::now(),
+                        listed,
+                        pushed,
+                    });
+                }
             }
             Ok(ListOutcome::Stale { last_seq }) => {
                 tracing::debug!(seq, last_seq, "stale request list ignored");
@@ -306,7 +324,7 @@ impl Handler {
             .metrics
             .pushes_planned
             .fetch_add(pushed as u64, Ordering::Relaxed);
-        self.on_request_list(seq, list)
+        self.on_request_list(seq, list, pushed)
     }
 
     /// `Hello`'s view ([`arbor_proto::wire::HELLO_VIEW`], eye in root-cube units): the root

@@ -16,7 +16,8 @@
 //!   (scheduler, routes, scenes, message cache).
 //!
 //! The daemon ([`crate::daemon`]) starts this service and mounts the admin API beside it.
-//! * [`state`]: metrics, sessions and readiness shared with the admin API.
+//! * [`state`]: metrics, sessions and readiness shared with the admin API; [`timeline`]: what
+//!   was listed, pushed, sent and acknowledged when, for benchmarks (off unless started).
 mod batches;
 pub mod config;
 pub mod connection;
@@ -29,6 +30,7 @@ mod shared;
 pub mod shutdown;
 pub mod state;
 mod streams;
+pub mod timeline;
 pub mod tls;
 pub mod treelets;
 

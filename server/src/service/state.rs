@@ -144,6 +144,8 @@ pub struct ServiceState {
     shutting_down: AtomicBool,
     /// SHA-256 of the server certificate (DER), lowercase hex.
     pub fingerprint: String,
+    /// Per-treelet timeline for benchmarks; off unless started.
+    pub timeline: super::timeline::Timeline,
 }
 
 impl ServiceState {

@@ -13,6 +13,7 @@ use tokio::sync::{mpsc, oneshot};
 
 use super::schedule::ConnectionId;
 use super::shared::Shared;
+use super::timeline::Event;
 use super::treelets::ServedScene;
 
 /// Reset code of a treelet stream the client's latest list no longer wants (transport-level
@@ -135,8 +136,20 @@ pub(super) async fn send_batch(
     opened: oneshot::Receiver<OpenStream>,
     mut cancel: oneshot::Receiver<ErrorCode>,
 ) -> (Vec<TreeletId>, Outcome) {
+    let timeline = &ctx.shared.state.timeline;
+    timeline.record(|| Event::Dispatched {
+        session: ctx.id.0,
+        at: Instant::now(),
+        batch: batch.clone(),
+    });
     let outcome = transfer(&ctx, &batch, priority, opened, &mut cancel).await;
     let now = Instant::now();
+    timeline.record(|| Event::Ended {
+        session: ctx.id.0,
+        at: now,
+        batch: batch.clone(),
+        delivered: matches!(outcome, Outcome::Delivered),
+    });
     {
         let mut core = ctx.shared.core();
         for &t in &batch {
