@@ -255,7 +255,11 @@ impl Handler {
         m.request_lists.fetch_add(1, Ordering::Relaxed);
         m.request_items
             .fetch_add(items.len() as u64, Ordering::Relaxed);
-        let named = (self.shared.state.timeline.is_on())
+        let named = self
+            .shared
+            .state
+            .timeline
+            .is_on()
             .then(|| items.iter().map(|&(id, _)| id).collect::<Vec<_>>());
         let outcome =
             self.shared
