@@ -152,13 +152,7 @@ async fn a_hello_view_pushes_the_roots_refinement_within_its_free_slots() {
     let tp = TestPool::new();
     let server = start(tp.config()).await;
     let d = server.pool().scene(SCENE).unwrap().description;
-    // Two edges in front of the cube's centre, looking at it, 512 pixels high.
-    let view = ViewHint {
-        eye: [0.5, 0.5, 2.5],
-        footprint: 1.0 / 512.0,
-        free_slots: 24,
-        ..looking_down_z()
-    };
+    let view = in_front_of_the_cube();
     let greet = |view: Option<ViewHint>| {
         let flags = HELLO_SEND_ROOT | if view.is_some() { HELLO_VIEW } else { 0 };
         hello_frame_with(SCENE, &[Channel::Normal], TOKEN, flags, view)
@@ -196,12 +190,7 @@ async fn the_timeline_records_what_was_listed_pushed_sent_and_acknowledged() {
     let tp = TestPool::new();
     let server = start(tp.config()).await;
     let d = server.pool().scene(SCENE).unwrap().description;
-    let view = ViewHint {
-        eye: [0.5, 0.5, 2.5],
-        footprint: 1.0 / 512.0,
-        free_slots: 24,
-        ..looking_down_z()
-    };
+    let view = in_front_of_the_cube();
     let timeline = &server.state.timeline;
     timeline.start();
     let start = Instant::now();
@@ -275,6 +264,17 @@ async fn the_timeline_records_what_was_listed_pushed_sent_and_acknowledged() {
     assert!(named <= sent && sent <= acked, "{m:?}");
     c.conn.close(0u32.into(), b"done");
     server.shutdown().await;
+}
+
+/// Two edges in front of the root cube's centre (root-cube units, as `Hello` takes them),
+/// looking at it, 512 pixels high, 24 free slots.
+fn in_front_of_the_cube() -> ViewHint {
+    ViewHint {
+        eye: [0.5, 0.5, 2.5],
+        footprint: 1.0 / 512.0,
+        free_slots: 24,
+        ..looking_down_z()
+    }
 }
 
 /// A view from `z = 10` looking down `-z`, 1 mrad per pixel, 64 free slots.

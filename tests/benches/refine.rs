@@ -436,16 +436,28 @@ fn run_case(
     if let Some(l) = link {
         runtime.block_on(l.shutdown());
     }
-    let mut outcome = judge(
-        served, full, &frame, &camera, &phase, transport, handshake, &already,
-    );
-    if trace {
-        let recording = timeline.take();
-        let bias = phase.records.last().map_or(1.0, |r| r.lod_bias);
-        let needed: HashSet<TreeletId> = needed(served, full, &frame, &camera, bias)
+    // What the view needs beyond what the first view left resident: the limit's bytes over the
+    // link, the timeline's needed treelets.
+    let link = transport == Transport::Link;
+    let still_needed: Option<HashSet<TreeletId>> = (link || trace).then(|| {
+        let bias = phase.records.last().unwrap().lod_bias;
+        needed(served, full, &frame, &camera, bias)
             .into_iter()
             .filter(|id| !already.contains(id))
-            .collect();
+            .collect()
+    });
+    let limit_needs = still_needed.as_ref().filter(|_| link);
+    let mut outcome = judge(
+        served,
+        full,
+        &frame,
+        &camera,
+        &phase,
+        handshake,
+        limit_needs,
+    );
+    if let Some(needed) = still_needed.as_ref().filter(|_| trace) {
+        let recording = timeline.take();
         // One connection per case: the session of its events.
         let session = recording.events.iter().find_map(|e| match e {
             TimelineEvent::Listed { session, .. } => Some(*session),
@@ -454,7 +466,7 @@ fn run_case(
         outcome.timeline = Some(session.map_or_else(
             || "nothing listed in this phase".to_owned(),
             |s| {
-                Breakdown::of(&recording, s, phase_start, &needed, |id| {
+                Breakdown::of(&recording, s, phase_start, needed, |id| {
                     served.wire_bytes[id.0 as usize]
                 })
                 .summary()
@@ -541,16 +553,16 @@ fn run_phase(session: &mut Session, camera: &Camera, from_start: bool) -> Phase 
     phase
 }
 
-#[allow(clippy::too_many_arguments)]
+/// The phase's figures; `limit_needs` (over the link) are the treelets the view needs that were
+/// not resident when it began, whose bytes make the physical limit.
 fn judge(
     served: &Served,
     full: &SlotBuffer,
     frame: &SceneFrame,
     camera: &Camera,
     phase: &Phase,
-    transport: Transport,
     handshake: bool,
-    already: &HashSet<TreeletId>,
+    limit_needs: Option<&HashSet<TreeletId>>,
 ) -> Outcome {
     let r = &phase.records;
     let at = |i: usize| r[i].time_s - phase.t0;
@@ -584,11 +596,9 @@ fn judge(
         eprintln!("warning: the last cycle does not render the reference exactly");
         None
     };
-    let limit = (transport == Transport::Link).then(|| {
-        let needed = needed(served, full, frame, camera, bias);
+    let limit = limit_needs.map(|needed| {
         let bytes: u64 = needed
             .iter()
-            .filter(|id| !already.contains(id))
             .map(|id| served.wire_bytes[id.0 as usize])
             .sum();
         let rtt = 2.0 * DELAY.as_secs_f64();

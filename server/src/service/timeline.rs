@@ -119,6 +119,9 @@ pub enum NamedBy {
     List,
     /// A server push.
     Push,
+    /// Nothing the recording saw: named before it started (after a camera jump, what the first
+    /// view asked for and is still on its way).
+    Earlier,
 }
 
 /// One treelet's moments, seconds after the breakdown's start.
@@ -142,8 +145,8 @@ pub struct Breakdown {
     pub last_needed: Option<(TreeletId, TreeletMoments)>,
     /// Needed treelets never acknowledged.
     pub needed_missing: usize,
-    /// Bytes acknowledged up to and including the last needed treelet's batch, by who named
-    /// them first and whether the view needs them: `(named by, needed) → (treelets, bytes)`.
+    /// Bytes acknowledged up to and including the last needed treelet, by who named them first
+    /// and whether the view needs them: `(named by, needed) → (treelets, bytes)`.
     pub before_last: HashMap<(NamedBy, bool), (u64, u64)>,
 }
 
@@ -222,7 +225,7 @@ impl Breakdown {
                 if t > until {
                     continue;
                 }
-                let by = moments[&id].named.map_or(NamedBy::List, |(_, by)| by);
+                let by = moments[&id].named.map_or(NamedBy::Earlier, |(_, by)| by);
                 let e: &mut (u64, u64) = before_last.entry((by, needed.contains(&id))).or_default();
                 e.0 += 1;
                 e.1 += bytes(id);
@@ -246,6 +249,7 @@ impl Breakdown {
                 let by = match by {
                     NamedBy::List => "list",
                     NamedBy::Push => "push",
+                    NamedBy::Earlier => "earlier",
                 };
                 format!("{t:.3} by {by}")
             })
@@ -271,7 +275,7 @@ impl Breakdown {
         };
         format!(
             "last needed treelet {} named at {} (last before sending at {}), sent {}, acked {}; \
-             acked up to then: listed {}, pushed {}{}",
+             acked up to then: listed {}, pushed {}{}{}",
             id.0,
             named(m.named),
             named(m.named_for_send),
@@ -279,6 +283,15 @@ impl Breakdown {
             at(m.delivered),
             part(NamedBy::List),
             part(NamedBy::Push),
+            if self
+                .before_last
+                .keys()
+                .any(|(by, _)| *by == NamedBy::Earlier)
+            {
+                format!(", named before the recording {}", part(NamedBy::Earlier))
+            } else {
+                String::new()
+            },
             if self.needed_missing > 0 {
                 format!("; {} needed never acked", self.needed_missing)
             } else {
@@ -359,6 +372,13 @@ mod tests {
                 at: at(11),
                 batch: ids(&[2]),
             },
+            // 9 was named before the recording started.
+            Event::Ended {
+                session: 7,
+                at: at(15),
+                batch: ids(&[9]),
+                delivered: true,
+            },
             Event::Dispatched {
                 session: 7,
                 at: at(20),
@@ -417,11 +437,16 @@ mod tests {
         assert_eq!(b.before_last[&(NamedBy::List, true)], (2, 300));
         assert_eq!(b.before_last[&(NamedBy::Push, false)], (2, 700));
         assert!(!b.before_last.contains_key(&(NamedBy::Push, true)));
+        assert_eq!(b.before_last[&(NamedBy::Earlier, false)], (1, 900));
         let s = b.summary();
         assert!(
             s.contains("last needed treelet 2 named at 0.010 by list (last before sending at 0.080 by list)"),
             "{s}"
         );
         assert!(s.contains("1 needed never acked"), "{s}");
+        assert!(
+            s.contains("named before the recording 0 needed (0.00 MB) + 1 not (0.00 MB)"),
+            "{s}"
+        );
     }
 }
