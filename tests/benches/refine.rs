@@ -17,7 +17,14 @@
 //! * the **physical limit** over the link: the wire bytes of the treelets the view needs (those
 //!   holding a pixel's hit in the fully resident scene, and their ancestors; after a jump, those
 //!   not already resident) at 100 Mbit/s, plus one round trip for the request, plus one for the
-//!   QUIC handshake on a fresh connection.
+//!   QUIC handshake on a fresh connection;
+//! * the **transport floor** over the link, measured once per case and shared by its variants:
+//!   a fresh connection through a fresh link emulator whose first list names exactly the
+//!   treelets the view needs, parents first, timed from connecting until the last of them
+//!   arrived (for the jump: on the same connection, after the first view's treelets arrived,
+//!   from the second list). What any policy would reach knowing the view's needs in advance,
+//!   with no client work: the limit plus what the transport adds (QUIC slow start from the
+//!   server's initial window, queueing, acknowledgement timing).
 //!
 //! Prints tables; writes each run's CSV and one chart with every variant of the case "lion,
 //! static, link" to `target/refine/`. No assertion on time.
@@ -58,7 +65,7 @@ use arbor_client_core::presort::PriorityPolicy;
 use arbor_client_core::render::Light;
 use arbor_client_core::slots::{SlotBuffer, SlotConfig};
 use arbor_client_core::traverse::{Lod, trace};
-use arbor_client_net::{ClientConfig, ServerUrl, Trust};
+use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
 use arbor_client_report::{CycleRecord, RunMeta, RunReport};
 use arbor_client_session::session::{RenderMode, Session, SessionConfig};
 use arbor_proto::TreeletId;
@@ -201,7 +208,7 @@ fn main() {
         BUDGET >> 20
     );
     println!(
-        "{:<7} {:<6} {:<8} {:<24} {:>8} {:>8} {:>8} {:>13} {:>9} {:>7} {:>6} {:>8} {:>7}",
+        "{:<7} {:<6} {:<8} {:<24} {:>8} {:>8} {:>8} {:>13} {:>9} {:>7} {:>6} {:>8} {:>7} {:>8} {:>7}",
         "scene",
         "path",
         "link",
@@ -214,7 +221,9 @@ fn main() {
         "dropped",
         "twice",
         "limit s",
-        "×limit"
+        "×limit",
+        "floor s",
+        "×floor"
     );
     let filter = std::env::var("ARBOR_REFINE_FILTER").ok();
     let repeats: usize = std::env::var("ARBOR_REFINE_RUNS")
@@ -228,6 +237,7 @@ fn main() {
         let full = full(&served);
         for jump in [false, true] {
             for transport in [Transport::Loopback, Transport::Link] {
+                let mut floor: Option<Option<f64>> = None;
                 for v in VARIANTS {
                     let label = format!(
                         "{name}/{}/{}/{}",
@@ -250,7 +260,11 @@ fn main() {
                     runs.sort_by(|a, b| key(&a.0).total_cmp(&key(&b.0)));
                     let range = (repeats > 1).then(|| (key(&runs[0].0), key(&runs[repeats - 1].0)));
                     let (o, report) = runs.swap_remove(repeats / 2);
-                    print_row(name, jump, transport, v, &o, range);
+                    let floor = *floor.get_or_insert_with(|| {
+                        (transport == Transport::Link)
+                            .then(|| transport_floor(&runtime, &served, &full, jump, repeats))
+                    });
+                    print_row(name, jump, transport, v, &o, range, floor);
                     if let Some(t) = &o.timeline {
                         println!("    {t}");
                     }
@@ -344,15 +358,16 @@ fn print_row(
     v: Variant,
     o: &Outcome,
     range: Option<(f64, f64)>,
+    floor: Option<f64>,
 ) {
     let s = |t: Option<f64>| t.map_or("-".to_owned(), |t| format!("{t:.3}"));
     let range = range.map_or("-".to_owned(), |(lo, hi)| format!("{lo:.3}–{hi:.3}"));
-    let ratio = match (o.rmse0, o.limit) {
+    let ratio = |of: Option<f64>| match (o.rmse0, of) {
         (Some(t), Some(l)) => format!("{:.2}", t / l),
         _ => "-".to_owned(),
     };
     println!(
-        "{:<7} {:<6} {:<8} {:<24} {:>8} {:>8} {:>8} {:>13} {:>9.3} {:>7} {:>6} {:>8} {:>7}",
+        "{:<7} {:<6} {:<8} {:<24} {:>8} {:>8} {:>8} {:>13} {:>9.3} {:>7} {:>6} {:>8} {:>7} {:>8} {:>7}",
         scene,
         if jump { "jump" } else { "static" },
         if transport == Transport::Link {
@@ -369,8 +384,101 @@ fn print_row(
         o.dropped,
         o.twice,
         s(o.limit),
-        ratio
+        ratio(o.limit),
+        s(floor),
+        ratio(floor)
     );
+}
+
+/// The transport floor of a case (module docs), the median of `runs` measurements: a raw
+/// treelet client whose first list names exactly the first view's needed treelets, parents
+/// first; for `jump`, then the jump's needed treelets not yet received, timed from that list.
+fn transport_floor(
+    runtime: &tokio::runtime::Runtime,
+    served: &Served,
+    full: &SlotBuffer,
+    jump: bool,
+    runs: usize,
+) -> f64 {
+    let frame = SceneFrame::of(&served.scene);
+    let first = CameraPath::Static.camera(0, &frame, SEED, SIZE, SIZE);
+    let first_needs = needed(served, full, &frame, &first, 1.0);
+    let jump_needs: Option<HashSet<TreeletId>> = jump.then(|| {
+        let camera = CameraPath::Jump { every: 1 }.camera(1, &frame, SEED, SIZE, SIZE);
+        needed(served, full, &frame, &camera, 1.0)
+            .difference(&first_needs)
+            .copied()
+            .collect()
+    });
+    let mut times: Vec<f64> = (0..runs)
+        .map(|_| runtime.block_on(floor_once(served, &first_needs, jump_needs.as_ref())))
+        .collect();
+    times.sort_by(f64::total_cmp);
+    times[runs / 2]
+}
+
+async fn floor_once(
+    served: &Served,
+    first: &HashSet<TreeletId>,
+    jump: Option<&HashSet<TreeletId>>,
+) -> f64 {
+    let link = LinkEmulator::start(served.server.quic_addr, LinkConfig::wan(DELAY, RATE))
+        .await
+        .unwrap();
+    let url = ServerUrl {
+        host: link.local_addr().ip().to_string(),
+        port: link.local_addr().port(),
+        scene: served.scene.name.clone(),
+    };
+    let config = ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
+        .with_token(TOKEN)
+        .with_channels(served.scene.layout.channels().iter().copied());
+    // The list goes out with the connection (the client sends its latest list on connecting),
+    // so the static floor counts the handshake as the limit does.
+    let start = Instant::now();
+    let mut client = TreeletClient::start(config).unwrap();
+    fetch_all(&mut client, served, first).await;
+    let took = match jump {
+        None => start.elapsed(),
+        Some(jump) => fetch_all(&mut client, served, jump).await,
+    };
+    client.close().await;
+    link.shutdown().await;
+    took.as_secs_f64()
+}
+
+/// Lists `wanted` (parents first: by level below the root, then id) and waits until every one
+/// of them arrived; returns how long that took from the list.
+async fn fetch_all(
+    client: &mut TreeletClient,
+    served: &Served,
+    wanted: &HashSet<TreeletId>,
+) -> Duration {
+    let level = |mut id: TreeletId| {
+        let mut level = 0u32;
+        while id != TreeletId::ROOT && !id.is_none() {
+            id = served.treelets[id.0 as usize].treelet.header.parent_id;
+            level += 1;
+        }
+        level
+    };
+    let list: Vec<(TreeletId, f32)> = wanted.iter().map(|&id| (id, -(level(id) as f32))).collect();
+    let t = Instant::now();
+    client.request(list).unwrap();
+    let mut left: HashSet<TreeletId> = wanted.clone();
+    while !left.is_empty() {
+        match tokio::time::timeout(Duration::from_secs(60), client.next_event()).await {
+            Ok(Some(ClientEvent::Treelet(tr))) => {
+                left.remove(&tr.id);
+            }
+            Ok(Some(ClientEvent::Disconnected { reason, .. })) => {
+                panic!("transport floor: disconnected: {reason}")
+            }
+            Ok(Some(_)) => {}
+            Ok(None) | Err(_) => panic!("transport floor: stalled with {} left", left.len()),
+        }
+    }
+    t.elapsed()
 }
 
 /// A session of `v` against `served` (through a fresh link emulator for [`Transport::Link`]):
