@@ -14,10 +14,12 @@
 //!   by the CPU twin; the last cycle is checked too);
 //! * bytes received, treelets dropped and treelets received twice (already resident or
 //!   waiting) in the phase;
-//! * the **physical limit** over the link: the wire bytes of the treelets the view needs (those
-//!   holding a pixel's hit in the fully resident scene, and their ancestors; after a jump, those
-//!   not already resident) at 100 Mbit/s, plus one round trip for the request, plus one for the
-//!   QUIC handshake on a fresh connection;
+//! * the **physical limit** over the link: the wire bytes of the treelets the view needs (the
+//!   final cut: what every pixel's ray meets until it stops where the fully resident scene stops
+//!   it — the treelets holding the hits, their ancestors, and the ones a ray passes through,
+//!   whose coarse hulls would otherwise stop it; after a jump, those not already resident; see
+//!   [`needed`]) at 100 Mbit/s, plus one round trip for the request, plus one for the QUIC
+//!   handshake on a fresh connection;
 //! * the **transport floor** over the link, measured once per case and shared by its variants:
 //!   a fresh connection through a fresh link emulator whose first list names exactly the
 //!   treelets the view needs, parents first, timed from connecting until the last of them
@@ -63,7 +65,7 @@ use arbor_client_core::image::Image;
 use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::presort::PriorityPolicy;
 use arbor_client_core::render::Light;
-use arbor_client_core::slots::{SlotBuffer, SlotConfig};
+use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
 use arbor_client_core::traverse::{Lod, trace};
 use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
 use arbor_client_report::{CycleRecord, RunMeta, RunReport};
@@ -262,7 +264,7 @@ fn main() {
                     let (o, report) = runs.swap_remove(repeats / 2);
                     let floor = *floor.get_or_insert_with(|| {
                         (transport == Transport::Link)
-                            .then(|| transport_floor(&runtime, &served, &full, jump, repeats))
+                            .then(|| transport_floor(&runtime, &served, jump, repeats))
                     });
                     print_row(name, jump, transport, v, &o, range, floor);
                     if let Some(t) = &o.timeline {
@@ -396,16 +398,15 @@ fn print_row(
 fn transport_floor(
     runtime: &tokio::runtime::Runtime,
     served: &Served,
-    full: &SlotBuffer,
     jump: bool,
     runs: usize,
 ) -> f64 {
     let frame = SceneFrame::of(&served.scene);
     let first = CameraPath::Static.camera(0, &frame, SEED, SIZE, SIZE);
-    let first_needs = needed(served, full, &frame, &first, 1.0);
+    let first_needs = needed(served, &frame, &first, 1.0);
     let jump_needs: Option<HashSet<TreeletId>> = jump.then(|| {
         let camera = CameraPath::Jump { every: 1 }.camera(1, &frame, SEED, SIZE, SIZE);
-        needed(served, full, &frame, &camera, 1.0)
+        needed(served, &frame, &camera, 1.0)
             .difference(&first_needs)
             .copied()
             .collect()
@@ -549,7 +550,7 @@ fn run_case(
     let link = transport == Transport::Link;
     let still_needed: Option<HashSet<TreeletId>> = (link || trace).then(|| {
         let bias = phase.records.last().unwrap().lod_bias;
-        needed(served, full, &frame, &camera, bias)
+        needed(served, &frame, &camera, bias)
             .into_iter()
             .filter(|id| !already.contains(id))
             .collect()
@@ -758,34 +759,63 @@ fn render_subset(
     )
 }
 
-/// The treelets holding a pixel's hit in the fully resident scene, and their ancestors.
-fn needed(
-    served: &Served,
-    full: &SlotBuffer,
-    frame: &SceneFrame,
-    camera: &Camera,
-    bias: f64,
-) -> HashSet<TreeletId> {
+/// The treelets a view needs resident to render exactly what the fully resident scene renders:
+/// found by casting every pixel's ray through a tree that starts with the root and loads a
+/// treelet whenever a ray stops at its refinable leaf while the leaf is coarser than a pixel
+/// (the client's own request rule), until no ray does. Besides the treelets holding the hits
+/// and their ancestors, that includes the ones a ray only passes through: a coarse voxel is a
+/// hull of its subtree, and a ray that would pass through the subtree stops at the hull until
+/// the subtree is loaded. Every one of them is needed (without it, some ray stops at its hull
+/// and the pixel differs), and together they are enough (each ray then stops where the full
+/// tree stops it: a ray that stopped stays stopped, since loading a treelet only refines hulls
+/// behind the stop or elsewhere).
+fn needed(served: &Served, frame: &SceneFrame, camera: &Camera, bias: f64) -> HashSet<TreeletId> {
+    let nodes_only = |id: TreeletId| DecodedTreelet {
+        treelet: served.treelets[id.0 as usize].treelet.clone(),
+        attributes: Vec::new(),
+    };
+    let n = served.scene.treelet_nodes;
+    let config = SlotConfig {
+        budget_bytes: u64::from(served.scene.treelet_count) * SlotBuffer::slot_bytes(n, &[]),
+        treelet_nodes: n,
+        channels: Vec::new(),
+        visibility_max: 1,
+        load_limit: u32::MAX,
+    };
+    let mut tree = SlotBuffer::new(config, nodes_only(TreeletId::ROOT)).unwrap();
     let lod = Lod {
         pixel_angle: camera.pixel_angle(),
         lod_bias: bias,
         max_depth: frame.max_depth,
     };
-    let mut out = HashSet::new();
-    for y in 0..camera.height {
-        for x in 0..camera.width {
+    let mut pending: Vec<(u32, u32)> = (0..camera.height)
+        .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
+        .collect();
+    let mut out: HashSet<TreeletId> = HashSet::from([TreeletId::ROOT]);
+    while !pending.is_empty() {
+        let mut load = Vec::new();
+        let mut again = Vec::new();
+        for &(x, y) in &pending {
             let ray = camera.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
-            if let Some(h) = trace(&full.view(), frame, &ray, &lod) {
-                let mut slot = Some(h.node / served.scene.treelet_nodes);
-                while let Some(s) = slot {
-                    let Some(id) = full.treelet_in(s) else { break };
-                    if !out.insert(id) {
-                        break;
-                    }
-                    slot = full.parent_slot(s);
-                }
+            if let Some(h) = trace(&tree.view(), frame, &ray, &lod)
+                && h.leaf
+                && !h.subtreelet.is_none()
+                && h.error > 0.0
+            {
+                load.push(h.subtreelet);
+                again.push((x, y));
             }
         }
+        load.sort_unstable();
+        load.dedup();
+        for id in load {
+            assert!(
+                matches!(tree.insert(nodes_only(id)), InsertOutcome::Inserted { .. }),
+                "treelet {id} fits the whole-scene buffer below its resident parent"
+            );
+            out.insert(id);
+        }
+        pending = again;
     }
     out
 }
