@@ -266,6 +266,87 @@ async fn the_timeline_records_what_was_listed_pushed_sent_and_acknowledged() {
     server.shutdown().await;
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_resting_view_gets_its_visible_cut_pushed_in_place_of_the_frustum_plan() {
+    use arbor_server::service::timeline::Event;
+    use arbor_server::service::treelets::ServedScene;
+    use std::collections::HashSet;
+    const GRID: u32 = 48;
+    let tp = TestPool::new();
+    let mut config = tp.config();
+    config.visibility_grid = GRID;
+    let budget = config.visibility_cache_bytes;
+    let server = start(config).await;
+    let stored = server.pool().scene(SCENE).unwrap();
+    let d = stored.description.clone();
+    let view = ViewHint {
+        free_slots: 4096,
+        ..in_front_of_the_cube()
+    };
+    // What the server should find: the same cut, cast here through the same pool.
+    let world = ViewHint {
+        eye: std::array::from_fn(|i| d.origin[i] + view.eye[i] * d.edge),
+        ..view
+    };
+    let cut = ServedScene::new(stored)
+        .visible_cut(&world, GRID, budget)
+        .unwrap();
+    assert!(cut.complete);
+    let expected: HashSet<TreeletId> = cut.treelets.iter().map(|&(_, id)| id).collect();
+    assert!(
+        expected.len() > 4,
+        "the view needs several treelets below the root"
+    );
+
+    let timeline = &server.state.timeline;
+    timeline.start();
+    let c = connect(server.quic_addr, &server.fingerprint).await;
+    let mut control = Control::open(&c.conn).await;
+    control
+        .send(&hello_frame_with(
+            SCENE,
+            &[Channel::Normal],
+            TOKEN,
+            HELLO_SEND_ROOT | HELLO_VIEW,
+            Some(view),
+        ))
+        .await;
+    let deadline = Instant::now() + LONG;
+    let replanned = loop {
+        let lists: Vec<Vec<TreeletId>> = timeline
+            .snapshot()
+            .events
+            .iter()
+            .filter_map(|e| match e {
+                Event::Listed { pushed, .. } => Some(pushed.clone()),
+                _ => None,
+            })
+            .collect();
+        if lists.len() >= 2 {
+            break lists[1].clone();
+        }
+        assert!(Instant::now() < deadline, "no list re-planned with the cut");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    };
+    assert!(
+        server.state.metrics.visible_cuts.load(Ordering::Relaxed) >= 1,
+        "a cut was counted"
+    );
+    let pushed: HashSet<TreeletId> = replanned.iter().copied().collect();
+    assert!(
+        pushed.is_subset(&expected),
+        "the re-planned pushes are the cut's"
+    );
+    // Everything the cut names arrives: pushed now, or sent under the frustum plan before.
+    let mut received: HashSet<TreeletId> = HashSet::new();
+    while !expected.is_subset(&received) {
+        let got = receive(&c.conn, 1, LONG).await.unwrap();
+        received.extend(got.iter().map(|(id, _)| *id));
+    }
+    c.conn.close(0u32.into(), b"done");
+    server.shutdown().await;
+}
+
 /// Two edges in front of the root cube's centre (root-cube units, as `Hello` takes them),
 /// looking at it, 512 pixels high, 24 free slots.
 fn in_front_of_the_cube() -> ViewHint {

@@ -99,6 +99,14 @@ pub async fn serve_with(
     if options.import_root.is_some() {
         cfg.admin_listen = Some("127.0.0.1:0".parse().unwrap());
     }
+    // Benchmarks compare visible cuts on and off in one binary (`service::visibility`).
+    let env = |key: &str| std::env::var(key).ok().and_then(|g| g.parse().ok());
+    if let Some(grid) = env("ARBOR_VISIBILITY_GRID") {
+        cfg.visibility_grid = grid;
+    }
+    if let Some(grid) = env("ARBOR_VISIBILITY_FINE_GRID") {
+        cfg.visibility_fine_grid = grid;
+    }
     let server = start_with(cfg, options).await.unwrap();
     Served {
         server,

@@ -17,6 +17,9 @@
 //! max_connection_memory = 67108864
 //! initial_window = 131072             # QUIC congestion window at the start, bytes
 //! message_cache_bytes = 67108864      # built treelet messages kept for sending again, server-wide
+//! visibility_grid = 0                 # rays along a resting view's longer side for the visible cut its pushes follow; 0: off
+//! visibility_fine_grid = 0            # a second, finer cut of the same view once the first is out; 0: none
+//! visibility_cache_bytes = 33554432   # node records per scene the visible cuts are cast through
 //! window_min = 8
 //! window_max = 1024
 //! slow_reader_timeout_ms = 10000
@@ -175,6 +178,20 @@ pub struct ServeConfig {
     /// Bytes of built treelet messages kept server-wide, so a treelet sent again costs no pool
     /// read and no copy (0: none kept).
     pub message_cache_bytes: u64,
+    /// Rays along the longer side of a resting deep-request view that the server casts through
+    /// its own tree to find the view's visible cut, whose treelets it then pushes
+    /// (`service::visibility`); 0 (the default) turns it off: pushes follow frustum and
+    /// projected size alone. Measured in docs/measurements.md (stop 27): less than the frustum
+    /// plan on a static view, but a client's jump right after converging finds less of its new
+    /// view already there.
+    pub visibility_grid: u32,
+    /// Rays along the longer side of a second cut of the same view, cast once the first one's
+    /// pushes are out, for what the coarse grid's rays missed; 0: none, else above
+    /// `visibility_grid`.
+    pub visibility_fine_grid: u32,
+    /// Bytes of node records per served scene that visible cuts are cast through (allocated by
+    /// a scene's first cut).
+    pub visibility_cache_bytes: u64,
     /// Bounds of the per-connection in-flight window (treelets).
     pub window_min: usize,
     pub window_max: usize,
@@ -217,6 +234,14 @@ pub struct MemoryPlan {
 pub const DEFAULT_INITIAL_WINDOW: u64 = 128 << 10;
 /// Default [`ServeConfig::message_cache_bytes`]: 64 MiB.
 pub const DEFAULT_MESSAGE_CACHE_BYTES: u64 = 64 << 20;
+/// Largest accepted [`ServeConfig::visibility_grid`] and [`ServeConfig::visibility_fine_grid`]
+/// (a 1024×1024 cast takes about half a second of CPU per view).
+pub const MAX_VISIBILITY_GRID: u32 = 1024;
+/// Default [`ServeConfig::visibility_cache_bytes`]: 32 MiB.
+pub const DEFAULT_VISIBILITY_CACHE_BYTES: u64 = 32 << 20;
+/// Smallest accepted [`ServeConfig::visibility_cache_bytes`]: room for the largest treelets'
+/// top levels.
+pub const MIN_VISIBILITY_CACHE_BYTES: u64 = 1 << 20;
 /// Smallest accepted initial window (two full-size packets).
 pub const MIN_INITIAL_WINDOW: u64 = 2400;
 /// Largest accepted initial window.
@@ -253,6 +278,9 @@ struct FileConfig {
     max_connection_memory: Option<u64>,
     initial_window: Option<u64>,
     message_cache_bytes: Option<u64>,
+    visibility_grid: Option<u32>,
+    visibility_fine_grid: Option<u32>,
+    visibility_cache_bytes: Option<u64>,
     window_min: Option<usize>,
     window_max: Option<usize>,
     slow_reader_timeout_ms: Option<u64>,
@@ -367,6 +395,9 @@ impl ServeConfig {
             max_connection_memory: 64 << 20,
             initial_window: DEFAULT_INITIAL_WINDOW,
             message_cache_bytes: DEFAULT_MESSAGE_CACHE_BYTES,
+            visibility_grid: 0,
+            visibility_fine_grid: 0,
+            visibility_cache_bytes: DEFAULT_VISIBILITY_CACHE_BYTES,
             window_min: 8,
             window_max: 1024,
             slow_reader_timeout_ms: 10_000,
@@ -461,6 +492,9 @@ impl ServeConfig {
             max_connection_memory,
             initial_window,
             message_cache_bytes,
+            visibility_grid,
+            visibility_fine_grid,
+            visibility_cache_bytes,
             window_min,
             window_max,
             slow_reader_timeout_ms,
@@ -522,6 +556,30 @@ impl ServeConfig {
             return Err(invalid(
                 "initial_window",
                 format!("{MIN_INITIAL_WINDOW}..={MAX_INITIAL_WINDOW} bytes"),
+            ));
+        }
+        if self.visibility_grid > MAX_VISIBILITY_GRID {
+            return Err(invalid(
+                "visibility_grid",
+                format!("at most {MAX_VISIBILITY_GRID} rays (0 turns visible cuts off)"),
+            ));
+        }
+        if self.visibility_fine_grid != 0
+            && !(self.visibility_grid + 1..=MAX_VISIBILITY_GRID)
+                .contains(&self.visibility_fine_grid)
+        {
+            return Err(invalid(
+                "visibility_fine_grid",
+                format!(
+                    "0 (none) or above visibility_grid ({}) and at most {MAX_VISIBILITY_GRID}",
+                    self.visibility_grid
+                ),
+            ));
+        }
+        if self.visibility_cache_bytes < MIN_VISIBILITY_CACHE_BYTES {
+            return Err(invalid(
+                "visibility_cache_bytes",
+                format!("at least {MIN_VISIBILITY_CACHE_BYTES} bytes"),
             ));
         }
         if self.window_min > self.window_max {
@@ -864,6 +922,13 @@ access = "public"
             ("slow_reader_timeout_ms = 0", "slow_reader_timeout_ms"),
             ("window_min = 0", "window_min"),
             ("initial_window = 100", "initial_window"),
+            ("visibility_grid = 5000", "visibility_grid"),
+            (
+                "visibility_grid = 128\nvisibility_fine_grid = 64",
+                "visibility_fine_grid",
+            ),
+            ("visibility_fine_grid = 2000", "visibility_fine_grid"),
+            ("visibility_cache_bytes = 1000", "visibility_cache_bytes"),
             ("initial_window = 1000000000", "initial_window"),
             ("window_min = 10\nwindow_max = 9", "window_min"),
             ("window_max = 1000000", "window_max"),

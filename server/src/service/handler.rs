@@ -16,13 +16,14 @@ use tokio::task::JoinSet;
 
 use super::batches::Batches;
 use super::connection::{ControlReader, End, Greeting, close, hello};
-use super::push::{WorldCube, deep_list};
+use super::push::{WorldCube, cut_list, deep_list};
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
 use super::shared::Shared;
 use super::shutdown::Shutdown;
 use super::streams::{CANCEL_CODE, OpenStream, Outcome, StreamCtx, open_in_order, send_batch};
 use super::timeline::Event;
 use super::treelets::{MAX_TREELETS_PER_STREAM, ServedScene};
+use super::visibility::{VisibleCut, same_view};
 
 /// How often the window and the slow-reader watchdog are updated.
 const TICK: Duration = Duration::from_millis(50);
@@ -90,6 +91,9 @@ pub(super) async fn serve(
     end
 }
 
+/// A deep request list as applied: its sequence number, view and items.
+type DeepList = (u64, ViewHint, Vec<(TreeletId, f32, f32)>);
+
 /// The state of one connection's main loop.
 struct Handler {
     shared: Arc<Shared>,
@@ -111,6 +115,13 @@ struct Handler {
     reading: bool,
     window: usize,
     treelet_count: u32,
+    /// The latest visible cut computed for this connection's view.
+    cut: Option<Arc<VisibleCut>>,
+    /// The cut being computed, off the async workers.
+    cut_job: Option<tokio::task::JoinHandle<Option<VisibleCut>>>,
+    /// The last deep list applied (sequence, view, items): re-planned when its view's cut
+    /// arrives.
+    last_deep: Option<DeepList>,
 }
 
 impl Handler {
@@ -180,6 +191,9 @@ impl Handler {
             reading: true,
             window,
             treelet_count,
+            cut: None,
+            cut_job: None,
+            last_deep: None,
         })
     }
 
@@ -197,6 +211,7 @@ impl Handler {
                         Err(_) => None,
                     }
                 }
+                cut = join_cut(&mut self.cut_job), if self.cut_job.is_some() => self.on_cut(cut),
                 _ = tick.tick() => self.on_tick(),
                 deadline = shutdown.recv() => Some(self.drain(deadline).await),
                 e = self.conn.closed() => Some(End::Lost(e)),
@@ -255,17 +270,33 @@ impl Handler {
         m.request_lists.fetch_add(1, Ordering::Relaxed);
         m.request_items
             .fetch_add(items.len() as u64, Ordering::Relaxed);
+        self.apply_list(seq, items, pushed, false)
+    }
+
+    /// Hands a list to the scheduler — a new one, or (`replan`) the last one again with pushes
+    /// planned anew — and resets the streams it no longer wants.
+    fn apply_list(
+        &mut self,
+        seq: u64,
+        items: Vec<(TreeletId, f32)>,
+        pushed: usize,
+        replan: bool,
+    ) -> Option<End> {
         let named = self
             .shared
             .state
             .timeline
             .is_on()
             .then(|| items.iter().map(|&(id, _)| id).collect::<Vec<_>>());
-        let outcome =
-            self.shared
-                .core()
-                .sched
-                .handle_request_list(self.id, seq, items, Instant::now());
+        let outcome = {
+            let mut core = self.shared.core();
+            let now = Instant::now();
+            if replan {
+                core.sched.handle_replanned_list(self.id, seq, items, now)
+            } else {
+                core.sched.handle_request_list(self.id, seq, items, now)
+            }
+        };
         match outcome {
             Ok(ListOutcome::Applied {
                 obsolete_in_flight, ..
@@ -284,16 +315,18 @@ impl Handler {
                 }
             }
             Ok(ListOutcome::Stale { last_seq }) => {
-                tracing::debug!(seq, last_seq, "stale request list ignored");
+                tracing::debug!(seq, last_seq, replan, "stale request list ignored");
             }
             Err(e) => {
                 tracing::error!("{e}");
                 return Some(close(ErrorCode::Internal, "scheduler lost the connection"));
             }
         }
-        self.shared
-            .state
-            .update_session(self.id.0, |s| s.request_lists += 1);
+        if !replan {
+            self.shared
+                .state
+                .update_session(self.id.0, |s| s.request_lists += 1);
+        }
         self.shared.wake.notify_one();
         None
     }
@@ -314,21 +347,108 @@ impl Handler {
                 format!("treelet {} does not exist (the scene has {count})", t.0),
             ));
         }
-        let scene = &self.ctx.scene;
-        let d = &scene.stored.description;
-        let cube = WorldCube {
-            origin: d.origin,
-            edge: d.edge,
-        };
-        let (list, pushed) = deep_list(cube, view, items, MAX_REQUEST_ITEMS, |id| {
-            scene.tree.shape(&scene.stored, id)
-        });
+        // A view named twice in a row (or `Hello`'s) is resting: worth a visible cut. A moving
+        // camera's views are never cast; its pushes follow the frustum plan.
+        let resting = seq == 0
+            || self
+                .last_deep
+                .as_ref()
+                .is_some_and(|(_, last, _)| same_view(last, view));
+        self.last_deep = Some((seq, *view, items.to_vec()));
+        if resting {
+            self.start_cut(view);
+        }
+        let (list, pushed) = self.plan(view, items);
         self.shared
             .state
             .metrics
             .pushes_planned
             .fetch_add(pushed as u64, Ordering::Relaxed);
         self.on_request_list(seq, list, pushed)
+    }
+
+    /// The list for a deep request: pushes from the view's visible cut when one answers it,
+    /// else from the frustum plan below the listed treelets.
+    fn plan(
+        &self,
+        view: &ViewHint,
+        items: &[(TreeletId, f32, f32)],
+    ) -> (Vec<(TreeletId, f32)>, usize) {
+        if let Some(cut) = self.cut.as_ref().filter(|c| c.complete && c.answers(view)) {
+            let core = self.shared.core();
+            return cut_list(cut, view, items, MAX_REQUEST_ITEMS, |t| {
+                core.sched.was_delivered(self.id, t)
+            });
+        }
+        let scene = &self.ctx.scene;
+        let d = &scene.stored.description;
+        let cube = WorldCube {
+            origin: d.origin,
+            edge: d.edge,
+        };
+        deep_list(cube, view, items, MAX_REQUEST_ITEMS, |id| {
+            scene.tree.shape(&scene.stored, id)
+        })
+    }
+
+    /// Starts computing `view`'s visible cut on a blocking thread — the coarse one, or the fine
+    /// one once the coarse one answers the view — unless visible cuts are off, one is being
+    /// computed, or the last one answers this view at the finest grid configured.
+    fn start_cut(&mut self, view: &ViewHint) {
+        let coarse = self.shared.config.visibility_grid;
+        let fine = self.shared.config.visibility_fine_grid;
+        if coarse == 0 || self.cut_job.is_some() {
+            return;
+        }
+        let grid = match self.cut.as_ref().filter(|c| c.answers(view)) {
+            None => coarse,
+            Some(c) if fine > c.grid => fine,
+            Some(_) => return,
+        };
+        let scene = self.ctx.scene.clone();
+        let budget = self.shared.config.visibility_cache_bytes;
+        let view = *view;
+        self.cut_job = Some(tokio::task::spawn_blocking(move || {
+            scene.visible_cut(&view, grid, budget)
+        }));
+    }
+
+    /// A visible cut is ready: kept, and the last deep list re-planned with it when it answers
+    /// that list's view (the pushes the frustum plan chose are replaced).
+    fn on_cut(&mut self, cut: Result<Option<VisibleCut>, tokio::task::JoinError>) -> Option<End> {
+        let cut = match cut {
+            Ok(Some(c)) => Arc::new(c),
+            Ok(None) => return None,
+            Err(e) => {
+                tracing::warn!("visible cut failed: {e}");
+                return None;
+            }
+        };
+        tracing::debug!(
+            treelets = cut.treelets.len(),
+            rays = cut.rays_cast,
+            complete = cut.complete,
+            took_ms = cut.took.as_secs_f64() * 1e3,
+            "visible cut"
+        );
+        self.shared
+            .state
+            .metrics
+            .visible_cuts
+            .fetch_add(1, Ordering::Relaxed);
+        self.cut = Some(cut.clone());
+        let (seq, view, items) = self.last_deep.clone()?;
+        if !(cut.complete && cut.answers(&view)) {
+            return None;
+        }
+        let (list, pushed) = self.plan(&view, &items);
+        self.shared
+            .state
+            .metrics
+            .pushes_planned
+            .fetch_add(pushed as u64, Ordering::Relaxed);
+        self.start_cut(&view);
+        self.apply_list(seq, list, pushed, true)
     }
 
     /// `Hello`'s view ([`arbor_proto::wire::HELLO_VIEW`], eye in root-cube units): the root
@@ -526,4 +646,17 @@ impl Drop for AbortOnDrop {
     fn drop(&mut self) {
         self.0.abort();
     }
+}
+
+/// Waits for the visible cut being computed (`None` never completes: the `select!` branch is
+/// disabled then), and clears the job.
+async fn join_cut(
+    job: &mut Option<tokio::task::JoinHandle<Option<VisibleCut>>>,
+) -> Result<Option<VisibleCut>, tokio::task::JoinError> {
+    let Some(handle) = job.as_mut() else {
+        return std::future::pending().await;
+    };
+    let result = handle.await;
+    *job = None;
+    result
 }

@@ -18,6 +18,9 @@
 //! The daemon ([`crate::daemon`]) starts this service and mounts the admin API beside it.
 //! * [`state`]: metrics, sessions and readiness shared with the admin API; [`timeline`]: what
 //!   was listed, pushed, sent and acknowledged when, for benchmarks (off unless started).
+//! * [`push`]: what a deep request's view would refine below its listed treelets (frustum and
+//!   projected size); [`visibility`]: what a resting view's rays need, cast through the server's
+//!   own tree with the client's traversal (off unless `visibility_grid` is set).
 mod batches;
 pub mod config;
 pub mod connection;
@@ -33,6 +36,7 @@ mod streams;
 pub mod timeline;
 pub mod tls;
 pub mod treelets;
+pub mod visibility;
 
 pub use config::{ConfigError, ConfigOverrides, ServeConfig};
 pub use server::{RunningService, ServeError, start_service};

@@ -27,6 +27,7 @@ use arbor_proto::codec;
 use arbor_proto::wire::ViewHint;
 use arbor_proto::{Cell, Node, TreeletId};
 
+use super::visibility::VisibleCut;
 use crate::pool::StoredScene;
 
 /// A treelet's place in the tree: its root voxel and its refinable leaves.
@@ -128,6 +129,38 @@ pub fn deep_list(
     (list, pushes.len())
 }
 
+/// The list a deep request becomes when the server knows the view's visible cut
+/// ([`super::visibility`]): the listed items at their priorities, then the cut's treelets the
+/// client neither listed nor was `delivered` (parents first, a level's pushes below the level
+/// above), within the free slots it announced beyond its listed items and the list size limit.
+/// Unlike [`deep_list`], the pushes need not descend from a listed treelet: the cut already says
+/// which treelets the view needs, and a needed treelet below one delivered earlier is pushed as
+/// soon as its own parent was. Returns the list and the number of pushes in it.
+pub fn cut_list(
+    cut: &VisibleCut,
+    view: &ViewHint,
+    items: &[(TreeletId, f32, f32)],
+    max_items: usize,
+    delivered: impl Fn(TreeletId) -> bool,
+) -> (Vec<(TreeletId, f32)>, usize) {
+    let budget = (view.free_slots as usize)
+        .saturating_sub(items.len())
+        .min(max_items.saturating_sub(items.len()));
+    let lowest = items.iter().map(|i| i.1).fold(f32::INFINITY, f32::min);
+    let mut list: Vec<(TreeletId, f32)> = items.iter().map(|&(id, p, _)| (id, p)).collect();
+    let listed: HashSet<TreeletId> = items.iter().map(|i| i.0).collect();
+    let before = list.len();
+    list.extend(
+        cut.treelets
+            .iter()
+            .filter(|(_, id)| !listed.contains(id) && !delivered(*id))
+            .take(budget)
+            .map(|&(level, id)| (id, push_priority(lowest, u32::from(level)))),
+    );
+    let pushed = list.len() - before;
+    (list, pushed)
+}
+
 /// Most treelet shapes kept per scene; beyond it the cache starts afresh (a shape costs one
 /// decompression to rebuild).
 const SHAPES_MAX: usize = 1 << 18;
@@ -217,6 +250,50 @@ mod tests {
             out.insert(id, Arc::new(TreeletShape { root, children }));
         }
         out
+    }
+
+    #[test]
+    fn a_cut_list_pushes_the_cut_minus_listed_and_delivered_parents_first_within_the_slots() {
+        let mut view = view_from([0.5, 0.5, 3.0], 0.001);
+        let cut = VisibleCut {
+            view,
+            treelets: [(1, 4), (1, 7), (2, 9), (2, 12), (3, 20)]
+                .map(|(level, id)| (level, TreeletId(id)))
+                .to_vec(),
+            complete: true,
+            grid: 8,
+            rays_cast: 0,
+            took: std::time::Duration::ZERO,
+        };
+        let items = [(TreeletId(7), 5.0, 2.0), (TreeletId(30), -3.0, 1.0)];
+        let delivered = |id: TreeletId| id == TreeletId(9);
+        view.free_slots = 2 + 10;
+        let (list, pushed) = cut_list(&cut, &view, &items, 100, delivered);
+        assert_eq!(pushed, 3);
+        let ids: Vec<u32> = list.iter().map(|&(id, _)| id.0).collect();
+        assert_eq!(
+            ids,
+            [7, 30, 4, 12, 20],
+            "listed first, then the cut by level"
+        );
+        assert_eq!(&list[..2], &[(TreeletId(7), 5.0), (TreeletId(30), -3.0)]);
+        let p: Vec<f32> = list[2..].iter().map(|&(_, p)| p).collect();
+        assert!(p[0] < -3.0, "below every listed item");
+        assert!(
+            p[0] > p[1] && p[1] > p[2],
+            "a level below the one above: {p:?}"
+        );
+        // Two free slots beyond the listed items: the two shallowest.
+        view.free_slots = 4;
+        let (list, pushed) = cut_list(&cut, &view, &items, 100, delivered);
+        assert_eq!(pushed, 2);
+        assert_eq!(list.len(), 4);
+        assert_eq!((list[2].0, list[3].0), (TreeletId(4), TreeletId(12)));
+        // No room beyond the listed items, or the list limit reached: no pushes.
+        view.free_slots = 1;
+        assert_eq!(cut_list(&cut, &view, &items, 100, delivered).1, 0);
+        view.free_slots = 100;
+        assert_eq!(cut_list(&cut, &view, &items, 3, delivered).1, 1);
     }
 
     fn view_from(eye: [f64; 3], footprint: f32) -> ViewHint {

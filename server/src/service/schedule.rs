@@ -72,7 +72,7 @@ use std::time::{Duration, Instant};
 
 use arbor_proto::TreeletId;
 use arbor_proto::limits::MAX_REQUEST_ITEMS;
-use rustc_hash::FxHashMap;
+use rustc_hash::{FxHashMap, FxHashSet};
 
 /// A connection, as the service numbers them.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -258,6 +258,9 @@ struct Conn {
     /// Deliveries within the redelivery guard, oldest first, and the latest time per id.
     recent: VecDeque<(Instant, TreeletId)>,
     recent_at: FxHashMap<TreeletId, Instant>,
+    /// Every treelet delivered on this connection (forgotten all at once at
+    /// [`Conn::delivered_cap`]): pushes planned from a visible cut leave them out.
+    delivered_ever: FxHashSet<TreeletId>,
     in_ring: bool,
     stats: ConnectionStats,
 }
@@ -273,9 +276,19 @@ impl Conn {
             in_flight: FxHashMap::default(),
             recent: VecDeque::new(),
             recent_at: FxHashMap::default(),
+            delivered_ever: FxHashSet::default(),
             in_ring: false,
             stats: ConnectionStats::default(),
         }
+    }
+
+    /// Most deliveries remembered in `delivered_ever`: four lists' worth. Past it the record
+    /// starts afresh, and a push may repeat a treelet the client holds (it drops the duplicate).
+    fn delivered_cap(&self) -> usize {
+        self.config
+            .max_queue
+            .max(self.config.window)
+            .saturating_mul(4)
     }
 
     fn queue_depth(&self) -> usize {
@@ -471,23 +484,57 @@ impl Scheduler {
         &mut self,
         id: ConnectionId,
         seq: u64,
+        items: Vec<(TreeletId, f32)>,
+        now: Instant,
+    ) -> Result<ListOutcome, ScheduleError> {
+        self.apply_list(id, seq, items, now, false)
+    }
+
+    /// The service re-planned the pushes of the list it accepted last, `seq` (a view's visible
+    /// cut became available after the list was applied): `items` replace that list like a new
+    /// one would, with the same rules. Stale if a newer list was accepted meanwhile (or `seq`
+    /// was never accepted). Not counted as a list received.
+    pub fn handle_replanned_list(
+        &mut self,
+        id: ConnectionId,
+        seq: u64,
+        items: Vec<(TreeletId, f32)>,
+        now: Instant,
+    ) -> Result<ListOutcome, ScheduleError> {
+        self.apply_list(id, seq, items, now, true)
+    }
+
+    fn apply_list(
+        &mut self,
+        id: ConnectionId,
+        seq: u64,
         mut items: Vec<(TreeletId, f32)>,
         now: Instant,
+        replan: bool,
     ) -> Result<ListOutcome, ScheduleError> {
         let conn = self
             .conns
             .get_mut(&id)
             .ok_or(ScheduleError::UnknownConnection(id))?;
-        if let Some(last_seq) = conn.stats.last_seq
-            && seq <= last_seq
-        {
-            conn.stats.lists_stale += 1;
-            return Ok(ListOutcome::Stale { last_seq });
+        let stale = match conn.stats.last_seq {
+            Some(last_seq) if replan => seq != last_seq,
+            Some(last_seq) => seq <= last_seq,
+            None => replan,
+        };
+        if stale {
+            if !replan {
+                conn.stats.lists_stale += 1;
+            }
+            return Ok(ListOutcome::Stale {
+                last_seq: conn.stats.last_seq.unwrap_or(0),
+            });
         }
         conn.stats.last_seq = Some(seq);
-        conn.stats.lists_received += 1;
         let received = items.len();
-        conn.stats.items_received += received as u64;
+        if !replan {
+            conn.stats.lists_received += 1;
+            conn.stats.items_received += received as u64;
+        }
 
         // Clean, collapse duplicates to their largest priority, rank, truncate.
         items.retain(|&(t, p)| !t.is_none() && p.is_finite());
@@ -538,6 +585,14 @@ impl Scheduler {
             dropped,
             obsolete_in_flight,
         })
+    }
+
+    /// Whether `treelet` was delivered on connection `id` (as far as the bounded record
+    /// remembers); `false` for an unknown connection.
+    pub fn was_delivered(&self, id: ConnectionId, treelet: TreeletId) -> bool {
+        self.conns
+            .get(&id)
+            .is_some_and(|c| c.delivered_ever.contains(&treelet))
     }
 
     /// The next treelet to start sending, and to whom; it is in flight from now on. `None` when
@@ -598,6 +653,10 @@ impl Scheduler {
         let (conn, flight) = self.leave_window(id, treelet)?;
         conn.stats.treelets_delivered += 1;
         conn.remember_delivery(treelet, now);
+        if conn.delivered_ever.len() >= conn.delivered_cap() {
+            conn.delivered_ever.clear();
+        }
+        conn.delivered_ever.insert(treelet);
         self.wake(id);
         Some(now.saturating_duration_since(flight.since))
     }
@@ -678,6 +737,71 @@ mod tests {
         let mut s = Scheduler::default();
         s.add_connection(conn, cfg(window)).unwrap();
         s
+    }
+
+    #[test]
+    fn a_replanned_list_replaces_the_last_one_unless_a_newer_one_came() {
+        let now = Instant::now();
+        let mut s = one(A, 1);
+        assert!(matches!(
+            s.handle_replanned_list(A, 0, list(&[(1, 1.0)]), now),
+            Ok(ListOutcome::Stale { .. })
+        ));
+        s.handle_request_list(A, 5, list(&[(1, 1.0)]), now).unwrap();
+        let replanned = s.handle_replanned_list(A, 5, list(&[(2, 2.0), (1, 1.0)]), now);
+        assert!(matches!(
+            replanned,
+            Ok(ListOutcome::Applied { queued: 2, .. })
+        ));
+        assert_eq!(
+            drain(&mut s, now),
+            vec![(A, 2)],
+            "the replanned order, window 1"
+        );
+        assert!(matches!(
+            s.handle_replanned_list(A, 4, list(&[(3, 1.0)]), now),
+            Ok(ListOutcome::Stale { last_seq: 5 })
+        ));
+        s.handle_request_list(A, 6, list(&[(1, 1.0)]), now).unwrap();
+        assert!(matches!(
+            s.handle_replanned_list(A, 5, list(&[(3, 1.0)]), now),
+            Ok(ListOutcome::Stale { last_seq: 6 })
+        ));
+        // Replans are not lists the client sent.
+        let stats = s.stats(A).unwrap();
+        assert_eq!((stats.lists_received, stats.lists_stale), (2, 0));
+    }
+
+    #[test]
+    fn deliveries_are_remembered_until_the_record_is_full() {
+        let now = Instant::now();
+        let mut s = Scheduler::default();
+        let config = ConnectionConfig {
+            window: 4,
+            max_queue: 2,
+            redelivery_guard: Duration::ZERO,
+        };
+        s.add_connection(A, config).unwrap();
+        assert!(!s.was_delivered(A, t(1)));
+        assert!(!s.was_delivered(B, t(1)), "unknown connection");
+        s.handle_request_list(A, 1, list(&[(1, 2.0), (2, 1.0)]), now)
+            .unwrap();
+        for (_, x) in drain(&mut s, now) {
+            s.handle_sent(A, t(x), now);
+            s.handle_delivered(A, t(x), now).unwrap();
+        }
+        assert!(s.was_delivered(A, t(1)) && s.was_delivered(A, t(2)));
+        assert!(!s.was_delivered(A, t(3)));
+        // The record holds 4 × max(max_queue, window) = 16; the 17th delivery starts it afresh.
+        for i in 0..15u32 {
+            let id = 10 + i;
+            s.handle_request_list(A, 2 + u64::from(i), list(&[(id, 1.0)]), now)
+                .unwrap();
+            assert_eq!(drain(&mut s, now), vec![(A, id)]);
+            s.handle_delivered(A, t(id), now).unwrap();
+        }
+        assert!(!s.was_delivered(A, t(1)), "forgotten at the cap");
+        assert!(s.was_delivered(A, t(24)));
     }
 
     #[test]

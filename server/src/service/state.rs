@@ -74,6 +74,8 @@ pub struct Metrics {
     /// Treelets planned as pushes below deep request lists, summed over lists (a push still
     /// implied by the next list is planned again).
     pub pushes_planned: AtomicU64,
+    /// Visible cuts computed for resting views (`service::visibility`).
+    pub visible_cuts: AtomicU64,
     /// Request-to-send latency: from the first list naming a treelet to its stream finishing.
     pub request_to_send: Histogram,
     errors: [AtomicU64; ErrorCode::ALL.len()],
@@ -208,7 +210,7 @@ impl ServiceState {
     pub fn write_prometheus(&self, p: &mut PromText) {
         let m = &self.metrics;
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
-        let counters: [(&str, &str, &AtomicU64); 8] = [
+        let counters: [(&str, &str, &AtomicU64); 9] = [
             (
                 "arbor_connections_accepted_total",
                 "QUIC connections accepted.",
@@ -248,6 +250,11 @@ impl ServiceState {
                 "arbor_pushes_planned_total",
                 "Treelets planned as pushes below deep request lists, summed over lists.",
                 &m.pushes_planned,
+            ),
+            (
+                "arbor_visible_cuts_total",
+                "Visible cuts cast through the server's tree for resting views.",
+                &m.visible_cuts,
             ),
         ];
         for (name, help, value) in counters {

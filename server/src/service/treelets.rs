@@ -9,6 +9,7 @@
 //! go to the wire as they are. Nothing is ever recompressed.
 
 use std::collections::VecDeque;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 
 use arbor_proto::codec::{self, MAX_RAW_TREELET};
@@ -17,7 +18,11 @@ use arbor_proto::{Channel, ProtoError, TreeletId};
 use bytes::Bytes;
 use rustc_hash::FxHashMap;
 
+use arbor_client_core::slots::DecodedTreelet;
+use arbor_proto::wire::ViewHint;
+
 use super::push::TreeIndex;
+use super::visibility::{SceneTree, VisibleCut};
 use crate::pool::{PoolError, StoredScene};
 
 /// Why a treelet message could not be built. Always the server's fault (the pool), never the
@@ -50,6 +55,10 @@ pub enum MessageError {
 /// QUIC's per-stream cost (open, credit, frames, acknowledgement bookkeeping, one task) dominated
 /// a 4 KiB treelet; a few per stream share it.
 pub const MAX_TREELETS_PER_STREAM: usize = 64;
+
+/// Most visible cuts of one scene cast at once; a connection whose view finds them all busy
+/// keeps the frustum plan and asks again with its next resting list.
+pub const MAX_CUTS_RUNNING: usize = 2;
 
 /// Which message: scene generation, treelet, channel set (bit per channel id).
 type MessageKey = (u64, u32, u32);
@@ -133,6 +142,10 @@ pub struct ServedScene {
     cache: Arc<MessageCache>,
     /// Treelet shapes for deep-request pushes.
     pub tree: TreeIndex,
+    /// The root treelet's nodes for visible cuts, read by the first cut.
+    visibility: Mutex<Option<Arc<SceneTree>>>,
+    /// Visible cuts being cast now (each holds a buffer of `visibility_cache_bytes`).
+    cuts_running: AtomicUsize,
 }
 
 impl std::fmt::Debug for ServedScene {
@@ -162,7 +175,47 @@ impl ServedScene {
             dictionary,
             cache,
             tree: TreeIndex::default(),
+            visibility: Mutex::new(None),
+            cuts_running: AtomicUsize::new(0),
         }
+    }
+
+    /// The visible cut of `view` with `grid` rays along the longer side ([`SceneTree::cut`]),
+    /// in a buffer of at most `budget_bytes` of node records. `None` when the root treelet
+    /// cannot be read or does not fit, or [`MAX_CUTS_RUNNING`] cuts of this scene are being
+    /// cast already (their buffers bound the memory). Blocks for the cast (milliseconds): call
+    /// it off the async workers.
+    pub fn visible_cut(&self, view: &ViewHint, grid: u32, budget_bytes: u64) -> Option<VisibleCut> {
+        struct Running<'a>(&'a AtomicUsize);
+        impl Drop for Running<'_> {
+            fn drop(&mut self) {
+                self.0.fetch_sub(1, Ordering::AcqRel);
+            }
+        }
+        let running = Running(&self.cuts_running);
+        if running.0.fetch_add(1, Ordering::AcqRel) >= MAX_CUTS_RUNNING {
+            return None;
+        }
+        let d = &self.stored.description;
+        let fetch = |id: TreeletId| {
+            let block = self.stored.nodes(id).ok()??;
+            DecodedTreelet::from_blocks(id, &block, &[], d, &[]).ok()
+        };
+        let tree = {
+            let mut tree = self.visibility.lock().unwrap_or_else(|p| p.into_inner());
+            if tree.is_none() {
+                let root = fetch(d.root_treelet)?;
+                match SceneTree::new(d, budget_bytes, root) {
+                    Ok(t) => *tree = Some(Arc::new(t)),
+                    Err(e) => {
+                        tracing::warn!(scene = %d.name, "no visible cut: {e}");
+                        return None;
+                    }
+                }
+            }
+            tree.clone()?
+        };
+        Some(tree.cut(view, grid, fetch))
     }
 
     pub fn treelet_count(&self) -> u32 {

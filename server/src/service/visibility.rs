@@ -1,0 +1,252 @@
+//! Server-side visibility: which treelets a client's view needs, found by casting the view's
+//! rays through the server's own tree, so that pushes name what the view needs and nothing it
+//! cannot see.
+//!
+//! [`push::plan_pushes`](super::push::plan_pushes) walks down from the listed treelets by
+//! frustum and projected size alone: it cannot know what is hidden, and it cannot know what a
+//! ray will meet *behind* a listed treelet once that one shows the ray passes through. The
+//! server holds the whole tree, so it can answer "what does this view need" itself:
+//! [`SceneTree::cut`] casts a grid of the view's rays (the client's own CPU traversal,
+//! [`trace`], so both sides agree on where a ray stops) through a [`SlotBuffer`] that starts
+//! with the root treelet alone. A ray that stops at a refinable leaf coarser than a pixel — the
+//! client's own rule for asking — loads that leaf's treelet and is cast again, round after
+//! round, until every ray stops where the whole tree would stop it. Everything loaded is the
+//! view's cut ([`VisibleCut`]), parents first: the treelets holding the stops, their
+//! ancestors, and the treelets rays only pass through (a coarse voxel is a hull of its subtree,
+//! so without them the ray stops at the hull). A ray that has stopped stays stopped as more is
+//! loaded (loading only refines hulls behind its stop or elsewhere), so only the rays that
+//! asked are cast again.
+//!
+//! The grid is coarser than the client's frame, so a treelet met only between grid rays is
+//! missed; the client's own feedback still asks for it. The buffer is bounded in bytes (node
+//! records only); when it cannot take the next treelet, or a treelet cannot be read, the cut is
+//! marked incomplete and the service keeps the frustum plan. Pure apart from the `fetch` closure
+//! that reads a node block, so the tests compare it with casts over the fully resident scene.
+
+use arbor_client_core::camera::Camera;
+use arbor_client_core::incore::SceneFrame;
+use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig, SlotError};
+use arbor_client_core::traverse::{Lod, trace};
+use arbor_proto::wire::ViewHint;
+use arbor_proto::{SceneDescription, TreeletId};
+use glam::DVec3;
+
+/// The treelets a view needs, as [`SceneTree::cut`] found them.
+#[derive(Clone, Debug, PartialEq)]
+pub struct VisibleCut {
+    /// The view it was computed for (`free_slots` is irrelevant to it).
+    pub view: ViewHint,
+    /// `(level, treelet)`: every treelet a ray needed loaded to stop where the whole tree stops
+    /// it — those holding the stops, their ancestors, and those the rays pass through (a
+    /// coarse voxel is a hull of its subtree: a ray meant to pass through stops at the hull
+    /// until the subtree is there). Parents before children (by level — treelets above it —
+    /// then id). The root treelet is left out: every client holds it.
+    pub treelets: Vec<(u8, TreeletId)>,
+    /// Every ray stopped where the view's LOD accepts it. `false`: the buffer ran out of room or
+    /// a treelet could not be read, and the rays that needed it stopped short.
+    pub complete: bool,
+    /// Rays along the longer side of the frame it was cast with.
+    pub grid: u32,
+    /// Rays cast in all rounds.
+    pub rays_cast: u64,
+    /// How long the cast took.
+    pub took: std::time::Duration,
+}
+
+impl VisibleCut {
+    /// A cut that names nothing and is not complete.
+    fn empty(view: ViewHint) -> VisibleCut {
+        VisibleCut {
+            view,
+            treelets: Vec::new(),
+            complete: false,
+            grid: 0,
+            rays_cast: 0,
+            took: std::time::Duration::ZERO,
+        }
+    }
+
+    /// Whether this cut answers `view`: the same eye, directions, field of view, aspect and
+    /// footprint, up to float noise (a client's hint and the same camera's `Hello` view
+    /// converted to world units differ in the last bits).
+    pub fn answers(&self, view: &ViewHint) -> bool {
+        same_view(&self.view, view)
+    }
+}
+
+/// Two hints describe the same view (everything but `free_slots`, relative 1e-5).
+pub fn same_view(a: &ViewHint, b: &ViewHint) -> bool {
+    let close = |x: f64, y: f64, scale: f64| (x - y).abs() <= 1e-5 * scale.max(1e-30);
+    let scale = a
+        .eye
+        .iter()
+        .chain(&b.eye)
+        .fold(0.0f64, |m, v| m.max(v.abs()))
+        .max(1.0);
+    (0..3).all(|i| close(a.eye[i], b.eye[i], scale))
+        && (0..3).all(|i| close(f64::from(a.forward[i]), f64::from(b.forward[i]), 1.0))
+        && (0..3).all(|i| close(f64::from(a.up[i]), f64::from(b.up[i]), 1.0))
+        && close(
+            f64::from(a.tan_half_fov_y),
+            f64::from(b.tan_half_fov_y),
+            f64::from(a.tan_half_fov_y),
+        )
+        && close(
+            f64::from(a.aspect),
+            f64::from(b.aspect),
+            f64::from(a.aspect),
+        )
+        && close(
+            f64::from(a.footprint),
+            f64::from(b.footprint),
+            f64::from(a.footprint),
+        )
+}
+
+/// The camera of `view` with `grid` rays along its longer side (at least one along the other).
+/// The hint carries directions as `f32`: they are renormalised and `up` made orthogonal again.
+pub fn grid_camera(view: &ViewHint, grid: u32) -> Camera {
+    let v = |a: [f32; 3]| DVec3::new(f64::from(a[0]), f64::from(a[1]), f64::from(a[2]));
+    let forward = v(view.forward).normalize_or_zero();
+    let up_hint = v(view.up);
+    let up = (up_hint - forward * forward.dot(up_hint)).normalize_or_zero();
+    let aspect = f64::from(view.aspect);
+    let grid = grid.max(1);
+    let (width, height) = if aspect >= 1.0 {
+        (grid, ((f64::from(grid) / aspect).round() as u32).max(1))
+    } else {
+        (((f64::from(grid) * aspect).round() as u32).max(1), grid)
+    };
+    Camera {
+        position: DVec3::from_array(view.eye),
+        forward,
+        up,
+        fov_y: 2.0 * f64::from(view.tan_half_fov_y).atan(),
+        width,
+        height,
+    }
+}
+
+/// What the server keeps of a scene for its visible cuts: the root treelet's node block and the
+/// buffer size a cut may use.
+#[derive(Debug)]
+pub struct SceneTree {
+    config: SlotConfig,
+    frame: SceneFrame,
+    root: DecodedTreelet,
+}
+
+impl SceneTree {
+    /// A tree whose cuts hold at most `budget_bytes` of node records (checked now: the root
+    /// must fit).
+    pub fn new(
+        scene: &SceneDescription,
+        budget_bytes: u64,
+        root: DecodedTreelet,
+    ) -> Result<SceneTree, SlotError> {
+        let config = SlotConfig {
+            budget_bytes,
+            treelet_nodes: scene.treelet_nodes,
+            channels: Vec::new(),
+            visibility_max: 1,
+            load_limit: u32::MAX,
+        };
+        SlotBuffer::new(config.clone(), root.clone())?;
+        Ok(SceneTree {
+            config,
+            frame: SceneFrame::of(scene),
+            root,
+        })
+    }
+
+    /// The cut of `view` with `grid` rays along the longer side of its frame. Every cut starts
+    /// from the root alone, so that what it loads is exactly what its rays need: a treelet
+    /// already held would let a ray pass through it unnoticed. Treelets are read with `fetch`
+    /// (node block only; `None`: not readable, the cut is then incomplete).
+    pub fn cut(
+        &self,
+        view: &ViewHint,
+        grid: u32,
+        mut fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
+    ) -> VisibleCut {
+        let start = std::time::Instant::now();
+        let mut slots = match SlotBuffer::new(self.config.clone(), self.root.clone()) {
+            Ok(s) => s,
+            // `new` built the same buffer once already.
+            Err(_) => return VisibleCut::empty(*view),
+        };
+        let camera = grid_camera(view, grid);
+        let lod = Lod {
+            pixel_angle: f64::from(view.footprint),
+            lod_bias: 1.0,
+            max_depth: self.frame.max_depth,
+        };
+        let mut pending: Vec<(u32, u32)> = (0..camera.height)
+            .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
+            .collect();
+        let mut complete = true;
+        let mut rays_cast = 0u64;
+        let mut loaded: Vec<(u8, TreeletId)> = Vec::new();
+        while !pending.is_empty() {
+            let mut missing: Vec<TreeletId> = Vec::new();
+            let mut again = Vec::new();
+            for &(x, y) in &pending {
+                let ray = camera.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
+                rays_cast += 1;
+                if let Some(hit) = trace(&slots.view(), &self.frame, &ray, &lod)
+                    && hit.leaf
+                    && !hit.subtreelet.is_none()
+                    && hit.error > 0.0
+                {
+                    missing.push(hit.subtreelet);
+                    again.push((x, y));
+                }
+            }
+            missing.sort_unstable();
+            missing.dedup();
+            let mut progress = false;
+            for id in missing {
+                if slots.free_slots() == 0 {
+                    complete = false;
+                    break;
+                }
+                let Some(t) = fetch(id) else {
+                    complete = false;
+                    continue;
+                };
+                if let InsertOutcome::Inserted { slot, .. } = slots.insert(t) {
+                    loaded.push((level_of(&slots, slot), id));
+                    progress = true;
+                } else {
+                    complete = false;
+                }
+            }
+            if !progress {
+                // Nothing more can be loaded: those rays stop at the hulls they reached.
+                break;
+            }
+            pending = again;
+        }
+        loaded.sort_unstable();
+        VisibleCut {
+            view: *view,
+            treelets: loaded,
+            complete,
+            grid,
+            rays_cast,
+            took: start.elapsed(),
+        }
+    }
+}
+
+/// A resident treelet's level: the number of treelets above it (a parent's level is below its
+/// children's, so sorting by level sends parents first).
+fn level_of(slots: &SlotBuffer, slot: u32) -> u8 {
+    let mut level = 0u8;
+    let mut s = slots.parent_slot(slot);
+    while let Some(p) = s {
+        level = level.saturating_add(1);
+        s = slots.parent_slot(p);
+    }
+    level
+}

@@ -1,0 +1,258 @@
+//! The server's visible cuts (`server/src/service/visibility.rs`) on a real scan, against casts
+//! over the fully resident tree: with the root and the cut's treelets resident, every ray of the
+//! grid stops exactly where it stops in the whole tree (same voxel, same distance), and a
+//! treelet at the bottom of the cut, taken away, changes some ray — for the seeded views and the
+//! stiff ones (axis-parallel view, camera inside the data, far and near cameras). A buffer too
+//! small or a treelet that cannot be read makes an incomplete cut that never names a treelet the
+//! complete cut does not.
+
+use std::collections::BTreeSet;
+
+use arbor_client_core::camera::{Camera, CameraPath};
+use arbor_client_core::incore::SceneFrame;
+use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
+use arbor_client_core::traverse::{Lod, trace};
+use arbor_proto::wire::ViewHint;
+use arbor_proto::{Cell, TreeletId};
+use arbor_server::service::visibility::{SceneTree, VisibleCut, grid_camera, same_view};
+use arbor_tests::support::{decoded_treelets, small_lion};
+use glam::DVec3;
+
+const GRID: u32 = 96;
+
+/// The hint a client sends for `camera` at LOD bias 1 (as `cycle.rs` builds it).
+fn hint(camera: &Camera) -> ViewHint {
+    let f32s = |v: DVec3| [v.x as f32, v.y as f32, v.z as f32];
+    let hint = ViewHint {
+        eye: camera.position.to_array(),
+        forward: f32s(camera.forward),
+        up: f32s(camera.up),
+        tan_half_fov_y: (camera.fov_y * 0.5).tan() as f32,
+        aspect: (f64::from(camera.width) / f64::from(camera.height)) as f32,
+        footprint: camera.pixel_angle() as f32,
+        free_slots: 1000,
+    };
+    hint.check().expect("a valid hint");
+    hint
+}
+
+fn nodes_only(t: &DecodedTreelet) -> DecodedTreelet {
+    DecodedTreelet {
+        treelet: t.treelet.clone(),
+        attributes: Vec::new(),
+    }
+}
+
+/// Where every ray of `view`'s grid stops in `tree`: the voxel and the distance.
+fn stops(tree: &SlotBuffer, frame: &SceneFrame, view: &ViewHint) -> Vec<Option<(Cell, u64)>> {
+    let camera = grid_camera(view, GRID);
+    let lod = Lod {
+        pixel_angle: f64::from(view.footprint),
+        lod_bias: 1.0,
+        max_depth: frame.max_depth,
+    };
+    let mut out = Vec::new();
+    for y in 0..camera.height {
+        for x in 0..camera.width {
+            let ray = camera.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
+            out.push(trace(&tree.view(), frame, &ray, &lod).map(|h| (h.cell, h.t.to_bits())));
+        }
+    }
+    out
+}
+
+fn ids(cut: &VisibleCut) -> BTreeSet<TreeletId> {
+    cut.treelets.iter().map(|&(_, id)| id).collect()
+}
+
+struct Lion {
+    treelets: Vec<DecodedTreelet>,
+    scene: arbor_proto::SceneDescription,
+    full: SlotBuffer,
+    frame: SceneFrame,
+}
+
+fn lion() -> Lion {
+    let built = small_lion();
+    let treelets = decoded_treelets(&built.scene);
+    let scene = built.scene.description.clone();
+    let full = SlotBuffer::fully_resident(&scene, &[], treelets.iter().map(nodes_only)).unwrap();
+    Lion {
+        frame: SceneFrame::of(&scene),
+        treelets,
+        scene,
+        full,
+    }
+}
+
+impl Lion {
+    fn tree(&self, budget_bytes: u64) -> SceneTree {
+        SceneTree::new(&self.scene, budget_bytes, nodes_only(&self.treelets[0])).unwrap()
+    }
+
+    fn fetch(&self) -> impl FnMut(TreeletId) -> Option<DecodedTreelet> + '_ {
+        |id| self.treelets.get(id.0 as usize).map(nodes_only)
+    }
+
+    /// The root and `treelets` (parents first) resident, nodes only.
+    fn partial(&self, treelets: impl IntoIterator<Item = TreeletId>) -> SlotBuffer {
+        let config = SlotConfig {
+            budget_bytes: self.whole_scene_bytes() * 2,
+            treelet_nodes: self.scene.treelet_nodes,
+            channels: Vec::new(),
+            visibility_max: 1,
+            load_limit: u32::MAX,
+        };
+        let mut tree = SlotBuffer::new(config, nodes_only(&self.treelets[0])).unwrap();
+        for id in treelets {
+            let outcome = tree.insert(nodes_only(&self.treelets[id.0 as usize]));
+            assert!(
+                matches!(outcome, InsertOutcome::Inserted { .. }),
+                "{id}: {outcome:?}"
+            );
+        }
+        tree
+    }
+
+    fn whole_scene_bytes(&self) -> u64 {
+        u64::from(self.scene.treelet_count) * SlotBuffer::slot_bytes(self.scene.treelet_nodes, &[])
+    }
+
+    fn views(&self) -> Vec<(&'static str, Camera)> {
+        let f = &self.frame;
+        let c = DVec3::from_array(f.centre());
+        let e = f.edge;
+        let at = |what, eye: DVec3, target: DVec3, fov: f64| {
+            (
+                what,
+                Camera::look_at(eye, target, DVec3::Z, fov, 160, 120).unwrap(),
+            )
+        };
+        vec![
+            ("static", CameraPath::Static.camera(0, f, 7, 160, 120)),
+            (
+                "jump",
+                CameraPath::Jump { every: 1 }.camera(1, f, 7, 160, 120),
+            ),
+            (
+                "fly-in end",
+                CameraPath::FlyIn { cycles: 1 }.camera(5, f, 7, 160, 120),
+            ),
+            (
+                "axis-parallel",
+                Camera::look_at(c - DVec3::X * 2.0 * e, c, DVec3::Z, 0.8, 128, 128).unwrap(),
+            ),
+            at("inside the data", c, c + DVec3::new(1.0, 0.3, 0.1), 1.2),
+            at("far", c + DVec3::new(1.0, 1.0, 0.5) * 300.0 * e, c, 0.05),
+            at("near", c + DVec3::new(0.2, -0.7, 0.1) * e, c, 1.0),
+        ]
+    }
+}
+
+#[test]
+fn with_the_cut_resident_every_ray_stops_where_the_whole_tree_stops_it() {
+    let lion = lion();
+    let tree = lion.tree(lion.whole_scene_bytes() * 2);
+    for (what, camera) in lion.views() {
+        let view = hint(&camera);
+        let cut = tree.cut(&view, GRID, lion.fetch());
+        assert!(cut.complete, "{what}: complete");
+        assert!(cut.answers(&view), "{what}");
+        assert_eq!(
+            ids(&cut).len(),
+            cut.treelets.len(),
+            "{what}: each treelet once"
+        );
+        let whole = stops(&lion.full, &lion.frame, &view);
+        let resident = lion.partial(cut.treelets.iter().map(|&(_, id)| id));
+        assert_eq!(
+            stops(&resident, &lion.frame, &view),
+            whole,
+            "{what}: enough"
+        );
+        // Parents before children, levels counted from the root.
+        let position = |id: TreeletId| cut.treelets.iter().position(|&(_, t)| t == id);
+        for &(level, id) in &cut.treelets {
+            let parent = lion.treelets[id.0 as usize].treelet.header.parent_id;
+            if parent == TreeletId::ROOT {
+                assert_eq!(level, 1, "{what}: a child of the root is level 1");
+            } else {
+                let p = position(parent).unwrap_or_else(|| panic!("{what}: {id}'s parent"));
+                assert!(p < position(id).unwrap(), "{what}: {parent} before {id}");
+                assert_eq!(cut.treelets[p].0 + 1, level, "{what}: levels");
+            }
+        }
+        // Nothing superfluous: a treelet at the bottom of the cut, taken away, changes a ray.
+        let parents: BTreeSet<TreeletId> = cut
+            .treelets
+            .iter()
+            .map(|&(_, id)| lion.treelets[id.0 as usize].treelet.header.parent_id)
+            .collect();
+        let bottom: Vec<TreeletId> = ids(&cut).difference(&parents).copied().take(8).collect();
+        for gone in bottom {
+            let fewer = lion.partial(
+                cut.treelets
+                    .iter()
+                    .map(|&(_, id)| id)
+                    .filter(|&id| id != gone),
+            );
+            assert_ne!(
+                stops(&fewer, &lion.frame, &view),
+                whole,
+                "{what}: {gone} is needed"
+            );
+        }
+        // Deterministic: the same view again gives the same cut.
+        assert_eq!(
+            tree.cut(&view, GRID, lion.fetch()).treelets,
+            cut.treelets,
+            "{what}"
+        );
+    }
+}
+
+#[test]
+fn too_small_a_buffer_or_an_unreadable_treelet_gives_an_incomplete_cut_of_needed_treelets() {
+    let lion = lion();
+    let view = hint(&lion.views()[0].1);
+    let whole = lion.tree(lion.whole_scene_bytes() * 2);
+    let expected = ids(&whole.cut(&view, GRID, lion.fetch()));
+    assert!(expected.len() > 8, "the view needs several treelets");
+
+    let slot = SlotBuffer::slot_bytes(lion.scene.treelet_nodes, &[]);
+    let small = lion.tree(slot * 4);
+    let cut = small.cut(&view, GRID, lion.fetch());
+    assert!(!cut.complete, "four slots cannot hold the view");
+    assert!(!ids(&cut).is_empty());
+    assert!(ids(&cut).is_subset(&expected), "only needed treelets");
+
+    // Every treelet below the first level unreadable.
+    let cut = whole.cut(&view, GRID, |id: TreeletId| {
+        let t = lion.treelets.get(id.0 as usize)?;
+        (t.treelet.header.parent_id == TreeletId::ROOT).then(|| nodes_only(t))
+    });
+    assert!(!cut.complete);
+    assert!(!ids(&cut).is_empty());
+    assert!(ids(&cut).is_subset(&expected));
+    assert!(cut.treelets.iter().all(|&(level, _)| level == 1));
+}
+
+#[test]
+fn hints_of_the_same_view_match_and_others_do_not() {
+    let lion = lion();
+    let views = lion.views();
+    let a = hint(&views[0].1);
+    let mut noisy = a;
+    noisy.eye[0] += a.eye[0].abs().max(1.0) * 1e-9;
+    noisy.free_slots = 3;
+    assert!(
+        same_view(&a, &noisy),
+        "float noise and free slots do not matter"
+    );
+    for (what, camera) in &views[1..] {
+        assert!(!same_view(&a, &hint(camera)), "{what}");
+    }
+    let mut wider = a;
+    wider.footprint *= 2.0;
+    assert!(!same_view(&a, &wider), "another LOD bias is another view");
+}
