@@ -157,6 +157,7 @@ impl Handler {
                 window,
                 max_queue: MAX_REQUEST_ITEMS,
                 redelivery_guard: ConnectionConfig::default().redelivery_guard,
+                remember_deliveries: shared.config.visibility_grid > 0,
             };
             if let Err(e) = core.sched.add_connection(id, config) {
                 tracing::error!("{e}");

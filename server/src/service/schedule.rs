@@ -121,7 +121,15 @@ pub struct ConnectionConfig {
     /// A treelet delivered less than this before a list arrives is not sent again for that list
     /// (see the module docs). About one RTT plus one client cycle.
     pub redelivery_guard: Duration,
+    /// Remember every delivery ([`Scheduler::was_delivered`], up to [`DELIVERIES_REMEMBERED`]):
+    /// only the service's visible cuts ask, so connections without them keep no record.
+    pub remember_deliveries: bool,
 }
+
+/// Most deliveries a connection remembers for [`Scheduler::was_delivered`] (about 400 KB);
+/// past it the record starts afresh, and a push may repeat a treelet the client holds (the
+/// client drops the duplicate).
+pub const DELIVERIES_REMEMBERED: usize = 1 << 16;
 
 impl Default for ConnectionConfig {
     fn default() -> Self {
@@ -129,6 +137,7 @@ impl Default for ConnectionConfig {
             window: 16,
             max_queue: MAX_REQUEST_ITEMS,
             redelivery_guard: Duration::from_millis(100),
+            remember_deliveries: false,
         }
     }
 }
@@ -258,8 +267,8 @@ struct Conn {
     /// Deliveries within the redelivery guard, oldest first, and the latest time per id.
     recent: VecDeque<(Instant, TreeletId)>,
     recent_at: FxHashMap<TreeletId, Instant>,
-    /// Every treelet delivered on this connection (forgotten all at once at
-    /// [`Conn::delivered_cap`]): pushes planned from a visible cut leave them out.
+    /// Every treelet delivered on this connection when it remembers deliveries (forgotten all
+    /// at once at [`Conn::delivered_cap`]): pushes planned from a visible cut leave them out.
     delivered_ever: FxHashSet<TreeletId>,
     in_ring: bool,
     stats: ConnectionStats,
@@ -653,10 +662,12 @@ impl Scheduler {
         let (conn, flight) = self.leave_window(id, treelet)?;
         conn.stats.treelets_delivered += 1;
         conn.remember_delivery(treelet, now);
-        if conn.delivered_ever.len() >= conn.delivered_cap() {
-            conn.delivered_ever.clear();
+        if conn.config.remember_deliveries {
+            if conn.delivered_ever.len() >= conn.delivered_cap() {
+                conn.delivered_ever.clear();
+            }
+            conn.delivered_ever.insert(treelet);
         }
-        conn.delivered_ever.insert(treelet);
         self.wake(id);
         Some(now.saturating_duration_since(flight.since))
     }
@@ -719,6 +730,7 @@ mod tests {
             window,
             max_queue: MAX_REQUEST_ITEMS,
             redelivery_guard: Duration::ZERO,
+            remember_deliveries: false,
         }
     }
 
@@ -780,6 +792,7 @@ mod tests {
             window: 4,
             max_queue: 2,
             redelivery_guard: Duration::ZERO,
+            remember_deliveries: true,
         };
         s.add_connection(A, config).unwrap();
         assert!(!s.was_delivered(A, t(1)));
@@ -802,6 +815,12 @@ mod tests {
         }
         assert!(!s.was_delivered(A, t(1)), "forgotten at the cap");
         assert!(s.was_delivered(A, t(24)));
+        // A connection that does not remember keeps no record.
+        let mut s = one(B, 1);
+        s.handle_request_list(B, 1, list(&[(1, 1.0)]), now).unwrap();
+        assert_eq!(drain(&mut s, now), vec![(B, 1)]);
+        s.handle_delivered(B, t(1), now).unwrap();
+        assert!(!s.was_delivered(B, t(1)));
     }
 
     #[test]
@@ -1313,7 +1332,12 @@ mod tests {
             let mut now = t0;
             let mut s = Scheduler::new(SchedulerConfig { max_in_flight });
             let mut model: Map<u64, Model> = Map::new();
-            let conf = |window| ConnectionConfig { window, max_queue: 1000, redelivery_guard: guard };
+            let conf = |window| ConnectionConfig {
+                window,
+                max_queue: 1000,
+                redelivery_guard: guard,
+                remember_deliveries: false,
+            };
             for c in 0..2u64 {
                 s.add_connection(ConnectionId(c), conf(2)).unwrap();
                 model.insert(c, Model { window: 2, ..Model::default() });
