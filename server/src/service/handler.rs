@@ -350,14 +350,16 @@ impl Handler {
         }
         // A view named twice in a row (or `Hello`'s) is resting: worth a visible cut. A moving
         // camera's views are never cast; its pushes follow the frustum plan.
-        let resting = seq == 0
-            || self
-                .last_deep
-                .as_ref()
-                .is_some_and(|(_, last, _)| same_view(last, view));
-        self.last_deep = Some((seq, *view, items.to_vec()));
-        if resting {
-            self.start_cut(view);
+        if self.shared.config.visibility_grid > 0 {
+            let resting = seq == 0
+                || self
+                    .last_deep
+                    .as_ref()
+                    .is_some_and(|(_, last, _)| same_view(last, view));
+            self.last_deep = Some((seq, *view, items.to_vec()));
+            if resting {
+                self.start_cut(view);
+            }
         }
         let (list, pushed) = self.plan(view, items);
         self.shared
