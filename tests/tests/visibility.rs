@@ -14,7 +14,7 @@ use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotCo
 use arbor_client_core::traverse::{Lod, trace};
 use arbor_proto::wire::ViewHint;
 use arbor_proto::{Cell, TreeletId};
-use arbor_server::service::visibility::{SceneTree, VisibleCut, grid_camera, same_view};
+use arbor_server::service::visibility::{CutCaster, VisibleCut, grid_camera, same_view};
 use arbor_tests::support::{decoded_treelets, small_lion};
 use glam::DVec3;
 
@@ -86,8 +86,8 @@ fn lion() -> Lion {
 }
 
 impl Lion {
-    fn tree(&self, budget_bytes: u64) -> SceneTree {
-        SceneTree::new(&self.scene, budget_bytes, nodes_only(&self.treelets[0])).unwrap()
+    fn caster(&self, budget_bytes: u64) -> CutCaster {
+        CutCaster::new(&self.scene, budget_bytes, nodes_only(&self.treelets[0])).unwrap()
     }
 
     fn fetch(&self) -> impl FnMut(TreeletId) -> Option<DecodedTreelet> + '_ {
@@ -152,10 +152,10 @@ impl Lion {
 #[test]
 fn with_the_cut_resident_every_ray_stops_where_the_whole_tree_stops_it() {
     let lion = lion();
-    let tree = lion.tree(lion.whole_scene_bytes() * 2);
+    let caster = lion.caster(lion.whole_scene_bytes() * 2);
     for (what, camera) in lion.views() {
         let view = hint(&camera);
-        let cut = tree.cut(&view, GRID, lion.fetch());
+        let cut = caster.cut(&view, GRID, lion.fetch());
         assert!(cut.complete, "{what}: complete");
         assert!(cut.answers(&view), "{what}");
         assert_eq!(
@@ -204,7 +204,7 @@ fn with_the_cut_resident_every_ray_stops_where_the_whole_tree_stops_it() {
         }
         // Deterministic: the same view again gives the same cut.
         assert_eq!(
-            tree.cut(&view, GRID, lion.fetch()).treelets,
+            caster.cut(&view, GRID, lion.fetch()).treelets,
             cut.treelets,
             "{what}"
         );
@@ -215,12 +215,12 @@ fn with_the_cut_resident_every_ray_stops_where_the_whole_tree_stops_it() {
 fn too_small_a_buffer_or_an_unreadable_treelet_gives_an_incomplete_cut_of_needed_treelets() {
     let lion = lion();
     let view = hint(&lion.views()[0].1);
-    let whole = lion.tree(lion.whole_scene_bytes() * 2);
+    let whole = lion.caster(lion.whole_scene_bytes() * 2);
     let expected = ids(&whole.cut(&view, GRID, lion.fetch()));
     assert!(expected.len() > 8, "the view needs several treelets");
 
     let slot = SlotBuffer::slot_bytes(lion.scene.treelet_nodes, &[]);
-    let small = lion.tree(slot * 4);
+    let small = lion.caster(slot * 4);
     let cut = small.cut(&view, GRID, lion.fetch());
     assert!(!cut.complete, "four slots cannot hold the view");
     assert!(!ids(&cut).is_empty());

@@ -22,7 +22,7 @@ use arbor_client_core::slots::DecodedTreelet;
 use arbor_proto::wire::ViewHint;
 
 use super::push::TreeIndex;
-use super::visibility::{SceneTree, VisibleCut};
+use super::visibility::{CutCaster, VisibleCut};
 use crate::pool::{PoolError, StoredScene};
 
 /// Why a treelet message could not be built. Always the server's fault (the pool), never the
@@ -143,7 +143,7 @@ pub struct ServedScene {
     /// Treelet shapes for deep-request pushes.
     pub tree: TreeIndex,
     /// The root treelet's nodes for visible cuts, read by the first cut.
-    visibility: Mutex<Option<Arc<SceneTree>>>,
+    cut_caster: Mutex<Option<Arc<CutCaster>>>,
     /// Visible cuts being cast now (each holds a buffer of `visibility_cache_bytes`).
     cuts_running: AtomicUsize,
 }
@@ -175,12 +175,12 @@ impl ServedScene {
             dictionary,
             cache,
             tree: TreeIndex::default(),
-            visibility: Mutex::new(None),
+            cut_caster: Mutex::new(None),
             cuts_running: AtomicUsize::new(0),
         }
     }
 
-    /// The visible cut of `view` with `grid` rays along the longer side ([`SceneTree::cut`]),
+    /// The visible cut of `view` with `grid` rays along the longer side ([`CutCaster::cut`]),
     /// in a buffer of at most `budget_bytes` of node records. `None` when the root treelet
     /// cannot be read or does not fit, or [`MAX_CUTS_RUNNING`] cuts of this scene are being
     /// cast already (their buffers bound the memory). Blocks for the cast (milliseconds): call
@@ -201,21 +201,21 @@ impl ServedScene {
             let block = self.stored.nodes(id).ok()??;
             DecodedTreelet::from_blocks(id, &block, &[], d, &[]).ok()
         };
-        let tree = {
-            let mut tree = self.visibility.lock().unwrap_or_else(|p| p.into_inner());
-            if tree.is_none() {
+        let caster = {
+            let mut caster = self.cut_caster.lock().unwrap_or_else(|p| p.into_inner());
+            if caster.is_none() {
                 let root = fetch(d.root_treelet)?;
-                match SceneTree::new(d, budget_bytes, root) {
-                    Ok(t) => *tree = Some(Arc::new(t)),
+                match CutCaster::new(d, budget_bytes, root) {
+                    Ok(c) => *caster = Some(Arc::new(c)),
                     Err(e) => {
                         tracing::warn!(scene = %d.name, "no visible cut: {e}");
                         return None;
                     }
                 }
             }
-            tree.clone()?
+            caster.clone()?
         };
-        Some(tree.cut(view, grid, fetch))
+        Some(caster.cut(view, grid, fetch))
     }
 
     pub fn treelet_count(&self) -> u32 {

@@ -6,7 +6,7 @@
 //! frustum and projected size alone: it cannot know what is hidden, and it cannot know what a
 //! ray will meet *behind* a listed treelet once that one shows the ray passes through. The
 //! server holds the whole tree, so it can answer "what does this view need" itself:
-//! [`SceneTree::cut`] casts a grid of the view's rays (the client's own CPU traversal,
+//! [`CutCaster::cut`] casts a grid of the view's rays (the client's own CPU traversal,
 //! [`trace`], so both sides agree on where a ray stops) through a [`SlotBuffer`] that starts
 //! with the root treelet alone. A ray that stops at a refinable leaf coarser than a pixel — the
 //! client's own rule for asking — loads that leaf's treelet and is cast again, round after
@@ -31,7 +31,7 @@ use arbor_proto::wire::ViewHint;
 use arbor_proto::{SceneDescription, TreeletId};
 use glam::DVec3;
 
-/// The treelets a view needs, as [`SceneTree::cut`] found them.
+/// The treelets a view needs, as [`CutCaster::cut`] found them.
 #[derive(Clone, Debug, PartialEq)]
 pub struct VisibleCut {
     /// The view it was computed for (`free_slots` is irrelevant to it).
@@ -127,23 +127,23 @@ pub fn grid_camera(view: &ViewHint, grid: u32) -> Camera {
     }
 }
 
-/// What the server keeps of a scene for its visible cuts: the root treelet's node block and the
-/// buffer size a cut may use.
+/// Casts a scene's visible cuts: holds the root treelet's nodes and the buffer size a cut may
+/// use; every cut builds its own buffer from them.
 #[derive(Debug)]
-pub struct SceneTree {
+pub struct CutCaster {
     config: SlotConfig,
     frame: SceneFrame,
     root: DecodedTreelet,
 }
 
-impl SceneTree {
-    /// A tree whose cuts hold at most `budget_bytes` of node records (checked now: the root
+impl CutCaster {
+    /// A caster whose cuts hold at most `budget_bytes` of node records (checked now: the root
     /// must fit).
     pub fn new(
         scene: &SceneDescription,
         budget_bytes: u64,
         root: DecodedTreelet,
-    ) -> Result<SceneTree, SlotError> {
+    ) -> Result<CutCaster, SlotError> {
         let config = SlotConfig {
             budget_bytes,
             treelet_nodes: scene.treelet_nodes,
@@ -152,7 +152,7 @@ impl SceneTree {
             load_limit: u32::MAX,
         };
         SlotBuffer::new(config.clone(), root.clone())?;
-        Ok(SceneTree {
+        Ok(CutCaster {
             config,
             frame: SceneFrame::of(scene),
             root,
