@@ -65,13 +65,14 @@ use arbor_client_core::image::Image;
 use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::presort::PriorityPolicy;
 use arbor_client_core::render::Light;
-use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
-use arbor_client_core::traverse::{Lod, trace};
+use arbor_client_core::slots::{DecodedTreelet, SlotBuffer, SlotConfig};
+use arbor_client_core::traverse::Lod;
 use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
 use arbor_client_report::{CycleRecord, RunMeta, RunReport};
 use arbor_client_session::session::{RenderMode, Session, SessionConfig};
 use arbor_proto::TreeletId;
 use arbor_server::service::timeline::{Breakdown, Event as TimelineEvent};
+use arbor_server::service::visibility::CutCaster;
 use arbor_tests::link::{LinkConfig, LinkEmulator};
 use arbor_tests::streaming::{Served, TOKEN, full, serve};
 
@@ -774,50 +775,22 @@ fn needed(served: &Served, frame: &SceneFrame, camera: &Camera, bias: f64) -> Ha
         treelet: served.treelets[id.0 as usize].treelet.clone(),
         attributes: Vec::new(),
     };
-    let n = served.scene.treelet_nodes;
-    let config = SlotConfig {
-        budget_bytes: u64::from(served.scene.treelet_count) * SlotBuffer::slot_bytes(n, &[]),
-        treelet_nodes: n,
-        channels: Vec::new(),
-        visibility_max: 1,
-        load_limit: u32::MAX,
-    };
-    let mut tree = SlotBuffer::new(config, nodes_only(TreeletId::ROOT)).unwrap();
+    // The server's visible cuts cast the same way; a buffer of the whole scene never runs out.
+    let whole = u64::from(served.scene.treelet_count)
+        * SlotBuffer::slot_bytes(served.scene.treelet_nodes, &[]);
+    let caster = CutCaster::new(&served.scene, whole, nodes_only(TreeletId::ROOT)).unwrap();
     let lod = Lod {
         pixel_angle: camera.pixel_angle(),
         lod_bias: bias,
         max_depth: frame.max_depth,
     };
-    let mut pending: Vec<(u32, u32)> = (0..camera.height)
-        .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
-        .collect();
-    let mut out: HashSet<TreeletId> = HashSet::from([TreeletId::ROOT]);
-    while !pending.is_empty() {
-        let mut load = Vec::new();
-        let mut again = Vec::new();
-        for &(x, y) in &pending {
-            let ray = camera.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
-            if let Some(h) = trace(&tree.view(), frame, &ray, &lod)
-                && h.leaf
-                && !h.subtreelet.is_none()
-                && h.error > 0.0
-            {
-                load.push(h.subtreelet);
-                again.push((x, y));
-            }
-        }
-        load.sort_unstable();
-        load.dedup();
-        for id in load {
-            assert!(
-                matches!(tree.insert(nodes_only(id)), InsertOutcome::Inserted { .. }),
-                "treelet {id} fits the whole-scene buffer below its resident parent"
-            );
-            out.insert(id);
-        }
-        pending = again;
-    }
-    out
+    let cast = caster.cast(camera, &lod, |id| Some(nodes_only(id)));
+    assert!(cast.complete, "a whole-scene buffer holds every cast");
+    cast.treelets
+        .into_iter()
+        .map(|(_, id)| id)
+        .chain([TreeletId::ROOT])
+        .collect()
 }
 
 /// Lion at 3 MiB, 256×256, 600 cycles: the new client against the thesis's.

@@ -291,13 +291,14 @@ impl Conn {
         }
     }
 
-    /// Most deliveries remembered in `delivered_ever`: four lists' worth. Past it the record
-    /// starts afresh, and a push may repeat a treelet the client holds (it drops the duplicate).
+    /// Most deliveries remembered in `delivered_ever`: four lists' worth, at most
+    /// [`DELIVERIES_REMEMBERED`].
     fn delivered_cap(&self) -> usize {
         self.config
             .max_queue
             .max(self.config.window)
             .saturating_mul(4)
+            .min(DELIVERIES_REMEMBERED)
     }
 
     fn queue_depth(&self) -> usize {
@@ -815,6 +816,17 @@ mod tests {
         }
         assert!(!s.was_delivered(A, t(1)), "forgotten at the cap");
         assert!(s.was_delivered(A, t(24)));
+        // With the largest lists the record stops at DELIVERIES_REMEMBERED.
+        let mut s = Scheduler::default();
+        s.add_connection(
+            A,
+            ConnectionConfig {
+                remember_deliveries: true,
+                ..cfg(1)
+            },
+        )
+        .unwrap();
+        assert_eq!(s.conns[&A].delivered_cap(), DELIVERIES_REMEMBERED);
         // A connection that does not remember keeps no record.
         let mut s = one(B, 1);
         s.handle_request_list(B, 1, list(&[(1, 1.0)]), now).unwrap();

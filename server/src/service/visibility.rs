@@ -54,18 +54,6 @@ pub struct VisibleCut {
 }
 
 impl VisibleCut {
-    /// A cut that names nothing and is not complete.
-    fn empty(view: ViewHint) -> VisibleCut {
-        VisibleCut {
-            view,
-            treelets: Vec::new(),
-            complete: false,
-            grid: 0,
-            rays_cast: 0,
-            took: std::time::Duration::ZERO,
-        }
-    }
-
     /// Whether this cut answers `view`: the same eye, directions, field of view, aspect and
     /// footprint, up to float noise (a client's hint and the same camera's `Hello` view
     /// converted to world units differ in the last bits).
@@ -159,41 +147,62 @@ impl CutCaster {
         })
     }
 
-    /// The cut of `view` with `grid` rays along the longer side of its frame. Every cut starts
-    /// from the root alone, so that what it loads is exactly what its rays need: a treelet
-    /// already held would let a ray pass through it unnoticed. Treelets are read with `fetch`
-    /// (node block only; `None`: not readable, the cut is then incomplete).
+    /// The cut of `view` with `grid` rays along the longer side of its frame
+    /// ([`grid_camera`]), at the view's footprint ([`cast`](Self::cast)).
     pub fn cut(
         &self,
         view: &ViewHint,
         grid: u32,
-        mut fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
+        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
     ) -> VisibleCut {
         let start = std::time::Instant::now();
-        let mut slots = match SlotBuffer::new(self.config.clone(), self.root.clone()) {
-            Ok(s) => s,
-            // `new` built the same buffer once already.
-            Err(_) => return VisibleCut::empty(*view),
-        };
-        let camera = grid_camera(view, grid);
         let lod = Lod {
             pixel_angle: f64::from(view.footprint),
             lod_bias: 1.0,
             max_depth: self.frame.max_depth,
         };
+        let cast = self.cast(&grid_camera(view, grid), &lod, fetch);
+        VisibleCut {
+            view: *view,
+            treelets: cast.treelets,
+            complete: cast.complete,
+            grid,
+            rays_cast: cast.rays_cast,
+            took: start.elapsed(),
+        }
+    }
+
+    /// Casts the ray through every pixel centre of `camera` at `lod`, round after round, from
+    /// the root alone (so that what it loads is exactly what its rays need: a treelet already
+    /// held would let a ray pass through it unnoticed), loading what a ray stops at while
+    /// coarser than a pixel, until every ray stops where the whole tree stops it. Treelets are
+    /// read with `fetch` (node block only; `None`: not readable, the cast is then incomplete).
+    pub fn cast(
+        &self,
+        camera: &Camera,
+        lod: &Lod,
+        mut fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
+    ) -> Cast {
+        let mut cast = Cast {
+            treelets: Vec::new(),
+            complete: true,
+            rays_cast: 0,
+        };
+        let Ok(mut slots) = SlotBuffer::new(self.config.clone(), self.root.clone()) else {
+            // `new` built the same buffer once already.
+            cast.complete = false;
+            return cast;
+        };
         let mut pending: Vec<(u32, u32)> = (0..camera.height)
             .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
             .collect();
-        let mut complete = true;
-        let mut rays_cast = 0u64;
-        let mut loaded: Vec<(u8, TreeletId)> = Vec::new();
         while !pending.is_empty() {
             let mut missing: Vec<TreeletId> = Vec::new();
             let mut again = Vec::new();
             for &(x, y) in &pending {
                 let ray = camera.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
-                rays_cast += 1;
-                if let Some(hit) = trace(&slots.view(), &self.frame, &ray, &lod)
+                cast.rays_cast += 1;
+                if let Some(hit) = trace(&slots.view(), &self.frame, &ray, lod)
                     && hit.leaf
                     && !hit.subtreelet.is_none()
                     && hit.error > 0.0
@@ -207,18 +216,18 @@ impl CutCaster {
             let mut progress = false;
             for id in missing {
                 if slots.free_slots() == 0 {
-                    complete = false;
+                    cast.complete = false;
                     break;
                 }
                 let Some(t) = fetch(id) else {
-                    complete = false;
+                    cast.complete = false;
                     continue;
                 };
                 if let InsertOutcome::Inserted { slot, .. } = slots.insert(t) {
-                    loaded.push((level_of(&slots, slot), id));
+                    cast.treelets.push((level_of(&slots, slot), id));
                     progress = true;
                 } else {
-                    complete = false;
+                    cast.complete = false;
                 }
             }
             if !progress {
@@ -227,16 +236,20 @@ impl CutCaster {
             }
             pending = again;
         }
-        loaded.sort_unstable();
-        VisibleCut {
-            view: *view,
-            treelets: loaded,
-            complete,
-            grid,
-            rays_cast,
-            took: start.elapsed(),
-        }
+        cast.treelets.sort_unstable();
+        cast
     }
+}
+
+/// What [`CutCaster::cast`] loaded.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Cast {
+    /// `(level, treelet)`, parents first, as in [`VisibleCut::treelets`].
+    pub treelets: Vec<(u8, TreeletId)>,
+    /// Every ray stopped where the whole tree stops it.
+    pub complete: bool,
+    /// Rays cast in all rounds.
+    pub rays_cast: u64,
 }
 
 /// A resident treelet's level: the number of treelets above it (a parent's level is below its
