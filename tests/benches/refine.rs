@@ -47,9 +47,9 @@
 //! `ARBOR_REFINE_RUNS=N` runs every case of the main table N times (default 1) and prints the
 //! run with the median RMSE-0 time, with the range of all N in the *RMSE0 range* column: over
 //! the link the same code spreads by ±15 % on this 2-core machine, more than many changes move
-//! it. `ARBOR_REFINE_FILTER=lion/static/link` (any part of `scene/path/link/variant`) runs only
-//! the matching cases; `ARBOR_REFINE_SMALL=0` skips the 256² case and `ARBOR_REFINE_OVERSUB=0` the
-//! oversubscribed one.
+//! it. `ARBOR_REFINE_FILTER=lion/static/link` (any part of `scene/path/link/variant`; several
+//! separated by `|`) runs only the matching cases; `ARBOR_REFINE_SMALL=0` skips the 256² case
+//! and `ARBOR_REFINE_OVERSUB=0` the oversubscribed one.
 
 use std::collections::HashSet;
 use std::net::SocketAddr;
@@ -252,7 +252,10 @@ fn main() {
                         },
                         v.name
                     );
-                    if !filter.as_ref().is_none_or(|f| label.contains(f.as_str())) {
+                    if !filter
+                        .as_ref()
+                        .is_none_or(|f| f.split('|').any(|f| label.contains(f)))
+                    {
                         continue;
                     }
                     let mut runs: Vec<(Outcome, RunReport)> = (0..repeats)
