@@ -16,7 +16,7 @@ use std::time::Duration;
 use tokio::task::JoinHandle;
 
 use crate::admin::{AdminContext, router_with_imports};
-use crate::live_import::LiveImports;
+use crate::live_import::{ImportPriority, LiveImports};
 use crate::pool::Pool;
 use crate::service::config::{AdminTokenSource, ConfigError, TlsSource};
 use crate::service::shutdown::ShutdownTrigger;
@@ -103,6 +103,8 @@ pub struct DaemonOptions {
     pub import_root: Option<PathBuf>,
     /// Where import scratch directories go (default: the system's temporary directory).
     pub import_scratch: Option<PathBuf>,
+    /// How imports share the CPU with the service.
+    pub import_priority: ImportPriority,
 }
 
 /// Starts the daemon: the admin token, the treelet service, and (unless off) the admin listener
@@ -143,6 +145,7 @@ pub async fn start_with(
         service.state.clone(),
         options.import_root.as_deref(),
         options.import_scratch.clone(),
+        options.import_priority,
     ) {
         Ok(i) => i,
         Err(source) => {

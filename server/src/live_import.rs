@@ -6,8 +6,9 @@
 //!   resolved (`..` refused outright, then the path and every file it expands to canonicalized,
 //!   symlinks followed) and must stay inside the canonical root ([`resolve_inputs`]).
 //! * **One import at a time**, queued, on a worker thread whose build runs in its own rayon pool
-//!   at the lowest CPU priority (`SCHED_IDLE`, else nice 10), so the QUIC service's threads get
-//!   the cores whenever they want them and clients of other scenes keep streaming. Progress is readable at any time
+//!   at the lowest CPU priority (`SCHED_IDLE`, else nice 10; [`ImportPriority`]), so the QUIC
+//!   service's threads get the cores whenever they want them and clients of other scenes keep
+//!   streaming. Progress is readable at any time
 //!   ([`LiveImports::status`]).
 //! * **Generations**: a replacing import publishes the new generation atomically; sessions that
 //!   opened the old one keep reading it (never a mix: a session holds one generation's trees).
@@ -32,9 +33,23 @@ use crate::pool::{Pool, PoolError};
 use crate::progress::{ImportProgress, Phase, ProgressSnapshot};
 use crate::service::state::ServiceState;
 
-/// CPU priority (nice value) of the import threads where `SCHED_IDLE` is refused: the service's
-/// threads go first.
+/// CPU priority (nice value) of the import threads at [`ImportPriority::Low`], and where
+/// `SCHED_IDLE` is refused: the service's threads go first.
 pub const IMPORT_NICE: i32 = 10;
+
+/// How the import threads share the CPU with the service (`arbor-server serve
+/// --import-priority`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum ImportPriority {
+    /// `SCHED_IDLE`: only CPU time no service thread wants. Streaming keeps its rate during an
+    /// import; on cores that streaming saturates, the import waits.
+    #[default]
+    Idle,
+    /// Nice [`IMPORT_NICE`]: the service goes first, but an import still gets about a tenth of
+    /// a busy core, so it finishes on a saturated server (streaming measured at 74 % of its
+    /// idle rate on two shared cores).
+    Low,
+}
 /// How often retired generations are checked for sessions still reading them.
 const REAP_EVERY: Duration = Duration::from_millis(250);
 /// Finished imports kept for `GET /v1/imports`.
@@ -167,6 +182,7 @@ impl LiveImports {
         state: Arc<ServiceState>,
         root: Option<&Path>,
         scratch: Option<PathBuf>,
+        priority: ImportPriority,
     ) -> std::io::Result<LiveImports> {
         let root = match root {
             Some(r) => Some(std::fs::canonicalize(r)?),
@@ -186,7 +202,7 @@ impl LiveImports {
         let weak = Arc::downgrade(&inner);
         std::thread::Builder::new()
             .name("arbor-import".into())
-            .spawn(move || run_worker(rx, weak))?;
+            .spawn(move || run_worker(rx, weak, priority))?;
         let weak = Arc::downgrade(&inner);
         std::thread::Builder::new()
             .name("arbor-reaper".into())
@@ -348,38 +364,54 @@ fn status_of(j: &Job) -> ImportStatus {
     }
 }
 
-/// Lowers the calling thread's CPU priority (best effort: an unprivileged process may always
-/// lower its own). Threads it starts inherit the setting.
+/// Lowers the calling thread's CPU priority to `priority` (best effort: an unprivileged process
+/// may always lower its own). Threads it starts inherit the setting.
 ///
-/// `SCHED_IDLE` first: the thread runs only on CPU time no other thread of normal priority
-/// wants, so streaming keeps its rate however busy the import is (at nice 10 the import still
-/// took a tenth of a core the service wanted; the live-import bench showed clients at 74–78 %
-/// of their idle rate). The flip side: on a server whose cores are saturated by streaming, an
-/// import waits for them. Where `SCHED_IDLE` is refused, nice [`IMPORT_NICE`].
+/// [`ImportPriority::Idle`] asks for `SCHED_IDLE`: the thread runs only on CPU time no other
+/// thread of normal priority wants, so streaming keeps its rate however busy the import is (at
+/// nice 10 the import still took a tenth of a core the service wanted; the live-import bench
+/// showed clients at 74 % of their idle rate). Where `SCHED_IDLE` is refused, and for
+/// [`ImportPriority::Low`], nice [`IMPORT_NICE`].
 #[allow(unsafe_code)]
-fn lower_priority() {
+fn lower_priority(priority: ImportPriority) {
     let param = libc::sched_param { sched_priority: 0 };
+    if priority == ImportPriority::Low {
+        set_nice(None);
+        return;
+    }
     // SAFETY: `sched_setscheduler` reads `param` (a valid, initialized value on the stack) and
     // changes only the scheduling policy of the calling thread (pid 0).
     if unsafe { libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) } == 0 {
         return;
     }
-    let idle_error = std::io::Error::last_os_error();
+    set_nice(Some(std::io::Error::last_os_error()));
+}
+
+/// Nice [`IMPORT_NICE`] for the calling thread; `idle_error`: why `SCHED_IDLE` was refused.
+fn set_nice(idle_error: Option<std::io::Error>) {
     let tid = rustix::thread::gettid();
-    if let Err(e) = rustix::process::setpriority_process(Some(tid), IMPORT_NICE) {
-        tracing::warn!(
-            "could not lower the import thread's priority (SCHED_IDLE: {idle_error}; nice: {e})"
-        );
+    match rustix::process::setpriority_process(Some(tid), IMPORT_NICE) {
+        Ok(()) => {
+            if let Some(e) = idle_error {
+                tracing::debug!(
+                    "SCHED_IDLE refused ({e}); import threads run at nice {IMPORT_NICE}"
+                );
+            }
+        }
+        Err(e) => tracing::warn!(
+            "could not lower the import thread's priority (SCHED_IDLE: {}; nice: {e})",
+            idle_error.map_or_else(|| "not asked".to_owned(), |e| e.to_string())
+        ),
     }
 }
 
-fn run_worker(rx: mpsc::Receiver<Arc<Job>>, inner: Weak<Inner>) {
-    lower_priority();
+fn run_worker(rx: mpsc::Receiver<Arc<Job>>, inner: Weak<Inner>, priority: ImportPriority) {
+    lower_priority(priority);
     let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .thread_name(|i| format!("arbor-import-{i}"))
-        .start_handler(|_| lower_priority())
+        .start_handler(move |_| lower_priority(priority))
         .build();
     let pool = match pool {
         Ok(p) => p,
@@ -553,28 +585,48 @@ pub fn resolve_inputs(root: &Path, inputs: &[String]) -> Result<Vec<PathBuf>, Li
 mod tests {
     use super::*;
 
-    /// The import threads run under `SCHED_IDLE` (Linux lets any thread lower itself to it),
-    /// and the threads they start inherit it, so the whole build yields to the service.
-    #[test]
+    /// The policy and nice value of the calling thread.
     #[allow(unsafe_code)]
-    fn import_threads_run_only_on_idle_cpu() {
+    fn scheduling() -> (i32, i32) {
         // SAFETY: `sched_getscheduler(0)` only reads the calling thread's policy.
-        let policy = || unsafe { libc::sched_getscheduler(0) };
-        let (own, child) = std::thread::spawn(move || {
-            lower_priority();
-            (policy(), std::thread::spawn(policy).join().unwrap())
-        })
-        .join()
-        .unwrap();
-        assert_eq!(own, libc::SCHED_IDLE, "the import thread's policy");
+        let policy = unsafe { libc::sched_getscheduler(0) };
+        let tid = rustix::thread::gettid();
+        (
+            policy,
+            rustix::process::getpriority_process(Some(tid)).unwrap(),
+        )
+    }
+
+    /// By default the import threads run under `SCHED_IDLE` (Linux lets any thread lower itself
+    /// to it), and the threads they start inherit it, so the whole build yields to the service.
+    /// `--import-priority low` keeps the normal policy at nice 10 instead.
+    #[test]
+    fn import_threads_run_only_on_idle_cpu_unless_asked_otherwise() {
+        let on_a_thread = |priority| {
+            std::thread::spawn(move || {
+                lower_priority(priority);
+                (scheduling(), std::thread::spawn(scheduling).join().unwrap())
+            })
+            .join()
+            .unwrap()
+        };
+        let (own, child) = on_a_thread(ImportPriority::default());
+        assert_eq!(own.0, libc::SCHED_IDLE, "the import thread's policy");
         assert_eq!(
-            child,
+            child.0,
             libc::SCHED_IDLE,
             "a thread the import thread started"
         );
-        assert_ne!(
-            policy(),
-            libc::SCHED_IDLE,
+        let (own, child) = on_a_thread(ImportPriority::Low);
+        assert_eq!(
+            own,
+            (libc::SCHED_OTHER, IMPORT_NICE),
+            "policy and nice at low"
+        );
+        assert_eq!(child, (libc::SCHED_OTHER, IMPORT_NICE), "inherited at low");
+        assert_eq!(
+            scheduling().0,
+            libc::SCHED_OTHER,
             "the test thread was not touched"
         );
     }

@@ -13,6 +13,7 @@ use anyhow::{Context, Result, bail};
 use arbor_server::daemon::{AdminTokenOrigin, DaemonOptions};
 use arbor_server::import::tiles::TileOptions;
 use arbor_server::import::{Format, ImportOptions, RawSpec, SampleType};
+use arbor_server::live_import::ImportPriority;
 use arbor_server::logging::LogFormat;
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_server::pipeline::{SceneImport, import_scene};
@@ -199,6 +200,11 @@ enum Command {
         /// Where live imports put their scratch files [default: the system temp dir].
         #[arg(long)]
         import_scratch: Option<PathBuf>,
+        /// How live imports share the CPU with streaming: `idle` (SCHED_IDLE: only CPU time
+        /// streaming leaves; clients keep their rate, an import waits on saturated cores) or
+        /// `low` (nice 10: an import always progresses, streaming slows while it runs).
+        #[arg(long, value_enum, default_value_t = ImportPriority::Idle)]
+        import_priority: ImportPriority,
     },
 }
 
@@ -352,6 +358,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             data_dir,
             import_root,
             import_scratch,
+            import_priority,
         } => {
             let overrides = ConfigOverrides {
                 db,
@@ -369,6 +376,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             let options = DaemonOptions {
                 import_root,
                 import_scratch,
+                import_priority,
             };
             let result = rt.block_on(serve(config, options));
             rt.shutdown_timeout(std::time::Duration::from_secs(1));

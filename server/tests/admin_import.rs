@@ -72,7 +72,7 @@ impl Daemon {
         }
         let options = DaemonOptions {
             import_root: with_root.then(|| root.path().to_owned()),
-            import_scratch: None,
+            ..DaemonOptions::default()
         };
         let t0 = Instant::now();
         let server = loop {

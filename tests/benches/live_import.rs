@@ -5,7 +5,8 @@
 //! Figures per run: time to exact convergence, treelets received, treelets/s; then the medians
 //! of both kinds side by side.
 //!
-//! `cargo bench -p arbor-tests --bench live_import` (ARBOR_LIVE_RUNS=N: runs per kind, 3).
+//! `cargo bench -p arbor-tests --bench live_import` (ARBOR_LIVE_RUNS=N: runs per kind, 3;
+//! ARBOR_LIVE_PRIORITY=low: the daemon runs imports at `--import-priority low`, else `idle`).
 
 use std::net::SocketAddr;
 use std::path::Path;
@@ -16,6 +17,7 @@ use arbor_client_core::camera::CameraPath;
 use arbor_client_core::slots::SlotBuffer;
 use arbor_client_session::headless::run_headless;
 use arbor_server::daemon::DaemonOptions;
+use arbor_server::live_import::ImportPriority;
 use arbor_tests::streaming::{Served, admin_request, full, headless, needed_treelets, serve_with};
 
 async fn http(addr: SocketAddr, method: &str, path: &str, body: &str) -> serde_json::Value {
@@ -71,6 +73,10 @@ async fn main() {
     let options = DaemonOptions {
         import_root: Some(root),
         import_scratch: None,
+        import_priority: match std::env::var("ARBOR_LIVE_PRIORITY").as_deref() {
+            Ok("low") => ImportPriority::Low,
+            _ => ImportPriority::Idle,
+        },
     };
     let served = Arc::new(serve_with("points/lion_takanawa.copc.laz", "lion", 1024, options).await);
     let admin = served.server.admin_addr.unwrap();

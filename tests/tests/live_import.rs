@@ -33,7 +33,7 @@ async fn a_client_of_another_scene_converges_exactly_while_scenes_are_imported()
     .unwrap();
     let options = DaemonOptions {
         import_root: Some(root.path().to_owned()),
-        import_scratch: None,
+        ..DaemonOptions::default()
     };
     let served = Arc::new(serve_with("points/lion_takanawa.copc.laz", "lion", 1024, options).await);
     let admin = served.server.admin_addr.unwrap();
