@@ -1,7 +1,8 @@
 //! CPU phases of one client cycle, on a real scan: the analysis twin (128×128 feedback of a
 //! 1024² frame), presort (both priority policies, 1,000+ distinct requests), the slot update
 //! (ageing, visibility, 256 insertions into a full buffer with evictions) and the upload range
-//! merge (fill ratio 0, 0.6 and 1).
+//! merge (fill ratio 0, 0.6 and 1), and decoding 256 received treelets with the scene's zstd
+//! dictionaries raw (loaded on every block) and prepared once.
 //!
 //! `cargo bench -p arbor-tests --bench cycle` (release). Prints a table; no assertion on time.
 
@@ -13,6 +14,7 @@ use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::presort::{Presort, PriorityPolicy};
 use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
 use arbor_client_core::upload::merge_ranges;
+use arbor_proto::codec::PreparedDictionaries;
 use arbor_server::octree::BuildOptions;
 use arbor_tests::support::{build_file, decoded_treelets};
 
@@ -252,6 +254,42 @@ fn main() {
                 stats.2, ranges[k]
             ),
             ms(t_merge[k])
+        );
+    }
+    // Decoding what a cycle receives: 256 treelets as messages, with the scene's dictionaries
+    // loaded on every block (what `codec::decompress` does with a raw dictionary) and prepared
+    // once (what the session does).
+    let messages: Vec<_> = (0..256.min(d.treelet_count))
+        .map(|i| {
+            let id = arbor_proto::TreeletId(i);
+            let nodes = built.scene.nodes(id).unwrap().unwrap().to_vec();
+            let attrs: Vec<_> = channels
+                .iter()
+                .map(|&c| (c, built.scene.channel(c, id).unwrap().unwrap().to_vec()))
+                .collect();
+            (id, nodes, attrs)
+        })
+        .collect();
+    let prepared = PreparedDictionaries::of(&d);
+    let decode_all = |prepared: Option<&PreparedDictionaries>| {
+        for (id, nodes, attrs) in &messages {
+            let refs: Vec<_> = attrs.iter().map(|(c, b)| (*c, &b[..])).collect();
+            let t = match prepared {
+                Some(p) => {
+                    DecodedTreelet::from_blocks_prepared(*id, nodes, &refs, &d, p, &channels)
+                }
+                None => DecodedTreelet::from_blocks(*id, nodes, &refs, &d, &channels),
+            };
+            std::hint::black_box(t.unwrap());
+        }
+    };
+    let (raw, ()) = best(REPS, || decode_all(None));
+    let (fast, ()) = best(REPS, || decode_all(Some(&prepared)));
+    for (what, t) in [("raw dictionaries", raw), ("prepared dictionaries", fast)] {
+        println!(
+            "{:<44} {:>10.3}",
+            format!("decode {} treelets, {what}", messages.len()),
+            ms(t)
         );
     }
 }

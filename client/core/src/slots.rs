@@ -18,7 +18,7 @@
 
 use std::fmt;
 
-use arbor_proto::codec;
+use arbor_proto::codec::{self, Dictionary, PreparedDictionaries};
 use arbor_proto::{Cell, Channel, Node, ProtoError, SceneDescription, Treelet, TreeletId};
 
 use crate::incore::IncoreView;
@@ -158,18 +158,28 @@ pub struct DecodedTreelet {
 impl DecodedTreelet {
     /// Decodes a treelet message as a transport delivered it: `id` and `used_nodes` as the
     /// message announced them, the compressed blocks as stored. Decompresses with the scene's
-    /// dictionaries, validates the tree against the scene's depth, and checks that the announced
-    /// id and used-node count agree with the block and that every wanted channel is present with
-    /// the right length (channels not wanted are ignored).
+    /// dictionaries (prepared once per scene: a raw one is loaded again on every block),
+    /// validates the tree against the scene's depth, and checks that the announced id and
+    /// used-node count agree with the block and that every wanted channel is present with the
+    /// right length (channels not wanted are ignored).
     pub fn decode_message(
         id: TreeletId,
         used_nodes: u16,
         nodes: &[u8],
         channels: &[(Channel, &[u8])],
         scene: &SceneDescription,
+        dictionaries: &PreparedDictionaries,
         wanted: &[Channel],
     ) -> Result<Self, SlotError> {
-        let decoded = Self::from_blocks(id, nodes, channels, scene, wanted)?;
+        let decoded = Self::decode_blocks(
+            id,
+            nodes,
+            channels,
+            scene,
+            wanted,
+            dictionaries.nodes(),
+            |c| dictionaries.channel(c),
+        )?;
         let found = decoded.treelet.header.used_nodes;
         if found != used_nodes {
             return Err(SlotError::UsedNodesMismatch {
@@ -183,6 +193,8 @@ impl DecodedTreelet {
 
     /// Decodes a treelet from its compressed blocks as stored (pool, cache, tests): `nodes` is
     /// the node block, `channels` the attribute blocks on hand, `wanted` the channels to keep.
+    /// Uses the scene's raw dictionaries; a reader of many blocks prepares them once
+    /// ([`from_blocks_prepared`](Self::from_blocks_prepared)).
     pub fn from_blocks(
         id: TreeletId,
         nodes: &[u8],
@@ -190,12 +202,49 @@ impl DecodedTreelet {
         scene: &SceneDescription,
         wanted: &[Channel],
     ) -> Result<Self, SlotError> {
-        let treelet = codec::decode_compressed_treelet(
+        Self::decode_blocks(
+            id,
             nodes,
-            scene.max_depth,
-            scene.node_dictionary.as_deref(),
+            channels,
+            scene,
+            wanted,
+            scene.node_dictionary.as_deref().map(Dictionary::Raw),
+            |c| scene.channel_dictionary(c).map(Dictionary::Raw),
         )
-        .map_err(|source| SlotError::Decode { id, source })?;
+    }
+
+    /// [`from_blocks`](Self::from_blocks) with the scene's dictionaries prepared.
+    pub fn from_blocks_prepared(
+        id: TreeletId,
+        nodes: &[u8],
+        channels: &[(Channel, &[u8])],
+        scene: &SceneDescription,
+        dictionaries: &PreparedDictionaries,
+        wanted: &[Channel],
+    ) -> Result<Self, SlotError> {
+        Self::decode_blocks(
+            id,
+            nodes,
+            channels,
+            scene,
+            wanted,
+            dictionaries.nodes(),
+            |c| dictionaries.channel(c),
+        )
+    }
+
+    fn decode_blocks<'d>(
+        id: TreeletId,
+        nodes: &[u8],
+        channels: &[(Channel, &[u8])],
+        scene: &SceneDescription,
+        wanted: &[Channel],
+        node_dictionary: Option<Dictionary<'d>>,
+        channel_dictionary: impl Fn(Channel) -> Option<Dictionary<'d>>,
+    ) -> Result<Self, SlotError> {
+        let treelet =
+            codec::decode_compressed_treelet_using(nodes, scene.max_depth, node_dictionary)
+                .map_err(|source| SlotError::Decode { id, source })?;
         if treelet.header.id != id {
             return Err(SlotError::IdMismatch {
                 expected: id,
@@ -220,11 +269,11 @@ impl DecodedTreelet {
                     expected,
                 });
             };
-            let raw = codec::decode_compressed_attributes(
+            let raw = codec::decode_compressed_attributes_using(
                 block,
                 channel,
                 used,
-                scene.channel_dictionary(channel),
+                channel_dictionary(channel),
             )
             .map_err(|source| SlotError::Decode { id, source })?;
             attributes.push((channel, raw));
@@ -1720,6 +1769,7 @@ mod tests {
                 &nodes,
                 &blocks_of,
                 &scene,
+                &PreparedDictionaries::of(&scene),
                 wanted,
             )
         };

@@ -26,6 +26,7 @@ use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::render::Light;
 use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig, SlotError};
 use arbor_client_net::{ClientConfig, TreeletClient};
+use arbor_proto::codec::PreparedDictionaries;
 use arbor_proto::{Channel, SceneDescription, TreeletId};
 
 use crate::RunError;
@@ -205,6 +206,7 @@ pub(crate) fn fetch_ids(
     ids: &[TreeletId],
     timeout: Duration,
 ) -> Result<Vec<DecodedTreelet>, RunError> {
+    let dictionaries = PreparedDictionaries::of(scene);
     let mut out = Vec::with_capacity(ids.len());
     for batch in ids.chunks(arbor_proto::limits::MAX_REQUEST_ITEMS) {
         let mut missing: BTreeSet<u32> = batch.iter().map(|t| t.0).collect();
@@ -216,7 +218,7 @@ pub(crate) fn fetch_ids(
         client.request(list)?;
         let mut deadline = Instant::now() + timeout;
         while !missing.is_empty() {
-            let drained = drain_events(client, scene, channels)?;
+            let drained = drain_events(client, scene, channels, &dictionaries)?;
             if drained.undecodable > 0 {
                 return Err(RunError::Refused(format!(
                     "{} treelets from the server did not decode",

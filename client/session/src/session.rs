@@ -12,6 +12,7 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
+use arbor_proto::codec::PreparedDictionaries;
 use arbor_proto::wire::{HELLO_GRANT_AVAILABLE, HELLO_SEND_ROOT};
 use arbor_proto::{Channel, SceneDescription, TreeletId};
 
@@ -73,6 +74,8 @@ pub struct Session {
     core: ClientCore,
     scene: Arc<SceneDescription>,
     channels: Vec<Channel>,
+    /// The scene's zstd dictionaries, loaded once for every treelet received.
+    dictionaries: PreparedDictionaries,
     started: Instant,
     last_stats: ClientStats,
     cycle: u32,
@@ -114,13 +117,14 @@ impl Session {
                     ),
             )?
         };
-        let (scene, channels, root, early) = match bootstrap(&mut client, &wanted, &config) {
-            Ok(x) => x,
-            Err(e) => {
-                runtime.block_on(client.close());
-                return Err(e);
-            }
-        };
+        let (scene, channels, dictionaries, root, early) =
+            match bootstrap(&mut client, &wanted, &config) {
+                Ok(x) => x,
+                Err(e) => {
+                    runtime.block_on(client.close());
+                    return Err(e);
+                }
+            };
         let config_budget_s = config.core.analysis_budget_ms / 1e3;
         let core = ClientCore::with_backend(
             scene.clone(),
@@ -138,6 +142,7 @@ impl Session {
             core,
             scene,
             channels,
+            dictionaries,
             started,
             last_stats,
             cycle: 0,
@@ -227,7 +232,7 @@ impl Session {
         let request_time = t_request.elapsed();
         let t_drain = Instant::now();
         received.extend(take_events(&mut self.client, &self.scene)?);
-        let drained = decode_all(&received, &self.scene, &self.channels);
+        let drained = decode_all(&received, &self.scene, &self.channels, &self.dictionaries);
         for t in drained.treelets {
             self.core.handle_treelet(t);
         }
@@ -353,9 +358,10 @@ pub(crate) fn drain_events(
     client: &mut TreeletClient,
     scene: &SceneDescription,
     channels: &[Channel],
+    dictionaries: &PreparedDictionaries,
 ) -> Result<Drained, RunError> {
     let received = take_events(client, scene)?;
-    Ok(decode_all(&received, scene, channels))
+    Ok(decode_all(&received, scene, channels, dictionaries))
 }
 
 /// Takes every queued event without waiting: the treelets received, undecoded.
@@ -394,6 +400,7 @@ pub(crate) fn decode_all(
     received: &[ReceivedTreelet],
     scene: &SceneDescription,
     channels: &[Channel],
+    dictionaries: &PreparedDictionaries,
 ) -> Drained {
     let mut out = Drained {
         treelets: Vec::with_capacity(received.len()),
@@ -404,7 +411,7 @@ pub(crate) fn decode_all(
     // cycle: spread it over the cores, keeping the arrival order.
     let decoded: Vec<_> = received
         .par_iter()
-        .map(|t| decode_received(t, scene, channels))
+        .map(|t| decode_received(t, scene, channels, dictionaries))
         .collect();
     for (t, d) in received.iter().zip(decoded) {
         match d {
@@ -477,10 +484,12 @@ fn probe_scene(
     result
 }
 
-/// The scene, the channels held, the decoded root and what arrived before it.
+/// The scene, the channels held, its prepared dictionaries, the decoded root and what arrived
+/// before it.
 type Bootstrapped = (
     Arc<SceneDescription>,
     Vec<Channel>,
+    PreparedDictionaries,
     DecodedTreelet,
     Vec<ReceivedTreelet>,
 );
@@ -494,7 +503,7 @@ fn bootstrap(
     config: &SessionConfig,
 ) -> Result<Bootstrapped, RunError> {
     let deadline = Instant::now() + config.connect_timeout;
-    let mut scene: Option<(Arc<SceneDescription>, Vec<Channel>)> = None;
+    let mut scene: Option<(Arc<SceneDescription>, Vec<Channel>, PreparedDictionaries)> = None;
     let mut early = Vec::new();
     loop {
         while let Some(event) = client.try_next_event() {
@@ -505,14 +514,18 @@ fn bootstrap(
                         .copied()
                         .filter(|c| s.layout.contains(*c))
                         .collect();
-                    scene = Some((s, channels));
+                    let dictionaries = PreparedDictionaries::of(&s);
+                    scene = Some((s, channels, dictionaries));
                 }
-                ClientEvent::Treelet(t) => match &scene {
-                    Some((s, channels)) if t.id == s.root_treelet => {
-                        let root = decode_received(&t, s, channels)?;
-                        return Ok((s.clone(), channels.clone(), root, early));
+                ClientEvent::Treelet(t) => match scene.take() {
+                    Some((s, channels, dictionaries)) if t.id == s.root_treelet => {
+                        let root = decode_received(&t, &s, &channels, &dictionaries)?;
+                        return Ok((s, channels, dictionaries, root, early));
                     }
-                    _ => early.push(t),
+                    other => {
+                        scene = other;
+                        early.push(t);
+                    }
                 },
                 ClientEvent::Disconnected {
                     reason,
@@ -608,6 +621,7 @@ pub(crate) fn decode_received(
     received: &ReceivedTreelet,
     scene: &SceneDescription,
     channels: &[Channel],
+    dictionaries: &PreparedDictionaries,
 ) -> Result<DecodedTreelet, SlotError> {
     let blocks: Vec<(Channel, &[u8])> = received
         .channels
@@ -620,6 +634,7 @@ pub(crate) fn decode_received(
         &received.nodes,
         &blocks,
         scene,
+        dictionaries,
         channels,
     )
 }

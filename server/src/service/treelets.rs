@@ -12,7 +12,7 @@ use std::collections::VecDeque;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 
-use arbor_proto::codec::{self, MAX_RAW_TREELET};
+use arbor_proto::codec::{self, MAX_RAW_TREELET, PreparedDictionaries};
 use arbor_proto::frame::{FrameError, encode_treelet_header};
 use arbor_proto::{Channel, ProtoError, TreeletId};
 use bytes::Bytes;
@@ -138,7 +138,7 @@ const DEFAULT_CACHE_BYTES: usize = 16 << 20;
 /// A scene opened for serving.
 pub struct ServedScene {
     pub stored: StoredScene,
-    dictionary: Option<zstd::dict::DecoderDictionary<'static>>,
+    dictionaries: PreparedDictionaries,
     cache: Arc<MessageCache>,
     /// Treelet shapes for deep-request pushes.
     pub tree: TreeIndex,
@@ -165,14 +165,9 @@ impl ServedScene {
 
     /// A scene sharing the server's message cache.
     pub fn with_cache(stored: StoredScene, cache: Arc<MessageCache>) -> ServedScene {
-        let dictionary = stored
-            .description
-            .node_dictionary
-            .as_deref()
-            .map(zstd::dict::DecoderDictionary::copy);
         ServedScene {
+            dictionaries: PreparedDictionaries::of(&stored.description),
             stored,
-            dictionary,
             cache,
             tree: TreeIndex::default(),
             cut_caster: Mutex::new(None),
@@ -199,7 +194,7 @@ impl ServedScene {
         let d = &self.stored.description;
         let fetch = |id: TreeletId| {
             let block = self.stored.nodes(id).ok()??;
-            DecodedTreelet::from_blocks(id, &block, &[], d, &[]).ok()
+            DecodedTreelet::from_blocks_prepared(id, &block, &[], d, &self.dictionaries, &[]).ok()
         };
         let caster = {
             let mut caster = self.cut_caster.lock().unwrap_or_else(|p| p.into_inner());
@@ -225,11 +220,8 @@ impl ServedScene {
     /// `used_nodes` of a treelet, from its node block.
     fn used_nodes(&self, id: TreeletId, nodes: &[u8]) -> Result<u16, MessageError> {
         let corrupt = |source| MessageError::Corrupt { id: id.0, source };
-        let raw = match &self.dictionary {
-            Some(dict) => codec::decompress_prepared(nodes, MAX_RAW_TREELET, dict),
-            None => codec::decompress(nodes, MAX_RAW_TREELET, None),
-        }
-        .map_err(corrupt)?;
+        let raw = codec::decompress_using(nodes, MAX_RAW_TREELET, self.dictionaries.nodes())
+            .map_err(corrupt)?;
         let (header, _) = codec::decode_header(&raw).map_err(corrupt)?;
         if header.id != id {
             return Err(corrupt(ProtoError::OutOfRange {
