@@ -171,15 +171,7 @@ impl DecodedTreelet {
         dictionaries: &PreparedDictionaries,
         wanted: &[Channel],
     ) -> Result<Self, SlotError> {
-        let decoded = Self::decode_blocks(
-            id,
-            nodes,
-            channels,
-            scene,
-            wanted,
-            dictionaries.nodes(),
-            |c| dictionaries.channel(c),
-        )?;
+        let decoded = Self::from_blocks_prepared(id, nodes, channels, scene, dictionaries, wanted)?;
         let found = decoded.treelet.header.used_nodes;
         if found != used_nodes {
             return Err(SlotError::UsedNodesMismatch {
