@@ -397,8 +397,7 @@ pub fn decode_compressed_treelet_using(
     max_depth: u8,
     dictionary: Option<Dictionary<'_>>,
 ) -> Result<Treelet, ProtoError> {
-    let raw = decompress_using(bytes, MAX_RAW_TREELET, dictionary)?;
-    decode_treelet_with_places(&raw, max_depth).map(|(t, _)| t)
+    decode_compressed_treelet_with_places_using(bytes, max_depth, dictionary).map(|(t, _)| t)
 }
 
 /// [`decode_compressed_treelet`], also returning every node's place.
@@ -407,7 +406,16 @@ pub fn decode_compressed_treelet_with_places(
     max_depth: u8,
     dictionary: Option<&[u8]>,
 ) -> Result<(Treelet, Vec<NodePlace>), ProtoError> {
-    let raw = decompress(bytes, MAX_RAW_TREELET, dictionary)?;
+    decode_compressed_treelet_with_places_using(bytes, max_depth, dictionary.map(Dictionary::Raw))
+}
+
+/// [`decode_compressed_treelet_with_places`] with a dictionary in either form.
+pub fn decode_compressed_treelet_with_places_using(
+    bytes: &[u8],
+    max_depth: u8,
+    dictionary: Option<Dictionary<'_>>,
+) -> Result<(Treelet, Vec<NodePlace>), ProtoError> {
+    let raw = decompress_using(bytes, MAX_RAW_TREELET, dictionary)?;
     decode_treelet_with_places(&raw, max_depth)
 }
 

@@ -12,7 +12,7 @@
 
 use std::collections::HashMap;
 
-use arbor_proto::codec;
+use arbor_proto::codec::{self, PreparedDictionaries};
 use arbor_proto::treelet::NodePlace;
 use arbor_proto::{Cell, Channel, Node, Treelet, TreeletId};
 
@@ -62,6 +62,7 @@ pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
     let mut v = Verifier {
         scene,
         channels: d.layout.channels().to_vec(),
+        dictionaries: PreparedDictionaries::of(d),
         links: HashMap::new(),
         r: VerifyReport::default(),
     };
@@ -89,6 +90,8 @@ pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
 struct Verifier<'a> {
     scene: &'a StoredScene,
     channels: Vec<Channel>,
+    /// The scene's dictionaries, loaded once for its many blocks.
+    dictionaries: PreparedDictionaries,
     /// Subtreelet id → what its leaf promised, until the subtreelet is checked.
     links: HashMap<u32, Link>,
     r: VerifyReport,
@@ -102,10 +105,10 @@ impl Verifier<'_> {
         let Some(bytes) = self.scene.nodes(id)? else {
             return Ok(());
         };
-        let (t, places) = match codec::decode_compressed_treelet_with_places(
+        let (t, places) = match codec::decode_compressed_treelet_with_places_using(
             &bytes,
             d.max_depth,
-            d.node_dictionary.as_deref(),
+            self.dictionaries.nodes(),
         ) {
             Ok(decoded) => decoded,
             Err(e) => {
@@ -145,7 +148,6 @@ impl Verifier<'_> {
     /// The treelet's attribute blocks, decoded, one per channel; a missing or bad block is a
     /// problem and is left out.
     fn attributes(&mut self, id: TreeletId, t: &Treelet) -> Result<Vec<Vec<u8>>, PoolError> {
-        let d = &self.scene.description;
         let mut attrs = Vec::new();
         for &c in &self.channels {
             let Some(b) = self.scene.channel(c, id)? else {
@@ -153,11 +155,11 @@ impl Verifier<'_> {
                     .problem(format!("treelet {id}: {} block missing", c.name()));
                 continue;
             };
-            match codec::decode_compressed_attributes(
+            match codec::decode_compressed_attributes_using(
                 &b,
                 c,
                 t.header.used_nodes,
-                d.channel_dictionary(c),
+                self.dictionaries.channel(c),
             ) {
                 Ok(b) => attrs.push(b),
                 Err(e) => self

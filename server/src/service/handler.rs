@@ -389,9 +389,7 @@ impl Handler {
             origin: d.origin,
             edge: d.edge,
         };
-        deep_list(cube, view, items, MAX_REQUEST_ITEMS, |id| {
-            scene.tree.shape(&scene.stored, id)
-        })
+        deep_list(cube, view, items, MAX_REQUEST_ITEMS, |id| scene.shape(id))
     }
 
     /// Starts computing `view`'s visible cut on a blocking thread — the coarse one, or the fine

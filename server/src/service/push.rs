@@ -23,7 +23,7 @@
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::sync::{Arc, Mutex};
 
-use arbor_proto::codec;
+use arbor_proto::codec::{self, PreparedDictionaries};
 use arbor_proto::wire::ViewHint;
 use arbor_proto::{Cell, Node, TreeletId};
 
@@ -174,16 +174,21 @@ pub struct TreeIndex {
 impl TreeIndex {
     /// The shape of treelet `id` of `scene`; `None` if it is not stored or does not decode (the
     /// push is then simply not made).
-    pub fn shape(&self, scene: &StoredScene, id: TreeletId) -> Option<Arc<TreeletShape>> {
+    pub fn shape(
+        &self,
+        scene: &StoredScene,
+        dictionaries: &PreparedDictionaries,
+        id: TreeletId,
+    ) -> Option<Arc<TreeletShape>> {
         if let Some(s) = self.lock().get(&id) {
             return Some(s.clone());
         }
         let d = &scene.description;
         let bytes = scene.nodes(id).ok()??;
-        let (treelet, places) = codec::decode_compressed_treelet_with_places(
+        let (treelet, places) = codec::decode_compressed_treelet_with_places_using(
             &bytes,
             d.max_depth,
-            d.node_dictionary.as_deref(),
+            dictionaries.nodes(),
         )
         .ok()?;
         let children = places

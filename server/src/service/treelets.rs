@@ -213,6 +213,11 @@ impl ServedScene {
         Some(caster.cut(view, grid, fetch))
     }
 
+    /// The shape of treelet `id` for deep-request pushes ([`TreeIndex::shape`]).
+    pub fn shape(&self, id: TreeletId) -> Option<Arc<super::push::TreeletShape>> {
+        self.tree.shape(&self.stored, &self.dictionaries, id)
+    }
+
     pub fn treelet_count(&self) -> u32 {
         self.stored.description.treelet_count
     }
