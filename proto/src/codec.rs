@@ -305,15 +305,40 @@ impl std::fmt::Debug for Dictionary<'_> {
 
 /// A scene's zstd dictionaries, loaded once for the many blocks a reader decompresses.
 pub struct PreparedDictionaries {
-    nodes: Option<zstd::dict::DecoderDictionary<'static>>,
+    nodes: Option<HeldDictionary>,
     /// Per channel of the scene's layout, in layout order.
-    channels: Vec<(Channel, Option<zstd::dict::DecoderDictionary<'static>>)>,
+    channels: Vec<(Channel, Option<HeldDictionary>)>,
+}
+
+/// One dictionary as [`PreparedDictionaries`] holds it.
+enum HeldDictionary {
+    Loaded(zstd::dict::DecoderDictionary<'static>),
+    /// zstd refused to load it (a damaged or hostile description): kept raw, so that every
+    /// block needing it fails to decompress with zstd's error, as it does unprepared — never a
+    /// panic and never a refusal of the blocks that do not need it.
+    Unloadable(Vec<u8>),
+}
+
+impl HeldDictionary {
+    fn of(raw: &[u8]) -> HeldDictionary {
+        zstd::dict::DecoderDictionary::try_copy(raw).map_or_else(
+            |_| HeldDictionary::Unloadable(raw.to_vec()),
+            HeldDictionary::Loaded,
+        )
+    }
+
+    fn get(&self) -> Dictionary<'_> {
+        match self {
+            HeldDictionary::Loaded(d) => Dictionary::Prepared(d),
+            HeldDictionary::Unloadable(raw) => Dictionary::Raw(raw),
+        }
+    }
 }
 
 impl PreparedDictionaries {
     /// The dictionaries of `scene`.
     pub fn of(scene: &SceneDescription) -> PreparedDictionaries {
-        let prepare = |d: &Option<Vec<u8>>| d.as_deref().map(zstd::dict::DecoderDictionary::copy);
+        let prepare = |d: &Option<Vec<u8>>| d.as_deref().map(HeldDictionary::of);
         PreparedDictionaries {
             nodes: prepare(&scene.node_dictionary),
             channels: scene
@@ -328,7 +353,7 @@ impl PreparedDictionaries {
 
     /// The node stream's dictionary, if the scene has one.
     pub fn nodes(&self) -> Option<Dictionary<'_>> {
-        self.nodes.as_ref().map(Dictionary::Prepared)
+        self.nodes.as_ref().map(HeldDictionary::get)
     }
 
     /// `channel`'s dictionary, if the scene has one.
@@ -337,23 +362,55 @@ impl PreparedDictionaries {
             .iter()
             .find(|(c, _)| *c == channel)
             .and_then(|(_, d)| d.as_ref())
-            .map(Dictionary::Prepared)
+            .map(HeldDictionary::get)
     }
 }
 
 impl std::fmt::Debug for PreparedDictionaries {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let state = |d: &Option<HeldDictionary>| match d {
+            None => "none",
+            Some(HeldDictionary::Loaded(_)) => "loaded",
+            Some(HeldDictionary::Unloadable(_)) => "unloadable",
+        };
         f.debug_struct("PreparedDictionaries")
-            .field("nodes", &self.nodes.is_some())
+            .field("nodes", &state(&self.nodes))
             .field(
                 "channels",
                 &self
                     .channels
                     .iter()
-                    .map(|(c, d)| (*c, d.is_some()))
+                    .map(|(c, d)| (*c, state(d)))
                     .collect::<Vec<_>>(),
             )
             .finish()
+    }
+}
+
+/// Where a reader of a scene's blocks takes its dictionaries from.
+#[derive(Clone, Copy, Debug)]
+pub enum SceneDictionaries<'a> {
+    /// The description's raw bytes (loaded by zstd on every block: for a few blocks).
+    Raw(&'a SceneDescription),
+    /// Loaded once.
+    Prepared(&'a PreparedDictionaries),
+}
+
+impl<'a> SceneDictionaries<'a> {
+    /// The node stream's dictionary, if the scene has one.
+    pub fn nodes(self) -> Option<Dictionary<'a>> {
+        match self {
+            SceneDictionaries::Raw(scene) => scene.node_dictionary.as_deref().map(Dictionary::Raw),
+            SceneDictionaries::Prepared(p) => p.nodes(),
+        }
+    }
+
+    /// `channel`'s dictionary, if the scene has one.
+    pub fn channel(self, channel: Channel) -> Option<Dictionary<'a>> {
+        match self {
+            SceneDictionaries::Raw(scene) => scene.channel_dictionary(channel).map(Dictionary::Raw),
+            SceneDictionaries::Prepared(p) => p.channel(channel),
+        }
     }
 }
 
@@ -454,6 +511,37 @@ mod tests {
     use super::*;
     use crate::cell::Cell;
     use proptest::prelude::*;
+
+    #[test]
+    fn a_dictionary_zstd_cannot_load_fails_its_blocks_not_the_reader() {
+        // A zstd dictionary's magic number, then entropy tables that do not parse: zstd refuses
+        // to load it (the raw `DecoderDictionary::copy` would panic).
+        let mut bad = vec![0x37, 0xa4, 0x30, 0xec, 1, 0, 0, 0];
+        bad.extend([0xff; 256]);
+        assert!(zstd::dict::DecoderDictionary::try_copy(&bad).is_err());
+        let scene = SceneDescription {
+            node_dictionary: Some(bad.clone()),
+            ..crate::scene::tests::sample()
+        };
+        let prepared = PreparedDictionaries::of(&scene);
+        assert!(
+            format!("{prepared:?}").contains("unloadable"),
+            "{prepared:?}"
+        );
+        let samples: Vec<Vec<u8>> = (0..64u8).map(|i| vec![i; 300]).collect();
+        let good = zstd::dict::from_samples(&samples, 2048).unwrap();
+        let block = compress(&samples[3], 3, Some(&good)).unwrap();
+        for dictionary in [
+            prepared.nodes(),
+            SceneDictionaries::Prepared(&prepared).nodes(),
+        ] {
+            let err = decompress_using(&block, 512, dictionary).unwrap_err();
+            assert!(err.to_string().contains("decompress"), "{err}");
+        }
+        // Blocks compressed without a dictionary still decompress.
+        let plain = compress(&samples[5], 3, None).unwrap();
+        assert_eq!(decompress_using(&plain, 512, None).unwrap(), samples[5]);
+    }
 
     #[test]
     fn the_reused_decompression_context_keeps_dictionaries_apart_and_survives_errors() {

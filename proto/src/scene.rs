@@ -209,11 +209,12 @@ pub fn validate_scene_name(name: &str) -> Result<(), ProtoError> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use proptest::prelude::*;
 
-    fn sample() -> SceneDescription {
+    /// A valid description (the codec's tests borrow it).
+    pub(crate) fn sample() -> SceneDescription {
         SceneDescription {
             name: "bunny".into(),
             origin: [512_345.678, 5_012_345.001, -3.5],

@@ -374,11 +374,11 @@ fn status_of(j: &Job) -> ImportStatus {
 /// [`ImportPriority::Low`], nice [`IMPORT_NICE`].
 #[allow(unsafe_code)]
 fn lower_priority(priority: ImportPriority) {
-    let param = libc::sched_param { sched_priority: 0 };
     if priority == ImportPriority::Low {
         set_nice(None);
         return;
     }
+    let param = libc::sched_param { sched_priority: 0 };
     // SAFETY: `sched_setscheduler` reads `param` (a valid, initialized value on the stack) and
     // changes only the scheduling policy of the calling thread (pid 0).
     if unsafe { libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) } == 0 {

@@ -569,19 +569,16 @@ fn run_case(
             // The user looks at the converged view for a while: the client keeps stepping (its
             // prefetch may use the idle link) before the camera moves.
             let (start, mut bytes) = (Instant::now(), 0);
-            let mut resident = Vec::new();
             while start.elapsed() < rest {
-                let step = session.step(&first, RenderMode::Skip, None).unwrap();
-                bytes += step.record.bytes_received;
-                let slots = session.core().slots();
-                resident = (0..slots.capacity())
-                    .filter_map(|s| slots.treelet_in(s))
-                    .collect();
+                bytes += session
+                    .step(&first, RenderMode::Skip, None)
+                    .unwrap()
+                    .record
+                    .bytes_received;
             }
-            phase.resident.push(resident);
             rest_bytes = Some(bytes);
         }
-        already = phase.resident.last().unwrap().iter().copied().collect();
+        already = resident(&session).into_iter().collect();
         camera = CameraPath::Jump { every: 1 }.camera(1, &frame, SEED, size, size);
         if trace {
             timeline.start();
@@ -697,12 +694,7 @@ fn run_phase(session: &mut Session, camera: &Camera, from_start: bool) -> Phase 
     };
     while wall.elapsed() < PHASE_LIMIT {
         let step = session.step(camera, RenderMode::Skip, None).unwrap();
-        let slots = session.core().slots();
-        phase.resident.push(
-            (0..slots.capacity())
-                .filter_map(|s| slots.treelet_in(s))
-                .collect(),
-        );
+        phase.resident.push(resident(session));
         let done = step.record.known_share == 1.0 && step.record.error.max == 0.0;
         phase.records.push(step.record);
         if done {
@@ -710,6 +702,14 @@ fn run_phase(session: &mut Session, camera: &Camera, from_start: bool) -> Phase 
         }
     }
     phase
+}
+
+/// The treelets `session` holds now.
+fn resident(session: &Session) -> Vec<TreeletId> {
+    let slots = session.core().slots();
+    (0..slots.capacity())
+        .filter_map(|s| slots.treelet_in(s))
+        .collect()
 }
 
 /// The phase's figures; `limit_needs` (over the link) are the treelets the view needs that were

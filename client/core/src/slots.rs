@@ -18,7 +18,7 @@
 
 use std::fmt;
 
-use arbor_proto::codec::{self, Dictionary, PreparedDictionaries};
+use arbor_proto::codec::{self, PreparedDictionaries, SceneDictionaries};
 use arbor_proto::{Cell, Channel, Node, ProtoError, SceneDescription, Treelet, TreeletId};
 
 use crate::incore::IncoreView;
@@ -194,15 +194,8 @@ impl DecodedTreelet {
         scene: &SceneDescription,
         wanted: &[Channel],
     ) -> Result<Self, SlotError> {
-        Self::decode_blocks(
-            id,
-            nodes,
-            channels,
-            scene,
-            wanted,
-            scene.node_dictionary.as_deref().map(Dictionary::Raw),
-            |c| scene.channel_dictionary(c).map(Dictionary::Raw),
-        )
+        let raw = SceneDictionaries::Raw(scene);
+        Self::decode_blocks(id, nodes, channels, scene, raw, wanted)
     }
 
     /// [`from_blocks`](Self::from_blocks) with the scene's dictionaries prepared.
@@ -214,28 +207,20 @@ impl DecodedTreelet {
         dictionaries: &PreparedDictionaries,
         wanted: &[Channel],
     ) -> Result<Self, SlotError> {
-        Self::decode_blocks(
-            id,
-            nodes,
-            channels,
-            scene,
-            wanted,
-            dictionaries.nodes(),
-            |c| dictionaries.channel(c),
-        )
+        let prepared = SceneDictionaries::Prepared(dictionaries);
+        Self::decode_blocks(id, nodes, channels, scene, prepared, wanted)
     }
 
-    fn decode_blocks<'d>(
+    fn decode_blocks(
         id: TreeletId,
         nodes: &[u8],
         channels: &[(Channel, &[u8])],
         scene: &SceneDescription,
+        dictionaries: SceneDictionaries<'_>,
         wanted: &[Channel],
-        node_dictionary: Option<Dictionary<'d>>,
-        channel_dictionary: impl Fn(Channel) -> Option<Dictionary<'d>>,
     ) -> Result<Self, SlotError> {
         let treelet =
-            codec::decode_compressed_treelet_using(nodes, scene.max_depth, node_dictionary)
+            codec::decode_compressed_treelet_using(nodes, scene.max_depth, dictionaries.nodes())
                 .map_err(|source| SlotError::Decode { id, source })?;
         if treelet.header.id != id {
             return Err(SlotError::IdMismatch {
@@ -265,7 +250,7 @@ impl DecodedTreelet {
                 block,
                 channel,
                 used,
-                channel_dictionary(channel),
+                dictionaries.channel(channel),
             )
             .map_err(|source| SlotError::Decode { id, source })?;
             attributes.push((channel, raw));
