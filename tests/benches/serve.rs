@@ -15,9 +15,12 @@
 //!   (random priorities over all treelets of the 4 KiB scene) have arrived.
 //!
 //! `cargo bench -p arbor-tests --bench serve` (ARBOR_BENCH_QUICK=1: fewer treelets per client;
-//! ARBOR_BENCH_WHOLE=N: only the whole-scene row, N runs in turns, for experiments;
-//! ARBOR_BENCH_PROFILE=N / ARBOR_BENCH_PROFILE_RAW=N: N whole-scene fetches by Arbor / by one
-//! raw quinn stream of the same size, nothing else, for a profiler or `/usr/bin/time`).
+//! ARBOR_BENCH_WHOLE=N: only the whole-scene row, N runs in turns, for experiments, followed by
+//! two rows that split the gap: raw quinn sending the same bytes on as many streams as Arbor
+//! uses, and Arbor's server sending to a client that only counts bytes;
+//! ARBOR_BENCH_PROFILE=N / ARBOR_BENCH_PROFILE_RAW=N / ARBOR_BENCH_PROFILE_COUNTING=N: N
+//! whole-scene fetches by Arbor's client / by one raw quinn stream of the same size / by the
+//! counting client, nothing else, for a profiler or `/usr/bin/time`).
 //! Never run in CI.
 
 use std::net::SocketAddr;
@@ -338,6 +341,97 @@ mod raw {
     }
 }
 
+mod counting {
+    //! The least client Arbor's protocol allows, to tell the server's share of a whole-scene
+    //! fetch from the client's: `Hello` and one list on the control stream, then every treelet
+    //! stream's chunks counted and dropped (no parsing, no events, no budget).
+    use super::*;
+    use arbor_proto::frame::encode;
+    use arbor_proto::wire::{Frame, PROTOCOL_VERSION};
+
+    /// Fetches the first `count` treelets of `scene` until `bytes` have arrived on treelet
+    /// streams; (seconds from the list to the last byte, bytes).
+    pub async fn run(
+        addr: SocketAddr,
+        fingerprint: &str,
+        scene: &SceneDescription,
+        count: u32,
+        bytes: u64,
+    ) -> (f64, u64) {
+        let trust = Trust::Fingerprint(fingerprint.into());
+        let config =
+            arbor_client_net::transport::quinn_client_config(&trust, Duration::from_secs(30))
+                .unwrap();
+        let ep =
+            arbor_client_net::transport::client_endpoint("127.0.0.1:0".parse().unwrap()).unwrap();
+        let conn = ep
+            .connect_with(config, addr, &addr.ip().to_string())
+            .unwrap()
+            .await
+            .unwrap();
+        let (mut send, mut recv) = conn.open_bi().await.unwrap();
+        let hello = encode(&Frame::Hello {
+            version: PROTOCOL_VERSION,
+            scene: scene.name.clone(),
+            channels: scene.layout.channels().to_vec(),
+            token: String::new(),
+            flags: 0,
+            view: None,
+        })
+        .unwrap();
+        send.write_all(&hello).await.unwrap();
+        // SceneInfo (and whatever follows) is read and dropped; the root arrives on a treelet
+        // stream like the rest.
+        tokio::spawn(
+            async move { while let Ok(Some(_)) = recv.read_chunk(usize::MAX, true).await {} },
+        );
+        let list = encode(&Frame::RequestList {
+            seq: 1,
+            items: (0..count)
+                .map(|i| (TreeletId(i), (count - i) as f32))
+                .collect(),
+        })
+        .unwrap();
+        let t = Instant::now();
+        send.write_all(&list).await.unwrap();
+        // One shared counter; the last byte wakes the caller.
+        let got = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let done = Arc::new(tokio::sync::Notify::new());
+        let accept = {
+            let (conn, got, done) = (conn.clone(), got.clone(), done.clone());
+            tokio::spawn(async move {
+                while let Ok(mut r) = conn.accept_uni().await {
+                    let (got, done) = (got.clone(), done.clone());
+                    tokio::spawn(async move {
+                        while let Ok(Some(c)) = r.read_chunk(usize::MAX, false).await {
+                            let n = c.bytes.len() as u64;
+                            let before = got.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
+                            if before < bytes && before + n >= bytes {
+                                done.notify_one();
+                            }
+                        }
+                    });
+                }
+            })
+        };
+        if tokio::time::timeout(Duration::from_secs(30), done.notified())
+            .await
+            .is_err()
+        {
+            panic!(
+                "stalled after {} of {bytes} bytes",
+                got.load(std::sync::atomic::Ordering::Relaxed)
+            );
+        }
+        let got = got.load(std::sync::atomic::Ordering::Relaxed);
+        let secs = t.elapsed().as_secs_f64();
+        accept.abort();
+        conn.close(0u32.into(), b"done");
+        ep.wait_idle().await;
+        (secs, got)
+    }
+}
+
 mod nginx {
     //! nginx over HTTP/2 + TLS as the peers' static tile server, loaded by h2load.
     use std::io::Write as _;
@@ -637,6 +731,16 @@ async fn main() {
         }
         return;
     }
+    if let Ok(runs) = std::env::var("ARBOR_BENCH_PROFILE_COUNTING") {
+        // The same fetches by a client that only counts bytes: the server's share.
+        let n = scenes[1].treelet_count;
+        let bytes: u64 = files.iter().map(|f| f.len() as u64).sum();
+        for _ in 0..runs.parse().unwrap_or(300) {
+            let (secs, b) = counting::run(addr, &fp, &scenes[1], n, bytes).await;
+            println!("{:.1} MB/s", b as f64 / secs / 1e6);
+        }
+        return;
+    }
     let raw = raw::start();
     if let Ok(runs) = std::env::var("ARBOR_BENCH_PROFILE_RAW") {
         // One raw stream of lion-4k's bytes again and again: the profiler's reference.
@@ -750,6 +854,11 @@ async fn main() {
     let d = &scenes[1];
     let whole = d.treelet_count as usize;
     let (mut a, mut r) = (Vec::new(), Vec::new());
+    // With ARBOR_BENCH_WHOLE, in the same turns: raw quinn on as many streams as Arbor's
+    // batches, and Arbor's server sending to a client that only counts bytes.
+    let (mut split, mut counted) = (Vec::new(), Vec::new());
+    let split_streams =
+        whole.div_ceil(arbor_server::service::treelets::MAX_TREELETS_PER_STREAM) as u32;
     let mut total = 0;
     // A whole scene is a few megabytes, tens of milliseconds: more runs than the rows above.
     for _ in 0..whole_only.unwrap_or(WHOLE_ROUNDS) {
@@ -758,6 +867,13 @@ async fn main() {
         a.push((whole as f64 / secs, bytes as f64 / secs / 1e6));
         let (rsecs, rbytes) = raw::run(&raw, 1, 1, bytes as u32, 1).await;
         r.push((1.0 / rsecs, rbytes as f64 / rsecs / 1e6));
+        if whole_only.is_some() {
+            let size = (bytes / u64::from(split_streams)) as u32;
+            let (ssecs, sbytes) = raw::run(&raw, 1, split_streams, size, split_streams).await;
+            split.push((1.0 / ssecs, sbytes as f64 / ssecs / 1e6));
+            let (csecs, cbytes) = counting::run(addr, &fp, d, whole as u32, bytes).await;
+            counted.push((1.0 / csecs, cbytes as f64 / csecs / 1e6));
+        }
     }
     let (a_median, r_median) = (median(&a), median(&r));
     let (a, r) = (best(&a), best(&r));
@@ -777,6 +893,16 @@ async fn main() {
         a_median / r_median
     );
     if whole_only.is_some() {
+        println!(
+            "  medians: raw quinn, the same bytes on {split_streams} streams at once: {:.1} MB/s",
+            median(&split)
+        );
+        println!(
+            "  medians: Arbor's server to a client that only counts bytes {:.1} MB/s: {:.2}x of \
+             raw quinn's one stream",
+            median(&counted),
+            median(&counted) / r_median
+        );
         server.shutdown().await;
         return;
     }
