@@ -133,13 +133,14 @@ pub fn assert_verifies(scene: &StoredScene) {
 /// Every final leaf voxel (first_child NONE) of a stored scene, at any depth.
 pub fn final_leaves(scene: &StoredScene) -> Vec<Cell> {
     let d = &scene.description;
+    let dictionaries = codec::PreparedDictionaries::of(d);
     let mut out = Vec::new();
     for id in 0..d.treelet_count {
         let bytes = scene.nodes(TreeletId(id)).unwrap().expect("treelet stored");
-        let (t, places) = codec::decode_compressed_treelet_with_places(
+        let (t, places) = codec::decode_compressed_treelet_with_places_using(
             &bytes,
             d.max_depth,
-            d.node_dictionary.as_deref(),
+            dictionaries.nodes(),
         )
         .unwrap();
         for (i, p) in places.iter().enumerate() {
@@ -288,6 +289,7 @@ pub fn assert_same_cells(what: &str, leaves: &BTreeSet<[u32; 3]>, reference: &BT
 pub fn decoded_treelets(scene: &StoredScene) -> Vec<arbor_client_core::slots::DecodedTreelet> {
     let d = &scene.description;
     let channels = d.layout.channels().to_vec();
+    let dictionaries = codec::PreparedDictionaries::of(d);
     (0..d.treelet_count)
         .map(|id| {
             let id = TreeletId(id);
@@ -297,8 +299,15 @@ pub fn decoded_treelets(scene: &StoredScene) -> Vec<arbor_client_core::slots::De
                 .map(|&c| (c, scene.channel(c, id).unwrap().expect("channel stored")))
                 .collect();
             let refs: Vec<_> = blocks.iter().map(|(c, v)| (*c, v.as_ref())).collect();
-            arbor_client_core::slots::DecodedTreelet::from_blocks(id, &nodes, &refs, d, &channels)
-                .unwrap_or_else(|e| panic!("decoding treelet {id}: {e}"))
+            arbor_client_core::slots::DecodedTreelet::from_blocks_prepared(
+                id,
+                &nodes,
+                &refs,
+                d,
+                &dictionaries,
+                &channels,
+            )
+            .unwrap_or_else(|e| panic!("decoding treelet {id}: {e}"))
         })
         .collect()
 }
