@@ -268,13 +268,11 @@ async fn the_timeline_records_what_was_listed_pushed_sent_and_acknowledged() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_resting_view_gets_its_visible_cut_pushed_in_place_of_the_frustum_plan() {
-    use arbor_server::service::timeline::Event;
     use arbor_server::service::treelets::ServedScene;
     use std::collections::HashSet;
-    const GRID: u32 = 48;
     let tp = TestPool::new();
-    let mut config = tp.config();
-    config.visibility_grid = GRID;
+    // Every cut followed, however much of the frustum plan it holds; no finer cut.
+    let config = with_cuts(&tp, 0, 1.0);
     let budget = config.visibility_cache_bytes;
     let server = start(config).await;
     let stored = server.pool().scene(SCENE).unwrap();
@@ -289,7 +287,7 @@ async fn a_resting_view_gets_its_visible_cut_pushed_in_place_of_the_frustum_plan
         ..view
     };
     let cut = ServedScene::new(stored)
-        .visible_cut(&world, GRID, budget)
+        .visible_cut(&world, CUT_GRID, budget)
         .unwrap();
     assert!(cut.complete);
     let expected: HashSet<TreeletId> = cut.treelets.iter().map(|&(_, id)| id).collect();
@@ -300,28 +298,10 @@ async fn a_resting_view_gets_its_visible_cut_pushed_in_place_of_the_frustum_plan
 
     let timeline = &server.state.timeline;
     timeline.start();
-    let c = connect(server.quic_addr, &server.fingerprint).await;
-    let mut control = Control::open(&c.conn).await;
-    control
-        .send(&hello_frame_with(
-            SCENE,
-            &[Channel::Normal],
-            TOKEN,
-            HELLO_SEND_ROOT | HELLO_VIEW,
-            Some(view),
-        ))
-        .await;
+    let (c, _control) = hello_with_root_and_view(&server, view).await;
     let deadline = Instant::now() + LONG;
     let replanned = loop {
-        let lists: Vec<Vec<TreeletId>> = timeline
-            .snapshot()
-            .events
-            .iter()
-            .filter_map(|e| match e {
-                Event::Listed { pushed, .. } => Some(pushed.clone()),
-                _ => None,
-            })
-            .collect();
+        let lists = pushes_per_list(timeline);
         if lists.len() >= 2 {
             break lists[1].clone();
         }
@@ -338,13 +318,104 @@ async fn a_resting_view_gets_its_visible_cut_pushed_in_place_of_the_frustum_plan
         "the re-planned pushes are the cut's"
     );
     // Everything the cut names arrives: pushed now, or sent under the frustum plan before.
-    let mut received: HashSet<TreeletId> = HashSet::new();
-    while !expected.is_subset(&received) {
+    receive_all_of(&c, &expected).await;
+    c.conn.close(0u32.into(), b"done");
+    server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_cut_that_saves_too_little_leaves_the_frustum_plan_in_place() {
+    use std::collections::HashSet;
+    let tp = TestPool::new();
+    // No cut of a view that sees several treelets holds a millionth of its frustum plan.
+    let server = start(with_cuts(&tp, 2 * CUT_GRID, 1e-6)).await;
+    let view = ViewHint {
+        free_slots: 4096,
+        ..in_front_of_the_cube()
+    };
+    let timeline = &server.state.timeline;
+    timeline.start();
+    let (c, _control) = hello_with_root_and_view(&server, view).await;
+    let cuts = &server.state.metrics.visible_cuts;
+    let deadline = Instant::now() + LONG;
+    while cuts.load(Ordering::Relaxed) == 0 {
+        assert!(Instant::now() < deadline, "no visible cut was cast");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    // A followed cut re-plans the list in the same step that counts it; give it ample time.
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let lists = pushes_per_list(timeline);
+    assert_eq!(
+        lists.len(),
+        1,
+        "only Hello's list: the cut was not followed"
+    );
+    assert!(lists[0].len() > 4, "Hello's frustum plan pushes the view");
+    assert_eq!(
+        cuts.load(Ordering::Relaxed),
+        1,
+        "no finer cut is cast for a view whose cut is not followed"
+    );
+    // The frustum plan's pushes all arrive.
+    let planned: HashSet<TreeletId> = lists[0].iter().copied().collect();
+    receive_all_of(&c, &planned).await;
+    c.conn.close(0u32.into(), b"done");
+    server.shutdown().await;
+}
+
+/// Rays along the longer side of the visible cuts in these tests.
+const CUT_GRID: u32 = 48;
+
+/// The pool's config with visible cuts on: [`CUT_GRID`] rays, a finer cut of `fine` (0: none),
+/// followed where they hold at most `share` of the frustum plan.
+fn with_cuts(tp: &TestPool, fine: u32, share: f64) -> arbor_server::service::config::ServeConfig {
+    let mut config = tp.config();
+    config.visibility_grid = CUT_GRID;
+    config.visibility_fine_grid = fine;
+    config.visibility_follow_share = share;
+    config
+}
+
+/// Connects and says `Hello` asking for the root and the refinement of `view`.
+async fn hello_with_root_and_view(
+    server: &arbor_server::daemon::RunningServer,
+    view: ViewHint,
+) -> (Client, Control) {
+    let c = connect(server.quic_addr, &server.fingerprint).await;
+    let mut control = Control::open(&c.conn).await;
+    control
+        .send(&hello_frame_with(
+            SCENE,
+            &[Channel::Normal],
+            TOKEN,
+            HELLO_SEND_ROOT | HELLO_VIEW,
+            Some(view),
+        ))
+        .await;
+    (c, control)
+}
+
+/// The pushes of every list the timeline recorded, in order.
+fn pushes_per_list(timeline: &arbor_server::service::timeline::Timeline) -> Vec<Vec<TreeletId>> {
+    use arbor_server::service::timeline::Event;
+    timeline
+        .snapshot()
+        .events
+        .iter()
+        .filter_map(|e| match e {
+            Event::Listed { pushed, .. } => Some(pushed.clone()),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Receives treelets until every one of `ids` has arrived.
+async fn receive_all_of(c: &Client, ids: &std::collections::HashSet<TreeletId>) {
+    let mut received = std::collections::HashSet::new();
+    while !ids.is_subset(&received) {
         let got = receive(&c.conn, 1, LONG).await.unwrap();
         received.extend(got.iter().map(|(id, _)| *id));
     }
-    c.conn.close(0u32.into(), b"done");
-    server.shutdown().await;
 }
 
 /// Two edges in front of the root cube's centre (root-cube units, as `Hello` takes them),

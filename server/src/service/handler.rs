@@ -16,7 +16,7 @@ use tokio::task::JoinSet;
 
 use super::batches::Batches;
 use super::connection::{ControlReader, End, Greeting, close, hello};
-use super::push::{WorldCube, cut_list, deep_list};
+use super::push::{WorldCube, cut_list, cut_saves, deep_list};
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
 use super::shared::Shared;
 use super::shutdown::Shutdown;
@@ -115,10 +115,11 @@ struct Handler {
     reading: bool,
     window: usize,
     treelet_count: u32,
-    /// The latest visible cut computed for this connection's view.
-    cut: Option<Arc<VisibleCut>>,
-    /// The cut being computed, off the async workers.
-    cut_job: Option<tokio::task::JoinHandle<Option<VisibleCut>>>,
+    /// The latest visible cut computed for this connection's view, and whether its pushes
+    /// replace the frustum plan's ([`cut_saves`]).
+    cut: Option<(Arc<VisibleCut>, bool)>,
+    /// The cut being computed, off the async workers, with whether it saves enough.
+    cut_job: Option<tokio::task::JoinHandle<Option<(VisibleCut, bool)>>>,
     /// The last deep list applied (sequence, view, items): re-planned when its view's cut
     /// arrives.
     last_deep: Option<DeepList>,
@@ -377,7 +378,11 @@ impl Handler {
         view: &ViewHint,
         items: &[(TreeletId, f32, f32)],
     ) -> (Vec<(TreeletId, f32)>, usize) {
-        if let Some(cut) = self.cut.as_ref().filter(|c| c.complete && c.answers(view)) {
+        if let Some((cut, _)) = self
+            .cut
+            .as_ref()
+            .filter(|(c, followed)| *followed && c.complete && c.answers(view))
+        {
             let core = self.shared.core();
             return cut_list(cut, view, items, MAX_REQUEST_ITEMS, |t| {
                 core.sched.was_delivered(self.id, t)
@@ -393,32 +398,46 @@ impl Handler {
     }
 
     /// Starts computing `view`'s visible cut on a blocking thread — the coarse one, or the fine
-    /// one once the coarse one answers the view — unless visible cuts are off, one is being
-    /// computed, or the last one answers this view at the finest grid configured.
+    /// one once the coarse one answers the view and is followed — unless visible cuts are off,
+    /// one is being computed, or the last one answers this view at the finest grid configured
+    /// (or was not worth following: a finer cast would not change that much). The same thread
+    /// then decides whether the cut saves enough against the frustum plan to be followed.
     fn start_cut(&mut self, view: &ViewHint) {
         let coarse = self.shared.config.visibility_grid;
         let fine = self.shared.config.visibility_fine_grid;
         if coarse == 0 || self.cut_job.is_some() {
             return;
         }
-        let grid = match self.cut.as_ref().filter(|c| c.answers(view)) {
+        let grid = match self.cut.as_ref().filter(|(c, _)| c.answers(view)) {
             None => coarse,
-            Some(c) if fine > c.grid => fine,
+            Some((c, true)) if fine > c.grid => fine,
             Some(_) => return,
         };
         let scene = self.ctx.scene.clone();
         let budget = self.shared.config.visibility_cache_bytes;
+        let share = self.shared.config.visibility_follow_share;
         let view = *view;
         self.cut_job = Some(tokio::task::spawn_blocking(move || {
-            scene.visible_cut(&view, grid, budget)
+            let cut = scene.visible_cut(&view, grid, budget)?;
+            let d = &scene.stored.description;
+            let cube = WorldCube {
+                origin: d.origin,
+                edge: d.edge,
+            };
+            let followed = cut_saves(cube, &cut, d.root_treelet, share, |id| scene.shape(id));
+            Some((cut, followed))
         }));
     }
 
-    /// A visible cut is ready: kept, and the last deep list re-planned with it when it answers
-    /// that list's view (the pushes the frustum plan chose are replaced).
-    fn on_cut(&mut self, cut: Result<Option<VisibleCut>, tokio::task::JoinError>) -> Option<End> {
-        let cut = match cut {
-            Ok(Some(c)) => Arc::new(c),
+    /// A visible cut is ready: kept, and, if it saves enough to be followed, the last deep list
+    /// re-planned with it when it answers that list's view (the pushes the frustum plan chose
+    /// are replaced).
+    fn on_cut(
+        &mut self,
+        cut: Result<Option<(VisibleCut, bool)>, tokio::task::JoinError>,
+    ) -> Option<End> {
+        let (cut, followed) = match cut {
+            Ok(Some((c, followed))) => (Arc::new(c), followed),
             Ok(None) => return None,
             Err(e) => {
                 tracing::warn!("visible cut failed: {e}");
@@ -429,6 +448,7 @@ impl Handler {
             treelets = cut.treelets.len(),
             rays = cut.rays_cast,
             complete = cut.complete,
+            followed,
             took_ms = cut.took.as_secs_f64() * 1e3,
             "visible cut"
         );
@@ -437,9 +457,9 @@ impl Handler {
             .metrics
             .visible_cuts
             .fetch_add(1, Ordering::Relaxed);
-        self.cut = Some(cut.clone());
+        self.cut = Some((cut.clone(), followed));
         let (seq, view, items) = self.last_deep.clone()?;
-        if !(cut.complete && cut.answers(&view)) {
+        if !(followed && cut.complete && cut.answers(&view)) {
             return None;
         }
         let (list, pushed) = self.plan(&view, &items);
@@ -652,8 +672,8 @@ impl Drop for AbortOnDrop {
 /// Waits for the visible cut being computed (`None` never completes: the `select!` branch is
 /// disabled then), and clears the job.
 async fn join_cut(
-    job: &mut Option<tokio::task::JoinHandle<Option<VisibleCut>>>,
-) -> Result<Option<VisibleCut>, tokio::task::JoinError> {
+    job: &mut Option<tokio::task::JoinHandle<Option<(VisibleCut, bool)>>>,
+) -> Result<Option<(VisibleCut, bool)>, tokio::task::JoinError> {
     let Some(handle) = job.as_mut() else {
         return std::future::pending().await;
     };

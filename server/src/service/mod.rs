@@ -20,7 +20,8 @@
 //!   was listed, pushed, sent and acknowledged when, for benchmarks (off unless started).
 //! * [`push`]: what a deep request's view would refine below its listed treelets (frustum and
 //!   projected size); [`visibility`]: what a resting view's rays need, cast through the server's
-//!   own tree with the client's traversal (off unless `visibility_grid` is set).
+//!   own tree with the client's traversal (off unless `visibility_grid` is set), followed where
+//!   it saves enough against the frustum plan ([`push::cut_saves`]).
 mod batches;
 pub mod config;
 pub mod connection;

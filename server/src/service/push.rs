@@ -161,6 +161,35 @@ pub fn cut_list(
     (list, pushed)
 }
 
+/// Whether following `cut` is worth it: whether it holds at most `share` of the treelets the
+/// frustum plan would push for the same view from the root (every descendant in the frustum that
+/// projects larger than a pixel). A view that sees most of what lies in its frustum (a statue
+/// from the front) gains little from its cut and loses what the frustum plan would have
+/// prefetched for the next view; an occluded one (an engine, a building's interior) saves most
+/// of its bytes. The frustum plan is walked only as far as the decision needs, so the work is
+/// bounded by the cut's size over `share`. `share` ≥ 1: always.
+pub fn cut_saves(
+    cube: WorldCube,
+    cut: &VisibleCut,
+    root: TreeletId,
+    share: f64,
+    shape: impl FnMut(TreeletId) -> Option<Arc<TreeletShape>>,
+) -> bool {
+    if share >= 1.0 {
+        return true;
+    }
+    if share.is_nan() || share <= 0.0 {
+        return false;
+    }
+    // The frustum plan must hold at least this many for the cut to be within `share` of it.
+    let needed = (cut.treelets.len() as f64 / share).ceil().max(1.0);
+    let Ok(needed) = usize::try_from(needed as u64) else {
+        return false;
+    };
+    let root_item = [(root, f32::MAX, ViewHint::MAX_ERROR)];
+    plan_pushes(cube, &cut.view, &root_item, needed, shape).len() >= needed
+}
+
 /// Most treelet shapes kept per scene; beyond it the cache starts afresh (a shape costs one
 /// decompression to rebuild).
 const SHAPES_MAX: usize = 1 << 18;
@@ -299,6 +328,58 @@ mod tests {
         assert_eq!(cut_list(&cut, &view, &items, 100, delivered).1, 0);
         view.free_slots = 100;
         assert_eq!(cut_list(&cut, &view, &items, 3, delivered).1, 1);
+    }
+
+    #[test]
+    fn a_cut_is_followed_only_where_it_saves_enough_of_the_frustum_plan() {
+        let t = tree(3);
+        let shape = |id: TreeletId| t.get(&id).cloned();
+        let view = view_from([0.5, 0.5, 3.0], 0.001);
+        let frustum = plan_pushes(
+            CUBE,
+            &view,
+            &[(TreeletId(0), f32::MAX, ViewHint::MAX_ERROR)],
+            usize::MAX,
+            shape,
+        )
+        .len();
+        assert_eq!(frustum, 8 + 64 + 512, "the whole tree is in view");
+        let cut_of = |n: usize| VisibleCut {
+            view,
+            treelets: (1..=n as u32).map(|i| (1, TreeletId(i))).collect(),
+            complete: true,
+            grid: 8,
+            rays_cast: 0,
+            took: std::time::Duration::ZERO,
+        };
+        let saves = |n: usize, share: f64| cut_saves(CUBE, &cut_of(n), TreeletId(0), share, shape);
+        // Exactly half the frustum plan is within a share of one half; one more is not.
+        assert!(saves(frustum / 2, 0.5));
+        assert!(!saves(frustum / 2 + 1, 0.5));
+        assert!(saves(frustum / 10, 0.1));
+        assert!(!saves(frustum / 10 + 1, 0.1));
+        // A share of one follows every cut, even one larger than the plan; none follows none.
+        assert!(saves(frustum + 5, 1.0));
+        assert!(!saves(1, 0.0));
+        assert!(!saves(1, f64::NAN));
+        // An empty cut (nothing visible below the root) always saves.
+        assert!(saves(0, 0.5));
+        // A view that sees only part of the tree has a smaller frustum plan.
+        let mut aside = cut_of(100);
+        aside.view = view_from([1.5, 0.5, 2.0], 0.001);
+        let side = plan_pushes(
+            CUBE,
+            &aside.view,
+            &[(TreeletId(0), f32::MAX, ViewHint::MAX_ERROR)],
+            usize::MAX,
+            shape,
+        )
+        .len();
+        assert!(side > 0 && side < frustum, "{side} of {frustum}");
+        assert_eq!(
+            cut_saves(CUBE, &aside, TreeletId(0), 0.5, shape),
+            100 * 2 <= side
+        );
     }
 
     fn view_from(eye: [f64; 3], footprint: f32) -> ViewHint {
