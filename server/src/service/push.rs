@@ -181,11 +181,9 @@ pub fn cut_saves(
     if share.is_nan() || share <= 0.0 {
         return false;
     }
-    // The frustum plan must hold at least this many for the cut to be within `share` of it.
-    let needed = (cut.treelets.len() as f64 / share).ceil().max(1.0);
-    let Ok(needed) = usize::try_from(needed as u64) else {
-        return false;
-    };
+    // The frustum plan must hold at least this many for the cut to be within `share` of it
+    // (`as` saturates: a tiny share asks for more than any plan holds).
+    let needed = (cut.treelets.len() as f64 / share).ceil().max(1.0) as usize;
     let root_item = [(root, f32::MAX, ViewHint::MAX_ERROR)];
     plan_pushes(cube, &cut.view, &root_item, needed, shape).len() >= needed
 }
