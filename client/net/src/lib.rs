@@ -59,6 +59,6 @@ pub use config::{
 };
 pub use connection::is_final_code;
 pub use error::ClientError;
-pub use event::{ClientEvent, ClientStats, ReceivedTreelet};
+pub use event::{AttributeBlocks, AttributeBlocksIter, ClientEvent, ClientStats, ReceivedTreelet};
 pub use tls::{Trust, certificate_fingerprint};
 pub use url::{ServerUrl, parse_server_url};

@@ -34,7 +34,7 @@ use bytes::{Buf, Bytes, BytesMut};
 use quinn::{ReadError, RecvStream, VarInt};
 use tokio::sync::{OwnedSemaphorePermit, mpsc};
 
-use super::event::{ClientEvent, ReceivedTreelet};
+use super::event::{AttributeBlocks, ClientEvent, ReceivedTreelet};
 use super::shared::{Queued, Shared};
 
 /// Bytes of a treelet message header before its channel table: id, used nodes, channel count.
@@ -356,21 +356,16 @@ async fn read_messages(
             }
             Err(FillError::Read(e)) => return read_failed(e),
         }
-        // The header is validated and the message is exactly `total` bytes: the blocks are
-        // sliced out of it by the header's lengths, without a copy.
+        // The header is validated and the message is exactly `total` bytes: the node block and
+        // the channel blocks behind it are sliced out of it by the header's lengths, without a
+        // copy.
         let bytes = incoming.take(total);
-        let mut at = header_len;
-        let mut block = |len: usize| {
-            let b = bytes.slice(at..at + len);
-            at += len;
-            b
+        let blocks_at = header_len + header.node_len;
+        let nodes = bytes.slice(header_len..blocks_at);
+        let Some(channels) = AttributeBlocks::new(bytes.slice(blocks_at..), header.channels) else {
+            // Cannot happen with a validated header; the check keeps the cut explicit.
+            return StreamEnd::Violation(format!("treelet {id}: channel blocks do not add up"));
         };
-        let nodes = block(header.node_len);
-        let channels = header
-            .channels
-            .iter()
-            .map(|&(c, len)| (c, block(len)))
-            .collect();
         batch.treelets.push(ReceivedTreelet {
             id,
             used_nodes: header.used_nodes,

@@ -69,12 +69,19 @@ fn ids(list: &[(TreeletId, f32)]) -> Vec<u32> {
 fn check_bytes(t: &ReceivedTreelet, node_bytes: usize) {
     assert_eq!(t.used_nodes, used_nodes(t.id));
     assert_eq!(t.nodes, node_block(t.id, node_bytes));
-    assert_eq!(t.channels.len(), 1);
-    assert_eq!(t.channels[0].0, Channel::Color);
+    let channels: Vec<(Channel, &[u8])> = t.channels.iter().collect();
     assert_eq!(
-        t.channels[0].1,
-        channel_block(t.id, Channel::Color, node_bytes / 2)
+        channels,
+        [(
+            Channel::Color,
+            &channel_block(t.id, Channel::Color, node_bytes / 2)[..]
+        )]
     );
+    assert_eq!(
+        t.channels.get(Channel::Color),
+        Some(&channel_block(t.id, Channel::Color, node_bytes / 2)[..])
+    );
+    assert_eq!(t.channels.get(Channel::Normal), None);
     let header = 4 + 2 + 1 + 5 + 4;
     assert_eq!(t.wire_bytes, header + node_bytes + node_bytes / 2);
 }

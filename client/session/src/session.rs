@@ -623,11 +623,7 @@ pub(crate) fn decode_received(
     channels: &[Channel],
     dictionaries: &PreparedDictionaries,
 ) -> Result<DecodedTreelet, SlotError> {
-    let blocks: Vec<(Channel, &[u8])> = received
-        .channels
-        .iter()
-        .map(|(c, b)| (*c, b.as_ref()))
-        .collect();
+    let blocks: Vec<(Channel, &[u8])> = received.channels.iter().collect();
     DecodedTreelet::decode_message(
         received.id,
         received.used_nodes,
