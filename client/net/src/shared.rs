@@ -155,24 +155,34 @@ impl Drop for BufferLease {
 pub(crate) struct LatencyTracker {
     current: FxHashMap<TreeletId, Instant>,
     previous: FxHashMap<TreeletId, Instant>,
+    /// The map before `previous`, emptied, kept for its allocation: the next list is built in
+    /// it (a list is sent every client cycle, and a whole-scene list grew a fresh map through
+    /// several rehashes on the way to the wire).
+    spare: FxHashMap<TreeletId, Instant>,
 }
 
 impl LatencyTracker {
     /// A list naming `ids` was sent at `now`.
     pub fn list_sent(&mut self, ids: impl IntoIterator<Item = TreeletId>, now: Instant) {
-        let mut next = FxHashMap::default();
+        let ids = ids.into_iter();
+        let mut next = std::mem::take(&mut self.spare);
+        next.reserve(ids.size_hint().0);
         for id in ids {
-            if next.contains_key(&id) {
-                continue;
+            if let std::collections::hash_map::Entry::Vacant(slot) = next.entry(id) {
+                let first = self
+                    .current
+                    .remove(&id)
+                    .or_else(|| self.previous.remove(&id))
+                    .unwrap_or(now);
+                slot.insert(first);
             }
-            let first = self
-                .current
-                .remove(&id)
-                .or_else(|| self.previous.remove(&id))
-                .unwrap_or(now);
-            next.insert(id, first);
         }
-        self.previous = std::mem::replace(&mut self.current, next);
+        let mut older = std::mem::replace(
+            &mut self.previous,
+            std::mem::replace(&mut self.current, next),
+        );
+        older.clear();
+        self.spare = older;
     }
 
     /// Treelet `id` arrived at `now`: its latency, zero if no list named it.
