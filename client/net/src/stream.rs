@@ -282,13 +282,14 @@ async fn read_messages(
             }
             Err(FillError::Read(e)) => return read_failed(e),
         }
-        // Rejects a bad id, node count or channel count before reading further.
-        let fixed = incoming.peek(FIXED_HEADER);
-        if let Err(e) = parse_treelet_header(fixed) {
-            return StreamEnd::Violation(e.to_string());
-        }
-        let header_len = FIXED_HEADER + 5 * usize::from(fixed[6]) + 4;
+        let header_len = FIXED_HEADER + 5 * usize::from(incoming.peek(FIXED_HEADER)[6]) + 4;
         if !incoming.has(header_len) {
+            // Rejects a bad id, node count or channel count before waiting for more. (With the
+            // whole header here, the one parse below finds the same errors: one parse per
+            // message, not two.)
+            if let Err(e) = parse_treelet_header(incoming.peek(FIXED_HEADER)) {
+                return StreamEnd::Violation(e.to_string());
+            }
             batch.hand_over(ctx);
         }
         match incoming.fill(header_len).await {

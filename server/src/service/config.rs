@@ -177,7 +177,7 @@ pub struct ServeConfig {
     /// content servers fill a fresh connection sooner.
     pub initial_window: u64,
     /// Bytes of built treelet messages kept server-wide, so a treelet sent again costs no pool
-    /// read and no copy (0: none kept).
+    /// read and no decompression (0: none kept).
     pub message_cache_bytes: u64,
     /// Rays along the longer side of a resting deep-request view that the server casts through
     /// its own tree to find the view's visible cut, whose treelets it then pushes

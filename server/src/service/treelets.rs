@@ -5,8 +5,8 @@
 //! from the node block itself (decompressed with the scene's prepared dictionary, header
 //! decoded) when the message is built. Built messages are kept in a [`MessageCache`] bounded in
 //! bytes (server-wide, `message_cache_bytes`), so a treelet sent again — to another client, or
-//! after an eviction — costs no pool read, no decompression and no copy: the cached [`Bytes`]
-//! go to the wire as they are. Nothing is ever recompressed.
+//! after an eviction — costs no pool read and no decompression: a stream's batch is one copy of
+//! the cached [`Bytes`] (see `streams::contiguous`), never re-framed or recompressed.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicUsize, Ordering};
