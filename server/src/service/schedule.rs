@@ -9,7 +9,8 @@
 //! * [`Scheduler::poll_transmit`] — the next `(connection, treelet)` to start sending, or `None`.
 //!   The treelet enters the connection's in-flight window at once.
 //! * [`Scheduler::handle_sent`] — all its bytes were handed to the transport (still in flight).
-//! * [`Scheduler::handle_delivered`] — the peer acknowledged it: it leaves the window.
+//! * [`Scheduler::handle_delivered`] — the peer acknowledged it: it leaves the window
+//!   ([`Scheduler::handle_delivered_all`] for a stream's whole batch at once).
 //! * [`Scheduler::handle_cancelled`] — its stream was reset or failed: it leaves the window and is
 //!   queued again if the current list still wants it.
 //!
@@ -341,13 +342,20 @@ impl Conn {
             .map(|i| &self.by_id[i])
     }
 
-    /// `treelet` reached the client (or is about to) at `now`: lists within the redelivery guard
-    /// do not get it again.
-    fn remember_delivery(&mut self, treelet: TreeletId, now: Instant) {
+    /// `treelet`, just taken out of the window, reached the client (or is about to) at `now`:
+    /// counted, remembered for `was_delivered`, and lists within the redelivery guard do not
+    /// get it again. The caller prunes the redelivery record afterwards (once per batch).
+    fn record_delivery(&mut self, treelet: TreeletId, now: Instant) {
+        self.stats.treelets_delivered += 1;
         if !self.config.redelivery_guard.is_zero() {
             self.recent.push_back((now, treelet));
             self.recent_at.insert(treelet, now);
-            self.prune_recent(now);
+        }
+        if self.config.remember_deliveries {
+            if self.delivered_ever.len() >= self.delivered_cap() {
+                self.delivered_ever.clear();
+            }
+            self.delivered_ever.insert(treelet);
         }
     }
 
@@ -661,16 +669,40 @@ impl Scheduler {
         now: Instant,
     ) -> Option<Duration> {
         let (conn, flight) = self.leave_window(id, treelet)?;
-        conn.stats.treelets_delivered += 1;
-        conn.remember_delivery(treelet, now);
-        if conn.config.remember_deliveries {
-            if conn.delivered_ever.len() >= conn.delivered_cap() {
-                conn.delivered_ever.clear();
-            }
-            conn.delivered_ever.insert(treelet);
-        }
+        conn.record_delivery(treelet, now);
+        conn.prune_recent(now);
         self.wake(id);
         Some(now.saturating_duration_since(flight.since))
+    }
+
+    /// [`Scheduler::handle_delivered`] for every treelet of a stream's batch, acknowledged
+    /// together at `now`: one lookup of the connection, one prune of the redelivery record and
+    /// one wake for the batch, not one per treelet, and no latency arithmetic (the service's
+    /// delivery path: on a whole-scene fetch of lion-4k it took a quarter off the scheduler's
+    /// instructions, callgrind). Returns how many of `treelets` were in flight; the others are
+    /// ignored.
+    pub fn handle_delivered_all(
+        &mut self,
+        id: ConnectionId,
+        treelets: &[TreeletId],
+        now: Instant,
+    ) -> usize {
+        let Some(conn) = self.conns.get_mut(&id) else {
+            return 0;
+        };
+        let mut delivered = 0;
+        for &t in treelets {
+            if conn.in_flight.remove(&t).is_some() {
+                conn.record_delivery(t, now);
+                delivered += 1;
+            }
+        }
+        if delivered > 0 {
+            conn.prune_recent(now);
+            self.total_in_flight -= delivered;
+            self.wake(id);
+        }
+        delivered
     }
 
     /// The transfer of `treelet` was cancelled (stream reset, write failed): it leaves the window
@@ -1269,6 +1301,10 @@ mod tests {
             conn: u64,
             pick: usize,
         },
+        DeliveredAll {
+            conn: u64,
+            picks: Vec<usize>,
+        },
         Cancelled {
             conn: u64,
             pick: usize,
@@ -1297,6 +1333,8 @@ mod tests {
             8 => Just(Op::Poll),
             2 => (conn.clone(), any::<usize>()).prop_map(|(conn, pick)| Op::Sent { conn, pick }),
             4 => (conn.clone(), any::<usize>()).prop_map(|(conn, pick)| Op::Delivered { conn, pick }),
+            2 => (conn.clone(), proptest::collection::vec(any::<usize>(), 0..4))
+                .prop_map(|(conn, picks)| Op::DeliveredAll { conn, picks }),
             1 => (conn.clone(), any::<usize>()).prop_map(|(conn, pick)| Op::Cancelled { conn, pick }),
             1 => (conn.clone(), 0usize..5).prop_map(|(conn, window)| Op::Window { conn, window }),
             1 => conn.clone().prop_map(|conn| Op::Remove { conn }),
@@ -1448,6 +1486,28 @@ mod tests {
                             m.blocked.insert(x);
                             m.delivered_at.insert(x, now);
                         }
+                    }
+                    Op::DeliveredAll { conn, picks } => {
+                        let Some(m) = model.get_mut(&conn) else {
+                            prop_assert_eq!(s.handle_delivered_all(ConnectionId(conn), &[t(0)], now), 0);
+                            continue;
+                        };
+                        // Picks may repeat, and one in four names a treelet not in flight.
+                        let xs: Vec<u32> = picks
+                            .iter()
+                            .map(|&p| if p % 4 == 3 { 1000 } else { pick(m, p) })
+                            .collect();
+                        let ids: Vec<TreeletId> = xs.iter().map(|&x| t(x)).collect();
+                        let n = s.handle_delivered_all(ConnectionId(conn), &ids, now);
+                        let mut expected = 0;
+                        for x in xs {
+                            if m.in_flight.remove(&x) {
+                                expected += 1;
+                                m.blocked.insert(x);
+                                m.delivered_at.insert(x, now);
+                            }
+                        }
+                        prop_assert_eq!(n, expected);
                     }
                     Op::Cancelled { conn, pick: p } => {
                         let Some(m) = model.get_mut(&conn) else {

@@ -153,14 +153,11 @@ pub(super) async fn send_batch(
     });
     {
         let mut core = ctx.shared.core();
-        for &t in &batch {
-            match outcome {
-                Outcome::Delivered => {
-                    core.sched.handle_delivered(ctx.id, t, now);
-                }
-                _ => {
-                    core.sched.handle_cancelled(ctx.id, t);
-                }
+        if matches!(outcome, Outcome::Delivered) {
+            core.sched.handle_delivered_all(ctx.id, &batch, now);
+        } else {
+            for &t in &batch {
+                core.sched.handle_cancelled(ctx.id, t);
             }
         }
     }
