@@ -312,3 +312,23 @@ fn verify_catches_wrong_links_and_attributes() {
     });
     assert!(p.iter().any(|p| p.contains("is not the mean")), "{p:?}");
 }
+
+#[test]
+fn an_unfinished_snapshot_left_by_a_killed_process_does_not_lock_the_pool_out() {
+    let scratch = tempfile::tempdir().unwrap();
+    let source = bunny(scratch.path());
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let pool = Pool::open(dir.path()).unwrap();
+        import(&pool, &source, scratch.path(), "kept", false);
+    }
+    // What sled leaves when killed between writing a snapshot and renaming it: the newest
+    // `snap.*` name, holding no whole snapshot.
+    let unfinished = dir.path().join("snap.FFFFFFFFFFFFFFFF.generating");
+    std::fs::write(&unfinished, b"cut").unwrap();
+    let pool = reopen(dir.path());
+    assert!(!unfinished.exists(), "the unfinished snapshot is removed");
+    let names: Vec<String> = pool.scenes().unwrap().into_iter().map(|d| d.name).collect();
+    assert_eq!(names, ["kept"]);
+    assert!(verify_scene(&pool.scene("kept").unwrap()).unwrap().is_ok());
+}

@@ -147,6 +147,37 @@ impl StoredScene {
     }
 }
 
+/// Removes the `snap.*.generating` files in the sled directory `dir`, if no process holds the
+/// database, and returns how many went.
+///
+/// sled 0.34 writes a snapshot to `snap.<lsn>.generating`, syncs it and only then renames it to
+/// `snap.<lsn>`. A process killed in between leaves the `.generating` file, which sled's open
+/// then takes for the newest snapshot and refuses as corrupt (spacejam/sled#1527): a pool
+/// killed mid-import could not be opened again (seen once in `cli.rs`'s SIGKILL test). Such a
+/// file was never a finished snapshot, so removing it loses nothing: sled reads the previous
+/// snapshot and replays its log. The lock sled itself takes (an exclusive `flock` on the `db`
+/// file) is taken first, so a snapshot another live process is writing is never touched.
+fn remove_unfinished_snapshots(dir: &Path) -> usize {
+    let Ok(lock) = std::fs::File::open(dir.join("db")) else {
+        return 0;
+    };
+    if lock.try_lock().is_err() {
+        return 0;
+    }
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    entries
+        .flatten()
+        .filter(|e| {
+            let name = e.file_name();
+            let name = name.to_string_lossy();
+            name.starts_with("snap.") && name.ends_with(".generating")
+        })
+        .filter(|e| std::fs::remove_file(e.path()).is_ok())
+        .count()
+}
+
 /// The block of `id` in a tree of packs (`stream` names the tree in errors).
 fn packed_block(
     tree: &sled::Tree,
@@ -168,10 +199,19 @@ impl Pool {
     pub fn open(dir: &Path) -> Result<Pool, PoolError> {
         // sled's page cache defaults to 1 GiB of anonymous memory; blocks are small and read
         // once per request, so a modest cache keeps imports and the server lean.
-        let db = sled::Config::new()
+        let config = sled::Config::new()
             .path(dir)
-            .cache_capacity(POOL_CACHE_BYTES)
-            .open()?;
+            .cache_capacity(POOL_CACHE_BYTES);
+        let db = match config.open() {
+            Err(sled::Error::Corruption { .. }) if remove_unfinished_snapshots(dir) > 0 => {
+                tracing::warn!(
+                    "removed an unfinished sled snapshot left by a killed process; the pool \
+                     recovers from its log"
+                );
+                config.open()?
+            }
+            opened => opened?,
+        };
         let catalogue = db.open_tree(CATALOGUE)?;
         check_format(&db, &catalogue)?;
         let pool = Pool { db, catalogue };
