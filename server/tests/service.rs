@@ -194,18 +194,7 @@ async fn the_timeline_records_what_was_listed_pushed_sent_and_acknowledged() {
     let timeline = &server.state.timeline;
     timeline.start();
     let start = Instant::now();
-    let c = connect(server.quic_addr, &server.fingerprint).await;
-    let mut control = Control::open(&c.conn).await;
-    let flags = HELLO_SEND_ROOT | HELLO_VIEW;
-    control
-        .send(&hello_frame_with(
-            SCENE,
-            &[Channel::Normal],
-            TOKEN,
-            flags,
-            Some(view),
-        ))
-        .await;
+    let (c, _control) = hello_with_root_and_view(&server, view).await;
     let got = receive(&c.conn, 24, LONG).await.unwrap();
     let received: HashSet<TreeletId> = got.iter().map(|(id, _)| *id).collect();
     // A batch ends (acknowledged) at the server a little after its last byte arrived here.

@@ -389,11 +389,7 @@ impl Handler {
             });
         }
         let scene = &self.ctx.scene;
-        let d = &scene.stored.description;
-        let cube = WorldCube {
-            origin: d.origin,
-            edge: d.edge,
-        };
+        let cube = WorldCube::of(&scene.stored.description);
         deep_list(cube, view, items, MAX_REQUEST_ITEMS, |id| scene.shape(id))
     }
 
@@ -420,11 +416,9 @@ impl Handler {
         self.cut_job = Some(tokio::task::spawn_blocking(move || {
             let cut = scene.visible_cut(&view, grid, budget)?;
             let d = &scene.stored.description;
-            let cube = WorldCube {
-                origin: d.origin,
-                edge: d.edge,
-            };
-            let followed = cut_saves(cube, &cut, d.root_treelet, share, |id| scene.shape(id));
+            let followed = cut_saves(WorldCube::of(d), &cut, d.root_treelet, share, |id| {
+                scene.shape(id)
+            });
             Some((cut, followed))
         }));
     }

@@ -49,6 +49,14 @@ pub struct WorldCube {
 }
 
 impl WorldCube {
+    /// The root cube of `scene`.
+    pub fn of(scene: &arbor_proto::SceneDescription) -> WorldCube {
+        WorldCube {
+            origin: scene.origin,
+            edge: scene.edge,
+        }
+    }
+
     /// The box of `cell`.
     pub fn cell_box(&self, cell: Cell) -> ([f64; 3], [f64; 3]) {
         let size = self.edge / (1u64 << cell.depth.min(63)) as f64;
