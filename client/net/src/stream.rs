@@ -8,11 +8,12 @@
 //! message (at most [`MAX_TREELET_MESSAGE_BYTES`]) is reserved from the client's buffer bound,
 //! waiting while the caller has not taken enough earlier treelets, and only then are the blocks
 //! read. A stream is thus read at most one read ahead of what is reserved. A message that lies
-//! within one chunk (most do: a compressed treelet is usually smaller than a datagram) is a slice
-//! of that chunk, not a copy; one that straddles chunks is copied together once. A slice keeps
-//! the buffer quinn received it in (a datagram, or a batch of them) alive until the caller drops
-//! the treelet, so a caller holding received treelets holds a little more than the budget counts;
-//! the session decodes each arrival in the cycle it comes.
+//! within one chunk is a slice of that chunk, not a copy; one that straddles chunks is copied
+//! together once, into the stream's join buffer ([`JOIN_BUFFER`] bytes shared by the copies, not
+//! an allocation each: about half of lion-4k's messages straddle a datagram boundary). A slice
+//! keeps the buffer it lies in (a datagram or a batch of them, or a join buffer) alive until the
+//! caller drops the treelet, so a caller holding received treelets holds a little more than the
+//! budget counts; the session decodes each arrival in the cycle it comes.
 //!
 //! The messages found complete in what was read are handed to the caller together (a
 //! [`Batch`], before the reader waits and at most [`MAX_BATCH`]): per batch, not per treelet,
@@ -41,6 +42,9 @@ use super::shared::{Queued, Shared};
 const FIXED_HEADER: usize = 4 + 2 + 1;
 /// Most chunks taken from quinn in one read.
 const CHUNKS_PER_READ: usize = 32;
+/// Bytes of a stream's join buffer, where messages that straddle chunks are copied together (a
+/// larger message gets a buffer of its own size).
+const JOIN_BUFFER: usize = 64 << 10;
 /// Most treelets handed to the caller as one batch.
 const MAX_BATCH: usize = 64;
 
@@ -124,6 +128,8 @@ struct Incoming<'a> {
     len: usize,
     /// A header that straddles chunks, copied together.
     scratch: Vec<u8>,
+    /// The spare room of the current join buffer (see [`Incoming::take_joined`]).
+    join: BytesMut,
 }
 
 /// Why [`Incoming::fill`] could not provide the bytes asked for.
@@ -176,19 +182,39 @@ impl Incoming<'_> {
         &self.scratch
     }
 
-    /// Takes the first `n` buffered bytes (`n` ≤ what [`Incoming::fill`] provided): a slice of
-    /// the chunk that holds them all without a copy (the common case: most messages are smaller
-    /// than a datagram), else copied together once.
-    fn take(&mut self, n: usize) -> Bytes {
-        self.len -= n;
-        match self.chunks.front_mut() {
-            Some(front) if front.len() > n => return front.split_to(n),
-            Some(front) if front.len() == n => {
-                return self.chunks.pop_front().unwrap_or_default();
+    /// Takes a message of `header + body.iter().sum()` buffered bytes (no more than
+    /// [`Incoming::fill`] provided): its header dropped, its body as one slice per length in
+    /// `body`. Within one chunk (the common case: most messages are smaller than a datagram)
+    /// each part is a slice of that chunk, one reference count each; else the message is copied
+    /// together once.
+    fn take_message<const N: usize>(&mut self, header: usize, body: [usize; N]) -> [Bytes; N] {
+        let n = header + body.iter().sum::<usize>();
+        if let Some(front) = self.chunks.front_mut()
+            && front.len() >= n
+        {
+            self.len -= n;
+            front.advance(header);
+            let parts = body.map(|len| front.split_to(len));
+            if front.is_empty() {
+                self.chunks.pop_front();
             }
-            _ => {}
+            return parts;
         }
-        let mut out = BytesMut::with_capacity(n);
+        let mut message = self.take_joined(n);
+        message.advance(header);
+        body.map(|len| message.split_to(len))
+    }
+
+    /// Takes the first `n` buffered bytes (`n` ≤ what [`Incoming::fill`] provided), copied
+    /// together once (a message that straddles chunks) into the join buffer's spare room, which
+    /// the copies share (one allocation per [`JOIN_BUFFER`] bytes, not one per message).
+    fn take_joined(&mut self, n: usize) -> Bytes {
+        self.len -= n;
+        // Empty between calls: each copy is split off whole.
+        if self.join.capacity() < n {
+            self.join = BytesMut::with_capacity(n.max(JOIN_BUFFER));
+        }
+        let out = &mut self.join;
         while out.len() < n {
             let Some(front) = self.chunks.front_mut() else {
                 break;
@@ -201,7 +227,7 @@ impl Incoming<'_> {
                 front.advance(take);
             }
         }
-        out.freeze()
+        out.split().freeze()
     }
 }
 
@@ -264,6 +290,7 @@ async fn read_messages(
         chunks: VecDeque::new(),
         len: 0,
         scratch: Vec::new(),
+        join: BytesMut::new(),
     };
     loop {
         if batch.treelets.len() >= MAX_BATCH || !incoming.has(FIXED_HEADER) {
@@ -358,12 +385,12 @@ async fn read_messages(
             Err(FillError::Read(e)) => return read_failed(e),
         }
         // The header is validated and the message is exactly `total` bytes: the node block and
-        // the channel blocks behind it are sliced out of it by the header's lengths, without a
-        // copy.
-        let bytes = incoming.take(total);
-        let blocks_at = header_len + header.node_len;
-        let nodes = bytes.slice(header_len..blocks_at);
-        let Some(channels) = AttributeBlocks::new(bytes.slice(blocks_at..), header.channels) else {
+        // the channel blocks behind it are sliced out by the header's lengths, without a copy.
+        let [nodes, blocks] = incoming.take_message(
+            header_len,
+            [header.node_len, total - header_len - header.node_len],
+        );
+        let Some(channels) = AttributeBlocks::new(blocks, header.channels) else {
             // Cannot happen with a validated header; the check keeps the cut explicit.
             return StreamEnd::Violation(format!("treelet {id}: channel blocks do not add up"));
         };

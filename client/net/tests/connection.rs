@@ -490,12 +490,15 @@ async fn messages_on_one_stream_split_at_any_byte_arrive_whole() {
     let id = Identity::self_signed();
     let mut behaviour = Behaviour::new(TOKEN);
     // 916 bytes per message (16 of header, 600 node bytes, 300 colour bytes) written 97 bytes
-    // at a time: messages start and end inside chunks, and headers straddle chunks.
+    // at a time: messages start and end inside chunks, and headers straddle chunks. The 100
+    // messages copied together take more than one of the reader's 64 KiB join buffers.
     behaviour.one_stream_pieces = Some(97);
     let node_bytes = behaviour.node_bytes;
     let server = FakeServer::start(&id, loopback(), behaviour).await;
     let mut client = TreeletClient::start(config(&server, &id)).unwrap();
-    let list: Vec<(TreeletId, f32)> = (1..=12).map(|i| (TreeletId(i), 100.0 - i as f32)).collect();
+    let list: Vec<(TreeletId, f32)> = (1..=100)
+        .map(|i| (TreeletId(i), 200.0 - i as f32))
+        .collect();
     client.request(list.clone()).unwrap();
     connected(&mut client).await;
     let got = treelets(&mut client, list.len()).await;

@@ -1,7 +1,7 @@
 //! Treelet streams: one server-opened unidirectional stream per batch of treelets adjacent in
 //! rank (a few per stream, so the per-stream cost of QUIC is shared), opened in rank order by one
 //! opener per connection, written from the cached messages (copied together once per stream,
-//! see [`contiguous`]), reset when the latest list wants none of the batch.
+//! see [`ServedScene::batch`]), reset when the latest list wants none of the batch.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -9,7 +9,6 @@ use std::time::{Duration, Instant};
 
 use arbor_proto::wire::ErrorCode;
 use arbor_proto::{Channel, TreeletId};
-use bytes::{Bytes, BytesMut};
 use tokio::sync::{mpsc, oneshot};
 
 use super::schedule::ConnectionId;
@@ -180,11 +179,10 @@ async fn transfer(
     cancel: &mut oneshot::Receiver<ErrorCode>,
 ) -> Outcome {
     // Read (or take from the cache) while the stream is being opened.
-    let messages = match ctx.scene.messages(batch, &ctx.channels) {
-        Ok(m) => m,
+    let mut bytes = match ctx.scene.batch(batch, &ctx.channels) {
+        Ok(b) => b,
         Err(e) => return Outcome::Failed(e.to_string()),
     };
-    let mut bytes = contiguous(messages);
     let len = bytes.len() as u64;
     let cancelled = |r: Result<ErrorCode, oneshot::error::RecvError>| r.unwrap_or(CANCEL_CODE);
     let step = tokio::select! {
@@ -236,30 +234,6 @@ async fn transfer(
     }
 }
 
-/// A batch's messages as one buffer, as its stream carries them: a single message as it is
-/// (the cached bytes, no copy), several copied together once.
-///
-/// Why copy: quinn finds the bytes of every STREAM frame it builds by walking the stream's
-/// unacknowledged chunks from the oldest (`SendBuffer::get`), so a stream written as 64 chunks
-/// costs a walk over up to 64 for each packet, and more than one for a packet that spans
-/// chunks. On a whole-scene fetch of lion-4k that walk was 3.4 M instructions of 73 M;
-/// copying the batches costs 0.3 M (callgrind, `scripts/serve-instructions`;
-/// docs/measurements.md, stop 31). What is in flight is then held twice, in the message cache
-/// and in the stream's buffer, bounded by the send window either way.
-fn contiguous(messages: Vec<Bytes>) -> Bytes {
-    match <[Bytes; 1]>::try_from(messages) {
-        Ok([one]) => one,
-        Err(messages) => {
-            let len = messages.iter().map(Bytes::len).sum();
-            let mut joined = BytesMut::with_capacity(len);
-            for m in &messages {
-                joined.extend_from_slice(m);
-            }
-            joined.freeze()
-        }
-    }
-}
-
 /// The scheduler, the metrics and the session hear that a batch was written.
 fn record_sent(ctx: &StreamCtx, batch: &[TreeletId], len: u64) {
     let now = Instant::now();
@@ -283,27 +257,4 @@ fn record_sent(ctx: &StreamCtx, batch: &[TreeletId], len: u64) {
         s.treelets_sent += n;
         s.bytes_sent += len;
     });
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_batch_goes_to_its_stream_as_one_buffer_and_a_single_message_uncopied() {
-        let single = Bytes::from(vec![1u8, 2, 3]);
-        let out = contiguous(vec![single.clone()]);
-        assert_eq!(
-            out.as_ptr(),
-            single.as_ptr(),
-            "a single message is not copied"
-        );
-        let parts = vec![
-            Bytes::from_static(b"ab"),
-            Bytes::from_static(b"cde"),
-            Bytes::from_static(b"f"),
-        ];
-        assert_eq!(contiguous(parts), Bytes::from_static(b"abcdef"));
-        assert!(contiguous(Vec::new()).is_empty());
-    }
 }

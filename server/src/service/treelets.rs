@@ -6,7 +6,8 @@
 //! decoded) when the message is built. Built messages are kept in a [`MessageCache`] bounded in
 //! bytes (server-wide, `message_cache_bytes`), so a treelet sent again — to another client, or
 //! after an eviction — costs no pool read and no decompression: a stream's batch is one copy of
-//! the cached [`Bytes`] (see `streams::contiguous`), never re-framed or recompressed.
+//! the cached bytes, copied out under the cache's lock (see [`ServedScene::batch`]), never
+//! re-framed or recompressed.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -15,7 +16,7 @@ use std::sync::{Arc, Mutex};
 use arbor_proto::codec::{self, MAX_RAW_TREELET, PreparedDictionaries};
 use arbor_proto::frame::{FrameError, encode_treelet_header};
 use arbor_proto::{Channel, ProtoError, TreeletId};
-use bytes::Bytes;
+use bytes::{Bytes, BytesMut};
 use rustc_hash::FxHashMap;
 
 use arbor_client_core::slots::DecodedTreelet;
@@ -102,6 +103,25 @@ impl MessageCache {
         inner.hits += hits;
         inner.misses += found.len() as u64 - hits;
         found
+    }
+
+    /// When every one of `keys` is held: their messages back to back, copied out under the one
+    /// lock (hits counted); else `None`, nothing counted (the caller then asks [`Self::get`]).
+    /// Copying under the lock spares each message a reference-count increment and decrement on
+    /// a cache line other threads' batches touch too (`bytes::shared_clone` showed in a
+    /// whole-scene profile), and the `Vec` of clones.
+    fn joined(&self, keys: &[MessageKey]) -> Option<Bytes> {
+        let mut inner = self.lock();
+        let mut len = 0;
+        for k in keys {
+            len += inner.map.get(k)?.len();
+        }
+        let mut out = BytesMut::with_capacity(len);
+        for k in keys {
+            out.extend_from_slice(inner.map.get(k)?);
+        }
+        inner.hits += keys.len() as u64;
+        Some(out.freeze())
     }
 
     fn insert(&self, key: MessageKey, message: Bytes) {
@@ -253,14 +273,47 @@ impl ServedScene {
         ids: &[TreeletId],
         channels: &[Channel],
     ) -> Result<Vec<Bytes>, MessageError> {
+        let keys = self.keys(ids, channels);
+        self.messages_for(&keys, ids, channels)
+    }
+
+    /// The messages of `ids` back to back, as one buffer, as a stream's batch carries them: a
+    /// single message as it is (the cached bytes, no copy), several copied together once —
+    /// straight out of the cache when it holds them all.
+    ///
+    /// Why copy: quinn finds the bytes of every STREAM frame it builds by walking the stream's
+    /// unacknowledged chunks from the oldest (`SendBuffer::get`), so a stream written as 64
+    /// chunks costs a walk over up to 64 for each packet, and more than one for a packet that
+    /// spans chunks. On a whole-scene fetch of lion-4k that walk was 3.4 M instructions of 73 M;
+    /// copying the batches costs 0.3 M (callgrind, `scripts/serve-instructions`;
+    /// docs/measurements.md, stop 31). What is in flight is then held twice, in the message
+    /// cache and in the stream's buffer, bounded by the send window either way.
+    pub fn batch(&self, ids: &[TreeletId], channels: &[Channel]) -> Result<Bytes, MessageError> {
+        let keys = self.keys(ids, channels);
+        if keys.len() > 1
+            && let Some(joined) = self.cache.joined(&keys)
+        {
+            return Ok(joined);
+        }
+        Ok(joined(self.messages_for(&keys, ids, channels)?))
+    }
+
+    fn keys(&self, ids: &[TreeletId], channels: &[Channel]) -> Vec<MessageKey> {
         let mask = channels
             .iter()
             .fold(0u32, |m, c| m | 1 << (c.id() as u32 & 31));
-        let keys: Vec<MessageKey> = ids
-            .iter()
+        ids.iter()
             .map(|id| (self.stored.generation, id.0, mask))
-            .collect();
-        let found = self.cache.get(&keys);
+            .collect()
+    }
+
+    fn messages_for(
+        &self,
+        keys: &[MessageKey],
+        ids: &[TreeletId],
+        channels: &[Channel],
+    ) -> Result<Vec<Bytes>, MessageError> {
+        let found = self.cache.get(keys);
         keys.iter()
             .zip(ids)
             .zip(found)
@@ -310,6 +363,21 @@ impl ServedScene {
     }
 }
 
+/// Messages as one buffer: a single one as it is, several copied together once.
+fn joined(messages: Vec<Bytes>) -> Bytes {
+    match <[Bytes; 1]>::try_from(messages) {
+        Ok([one]) => one,
+        Err(messages) => {
+            let len = messages.iter().map(Bytes::len).sum();
+            let mut out = BytesMut::with_capacity(len);
+            for m in &messages {
+                out.extend_from_slice(m);
+            }
+            out.freeze()
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -338,11 +406,38 @@ mod tests {
         let firsts: Vec<Option<u8>> = batch.iter().map(|m| m.as_ref().map(|b| b[0])).collect();
         assert_eq!(firsts, [Some(9), None, Some(8)]);
         assert_eq!(cache.figures(), (90, hits + 2, misses + 1));
+        // A batch wholly held comes back joined, its hits counted; one miss and nothing is
+        // joined or counted (the caller then builds what is missing).
+        let (_, hits, misses) = cache.figures();
+        assert_eq!(
+            cache.joined(&[(1, 8, 1), (1, 9, 1)]),
+            Some(Bytes::from([vec![8u8; 30], vec![9u8; 30]].concat()))
+        );
+        assert_eq!(cache.joined(&[(1, 8, 1), (1, 6, 1)]), None);
+        assert_eq!(cache.figures(), (90, hits + 2, misses));
         // Larger than the whole cache: not kept.
         cache.insert((1, 99, 1), Bytes::from(vec![0; 101]));
         assert!(!hit(&cache, (1, 99, 1)));
         let none = MessageCache::new(0);
         none.insert((1, 1, 1), Bytes::from_static(b"x"));
         assert_eq!(none.figures().0, 0);
+    }
+
+    #[test]
+    fn messages_join_into_one_buffer_and_a_single_message_is_not_copied() {
+        let single = Bytes::from(vec![1u8, 2, 3]);
+        let out = joined(vec![single.clone()]);
+        assert_eq!(
+            out.as_ptr(),
+            single.as_ptr(),
+            "a single message is not copied"
+        );
+        let parts = vec![
+            Bytes::from_static(b"ab"),
+            Bytes::from_static(b"cde"),
+            Bytes::from_static(b"f"),
+        ];
+        assert_eq!(joined(parts), Bytes::from_static(b"abcdef"));
+        assert!(joined(Vec::new()).is_empty());
     }
 }
