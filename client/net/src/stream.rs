@@ -300,7 +300,13 @@ async fn read_messages(
             // The caller dropped the client.
             return StreamEnd::Quiet;
         }
-        match incoming.fill(FIXED_HEADER).await {
+        // Already buffered (the common case): no read future to set up and poll.
+        let filled = if incoming.has(FIXED_HEADER) {
+            Ok(())
+        } else {
+            incoming.fill(FIXED_HEADER).await
+        };
+        match filled {
             Ok(()) => {}
             // A clean end between messages.
             Err(FillError::Finished(0)) => return StreamEnd::Quiet,
@@ -319,7 +325,12 @@ async fn read_messages(
             }
             batch.hand_over(ctx);
         }
-        match incoming.fill(header_len).await {
+        let filled = if incoming.has(header_len) {
+            Ok(())
+        } else {
+            incoming.fill(header_len).await
+        };
+        match filled {
             Ok(()) => {}
             Err(FillError::Finished(_)) => {
                 return StreamEnd::Violation("stream ends inside a message header".into());
@@ -374,7 +385,12 @@ async fn read_messages(
             }
         };
         batch.hold(permit, total);
-        match incoming.fill(total).await {
+        let filled = if incoming.has(total) {
+            Ok(())
+        } else {
+            incoming.fill(total).await
+        };
+        match filled {
             Ok(()) => {}
             Err(FillError::Finished(n)) => {
                 return StreamEnd::Violation(format!(
