@@ -7,6 +7,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
 use arbor_proto::TreeletId;
+use rustc_hash::FxHashMap;
 use tokio::sync::{Notify, mpsc};
 
 use super::config::ServeConfig;
@@ -24,7 +25,9 @@ pub const CLOSE_FLUSH: Duration = Duration::from_millis(300);
 #[derive(Debug)]
 pub(crate) struct Core {
     pub sched: Scheduler,
-    pub routes: HashMap<ConnectionId, mpsc::UnboundedSender<TreeletId>>,
+    /// Looked up once per dispatched treelet; keyed by the server's own connection counter, so a
+    /// fast non-keyed hash is safe here.
+    pub routes: FxHashMap<ConnectionId, mpsc::UnboundedSender<TreeletId>>,
 }
 
 /// Everything the service's tasks share.
@@ -52,7 +55,7 @@ impl Shared {
             state,
             core: Mutex::new(Core {
                 sched: Scheduler::new(SchedulerConfig { max_in_flight }),
-                routes: HashMap::new(),
+                routes: FxHashMap::default(),
             }),
             wake: Notify::new(),
             scenes: Mutex::new(HashMap::new()),
