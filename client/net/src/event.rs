@@ -72,7 +72,7 @@ impl AttributeBlocks {
     pub fn new(bytes: Bytes, blocks: ChannelBlocks) -> Option<Self> {
         let total = blocks
             .iter()
-            .try_fold(0usize, |sum, b| sum.checked_add(b.1))?;
+            .try_fold(0usize, |sum, b| sum.checked_add(b.1 as usize))?;
         (total == bytes.len()).then_some(Self { bytes, blocks })
     }
 
@@ -125,7 +125,7 @@ impl<'a> Iterator for AttributeBlocksIter<'a> {
         let &(channel, len) = self.blocks.blocks.get(self.next)?;
         let start = self.at;
         self.next += 1;
-        self.at += len;
+        self.at += len as usize;
         Some((channel, &self.blocks.bytes[start..self.at]))
     }
 

@@ -237,12 +237,21 @@ impl Incoming<'_> {
 /// and, when the caller has taken them all, one budget release for the batch.
 #[derive(Default)]
 struct Batch {
-    treelets: Vec<ReceivedTreelet>,
+    /// The treelets as the caller's events, so that handing them over moves no treelet.
+    events: VecDeque<ClientEvent>,
     permit: Option<OwnedSemaphorePermit>,
     bytes: usize,
 }
 
 impl Batch {
+    fn push(&mut self, treelet: ReceivedTreelet) {
+        self.events.push_back(ClientEvent::Treelet(treelet));
+    }
+
+    fn len(&self) -> usize {
+        self.events.len()
+    }
+
     /// Adds a message's budget, taken before its blocks were read.
     fn hold(&mut self, permit: OwnedSemaphorePermit, bytes: usize) {
         match &mut self.permit {
@@ -255,7 +264,7 @@ impl Batch {
     /// Queues the batch for the caller, each treelet with its latency. Called only while the
     /// budget held is exactly the batch's (no message half read).
     fn hand_over(&mut self, ctx: &StreamContext) {
-        if self.treelets.is_empty() {
+        if self.events.is_empty() {
             return;
         }
         let Some(permit) = self.permit.take() else {
@@ -264,14 +273,17 @@ impl Batch {
         let now = Instant::now();
         {
             let mut latency = ctx.shared.latency();
-            for t in &mut self.treelets {
-                t.latency = latency.arrived(t.id, now);
+            for e in &mut self.events {
+                if let ClientEvent::Treelet(t) = e {
+                    t.latency = latency.arrived(t.id, now);
+                }
             }
         }
-        let lease = ctx
-            .shared
-            .lease(permit, std::mem::take(&mut self.bytes), self.treelets.len());
-        let events = self.treelets.drain(..).map(ClientEvent::Treelet).collect();
+        let n = self.events.len();
+        let lease = ctx.shared.lease(permit, std::mem::take(&mut self.bytes), n);
+        // The next batch is likely the size of this one: room for it up front, so the queue
+        // does not grow (and move its treelets) step by step.
+        let events = std::mem::replace(&mut self.events, VecDeque::with_capacity(n));
         // An error means the caller dropped the client: nothing left to do.
         let _ = ctx.events.send(Queued {
             events,
@@ -293,7 +305,7 @@ async fn read_messages(
         join: BytesMut::new(),
     };
     loop {
-        if batch.treelets.len() >= MAX_BATCH || !incoming.has(FIXED_HEADER) {
+        if batch.len() >= MAX_BATCH || !incoming.has(FIXED_HEADER) {
             batch.hand_over(ctx);
         }
         if ctx.events.is_closed() {
@@ -410,7 +422,7 @@ async fn read_messages(
             // Cannot happen with a validated header; the check keeps the cut explicit.
             return StreamEnd::Violation(format!("treelet {id}: channel blocks do not add up"));
         };
-        batch.treelets.push(ReceivedTreelet {
+        batch.push(ReceivedTreelet {
             id,
             used_nodes: header.used_nodes,
             nodes,
