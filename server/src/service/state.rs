@@ -22,6 +22,11 @@ pub const LATENCY_BUCKETS: [f64; 14] = [
 ];
 
 /// A Prometheus histogram with fixed buckets.
+///
+/// Each bucket counts the observations that fall in it alone (above the bucket before), and
+/// the cumulative counts Prometheus expects are summed when rendered: an observation is one
+/// atomic add to its bucket, not one to every bucket at or above it (with 14 buckets and one
+/// observation per treelet sent, the cumulative adds had been most of the metrics' cost).
 #[derive(Debug)]
 pub struct Histogram {
     buckets: [AtomicU64; LATENCY_BUCKETS.len()],
@@ -42,17 +47,32 @@ impl Default for Histogram {
 
 impl Histogram {
     pub fn observe(&self, d: Duration) {
-        let s = d.as_secs_f64();
-        for (b, le) in self.buckets.iter().zip(LATENCY_BUCKETS) {
-            if s <= le {
-                b.fetch_add(1, Ordering::Relaxed);
+        self.observe_all([d]);
+    }
+
+    /// Observes every duration of `ds` (a batch of treelets), with one atomic add per bucket
+    /// they fall in, plus the count and the sum.
+    pub fn observe_all(&self, ds: impl IntoIterator<Item = Duration>) {
+        let mut in_bucket = [0u64; LATENCY_BUCKETS.len()];
+        let (mut count, mut sum_micros) = (0u64, 0u64);
+        for d in ds {
+            let s = d.as_secs_f64();
+            // Above the last bound: counted only in `+Inf` (the total).
+            if let Some(i) = LATENCY_BUCKETS.iter().position(|&le| s <= le) {
+                in_bucket[i] += 1;
+            }
+            count += 1;
+            sum_micros = sum_micros.saturating_add(d.as_micros().min(u128::from(u64::MAX)) as u64);
+        }
+        for (b, n) in self.buckets.iter().zip(in_bucket) {
+            if n > 0 {
+                b.fetch_add(n, Ordering::Relaxed);
             }
         }
-        self.count.fetch_add(1, Ordering::Relaxed);
-        self.sum_micros.fetch_add(
-            d.as_micros().min(u128::from(u64::MAX)) as u64,
-            Ordering::Relaxed,
-        );
+        if count > 0 {
+            self.count.fetch_add(count, Ordering::Relaxed);
+            self.sum_micros.fetch_add(sum_micros, Ordering::Relaxed);
+        }
     }
 
     pub fn count(&self) -> u64 {
@@ -301,8 +321,10 @@ impl ServiceState {
             "From the first request list naming a treelet to its stream finishing.",
         );
         let bucket = format!("{name}_bucket");
+        let mut cumulative = 0;
         for (b, le) in h.buckets.iter().zip(LATENCY_BUCKETS) {
-            p.sample(&bucket, &[("le", &le.to_string())], load(b));
+            cumulative += load(b);
+            p.sample(&bucket, &[("le", &le.to_string())], cumulative);
         }
         p.sample(&bucket, &[("le", "+Inf")], h.count())
             .sample(
@@ -352,6 +374,42 @@ mod tests {
         }
         assert_eq!(s.remove_session(7).map(|x| x.queue_depth), Some(5));
         assert!(s.sessions().is_empty());
+    }
+
+    #[test]
+    fn the_latency_histogram_renders_cumulative_buckets() {
+        let s = ServiceState::new("ab".into());
+        let h = &s.metrics.request_to_send;
+        h.observe(Duration::from_micros(100));
+        h.observe_all([
+            Duration::from_millis(1),
+            Duration::from_millis(3),
+            Duration::from_millis(3),
+            Duration::from_secs(60),
+        ]);
+        h.observe_all([]);
+        let t = s.render_prometheus();
+        let bucket = |le: &str| {
+            let line = format!("arbor_request_to_send_seconds_bucket{{le=\"{le}\"}} ");
+            t.lines()
+                .find_map(|l| l.strip_prefix(&line))
+                .unwrap_or_else(|| panic!("no bucket {le} in {t}"))
+                .parse::<u64>()
+                .unwrap()
+        };
+        assert_eq!(bucket("0.0005"), 1);
+        // A bound is inclusive: 1 ms falls in the 0.001 bucket.
+        assert_eq!(bucket("0.001"), 2);
+        assert_eq!(bucket("0.002"), 2);
+        assert_eq!(bucket("0.005"), 4);
+        assert_eq!(bucket("10"), 4);
+        // A minute is past the last bound: only in +Inf and the count.
+        assert_eq!(bucket("+Inf"), 5);
+        assert!(t.contains("arbor_request_to_send_seconds_count 5\n"), "{t}");
+        assert!(
+            t.contains("arbor_request_to_send_seconds_sum 60.0071\n"),
+            "{t}"
+        );
     }
 
     #[test]

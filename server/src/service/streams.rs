@@ -245,9 +245,7 @@ fn record_sent(ctx: &StreamCtx, batch: &[TreeletId], len: u64) {
             .collect()
     };
     let m = &ctx.shared.state.metrics;
-    for l in latencies {
-        m.request_to_send.observe(l);
-    }
+    m.request_to_send.observe_all(latencies);
     let n = batch.len() as u64;
     m.treelets_sent.fetch_add(n, Ordering::Relaxed);
     m.treelet_bytes_sent.fetch_add(len, Ordering::Relaxed);

@@ -112,13 +112,15 @@ impl MessageCache {
     /// whole-scene profile), and the `Vec` of clones.
     fn joined(&self, keys: &[MessageKey]) -> Option<Bytes> {
         let mut inner = self.lock();
-        let mut len = 0;
-        for k in keys {
-            len += inner.map.get(k)?.len();
-        }
-        let mut out = BytesMut::with_capacity(len);
-        for k in keys {
-            out.extend_from_slice(inner.map.get(k)?);
+        // One lookup per key (the table is larger than a core's cache): the hits are gathered
+        // first, then measured and copied.
+        let found: Vec<&Bytes> = keys
+            .iter()
+            .map(|k| inner.map.get(k))
+            .collect::<Option<_>>()?;
+        let mut out = BytesMut::with_capacity(found.iter().map(|m| m.len()).sum());
+        for m in found {
+            out.extend_from_slice(m);
         }
         inner.hits += keys.len() as u64;
         Some(out.freeze())
