@@ -263,20 +263,7 @@ impl ServedScene {
     /// by the scene): header + node block + channel blocks, byte for byte as stored; from the
     /// cache when it was built before.
     pub fn message(&self, id: TreeletId, channels: &[Channel]) -> Result<Bytes, MessageError> {
-        Ok(self
-            .messages(std::slice::from_ref(&id), channels)?
-            .swap_remove(0))
-    }
-
-    /// [`ServedScene::message`] for each of `ids`, in order; the cache is asked for all of them
-    /// under one lock.
-    pub fn messages(
-        &self,
-        ids: &[TreeletId],
-        channels: &[Channel],
-    ) -> Result<Vec<Bytes>, MessageError> {
-        let keys = self.keys(ids, channels);
-        self.messages_for(&keys, ids, channels)
+        self.batch(std::slice::from_ref(&id), channels)
     }
 
     /// The messages of `ids` back to back, as one buffer, as a stream's batch carries them: a
@@ -297,7 +284,7 @@ impl ServedScene {
         {
             return Ok(joined);
         }
-        Ok(joined(self.messages_for(&keys, ids, channels)?))
+        Ok(joined(self.messages(&keys, ids, channels)?))
     }
 
     fn keys(&self, ids: &[TreeletId], channels: &[Channel]) -> Vec<MessageKey> {
@@ -309,7 +296,9 @@ impl ServedScene {
             .collect()
     }
 
-    fn messages_for(
+    /// The message of each of `ids` (with their `keys`), in order: the cache is asked for all of
+    /// them under one lock, and what it lacks is built and cached.
+    fn messages(
         &self,
         keys: &[MessageKey],
         ids: &[TreeletId],
