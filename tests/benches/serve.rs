@@ -657,16 +657,19 @@ fn cost_breakdown(dir: &std::path::Path, scene: &str) {
     let t = Instant::now();
     let now = Instant::now();
     sched.handle_request_list(c, 1, list, now).unwrap();
+    // As the service does: a batch per stream, sent and delivered together.
     let mut done = 0u32;
+    let mut batch = Vec::new();
     while done < count {
-        let mut batch = Vec::new();
-        while let Some((_, t)) = sched.poll_transmit(now) {
-            batch.push(t);
+        let mut started = Vec::new();
+        while sched.poll_batch(now, &mut batch).is_some() {
+            started.push(std::mem::take(&mut batch));
         }
-        for t in batch {
-            sched.handle_sent(c, t, now);
-            sched.handle_delivered(c, t, now);
-            done += 1;
+        for batch in started {
+            for &t in &batch {
+                sched.handle_sent(c, t, now);
+            }
+            done += sched.handle_delivered_all(c, &batch, now) as u32;
         }
     }
     let scheduling = t.elapsed().as_secs_f64() / f64::from(count);

@@ -22,16 +22,13 @@ use super::shared::Shared;
 use super::shutdown::Shutdown;
 use super::streams::{CANCEL_CODE, OpenStream, Outcome, StreamCtx, open_in_order, send_batch};
 use super::timeline::Event;
-use super::treelets::{MAX_TREELETS_PER_STREAM, ServedScene};
+use super::treelets::ServedScene;
 use super::visibility::{VisibleCut, same_view};
 
 /// How often the window and the slow-reader watchdog are updated.
 const TICK: Duration = Duration::from_millis(50);
 /// Added to the RTT for the redelivery guard: about one client cycle.
 const CLIENT_CYCLE: Duration = Duration::from_millis(50);
-/// Batches hold at most this share of the window, so several are in flight and the window
-/// refills while a batch is acknowledged.
-const BATCHES_PER_WINDOW: usize = 4;
 
 /// The connection's whole service: `Hello`, then the main loop. Returns how it ends.
 pub(super) async fn serve(
@@ -100,8 +97,8 @@ struct Handler {
     id: ConnectionId,
     conn: quinn::Connection,
     ctx: Arc<StreamCtx>,
-    /// Treelets the dispatcher hands to this connection.
-    jobs: mpsc::UnboundedReceiver<TreeletId>,
+    /// Batches the dispatcher hands to this connection, one per stream.
+    jobs: mpsc::UnboundedReceiver<Vec<TreeletId>>,
     /// Asks the opener for the next stream, in rank order.
     opens: mpsc::UnboundedSender<oneshot::Sender<OpenStream>>,
     opener: AbortOnDrop,
@@ -206,7 +203,7 @@ impl Handler {
         loop {
             let end = tokio::select! {
                 frame = reader.read_frame(), if self.reading => self.on_frame(frame),
-                Some(t) = self.jobs.recv() => self.on_treelet(t),
+                Some(batch) = self.jobs.recv() => self.on_batch(batch),
                 Some(joined) = self.streams.join_next(), if !self.streams.is_empty() => {
                     match joined {
                         Ok((id, batch, outcome)) => self.on_stream_end(id, &batch, outcome),
@@ -491,11 +488,10 @@ impl Handler {
         }
     }
 
-    /// The dispatcher handed over a treelet: start a stream task for it and the treelets handed
-    /// over right after it (adjacent in rank, up to [`MAX_TREELETS_PER_STREAM`] and a quarter of
-    /// the window),
-    /// ranked after the ones started before under the same list.
-    fn on_treelet(&mut self, t: TreeletId) -> Option<End> {
+    /// The dispatcher handed over a batch (treelets adjacent in rank, at most
+    /// [`super::schedule::batch_limit`] of the window): start a stream task for it, ranked after
+    /// the ones started before under the same list.
+    fn on_batch(&mut self, batch: Vec<TreeletId>) -> Option<End> {
         if let Some(e) = self.conn.close_reason() {
             // Lost under our feet: do not churn through the queue opening streams.
             return Some(End::Lost(e));
@@ -503,13 +499,6 @@ impl Handler {
         if self.streams.is_empty() {
             // Idle until now: the watchdog counts from here.
             self.ctx.progress();
-        }
-        let most = (self.window / BATCHES_PER_WINDOW).clamp(1, MAX_TREELETS_PER_STREAM);
-        let mut batch = vec![t];
-        while batch.len() < most
-            && let Ok(next) = self.jobs.try_recv()
-        {
-            batch.push(next);
         }
         let (tx, rx) = oneshot::channel();
         let id = self.batches.start(&batch, tx);
@@ -608,8 +597,10 @@ impl Handler {
         // Treelets handed over but not started are not started now.
         {
             let mut core = self.shared.core();
-            while let Ok(t) = self.jobs.try_recv() {
-                core.sched.handle_cancelled(self.id, t);
+            while let Ok(batch) = self.jobs.try_recv() {
+                for t in batch {
+                    core.sched.handle_cancelled(self.id, t);
+                }
             }
         }
         let deadline = tokio::time::Instant::from_std(deadline);

@@ -10,12 +10,13 @@
 //!   handshake only to close the connection with `ServerBusy` / `ShuttingDown` (so the client
 //!   sees an application code; at most [`MAX_REFUSALS`] such handshakes at once, beyond that
 //!   quinn refuses at the transport level). Refusals count in `connections_rejected`.
-//! * **Dispatcher** (one): waits on a [`Notify`](tokio::sync::Notify), then calls [`Scheduler::poll_transmit`](super::schedule::Scheduler::poll_transmit) until
-//!   `None` and hands each `(connection, treelet)` to that connection's task through an
-//!   unbounded channel — never blocking on any connection (the scheduler's window bounds what
-//!   each channel can hold).
-//! * **Connection tasks** (one per connection) and their **treelet stream tasks** (one per
-//!   treelet in flight).
+//! * **Dispatcher** (one): waits on a [`Notify`](tokio::sync::Notify), then calls
+//!   [`Scheduler::poll_batch`](super::schedule::Scheduler::poll_batch) until `None` and hands
+//!   each connection's batch to that connection's task through an unbounded channel, one message
+//!   per batch — never blocking on any connection (the scheduler's window bounds what each
+//!   channel can hold).
+//! * **Connection tasks** (one per connection) and their **stream tasks** (one per batch in
+//!   flight).
 //!
 //! # Why a slow reader cannot starve anyone
 //!
@@ -282,8 +283,11 @@ async fn dispatch(shared: Arc<Shared>, mut shutdown: Shutdown) {
         let now = std::time::Instant::now();
         let mut core = shared.core();
         let Core { sched, routes } = &mut *core;
-        while let Some((c, t)) = sched.poll_transmit(now) {
-            let routed = routes.get(&c).is_some_and(|tx| tx.send(t).is_ok());
+        let mut batch = Vec::new();
+        while let Some(c) = sched.poll_batch(now, &mut batch) {
+            let routed = routes
+                .get(&c)
+                .is_some_and(|tx| tx.send(std::mem::take(&mut batch)).is_ok());
             if !routed {
                 // The connection is ending: forget it, or its treelets would be offered forever.
                 sched.remove_connection(c);

@@ -25,9 +25,9 @@ pub const CLOSE_FLUSH: Duration = Duration::from_millis(300);
 #[derive(Debug)]
 pub(crate) struct Core {
     pub sched: Scheduler,
-    /// Looked up once per dispatched treelet; keyed by the server's own connection counter, so a
+    /// Looked up once per dispatched batch; keyed by the server's own connection counter, so a
     /// fast non-keyed hash is safe here.
-    pub routes: FxHashMap<ConnectionId, mpsc::UnboundedSender<TreeletId>>,
+    pub routes: FxHashMap<ConnectionId, mpsc::UnboundedSender<Vec<TreeletId>>>,
 }
 
 /// Everything the service's tasks share.

@@ -237,13 +237,11 @@ async fn transfer(
 /// The scheduler, the metrics and the session hear that a batch was written.
 fn record_sent(ctx: &StreamCtx, batch: &[TreeletId], len: u64) {
     let now = Instant::now();
-    let latencies: Vec<Duration> = {
-        let mut core = ctx.shared.core();
-        batch
-            .iter()
-            .filter_map(|&t| core.sched.handle_sent(ctx.id, t, now))
-            .collect()
-    };
+    let mut latencies = Vec::with_capacity(batch.len());
+    ctx.shared
+        .core()
+        .sched
+        .handle_sent_all(ctx.id, batch, now, &mut latencies);
     let m = &ctx.shared.state.metrics;
     m.request_to_send.observe_all(latencies);
     let n = batch.len() as u64;
