@@ -15,6 +15,7 @@
 
 use arbor_proto::TreeletId;
 use rustc_hash::FxHashMap;
+use std::collections::hash_map::Entry;
 
 /// The batches of one connection still in flight.
 #[derive(Debug)]
@@ -52,9 +53,11 @@ impl<C> Batches<C> {
     /// batch: only entries of this one go.
     pub(super) fn end(&mut self, id: u64, treelets: &[TreeletId]) {
         self.batches.remove(&id);
-        for t in treelets {
-            if self.batch_of.get(t) == Some(&id) {
-                self.batch_of.remove(t);
+        for &t in treelets {
+            if let Entry::Occupied(e) = self.batch_of.entry(t)
+                && *e.get() == id
+            {
+                e.remove();
             }
         }
     }

@@ -90,6 +90,12 @@ pub fn batch_limit(window: usize) -> usize {
     (window / BATCHES_PER_WINDOW).clamp(1, MAX_TREELETS_PER_STREAM)
 }
 
+/// Whether a delivery at `at` is within a redelivery guard that began at `start`: strictly
+/// less than the guard ago (a zero guard holds nothing).
+fn within_guard(at: Instant, start: Option<Instant>) -> bool {
+    start.is_none_or(|s| at > s)
+}
+
 /// A connection, as the service numbers them.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct ConnectionId(pub u64);
@@ -388,30 +394,39 @@ impl Conn {
         }
     }
 
+    /// The earliest delivery time still within the redelivery guard at `now` (`None`: every
+    /// delivery is). Comparing instants with it is cheaper than a duration per delivery.
+    fn guard_start(&self, now: Instant) -> Option<Instant> {
+        now.checked_sub(self.config.redelivery_guard)
+    }
+
     /// Forgets deliveries older than the guard (and keeps the record bounded however `now`
     /// moves).
     fn prune_recent(&mut self, now: Instant) {
-        let guard = self.config.redelivery_guard;
+        let start = self.guard_start(now);
         let cap = self
             .config
             .max_queue
             .max(self.config.window)
             .saturating_mul(4);
         while let Some(&(t, id)) = self.recent.front() {
-            if now.saturating_duration_since(t) < guard && self.recent.len() <= cap {
+            if within_guard(t, start) && self.recent.len() <= cap {
                 break;
             }
             self.recent.pop_front();
-            if self.recent_at.get(&id) == Some(&t) {
-                self.recent_at.remove(&id);
+            if let Entry::Occupied(e) = self.recent_at.entry(id)
+                && *e.get() == t
+            {
+                e.remove();
             }
         }
     }
 
-    fn recently_delivered(&self, id: TreeletId, now: Instant) -> bool {
+    /// Whether `id` was delivered within the guard that began at `start` ([`Conn::guard_start`]).
+    fn recently_delivered(&self, id: TreeletId, start: Option<Instant>) -> bool {
         self.recent_at
             .get(&id)
-            .is_some_and(|&t| now.saturating_duration_since(t) < self.config.redelivery_guard)
+            .is_some_and(|&t| within_guard(t, start))
     }
 
     fn snapshot(&self) -> ConnectionStats {
@@ -621,10 +636,13 @@ impl Scheduler {
         obsolete_in_flight.sort_unstable();
 
         conn.prune_recent(now);
+        let start = conn.guard_start(now);
         let mut queue: Vec<Wanted> = conn
             .by_id
             .iter()
-            .filter(|w| !conn.in_flight.contains_key(&w.id) && !conn.recently_delivered(w.id, now))
+            .filter(|w| {
+                !conn.in_flight.contains_key(&w.id) && !conn.recently_delivered(w.id, start)
+            })
             .copied()
             .collect();
         queue.sort_unstable_by(|a, b| rank(&(a.id, a.priority), &(b.id, b.priority)));
