@@ -2,9 +2,10 @@
 //!
 //! * [`schedule`] is its I/O-free core, in the style of quinn-proto: a deterministic state machine
 //!   that is told what happened (`handle_*`: a request list arrived, a treelet was sent, delivered
-//!   or cancelled) and asked what to do next (`poll_transmit`, `poll_batch`), with time passed in. It decides,
-//!   for every connection, which treelets to send in which order, how many may be in flight, and
-//!   which connection goes next; it is unit- and property-tested without sockets.
+//!   or cancelled) and asked what to do next (`poll_batch`, or `poll_transmit` for one treelet),
+//!   with time passed in. It decides, for every connection, which treelets to send in which
+//!   order, how many may be in flight, and which connection goes next; it is unit- and
+//!   property-tested without sockets.
 //! * [`config`]: `ServeConfig` from TOML + CLI overrides, validation, scene access.
 //! * [`tls`]: the certificate (self-signed on first start, or given) and its fingerprint;
 //!   [`reset`]: stateless resets that outlive the process (key from the TLS key, random ids).
