@@ -29,9 +29,10 @@
 //! Complexity, for a list of `n` items, `w` in flight, `c` connections: a list costs
 //! O(n log n) (a sort by id to collapse duplicates, a merge with the previous list, a rank sort
 //! of what can be sent) and O(n) memory (24 + 24 bytes per item: the by-id index and the queue,
-//! each item with since when it is wanted); `poll_transmit` is O(1) amortized plus O(log r) for `r` retried
-//! treelets; `handle_sent`/`handle_delivered` are O(1) expected (hash maps); `handle_cancelled`
-//! is O(log n) (binary search of the list by id); `remove_connection` is O(c) (ring cleanup).
+//! each item with since when it is wanted); `poll_transmit` is O(1) amortized per treelet
+//! (`poll_batch` likewise) plus O(log r) for `r` retried treelets; `handle_sent`/
+//! `handle_delivered` are O(1) expected (hash maps); `handle_cancelled` is O(log n) (binary
+//! search of the list by id); `remove_connection` is O(c) (ring cleanup).
 //!
 //! # What is never sent
 //!
@@ -62,9 +63,10 @@
 //! # Fairness
 //!
 //! Connections that have something to send *and* window room form a ring; `poll_transmit` serves
-//! them round-robin, one treelet per turn (one batch of at most [`batch_limit`] with
-//! `poll_batch`), so a connection with a 100,000-item list and one with 10 items alternate. (Turns are per treelet, not per byte: treelets are 1–16 KiB and compress to
-//! similar sizes within a scene, so per-treelet turns are close to byte-fair.) A server-wide cap
+//! them round-robin, one treelet per turn (`poll_batch`: one batch of at most [`batch_limit`]
+//! per turn), so a connection with a 100,000-item list and one with 10 items alternate. (Turns
+//! are per treelet or batch, not per byte: treelets are 1–16 KiB and compress to similar sizes
+//! within a scene, so such turns are close to byte-fair.) A server-wide cap
 //! on treelets in flight ([`SchedulerConfig::max_in_flight`]) makes the service's send capacity
 //! the shared resource that the ring divides.
 
@@ -674,7 +676,7 @@ impl Scheduler {
         Some((id, one[0]))
     }
 
-    /// The next connection's next treelets to start sending, as one stream's batch: appended to
+    /// The next connection's next treelets to start sending, as one stream's batch: put into
     /// `batch` (cleared first), in rank order, at most [`batch_limit`] of its window and never
     /// beyond its window room or the server-wide cap; all in flight from now on. The ring turns
     /// once per batch. `None` (and `batch` empty) when no connection can send.
