@@ -706,6 +706,9 @@ impl Scheduler {
             let most = most
                 .min(batch_limit(conn.config.window))
                 .min(self.config.max_in_flight - self.total_in_flight);
+            // The service hands each batch's vector on, so it comes back empty: room for the
+            // whole batch at once, not grown push by push.
+            batch.reserve(most);
             while batch.len() < most
                 && conn.eligible()
                 && let Some((treelet, since)) = conn.pop(now)

@@ -118,12 +118,9 @@ impl MessageCache {
             .iter()
             .map(|k| inner.map.get(k))
             .collect::<Option<_>>()?;
-        let mut out = BytesMut::with_capacity(found.iter().map(|m| m.len()).sum());
-        for m in found {
-            out.extend_from_slice(m);
-        }
+        let out = concat(&found);
         inner.hits += keys.len() as u64;
-        Some(out.freeze())
+        Some(out)
     }
 
     fn insert(&self, key: MessageKey, message: Bytes) {
@@ -358,15 +355,17 @@ impl ServedScene {
 fn joined(messages: Vec<Bytes>) -> Bytes {
     match <[Bytes; 1]>::try_from(messages) {
         Ok([one]) => one,
-        Err(messages) => {
-            let len = messages.iter().map(Bytes::len).sum();
-            let mut out = BytesMut::with_capacity(len);
-            for m in &messages {
-                out.extend_from_slice(m);
-            }
-            out.freeze()
-        }
+        Err(messages) => concat(&messages),
     }
+}
+
+/// `parts` copied back to back into one buffer of exactly their length.
+fn concat(parts: &[impl AsRef<[u8]>]) -> Bytes {
+    let mut out = BytesMut::with_capacity(parts.iter().map(|p| p.as_ref().len()).sum());
+    for p in parts {
+        out.extend_from_slice(p.as_ref());
+    }
+    out.freeze()
 }
 
 #[cfg(test)]
