@@ -463,12 +463,6 @@ async fn send_lists(
         }
         let seq = *next_seq;
         *next_seq += 1;
-        let ids: Vec<TreeletId> = list
-            .items
-            .iter()
-            .map(|i| i.0)
-            .filter(|id| keep(*id))
-            .collect();
         let frame = match &list.deep {
             None => Frame::RequestList {
                 seq,
@@ -499,6 +493,7 @@ async fn send_lists(
                 continue;
             }
         };
+        let ids = list.items.iter().map(|i| i.0).filter(|id| keep(*id));
         shared.latency().list_sent(ids, Instant::now());
         if let Err(e) = send.write_all(&bytes).await {
             return format!("writing request list {seq}: {e}");

@@ -49,6 +49,7 @@ mod shared;
 mod stream;
 pub mod tls;
 pub mod transport;
+mod treelet_map;
 pub mod url;
 
 pub use backoff::{Backoff, Jitter};

@@ -6,10 +6,10 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use arbor_proto::{SceneDescription, TreeletId};
-use rustc_hash::FxHashMap;
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 use super::event::{ClientEvent, ClientStats};
+use super::treelet_map::TreeletMap;
 
 /// Events on their way to the caller, with the budget their treelet bytes hold until the last
 /// of them is taken. A stream reader sends the treelets it found complete in what it read at
@@ -149,48 +149,94 @@ impl Drop for BufferLease {
 }
 
 /// When each wanted treelet was first named by a list sent, so its latency can be reported on
-/// arrival. Holds the ids of the latest list and of the one before it (whose treelets may still
-/// be in flight), so it never grows beyond two lists.
+/// arrival. Knows the ids of the latest list and of the one before it (whose treelets may still
+/// be in flight): an id named by neither is forgotten.
+///
+/// One map holds them all, each id with the number of the last list naming it, so a list costs
+/// one hash lookup per id and an arrival one removal (two maps, the latest list's and the one
+/// before, took up to three lookups per id and a map built per list), and the map is a
+/// [`TreeletMap`]: lists and arrivals go in nearly ascending id order. Ids two lists old are
+/// pruned in one sweep once they could make up half the map, so the map stays within about
+/// twice the two lists and the sweep costs O(1) per id listed.
 #[derive(Debug, Default)]
 pub(crate) struct LatencyTracker {
-    current: FxHashMap<TreeletId, Instant>,
-    previous: FxHashMap<TreeletId, Instant>,
-    /// The map before `previous`, emptied, kept for its allocation: the next list is built in
-    /// it (a list is sent every client cycle, and a whole-scene list grew a fresh map through
-    /// several rehashes on the way to the wire).
-    spare: FxHashMap<TreeletId, Instant>,
+    named: TreeletMap<Named>,
+    /// Lists sent, wrapping (compared by difference, and an entry is pruned long before 2³²
+    /// lists pass).
+    lists: u32,
+    /// Ids in the latest list and in the one before it, duplicates included.
+    listed: [usize; 2],
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Named {
+    /// When a list first named the treelet (since it last arrived).
+    since: Instant,
+    /// The number of the last list naming it.
+    list: u32,
+}
+
+/// Whether an id last named by list `list` is still known when `latest` is the latest list:
+/// named by it or by the one before.
+fn still_known(latest: u32, list: u32) -> bool {
+    latest.wrapping_sub(list) <= 1
 }
 
 impl LatencyTracker {
     /// A list naming `ids` was sent at `now`.
     pub fn list_sent(&mut self, ids: impl IntoIterator<Item = TreeletId>, now: Instant) {
         let ids = ids.into_iter();
-        let mut next = std::mem::take(&mut self.spare);
-        next.reserve(ids.size_hint().0);
+        self.lists = self.lists.wrapping_add(1);
+        let list = self.lists;
+        // Room for the ids beyond those held: all of a first list, none of a list repeated.
+        let (least, most) = ids.size_hint();
+        let held = self.named.len();
+        self.named
+            .reserve(most.unwrap_or(least).saturating_sub(held));
+        let mut count = 0;
         for id in ids {
-            if let std::collections::hash_map::Entry::Vacant(slot) = next.entry(id) {
-                let first = self
-                    .current
-                    .remove(&id)
-                    .or_else(|| self.previous.remove(&id))
-                    .unwrap_or(now);
-                slot.insert(first);
+            count += 1;
+            let fresh = Named { since: now, list };
+            match self.named.entry(id) {
+                std::collections::hash_map::Entry::Occupied(slot) => {
+                    let slot = slot.into_mut();
+                    // Named by this list already (a duplicate) or by the one before: it keeps
+                    // its first time. Older: forgotten, so it starts again.
+                    let since = if still_known(list, slot.list) {
+                        slot.since
+                    } else {
+                        now
+                    };
+                    *slot = Named { since, list };
+                }
+                std::collections::hash_map::Entry::Vacant(slot) => {
+                    slot.insert(fresh);
+                }
             }
         }
-        let mut older = std::mem::replace(
-            &mut self.previous,
-            std::mem::replace(&mut self.current, next),
-        );
-        older.clear();
-        self.spare = older;
+        self.listed = [count, self.listed[0]];
+        // Every entry not named by the last two lists is stale; sweep once they could be half.
+        if self.named.len() > 2 * (self.listed[0] + self.listed[1]) + 64 {
+            let latest = self.lists;
+            self.named
+                .retain(|_, named| still_known(latest, named.list));
+        }
     }
 
     /// Treelet `id` arrived at `now`: its latency, zero if no list named it.
     pub fn arrived(&mut self, id: TreeletId, now: Instant) -> Duration {
-        self.current
-            .remove(&id)
-            .or_else(|| self.previous.remove(&id))
-            .map_or(Duration::ZERO, |t| now.saturating_duration_since(t))
+        match self.named.remove(&id) {
+            Some(named) if still_known(self.lists, named.list) => {
+                now.saturating_duration_since(named.since)
+            }
+            _ => Duration::ZERO,
+        }
+    }
+
+    /// Treelets known (named by the last two lists and not arrived), stale entries included.
+    #[cfg(test)]
+    fn held(&self) -> usize {
+        self.named.len()
     }
 }
 
@@ -217,6 +263,31 @@ mod tests {
         // Two lists later, 4 is forgotten: the tracker holds at most two lists.
         assert_eq!(l.arrived(TreeletId(4), t0 + ms(80)), Duration::ZERO);
         assert_eq!(l.arrived(TreeletId(5), t0 + ms(80)), ms(20));
+        // Named again after being forgotten: its time starts again.
+        l.list_sent([TreeletId(4)], t0 + ms(90));
+        assert_eq!(l.arrived(TreeletId(4), t0 + ms(95)), ms(5));
+    }
+
+    #[test]
+    fn latency_tracker_stays_within_about_two_lists() {
+        let t0 = Instant::now();
+        let mut l = LatencyTracker::default();
+        // Lists of 100 new ids each, none arriving: the stale ones are swept.
+        for n in 0..1000u32 {
+            l.list_sent((n * 100..n * 100 + 100).map(TreeletId), t0);
+            assert!(l.held() <= 2 * 200 + 64 + 100, "{} held", l.held());
+        }
+        // The last two lists are still known, the one before is not.
+        let later = t0 + Duration::from_millis(7);
+        assert_eq!(
+            l.arrived(TreeletId(999 * 100), later),
+            Duration::from_millis(7)
+        );
+        assert_eq!(
+            l.arrived(TreeletId(998 * 100), later),
+            Duration::from_millis(7)
+        );
+        assert_eq!(l.arrived(TreeletId(997 * 100), later), Duration::ZERO);
     }
 
     #[tokio::test]
