@@ -307,10 +307,12 @@ async fn read_messages(
     loop {
         if batch.len() >= MAX_BATCH || !incoming.has(FIXED_HEADER) {
             batch.hand_over(ctx);
-        }
-        if ctx.events.is_closed() {
-            // The caller dropped the client.
-            return StreamEnd::Quiet;
+            // Checked per batch, not per message: the caller's side writes the channel's state
+            // at every batch it takes.
+            if ctx.events.is_closed() {
+                // The caller dropped the client.
+                return StreamEnd::Quiet;
+            }
         }
         // Already buffered (the common case): no read future to set up and poll.
         let filled = if incoming.has(FIXED_HEADER) {
