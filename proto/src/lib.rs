@@ -22,6 +22,7 @@ pub mod node;
 pub mod rng;
 pub mod scene;
 pub mod treelet;
+pub mod treelet_map;
 pub mod wire;
 
 pub use attribute::{AttributeLayout, Channel};
@@ -30,3 +31,4 @@ pub use error::ProtoError;
 pub use node::Node;
 pub use scene::{BuildParameters, SceneDescription, SceneStats, SourceKind};
 pub use treelet::{Treelet, TreeletHeader, TreeletId};
+pub use treelet_map::TreeletMap;

@@ -49,7 +49,6 @@ mod shared;
 mod stream;
 pub mod tls;
 pub mod transport;
-mod treelet_map;
 pub mod url;
 
 pub use backoff::{Backoff, Jitter};

@@ -5,11 +5,10 @@ use std::collections::VecDeque;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use arbor_proto::{SceneDescription, TreeletId};
+use arbor_proto::{SceneDescription, TreeletId, TreeletMap};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 use super::event::{ClientEvent, ClientStats};
-use super::treelet_map::TreeletMap;
 
 /// Events on their way to the caller, with the budget their treelet bytes hold until the last
 /// of them is taken. A stream reader sends the treelets it found complete in what it read at

@@ -9,15 +9,16 @@
 //! the cached bytes, copied out under the cache's lock (see [`ServedScene::batch`]), never
 //! re-framed or recompressed.
 
-use std::collections::VecDeque;
+use std::collections::{HashMap, VecDeque};
+use std::hash::{BuildHasherDefault, Hash, Hasher};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 
 use arbor_proto::codec::{self, MAX_RAW_TREELET, PreparedDictionaries};
 use arbor_proto::frame::{FrameError, encode_treelet_header};
+use arbor_proto::treelet_map::RunHasher;
 use arbor_proto::{Channel, ProtoError, TreeletId};
 use bytes::{Bytes, BytesMut};
-use rustc_hash::FxHashMap;
 
 use arbor_client_core::slots::DecodedTreelet;
 use arbor_proto::wire::ViewHint;
@@ -62,7 +63,22 @@ pub const MAX_TREELETS_PER_STREAM: usize = 64;
 pub const MAX_CUTS_RUNNING: usize = 2;
 
 /// Which message: scene generation, treelet, channel set (bit per channel id).
-type MessageKey = (u64, u32, u32);
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct MessageKey {
+    generation: u64,
+    treelet: u32,
+    channels: u32,
+}
+
+impl Hash for MessageKey {
+    /// For [`RunHasher`]: the generation and channel set as the salt, then the treelet id, so
+    /// a stream's batch (rank-adjacent treelets, mostly consecutive ids) is looked up in
+    /// neighbouring buckets rather than with a cache miss per message.
+    fn hash<H: Hasher>(&self, state: &mut H) {
+        state.write_u64(self.generation ^ u64::from(self.channels).rotate_left(32));
+        state.write_u32(self.treelet);
+    }
+}
 
 /// Built treelet messages, bounded in bytes, oldest insertion evicted first (a treelet's
 /// popularity follows the views of many clients; FIFO keeps the bookkeeping to one queue and
@@ -75,7 +91,7 @@ pub struct MessageCache {
 
 #[derive(Debug, Default)]
 struct CacheInner {
-    map: FxHashMap<MessageKey, Bytes>,
+    map: HashMap<MessageKey, Bytes, BuildHasherDefault<RunHasher>>,
     order: VecDeque<MessageKey>,
     bytes: usize,
     hits: u64,
@@ -289,7 +305,11 @@ impl ServedScene {
             .iter()
             .fold(0u32, |m, c| m | 1 << (c.id() as u32 & 31));
         ids.iter()
-            .map(|id| (self.stored.generation, id.0, mask))
+            .map(|id| MessageKey {
+                generation: self.stored.generation,
+                treelet: id.0,
+                channels: mask,
+            })
             .collect()
     }
 
@@ -372,6 +392,14 @@ fn concat(parts: &[impl AsRef<[u8]>]) -> Bytes {
 mod tests {
     use super::*;
 
+    fn key(generation: u64, treelet: u32, channels: u32) -> MessageKey {
+        MessageKey {
+            generation,
+            treelet,
+            channels,
+        }
+    }
+
     fn hit(cache: &MessageCache, key: MessageKey) -> bool {
         cache.get(&[key])[0].is_some()
     }
@@ -380,19 +408,19 @@ mod tests {
     fn the_cache_stays_within_its_bytes_and_evicts_the_oldest() {
         let cache = MessageCache::new(100);
         for i in 0..10u32 {
-            cache.insert((1, i, 1), Bytes::from(vec![i as u8; 30]));
+            cache.insert(key(1, i, 1), Bytes::from(vec![i as u8; 30]));
             assert!(cache.figures().0 <= 100);
         }
         // The last three fit; older ones are gone.
-        assert!(hit(&cache, (1, 9, 1)));
-        assert!(hit(&cache, (1, 7, 1)));
-        assert!(!hit(&cache, (1, 6, 1)));
+        assert!(hit(&cache, key(1, 9, 1)));
+        assert!(hit(&cache, key(1, 7, 1)));
+        assert!(!hit(&cache, key(1, 6, 1)));
         // Another channel set or generation is another message.
-        assert!(!hit(&cache, (1, 9, 3)));
-        assert!(!hit(&cache, (2, 9, 1)));
+        assert!(!hit(&cache, key(1, 9, 3)));
+        assert!(!hit(&cache, key(2, 9, 1)));
         // A batch comes back in its order, hits and misses counted.
         let (_, hits, misses) = cache.figures();
-        let batch = cache.get(&[(1, 9, 1), (1, 6, 1), (1, 8, 1)]);
+        let batch = cache.get(&[key(1, 9, 1), key(1, 6, 1), key(1, 8, 1)]);
         let firsts: Vec<Option<u8>> = batch.iter().map(|m| m.as_ref().map(|b| b[0])).collect();
         assert_eq!(firsts, [Some(9), None, Some(8)]);
         assert_eq!(cache.figures(), (90, hits + 2, misses + 1));
@@ -400,16 +428,16 @@ mod tests {
         // joined or counted (the caller then builds what is missing).
         let (_, hits, misses) = cache.figures();
         assert_eq!(
-            cache.joined(&[(1, 8, 1), (1, 9, 1)]),
+            cache.joined(&[key(1, 8, 1), key(1, 9, 1)]),
             Some(Bytes::from([vec![8u8; 30], vec![9u8; 30]].concat()))
         );
-        assert_eq!(cache.joined(&[(1, 8, 1), (1, 6, 1)]), None);
+        assert_eq!(cache.joined(&[key(1, 8, 1), key(1, 6, 1)]), None);
         assert_eq!(cache.figures(), (90, hits + 2, misses));
         // Larger than the whole cache: not kept.
-        cache.insert((1, 99, 1), Bytes::from(vec![0; 101]));
-        assert!(!hit(&cache, (1, 99, 1)));
+        cache.insert(key(1, 99, 1), Bytes::from(vec![0; 101]));
+        assert!(!hit(&cache, key(1, 99, 1)));
         let none = MessageCache::new(0);
-        none.insert((1, 1, 1), Bytes::from_static(b"x"));
+        none.insert(key(1, 1, 1), Bytes::from_static(b"x"));
         assert_eq!(none.figures().0, 0);
     }
 
