@@ -10,7 +10,7 @@
 //!   scene's mean message size, the same number per connection, the same in-flight window; its
 //!   client counts the chunks quinn hands over without copying them, as Arbor's client reads;
 //! * one client fetching the whole 4 KiB scene against raw quinn's bulk rate on one stream of the
-//!   same bytes;
+//!   same bytes (best runs, medians, and the median of the ratios of runs taken turn by turn);
 //! * over the link emulator (25 ms each way, 100 Mbit/s): time until the top 1,000 of a list
 //!   (random priorities over all treelets of the 4 KiB scene) have arrived.
 //!
@@ -45,8 +45,9 @@ use arbor_tests::support::data;
 const WINDOW: usize = 64;
 /// Runs per row, in turns; the best counts.
 const ROUNDS: usize = 3;
-/// Runs of the whole-scene row, taken in turns (best of them).
-const WHOLE_ROUNDS: usize = 10;
+/// Runs of the whole-scene row, taken in turns (best of them, medians, and the median of the
+/// ratios of the runs taken side by side).
+const WHOLE_ROUNDS: usize = 20;
 
 fn build_pool(dir: &std::path::Path) -> Vec<SceneDescription> {
     let pool = Pool::open(dir).unwrap();
@@ -700,9 +701,22 @@ fn adaptive_window() -> (usize, usize) {
 
 /// The median MB/s of some runs.
 fn median(runs: &[(f64, f64)]) -> f64 {
-    let mut v: Vec<f64> = runs.iter().map(|r| r.1).collect();
+    median_of(runs.iter().map(|r| r.1).collect())
+}
+
+fn median_of(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v.get(v.len() / 2).copied().unwrap_or(0.0)
+}
+
+/// The median, lowest and highest ratio of MB/s of runs `a[i]` and `b[i]`, taken one right after
+/// the other: a slow spell of the machine slows both runs of a turn, so the ratios of turns
+/// spread less than the ratio of two medians.
+fn paired(a: &[(f64, f64)], b: &[(f64, f64)]) -> (f64, f64, f64) {
+    let ratios: Vec<f64> = a.iter().zip(b).map(|(a, b)| a.1 / b.1).collect();
+    let low = ratios.iter().copied().fold(f64::INFINITY, f64::min);
+    let high = ratios.iter().copied().fold(0.0, f64::max);
+    (median_of(ratios), low, high)
 }
 
 /// The best of `ROUNDS` (rate, MB/s) pairs by rate.
@@ -903,6 +917,9 @@ async fn main() {
         }
     }
     let (a_median, r_median) = (median(&a), median(&r));
+    let (turns, turns_low, turns_high) = paired(&a, &r);
+    let (counted_turns, _, _) = paired(&counted, &r);
+    let rounds = a.len();
     let (a, r) = (best(&a), best(&r));
     println!(
         "whole {} by one client ({} treelets, {:.1} MB): Arbor {:.1} MB/s, raw quinn one stream \
@@ -919,6 +936,10 @@ async fn main() {
         "  medians: Arbor {a_median:.1} MB/s, raw quinn one stream {r_median:.1} MB/s: {:.2}x",
         a_median / r_median
     );
+    println!(
+        "  turn by turn (Arbor's run over raw quinn's right after it): median {turns:.2}x \
+         ({turns_low:.2}–{turns_high:.2}x over {rounds} turns)"
+    );
     if whole_only.is_some() {
         println!(
             "  medians: raw quinn, the same bytes on {split_streams} streams at once: {:.1} MB/s",
@@ -930,6 +951,7 @@ async fn main() {
             median(&counted),
             median(&counted) / r_median
         );
+        println!("  turn by turn, the counting client over raw quinn: median {counted_turns:.2}x");
         server.shutdown().await;
         return;
     }
