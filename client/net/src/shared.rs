@@ -2,6 +2,7 @@
 //! the received-bytes budget (backpressure) and request times (latency).
 
 use std::collections::VecDeque;
+use std::collections::hash_map::Entry;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -195,21 +196,18 @@ impl LatencyTracker {
         let mut count = 0;
         for id in ids {
             count += 1;
-            let fresh = Named { since: now, list };
             match self.named.entry(id) {
-                std::collections::hash_map::Entry::Occupied(slot) => {
+                Entry::Occupied(slot) => {
                     let slot = slot.into_mut();
                     // Named by this list already (a duplicate) or by the one before: it keeps
                     // its first time. Older: forgotten, so it starts again.
-                    let since = if still_known(list, slot.list) {
-                        slot.since
-                    } else {
-                        now
-                    };
-                    *slot = Named { since, list };
+                    if !still_known(list, slot.list) {
+                        slot.since = now;
+                    }
+                    slot.list = list;
                 }
-                std::collections::hash_map::Entry::Vacant(slot) => {
-                    slot.insert(fresh);
+                Entry::Vacant(slot) => {
+                    slot.insert(Named { since: now, list });
                 }
             }
         }
