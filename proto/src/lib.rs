@@ -5,9 +5,10 @@
 //! its [`AttributeLayout`], the binary encoding of treelets and attribute blocks with zstd
 //! compression ([`codec`]), the explicit [`limits`], and the network protocol: its vocabulary
 //! ([`wire`]: ALPN, control frames, error codes) and byte layout ([`frame`]: bounded frame
-//! decoding, treelet messages), and the one small seeded generator ([`rng`]). Server and client
-//! both depend on it, so a format change is made once, here, and round-trip tests keep both sides
-//! honest.
+//! decoding, treelet messages), the one small seeded generator ([`rng`]), and the treelet-id
+//! hash that keeps consecutive ids together in the maps that follow a transfer
+//! ([`treelet_map`]). Server and client both depend on it, so a format change is made once,
+//! here, and round-trip tests keep both sides honest.
 
 #![warn(missing_docs)]
 #![forbid(unsafe_code)]
