@@ -8,7 +8,7 @@
 //! buckets and scatters the runs, so those accesses walk the table. On a whole-scene fetch of
 //! lion-4k over loopback the client's request-time map took 2.6× fewer samples with it than
 //! with FxHash (perf, docs/measurements.md). Ids that are not consecutive (random, strided, a
-//! few per run) cost about what they cost with FxHash, within ±10 % per insertion and removal
+//! few per run) cost about what they cost with FxHash, within about 10 % per insertion and removal
 //! from 4,000 to 1,000,000 ids. The server's window and delivery maps were tried with it too and
 //! got slower: they hold a sliding window of a few hundred ids, where a handful of runs collide
 //! in a small table.
