@@ -320,7 +320,39 @@ pub async fn converge_with(
         at.error.max
     );
     assert!(run.peak_slots <= run.capacity);
+    assert_report_accounts(what, &run);
     run
+}
+
+/// A run's traffic columns count what its cycles took off the connection: a cycle's treelets
+/// and bytes come from the same arrivals, every treelet inserted was received (the root too,
+/// with the first cycle), and nothing is counted that the connection did not hand over.
+pub fn assert_report_accounts(what: &str, run: &HeadlessRun) {
+    let records = &run.report.records;
+    for r in records {
+        assert_eq!(
+            r.treelets_received == 0,
+            r.bytes_received == 0,
+            "{what}: cycle {} counts {} treelets received but {} bytes",
+            r.cycle,
+            r.treelets_received,
+            r.bytes_received
+        );
+    }
+    let received: u64 = records.iter().map(|r| u64::from(r.treelets_received)).sum();
+    let inserted: u64 = records.iter().map(|r| u64::from(r.treelets_inserted)).sum();
+    let bytes: u64 = records.iter().map(|r| r.bytes_received).sum();
+    assert!(
+        received > inserted,
+        "{what}: {received} treelets received, {inserted} inserted besides the root"
+    );
+    assert!(
+        received <= run.client.treelets_received && bytes <= run.client.bytes_received,
+        "{what}: the report counts {received} treelets / {bytes} B, the connection handed over \
+         {} / {} B",
+        run.client.treelets_received,
+        run.client.bytes_received
+    );
 }
 
 /// One request to a daemon's admin API (token [`ADMIN_TOKEN`]) on its own connection: the

@@ -181,9 +181,10 @@ pub struct CycleRecord {
     pub render_ms: f64,
     /// Items in the request list sent this cycle.
     pub requests_sent: u32,
-    /// Treelets received this cycle.
+    /// Treelets received this cycle: taken off the connection by the cycle (the first cycle
+    /// also counts the root and any treelet that overtook it while connecting).
     pub treelets_received: u32,
-    /// Bytes received this cycle.
+    /// Wire bytes of those treelets.
     pub bytes_received: u64,
     /// Treelets inserted into the slot buffer this cycle.
     pub treelets_inserted: u32,

@@ -77,7 +77,9 @@ pub struct Session {
     /// The scene's zstd dictionaries, loaded once for every treelet received.
     dictionaries: PreparedDictionaries,
     started: Instant,
-    last_stats: ClientStats,
+    /// The root treelet's wire bytes, received while connecting: counted with the first
+    /// cycle's arrivals (the treelets that overtook it are handed to that cycle in `early`).
+    root_bytes: Option<u64>,
     cycle: u32,
     budget: SampleBudget,
     converged_at: Option<u32>,
@@ -117,7 +119,7 @@ impl Session {
                     ),
             )?
         };
-        let (scene, channels, dictionaries, root, early) =
+        let (scene, channels, dictionaries, (root, root_bytes), early) =
             match bootstrap(&mut client, &wanted, &config) {
                 Ok(x) => x,
                 Err(e) => {
@@ -135,7 +137,6 @@ impl Session {
             root,
             backend,
         )?;
-        let last_stats = client.stats();
         Ok(Self {
             peak_slots: core.slots().used_slots(),
             client,
@@ -144,7 +145,7 @@ impl Session {
             channels,
             dictionaries,
             started,
-            last_stats,
+            root_bytes: Some(root_bytes),
             cycle: 0,
             budget: SampleBudget::new(config_budget_s),
             converged_at: None,
@@ -233,6 +234,11 @@ impl Session {
         let t_drain = Instant::now();
         received.extend(take_events(&mut self.client, &self.scene)?);
         let drained = decode_all(&received, &self.scene, &self.channels, &self.dictionaries);
+        // What this cycle took off the connection, counted from the same treelets as its bytes
+        // (the connection's own counter runs ahead: it counts what is queued for the session).
+        let root_bytes = self.root_bytes.take();
+        let treelets_received = received.len() as u32 + u32::from(root_bytes.is_some());
+        let bytes_received = drained.bytes + root_bytes.unwrap_or(0);
         for t in drained.treelets {
             self.core.handle_treelet(t);
         }
@@ -267,7 +273,6 @@ impl Session {
             (Some(r), Some(i)) => compare(i, r)?,
             _ => (None, None),
         };
-        let stats = self.client.stats();
         let slots = self.core.slots();
         let record = CycleRecord {
             cycle,
@@ -279,8 +284,8 @@ impl Session {
             upload_ms: ms(upload_time),
             render_ms: ms(render_time),
             requests_sent,
-            treelets_received: (stats.treelets_received - self.last_stats.treelets_received) as u32,
-            bytes_received: drained.bytes,
+            treelets_received,
+            bytes_received,
             treelets_inserted: integration.inserted,
             slots_used: slots.used_slots(),
             slots_total: slots.capacity(),
@@ -307,7 +312,6 @@ impl Session {
             error_max = record.error.max,
             "cycle"
         );
-        self.last_stats = stats;
         Ok(Step {
             record,
             image,
@@ -490,13 +494,13 @@ type Bootstrapped = (
     Arc<SceneDescription>,
     Vec<Channel>,
     PreparedDictionaries,
-    DecodedTreelet,
+    (DecodedTreelet, u64),
     Vec<ReceivedTreelet>,
 );
 
 /// Waits (bounded) for `SceneInfo` and the root treelet the server sends unasked; returns the
-/// scene, the channels granted (the wanted ones the scene stores), the root and the treelets
-/// that overtook it.
+/// scene, the channels granted (the wanted ones the scene stores), the root with its wire bytes,
+/// and the treelets that overtook it.
 fn bootstrap(
     client: &mut TreeletClient,
     wanted: &[Channel],
@@ -520,7 +524,8 @@ fn bootstrap(
                 ClientEvent::Treelet(t) => match scene.take() {
                     Some((s, channels, dictionaries)) if t.id == s.root_treelet => {
                         let root = decode_received(&t, &s, &channels, &dictionaries)?;
-                        return Ok((s, channels, dictionaries, root, early));
+                        let bytes = t.wire_bytes as u64;
+                        return Ok((s, channels, dictionaries, (root, bytes), early));
                     }
                     other => {
                         scene = other;
