@@ -24,7 +24,8 @@ use arbor_client_core::slots::SlotBuffer;
 use arbor_client_session::headless::run_headless_with;
 use arbor_tests::link::{LinkConfig, LinkEmulator};
 use arbor_tests::streaming::{
-    SIZE, converge, converge_with, full, headless, needed_treelets, reference, scene_bytes, serve,
+    SIZE, assert_report_accounts, converge, converge_with, full, headless, needed_treelets,
+    reference, scene_bytes, serve,
 };
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -185,6 +186,7 @@ async fn orbiting_camera_stays_in_budget_and_never_shows_holes() {
     assert_eq!(holes_checked, 150);
     assert!(evictions > 0, "the budget was meant to force evictions");
     assert_eq!(run.peak_slots, run.capacity, "the buffer should fill up");
+    assert_report_accounts("lion, orbit", &run);
 }
 
 /// A budget a third of what the view needs: the client raises its LOD bias until the needed cut
@@ -236,6 +238,7 @@ async fn oversubscribed_view_settles_on_a_coarser_exact_picture_and_stops_reques
         "converges against the adjusted target"
     );
     assert!(run.peak_slots <= run.capacity);
+    assert_report_accounts("lion, oversubscribed", &run);
     // Exact: the biased reference, every treelet resident, same camera.
     let frame = arbor_client_core::incore::SceneFrame::of(&served.scene);
     let camera = CameraPath::Static.camera(0, &frame, 7, SIZE.0, SIZE.1);
