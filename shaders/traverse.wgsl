@@ -123,10 +123,10 @@ fn leaf_mask(n: Node) -> u32 {
 
 // The ray through continuous pixel coordinates `(px, py)`: `Camera::ray`.
 fn camera_ray(px: f32, py: f32) -> Ray {
-    let h = frame.screen.x;
-    let aspect = frame.screen.y;
-    let sx = (2.0 * px / frame.screen.z - 1.0) * h * aspect;
-    let sy = (1.0 - 2.0 * py / frame.screen.w) * h;
+    // `(2·px/w − 1)·h·aspect` with the division folded into `screen.x` on the CPU: the
+    // brackets are exact, so the centre row and column are exactly 0 on every device.
+    let sx = (2.0 * px - frame.screen.z) * frame.screen.x;
+    let sy = (frame.screen.w - 2.0 * py) * frame.screen.x;
     let d = frame.forward.xyz + frame.right.xyz * sx + frame.up.xyz * sy;
     let len = length(d);
     var dir = vec3<f32>(0.0);

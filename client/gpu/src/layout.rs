@@ -63,7 +63,12 @@ pub struct FrameUniform {
     pub up: [f32; 4],
     /// Direction towards the light, normalised (zero if none); `w`: ambient in `0..=1`.
     pub light: [f32; 4],
-    /// `tan(fov_y/2)`, aspect (`width/height`), width, height: the terms of `Camera::ray`.
+    /// `tan(fov_y/2)/height` (half a pixel's pitch at unit distance); unused; width, height.
+    /// `Camera::ray`'s screen offsets are `(2·px − width)·x` and `(height − 2·py)·x`
+    /// (`aspect/width = 1/height`). The brackets are exact in f32, so the centre row and column
+    /// get exactly 0 on every device, with one rounding after them; the division the shader
+    /// did before is allowed 2.5 ulps and rounds differently per vendor, which tilted the
+    /// axis-parallel rays off their planes on NVIDIA.
     pub screen: [f32; 4],
     /// `pixel_angle · lod_bias`; `log2(pixel_angle) + log2(lod_bias)` (guarded like
     /// `trace::screen_error`); the unit `edge / 2^31` in world lengths; unused.
@@ -115,7 +120,6 @@ impl FrameUniform {
             u.cam_frac[a] = (pa - whole) as f32;
         }
         let h = (camera.fov_y * 0.5).tan();
-        let aspect = f64::from(camera.width) / f64::from(camera.height);
         u.forward = v4(camera.forward, 0.0);
         u.right = v4(camera.right(), 0.0);
         u.up = v4(camera.up, 0.0);
@@ -124,8 +128,8 @@ impl FrameUniform {
             light.ambient.clamp(0.0, 1.0),
         );
         u.screen = [
-            h as f32,
-            aspect as f32,
+            (h / f64::from(camera.height)) as f32,
+            0.0,
             camera.width as f32,
             camera.height as f32,
         ];

@@ -10,11 +10,19 @@
 //! separate the two effects: **A**, the CPU twin itself (f64 rays), and **B**, the CPU
 //! traversal of the GPU's f32 ray ([`gpu_ray`]).
 //!
-//! - Against B (same ray, f32 arithmetic only): `|Δt| ≤ T_REL·t + T_ABS·edge` (measured at most
-//!   1.7e-7·t with lavapipe's Vulkan backend, 2.7e-7·t with its GL backend: two or three f32
-//!   roundings, GPU division being allowed 2.5 ulps)
-//!   and `|Δerror| ≤ E_ABS` levels (measured 3.8e-6: f32 `log2` of a ~30-level quantity); the
-//!   pixel colour within `CHANNEL_SAME` of B's shading (measured 0).
+//! - Against B (same ray, f32 arithmetic only): `|Δt| ≤ T_REL·t + T_ABS·edge` and
+//!   `|Δerror| ≤ E_ABS` levels; the pixel colour within `CHANNEL_SAME` of B's shading. B is the
+//!   GPU's ray exactly only where the device rounds like the CPU: lavapipe does, NVIDIA fuses
+//!   the ray's multiply-adds and divides approximately, which turns the ray by an ulp or two,
+//!   and a grazing entry face turns that into far more `t` than the arithmetic itself gives.
+//!   So a GPU answer off B's is compared with the span of `t` (and of the error) that the rays
+//!   within [`DIR_ULPS`] of B ([`near_rays`]) give at the same node.
+//!   - `T_REL` = 1e-6 (at least 8 ulps): Vulkan allows a division 2.5 ulps, and
+//!     the face's conversion and subtraction, the ray's normalisation and `t · unit` round
+//!     once each. Measured (worst `|Δt|` over the tolerance at 5e-7, stop 36): lavapipe 0.35
+//!     (B alone); an H100 0.996 against the span, and up to 5.0 against B alone.
+//!   - `E_ABS` = 5e-6 levels (f32 `log2` of a ~30-level quantity): measured 3.8e-6 on both.
+//!   - The colour: measured 0 on lavapipe, 1 on the H100 (`CHANNEL_SAME` = 1).
 //! - Against A where the node agrees: `|Δt|/t ≤ T_REL_RAY` (measured 1.9e-5) and
 //!   `|Δerror| ≤ E_ABS_RAY` (measured 2.9e-5, both from the cameras 1e-9 edges off a face,
 //!   looking along it). Larger than against B because the f32 direction is off by up to
@@ -56,9 +64,9 @@ pub fn gpu() -> &'static Mutex<GpuBackend> {
     })
 }
 
-/// Relative tolerance of `t` against the CPU on the same ray (measured 1.7e-7 on Vulkan,
-/// 2.7e-7 on GL).
-pub const T_REL: f64 = 5e-7;
+/// Relative tolerance of `t` against the CPU on the same ray (see the module docs: measured
+/// up to 5.0e-7 on an H100, 1.7e-7 on lavapipe's Vulkan and 2.7e-7 on its GL backend).
+pub const T_REL: f64 = 1e-6;
 /// Absolute tolerance of `t`, in root edges (the camera fraction is rounded to 2^-24 units).
 pub const T_ABS: f64 = 1e-9;
 /// Tolerance of the screen error against the CPU on the same ray, in levels (measured 3.8e-6).
@@ -83,10 +91,9 @@ pub const CHANNEL_SAME: u8 = 1;
 pub fn gpu_ray(camera: &Camera, px: f64, py: f64) -> Ray {
     let f = |v: DVec3| [v.x as f32, v.y as f32, v.z as f32];
     let (fw, rt, up) = (f(camera.forward), f(camera.right()), f(camera.up));
-    let h = (camera.fov_y * 0.5).tan() as f32;
-    let aspect = (f64::from(camera.width) / f64::from(camera.height)) as f32;
-    let sx = (2.0 * px as f32 / camera.width as f32 - 1.0) * h * aspect;
-    let sy = (1.0 - 2.0 * py as f32 / camera.height as f32) * h;
+    let pitch = ((camera.fov_y * 0.5).tan() / f64::from(camera.height)) as f32;
+    let sx = (2.0 * px as f32 - camera.width as f32) * pitch;
+    let sy = (camera.height as f32 - 2.0 * py as f32) * pitch;
     let d: [f32; 3] = std::array::from_fn(|a| fw[a] + rt[a] * sx + up[a] * sy);
     let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
     Ray {
@@ -137,10 +144,17 @@ pub struct Tally {
     dt_rel: f64,
     /// Largest |Δerror| against A where the node agrees.
     derr: f64,
-    /// Largest |Δt| / (T_REL·t + T_ABS·edge) against B where the node agrees: ≤ 1 passes.
+    /// Largest |Δt| / (T_REL·t + T_ABS·edge) against B where the node agrees, or against the
+    /// span of `t` that rays within [`DIR_ULPS`] of B give at that node where B alone is
+    /// further off: ≤ 1 passes.
     dt_ratio_b: f64,
-    /// Largest |Δerror| against B where the node agrees.
+    /// Largest |Δerror| against B, or the span of the rays that close, where the node agrees.
     derr_b: f64,
+    /// Largest |Δt| / tolerance against B alone (printed: 1.0 or less where the device rounds
+    /// the ray exactly like B, as lavapipe does; NVIDIA contracts it into fused multiply-adds).
+    dt_ratio_exact: f64,
+    /// Largest |Δerror| against B alone (printed).
+    derr_exact: f64,
     pixels: u64,
     /// Pixels differing from A's image at all.
     px_diff: u64,
@@ -160,7 +174,8 @@ impl Tally {
              hit/miss {} ({:.5}), unexplained by the f32 ray {}, other subtreelet at same node \
              {}; same node: max |Δt|/edge {:.3e}, max |Δt|/t {:.3e}, max |Δerror| {:.3e}; \
              pixels differing {} of {} ({:.5}), max channel Δ same node {}, any {} | vs CPU on \
-             the f32 ray: worst |Δt|/tolerance {:.3}, max |Δerror| {:.3e}, max channel Δ {}",
+             the f32 ray: worst |Δt|/tolerance {:.3}, max |Δerror| {:.3e}, max channel Δ {} \
+             (B alone: worst |Δt|/tolerance {:.3}, max |Δerror| {:.3e})",
             self.samples,
             self.hits,
             self.node_diff,
@@ -180,6 +195,8 @@ impl Tally {
             self.dt_ratio_b,
             self.derr_b,
             self.max_ch_b,
+            self.dt_ratio_exact,
+            self.derr_exact,
         );
     }
 
@@ -286,12 +303,32 @@ pub fn compare(
         // answer that a ray that close gives too is explained by the f32 ray.
         let near_b = || same_b || near_rays(&ray_b).any(|r| agrees(&sample(view, frame, &r, &lod)));
         if let (Some(h), true) = (&b, same_b) {
-            let dt = (h.t - f64::from(g.t)).abs();
-            let tol = T_REL * h.t + T_ABS * frame.edge;
-            tally.dt_ratio_b = tally.dt_ratio_b.max(dt / tol);
-            tally.derr_b = tally
-                .derr_b
-                .max((f64::from(h.error) - f64::from(g.error)).abs());
+            let (g_t, g_error) = (f64::from(g.t), f64::from(g.error));
+            let tol = |t: f64| T_REL * t + T_ABS * frame.edge;
+            let exact_ratio = (h.t - g_t).abs() / tol(h.t);
+            let exact_error = (f64::from(h.error) - g_error).abs();
+            tally.dt_ratio_exact = tally.dt_ratio_exact.max(exact_ratio);
+            tally.derr_exact = tally.derr_exact.max(exact_error);
+            let (mut ratio, mut derr) = (exact_ratio, exact_error);
+            if ratio > 1.0 || derr > E_ABS {
+                // Not B's own answer: the GPU's ray is B's to a few ulps only, and where the
+                // ray grazes the entry face that moves `t` by far more than the arithmetic
+                // does. Explained if it lies in the span the rays that close give at this node.
+                let mut t_span = (h.t, h.t);
+                let mut error_span = (f64::from(h.error), f64::from(h.error));
+                for r in near_rays(&ray_b) {
+                    if let Some(n) = sample(view, frame, &r, &lod).filter(|n| n.node == g.node) {
+                        t_span = (t_span.0.min(n.t), t_span.1.max(n.t));
+                        let e = f64::from(n.error);
+                        error_span = (error_span.0.min(e), error_span.1.max(e));
+                    }
+                }
+                let outside = |x: f64, (lo, hi): (f64, f64)| (lo - x).max(x - hi).max(0.0);
+                ratio = outside(g_t, t_span) / tol(g_t.clamp(t_span.0, t_span.1));
+                derr = outside(g_error, error_span);
+            }
+            tally.dt_ratio_b = tally.dt_ratio_b.max(ratio);
+            tally.derr_b = tally.derr_b.max(derr);
         }
         // The colour: the CPU shading of B, or failing that of a ray a few ulps from it.
         let colour_diff = |h: &Option<Hit>, r: &Ray| {
