@@ -298,6 +298,16 @@ pub async fn converge_with(
         records.iter().map(|r| r.pushed).sum::<u32>(),
         records.iter().map(|r| r.push_dropped).sum::<u32>(),
     );
+    if run.converged_at.is_none() {
+        // What a stall looks like: the last cycle that moved anything, and the last cycles.
+        let moved = records
+            .iter()
+            .rposition(|r| r.requests_sent + r.treelets_received + r.evictions > 0);
+        eprintln!("{what}: last cycle with requests, arrivals or evictions: {moved:?}");
+        for r in records.iter().rev().take(3).rev() {
+            eprintln!("{what}: {r:?}");
+        }
+    }
     let converged = run
         .converged_at
         .unwrap_or_else(|| panic!("{what}: did not converge in {} cycles", records.len()));

@@ -537,7 +537,7 @@ impl Handler {
     }
 
     /// Every [`TICK`]: the slow-reader watchdog, the window from quinn's RTT and congestion
-    /// window, the redelivery guard, the session's figures.
+    /// window, the redelivery guard and the treelets it deferred, the session's figures.
     fn on_tick(&mut self) -> Option<End> {
         let config = &self.shared.config;
         if !self.streams.is_empty() && self.ctx.since_progress() >= config.slow_reader_timeout() {
@@ -551,11 +551,15 @@ impl Handler {
             ));
         }
         let rtt = self.update_window();
-        let stats = {
+        let (stats, released) = {
             let mut core = self.shared.core();
             let _ = core.sched.set_redelivery_guard(self.id, rtt + CLIENT_CYCLE);
-            core.sched.stats(self.id)
+            let released = core.sched.release_deferred(self.id, Instant::now());
+            (core.sched.stats(self.id), released)
         };
+        if released > 0 {
+            self.shared.wake.notify_one();
+        }
         if let Some(st) = stats {
             self.shared.state.update_session(self.id.0, |s| {
                 s.queue_depth = st.queue_depth as u64;

@@ -51,7 +51,12 @@
 //!   except within the connection's `redelivery_guard` after its delivery: a client builds each
 //!   list before it has seen the treelets already on their way, so lists arriving up to about one
 //!   round trip (plus one client cycle) after a delivery still name it. The service sets the
-//!   guard from its RTT estimate; `Duration::ZERO` turns it off.
+//!   guard from its RTT estimate; `Duration::ZERO` turns it off. Such a treelet is *deferred*,
+//!   not dropped: if the list still names it once the guard has passed, the client really
+//!   wants it again (it had evicted it), and [`Scheduler::release_deferred`] queues it. A client
+//!   sends a list only when it changes, so a dropped one stayed unsent for good, and the
+//!   client's view stalled with a full buffer (on a 16-core machine, loopback views in
+//!   `client_e2e` stalled in 6 of 8 runs).
 //!
 //! # In-flight window
 //!
@@ -288,6 +293,9 @@ struct Conn {
     cursor: usize,
     /// Cancelled treelets the current list still wants.
     retry: BinaryHeap<Retry>,
+    /// Treelets the current list wants that were delivered within the redelivery guard before
+    /// it came, each with the end of its guard.
+    deferred: Vec<(Instant, TreeletId)>,
     in_flight: FxHashMap<TreeletId, Flight>,
     /// Deliveries within the redelivery guard, oldest first, and the latest time per id.
     recent: VecDeque<(Instant, TreeletId)>,
@@ -307,6 +315,7 @@ impl Conn {
             queue: Vec::new(),
             cursor: 0,
             retry: BinaryHeap::new(),
+            deferred: Vec::new(),
             in_flight: FxHashMap::default(),
             recent: VecDeque::new(),
             recent_at: FxHashMap::default(),
@@ -639,14 +648,24 @@ impl Scheduler {
 
         conn.prune_recent(now);
         let start = conn.guard_start(now);
+        let guard = conn.config.redelivery_guard;
+        let mut deferred = Vec::new();
         let mut queue: Vec<Wanted> = conn
             .by_id
             .iter()
             .filter(|w| {
-                !conn.in_flight.contains_key(&w.id) && !conn.recently_delivered(w.id, start)
+                if conn.in_flight.contains_key(&w.id) {
+                    return false;
+                }
+                if conn.recently_delivered(w.id, start) {
+                    deferred.push((conn.recent_at[&w.id] + guard, w.id));
+                    return false;
+                }
+                true
             })
             .copied()
             .collect();
+        conn.deferred = deferred;
         queue.sort_unstable_by(|a, b| rank(&(a.id, a.priority), &(b.id, b.priority)));
         conn.queue = queue;
         conn.cursor = 0;
@@ -658,6 +677,40 @@ impl Scheduler {
             dropped,
             obsolete_in_flight,
         })
+    }
+
+    /// Queues the deferred treelets of connection `id` whose redelivery guard has passed at
+    /// `now` and that its current list still names (see the module docs); returns how many.
+    /// The service calls it on its tick.
+    pub fn release_deferred(&mut self, id: ConnectionId, now: Instant) -> usize {
+        let Some(conn) = self.conns.get_mut(&id) else {
+            return 0;
+        };
+        if conn.deferred.is_empty() {
+            return 0;
+        }
+        let start = conn.guard_start(now);
+        let mut released = 0;
+        let mut deferred = std::mem::take(&mut conn.deferred);
+        deferred.retain(|&(end, treelet)| {
+            if end > now {
+                return true;
+            }
+            // Delivered again since (a push, say), or on its way: nothing to do.
+            if !conn.in_flight.contains_key(&treelet)
+                && !conn.recently_delivered(treelet, start)
+                && let Some(w) = conn.wanted(treelet)
+            {
+                conn.retry.push(Retry(w.id, w.priority));
+                released += 1;
+            }
+            false
+        });
+        conn.deferred = deferred;
+        if released > 0 {
+            self.wake(id);
+        }
+        released
     }
 
     /// Whether `treelet` was delivered on connection `id` (as far as the bounded record
@@ -1162,6 +1215,34 @@ mod tests {
             .unwrap();
         assert_eq!(drain(&mut s, ms(200)), vec![(A, 1)]);
         assert!(s.conns[&A].recent.len() <= 1, "old deliveries forgotten");
+    }
+
+    #[test]
+    fn a_list_that_still_names_a_guarded_treelet_after_the_guard_gets_it() {
+        let (mut s, ms) = guarded_with_two_in_flight();
+        s.handle_delivered(A, t(1), ms(10));
+        s.handle_delivered(A, t(2), ms(10));
+        // The client evicted 1 and 2 and wants them again with 3; the list comes within the
+        // guard, and (unchanged) is the last the client sends.
+        s.handle_request_list(A, 2, list(&[(1, 2.0), (2, 1.0), (3, 0.0)]), ms(50))
+            .unwrap();
+        assert_eq!(drain(&mut s, ms(50)), vec![(A, 3)]);
+        assert_eq!(s.release_deferred(A, ms(100)), 0, "guard not over");
+        assert_eq!(drain(&mut s, ms(100)), vec![]);
+        // 2 was sent again meanwhile (say as a push): only 1 is released.
+        assert_eq!(s.poll_transmit(ms(105)), None);
+        s.conns.get_mut(&A).unwrap().record_delivery(t(2), ms(105));
+        assert_eq!(s.release_deferred(A, ms(111)), 1);
+        assert_eq!(drain(&mut s, ms(111)), vec![(A, 1)]);
+        assert_eq!(s.release_deferred(A, ms(500)), 0, "released once");
+        // A new list replaces what was deferred.
+        s.handle_delivered(A, t(1), ms(520));
+        s.handle_request_list(A, 3, list(&[(1, 1.0)]), ms(530))
+            .unwrap();
+        s.handle_request_list(A, 4, list(&[(4, 1.0)]), ms(540))
+            .unwrap();
+        assert_eq!(s.release_deferred(A, ms(700)), 0);
+        assert_eq!(drain(&mut s, ms(700)), vec![(A, 4)]);
     }
 
     #[test]
