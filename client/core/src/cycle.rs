@@ -837,6 +837,7 @@ impl ClientCore {
             slots.capacity(),
             |s| slots.parent_slot(s),
             |id| backlog.contains(&id) || arriving.contains(&id) || slots.is_resident(id),
+            |id| slots.slot_of(id),
         );
         (
             sorted.visible_slots,

@@ -141,11 +141,18 @@ impl Presort {
             slot_count,
             parent_slot,
             skip,
+            |_| None,
         )
     }
 
     /// [`run`](Self::run) over `(weight, sample)` pairs (the weight counts for
-    /// [`PriorityPolicy::Centre`]).
+    /// [`PriorityPolicy::Centre`]). `resident_slot(id)` gives the slot of a resident treelet:
+    /// a sample that wants a subtreelet already resident was taken before it arrived (the
+    /// slot buffer changes between a sample and its presort: the GPU's feedback is a cycle
+    /// late, and any pixel's sample may be many cycles old), so its ray now enters that
+    /// subtreelet, and the subtreelet counts as visible. Without it, a full buffer evicted
+    /// what had just arrived for the view as "seen by no pixel", and asked for it again as
+    /// soon as the pixel was sampled afresh.
     pub fn run_weighted<'a>(
         &mut self,
         samples: impl Iterator<Item = (f32, &'a FeedbackSample)>,
@@ -153,6 +160,7 @@ impl Presort {
         slot_count: u32,
         parent_slot: impl Fn(u32) -> Option<u32>,
         skip: impl Fn(TreeletId) -> bool,
+        resident_slot: impl Fn(TreeletId) -> Option<u32>,
     ) -> Presorted {
         self.seen_slots.clear();
         self.seen_slots.resize(slot_count as usize, false);
@@ -184,6 +192,15 @@ impl Presort {
                     r.store(&mut self.requests);
                 }
                 let skipped = skip(id);
+                if skipped
+                    && let Some(child) = resident_slot(id)
+                    && let Some(seen) = self.seen_slots.get_mut(child as usize)
+                    && !*seen
+                {
+                    // Its parent is the slot this sample hit, marked above.
+                    *seen = true;
+                    visible.push(child);
+                }
                 let sums = self.requests.get(&id).copied().unwrap_or((s.error, 0, 0.0));
                 run = Some(Run { id, skipped, sums });
             }
@@ -352,12 +369,37 @@ mod tests {
             4,
             parent,
             |_| false,
+            |_| None,
         );
         assert_eq!(out.requests[0].id, TreeletId(5));
         assert_eq!(out.requests[1].samples, 2);
         for policy in PriorityPolicy::ALL {
             assert_eq!(PriorityPolicy::parse(policy.name()), Some(policy));
         }
+    }
+
+    #[test]
+    fn a_sample_taken_before_its_subtreelet_arrived_keeps_that_subtreelet_visible() {
+        // The samples hit leaves of slot 1 wanting treelets 9 and 7; 9 has arrived since, in
+        // slot 2 (a child of slot 1), 7 has not.
+        let n = 16;
+        let samples = [hit(n + 3, 9, 2.0), hit(n + 4, 9, 2.0), hit(n + 5, 7, 1.0)];
+        let resident = |id: TreeletId| (id == TreeletId(9)).then_some(2);
+        let mut p = Presort::new(PriorityPolicy::MaxError, 10);
+        let out = p.run_weighted(
+            samples.iter().map(|s| (1.0, s)),
+            n,
+            4,
+            parent,
+            |id| resident(id).is_some(),
+            resident,
+        );
+        assert_eq!(out.visible_slots, vec![0, 1, 2]);
+        assert_eq!(out.requests.len(), 1);
+        assert_eq!(out.requests[0].id, TreeletId(7));
+        // Without the resident lookup the arrival looks unseen: what the fix is for.
+        let out = p.run(&samples, n, 4, parent, |id| resident(id).is_some());
+        assert_eq!(out.visible_slots, vec![0, 1]);
     }
 
     #[test]
@@ -387,7 +429,14 @@ mod tests {
                 .collect();
             let skip = |id: TreeletId| id.0 == 3;
             let mut p = Presort::new(PriorityPolicy::Centre, 100);
-            let got = p.run_weighted(samples.iter().map(|(w, s)| (*w, s)), 16, 4, parent, skip);
+            let got = p.run_weighted(
+                samples.iter().map(|(w, s)| (*w, s)),
+                16,
+                4,
+                parent,
+                skip,
+                |_| None,
+            );
             let mut want: std::collections::BTreeMap<u32, (f32, u32, f32)> = Default::default();
             for (w, s) in &samples {
                 if s.wants_refinement() && !skip(TreeletId(s.subtreelet)) {
