@@ -25,7 +25,7 @@ use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::render::Light;
 use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
 use arbor_client_core::upload::{DEFAULT_FILL_RATIO, UploadPlan};
-use arbor_client_gpu::GpuBackend;
+use arbor_client_gpu::{FeedbackMode, GpuBackend};
 use arbor_proto::{Channel, SceneDescription};
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_tests::support::{SCANS, build_file, decoded_treelets};
@@ -274,10 +274,11 @@ fn uploads_keep_the_gpu_buffer_equal_to_the_slot_buffer() {
 }
 
 /// The [`Backend`] methods the client core calls: the first upload allocates and uploads
-/// everything, `analyse` hands back the *previous* cycle's feedback (pipelined, never waiting;
-/// here the test waits between cycles so it has completed), `render` and `render_in_place`.
+/// everything, `analyse` hands back the *previous* cycle's feedback when pipelined (never
+/// waiting; here the test waits between cycles so it has completed) and the cycle's own when
+/// it waits (also right after a pipelined cycle), `render` and `render_in_place`.
 #[test]
-fn backend_trait_pipelines_feedback_by_one_cycle() {
+fn backend_trait_pipelines_feedback_by_one_cycle_or_waits_for_it() {
     let ctx = gpu()
         .lock()
         .unwrap_or_else(|e| e.into_inner())
@@ -288,6 +289,9 @@ fn backend_trait_pipelines_feedback_by_one_cycle() {
     let frame = SceneFrame::of(&scan.scene);
     let slots = partial(&scan, &channels, scan.treelets.len() / 2);
     let mut backend = GpuBackend::new(ctx.clone());
+    backend.set_feedback_mode(FeedbackMode::Pipelined);
+    let mut waiting = GpuBackend::new(ctx.clone());
+    waiting.set_feedback_mode(FeedbackMode::Wait);
     let mut reference = GpuBackend::new(ctx);
     let max = backend.max_slots(scan.scene.treelet_nodes, &channels);
     println!(
@@ -334,6 +338,29 @@ fn backend_trait_pipelines_feedback_by_one_cycle() {
             cycle - 1
         );
         assert!(out.samples.iter().any(|s| s.is_hit()));
+        // Waiting: this cycle's own feedback, read back already; except right after a
+        // pipelined cycle, when what is in flight comes back first.
+        let mut now = Feedback::default();
+        waiting.set_feedback_mode(if cycle == 2 {
+            FeedbackMode::Pipelined
+        } else {
+            FeedbackMode::Wait
+        });
+        waiting.analyse(&input(cam), &grid(cam, cycle), cycle, &mut now);
+        match cycle {
+            2 => {}
+            3 => assert_eq!(
+                now, out,
+                "waiting after pipelining hands back cycle 2's pass"
+            ),
+            _ => {
+                reference.analyse_blocking(&slots, &frame, cam, &config, cycle, &mut expected);
+                assert_eq!(
+                    now, expected,
+                    "waiting, cycle {cycle} returns its own feedback"
+                );
+            }
+        }
     }
     let image = backend.render(&input(&cams[0]));
     assert_eq!(image, reference.render(&input(&cams[0])));

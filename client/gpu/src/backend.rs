@@ -14,14 +14,24 @@
 //!   after an allocation copies everything.
 //! - **Upload.** One `queue.write_buffer` per planned slot range per array; calls and bytes
 //!   are counted in [`UploadStats`].
-//! - **Analysis is pipelined.** [`Backend::analyse`] submits this cycle's pass, copies its
-//!   result into one of two staging buffers and requests the mapping, and returns the newest
-//!   read-back that has completed by then — normally the *previous* cycle's — without ever
-//!   waiting (only a non-blocking `device.poll`). So feedback lags one cycle; when nothing new
-//!   has completed, `out` keeps the last feedback (the core then re-marks the same visible
-//!   slots rather than seeing an empty frame), and when both staging buffers are still in
-//!   flight this cycle's pass is skipped. [`GpuBackend::analyse_blocking`] waits for this
-//!   cycle's result (tests, benchmarks).
+//! - **Analysis waits while that is cheap, else it is pipelined** ([`FeedbackMode`]).
+//!   - Pipelined: [`Backend::analyse`] submits this cycle's pass, copies its result into one
+//!     of two staging buffers and requests the mapping, and returns the newest read-back that
+//!     has completed by then — normally the *previous* cycle's — without ever waiting (only a
+//!     non-blocking `device.poll`). So feedback lags one cycle; when nothing new has completed,
+//!     `out` keeps the last feedback (the core then re-marks the same visible slots rather
+//!     than seeing an empty frame), and when both staging buffers are still in flight this
+//!     cycle's pass is skipped.
+//!   - Waiting: the pass's own result, like the CPU twin's. A late feedback costs a cycle per
+//!     round of refinement, and describes the previous camera while it moves, so a moving
+//!     view never knew itself (no bias control, no eviction outside it). On an H100 the wait
+//!     is about a millisecond, and lion-1k at 256², 12 MiB, converged in 47–57 cycles
+//!     pipelined against 23 on the CPU backend.
+//!   - [`FeedbackMode::Auto`] (the default) waits for passes of at most
+//!     [`WAIT_SAMPLES_MAX`] samples while the waits stay within [`WAIT_BELOW`]; after a longer
+//!     one it pipelines for [`PIPELINE_CYCLES`] and then tries again. Going from pipelining to
+//!     waiting first hands back what is in flight. [`GpuBackend::analyse_blocking`] always waits (tests,
+//!     benchmarks).
 //! - **Render** writes an `rgba8unorm` storage texture ([`GpuBackend::target_view`]);
 //!   [`Backend::render`] also reads it back (rows padded to 256 bytes for the copy).
 //!
@@ -29,6 +39,7 @@
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU8, Ordering};
+use std::time::{Duration, Instant};
 
 use arbor_proto::{Channel, Node};
 
@@ -44,6 +55,36 @@ use arbor_client_core::render::Light;
 use arbor_client_core::slots::SlotBuffer;
 use arbor_client_core::traverse::Lod;
 use arbor_client_core::upload::UploadPlan;
+
+/// How [`Backend::analyse`] hands its feedback back (see the module docs).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum FeedbackMode {
+    /// Wait for passes of at most [`WAIT_SAMPLES_MAX`] samples while the waits stay within
+    /// [`WAIT_BELOW`]; after a longer one, pipeline for [`PIPELINE_CYCLES`].
+    #[default]
+    Auto,
+    /// Always wait for this cycle's pass.
+    Wait,
+    /// Never wait: the newest completed read-back, normally the previous cycle's.
+    Pipelined,
+}
+
+/// The longest wait for an analysis pass [`FeedbackMode::Auto`] accepts: a quarter of a
+/// 60 Hz frame. The wait includes the GPU work queued before the pass (the cycle's uploads,
+/// the last render). Measured on an H100 (lion-1k): 1–2 ms at 256², where waiting halves the
+/// cycles to converge; 6–10 ms at 1024² with a buffer that takes the whole scene, where the
+/// load limit, not the round, sets the pace, and waiting cost 0.2 s of 0.5.
+pub const WAIT_BELOW: Duration = Duration::from_millis(4);
+
+/// The most samples a pass [`FeedbackMode::Auto`] waits for (a 256² frame). Larger passes
+/// are the bulk of a view's discovery, where the load limit sets the pace; waiting for one of
+/// 1024² at the start of a view made lion-1k at 1024², 64 MiB converge in 0.82–0.90 s on an
+/// H100 against 0.52–0.56 s pipelined (its read-back alone took 59 ms).
+pub const WAIT_SAMPLES_MAX: usize = 1 << 16;
+
+/// Cycles [`FeedbackMode::Auto`] pipelines after a wait over [`WAIT_BELOW`] before it waits
+/// again to see whether the wait got shorter (the tail of a refinement samples few pixels).
+pub const PIPELINE_CYCLES: u32 = 16;
 
 /// Counters of the slot uploads.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -155,6 +196,12 @@ pub struct GpuBackend {
     timestamps: Option<Timestamps>,
     /// Samples and GPU seconds of the last collected analysis pass, when timed.
     last_analysis_cost: Option<(usize, f64)>,
+    feedback_mode: FeedbackMode,
+    /// [`FeedbackMode::Auto`]: pipelined passes still to go before the next wait.
+    pipelined_to_go: u32,
+    /// Whether [`Backend::analyse`] ran before (the first pass also creates the pipelines and
+    /// uploads the whole buffer: its wait says nothing).
+    analysed_before: bool,
     /// Upload counters.
     pub stats: UploadStats,
 }
@@ -242,8 +289,89 @@ impl GpuBackend {
             serial: 0,
             timestamps: None,
             last_analysis_cost: None,
+            feedback_mode: FeedbackMode::default(),
+            pipelined_to_go: 0,
+            analysed_before: false,
             stats: UploadStats::default(),
             ctx,
+        }
+    }
+
+    /// Sets how [`Backend::analyse`] hands feedback back (default [`FeedbackMode::Auto`]).
+    pub fn set_feedback_mode(&mut self, mode: FeedbackMode) {
+        self.feedback_mode = mode;
+    }
+
+    /// Whether this cycle's [`Backend::analyse`] of `samples` waits for its pass.
+    fn waits(&self, samples: usize) -> bool {
+        match self.feedback_mode {
+            FeedbackMode::Wait => true,
+            FeedbackMode::Pipelined => false,
+            FeedbackMode::Auto => self.pipelined_to_go == 0 && samples <= WAIT_SAMPLES_MAX,
+        }
+    }
+
+    /// Whether a pipelined pass is in flight or read back and not yet collected.
+    fn pipelined_in_flight(&self) -> bool {
+        self.feedback.as_ref().is_some_and(|fb| {
+            fb.staging
+                .iter()
+                .any(|s| matches!(s.state.load(Ordering::Acquire), MAP_PENDING | MAP_READY))
+        })
+    }
+
+    /// [`Backend::analyse`] waiting for the pass. Only when no pipelined pass is in flight:
+    /// the way from pipelining to waiting first waits for those and hands the newest back
+    /// instead of running this cycle's pass (the coverage plans its pixels again). Dropping
+    /// them instead, with an empty pass waited for in their place (which the coverage ignores),
+    /// left their pixels planned and lost in turn forever: a static view on lavapipe stalled
+    /// in 2 of 6 runs.
+    fn analyse_waiting(
+        &mut self,
+        input: &PassInput<'_>,
+        pixels: &[u32],
+        cycle: u64,
+        out: &mut Feedback,
+    ) {
+        if self.pipelined_in_flight() {
+            let _ = self.ctx.device.poll(wgpu::PollType::wait_indefinitely());
+            self.collect_feedback(out);
+            return;
+        }
+        let start = Instant::now();
+        self.analyse_pixels_loaded(
+            input.frame,
+            input.camera,
+            input.analysis.lod_bias,
+            pixels,
+            cycle,
+            out,
+        );
+        let wait = start.elapsed();
+        if self.analysed_before && wait > WAIT_BELOW {
+            tracing::debug!(
+                cycle,
+                wait_ms = wait.as_secs_f64() * 1e3,
+                "analysis read-back too slow to wait for: pipelining"
+            );
+            self.pipelined_to_go = PIPELINE_CYCLES;
+        }
+    }
+
+    /// Unmaps every completed staging buffer and makes it and every failed one idle.
+    fn release_staging(&self) {
+        let Some(fb) = &self.feedback else {
+            return;
+        };
+        for s in &fb.staging {
+            match s.state.load(Ordering::Acquire) {
+                MAP_READY => {
+                    s.buffer.unmap();
+                    s.state.store(MAP_IDLE, Ordering::Release);
+                }
+                MAP_FAILED => s.state.store(MAP_IDLE, Ordering::Release),
+                _ => {}
+            }
         }
     }
 
@@ -619,7 +747,8 @@ impl GpuBackend {
         self.encode_analysis(&u, pixels, &fb.blocking);
         let len = fb.blocking.size();
         let bytes = read_mapped(&self.ctx.device, &fb.blocking, len);
-        self.fill_feedback(&bytes, cycle, pixels, out);
+        let seconds = self.fill_feedback(&bytes, cycle, pixels, out);
+        self.last_analysis_cost = seconds.map(|t| (pixels.len(), t));
     }
 
     /// Collects completed read-backs: the newest goes to `out`, all are released.
@@ -648,12 +777,7 @@ impl GpuBackend {
             let seconds = self.fill_feedback(&bytes, s.cycle, &s.pixels, out);
             self.last_analysis_cost = seconds.map(|t| (s.pixels.len(), t));
         }
-        for s in &fb.staging {
-            if s.state.load(Ordering::Acquire) == MAP_READY {
-                s.buffer.unmap();
-                s.state.store(MAP_IDLE, Ordering::Release);
-            }
-        }
+        self.release_staging();
     }
 
     /// Creates or resizes the render target to `size`.
@@ -871,6 +995,13 @@ impl Backend for GpuBackend {
 
     fn analyse(&mut self, input: &PassInput<'_>, pixels: &[u32], cycle: u64, out: &mut Feedback) {
         self.ensure_uploaded(&input.slots.view());
+        if self.waits(pixels.len()) {
+            self.analyse_waiting(input, pixels, cycle, out);
+            self.analysed_before = true;
+            return;
+        }
+        self.analysed_before = true;
+        self.pipelined_to_go = self.pipelined_to_go.saturating_sub(1);
         let device = &self.ctx.device;
         // Non-blocking: runs the callbacks of whatever has completed.
         let _ = device.poll(wgpu::PollType::Poll);

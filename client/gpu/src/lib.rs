@@ -17,7 +17,7 @@ mod choice;
 pub mod context;
 pub mod layout;
 
-pub use backend::{GpuBackend, PassTimes, UploadStats};
+pub use backend::{FeedbackMode, GpuBackend, PassTimes, UploadStats};
 pub use choice::{BackendChoice, ChosenBackend, create_backend};
 pub use context::{GpuContext, GpuError};
 pub use layout::FrameUniform;
