@@ -27,10 +27,10 @@
 //!     view never knew itself (no bias control, no eviction outside it). On an H100 the wait
 //!     is about a millisecond, and lion-1k at 256², 12 MiB, converged in 47–57 cycles
 //!     pipelined against 23 on the CPU backend.
-//!   - [`FeedbackMode::Auto`] (the default) waits for passes of at most
-//!     [`WAIT_SAMPLES_MAX`] samples while the waits stay within [`WAIT_BELOW`]; after a longer
+//!   - [`FeedbackMode::Auto`] (the default) waits for the passes of frames up to
+//!     [`WAIT_FRAME_PIXELS_MAX`] while the waits stay within [`WAIT_BELOW`]; after a longer
 //!     one it pipelines for [`PIPELINE_CYCLES`] and then tries again. Going from pipelining to
-//!     waiting first hands back what is in flight. [`GpuBackend::analyse_blocking`] always waits (tests,
+//!     waiting first hands back what is in flight. Larger frames pipeline. [`GpuBackend::analyse_blocking`] always waits (tests,
 //!     benchmarks).
 //! - **Render** writes an `rgba8unorm` storage texture ([`GpuBackend::target_view`]);
 //!   [`Backend::render`] also reads it back (rows padded to 256 bytes for the copy).
@@ -59,7 +59,7 @@ use arbor_client_core::upload::UploadPlan;
 /// How [`Backend::analyse`] hands its feedback back (see the module docs).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum FeedbackMode {
-    /// Wait for passes of at most [`WAIT_SAMPLES_MAX`] samples while the waits stay within
+    /// Wait for the passes of frames up to [`WAIT_FRAME_PIXELS_MAX`] while the waits stay within
     /// [`WAIT_BELOW`]; after a longer one, pipeline for [`PIPELINE_CYCLES`].
     #[default]
     Auto,
@@ -72,15 +72,15 @@ pub enum FeedbackMode {
 /// The longest wait for an analysis pass [`FeedbackMode::Auto`] accepts: a quarter of a
 /// 60 Hz frame. The wait includes the GPU work queued before the pass (the cycle's uploads,
 /// the last render). Measured on an H100 (lion-1k): 1–2 ms at 256², where waiting halves the
-/// cycles to converge; 6–10 ms at 1024² with a buffer that takes the whole scene, where the
-/// load limit, not the round, sets the pace, and waiting cost 0.2 s of 0.5.
+/// cycles to converge; 6–10 ms at 1024².
 pub const WAIT_BELOW: Duration = Duration::from_millis(4);
 
-/// The most samples a pass [`FeedbackMode::Auto`] waits for (a 256² frame). Larger passes
-/// are the bulk of a view's discovery, where the load limit sets the pace; waiting for one of
-/// 1024² at the start of a view made lion-1k at 1024², 64 MiB converge in 0.82–0.90 s on an
-/// H100 against 0.52–0.56 s pipelined (its read-back alone took 59 ms).
-pub const WAIT_SAMPLES_MAX: usize = 1 << 16;
+/// The largest frame, in pixels, whose passes [`FeedbackMode::Auto`] waits for (256²). At 1024²
+/// on an H100 (lion-1k, 64 MiB) waiting made the view wholly known from its second cycle, and
+/// the presort over a million known samples then cost 25–35 ms a cycle: RMSE 0 at 0.79–0.91 s
+/// against 0.51–0.57 s pipelined, where the knowledge grows over a dozen cycles while the load
+/// limit sets the pace anyway.
+pub const WAIT_FRAME_PIXELS_MAX: u64 = 1 << 16;
 
 /// Cycles [`FeedbackMode::Auto`] pipelines after a wait over [`WAIT_BELOW`] before it waits
 /// again to see whether the wait got shorter (the tail of a refinement samples few pixels).
@@ -302,12 +302,14 @@ impl GpuBackend {
         self.feedback_mode = mode;
     }
 
-    /// Whether this cycle's [`Backend::analyse`] of `samples` waits for its pass.
-    fn waits(&self, samples: usize) -> bool {
+    /// Whether this cycle's [`Backend::analyse`] of a `frame_pixels` frame waits for its pass.
+    fn waits(&self, frame_pixels: u64) -> bool {
         match self.feedback_mode {
             FeedbackMode::Wait => true,
             FeedbackMode::Pipelined => false,
-            FeedbackMode::Auto => self.pipelined_to_go == 0 && samples <= WAIT_SAMPLES_MAX,
+            FeedbackMode::Auto => {
+                self.pipelined_to_go == 0 && frame_pixels <= WAIT_FRAME_PIXELS_MAX
+            }
         }
     }
 
@@ -995,7 +997,8 @@ impl Backend for GpuBackend {
 
     fn analyse(&mut self, input: &PassInput<'_>, pixels: &[u32], cycle: u64, out: &mut Feedback) {
         self.ensure_uploaded(&input.slots.view());
-        if self.waits(pixels.len()) {
+        let frame_pixels = u64::from(input.camera.width) * u64::from(input.camera.height);
+        if self.waits(frame_pixels) {
             self.analyse_waiting(input, pixels, cycle, out);
             self.analysed_before = true;
             return;
