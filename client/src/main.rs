@@ -19,7 +19,7 @@ use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::presort::PriorityPolicy;
 use arbor_client_core::render::Light;
 use arbor_client_core::upload::DEFAULT_FILL_RATIO;
-use arbor_client_gpu::{BackendChoice, create_backend};
+use arbor_client_gpu::{BackendChoice, FeedbackMode, create_backend_with};
 use arbor_client_net::{ClientConfig, Trust, parse_server_url};
 use arbor_client_session::headless::{HeadlessConfig, run_headless_with};
 use arbor_client_session::reference::{ReferenceView, streamed_reference};
@@ -122,6 +122,11 @@ struct View {
     /// ones included; else the CPU reference, said on stderr), gpu, or cpu.
     #[arg(long, default_value = "auto")]
     backend: String,
+    /// GPU only: whether a cycle waits for its analysis pass: auto (for frames up to 256² while
+    /// the wait stays within 4 ms), wait (always: a moving view then knows itself), or
+    /// pipelined (never: the feedback comes a cycle late).
+    #[arg(long, default_value = "auto")]
+    feedback: String,
 }
 
 #[derive(Args, Debug)]
@@ -475,7 +480,7 @@ fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         until_converged: a.until_converged,
         render_every: a.render_every,
     };
-    let backend = backend(&a.view.backend)?;
+    let backend = backend(&a.view.backend, &a.view.feedback)?;
     let run = run_headless_with(config, runtime, backend, |_| {})?;
     run.image
         .save_png(&a.out)
@@ -527,7 +532,7 @@ fn reference(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
     )?;
     let frame = arbor_client_core::incore::SceneFrame::of(&scene);
     let camera = camera_path.camera(a.cycle, &frame, a.view.seed, width, height);
-    let mut backend = backend(&a.view.backend)?;
+    let mut backend = backend(&a.view.backend, &a.view.feedback)?;
     let image = reference_image(
         &scene,
         &channels,
@@ -566,7 +571,7 @@ fn streamed(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         lod_bias: a.view.lod_bias,
         light: &light,
     };
-    let mut backend = backend(&a.view.backend)?;
+    let mut backend = backend(&a.view.backend, &a.view.feedback)?;
     let r = streamed_reference(
         &client_config(&a.connection)?,
         &channels(&a.connection.channels)?,
@@ -611,11 +616,14 @@ fn peak_rss_mib() -> f64 {
         .map_or(0.0, |kib| kib / 1024.0)
 }
 
-/// Makes the backend `--backend` names, saying on stderr when `auto` falls back to the CPU.
-fn backend(text: &str) -> Result<Box<dyn Backend>> {
+/// Makes the backend `--backend` names, with the feedback `--feedback` names, saying on stderr
+/// when `auto` falls back to the CPU.
+fn backend(text: &str, feedback: &str) -> Result<Box<dyn Backend>> {
     let choice = BackendChoice::parse(text)
         .with_context(|| format!("backend {text:?} (auto, gpu or cpu)"))?;
-    let chosen = create_backend(choice).context("opening the GPU")?;
+    let feedback = FeedbackMode::parse(feedback)
+        .with_context(|| format!("feedback {feedback:?} (auto, wait or pipelined)"))?;
+    let chosen = create_backend_with(choice, feedback).context("opening the GPU")?;
     if let Some(reason) = &chosen.fallback {
         eprintln!("note: no GPU adapter, falling back to the CPU reference renderer: {reason}");
     }

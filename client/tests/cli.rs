@@ -63,6 +63,7 @@ fn absurd_parameters_are_refused_by_name() {
         (&["--camera-path", "spiral"], "spiral"),
         (&["--camera-path", "orbit:nan"], "orbit"),
         (&["--policy", "random"], "policy"),
+        (&["--feedback", "sometimes"], "feedback"),
         (&["--channels", "colour"], "colour"),
         (&["--cycle-ms=-5"], "cycle time"),
         (&["--reference", "/nonexistent/ref.png"], "reference"),

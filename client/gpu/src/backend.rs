@@ -69,6 +69,18 @@ pub enum FeedbackMode {
     Pipelined,
 }
 
+impl FeedbackMode {
+    /// Parses `auto`, `wait` or `pipelined` (the CLI spelling).
+    pub fn parse(text: &str) -> Option<Self> {
+        match text {
+            "auto" => Some(Self::Auto),
+            "wait" => Some(Self::Wait),
+            "pipelined" => Some(Self::Pipelined),
+            _ => None,
+        }
+    }
+}
+
 /// The longest wait for an analysis pass [`FeedbackMode::Auto`] accepts: a quarter of a
 /// 60 Hz frame. The wait includes the GPU work queued before the pass (the cycle's uploads,
 /// the last render). Measured on an H100 (lion-1k): 1–2 ms at 256², where waiting halves the

@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use arbor_client_core::backend::{Backend, CpuBackend};
 
-use crate::{GpuBackend, GpuContext, GpuError};
+use crate::{FeedbackMode, GpuBackend, GpuContext, GpuError};
 
 /// Which backend a run asks for.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -43,18 +43,32 @@ pub struct ChosenBackend {
 
 /// Makes the backend `choice` asks for.
 pub fn create_backend(choice: BackendChoice) -> Result<ChosenBackend, GpuError> {
+    create_backend_with(choice, FeedbackMode::default())
+}
+
+/// [`create_backend`] with the GPU backend's [`FeedbackMode`] (the CPU twins always answer at
+/// once).
+pub fn create_backend_with(
+    choice: BackendChoice,
+    feedback: FeedbackMode,
+) -> Result<ChosenBackend, GpuError> {
+    let gpu = |ctx: GpuContext| {
+        let mut b = GpuBackend::timed(Arc::new(ctx));
+        b.set_feedback_mode(feedback);
+        Box::new(b) as Box<dyn Backend>
+    };
     match choice {
         BackendChoice::Cpu => Ok(ChosenBackend {
             backend: Box::new(CpuBackend),
             fallback: None,
         }),
         BackendChoice::Gpu => Ok(ChosenBackend {
-            backend: Box::new(GpuBackend::timed(Arc::new(GpuContext::new(None)?))),
+            backend: gpu(GpuContext::new(None)?),
             fallback: None,
         }),
         BackendChoice::Auto => match GpuContext::new(None) {
             Ok(ctx) => Ok(ChosenBackend {
-                backend: Box::new(GpuBackend::timed(Arc::new(ctx))),
+                backend: gpu(ctx),
                 fallback: None,
             }),
             Err(e) => Ok(ChosenBackend {
@@ -62,5 +76,24 @@ pub fn create_backend(choice: BackendChoice) -> Result<ChosenBackend, GpuError> 
                 fallback: Some(e.to_string()),
             }),
         },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cli_spellings_parse_and_nothing_else() {
+        assert_eq!(BackendChoice::parse("gpu"), Some(BackendChoice::Gpu));
+        assert_eq!(FeedbackMode::parse("auto"), Some(FeedbackMode::Auto));
+        assert_eq!(FeedbackMode::parse("wait"), Some(FeedbackMode::Wait));
+        assert_eq!(
+            FeedbackMode::parse("pipelined"),
+            Some(FeedbackMode::Pipelined)
+        );
+        for bad in ["", "Wait", "sync", "pipeline"] {
+            assert_eq!(FeedbackMode::parse(bad), None, "{bad:?}");
+        }
     }
 }

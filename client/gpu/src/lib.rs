@@ -18,7 +18,7 @@ pub mod context;
 pub mod layout;
 
 pub use backend::{FeedbackMode, GpuBackend, PassTimes, UploadStats};
-pub use choice::{BackendChoice, ChosenBackend, create_backend};
+pub use choice::{BackendChoice, ChosenBackend, create_backend, create_backend_with};
 pub use context::{GpuContext, GpuError};
 pub use layout::FrameUniform;
 
