@@ -94,6 +94,8 @@ pub struct Coverage {
     /// resample of a pixel forgotten earlier look stale too, and the pixel was never planned
     /// again (the view never became wholly known, and a full buffer stalled).
     forgotten_at: Vec<u64>,
+    /// Changes whenever what [`Coverage::known_samples`] yields may have changed.
+    generation: u64,
 }
 
 impl Coverage {
@@ -120,6 +122,7 @@ impl Coverage {
             hints_cycle: 0,
             sampled_since_reset: 0,
             forgotten_at: vec![0; pixels],
+            generation: 0,
         }
     }
 
@@ -153,8 +156,15 @@ impl Coverage {
         self.known == self.pixels() && self.dirty == 0
     }
 
+    /// A number that changes whenever what [`Coverage::known_samples`] yields may have changed
+    /// (samples taken, pixels forgotten, a reset, new hints): equal numbers, equal samples.
+    pub fn generation(&self) -> u64 {
+        self.generation
+    }
+
     /// Forgets everything (the view changed at `cycle`): feedback of earlier cycles is ignored.
     pub fn reset(&mut self, cycle: u64) {
+        self.generation += 1;
         self.epoch = self.epoch.wrapping_add(1);
         if self.epoch == 0 {
             // Wrapped: old stamps could alias the new epoch.
@@ -182,6 +192,7 @@ impl Coverage {
     /// at `cycle`: they are sampled again first, and feedback of earlier cycles for them no
     /// longer counts. For an eviction, whose restored leaf only rays through its box can meet.
     pub fn forget(&mut self, cycle: u64, rects: &[[u32; 4]]) {
+        self.generation += 1;
         let (w, h) = (self.width, self.height);
         if w == 0 || h == 0 {
             return;
@@ -350,6 +361,7 @@ impl Coverage {
         if feedback.cycle < self.valid_from {
             if feedback.cycle >= self.hints_from() && feedback.cycle >= self.hints_cycle {
                 let (width, height) = (self.width, self.height);
+                self.generation += 1;
                 self.hints.clear();
                 self.hints_cycle = feedback.cycle;
                 self.hints.extend(
@@ -375,6 +387,11 @@ impl Coverage {
                 continue;
             }
             if self.epochs[i] == self.epoch {
+                if self.samples[i] == *s {
+                    // Resampled alike (a pipelined backend hands its last pass back again).
+                    self.sampled_since_reset += 1;
+                    continue;
+                }
                 if self.samples[i].wants_refinement() {
                     self.dirty -= 1;
                 }
@@ -382,6 +399,7 @@ impl Coverage {
                 self.epochs[i] = self.epoch;
                 self.known += 1;
             }
+            self.generation += 1;
             self.samples[i] = *s;
             if s.wants_refinement() {
                 self.dirty += 1;
@@ -490,6 +508,34 @@ mod tests {
                 })
                 .collect(),
         }
+    }
+
+    #[test]
+    fn the_generation_changes_exactly_when_the_known_samples_may() {
+        let mut c = Coverage::new(8, 8, 8);
+        let g0 = c.generation();
+        let plan = c.plan(0, 64, |_| false);
+        assert_eq!(c.generation(), g0, "planning changes no sample");
+        let fb = answer(0, &plan, |x, _| sample(5, x as f32 + 1.0));
+        c.handle_feedback(&fb);
+        let g1 = c.generation();
+        assert_ne!(g1, g0);
+        // The same pass handed back again (a pipelined backend with nothing new): no change.
+        c.handle_feedback(&fb);
+        assert_eq!(c.generation(), g1);
+        assert_eq!(c.known(), 64);
+        // One pixel resampled differently.
+        c.handle_feedback(&answer(1, &[pack_pixel(3, 3)], |_, _| {
+            sample(Node::NONE, -1.0)
+        }));
+        let g2 = c.generation();
+        assert_ne!(g2, g1);
+        assert_eq!(c.dirty(), 63);
+        c.forget(2, &[[0, 0, 1, 1]]);
+        assert_ne!(c.generation(), g2);
+        let g3 = c.generation();
+        c.reset(3);
+        assert_ne!(c.generation(), g3);
     }
 
     #[test]

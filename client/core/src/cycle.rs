@@ -113,6 +113,24 @@ pub struct CoreConfig {
     pub look_past: u8,
 }
 
+/// What a presort of the view's samples depended on, when nothing was in the backlog or on its
+/// way.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct PresortKey {
+    coverage: u64,
+    inserted: u64,
+    evicted: u64,
+}
+
+/// A presort's result and its [`PresortKey`].
+#[derive(Debug)]
+struct PresortMemo {
+    key: PresortKey,
+    visible: Vec<u32>,
+    requests: Vec<RequestItem>,
+    distinct: usize,
+}
+
 /// Default [`CoreConfig::look_past`].
 pub const DEFAULT_LOOK_PAST: u8 = 2;
 
@@ -367,6 +385,12 @@ pub struct ClientCore {
     config: CoreConfig,
     slots: SlotBuffer,
     presort: Presort,
+    /// The last presort of the view's samples and what it depended on: a view whose samples and
+    /// resident set have not changed (a converged view, every cycle) gets it again instead of
+    /// another pass over every known pixel (a million at 1024²).
+    presort_memo: Option<PresortMemo>,
+    /// [`Self::error_summary`]'s last result and the coverage generation it was made at.
+    error_memo: Option<(u64, ErrorSummary)>,
     feedback: Feedback,
     coverage: Coverage,
     bias: LodBiasControl,
@@ -463,6 +487,8 @@ impl ClientCore {
         Ok(Self {
             frame: SceneFrame::of(&scene),
             presort: Presort::new(config.policy, config.max_requests),
+            presort_memo: None,
+            error_memo: None,
             coverage: Coverage::new(0, 0, config.analysis.ratio),
             bias: LodBiasControl::new(config.analysis.lod_bias),
             frustum,
@@ -789,11 +815,7 @@ impl ClientCore {
         let room = (room as usize).min(self.backlog_cap());
         requests.truncate(room.saturating_sub(self.pending()));
         self.evicted_outside += evicted;
-        let errors: Vec<f32> = self
-            .coverage
-            .known_samples()
-            .map(|(_, s)| s.refinable_error())
-            .collect();
+        let error = self.error_summary();
         let samples = self.feedback.samples.iter().filter(|s| s.is_hit()).count() as u32;
         let pixels = self.coverage.pixels().max(1);
         self.cycle += 1;
@@ -808,7 +830,7 @@ impl ClientCore {
             requests: requests.iter().map(|r| (r.id, r.priority)).collect(),
             distinct_requests: distinct,
             samples,
-            error: ErrorSummary::from_samples(&errors, 1.0),
+            error,
             lod_bias: bias_in_effect,
             bias_changed,
             known_share: f64::from(self.coverage.known()) / f64::from(pixels),
@@ -816,8 +838,59 @@ impl ClientCore {
         }
     }
 
+    /// The error of every known pixel, summarised; the last one again while the samples have
+    /// not changed (its p95 is a selection over every known pixel).
+    fn error_summary(&mut self) -> ErrorSummary {
+        let generation = self.coverage.generation();
+        if let Some((g, e)) = &self.error_memo
+            && *g == generation
+        {
+            return *e;
+        }
+        let errors: Vec<f32> = self
+            .coverage
+            .known_samples()
+            .map(|(_, s)| s.refinable_error())
+            .collect();
+        let error = ErrorSummary::from_samples(&errors, 1.0);
+        self.error_memo = Some((generation, error));
+        error
+    }
+
     /// Visible slots and requests from every known pixel of the view.
     fn select_from_feedback(&mut self) -> (Vec<u32>, Vec<RequestItem>, usize) {
+        // With nothing in the backlog or on its way, the presort reads only the samples and the
+        // resident set.
+        let key = (self.backlog_ids.is_empty() && self.arriving.is_empty()).then(|| PresortKey {
+            coverage: self.coverage.generation(),
+            inserted: self.slots.stats().inserted,
+            evicted: self.slots.stats().evicted,
+        });
+        if let (Some(key), Some(memo)) = (key, &self.presort_memo)
+            && memo.key == key
+        {
+            let hit = (memo.visible.clone(), memo.requests.clone(), memo.distinct);
+            // Every test run checks the memo against a fresh presort.
+            #[cfg(debug_assertions)]
+            assert_eq!(
+                self.presort_samples(),
+                hit,
+                "a memoised presort differs from a fresh one"
+            );
+            return hit;
+        }
+        let (visible, requests, distinct) = self.presort_samples();
+        self.presort_memo = key.map(|key| PresortMemo {
+            key,
+            visible: visible.clone(),
+            requests: requests.clone(),
+            distinct,
+        });
+        (visible, requests, distinct)
+    }
+
+    /// [`Self::select_from_feedback`] computed afresh.
+    fn presort_samples(&mut self) -> (Vec<u32>, Vec<RequestItem>, usize) {
         let slots = &self.slots;
         let backlog = &self.backlog_ids;
         let arriving = &self.arriving;
