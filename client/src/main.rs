@@ -238,6 +238,10 @@ struct ViewArgs {
     /// (gpu: the window needs an adapter anyway).
     #[arg(long, default_value = "auto")]
     backend: String,
+    /// GPU only: whether a frame waits for its analysis pass: auto (for frames up to 256² while
+    /// the wait stays within 4 ms), wait, or pipelined.
+    #[arg(long, default_value = "auto")]
+    feedback: String,
     /// Start with the statistics overlay hidden (H toggles it).
     #[arg(long)]
     no_overlay: bool,
@@ -382,6 +386,8 @@ fn view(mut a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
     let (width, height) = size(&a.size)?;
     let backend = BackendChoice::parse(&a.backend)
         .with_context(|| format!("backend {:?} (auto, gpu or cpu)", a.backend))?;
+    let feedback = FeedbackMode::parse(&a.feedback)
+        .with_context(|| format!("feedback {:?} (auto, wait or pipelined)", a.feedback))?;
     let config = ViewerConfig {
         session: SessionConfig {
             client: client_config(&a.connection)?,
@@ -408,6 +414,7 @@ fn view(mut a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         width,
         height,
         backend,
+        feedback,
         overlay: !a.no_overlay,
         screenshot: a.screenshot,
         report: a.report,

@@ -35,7 +35,7 @@ mod window;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use arbor_client_gpu::BackendChoice;
+use arbor_client_gpu::{BackendChoice, FeedbackMode};
 use arbor_client_session::{RunError, SessionConfig};
 
 pub use window::run;
@@ -50,6 +50,8 @@ pub struct ViewerConfig {
     pub width: u32,
     pub height: u32,
     pub backend: BackendChoice,
+    /// Whether a GPU frame waits for its analysis pass ([`FeedbackMode`]).
+    pub feedback: FeedbackMode,
     /// Draw the statistics overlay (`H` toggles).
     pub overlay: bool,
     /// Written once the view converges with the camera never moved.

@@ -311,10 +311,11 @@ impl App {
         size: (u32, u32),
     ) -> (Box<dyn Backend>, FrameSource) {
         match self.config.backend {
-            BackendChoice::Gpu | BackendChoice::Auto => (
-                Box::new(GpuBackend::timed(gpu.clone())),
-                FrameSource::InPlace,
-            ),
+            BackendChoice::Gpu | BackendChoice::Auto => {
+                let mut backend = GpuBackend::timed(gpu.clone());
+                backend.set_feedback_mode(self.config.feedback);
+                (Box::new(backend), FrameSource::InPlace)
+            }
             BackendChoice::Cpu => (
                 Box::new(CpuBackend),
                 FrameSource::Upload(FrameTexture::new(&gpu.device, size.0, size.1)),
