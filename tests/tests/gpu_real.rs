@@ -292,6 +292,8 @@ fn backend_trait_pipelines_feedback_by_one_cycle_or_waits_for_it() {
     backend.set_feedback_mode(FeedbackMode::Pipelined);
     let mut waiting = GpuBackend::new(ctx.clone());
     waiting.set_feedback_mode(FeedbackMode::Wait);
+    let software = ctx.is_software();
+    let mut auto = GpuBackend::new(ctx.clone());
     let mut reference = GpuBackend::new(ctx);
     let max = backend.max_slots(scan.scene.treelet_nodes, &channels);
     println!(
@@ -360,6 +362,20 @@ fn backend_trait_pipelines_feedback_by_one_cycle_or_waits_for_it() {
                     "waiting, cycle {cycle} returns its own feedback"
                 );
             }
+        }
+        // Auto, at this small frame: waits on a software adapter always, on a hardware one
+        // while the waits are short (else an earlier pass of this run comes back).
+        let mut auto_fb = Feedback::default();
+        auto.analyse(&input(cam), &grid(cam, cycle), cycle, &mut auto_fb);
+        if software {
+            reference.analyse_blocking(&slots, &frame, cam, &config, cycle, &mut expected);
+            assert_eq!(auto_fb, expected, "auto on a software adapter waits");
+        } else {
+            assert!(
+                (1..=cycle).contains(&auto_fb.cycle),
+                "auto returned cycle {}'s pass in cycle {cycle}",
+                auto_fb.cycle
+            );
         }
     }
     let image = backend.render(&input(&cams[0]));

@@ -88,6 +88,11 @@ impl GpuContext {
     pub fn describe(&self) -> String {
         describe(&self.info)
     }
+
+    /// Whether the adapter is a software one (lavapipe): its passes run on the CPU's cores.
+    pub fn is_software(&self) -> bool {
+        self.info.device_type == wgpu::DeviceType::Cpu
+    }
 }
 
 fn describe(info: &wgpu::AdapterInfo) -> String {
