@@ -25,7 +25,7 @@
 //!   - Waiting: the pass's own result, like the CPU twin's. A late feedback costs a cycle per
 //!     round of refinement, and describes the previous camera while it moves, so a moving
 //!     view never knew itself (no bias control, no eviction outside it). On an H100 the wait
-//!     is about a millisecond, and lion-1k at 256², 12 MiB, converged in 47–57 cycles
+//!     is about a millisecond, and lion-1k at 256², 12 MiB, converged in 47–68 cycles
 //!     pipelined against 23 on the CPU backend.
 //!   - [`FeedbackMode::Auto`] (the default) waits for the passes of frames up to
 //!     [`WAIT_FRAME_PIXELS_MAX`] while the waits stay within [`WAIT_BELOW`]; after a longer
@@ -340,7 +340,9 @@ impl GpuBackend {
         })
     }
 
-    /// [`Backend::analyse`] waiting for the pass. Only when no pipelined pass is in flight:
+    /// [`Backend::analyse`] waiting for the pass; `judged`: whether a wait over [`WAIT_BELOW`]
+    /// makes [`FeedbackMode::Auto`] pipeline (not the first pass's). Only when no pipelined
+    /// pass is in flight:
     /// the way from pipelining to waiting first waits for those and hands the newest back
     /// instead of running this cycle's pass (the coverage plans its pixels again). Dropping
     /// them instead, with an empty pass waited for in their place (which the coverage ignores),
@@ -351,6 +353,7 @@ impl GpuBackend {
         input: &PassInput<'_>,
         pixels: &[u32],
         cycle: u64,
+        judged: bool,
         out: &mut Feedback,
     ) {
         if self.pipelined_in_flight() {
@@ -368,30 +371,13 @@ impl GpuBackend {
             out,
         );
         let wait = start.elapsed();
-        if self.analysed_before && wait > WAIT_BELOW {
+        if judged && wait > WAIT_BELOW {
             tracing::debug!(
                 cycle,
                 wait_ms = wait.as_secs_f64() * 1e3,
                 "analysis read-back too slow to wait for: pipelining"
             );
             self.pipelined_to_go = PIPELINE_CYCLES;
-        }
-    }
-
-    /// Unmaps every completed staging buffer and makes it and every failed one idle.
-    fn release_staging(&self) {
-        let Some(fb) = &self.feedback else {
-            return;
-        };
-        for s in &fb.staging {
-            match s.state.load(Ordering::Acquire) {
-                MAP_READY => {
-                    s.buffer.unmap();
-                    s.state.store(MAP_IDLE, Ordering::Release);
-                }
-                MAP_FAILED => s.state.store(MAP_IDLE, Ordering::Release),
-                _ => {}
-            }
         }
     }
 
@@ -797,7 +783,12 @@ impl GpuBackend {
             let seconds = self.fill_feedback(&bytes, s.cycle, &s.pixels, out);
             self.last_analysis_cost = seconds.map(|t| (s.pixels.len(), t));
         }
-        self.release_staging();
+        for s in &fb.staging {
+            if s.state.load(Ordering::Acquire) == MAP_READY {
+                s.buffer.unmap();
+                s.state.store(MAP_IDLE, Ordering::Release);
+            }
+        }
     }
 
     /// Creates or resizes the render target to `size`.
@@ -1016,12 +1007,11 @@ impl Backend for GpuBackend {
     fn analyse(&mut self, input: &PassInput<'_>, pixels: &[u32], cycle: u64, out: &mut Feedback) {
         self.ensure_uploaded(&input.slots.view());
         let frame_pixels = u64::from(input.camera.width) * u64::from(input.camera.height);
+        let judged = std::mem::replace(&mut self.analysed_before, true);
         if self.waits(frame_pixels) {
-            self.analyse_waiting(input, pixels, cycle, out);
-            self.analysed_before = true;
+            self.analyse_waiting(input, pixels, cycle, judged, out);
             return;
         }
-        self.analysed_before = true;
         self.pipelined_to_go = self.pipelined_to_go.saturating_sub(1);
         let device = &self.ctx.device;
         // Non-blocking: runs the callbacks of whatever has completed.
