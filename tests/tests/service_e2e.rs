@@ -319,8 +319,9 @@ async fn refusals(svc: &Service) {
 
 /// A client evicts a treelet right after it arrived and asks for it again, and the list stays
 /// the same from then on (a client sends a list only when it changes). The list came within the
-/// server's redelivery guard, so the treelet is not sent at once; it must come once the guard
-/// has passed, exactly once. Before, it never came: on a 16-core machine `client_e2e`'s
+/// server's redelivery guard, or even before the server saw the delivery end (a CI run on 2
+/// cores failed that way while only the guard deferred), so the treelet is not sent at once;
+/// it must come once the guard has passed, exactly once. Before, it never came: on a 16-core machine `client_e2e`'s
 /// loopback views stalled that way in 6 of 8 runs.
 async fn re_request_within_the_guard(svc: &Service) {
     let layout = svc.scene.layout.channels().to_vec();

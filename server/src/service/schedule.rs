@@ -51,9 +51,10 @@
 //!   except within the connection's `redelivery_guard` after its delivery: a client builds each
 //!   list before it has seen the treelets already on their way, so lists arriving up to about one
 //!   round trip (plus one client cycle) after a delivery still name it. The service sets the
-//!   guard from its RTT estimate; `Duration::ZERO` turns it off. Such a treelet is *deferred*,
-//!   not dropped: if the list still names it once the guard has passed, the client really
-//!   wants it again (it had evicted it), and [`Scheduler::release_deferred`] queues it. A client
+//!   guard from its RTT estimate; `Duration::ZERO` turns it off. Such a treelet, and one a new
+//!   list names while it is still in flight, is *deferred*, not dropped: if the list still
+//!   names it once it is delivered and the guard has passed, the client really wants it again
+//!   (it had evicted it), and [`Scheduler::release_deferred`] queues it, once. A client
 //!   sends a list only when it changes, so a dropped one stayed unsent for good, and the
 //!   client's view stalled with a full buffer (on a 16-core machine, loopback views in
 //!   `client_e2e` stalled in 6 of 8 runs).
@@ -654,7 +655,10 @@ impl Scheduler {
             .by_id
             .iter()
             .filter(|w| {
+                // In flight, the client may already hold it (and have evicted it): wanted
+                // again once delivered and its guard has passed.
                 if conn.in_flight.contains_key(&w.id) {
+                    deferred.push((now + guard, w.id));
                     return false;
                 }
                 if conn.recently_delivered(w.id, start) {
@@ -679,9 +683,9 @@ impl Scheduler {
         })
     }
 
-    /// Queues the deferred treelets of connection `id` whose redelivery guard has passed at
-    /// `now` and that its current list still names (see the module docs); returns how many.
-    /// The service calls it on its tick.
+    /// Queues the deferred treelets of connection `id` that are neither in flight nor within a
+    /// redelivery guard at `now` and that its current list still names (see the module docs),
+    /// each once per list; returns how many. The service calls it on its tick.
     pub fn release_deferred(&mut self, id: ConnectionId, now: Instant) -> usize {
         let Some(conn) = self.conns.get_mut(&id) else {
             return 0;
@@ -693,14 +697,15 @@ impl Scheduler {
         let mut released = 0;
         let mut deferred = std::mem::take(&mut conn.deferred);
         deferred.retain(|&(end, treelet)| {
-            if end > now {
+            // Still on its way, or delivered (again, a push say) within a guard: wait for that
+            // guard to pass too.
+            if end > now
+                || conn.in_flight.contains_key(&treelet)
+                || conn.recently_delivered(treelet, start)
+            {
                 return true;
             }
-            // Delivered again since (a push, say), or on its way: nothing to do.
-            if !conn.in_flight.contains_key(&treelet)
-                && !conn.recently_delivered(treelet, start)
-                && let Some(w) = conn.wanted(treelet)
-            {
+            if let Some(w) = conn.wanted(treelet) {
                 conn.retry.push(Retry(w.id, w.priority));
                 released += 1;
             }
@@ -1229,11 +1234,15 @@ mod tests {
         assert_eq!(drain(&mut s, ms(50)), vec![(A, 3)]);
         assert_eq!(s.release_deferred(A, ms(100)), 0, "guard not over");
         assert_eq!(drain(&mut s, ms(100)), vec![]);
-        // 2 was sent again meanwhile (say as a push): only 1 is released.
+        // 2 was sent again meanwhile (say as a push): only 1 is released, 2 after its new
+        // guard.
         assert_eq!(s.poll_transmit(ms(105)), None);
         s.conns.get_mut(&A).unwrap().record_delivery(t(2), ms(105));
         assert_eq!(s.release_deferred(A, ms(111)), 1);
         assert_eq!(drain(&mut s, ms(111)), vec![(A, 1)]);
+        assert_eq!(s.release_deferred(A, ms(200)), 0);
+        assert_eq!(s.release_deferred(A, ms(206)), 1);
+        assert_eq!(drain(&mut s, ms(206)), vec![(A, 2)]);
         assert_eq!(s.release_deferred(A, ms(500)), 0, "released once");
         // A new list replaces what was deferred.
         s.handle_delivered(A, t(1), ms(520));
@@ -1243,6 +1252,22 @@ mod tests {
             .unwrap();
         assert_eq!(s.release_deferred(A, ms(700)), 0);
         assert_eq!(drain(&mut s, ms(700)), vec![(A, 4)]);
+    }
+
+    #[test]
+    fn a_list_naming_a_treelet_in_flight_gets_it_after_its_delivery_and_guard() {
+        let (mut s, ms) = guarded_with_two_in_flight();
+        // The client already holds 1 (its delivery not yet acknowledged), evicted it and asks
+        // again: not started twice while in flight.
+        s.handle_request_list(A, 2, list(&[(1, 1.0)]), ms(5))
+            .unwrap();
+        assert_eq!(drain(&mut s, ms(5)), vec![]);
+        assert_eq!(s.release_deferred(A, ms(150)), 0, "still in flight");
+        s.handle_delivered(A, t(1), ms(160));
+        assert_eq!(s.release_deferred(A, ms(200)), 0, "within the guard");
+        assert_eq!(s.release_deferred(A, ms(261)), 1);
+        assert_eq!(drain(&mut s, ms(261)), vec![(A, 1)]);
+        assert_eq!(s.release_deferred(A, ms(900)), 0, "released once");
     }
 
     #[test]
