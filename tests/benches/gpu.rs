@@ -97,8 +97,8 @@ fn main() {
         &format!("upload, whole buffer ({} slots)", slots.capacity()),
         0,
         measure(|| {
-            gpu.upload(&slots, &all);
-            gpu.finish();
+            gpu.upload(&slots, &all).expect("GPU upload");
+            gpu.finish().expect("GPU idle");
             None
         }),
     );
@@ -112,8 +112,8 @@ fn main() {
         ),
         0,
         measure(|| {
-            gpu.upload(&slots, &plan);
-            gpu.finish();
+            gpu.upload(&slots, &plan).expect("GPU upload");
+            gpu.finish().expect("GPU idle");
             None
         }),
     );
@@ -129,8 +129,11 @@ fn main() {
             &format!("analysis, ratio {ratio} ({rays} rays), with read-back"),
             rays,
             measure(|| {
-                gpu.analyse_blocking(&slots, &frame, &camera, &config, 0, &mut fb);
-                gpu.pass_times().map(|t| t.analysis_ms)
+                gpu.analyse_blocking(&slots, &frame, &camera, &config, 0, &mut fb)
+                    .expect("GPU analysis");
+                gpu.pass_times()
+                    .expect("GPU timestamps")
+                    .map(|t| t.analysis_ms)
             }),
         );
         row(
@@ -155,17 +158,21 @@ fn main() {
         "render in place",
         rays,
         measure(|| {
-            gpu.render_in_place(&input);
-            gpu.finish();
-            gpu.pass_times().map(|t| t.render_ms)
+            gpu.render_in_place(&input).expect("GPU render");
+            gpu.finish().expect("GPU idle");
+            gpu.pass_times()
+                .expect("GPU timestamps")
+                .map(|t| t.render_ms)
         }),
     );
     row(
         "render with read-back to an image",
         rays,
         measure(|| {
-            gpu.render(&input);
-            gpu.pass_times().map(|t| t.render_ms)
+            gpu.render(&input).expect("GPU render");
+            gpu.pass_times()
+                .expect("GPU timestamps")
+                .map(|t| t.render_ms)
         }),
     );
     row(

@@ -739,7 +739,8 @@ fn judge(
         bias,
         &Light::default(),
         &mut CpuBackend,
-    );
+    )
+    .expect("the CPU backend does not fail");
     let exact =
         |i: usize| render_subset(served, &phase.resident[i], frame, camera, bias) == reference;
     let rmse0 = if exact(r.len() - 1) {
@@ -808,6 +809,7 @@ fn render_subset(
         &Light::default(),
         &mut CpuBackend,
     )
+    .expect("the CPU backend does not fail")
 }
 
 /// The treelets a view needs resident to render exactly what the fully resident scene renders:
@@ -887,7 +889,7 @@ fn oversubscribed(runtime: &tokio::runtime::Runtime, out: &std::path::Path) {
                     .record,
             );
         }
-        let image = session.render(&camera);
+        let image = session.render(&camera).unwrap();
         let slots = session.core().slots();
         let resident: u64 = (0..slots.capacity())
             .filter_map(|s| slots.treelet_in(s))
@@ -904,7 +906,8 @@ fn oversubscribed(runtime: &tokio::runtime::Runtime, out: &std::path::Path) {
             bias,
             &Light::default(),
             &mut CpuBackend,
-        );
+        )
+        .expect("the CPU backend does not fail");
         let received: u64 = records.iter().map(|r| r.bytes_received).sum();
         let tail: u64 = records[CYCLES - 100..]
             .iter()

@@ -194,6 +194,7 @@ pub fn reference(
     let frame = SceneFrame::of(&served.scene);
     let camera = path.camera(cycle, &frame, 7, SIZE.0, SIZE.1);
     render_resident(full, &frame, &camera, 1.0, &Light::default(), backend)
+        .expect("rendering the reference")
 }
 
 /// Treelets the view of `path` at `cycle` needs resident: those holding every pixel's hit in

@@ -249,7 +249,8 @@ async fn oversubscribed_view_settles_on_a_coarser_exact_picture_and_stops_reques
         bias,
         &arbor_client_core::render::Light::default(),
         &mut CpuBackend,
-    );
+    )
+    .expect("the CPU backend does not fail");
     assert_eq!(
         run.image, biased,
         "the settled picture is the biased reference"

@@ -134,7 +134,12 @@ fn arriving_treelets_are_not_listed_and_second_copies_are_counted() {
     let (treelets, mut core) = lion_core(4096);
     let camera = CameraPath::Static.camera(0, core.frame(), 3, 96, 96);
     let listed = |core: &mut ClientCore| -> Vec<TreeletId> {
-        core.plan(&camera).requests.iter().map(|r| r.0).collect()
+        core.plan(&camera)
+            .unwrap()
+            .requests
+            .iter()
+            .map(|r| r.0)
+            .collect()
     };
     let first = listed(&mut core);
     let wanted = *first.first().expect("the root's view wants its children");
@@ -180,7 +185,7 @@ fn arrivals_not_yet_decoded_count_against_the_room_for_requests() {
     let (_, mut core) = lion_core_with(12, config);
     let camera = CameraPath::Static.camera(0, core.frame(), 3, 96, 96);
     let room = core.slots().room() as usize;
-    let plan = core.plan(&camera);
+    let plan = core.plan(&camera).unwrap();
     assert_eq!(
         plan.requests.len(),
         room,
@@ -188,7 +193,7 @@ fn arrivals_not_yet_decoded_count_against_the_room_for_requests() {
     );
     let coming: Vec<TreeletId> = plan.requests.iter().take(4).map(|r| r.0).collect();
     core.note_arriving(coming.iter().copied());
-    let plan = core.plan(&camera);
+    let plan = core.plan(&camera).unwrap();
     assert_eq!(plan.requests.len(), room - coming.len());
     assert!(plan.requests.iter().all(|r| !coming.contains(&r.0)));
     let view = plan.view.expect("the default asks for pushes");
@@ -211,7 +216,7 @@ fn refine(
     let camera = CameraPath::Static.camera(0, core.frame(), 3, 96, 96);
     let mut plans = Vec::new();
     for _ in 0..400 {
-        let plan = core.plan(&camera);
+        let plan = core.plan(&camera).unwrap();
         for (id, _) in &plan.requests {
             core.handle_treelet(treelets[id.0 as usize].clone());
         }

@@ -148,7 +148,8 @@ async fn the_client_fails_over_to_a_replica_and_converges_exactly() {
         1.0,
         &Light::default(),
         &mut CpuBackend,
-    );
+    )
+    .expect("the CPU backend does not fail");
     let config = HeadlessConfig {
         client: ClientConfig::new(a.url("lion"), Trust::Fingerprint(a.fingerprint.clone()))
             .with_replicas([b.url("lion")]),

@@ -15,9 +15,10 @@
 mod gpu_compare;
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 use arbor_client_core::analysis::{AnalysisConfig, Feedback, grid_pixels};
-use arbor_client_core::backend::{Backend, PassInput};
+use arbor_client_core::backend::{Backend, BackendError, PassInput};
 use arbor_client_core::camera::{
     Camera, DEFAULT_DISTANCE_FACTOR, DEFAULT_FOV_Y, SplitMix64, WORLD_UP,
 };
@@ -25,7 +26,7 @@ use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::render::Light;
 use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
 use arbor_client_core::upload::{DEFAULT_FILL_RATIO, UploadPlan};
-use arbor_client_gpu::{FeedbackMode, GpuBackend};
+use arbor_client_gpu::{FeedbackMode, GpuBackend, GpuContext};
 use arbor_proto::{Channel, SceneDescription};
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_tests::support::{SCANS, build_file, decoded_treelets};
@@ -133,7 +134,7 @@ fn real_scans_match_the_cpu() {
         let half = partial(&scan, &channels, scan.treelets.len() / 3);
         for (what, slots) in [("fully resident", &full), ("a third resident", &half)] {
             let view = slots.view();
-            gpu.load(&view);
+            gpu.load(&view).unwrap();
             let mut tally = Tally::default();
             for (i, cam) in cameras(&frame, u64::from(depth) * 7 + name.len() as u64)
                 .iter()
@@ -155,11 +156,11 @@ fn real_scans_match_the_cpu() {
 fn assert_same_bytes(gpu: &GpuBackend, slots: &SlotBuffer, what: &str) {
     let view = slots.view();
     assert!(
-        gpu.read_back_nodes() == view.nodes,
+        gpu.read_back_nodes().expect("GPU read-back") == view.nodes,
         "{what}: GPU node records differ from the slot buffer"
     );
     for c in Channel::ALL {
-        let gpu_bytes = gpu.read_back_attributes(c);
+        let gpu_bytes = gpu.read_back_attributes(c).expect("GPU read-back");
         assert_eq!(
             gpu_bytes.as_deref(),
             view.channel(c),
@@ -227,7 +228,7 @@ fn uploads_keep_the_gpu_buffer_equal_to_the_slot_buffer() {
             }
             let dirty = slots.take_dirty();
             let plan = UploadPlan::new(&dirty, fill, per_slot);
-            backend.upload(&slots, &plan);
+            backend.upload(&slots, &plan).unwrap();
             let st = backend.stats;
             println!(
                 "fill {fill} cycle {cycle}: {} dirty, {} ranges, {} calls, {} bytes{}",
@@ -320,19 +321,25 @@ fn backend_trait_pipelines_feedback_by_one_cycle_or_waits_for_it() {
     };
     let mut out = Feedback::default();
     let grid = |cam: &Camera, cycle: u64| grid_pixels(cam.width, cam.height, config.ratio, cycle);
-    backend.analyse(&input(&cams[0]), &grid(&cams[0], 0), 0, &mut out);
+    backend
+        .analyse(&input(&cams[0]), &grid(&cams[0], 0), 0, &mut out)
+        .unwrap();
     assert!(
         out.samples.is_empty(),
         "no feedback before the first read-back"
     );
     assert_eq!(backend.stats.full_uploads, 1);
     for cycle in 1..5u64 {
-        backend.finish();
+        backend.finish().unwrap();
         let cam = &cams[cycle as usize % cams.len()];
-        backend.analyse(&input(cam), &grid(cam, cycle), cycle, &mut out);
+        backend
+            .analyse(&input(cam), &grid(cam, cycle), cycle, &mut out)
+            .unwrap();
         let prev = &cams[(cycle - 1) as usize % cams.len()];
         let mut expected = Feedback::default();
-        reference.analyse_blocking(&slots, &frame, prev, &config, cycle - 1, &mut expected);
+        reference
+            .analyse_blocking(&slots, &frame, prev, &config, cycle - 1, &mut expected)
+            .unwrap();
         assert_eq!(
             out,
             expected,
@@ -348,7 +355,9 @@ fn backend_trait_pipelines_feedback_by_one_cycle_or_waits_for_it() {
         } else {
             FeedbackMode::Wait
         });
-        waiting.analyse(&input(cam), &grid(cam, cycle), cycle, &mut now);
+        waiting
+            .analyse(&input(cam), &grid(cam, cycle), cycle, &mut now)
+            .unwrap();
         match cycle {
             2 => {}
             3 => assert_eq!(
@@ -356,7 +365,9 @@ fn backend_trait_pipelines_feedback_by_one_cycle_or_waits_for_it() {
                 "waiting after pipelining hands back cycle 2's pass"
             ),
             _ => {
-                reference.analyse_blocking(&slots, &frame, cam, &config, cycle, &mut expected);
+                reference
+                    .analyse_blocking(&slots, &frame, cam, &config, cycle, &mut expected)
+                    .unwrap();
                 assert_eq!(
                     now, expected,
                     "waiting, cycle {cycle} returns its own feedback"
@@ -366,9 +377,12 @@ fn backend_trait_pipelines_feedback_by_one_cycle_or_waits_for_it() {
         // Auto, at this small frame: waits on a software adapter always, on a hardware one
         // while the waits are short (else an earlier pass of this run comes back).
         let mut auto_fb = Feedback::default();
-        auto.analyse(&input(cam), &grid(cam, cycle), cycle, &mut auto_fb);
+        auto.analyse(&input(cam), &grid(cam, cycle), cycle, &mut auto_fb)
+            .unwrap();
         if software {
-            reference.analyse_blocking(&slots, &frame, cam, &config, cycle, &mut expected);
+            reference
+                .analyse_blocking(&slots, &frame, cam, &config, cycle, &mut expected)
+                .unwrap();
             assert_eq!(auto_fb, expected, "auto on a software adapter waits");
         } else {
             assert!(
@@ -378,10 +392,132 @@ fn backend_trait_pipelines_feedback_by_one_cycle_or_waits_for_it() {
             );
         }
     }
-    let image = backend.render(&input(&cams[0]));
-    assert_eq!(image, reference.render(&input(&cams[0])));
+    let image = backend.render(&input(&cams[0])).unwrap();
+    assert_eq!(image, reference.render(&input(&cams[0])).unwrap());
     assert!(image.coverage() > 0);
-    assert!(backend.render_in_place(&input(&cams[1])));
+    assert!(backend.render_in_place(&input(&cams[1])).unwrap());
     assert!(backend.target_view().is_some());
     assert_eq!(backend.stats.full_uploads, 1);
+}
+
+/// A context of its own (the faults below must not reach the shared one), a backend with half
+/// of lion resident, and a camera on it.
+fn own_device() -> (Arc<GpuContext>, Scan, SlotBuffer, SceneFrame, Camera) {
+    let ctx = Arc::new(GpuContext::new(None).unwrap_or_else(|e| {
+        panic!("the GPU tests need a wgpu adapter (Mesa lavapipe will do): {e}")
+    }));
+    let scan = load("lion", 8);
+    let channels = scan.scene.layout.channels().to_vec();
+    let frame = SceneFrame::of(&scan.scene);
+    let slots = partial(&scan, &channels, scan.treelets.len() / 2);
+    let camera = cameras(&frame, 5)[0];
+    (ctx, scan, slots, frame, camera)
+}
+
+/// A lost device (destroyed here, as a driver reset or a removed GPU loses it) makes every
+/// stage, in every feedback mode, return [`BackendError::DeviceLost`] — before it, wgpu's
+/// default handler panicked on the first command the lost device refused, and the read-back
+/// asserted its mapping.
+#[test]
+fn every_stage_of_a_lost_device_reports_the_loss() {
+    let (ctx, _scan, slots, frame, camera) = own_device();
+    let config = AnalysisConfig {
+        ratio: 8,
+        lod_bias: 1.0,
+    };
+    let light = Light::default();
+    let input = PassInput {
+        slots: &slots,
+        frame: &frame,
+        camera: &camera,
+        analysis: &config,
+        light: &light,
+    };
+    let pixels = grid_pixels(camera.width, camera.height, config.ratio, 0);
+    let mut backends: Vec<GpuBackend> = [
+        FeedbackMode::Wait,
+        FeedbackMode::Pipelined,
+        FeedbackMode::Auto,
+    ]
+    .into_iter()
+    .map(|mode| {
+        let mut b = GpuBackend::timed(ctx.clone());
+        b.set_feedback_mode(mode);
+        b
+    })
+    .collect();
+    let mut out = Feedback::default();
+    for b in &mut backends {
+        b.analyse(&input, &pixels, 0, &mut out)
+            .expect("a healthy device analyses");
+        b.render(&input).expect("a healthy device renders");
+    }
+    ctx.device.destroy();
+    let lost = |what: &str, r: Result<(), BackendError>| match r {
+        Err(BackendError::DeviceLost(reason)) => {
+            assert!(reason.contains("destroyed"), "{what}: reason {reason:?}");
+        }
+        other => panic!("{what}: expected the device's loss, got {other:?}"),
+    };
+    for (i, b) in backends.iter_mut().enumerate() {
+        for cycle in 1..4 {
+            lost(
+                &format!("backend {i}, analysis of cycle {cycle}"),
+                b.analyse(&input, &pixels, cycle, &mut out),
+            );
+        }
+        let all: Vec<u32> = (0..slots.capacity()).collect();
+        let per_slot =
+            SlotBuffer::slot_data_bytes(slots.config().treelet_nodes, &slots.config().channels);
+        lost(
+            "upload",
+            b.upload(&slots, &UploadPlan::new(&all, 0.0, per_slot)),
+        );
+        lost("render", b.render(&input).map(drop));
+        lost("render in place", b.render_in_place(&input).map(drop));
+        lost("load", b.load(&slots.view()));
+        lost(
+            "blocking analysis",
+            b.analyse_blocking(&slots, &frame, &camera, &config, 9, &mut out),
+        );
+        lost("node read-back", b.read_back_nodes().map(drop));
+        lost("finish", b.finish());
+    }
+    let error = backends[0].render(&input).unwrap_err();
+    assert_eq!(error.to_string(), "the GPU device was lost (destroyed)");
+}
+
+/// A command the device refuses (here a write past a buffer's end, made on the backend's own
+/// queue) is recorded rather than left to wgpu's default handler, which panics: the backend's
+/// next call returns it as [`BackendError::Device`], and so does every call after it.
+#[test]
+fn a_refused_command_is_an_error_of_the_next_call() {
+    let (ctx, _scan, slots, frame, camera) = own_device();
+    let mut backend = GpuBackend::new(ctx.clone());
+    backend.set_feedback_mode(FeedbackMode::Wait);
+    let config = AnalysisConfig::default();
+    let light = Light::default();
+    let input = PassInput {
+        slots: &slots,
+        frame: &frame,
+        camera: &camera,
+        analysis: &config,
+        light: &light,
+    };
+    backend.render(&input).expect("a healthy device renders");
+    let small = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("four bytes"),
+        size: 4,
+        usage: wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    ctx.queue.write_buffer(&small, 0, &[0u8; 64]);
+    for _ in 0..2 {
+        match backend.render(&input) {
+            Err(BackendError::Device(message)) => {
+                assert!(message.contains("Validation"), "{message}");
+            }
+            other => panic!("expected the refused write, got {other:?}"),
+        }
+    }
 }

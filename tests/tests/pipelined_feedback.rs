@@ -9,7 +9,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use arbor_client_core::analysis::Feedback;
-use arbor_client_core::backend::{Backend, CpuBackend, PassInput};
+use arbor_client_core::backend::{Backend, BackendError, CpuBackend, PassInput};
 use arbor_client_core::camera::CameraPath;
 use arbor_client_core::cycle::{ClientCore, CoreConfig};
 use arbor_client_core::image::Image;
@@ -29,15 +29,24 @@ impl Backend for LateCpu {
         "cpu, feedback a cycle late".into()
     }
 
-    fn analyse(&mut self, input: &PassInput<'_>, pixels: &[u32], cycle: u64, out: &mut Feedback) {
+    fn analyse(
+        &mut self,
+        input: &PassInput<'_>,
+        pixels: &[u32],
+        cycle: u64,
+        out: &mut Feedback,
+    ) -> Result<(), BackendError> {
         let mut now = Feedback::default();
-        CpuBackend.analyse(input, pixels, cycle, &mut now);
+        CpuBackend.analyse(input, pixels, cycle, &mut now)?;
         *out = self.pending.replace(now).unwrap_or_default();
+        Ok(())
     }
 
-    fn upload(&mut self, _slots: &SlotBuffer, _plan: &UploadPlan) {}
+    fn upload(&mut self, _slots: &SlotBuffer, _plan: &UploadPlan) -> Result<(), BackendError> {
+        Ok(())
+    }
 
-    fn render(&mut self, input: &PassInput<'_>) -> Image {
+    fn render(&mut self, input: &PassInput<'_>) -> Result<Image, BackendError> {
         CpuBackend.render(input)
     }
 
@@ -81,7 +90,7 @@ fn run(path: CameraPath, cycles: u32, slots: u64) -> Ran {
     let mut ran = Ran::default();
     for cycle in 0..cycles {
         let camera = path.camera(cycle, core.frame(), 3, 96, 96);
-        let plan = core.plan(&camera);
+        let plan = core.plan(&camera).unwrap();
         ran.requested += plan.requests.len();
         if cycle >= cycles / 2 {
             ran.requested_late += plan.requests.len();

@@ -33,7 +33,26 @@ pub struct PassInput<'a> {
     pub light: &'a Light,
 }
 
-/// The GPU-side stages of a cycle.
+/// Why a backend could not run a stage. A GPU backend reports these instead of panicking, and
+/// once it has reported one every later call reports it again: a lost or faulted device is not
+/// used again. The CPU backend never fails.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum BackendError {
+    /// The device is gone (a driver reset, the GPU removed, the device destroyed); what it held
+    /// is lost with it.
+    #[error("the GPU device was lost ({0})")]
+    DeviceLost(String),
+    /// The device ran out of memory for a buffer or a submission.
+    #[error("the GPU ran out of memory: {0}")]
+    OutOfMemory(String),
+    /// The device refused a command or failed inside (a validation or internal error of the
+    /// driver or of wgpu), or a read-back could not be mapped.
+    #[error("the GPU failed: {0}")]
+    Device(String),
+}
+
+/// The GPU-side stages of a cycle. Every stage may fail with a [`BackendError`] (a GPU device
+/// can be lost at any time); the core passes it on and the session ends the run with it.
 pub trait Backend: std::fmt::Debug + Send {
     /// For people and reports: `cpu` or the adapter's name and backend.
     fn name(&self) -> String;
@@ -48,19 +67,25 @@ pub trait Backend: std::fmt::Debug + Send {
     /// [`crate::analysis::pack_pixel`]) and leaves in `out` the most recent complete feedback:
     /// this cycle's, or an earlier one's for a pipelined backend (its `cycle` says which), or an
     /// empty one before the first.
-    fn analyse(&mut self, input: &PassInput<'_>, pixels: &[u32], cycle: u64, out: &mut Feedback);
+    fn analyse(
+        &mut self,
+        input: &PassInput<'_>,
+        pixels: &[u32],
+        cycle: u64,
+        out: &mut Feedback,
+    ) -> Result<(), BackendError>;
 
     /// Copies the slot ranges of `plan` from `slots` to wherever the passes read them.
-    fn upload(&mut self, slots: &SlotBuffer, plan: &UploadPlan);
+    fn upload(&mut self, slots: &SlotBuffer, plan: &UploadPlan) -> Result<(), BackendError>;
 
     /// Renders into the backend's own target without reading it back (the window viewer draws
     /// that target); `false` if the backend has no such target (the CPU one).
-    fn render_in_place(&mut self, _input: &PassInput<'_>) -> bool {
-        false
+    fn render_in_place(&mut self, _input: &PassInput<'_>) -> Result<bool, BackendError> {
+        Ok(false)
     }
 
     /// Renders what is resident as seen from `input.camera`, read back.
-    fn render(&mut self, input: &PassInput<'_>) -> Image;
+    fn render(&mut self, input: &PassInput<'_>) -> Result<Image, BackendError>;
 
     /// Samples and seconds of the last analysis pass whose cost the backend measured itself
     /// (a GPU's timestamp queries); `None` when the caller's wall clock is the measure (the CPU
@@ -83,7 +108,13 @@ impl Backend for CpuBackend {
         "cpu".into()
     }
 
-    fn analyse(&mut self, input: &PassInput<'_>, pixels: &[u32], cycle: u64, out: &mut Feedback) {
+    fn analyse(
+        &mut self,
+        input: &PassInput<'_>,
+        pixels: &[u32],
+        cycle: u64,
+        out: &mut Feedback,
+    ) -> Result<(), BackendError> {
         analyse_pixels(
             &input.slots.view(),
             input.frame,
@@ -93,18 +124,21 @@ impl Backend for CpuBackend {
             cycle,
             out,
         );
+        Ok(())
     }
 
-    fn upload(&mut self, _slots: &SlotBuffer, _plan: &UploadPlan) {}
+    fn upload(&mut self, _slots: &SlotBuffer, _plan: &UploadPlan) -> Result<(), BackendError> {
+        Ok(())
+    }
 
-    fn render(&mut self, input: &PassInput<'_>) -> Image {
-        render(
+    fn render(&mut self, input: &PassInput<'_>) -> Result<Image, BackendError> {
+        Ok(render(
             &input.slots.view(),
             input.frame,
             input.camera,
             input.analysis.lod_bias,
             input.light,
-        )
+        ))
     }
 
     fn as_any(&self) -> &dyn Any {
@@ -121,11 +155,11 @@ pub fn render_resident(
     lod_bias: f64,
     light: &Light,
     backend: &mut dyn Backend,
-) -> Image {
+) -> Result<Image, BackendError> {
     let config = slots.config();
     let all: Vec<u32> = (0..slots.capacity()).collect();
     let bytes = SlotBuffer::slot_data_bytes(config.treelet_nodes, &config.channels);
-    backend.upload(slots, &UploadPlan::new(&all, 0.0, bytes));
+    backend.upload(slots, &UploadPlan::new(&all, 0.0, bytes))?;
     let analysis = AnalysisConfig {
         lod_bias,
         ..AnalysisConfig::default()

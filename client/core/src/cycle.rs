@@ -26,7 +26,7 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::analysis::{AnalysisConfig, Feedback, grid_pixels};
-use crate::backend::{Backend, CpuBackend, PassInput};
+use crate::backend::{Backend, BackendError, CpuBackend, PassInput};
 use crate::bias::{LodBiasControl, ViewNeed};
 use crate::camera::Camera;
 use crate::coverage::Coverage;
@@ -702,7 +702,11 @@ impl ClientCore {
     /// Runs the analysis pass for `camera` over at most `max_samples` pixels (the caller's
     /// measured budget; at least the `1/n` grid's share) and takes what it found into the view's
     /// knowledge. A new camera (or frame size) starts the knowledge afresh.
-    pub fn analyse(&mut self, camera: &Camera, max_samples: usize) -> Analysis {
+    pub fn analyse(
+        &mut self,
+        camera: &Camera,
+        max_samples: usize,
+    ) -> Result<Analysis, BackendError> {
         let cycle = self.cycle;
         if self.coverage.size() != (camera.width, camera.height) {
             self.coverage = Coverage::new(camera.width, camera.height, self.config.analysis.ratio);
@@ -746,12 +750,16 @@ impl ClientCore {
             light: &self.config.light,
         };
         let mut feedback = std::mem::take(&mut self.feedback);
-        self.backend.analyse(&input, &pixels, cycle, &mut feedback);
-        self.coverage.handle_feedback(&feedback);
-        self.feedback = feedback;
-        Analysis {
-            sampled: pixels.len(),
+        let ran = self.backend.analyse(&input, &pixels, cycle, &mut feedback);
+        // On failure the feedback is whatever the backend left: not taken into the knowledge.
+        if ran.is_ok() {
+            self.coverage.handle_feedback(&feedback);
         }
+        self.feedback = feedback;
+        ran?;
+        Ok(Analysis {
+            sampled: pixels.len(),
+        })
     }
 
     /// Presort of what is known: ages visibility, marks what is seen, adjusts the LOD bias when
@@ -1250,9 +1258,9 @@ impl ClientCore {
 
     /// [`analyse`](Self::analyse) with the whole frame as budget, then
     /// [`presort`](Self::presort).
-    pub fn plan(&mut self, camera: &Camera) -> Plan {
-        self.analyse(camera, usize::MAX);
-        self.presort()
+    pub fn plan(&mut self, camera: &Camera) -> Result<Plan, BackendError> {
+        self.analyse(camera, usize::MAX)?;
+        Ok(self.presort())
     }
 
     /// Inserts queued arrivals up to the load limit: listed ones first, then pushed ones, each
@@ -1356,19 +1364,19 @@ impl ClientCore {
 
     /// Plans the upload of what changed since the last upload (merged ranges) and hands it to
     /// the backend.
-    pub fn upload(&mut self) -> UploadPlan {
+    pub fn upload(&mut self) -> Result<UploadPlan, BackendError> {
         let dirty = self.slots.take_dirty();
         let upload = UploadPlan::new(
             &dirty,
             self.config.fill_ratio,
             SlotBuffer::slot_data_bytes(self.scene.treelet_nodes, &self.config.channels),
         );
-        self.backend.upload(&self.slots, &upload);
-        upload
+        self.backend.upload(&self.slots, &upload)?;
+        Ok(upload)
     }
 
     /// The image of what is resident, seen from `camera` with the bias in effect.
-    pub fn render(&mut self, camera: &Camera) -> Image {
+    pub fn render(&mut self, camera: &Camera) -> Result<Image, BackendError> {
         let analysis = self.analysis_config();
         self.backend.render(&PassInput {
             slots: &self.slots,
@@ -1380,7 +1388,7 @@ impl ClientCore {
     }
 
     /// Renders into the backend's own target (see [`Backend::render_in_place`]).
-    pub fn render_in_place(&mut self, camera: &Camera) -> bool {
+    pub fn render_in_place(&mut self, camera: &Camera) -> Result<bool, BackendError> {
         let analysis = self.analysis_config();
         self.backend.render_in_place(&PassInput {
             slots: &self.slots,

@@ -50,7 +50,7 @@ use super::context::GpuContext;
 use super::layout::{FeedbackSample, FrameUniform};
 use super::shaders;
 use arbor_client_core::analysis::{AnalysisConfig, Feedback, grid_pixels};
-use arbor_client_core::backend::{Backend, PassInput};
+use arbor_client_core::backend::{Backend, BackendError, PassInput};
 use arbor_client_core::camera::Camera;
 use arbor_client_core::image::Image;
 use arbor_client_core::incore::{IncoreView, SceneFrame};
@@ -259,7 +259,7 @@ fn channel_slot(c: Channel) -> usize {
 }
 
 /// Blocks until the mapping of `slice` completes and returns a copy of its bytes.
-fn read_mapped(device: &wgpu::Device, buffer: &wgpu::Buffer, len: u64) -> Vec<u8> {
+fn read_mapped(ctx: &GpuContext, buffer: &wgpu::Buffer, len: u64) -> Result<Vec<u8>, BackendError> {
     let slice = buffer.slice(..len);
     let state = Arc::new(AtomicU8::new(MAP_PENDING));
     let s = state.clone();
@@ -269,20 +269,31 @@ fn read_mapped(device: &wgpu::Device, buffer: &wgpu::Buffer, len: u64) -> Vec<u8
             Ordering::Release,
         );
     });
-    device
-        .poll(wgpu::PollType::wait_indefinitely())
-        .expect("waiting for the GPU");
-    assert_eq!(
-        state.load(Ordering::Acquire),
-        MAP_READY,
-        "mapping a read-back buffer failed"
-    );
+    wait_idle(ctx)?;
+    if state.load(Ordering::Acquire) != MAP_READY {
+        return Err(ctx.fail(BackendError::Device(
+            "mapping a read-back buffer failed".into(),
+        )));
+    }
     let bytes = slice
         .get_mapped_range()
-        .expect("mapped read-back range")
+        .map_err(|e| {
+            ctx.fail(BackendError::Device(format!(
+                "reading a mapped buffer: {e}"
+            )))
+        })?
         .to_vec();
     buffer.unmap();
-    bytes
+    Ok(bytes)
+}
+
+/// Waits until the device has finished everything submitted; a fault it reported meanwhile is
+/// the error.
+fn wait_idle(ctx: &GpuContext) -> Result<(), BackendError> {
+    ctx.device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .map_err(|e| ctx.fail(BackendError::Device(format!("waiting for the GPU: {e}"))))?;
+    ctx.check()
 }
 
 impl GpuBackend {
@@ -355,11 +366,10 @@ impl GpuBackend {
         cycle: u64,
         judged: bool,
         out: &mut Feedback,
-    ) {
+    ) -> Result<(), BackendError> {
         if self.pipelined_in_flight() {
-            let _ = self.ctx.device.poll(wgpu::PollType::wait_indefinitely());
-            self.collect_feedback(out);
-            return;
+            wait_idle(&self.ctx)?;
+            return self.collect_feedback(out);
         }
         let start = Instant::now();
         self.analyse_pixels_loaded(
@@ -369,7 +379,7 @@ impl GpuBackend {
             pixels,
             cycle,
             out,
-        );
+        )?;
         let wait = start.elapsed();
         if judged && wait > WAIT_BELOW {
             tracing::debug!(
@@ -379,6 +389,7 @@ impl GpuBackend {
             );
             self.pipelined_to_go = PIPELINE_CYCLES;
         }
+        Ok(())
     }
 
     /// [`GpuBackend::new`] with the passes timed when the device can
@@ -423,26 +434,25 @@ impl GpuBackend {
 
     /// GPU times of the last passes (waits for the GPU); `None` unless
     /// [`enable_pass_timing`](GpuBackend::enable_pass_timing) succeeded.
-    pub fn pass_times(&self) -> Option<PassTimes> {
-        let ts = self.timestamps.as_ref()?;
-        let bytes = self.read_back(&ts.resolve);
+    pub fn pass_times(&self) -> Result<Option<PassTimes>, BackendError> {
+        let Some(ts) = self.timestamps.as_ref() else {
+            return Ok(None);
+        };
+        let bytes = self.read_back(&ts.resolve)?;
         let tick = |at: usize| u64::from_le_bytes(bytes[at..at + 8].try_into().expect("8 bytes"));
         let ms = |base: usize| {
             let (a, b) = (tick(base), tick(base + 8));
             b.saturating_sub(a) as f64 * f64::from(ts.period) * 1e-6
         };
-        Some(PassTimes {
+        Ok(Some(PassTimes {
             analysis_ms: ms(0),
             render_ms: ms(wgpu::QUERY_RESOLVE_BUFFER_ALIGNMENT as usize),
-        })
+        }))
     }
 
     /// Waits until the GPU has finished everything submitted (benchmarks).
-    pub fn finish(&self) {
-        self.ctx
-            .device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .expect("waiting for the GPU");
+    pub fn finish(&self) -> Result<(), BackendError> {
+        wait_idle(&self.ctx)
     }
 
     /// The device this backend runs on.
@@ -575,9 +585,11 @@ impl GpuBackend {
 
     /// Uploads all of `view` (any incore buffer, not only a [`SlotBuffer`]'s), allocating the
     /// GPU arrays to its shape; the `*_loaded` methods then run on it.
-    pub fn load(&mut self, view: &IncoreView<'_>) {
+    pub fn load(&mut self, view: &IncoreView<'_>) -> Result<(), BackendError> {
+        self.ctx.check()?;
         self.ensure_store(view);
         self.upload_all(view);
+        self.ctx.check()
     }
 
     /// Buffers for a pass over `count` pixels (grown to a power of two, never shrunk).
@@ -716,9 +728,10 @@ impl GpuBackend {
         config: &AnalysisConfig,
         cycle: u64,
         out: &mut Feedback,
-    ) {
+    ) -> Result<(), BackendError> {
+        self.ctx.check()?;
         self.ensure_uploaded(&slots.view());
-        self.analyse_loaded(frame, camera, config, cycle, out);
+        self.analyse_loaded(frame, camera, config, cycle, out)
     }
 
     /// [`GpuBackend::analyse_blocking`] on what was last [`load`](GpuBackend::load)ed or
@@ -730,9 +743,9 @@ impl GpuBackend {
         config: &AnalysisConfig,
         cycle: u64,
         out: &mut Feedback,
-    ) {
+    ) -> Result<(), BackendError> {
         let pixels = grid_pixels(camera.width, camera.height, config.ratio, cycle);
-        self.analyse_pixels_loaded(frame, camera, config.lod_bias, &pixels, cycle, out);
+        self.analyse_pixels_loaded(frame, camera, config.lod_bias, &pixels, cycle, out)
     }
 
     /// The analysis pass of `cycle` over `pixels` on what was last loaded or uploaded, waiting
@@ -745,22 +758,25 @@ impl GpuBackend {
         pixels: &[u32],
         cycle: u64,
         out: &mut Feedback,
-    ) {
+    ) -> Result<(), BackendError> {
+        self.ctx.check()?;
         let count = pixels.len() as u32;
         let u = self.analysis_uniform(frame, camera, lod_bias, count);
         self.ensure_feedback(count);
         let fb = self.feedback.as_ref().expect("feedback buffers");
         self.encode_analysis(&u, pixels, &fb.blocking);
         let len = fb.blocking.size();
-        let bytes = read_mapped(&self.ctx.device, &fb.blocking, len);
+        let bytes = read_mapped(&self.ctx, &fb.blocking, len)?;
         let seconds = self.fill_feedback(&bytes, cycle, pixels, out);
         self.last_analysis_cost = seconds.map(|t| (pixels.len(), t));
+        Ok(())
     }
 
     /// Collects completed read-backs: the newest goes to `out`, all are released.
-    fn collect_feedback(&mut self, out: &mut Feedback) {
+    fn collect_feedback(&mut self, out: &mut Feedback) -> Result<(), BackendError> {
+        self.ctx.check()?;
         let Some(fb) = &self.feedback else {
-            return;
+            return Ok(());
         };
         let mut newest: Option<usize> = None;
         for (i, s) in fb.staging.iter().enumerate() {
@@ -778,7 +794,10 @@ impl GpuBackend {
                 .buffer
                 .slice(..)
                 .get_mapped_range()
-                .expect("mapped feedback")
+                .map_err(|e| {
+                    self.ctx
+                        .fail(BackendError::Device(format!("reading the feedback: {e}")))
+                })?
                 .to_vec();
             let seconds = self.fill_feedback(&bytes, s.cycle, &s.pixels, out);
             self.last_analysis_cost = seconds.map(|t| (s.pixels.len(), t));
@@ -789,6 +808,7 @@ impl GpuBackend {
                 s.state.store(MAP_IDLE, Ordering::Release);
             }
         }
+        Ok(())
     }
 
     /// Creates or resizes the render target to `size`.
@@ -954,26 +974,33 @@ impl GpuBackend {
     }
 
     /// The GPU node array, read back (blocking): `capacity × N` records.
-    pub fn read_back_nodes(&self) -> Vec<Node> {
+    pub fn read_back_nodes(&self) -> Result<Vec<Node>, BackendError> {
         let Some(store) = &self.store else {
-            return Vec::new();
+            return Ok(Vec::new());
         };
-        let bytes = self.read_back(&store.nodes);
+        let bytes = self.read_back(&store.nodes)?;
         let records = store.capacity as usize * store.treelet_nodes as usize;
-        bytemuck::pod_collect_to_vec(&bytes[..records * std::mem::size_of::<Node>()])
+        Ok(bytemuck::pod_collect_to_vec(
+            &bytes[..records * std::mem::size_of::<Node>()],
+        ))
     }
 
     /// The GPU array of `channel`, read back (blocking), without the padding; `None` when the
     /// channel is not held.
-    pub fn read_back_attributes(&self, channel: Channel) -> Option<Vec<u8>> {
-        let store = self.store.as_ref()?;
-        let buffer = store.attributes[channel_slot(channel)].as_ref()?;
-        let mut bytes = self.read_back(buffer);
+    pub fn read_back_attributes(&self, channel: Channel) -> Result<Option<Vec<u8>>, BackendError> {
+        let Some(store) = self.store.as_ref() else {
+            return Ok(None);
+        };
+        let Some(buffer) = store.attributes[channel_slot(channel)].as_ref() else {
+            return Ok(None);
+        };
+        let mut bytes = self.read_back(buffer)?;
         bytes.truncate(store.capacity as usize * store.treelet_nodes as usize * channel.size());
-        Some(bytes)
+        Ok(Some(bytes))
     }
 
-    fn read_back(&self, buffer: &wgpu::Buffer) -> Vec<u8> {
+    fn read_back(&self, buffer: &wgpu::Buffer) -> Result<Vec<u8>, BackendError> {
+        self.ctx.check()?;
         let device = &self.ctx.device;
         let staging = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("read back"),
@@ -984,7 +1011,7 @@ impl GpuBackend {
         let mut enc = device.create_command_encoder(&Default::default());
         enc.copy_buffer_to_buffer(buffer, 0, &staging, 0, buffer.size());
         self.ctx.queue.submit([enc.finish()]);
-        read_mapped(device, &staging, buffer.size())
+        read_mapped(&self.ctx, &staging, buffer.size())
     }
 }
 
@@ -1004,21 +1031,27 @@ impl Backend for GpuBackend {
         (self.max_binding_bytes() / per_slot).min(u64::from(u32::MAX)) as u32
     }
 
-    fn analyse(&mut self, input: &PassInput<'_>, pixels: &[u32], cycle: u64, out: &mut Feedback) {
+    fn analyse(
+        &mut self,
+        input: &PassInput<'_>,
+        pixels: &[u32],
+        cycle: u64,
+        out: &mut Feedback,
+    ) -> Result<(), BackendError> {
+        self.ctx.check()?;
         self.ensure_uploaded(&input.slots.view());
         let frame_pixels = u64::from(input.camera.width) * u64::from(input.camera.height);
         let judged = std::mem::replace(&mut self.analysed_before, true);
         if self.waits(frame_pixels) {
-            self.analyse_waiting(input, pixels, cycle, judged, out);
-            return;
+            return self.analyse_waiting(input, pixels, cycle, judged, out);
         }
         self.pipelined_to_go = self.pipelined_to_go.saturating_sub(1);
         let device = &self.ctx.device;
         // Non-blocking: runs the callbacks of whatever has completed.
         let _ = device.poll(wgpu::PollType::Poll);
-        self.collect_feedback(out);
+        self.collect_feedback(out)?;
         if pixels.is_empty() {
-            return;
+            return Ok(());
         }
         let count = pixels.len() as u32;
         let u = self.analysis_uniform(input.frame, input.camera, input.analysis.lod_bias, count);
@@ -1038,14 +1071,14 @@ impl Backend for GpuBackend {
         }
         let fb = self.feedback.as_ref().expect("feedback buffers");
         if fb.capacity < count {
-            return;
+            return Ok(());
         }
         let Some(i) = fb
             .staging
             .iter()
             .position(|s| s.state.load(Ordering::Acquire) == MAP_IDLE)
         else {
-            return;
+            return Ok(());
         };
         self.encode_analysis(&u, pixels, &fb.staging[i].buffer);
         self.serial += 1;
@@ -1065,18 +1098,22 @@ impl Backend for GpuBackend {
             );
         });
         let _ = self.ctx.device.poll(wgpu::PollType::Poll);
+        self.ctx.check()
     }
 
-    fn upload(&mut self, slots: &SlotBuffer, plan: &UploadPlan) {
+    fn upload(&mut self, slots: &SlotBuffer, plan: &UploadPlan) -> Result<(), BackendError> {
+        self.ctx.check()?;
         let view = slots.view();
         if self.ensure_store(&view) {
             self.upload_all(&view);
         } else {
             self.write_ranges(&view, &plan.ranges);
         }
+        self.ctx.check()
     }
 
-    fn render_in_place(&mut self, input: &PassInput<'_>) -> bool {
+    fn render_in_place(&mut self, input: &PassInput<'_>) -> Result<bool, BackendError> {
+        self.ctx.check()?;
         self.ensure_uploaded(&input.slots.view());
         self.encode_render(
             input.frame,
@@ -1085,10 +1122,12 @@ impl Backend for GpuBackend {
             input.light,
             None,
         );
-        true
+        self.ctx.check()?;
+        Ok(true)
     }
 
-    fn render(&mut self, input: &PassInput<'_>) -> Image {
+    fn render(&mut self, input: &PassInput<'_>) -> Result<Image, BackendError> {
+        self.ctx.check()?;
         self.ensure_uploaded(&input.slots.view());
         self.render_loaded(
             input.frame,
@@ -1121,7 +1160,8 @@ impl GpuBackend {
         camera: &Camera,
         lod_bias: f64,
         light: &Light,
-    ) -> Image {
+    ) -> Result<Image, BackendError> {
+        self.ctx.check()?;
         let (w, h) = (camera.width, camera.height);
         let row = (w * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
             * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
@@ -1132,14 +1172,14 @@ impl GpuBackend {
             mapped_at_creation: false,
         });
         self.encode_render(frame, camera, lod_bias, light, Some((&buffer, row)));
-        let bytes = read_mapped(&self.ctx.device, &buffer, buffer.size());
+        let bytes = read_mapped(&self.ctx, &buffer, buffer.size())?;
         let mut img = Image::new(w, h);
         let tight = w as usize * 4;
         for (y, dst) in img.rgba.chunks_exact_mut(tight).enumerate() {
             let src = y * row as usize;
             dst.copy_from_slice(&bytes[src..src + tight]);
         }
-        img
+        Ok(img)
     }
 }
 

@@ -7,6 +7,17 @@
 //! `WGPU_BACKEND` (e.g. `vulkan`, `gl`) the backends, `WGPU_ADAPTER_NAME` a substring of the
 //! adapter's name, `WGPU_POWER_PREF` the power preference. No adapter is an error
 //! ([`GpuError`]), never a silent fallback to the CPU.
+//!
+//! The device's errors are caught, not left to wgpu's default handler (which panics): an error
+//! no one scoped (a validation, out-of-memory or internal error) and the loss of the device are
+//! recorded in the context, logged, and from then on every backend call
+//! returns them as a [`BackendError`]. The window viewer and a headless run then end with the
+//! reason instead of a panic.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+
+use arbor_client_core::backend::BackendError;
 
 /// Why no GPU device could be had.
 #[derive(Debug, thiserror::Error)]
@@ -39,6 +50,53 @@ pub struct GpuContext {
     pub info: wgpu::AdapterInfo,
     /// The limits the device was created with (the adapter's own).
     pub limits: wgpu::Limits,
+    /// The first fault the device reported, if any.
+    fault: Arc<DeviceFault>,
+}
+
+/// The first error a device reported outside an error scope, or its loss. A loss replaces an
+/// earlier error: the commands a lost device refuses are reported as validation errors before
+/// the loss itself is, and the loss is the reason worth telling.
+#[derive(Debug, Default)]
+struct DeviceFault {
+    /// Set once a fault is recorded (the check every backend call makes).
+    faulted: AtomicBool,
+    first: Mutex<Option<BackendError>>,
+}
+
+impl DeviceFault {
+    /// Records `error` unless one is recorded already (a loss replaces an error that is not
+    /// one).
+    fn record(&self, error: BackendError) {
+        let mut first = self.first.lock().unwrap_or_else(|e| e.into_inner());
+        let replace = match (&*first, &error) {
+            (None, _) => true,
+            (Some(BackendError::DeviceLost(_)), _) => false,
+            (Some(_), BackendError::DeviceLost(_)) => true,
+            (Some(_), _) => false,
+        };
+        if replace {
+            tracing::error!("GPU device fault: {error}");
+            *first = Some(error);
+            self.faulted.store(true, Ordering::Release);
+        }
+    }
+
+    /// The recorded fault, if any.
+    fn get(&self) -> Option<BackendError> {
+        if !self.faulted.load(Ordering::Acquire) {
+            return None;
+        }
+        self.first.lock().unwrap_or_else(|e| e.into_inner()).clone()
+    }
+}
+
+/// The [`BackendError`] for an error wgpu reports.
+fn backend_error(e: &wgpu::Error) -> BackendError {
+    match e {
+        wgpu::Error::OutOfMemory { .. } => BackendError::OutOfMemory(e.to_string()),
+        _ => BackendError::Device(e.to_string()),
+    }
 }
 
 impl GpuContext {
@@ -74,6 +132,23 @@ impl GpuContext {
             adapter: describe(&info),
             source,
         })?;
+        let fault = Arc::new(DeviceFault::default());
+        let on_error = fault.clone();
+        device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
+            on_error.record(backend_error(&e));
+        }));
+        let on_loss = fault.clone();
+        device.set_device_lost_callback(move |reason, message| {
+            let reason = match reason {
+                wgpu::DeviceLostReason::Destroyed => "destroyed",
+                wgpu::DeviceLostReason::Unknown => "lost by the driver",
+            };
+            on_loss.record(BackendError::DeviceLost(if message.is_empty() {
+                reason.to_owned()
+            } else {
+                format!("{reason}: {message}")
+            }));
+        });
         Ok(GpuContext {
             instance,
             adapter,
@@ -81,7 +156,20 @@ impl GpuContext {
             queue,
             info,
             limits,
+            fault,
         })
+    }
+
+    /// The device's first fault (see the module docs) as an error, or `Ok`.
+    pub fn check(&self) -> Result<(), BackendError> {
+        self.fault.get().map_or(Ok(()), Err)
+    }
+
+    /// Records a fault found by the caller (a failed read-back), unless one is recorded; returns
+    /// the fault in effect.
+    pub fn fail(&self, error: BackendError) -> BackendError {
+        self.fault.record(error.clone());
+        self.fault.get().unwrap_or(error)
     }
 
     /// `name (backend, device type)`, for logs and reports.

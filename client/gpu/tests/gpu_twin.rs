@@ -145,7 +145,7 @@ fn layout_twins_match_naga() {
 fn outside_cameras_match_the_cpu() {
     let mut gpu = gpu().lock().unwrap_or_else(|e| e.into_inner());
     let (b, _, frame) = mixed_scene(1);
-    gpu.load(&b.view());
+    gpu.load(&b.view()).expect("GPU upload");
     let centre = DVec3::from_array(frame.centre());
     let mut rng = Rng::new(2);
     let mut tally = Tally::default();
@@ -174,7 +174,7 @@ fn axis_parallel_rays_on_boundaries_match_the_cpu() {
     };
     let mut b = single(&leaf_cells(&r), 2048, 3);
     paint(&mut b);
-    gpu.load(&b.view());
+    gpu.load(&b.view()).expect("GPU upload");
     let mut tally = Tally::default();
     let dirs = [
         (DVec3::Z, DVec3::Y),
@@ -201,7 +201,7 @@ fn axis_parallel_rays_on_boundaries_match_the_cpu() {
 fn cameras_inside_the_octree_and_voxels_match_the_cpu() {
     let mut gpu = gpu().lock().unwrap_or_else(|e| e.into_inner());
     let (b, r, frame) = mixed_scene(40);
-    gpu.load(&b.view());
+    gpu.load(&b.view()).expect("GPU upload");
     let mut rng = Rng::new(41);
     let leaves = leaf_cells(&r);
     let mut tally = Tally::default();
@@ -238,7 +238,7 @@ fn cameras_inside_the_octree_and_voxels_match_the_cpu() {
 fn far_and_near_cameras_match_the_cpu() {
     let mut gpu = gpu().lock().unwrap_or_else(|e| e.into_inner());
     let (b, _, frame) = mixed_scene(50);
-    gpu.load(&b.view());
+    gpu.load(&b.view()).expect("GPU upload");
     let centre = DVec3::from_array(frame.centre());
     let mut rng = Rng::new(51);
     let mut far = Tally::default();
@@ -317,7 +317,7 @@ fn chain_cameras(
     distances: &[f64],
     tally: &mut Tally,
 ) {
-    gpu.load(&b.view());
+    gpu.load(&b.view()).expect("GPU upload");
     let mut rng = Rng::new(seed);
     for &k in distances {
         let eye = *centre + rng.unit() * size * k;
@@ -358,7 +358,7 @@ fn huge_coordinates_match_the_cpu() {
     }
     let (b, _, mut frame) = mixed_scene(72);
     frame.origin = huge;
-    gpu.load(&b.view());
+    gpu.load(&b.view()).expect("GPU upload");
     let mut rng = Rng::new(73);
     for _ in 0..6 {
         let cam = camera(
@@ -428,7 +428,7 @@ fn patched_slots_and_subtreelets_match_the_cpu() {
         edge: 4.0,
         max_depth,
     };
-    gpu.load(&b.view());
+    gpu.load(&b.view()).expect("GPU upload");
     let centre = DVec3::from_array(frame.centre());
     let mut tally = Tally::default();
     let mut subtreelets = 0;
@@ -446,7 +446,8 @@ fn patched_slots_and_subtreelets_match_the_cpu() {
             },
             0,
             &mut fb,
-        );
+        )
+        .expect("GPU analysis");
         subtreelets += fb.samples.iter().filter(|s| s.subtreelet >= 10).count();
     }
     tally.assert_within("patched slots");

@@ -1,5 +1,6 @@
 //! Why a run could not start or go on.
 
+use arbor_client_core::backend::BackendError;
 use arbor_client_core::cycle::CoreError;
 use arbor_client_core::slots::SlotError;
 use arbor_client_net::ClientError;
@@ -26,6 +27,9 @@ pub enum RunError {
     /// The reference image does not fit the run.
     #[error("reference image: {0}")]
     Reference(String),
+    /// The backend could not run a pass (a lost or faulted GPU device).
+    #[error(transparent)]
+    Backend(#[from] BackendError),
 }
 
 impl From<SlotError> for RunError {

@@ -185,7 +185,7 @@ fn cycles(
         let stop = last || (step.converged_now && config.until_converged);
         if stop && step.image.is_none() {
             // The run ends here: draw this cycle's frame after all.
-            let i = session.render(&camera);
+            let i = session.render(&camera)?;
             if let Some(r) = &config.reference {
                 (step.record.image_rmse, step.record.differing_share) = compare(&i, r)?;
             }

@@ -93,7 +93,7 @@ pub fn streamed_reference(
     );
     runtime.block_on(client.close());
     let (slots, rounds, peak_cut_bytes) = cut?;
-    let image = render_resident(&slots, &frame, &camera, view.lod_bias, view.light, backend);
+    let image = render_resident(&slots, &frame, &camera, view.lod_bias, view.light, backend)?;
     Ok(StreamedReference {
         treelets: slots.used_slots(),
         scene,

@@ -200,7 +200,7 @@ impl Session {
         self.cycle += 1;
         let t_analysis = Instant::now();
         let pixels = camera.width.saturating_mul(camera.height);
-        let analysis = self.core.analyse(camera, self.budget.max_samples(pixels));
+        let analysis = self.core.analyse(camera, self.budget.max_samples(pixels))?;
         let analysis_time = t_analysis.elapsed();
         let (measured, seconds) = self
             .core
@@ -245,7 +245,7 @@ impl Session {
         let integration = self.core.integrate();
         let integrate_time = t_drain.elapsed();
         let t_upload = Instant::now();
-        let upload = self.core.upload();
+        let upload = self.core.upload()?;
         let upload_time = t_upload.elapsed();
         self.peak_slots = self.peak_slots.max(self.core.slots().used_slots());
 
@@ -257,9 +257,9 @@ impl Session {
         let t_render = Instant::now();
         let image = match render {
             RenderMode::Skip => None,
-            RenderMode::Image => Some(self.core.render(camera)),
+            RenderMode::Image => Some(self.core.render(camera)?),
             RenderMode::InPlace => {
-                if !self.core.render_in_place(camera) {
+                if !self.core.render_in_place(camera)? {
                     return Err(RunError::Invalid(format!(
                         "the {} backend cannot render in place",
                         self.core.backend_name()
@@ -321,8 +321,8 @@ impl Session {
 
     /// Renders (and reads back) the current view outside a step, e.g. the frame of the cycle
     /// that turned out to be the last.
-    pub fn render(&mut self, camera: &Camera) -> Image {
-        self.core.render(camera)
+    pub fn render(&mut self, camera: &Camera) -> Result<Image, RunError> {
+        Ok(self.core.render(camera)?)
     }
 
     /// Closes the connection gracefully.
@@ -618,7 +618,7 @@ pub fn reference_image(
         lod_bias,
         light,
         backend,
-    ))
+    )?)
 }
 
 /// Decodes a treelet message as the connection delivered it, for the core.

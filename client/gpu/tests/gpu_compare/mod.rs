@@ -265,7 +265,8 @@ pub fn compare(
     let mut cpu = Feedback::default();
     let mut gpu_fb = Feedback::default();
     analyse(view, frame, camera, &config, 0, &mut cpu);
-    gpu.analyse_loaded(frame, camera, &config, 0, &mut gpu_fb);
+    gpu.analyse_loaded(frame, camera, &config, 0, &mut gpu_fb)
+        .expect("GPU analysis");
     assert_eq!(cpu.pixels, gpu_fb.pixels);
     assert_eq!(
         cpu.pixels.len(),
@@ -274,7 +275,9 @@ pub fn compare(
     );
     assert_eq!(cpu.samples.len(), gpu_fb.samples.len());
     let a_img = render(view, frame, camera, lod_bias, &light);
-    let g_img = gpu.render_loaded(frame, camera, lod_bias, &light);
+    let g_img = gpu
+        .render_loaded(frame, camera, lod_bias, &light)
+        .expect("GPU render");
     assert_eq!((a_img.width, a_img.height), (g_img.width, g_img.height));
     let w = camera.width as usize;
     for (k, (c, g)) in cpu.samples.iter().zip(&gpu_fb.samples).enumerate() {
