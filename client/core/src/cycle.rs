@@ -122,6 +122,16 @@ struct PresortKey {
     evicted: u64,
 }
 
+/// What a render depends on besides the scene and the light, which a core never changes: equal
+/// keys, equal images.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct RenderKey {
+    camera: Camera,
+    lod_bias: u64,
+    /// [`SlotBuffer::changes`].
+    slot_changes: u64,
+}
+
 /// A presort's result and its [`PresortKey`].
 #[derive(Debug)]
 struct PresortMemo {
@@ -404,6 +414,15 @@ pub struct ClientCore {
     pushes_paused_until: u64,
     /// The look-past's last traces and what they depended on ([`LookPastKey`]).
     look_past_memo: Option<(LookPastKey, Vec<(TreeletId, f32)>)>,
+    /// The last image [`Self::render`] read back, and its key: an unchanged view is not
+    /// rendered again (on the CPU twins a 1024² frame costs about 0.4 s on two cores, and most
+    /// cycles of a refinement's tail change nothing).
+    render_memo: Option<(RenderKey, Image)>,
+    /// What the backend's own target holds since the last [`Self::render_in_place`], if that
+    /// is known: the window viewer then skips the pass on idle frames.
+    in_place: Option<RenderKey>,
+    /// [`Self::skipped_renders`].
+    skipped_renders: u64,
     /// Integrations so far, and since which one each waiting orphan push has waited.
     integrations: u64,
     orphans_since: HashMap<TreeletId, u64>,
@@ -496,6 +515,9 @@ impl ClientCore {
             evicted_outside: 0,
             pushes_paused_until: 0,
             look_past_memo: None,
+            render_memo: None,
+            in_place: None,
+            skipped_renders: 0,
             integrations: 0,
             orphans_since: HashMap::new(),
             received_twice: 0,
@@ -1377,6 +1399,32 @@ impl ClientCore {
 
     /// The image of what is resident, seen from `camera` with the bias in effect.
     pub fn render(&mut self, camera: &Camera) -> Result<Image, BackendError> {
+        let key = self.render_key(camera);
+        if let Some((k, image)) = &self.render_memo
+            && *k == key
+        {
+            let image = image.clone();
+            // Every test run checks the memo against a fresh render.
+            #[cfg(debug_assertions)]
+            assert!(
+                image == self.render_afresh(camera, key)?,
+                "a memoised render differs from a fresh one"
+            );
+            self.skipped_renders += 1;
+            return Ok(image);
+        }
+        let image = self.render_afresh(camera, key)?;
+        self.render_memo = Some((key, image.clone()));
+        Ok(image)
+    }
+
+    /// [`Self::render`] by the backend, of `key`. The backend may draw it into its own target
+    /// (the GPU one does), so the target holds what an in-place render left only if that was
+    /// the same view.
+    fn render_afresh(&mut self, camera: &Camera, key: RenderKey) -> Result<Image, BackendError> {
+        if self.in_place != Some(key) {
+            self.in_place = None;
+        }
         let analysis = self.analysis_config();
         self.backend.render(&PassInput {
             slots: &self.slots,
@@ -1387,16 +1435,38 @@ impl ClientCore {
         })
     }
 
+    /// The [`RenderKey`] of what `camera` sees now.
+    fn render_key(&self, camera: &Camera) -> RenderKey {
+        RenderKey {
+            camera: *camera,
+            lod_bias: self.bias.bias().to_bits(),
+            slot_changes: self.slots.changes(),
+        }
+    }
+
     /// Renders into the backend's own target (see [`Backend::render_in_place`]).
     pub fn render_in_place(&mut self, camera: &Camera) -> Result<bool, BackendError> {
+        let key = self.render_key(camera);
+        if self.in_place == Some(key) {
+            self.skipped_renders += 1;
+            return Ok(true);
+        }
         let analysis = self.analysis_config();
-        self.backend.render_in_place(&PassInput {
+        let drew = self.backend.render_in_place(&PassInput {
             slots: &self.slots,
             frame: &self.frame,
             camera,
             analysis: &analysis,
             light: &self.config.light,
-        })
+        })?;
+        self.in_place = drew.then_some(key);
+        Ok(drew)
+    }
+
+    /// Renders (read back or in place) answered without the backend, because nothing the view
+    /// shows had changed since the last one.
+    pub fn skipped_renders(&self) -> u64 {
+        self.skipped_renders
     }
 
     /// The backend running the passes.

@@ -382,6 +382,8 @@ pub struct SlotBuffer {
     free: Vec<u32>,
     /// Dirty slots, unsorted, each once (the record's [`DIRTY`] flag dedupes).
     dirty: Vec<u32>,
+    /// Changes to the node and attribute arrays so far ([`SlotBuffer::changes`]).
+    changes: u64,
     cycle: u64,
     loaded_this_cycle: u32,
     stats: SlotStats,
@@ -463,6 +465,7 @@ impl SlotBuffer {
             index: vec![NO_SLOT; capacity as usize * INDEX_ENTRIES_PER_SLOT as usize],
             free: (1..capacity).rev().collect(),
             dirty: Vec::with_capacity(capacity as usize),
+            changes: 0,
             cycle: 0,
             loaded_this_cycle: 0,
             evicted_log: Vec::new(),
@@ -853,6 +856,13 @@ impl SlotBuffer {
         InsertOutcome::Inserted { slot, evicted }
     }
 
+    /// Changes to the node and attribute arrays so far: every change marks a slot dirty (the
+    /// GPU copy is kept equal through exactly those), so while the count stands still the
+    /// arrays hold the same bytes, and a render of them from the same camera is the same image.
+    pub fn changes(&self) -> u64 {
+        self.changes
+    }
+
     /// The dirty slots, sorted; the dirty set is cleared.
     pub fn take_dirty(&mut self) -> Vec<u32> {
         for &s in &self.dirty {
@@ -1112,6 +1122,7 @@ impl SlotBuffer {
     }
 
     fn mark_dirty(&mut self, slot: u32) {
+        self.changes += 1;
         let r = &mut self.records[slot as usize];
         if r.flags & DIRTY == 0 {
             r.flags |= DIRTY;
@@ -1364,6 +1375,36 @@ mod tests {
         assert_eq!(b.used_slots(), 3);
         assert_eq!(b.treelet_in(2), None);
         assert_eq!(reached(&b.view()), vec![0, 1, 2, N + 1, 3 * N + 1]);
+    }
+
+    /// The change count moves with every insert and eviction (the arrays change) and stands
+    /// still otherwise: a refused insert, visibility, a new cycle, taking the dirty set.
+    #[test]
+    fn changes_count_what_alters_the_arrays_only() {
+        let mut b = buffer(3, treelet(0, None, &[1]));
+        let at_start = b.changes();
+        assert!(at_start > 0, "the root's copy is a change");
+        inserted(&mut b, treelet(1, Some((0, 1)), &[2]));
+        let after_insert = b.changes();
+        assert!(after_insert > at_start);
+        b.begin_cycle();
+        b.mark_visible(0);
+        b.take_dirty();
+        assert_eq!(
+            b.insert(treelet(1, Some((0, 1)), &[2])),
+            InsertOutcome::AlreadyResident
+        );
+        assert_eq!(b.changes(), after_insert, "nothing in the arrays changed");
+        inserted(&mut b, treelet(2, Some((1, 1)), &[3]));
+        let full = b.changes();
+        b.begin_cycle();
+        assert_eq!(
+            b.insert(treelet(3, Some((2, 1)), &[NONE])),
+            InsertOutcome::NoRoom
+        );
+        assert_eq!(b.changes(), full, "a refused insert changes nothing");
+        assert!(b.evict_outside(&[0], 1) > 0);
+        assert!(b.changes() > full, "an eviction restores a leaf");
     }
 
     #[test]
