@@ -24,7 +24,12 @@ pub struct BadInput {
 
 /// The shared real-data directory (`../shared/data` from the project root).
 pub fn data_dir() -> PathBuf {
-    PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"))
+    // `ARBOR_DATA` points test binaries built here at a copy of the scans on another machine
+    // (`scripts/gpu-bundle`); by default, `../shared/data` beside the checkout they were built in.
+    std::env::var_os("ARBOR_DATA").map_or_else(
+        || PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data")),
+        PathBuf::from,
+    )
 }
 
 fn real(rel: &str) -> Vec<u8> {
