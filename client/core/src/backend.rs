@@ -13,7 +13,7 @@ use crate::analysis::{AnalysisConfig, Feedback, analyse_pixels};
 use crate::camera::Camera;
 use crate::image::Image;
 use crate::incore::SceneFrame;
-use crate::render::{Light, render};
+use crate::render::{Light, render, render_rects};
 use crate::slots::SlotBuffer;
 use crate::upload::UploadPlan;
 
@@ -87,6 +87,20 @@ pub trait Backend: std::fmt::Debug + Send {
     /// Renders what is resident as seen from `input.camera`, read back.
     fn render(&mut self, input: &PassInput<'_>) -> Result<Image, BackendError>;
 
+    /// Renders again only the pixels in `rects` (`[x0, y0, x1, y1]`, inclusive) of `image`,
+    /// which holds [`Backend::render`]'s image of the same view from before the slot arrays
+    /// changed, and only where the rectangles cover (see
+    /// [`SlotBuffer::take_changed_cells`]); `false` if the backend cannot, and the caller
+    /// renders the whole frame.
+    fn render_rects(
+        &mut self,
+        _input: &PassInput<'_>,
+        _image: &mut Image,
+        _rects: &[[u32; 4]],
+    ) -> Result<bool, BackendError> {
+        Ok(false)
+    }
+
     /// Samples and seconds of the last analysis pass whose cost the backend measured itself
     /// (a GPU's timestamp queries); `None` when the caller's wall clock is the measure (the CPU
     /// twins run inside the call).
@@ -139,6 +153,24 @@ impl Backend for CpuBackend {
             input.analysis.lod_bias,
             input.light,
         ))
+    }
+
+    fn render_rects(
+        &mut self,
+        input: &PassInput<'_>,
+        image: &mut Image,
+        rects: &[[u32; 4]],
+    ) -> Result<bool, BackendError> {
+        render_rects(
+            &input.slots.view(),
+            input.frame,
+            input.camera,
+            input.analysis.lod_bias,
+            input.light,
+            image,
+            rects,
+        );
+        Ok(true)
     }
 
     fn as_any(&self) -> &dyn Any {

@@ -132,6 +132,46 @@ struct RenderKey {
     slot_changes: u64,
 }
 
+/// The pixels whose rays may meet the cubes of `cells` on `camera`'s image: each cell's screen
+/// rectangle, one pixel wider on every side (rays go through pixel centres; the margin covers
+/// rounding), clamped to the frame; none for a cell wholly behind the eye or off the frame.
+/// `None` when their summed area reaches `max_share` of the frame, or a bound is not a number.
+fn cell_rects(
+    frame: &SceneFrame,
+    camera: &Camera,
+    cells: &[Cell],
+    max_share: f64,
+) -> Option<Vec<[u32; 4]>> {
+    let (w, h) = (f64::from(camera.width), f64::from(camera.height));
+    let mut rects = Vec::with_capacity(cells.len());
+    let mut area = 0.0;
+    for &cell in cells {
+        let (min, max) = world_box(frame, cell);
+        let Some(rect) = screen_rect(camera, min, max) else {
+            continue;
+        };
+        if rect.iter().any(|v| v.is_nan()) {
+            return None;
+        }
+        let [x0, y0, x1, y1] = rect;
+        let (x0, y0) = ((x0 - 1.5).floor().max(0.0), (y0 - 1.5).floor().max(0.0));
+        let (x1, y1) = (
+            (x1 + 0.5).ceil().min(w - 1.0),
+            (y1 + 0.5).ceil().min(h - 1.0),
+        );
+        if x0 > x1 || y0 > y1 {
+            // Off the frame: no pixel's ray meets it.
+            continue;
+        }
+        area += (x1 - x0 + 1.0) * (y1 - y0 + 1.0);
+        if area >= max_share * w * h {
+            return None;
+        }
+        rects.push([x0 as u32, y0 as u32, x1 as u32, y1 as u32]);
+    }
+    Some(rects)
+}
+
 /// A presort's result and its [`PresortKey`].
 #[derive(Debug)]
 struct PresortMemo {
@@ -423,6 +463,8 @@ pub struct ClientCore {
     in_place: Option<RenderKey>,
     /// [`Self::skipped_renders`].
     skipped_renders: u64,
+    /// [`Self::partial_renders`].
+    partial_renders: u64,
     /// Integrations so far, and since which one each waiting orphan push has waited.
     integrations: u64,
     orphans_since: HashMap<TreeletId, u64>,
@@ -518,6 +560,7 @@ impl ClientCore {
             render_memo: None,
             in_place: None,
             skipped_renders: 0,
+            partial_renders: 0,
             integrations: 0,
             orphans_since: HashMap::new(),
             received_twice: 0,
@@ -675,35 +718,7 @@ impl ClientCore {
     /// `None` — forget the whole view — when the rectangles would cover a quarter of it or
     /// more, or there is no camera yet.
     fn eviction_rects(&self, roots: &[Cell]) -> Option<Vec<[u32; 4]>> {
-        let camera = self.last_camera?;
-        let (w, h) = (f64::from(camera.width), f64::from(camera.height));
-        let mut rects = Vec::with_capacity(roots.len());
-        let mut area = 0.0;
-        for &cell in roots {
-            let (min, max) = world_box(&self.frame, cell);
-            let Some(rect) = screen_rect(&camera, min, max) else {
-                continue;
-            };
-            if rect.iter().any(|v| v.is_nan()) {
-                return None;
-            }
-            let [x0, y0, x1, y1] = rect;
-            let (x0, y0) = ((x0 - 1.5).floor().max(0.0), (y0 - 1.5).floor().max(0.0));
-            let (x1, y1) = (
-                (x1 + 0.5).ceil().min(w - 1.0),
-                (y1 + 0.5).ceil().min(h - 1.0),
-            );
-            if x0 > x1 || y0 > y1 {
-                // Off the frame: no pixel's ray meets it.
-                continue;
-            }
-            area += (x1 - x0 + 1.0) * (y1 - y0 + 1.0);
-            if area * 4.0 >= w * h {
-                return None;
-            }
-            rects.push([x0 as u32, y0 as u32, x1 as u32, y1 as u32]);
-        }
-        Some(rects)
+        cell_rects(&self.frame, &self.last_camera?, roots, 0.25)
     }
 
     /// The view changed (camera or LOD bias): what it needed no longer says anything.
@@ -763,16 +778,10 @@ impl ClientCore {
                 cycle,
             ),
         };
-        let analysis = self.analysis_config();
-        let input = PassInput {
-            slots: &self.slots,
-            frame: &self.frame,
-            camera,
-            analysis: &analysis,
-            light: &self.config.light,
-        };
         let mut feedback = std::mem::take(&mut self.feedback);
-        let ran = self.backend.analyse(&input, &pixels, cycle, &mut feedback);
+        let ran = self.run_pass(camera, |backend, input| {
+            backend.analyse(input, &pixels, cycle, &mut feedback)
+        });
         // On failure the feedback is whatever the backend left: not taken into the knowledge.
         if ran.is_ok() {
             self.coverage.handle_feedback(&feedback);
@@ -1400,6 +1409,7 @@ impl ClientCore {
     /// The image of what is resident, seen from `camera` with the bias in effect.
     pub fn render(&mut self, camera: &Camera) -> Result<Image, BackendError> {
         let key = self.render_key(camera);
+        let changed = self.slots.take_changed_cells();
         if let Some((k, image)) = &self.render_memo
             && *k == key
         {
@@ -1411,6 +1421,26 @@ impl ClientCore {
                 "a memoised render differs from a fresh one"
             );
             self.skipped_renders += 1;
+            return Ok(image);
+        }
+        // The same view, and only the slot arrays changed: where they did, if the backend can.
+        if let Some((k, _)) = &self.render_memo
+            && (k.camera, k.lod_bias) == (key.camera, key.lod_bias)
+            && let Some(rects) =
+                changed.and_then(|cells| cell_rects(&self.frame, camera, &cells, f64::INFINITY))
+            && let Some((_, mut image)) = self.render_memo.take()
+            && self.run_pass(camera, |backend, input| {
+                backend.render_rects(input, &mut image, &rects)
+            })?
+        {
+            // Every test run checks the patched image against a fresh render.
+            #[cfg(debug_assertions)]
+            assert!(
+                image == self.render_afresh(camera, key)?,
+                "an image rendered again where the slots changed differs from a fresh one"
+            );
+            self.partial_renders += 1;
+            self.render_memo = Some((key, image.clone()));
             return Ok(image);
         }
         let image = self.render_afresh(camera, key)?;
@@ -1425,14 +1455,24 @@ impl ClientCore {
         if self.in_place != Some(key) {
             self.in_place = None;
         }
+        self.run_pass(camera, |backend, input| backend.render(input))
+    }
+
+    /// Runs `pass` on the backend with what the passes read for `camera`.
+    fn run_pass<T>(
+        &mut self,
+        camera: &Camera,
+        pass: impl FnOnce(&mut dyn Backend, &PassInput<'_>) -> T,
+    ) -> T {
         let analysis = self.analysis_config();
-        self.backend.render(&PassInput {
+        let input = PassInput {
             slots: &self.slots,
             frame: &self.frame,
             camera,
             analysis: &analysis,
             light: &self.config.light,
-        })
+        };
+        pass(self.backend.as_mut(), &input)
     }
 
     /// The [`RenderKey`] of what `camera` sees now.
@@ -1451,14 +1491,7 @@ impl ClientCore {
             self.skipped_renders += 1;
             return Ok(true);
         }
-        let analysis = self.analysis_config();
-        let drew = self.backend.render_in_place(&PassInput {
-            slots: &self.slots,
-            frame: &self.frame,
-            camera,
-            analysis: &analysis,
-            light: &self.config.light,
-        })?;
+        let drew = self.run_pass(camera, |backend, input| backend.render_in_place(input))?;
         self.in_place = drew.then_some(key);
         Ok(drew)
     }
@@ -1467,6 +1500,12 @@ impl ClientCore {
     /// shows had changed since the last one.
     pub fn skipped_renders(&self) -> u64 {
         self.skipped_renders
+    }
+
+    /// Read-back renders that drew only where the slot arrays had changed since the last one
+    /// ([`Backend::render_rects`]).
+    pub fn partial_renders(&self) -> u64 {
+        self.partial_renders
     }
 
     /// The backend running the passes.

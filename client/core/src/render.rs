@@ -114,11 +114,70 @@ pub fn render(
         .enumerate()
         .for_each(|(y, row)| {
             for (x, px) in row.chunks_exact_mut(4).enumerate() {
-                let ray = camera.ray(x as f64 + 0.5, y as f64 + 0.5);
-                if let Some(hit) = trace(view, frame, &ray, &lod) {
-                    px.copy_from_slice(&shade(&hit, view, &ray, light));
-                }
+                px.copy_from_slice(&render_pixel(view, frame, camera, &lod, light, x, y));
             }
         });
     img
+}
+
+/// One pixel of [`render`].
+fn render_pixel(
+    view: &IncoreView<'_>,
+    frame: &SceneFrame,
+    camera: &Camera,
+    lod: &Lod,
+    light: &Light,
+    x: usize,
+    y: usize,
+) -> [u8; 4] {
+    let ray = camera.ray(x as f64 + 0.5, y as f64 + 0.5);
+    trace(view, frame, &ray, lod).map_or([0; 4], |hit| shade(&hit, view, &ray, light))
+}
+
+/// [`render`] again of only the pixels in `rects` (`[x0, y0, x1, y1]`, inclusive, within the
+/// frame) of `image`, which holds the same view rendered before: the pixels outside stay as
+/// they are. Exact when every pixel whose ray meets a changed record lies in a rectangle.
+pub fn render_rects(
+    view: &IncoreView<'_>,
+    frame: &SceneFrame,
+    camera: &Camera,
+    lod_bias: f64,
+    light: &Light,
+    image: &mut Image,
+    rects: &[[u32; 4]],
+) {
+    let lod = Lod {
+        pixel_angle: camera.pixel_angle(),
+        lod_bias,
+        max_depth: frame.max_depth,
+    };
+    let row_bytes = camera.width as usize * 4;
+    if row_bytes == 0 || image.width != camera.width || image.height != camera.height {
+        return;
+    }
+    image
+        .rgba
+        .par_chunks_mut(row_bytes)
+        .enumerate()
+        .for_each_init(Vec::new, |spans, (y, row)| {
+            // The row's spans, merged: overlapping rectangles render each pixel once.
+            spans.clear();
+            let last = camera.width - 1;
+            spans.extend(
+                rects
+                    .iter()
+                    .filter(|r| (r[1]..=r[3]).contains(&(y as u32)) && r[0] <= last)
+                    .map(|r| (r[0], r[2].min(last))),
+            );
+            spans.sort_unstable();
+            let mut next = 0;
+            for &(x0, x1) in spans.iter() {
+                for x in x0.max(next)..=x1 {
+                    let (x, at) = (x as usize, x as usize * 4);
+                    row[at..at + 4]
+                        .copy_from_slice(&render_pixel(view, frame, camera, &lod, light, x, y));
+                }
+                next = next.max(x1 + 1);
+            }
+        });
 }

@@ -25,6 +25,9 @@ use crate::incore::IncoreView;
 
 /// "No slot" in the bookkeeping links.
 const NO_SLOT: u32 = u32::MAX;
+/// Most changed cells [`SlotBuffer::take_changed_cells`] keeps between two calls (a caller
+/// that takes them rarely, or never, holds no more than this).
+pub const CHANGED_CELLS_MAX: usize = 4096;
 /// Bookkeeping flag: the slot must be uploaded again.
 const DIRTY: u8 = 1;
 /// Bookkeeping flag, set only during an eviction scan: the slot is the new treelet's parent or
@@ -384,6 +387,9 @@ pub struct SlotBuffer {
     dirty: Vec<u32>,
     /// Changes to the node and attribute arrays so far ([`SlotBuffer::changes`]).
     changes: u64,
+    /// Cells of the treelets inserted and the subtrees evicted since the last
+    /// [`SlotBuffer::take_changed_cells`]; `None` once more than [`CHANGED_CELLS_MAX`] piled up.
+    changed_cells: Option<Vec<Cell>>,
     cycle: u64,
     loaded_this_cycle: u32,
     stats: SlotStats,
@@ -466,6 +472,7 @@ impl SlotBuffer {
             free: (1..capacity).rev().collect(),
             dirty: Vec::with_capacity(capacity as usize),
             changes: 0,
+            changed_cells: Some(Vec::new()),
             cycle: 0,
             loaded_this_cycle: 0,
             evicted_log: Vec::new(),
@@ -846,6 +853,7 @@ impl SlotBuffer {
         }
         self.records[parent as usize].first_child = slot;
         self.index_insert(h.id, slot);
+        self.note_changed_cell(h.root_cell());
         self.mark_dirty(slot);
         self.mark_dirty(site / n);
         if let Some((leaf_parent, _)) = leaf_bit {
@@ -861,6 +869,24 @@ impl SlotBuffer {
     /// arrays hold the same bytes, and a render of them from the same camera is the same image.
     pub fn changes(&self) -> u64 {
         self.changes
+    }
+
+    /// The cells where the arrays changed since the last call: the root cell of every treelet
+    /// inserted and of every subtree evicted. A ray that meets none of these cubes meets the
+    /// same records as before, so only the pixels whose rays may meet them can look different.
+    /// `None` when more than [`CHANGED_CELLS_MAX`] piled up (then assume everything changed).
+    pub fn take_changed_cells(&mut self) -> Option<Vec<Cell>> {
+        self.changed_cells.replace(Vec::new())
+    }
+
+    fn note_changed_cell(&mut self, cell: Cell) {
+        if let Some(cells) = &mut self.changed_cells {
+            if cells.len() < CHANGED_CELLS_MAX {
+                cells.push(cell);
+            } else {
+                self.changed_cells = None;
+            }
+        }
     }
 
     /// The dirty slots, sorted; the dirty set is cleared.
@@ -1068,6 +1094,7 @@ impl SlotBuffer {
         }
         self.mark_dirty(site / n);
         self.evicted_roots.push(r.root);
+        self.note_changed_cell(r.root);
         self.unlink(victim);
         // Free the subtree depth-first through the child links, no stack needed: descend to a
         // slot without children, free it, continue at its parent.
@@ -1405,6 +1432,29 @@ mod tests {
         assert_eq!(b.changes(), full, "a refused insert changes nothing");
         assert!(b.evict_outside(&[0], 1) > 0);
         assert!(b.changes() > full, "an eviction restores a leaf");
+    }
+
+    /// The changed cells are the inserted treelets' root cells and the evicted subtrees' root
+    /// cells, each taken once; too many pile up into "everything".
+    #[test]
+    fn changed_cells_name_inserts_and_evictions_once() {
+        let mut b = buffer(3, treelet(0, None, &[1]));
+        assert_eq!(b.take_changed_cells(), Some(vec![]), "the root is no change");
+        let one = treelet(1, Some((0, 1)), &[2]);
+        let one_cell = one.treelet.header.root_cell();
+        inserted(&mut b, one);
+        assert_eq!(b.take_changed_cells(), Some(vec![one_cell]));
+        assert_eq!(b.take_changed_cells(), Some(vec![]), "taken once");
+        b.begin_cycle();
+        assert!(b.evict_outside(&[0], 1) > 0);
+        assert_eq!(b.take_changed_cells(), Some(vec![one_cell]));
+        for _ in 0..=CHANGED_CELLS_MAX / 2 {
+            inserted(&mut b, treelet(1, Some((0, 1)), &[2]));
+            b.begin_cycle();
+            assert!(b.evict_outside(&[0], 1) > 0);
+        }
+        assert_eq!(b.take_changed_cells(), None, "more than the log holds");
+        assert_eq!(b.take_changed_cells(), Some(vec![]), "and a fresh log after");
     }
 
     #[test]
