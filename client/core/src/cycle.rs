@@ -1423,12 +1423,13 @@ impl ClientCore {
             self.skipped_renders += 1;
             return Ok(image);
         }
+        // The memo and the changed cells go together: a failed render below leaves neither.
+        let previous = self.render_memo.take();
         // The same view, and only the slot arrays changed: where they did, if the backend can.
-        if let Some((k, _)) = &self.render_memo
+        if let Some((k, mut image)) = previous
             && (k.camera, k.lod_bias) == (key.camera, key.lod_bias)
             && let Some(rects) =
                 changed.and_then(|cells| cell_rects(&self.frame, camera, &cells, f64::INFINITY))
-            && let Some((_, mut image)) = self.render_memo.take()
             && self.run_pass(camera, |backend, input| {
                 backend.render_rects(input, &mut image, &rects)
             })?

@@ -1439,7 +1439,11 @@ mod tests {
     #[test]
     fn changed_cells_name_inserts_and_evictions_once() {
         let mut b = buffer(3, treelet(0, None, &[1]));
-        assert_eq!(b.take_changed_cells(), Some(vec![]), "the root is no change");
+        assert_eq!(
+            b.take_changed_cells(),
+            Some(vec![]),
+            "the root is no change"
+        );
         let one = treelet(1, Some((0, 1)), &[2]);
         let one_cell = one.treelet.header.root_cell();
         inserted(&mut b, one);
@@ -1454,7 +1458,11 @@ mod tests {
             assert!(b.evict_outside(&[0], 1) > 0);
         }
         assert_eq!(b.take_changed_cells(), None, "more than the log holds");
-        assert_eq!(b.take_changed_cells(), Some(vec![]), "and a fresh log after");
+        assert_eq!(
+            b.take_changed_cells(),
+            Some(vec![]),
+            "and a fresh log after"
+        );
     }
 
     #[test]
