@@ -624,7 +624,7 @@ fn peak_rss_mib() -> f64 {
 }
 
 /// Makes the backend `--backend` names, with the feedback `--feedback` names, saying on stderr
-/// when `auto` falls back to the CPU.
+/// when `auto` takes the CPU twins.
 fn backend(text: &str, feedback: &str) -> Result<Box<dyn Backend>> {
     let choice = BackendChoice::parse(text)
         .with_context(|| format!("backend {text:?} (auto, gpu or cpu)"))?;
@@ -632,7 +632,7 @@ fn backend(text: &str, feedback: &str) -> Result<Box<dyn Backend>> {
         .with_context(|| format!("feedback {feedback:?} (auto, wait or pipelined)"))?;
     let chosen = create_backend_with(choice, feedback).context("opening the GPU")?;
     if let Some(reason) = &chosen.fallback {
-        eprintln!("note: no GPU adapter, falling back to the CPU reference renderer: {reason}");
+        eprintln!("note: running on the CPU twins: {reason}");
     }
     Ok(chosen.backend)
 }

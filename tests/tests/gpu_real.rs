@@ -521,3 +521,36 @@ fn a_refused_command_is_an_error_of_the_next_call() {
         }
     }
 }
+
+/// `auto` runs on a hardware adapter and takes the CPU twins, saying why, when the only
+/// adapter is a software one (lavapipe in CI), which is slower than the twins on the same
+/// cores; `gpu` runs on whatever adapter there is.
+#[test]
+fn auto_takes_the_cpu_twins_over_a_software_adapter() {
+    let ctx = gpu()
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .context()
+        .clone();
+    let auto = arbor_client_gpu::create_backend(arbor_client_gpu::BackendChoice::Auto)
+        .expect("auto never fails");
+    if ctx.is_software() {
+        assert_eq!(auto.backend.name(), "cpu");
+        let reason = auto.fallback.expect("auto says why it took the twins");
+        assert!(
+            reason.contains("software") && reason.contains(&ctx.info.name),
+            "{reason}"
+        );
+    } else {
+        assert!(auto.fallback.is_none(), "{:?}", auto.fallback);
+        assert!(auto.backend.name().contains(&ctx.info.name));
+    }
+    let gpu_choice = arbor_client_gpu::create_backend(arbor_client_gpu::BackendChoice::Gpu)
+        .expect("an adapter is there");
+    assert!(gpu_choice.fallback.is_none());
+    assert!(
+        gpu_choice.backend.name().contains(&ctx.info.name),
+        "{}",
+        gpu_choice.backend.name()
+    );
+}

@@ -15,10 +15,10 @@
 //!   its own target texture, which the blit samples directly (no read-back). It shares the
 //!   window's [`GpuContext`](arbor_client_gpu::GpuContext), opened on the instance that made the
 //!   surface.
-//! * **auto** — gpu, as for headless runs (the window needs an adapter anyway, software ones
-//!   such as Mesa's lavapipe included). On the 2-core build machine, shared with compiles, a
-//!   256×192 frame took 41–99 ms with the CPU twins and 84–133 ms on lavapipe in the runs of
-//!   `tests/tests/viewer_xvfb.rs`: `--backend cpu` is the faster choice there.
+//! * **auto** — as for headless runs: gpu on a hardware adapter, cpu when the window's adapter
+//!   is a software one such as Mesa's lavapipe (it runs the passes on the machine's cores, more
+//!   slowly than the twins: on the 2-core build machine a 256×192 frame took 41–99 ms with the
+//!   CPU twins and 84–133 ms on lavapipe in the runs of `tests/tests/viewer_xvfb.rs`).
 //!
 //! For automated runs: `--screenshot` is written when the view converges with the camera never
 //! moved, `converged at cycle N` is printed then, `--exit-after-converged` ends the run there

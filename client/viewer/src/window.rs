@@ -310,16 +310,18 @@ impl App {
         gpu: &Arc<GpuContext>,
         size: (u32, u32),
     ) -> (Box<dyn Backend>, FrameSource) {
-        match self.config.backend {
-            BackendChoice::Gpu | BackendChoice::Auto => {
-                let mut backend = GpuBackend::timed(gpu.clone());
-                backend.set_feedback_mode(self.config.feedback);
-                (Box::new(backend), FrameSource::InPlace)
-            }
-            BackendChoice::Cpu => (
+        // As `create_backend`: a software adapter is slower than the CPU twins on the same cores.
+        let cpu = self.config.backend == BackendChoice::Cpu
+            || (self.config.backend == BackendChoice::Auto && gpu.is_software());
+        if cpu {
+            (
                 Box::new(CpuBackend),
                 FrameSource::Upload(FrameTexture::new(&gpu.device, size.0, size.1)),
-            ),
+            )
+        } else {
+            let mut backend = GpuBackend::timed(gpu.clone());
+            backend.set_feedback_mode(self.config.feedback);
+            (Box::new(backend), FrameSource::InPlace)
         }
     }
 
