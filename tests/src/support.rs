@@ -58,6 +58,23 @@ pub fn small_lion() -> Built {
     build_file(rel, "lion", &opts)
 }
 
+/// [`small_lion`]'s scene and its treelets decoded, by id: what a client core needs to be
+/// driven without a server.
+pub fn small_lion_decoded() -> (
+    std::sync::Arc<arbor_proto::SceneDescription>,
+    std::collections::HashMap<TreeletId, arbor_client_core::slots::DecodedTreelet>,
+) {
+    let built = small_lion();
+    let treelets = decoded_treelets(&built.scene)
+        .into_iter()
+        .map(|t| (t.id(), t))
+        .collect();
+    (
+        std::sync::Arc::new(built.scene.description.clone()),
+        treelets,
+    )
+}
+
 /// Imports a real scan and builds it into a fresh pool.
 pub fn build_file(rel: &str, name: &str, opts: &BuildOptions) -> Built {
     let pool_dir = tempfile::tempdir().unwrap();

@@ -5,18 +5,16 @@
 //! not count as knowledge: a static camera still converges only on its own samples, exactly.
 
 use std::any::Any;
-use std::collections::HashMap;
-use std::sync::Arc;
 
 use arbor_client_core::analysis::Feedback;
 use arbor_client_core::backend::{Backend, BackendError, CpuBackend, PassInput};
 use arbor_client_core::camera::CameraPath;
 use arbor_client_core::cycle::{ClientCore, CoreConfig};
 use arbor_client_core::image::Image;
-use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
+use arbor_client_core::slots::SlotBuffer;
 use arbor_client_core::upload::UploadPlan;
 use arbor_proto::TreeletId;
-use arbor_tests::support::{decoded_treelets, small_lion};
+use arbor_tests::support::small_lion_decoded;
 
 /// The CPU twins, with every analysis pass handed back one call late.
 #[derive(Debug, Default)]
@@ -71,12 +69,7 @@ struct Ran {
 /// Runs `cycles` cycles of lion (1 KiB treelets) on the late backend along `path` with room for
 /// `slots` slots, answering every request at once.
 fn run(path: CameraPath, cycles: u32, slots: u64) -> Ran {
-    let built = small_lion();
-    let treelets: HashMap<TreeletId, DecodedTreelet> = decoded_treelets(&built.scene)
-        .into_iter()
-        .map(|t| (t.id(), t))
-        .collect();
-    let scene = Arc::new(built.scene.description.clone());
+    let (scene, treelets) = small_lion_decoded();
     let channels = scene.layout.channels().to_vec();
     let config = CoreConfig {
         budget_bytes: slots * SlotBuffer::slot_bytes(scene.treelet_nodes, &channels),

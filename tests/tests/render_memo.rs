@@ -7,7 +7,6 @@
 //! backend's own target holds after an in-place render that was skipped.
 
 use std::any::Any;
-use std::collections::HashMap;
 use std::sync::Arc;
 
 use arbor_client_core::analysis::Feedback;
@@ -16,10 +15,10 @@ use arbor_client_core::camera::{Camera, CameraPath};
 use arbor_client_core::cycle::{ClientCore, CoreConfig};
 use arbor_client_core::image::Image;
 use arbor_client_core::render::render;
-use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
+use arbor_client_core::slots::SlotBuffer;
 use arbor_client_core::upload::UploadPlan;
 use arbor_proto::TreeletId;
-use arbor_tests::support::{decoded_treelets, small_lion};
+use arbor_tests::support::small_lion_decoded;
 
 /// The CPU twins, counting the renders they are asked for, with a target of their own that
 /// [`Backend::render_in_place`] draws into (as the GPU backend's texture).
@@ -92,12 +91,7 @@ fn fresh(core: &ClientCore, camera: &Camera) -> Image {
 
 #[test]
 fn an_unchanged_view_is_not_rendered_again_and_its_images_stay_exact() {
-    let built = small_lion();
-    let treelets: HashMap<TreeletId, DecodedTreelet> = decoded_treelets(&built.scene)
-        .into_iter()
-        .map(|t| (t.id(), t))
-        .collect();
-    let scene = Arc::new(built.scene.description.clone());
+    let (scene, treelets) = small_lion_decoded();
     let channels = scene.layout.channels().to_vec();
     let config = CoreConfig {
         budget_bytes: 4096 * SlotBuffer::slot_bytes(scene.treelet_nodes, &channels),
@@ -181,4 +175,81 @@ fn an_unchanged_view_is_not_rendered_again_and_its_images_stay_exact() {
         core.skipped_renders(),
         core.partial_renders()
     );
+}
+
+/// Partial renders in the stiff cases: the camera inside the scene (changed cells around and
+/// behind the eye), close to it, and far away (the whole scene a few pixels wide), with a
+/// budget of a third of the scene, so evictions restore leaves while the view refines. Every
+/// image equals a fresh render of what is resident (and under debug assertions the core checks
+/// each patched image itself).
+#[test]
+fn partial_renders_stay_exact_inside_near_and_far_with_evictions() {
+    let (scene, treelets) = small_lion_decoded();
+    let channels = scene.layout.channels().to_vec();
+    let slots = u64::from(scene.treelet_count) / 3;
+    let frame = arbor_client_core::incore::SceneFrame::of(&scene);
+    let centre = glam::DVec3::from_array(frame.centre());
+    let edge = frame.edge;
+    let cameras = [
+        (
+            "inside",
+            centre + glam::DVec3::new(0.05, -0.1, 0.02) * edge,
+            centre,
+        ),
+        (
+            "near",
+            centre + glam::DVec3::new(0.3, -0.4, 0.1) * edge,
+            centre,
+        ),
+        (
+            "far",
+            centre + glam::DVec3::new(30.0, -40.0, 10.0) * edge,
+            centre,
+        ),
+    ];
+    let mut partial = 0;
+    for (what, eye, target) in cameras {
+        let config = CoreConfig {
+            budget_bytes: slots * SlotBuffer::slot_bytes(scene.treelet_nodes, &channels),
+            channels: channels.clone(),
+            deep_push: false,
+            ..CoreConfig::default()
+        };
+        let root = treelets[&TreeletId::ROOT].clone();
+        let mut core =
+            ClientCore::with_backend(scene.clone(), config, root, Box::new(CpuBackend)).unwrap();
+        let camera = Camera::look_at(
+            eye,
+            target + glam::DVec3::new(0.01, 0.0, 0.0) * edge,
+            arbor_client_core::camera::WORLD_UP,
+            arbor_client_core::camera::DEFAULT_FOV_Y,
+            80,
+            64,
+        )
+        .unwrap();
+        let mut evicted = 0;
+        for cycle in 0..120u32 {
+            let plan = core.plan(&camera).unwrap();
+            for (id, _) in &plan.requests {
+                core.handle_treelet(treelets[id].clone());
+            }
+            evicted += core.integrate().evicted;
+            core.upload().unwrap();
+            let image = core.render(&camera).unwrap();
+            assert!(
+                image == fresh(&core, &camera),
+                "{what}, cycle {cycle}: the image differs from a fresh render"
+            );
+            if plan.converged {
+                break;
+            }
+        }
+        eprintln!(
+            "{what}: {} partial renders, {} skipped, {evicted} evicted",
+            core.partial_renders(),
+            core.skipped_renders()
+        );
+        partial += core.partial_renders();
+    }
+    assert!(partial > 0, "no partial render in any of the cases");
 }

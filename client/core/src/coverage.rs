@@ -271,7 +271,7 @@ impl Coverage {
             out.push(pack_index(p, self.width));
         }
         if self.dirty > 0 {
-            let cap = budget.min(out.len() + revisit);
+            let cap = budget.min(out.len().saturating_add(revisit));
             self.plan_arrived(stamp, cap, &is_resident, &mut out);
         }
         self.plan_unknown(stamp, budget, &mut out);
@@ -585,10 +585,12 @@ mod tests {
         assert!(c.converged());
     }
 
-    #[test]
-    fn forgetting_a_rectangle_resamples_only_it_and_ignores_older_passes() {
-        let mut c = Coverage::new(8, 8, 8);
-        let plan = c.plan(0, 64, |_| false);
+    /// An 8×8 view at feedback ratio `ratio`, wholly known after cycle 0's pass (planned with
+    /// `budget`): column 0 wants treelet 5 (dirty), the rest is clean.
+    fn known_with_a_dirty_column(ratio: u32, budget: usize) -> Coverage {
+        let mut c = Coverage::new(8, 8, ratio);
+        let plan = c.plan(0, budget, |_| false);
+        assert_eq!(plan.len(), 64);
         c.handle_feedback(&answer(0, &plan, |x, _| {
             if x == 0 {
                 sample(5, 2.0)
@@ -597,6 +599,12 @@ mod tests {
             }
         }));
         assert_eq!((c.known(), c.dirty()), (64, 8));
+        c
+    }
+
+    #[test]
+    fn forgetting_a_rectangle_resamples_only_it_and_ignores_older_passes() {
+        let mut c = known_with_a_dirty_column(8, 64);
         // A pass planned at cycle 1 is still in flight (a pipelined backend) when an eviction
         // at cycle 2 forgets columns 0–2 of rows 2–3 (and a rectangle reaching off the frame).
         let in_flight = c.plan(1, 64, |_| false);
@@ -626,6 +634,24 @@ mod tests {
         c.handle_feedback(&answer(3, &second, |_, _| sample(Node::NONE, 0.0)));
         assert_eq!((c.known(), c.dirty()), (64, 6));
         assert!(c.plan(4, 64, |_| false).is_empty());
+    }
+
+    /// An unbounded budget (`ClientCore::plan` passes `usize::MAX`) with forgotten pixels and
+    /// dirty ones waiting: the cap on arrived pixels saturates instead of overflowing (found by
+    /// a camera inside lion with evictions, `tests/tests/render_memo.rs`).
+    #[test]
+    fn an_unbounded_budget_with_forgotten_and_dirty_pixels_plans_them_all() {
+        let mut c = known_with_a_dirty_column(1, usize::MAX);
+        // Later than two cycles after the first pass: the dirty column is due again.
+        c.forget(3, &[[4, 2, 6, 3]]);
+        let again = c.plan(3, usize::MAX, |_| true);
+        let mut pixels: Vec<(u32, u32)> = again.iter().map(|&p| unpack_pixel(p)).collect();
+        pixels.sort_unstable();
+        pixels.dedup();
+        assert_eq!(pixels.len(), again.len(), "each pixel once");
+        for p in [(4, 2), (5, 3), (6, 2), (0, 0), (0, 7)] {
+            assert!(pixels.contains(&p), "{p:?} not planned: {pixels:?}");
+        }
     }
 
     /// An 8×8 view known and clean at cycle 0; at cycle 1 an eviction forgets pixel (0, 0) and
