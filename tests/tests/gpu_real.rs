@@ -400,9 +400,9 @@ fn backend_trait_pipelines_feedback_by_one_cycle_or_waits_for_it() {
     assert_eq!(backend.stats.full_uploads, 1);
 }
 
-/// A context of its own (the faults below must not reach the shared one), a backend with half
-/// of lion resident, and a camera on it.
-fn own_device() -> (Arc<GpuContext>, Scan, SlotBuffer, SceneFrame, Camera) {
+/// A context of its own (the faults below must not reach the shared one), half of lion
+/// resident, and a camera on it.
+fn own_device() -> (Arc<GpuContext>, SlotBuffer, SceneFrame, Camera) {
     let ctx = Arc::new(GpuContext::new(None).unwrap_or_else(|e| {
         panic!("the GPU tests need a wgpu adapter (Mesa lavapipe will do): {e}")
     }));
@@ -411,7 +411,7 @@ fn own_device() -> (Arc<GpuContext>, Scan, SlotBuffer, SceneFrame, Camera) {
     let frame = SceneFrame::of(&scan.scene);
     let slots = partial(&scan, &channels, scan.treelets.len() / 2);
     let camera = cameras(&frame, 5)[0];
-    (ctx, scan, slots, frame, camera)
+    (ctx, slots, frame, camera)
 }
 
 /// A lost device (destroyed here, as a driver reset or a removed GPU loses it) makes every
@@ -420,7 +420,7 @@ fn own_device() -> (Arc<GpuContext>, Scan, SlotBuffer, SceneFrame, Camera) {
 /// asserted its mapping.
 #[test]
 fn every_stage_of_a_lost_device_reports_the_loss() {
-    let (ctx, _scan, slots, frame, camera) = own_device();
+    let (ctx, slots, frame, camera) = own_device();
     let config = AnalysisConfig {
         ratio: 8,
         lod_bias: 1.0,
@@ -492,7 +492,7 @@ fn every_stage_of_a_lost_device_reports_the_loss() {
 /// next call returns it as [`BackendError::Device`], and so does every call after it.
 #[test]
 fn a_refused_command_is_an_error_of_the_next_call() {
-    let (ctx, _scan, slots, frame, camera) = own_device();
+    let (ctx, slots, frame, camera) = own_device();
     let mut backend = GpuBackend::new(ctx.clone());
     backend.set_feedback_mode(FeedbackMode::Wait);
     let config = AnalysisConfig::default();

@@ -64,12 +64,16 @@ impl Backend for Counting {
         Ok(image)
     }
 
+    fn renders_rects(&self) -> bool {
+        true
+    }
+
     fn render_rects(
         &mut self,
         input: &PassInput<'_>,
         image: &mut Image,
         rects: &[[u32; 4]],
-    ) -> Result<bool, BackendError> {
+    ) -> Result<(), BackendError> {
         CpuBackend.render_rects(input, image, rects)
     }
 

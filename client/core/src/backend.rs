@@ -87,18 +87,24 @@ pub trait Backend: std::fmt::Debug + Send {
     /// Renders what is resident as seen from `input.camera`, read back.
     fn render(&mut self, input: &PassInput<'_>) -> Result<Image, BackendError>;
 
-    /// Renders again only the pixels in `rects` (`[x0, y0, x1, y1]`, inclusive) of `image`,
-    /// which holds [`Backend::render`]'s image of the same view from before the slot arrays
-    /// changed, and only where the rectangles cover (see
-    /// [`SlotBuffer::take_changed_cells`]); `false` if the backend cannot, and the caller
-    /// renders the whole frame.
+    /// Whether [`Backend::render_rects`] draws less than the whole frame: only then does the
+    /// core work out the rectangles.
+    fn renders_rects(&self) -> bool {
+        false
+    }
+
+    /// Renders again the pixels in `rects` (`[x0, y0, x1, y1]`, inclusive) of `image`, which
+    /// holds [`Backend::render`]'s image of the same view from before the slot arrays changed,
+    /// and only where the rectangles cover (see [`SlotBuffer::take_changed_cells`]). By
+    /// default the whole frame, which is always right.
     fn render_rects(
         &mut self,
-        _input: &PassInput<'_>,
-        _image: &mut Image,
+        input: &PassInput<'_>,
+        image: &mut Image,
         _rects: &[[u32; 4]],
-    ) -> Result<bool, BackendError> {
-        Ok(false)
+    ) -> Result<(), BackendError> {
+        *image = self.render(input)?;
+        Ok(())
     }
 
     /// Samples and seconds of the last analysis pass whose cost the backend measured itself
@@ -155,12 +161,16 @@ impl Backend for CpuBackend {
         ))
     }
 
+    fn renders_rects(&self) -> bool {
+        true
+    }
+
     fn render_rects(
         &mut self,
         input: &PassInput<'_>,
         image: &mut Image,
         rects: &[[u32; 4]],
-    ) -> Result<bool, BackendError> {
+    ) -> Result<(), BackendError> {
         render_rects(
             &input.slots.view(),
             input.frame,
@@ -170,7 +180,7 @@ impl Backend for CpuBackend {
             image,
             rects,
         );
-        Ok(true)
+        Ok(())
     }
 
     fn as_any(&self) -> &dyn Any {

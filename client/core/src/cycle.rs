@@ -1428,12 +1428,14 @@ impl ClientCore {
         // The same view, and only the slot arrays changed: where they did, if the backend can.
         if let Some((k, mut image)) = previous
             && (k.camera, k.lod_bias) == (key.camera, key.lod_bias)
+            && self.backend.renders_rects()
             && let Some(rects) =
                 changed.and_then(|cells| cell_rects(&self.frame, camera, &cells, f64::INFINITY))
-            && self.run_pass(camera, |backend, input| {
-                backend.render_rects(input, &mut image, &rects)
-            })?
         {
+            self.drawing(key);
+            self.run_pass(camera, |backend, input| {
+                backend.render_rects(input, &mut image, &rects)
+            })?;
             // Every test run checks the patched image against a fresh render.
             #[cfg(debug_assertions)]
             assert!(
@@ -1449,14 +1451,19 @@ impl ClientCore {
         Ok(image)
     }
 
-    /// [`Self::render`] by the backend, of `key`. The backend may draw it into its own target
-    /// (the GPU one does), so the target holds what an in-place render left only if that was
-    /// the same view.
+    /// [`Self::render`] by the backend, of `key`.
     fn render_afresh(&mut self, camera: &Camera, key: RenderKey) -> Result<Image, BackendError> {
+        self.drawing(key);
+        self.run_pass(camera, |backend, input| backend.render(input))
+    }
+
+    /// A read-back render of `key` is about to run. The backend may draw it into its own
+    /// target (the GPU one does), so the target holds what an in-place render left only if
+    /// that was the same view.
+    fn drawing(&mut self, key: RenderKey) {
         if self.in_place != Some(key) {
             self.in_place = None;
         }
-        self.run_pass(camera, |backend, input| backend.render(input))
     }
 
     /// Runs `pass` on the backend with what the passes read for `camera`.

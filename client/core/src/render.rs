@@ -136,7 +136,8 @@ fn render_pixel(
 
 /// [`render`] again of only the pixels in `rects` (`[x0, y0, x1, y1]`, inclusive, within the
 /// frame) of `image`, which holds the same view rendered before: the pixels outside stay as
-/// they are. Exact when every pixel whose ray meets a changed record lies in a rectangle.
+/// they are. Exact when every pixel whose ray meets a changed record lies in a rectangle. An
+/// image of another size is rendered whole.
 pub fn render_rects(
     view: &IncoreView<'_>,
     frame: &SceneFrame,
@@ -151,8 +152,12 @@ pub fn render_rects(
         lod_bias,
         max_depth: frame.max_depth,
     };
+    if (image.width, image.height) != (camera.width, camera.height) {
+        *image = render(view, frame, camera, lod_bias, light);
+        return;
+    }
     let row_bytes = camera.width as usize * 4;
-    if row_bytes == 0 || image.width != camera.width || image.height != camera.height {
+    if row_bytes == 0 {
         return;
     }
     image
