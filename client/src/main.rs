@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use arbor_client_core::analysis::{AnalysisConfig, DEFAULT_FEEDBACK_RATIO};
-use arbor_client_core::backend::Backend;
+use arbor_client_core::backend::{Backend, BackendError};
 use arbor_client_core::camera::CameraPath;
 use arbor_client_core::cycle::{
     CoreConfig, DEFAULT_ANALYSIS_BUDGET_MS, DEFAULT_LOAD_LIMIT, DEFAULT_LOOK_PAST,
@@ -21,7 +21,7 @@ use arbor_client_core::render::Light;
 use arbor_client_core::upload::DEFAULT_FILL_RATIO;
 use arbor_client_gpu::{BackendChoice, FeedbackMode, create_backend_with};
 use arbor_client_net::{ClientConfig, Trust, parse_server_url};
-use arbor_client_session::headless::{HeadlessConfig, run_headless_with};
+use arbor_client_session::headless::{HeadlessConfig, run_headless_on};
 use arbor_client_session::reference::{ReferenceView, streamed_reference};
 use arbor_client_session::session::SessionConfig;
 use arbor_client_session::session::{FetchedScene, fetch_all, reference_image};
@@ -191,6 +191,11 @@ struct RenderArgs {
     /// Render only every k-th cycle (the last is always rendered).
     #[arg(long, default_value_t = 1)]
     render_every: u32,
+    /// Lost GPU devices (a driver reset, the GPU removed) replaced by a new one before a loss
+    /// ends the run; the run goes on with what it holds. With --backend auto a replacement may
+    /// be the CPU twins.
+    #[arg(long, default_value_t = 3)]
+    device_replacements: u32,
     /// Stop once the view has converged (static camera).
     #[arg(long)]
     until_converged: bool,
@@ -486,9 +491,20 @@ fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         reference,
         until_converged: a.until_converged,
         render_every: a.render_every,
+        device_replacements: a.device_replacements,
     };
-    let backend = backend(&a.view.backend, &a.view.feedback)?;
-    let run = run_headless_with(config, runtime, backend, |_| {})?;
+    let (choice, feedback) = backend_choice(&a.view.backend, &a.view.feedback)?;
+    let mut first = Some(backend(choice, feedback)?);
+    let run = run_headless_on(
+        config,
+        runtime,
+        || match first.take() {
+            Some(b) => Ok(b),
+            None => backend(choice, feedback)
+                .map_err(|e| BackendError::Device(format!("no backend to replace it: {e:#}"))),
+        },
+        |_| {},
+    )?;
     run.image
         .save_png(&a.out)
         .with_context(|| format!("writing {}", a.out.display()))?;
@@ -507,6 +523,9 @@ fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
     }
     println!("backend: {}", run.backend);
     println!("{}", run.report.summary());
+    for e in &run.report.events {
+        println!("event at cycle {} ({:.3} s): {}", e.cycle, e.time_s, e.what);
+    }
     println!(
         "slots: peak {} of {} ({} B each, {:.2} MiB)",
         run.peak_slots,
@@ -539,7 +558,8 @@ fn reference(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
     )?;
     let frame = arbor_client_core::incore::SceneFrame::of(&scene);
     let camera = camera_path.camera(a.cycle, &frame, a.view.seed, width, height);
-    let mut backend = backend(&a.view.backend, &a.view.feedback)?;
+    let (choice, feedback) = backend_choice(&a.view.backend, &a.view.feedback)?;
+    let mut backend = backend(choice, feedback)?;
     let image = reference_image(
         &scene,
         &channels,
@@ -578,7 +598,8 @@ fn streamed(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         lod_bias: a.view.lod_bias,
         light: &light,
     };
-    let mut backend = backend(&a.view.backend, &a.view.feedback)?;
+    let (choice, feedback) = backend_choice(&a.view.backend, &a.view.feedback)?;
+    let mut backend = backend(choice, feedback)?;
     let r = streamed_reference(
         &client_config(&a.connection)?,
         &channels(&a.connection.channels)?,
@@ -623,13 +644,18 @@ fn peak_rss_mib() -> f64 {
         .map_or(0.0, |kib| kib / 1024.0)
 }
 
-/// Makes the backend `--backend` names, with the feedback `--feedback` names, saying on stderr
-/// when `auto` takes the CPU twins.
-fn backend(text: &str, feedback: &str) -> Result<Box<dyn Backend>> {
+/// What `--backend` and `--feedback` name.
+fn backend_choice(text: &str, feedback: &str) -> Result<(BackendChoice, FeedbackMode)> {
     let choice = BackendChoice::parse(text)
         .with_context(|| format!("backend {text:?} (auto, gpu or cpu)"))?;
     let feedback = FeedbackMode::parse(feedback)
         .with_context(|| format!("feedback {feedback:?} (auto, wait or pipelined)"))?;
+    Ok((choice, feedback))
+}
+
+/// Makes the backend `choice` names, with `feedback`, saying on stderr when `auto` takes the
+/// CPU twins.
+fn backend(choice: BackendChoice, feedback: FeedbackMode) -> Result<Box<dyn Backend>> {
     let chosen = create_backend_with(choice, feedback).context("opening the GPU")?;
     if let Some(reason) = &chosen.fallback {
         eprintln!("note: running on the CPU twins: {reason}");

@@ -647,6 +647,7 @@ fn run_case(
                 r
             })
             .collect(),
+        events: Vec::new(),
     };
     (outcome, report)
 }
@@ -936,6 +937,7 @@ fn oversubscribed(runtime: &tokio::runtime::Runtime, out: &std::path::Path) {
                 ..RunMeta::default()
             },
             records,
+            events: Vec::new(),
         };
         let name = v.name.split(&[' ', ':'][..]).next().unwrap_or("run");
         report

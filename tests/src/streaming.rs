@@ -170,6 +170,7 @@ pub fn headless(
         reference: None,
         until_converged: false,
         render_every: 1,
+        device_replacements: 0,
     }
 }
 

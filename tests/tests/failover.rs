@@ -172,6 +172,7 @@ async fn the_client_fails_over_to_a_replica_and_converges_exactly() {
         reference: Some(reference.clone()),
         until_converged: true,
         render_every: 1,
+        device_replacements: 0,
     };
 
     // Killed from the observer once treelets flow: (cycle, slots used, when).

@@ -188,6 +188,15 @@ impl Backend for CpuBackend {
     }
 }
 
+/// Uploads every slot of `slots` to `backend`, in one range: what a backend that holds nothing
+/// yet needs (a fully resident scene, or a replacement for a lost device).
+pub fn upload_all(slots: &SlotBuffer, backend: &mut dyn Backend) -> Result<(), BackendError> {
+    let config = slots.config();
+    let all: Vec<u32> = (0..slots.capacity()).collect();
+    let bytes = SlotBuffer::slot_data_bytes(config.treelet_nodes, &config.channels);
+    backend.upload(slots, &UploadPlan::new(&all, 0.0, bytes))
+}
+
 /// Uploads every slot of `slots` to `backend` and renders them: the image of a buffer that was
 /// filled outside a run (a fully resident scene).
 pub fn render_resident(
@@ -198,10 +207,7 @@ pub fn render_resident(
     light: &Light,
     backend: &mut dyn Backend,
 ) -> Result<Image, BackendError> {
-    let config = slots.config();
-    let all: Vec<u32> = (0..slots.capacity()).collect();
-    let bytes = SlotBuffer::slot_data_bytes(config.treelet_nodes, &config.channels);
-    backend.upload(slots, &UploadPlan::new(&all, 0.0, bytes))?;
+    upload_all(slots, backend)?;
     let analysis = AnalysisConfig {
         lod_bias,
         ..AnalysisConfig::default()

@@ -26,7 +26,7 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::analysis::{AnalysisConfig, Feedback, grid_pixels};
-use crate::backend::{Backend, BackendError, CpuBackend, PassInput};
+use crate::backend::{Backend, BackendError, CpuBackend, PassInput, upload_all};
 use crate::bias::{LodBiasControl, ViewNeed};
 use crate::camera::Camera;
 use crate::coverage::Coverage;
@@ -1514,6 +1514,36 @@ impl ClientCore {
     /// ([`Backend::render_rects`]).
     pub fn partial_renders(&self) -> u64 {
         self.partial_renders
+    }
+
+    /// Runs the passes on `backend` from now on, in place of one that failed (a lost device):
+    /// every slot is uploaded to it at once, and nothing drawn by the old one is reused (the
+    /// render memo and the in-place target go). What the core knows of the view, the resident
+    /// treelets and the LOD bias stay: they live on the CPU side, so the run goes on from where
+    /// it was instead of fetching the scene again.
+    ///
+    /// A backend that cannot hold the buffer's slots is refused with
+    /// [`BackendError::OutOfMemory`], and the old one stays.
+    pub fn replace_backend(&mut self, mut backend: Box<dyn Backend>) -> Result<(), BackendError> {
+        let max_slots = backend.max_slots(self.scene.treelet_nodes, &self.config.channels);
+        let capacity = self.slots.capacity();
+        if max_slots < capacity {
+            return Err(BackendError::OutOfMemory(format!(
+                "the {} backend holds at most {max_slots} slots, the buffer has {capacity}",
+                backend.name()
+            )));
+        }
+        upload_all(&self.slots, backend.as_mut())?;
+        tracing::info!(
+            old = self.backend.name(),
+            new = backend.name(),
+            slots = capacity,
+            "backend replaced"
+        );
+        self.backend = backend;
+        self.render_memo = None;
+        self.in_place = None;
+        Ok(())
     }
 
     /// The backend running the passes.

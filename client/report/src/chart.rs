@@ -473,6 +473,7 @@ mod tests {
         RunReport {
             meta: RunMeta::default(),
             records,
+            events: Vec::new(),
         }
     }
 

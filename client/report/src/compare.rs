@@ -155,6 +155,7 @@ mod tests {
         RunReport {
             meta: RunMeta::default(),
             records,
+            events: Vec::new(),
         }
     }
 

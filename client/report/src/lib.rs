@@ -27,6 +27,9 @@
 //! * Lines starting with `#` are comments; those of the form `# key=value` with a key from
 //!   [`META_KEYS`] carry [`RunMeta`]. Every meta key must be present; unknown keys are ignored.
 //!   Meta values escape `\` as `\\`, line feed as `\n` and carriage return as `\r`.
+//! * `# event=CYCLE,TIME_S,WHAT` lines (any number, before the header) carry [`RunEvent`]s:
+//!   what happened to the run between cycles, such as a lost GPU device replaced. `WHAT` is
+//!   escaped like a meta value; a reader that does not know them ignores them as comments.
 //! * Blank lines are ignored. There is no quoting: every data cell is a number.
 //!
 //! Malformed files give a [`ReportError`] that names the line (and column, where there is one),
@@ -157,6 +160,9 @@ pub const META_KEYS: [&str; 8] = [
     "treelet_bytes",
 ];
 
+/// The comment key of a [`RunEvent`] line.
+const EVENT_KEY: &str = "event";
+
 /// The first line of every report file (a comment, so readers need not require it).
 const MAGIC_LINE: &str = "# arbor run report v2";
 
@@ -252,6 +258,20 @@ pub struct RunReport {
     pub meta: RunMeta,
     /// One record per cycle.
     pub records: Vec<CycleRecord>,
+    /// What happened to the run between cycles, in order.
+    pub events: Vec<RunEvent>,
+}
+
+/// Something that happened to a run outside its cycles' records: a GPU device lost and
+/// replaced, say. Its cycle's record is missing from the report (the cycle did not finish).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RunEvent {
+    /// The cycle it happened in.
+    pub cycle: u32,
+    /// Seconds since the run started.
+    pub time_s: f64,
+    /// What happened, for people.
+    pub what: String,
 }
 
 /// Why a report could not be written or read.
@@ -356,6 +376,15 @@ impl RunReport {
         for (key, value) in META_KEYS.iter().zip(meta_values) {
             let _ = writeln!(s, "# {key}={value}");
         }
+        for e in &self.events {
+            let _ = writeln!(
+                s,
+                "# {EVENT_KEY}={},{},{}",
+                e.cycle,
+                e.time_s,
+                escape(&e.what)
+            );
+        }
         s.push_str(&CSV_COLUMNS.join(","));
         s.push('\n');
         for r in &self.records {
@@ -380,6 +409,7 @@ impl RunReport {
         let mut meta_lines = [0usize; META_KEYS.len()];
         let mut header_seen = false;
         let mut records = Vec::new();
+        let mut events = Vec::new();
         let mut last_line = 0;
         for (index, raw) in text.lines().enumerate() {
             let line = index + 1;
@@ -392,6 +422,10 @@ impl RunReport {
                 // From the raw line, so that trailing spaces in a value survive.
                 let comment = raw.trim_start()[1..].trim_start();
                 if let Some((key, value)) = comment.split_once('=')
+                    && key.trim() == EVENT_KEY
+                {
+                    events.push(parse_event(line, value)?);
+                } else if let Some((key, value)) = comment.split_once('=')
                     && let Some(k) = META_KEYS.iter().position(|m| *m == key.trim())
                 {
                     let value = unescape(value).map_err(|reason| ReportError::BadMeta {
@@ -420,6 +454,7 @@ impl RunReport {
         Ok(RunReport {
             meta: build_meta(meta, meta_lines)?,
             records,
+            events,
         })
     }
 
@@ -677,6 +712,30 @@ fn build_meta(
     })
 }
 
+/// A `# event=CYCLE,TIME_S,WHAT` line's value.
+fn parse_event(line: usize, value: &str) -> Result<RunEvent, ReportError> {
+    let bad = |reason: String| ReportError::BadMeta {
+        line,
+        key: EVENT_KEY,
+        reason,
+    };
+    let mut parts = value.splitn(3, ',');
+    let (Some(cycle), Some(time_s), Some(what)) = (parts.next(), parts.next(), parts.next()) else {
+        return Err(bad("expected `CYCLE,TIME_S,WHAT`".into()));
+    };
+    Ok(RunEvent {
+        cycle: cycle
+            .trim()
+            .parse()
+            .map_err(|_| bad(format!("`{cycle}` is not a cycle number")))?,
+        time_s: time_s
+            .trim()
+            .parse()
+            .map_err(|_| bad(format!("`{time_s}` is not a time in seconds")))?,
+        what: unescape(what).map_err(bad)?,
+    })
+}
+
 fn escape(s: &str) -> String {
     let mut out = String::with_capacity(s.len());
     for ch in s.chars() {
@@ -795,6 +854,7 @@ mod tests {
         let report = RunReport {
             meta: meta(),
             records: vec![record(0), none, extreme, CycleRecord::default()],
+            events: Vec::new(),
         };
         let path = temp_path("round_trip.csv");
         report.write_csv(&path).unwrap();
@@ -815,6 +875,7 @@ mod tests {
         let report = RunReport {
             meta: RunMeta::default(),
             records: vec![r],
+            events: Vec::new(),
         };
         let back = RunReport::from_csv_str(&report.to_csv_string()).unwrap();
         assert!(back.records[0].time_s.is_nan());
@@ -830,6 +891,7 @@ mod tests {
         let text = RunReport {
             meta: meta(),
             records: vec![r],
+            events: Vec::new(),
         }
         .to_csv_string();
         let lines: Vec<&str> = text.lines().collect();
@@ -847,9 +909,61 @@ mod tests {
         let report = RunReport {
             meta: meta(),
             records: vec![],
+            events: Vec::new(),
         };
         let back = RunReport::from_csv_str(&report.to_csv_string()).unwrap();
         assert_eq!(back, report);
+    }
+
+    #[test]
+    fn events_round_trip_and_bad_ones_name_their_line() {
+        let report = RunReport {
+            meta: meta(),
+            records: vec![record(0), record(2)],
+            events: vec![
+                RunEvent {
+                    cycle: 1,
+                    time_s: 0.125,
+                    what: "the GPU device was lost (destroyed), 3, 4\nreplaced".into(),
+                },
+                RunEvent {
+                    cycle: 7,
+                    time_s: f64::from(u32::MAX),
+                    what: String::new(),
+                },
+            ],
+        };
+        let text = report.to_csv_string();
+        assert!(text.contains("# event=1,0.125,the GPU device"), "{text}");
+        assert_eq!(RunReport::from_csv_str(&text).unwrap(), report);
+        // A file from before events, and one whose event lines are cut short.
+        let plain = RunReport {
+            events: Vec::new(),
+            ..report.clone()
+        };
+        assert_eq!(
+            RunReport::from_csv_str(&plain.to_csv_string()).unwrap(),
+            plain
+        );
+        for (bad, reason) in [
+            ("# event=1,0.125", "expected `CYCLE,TIME_S,WHAT`"),
+            ("# event=x,0.125,lost", "`x` is not a cycle number"),
+            ("# event=1,soon,lost", "`soon` is not a time in seconds"),
+            ("# event=1,0.5,lost\\", "value ends in a lone `\\`"),
+        ] {
+            let text = good_text().replacen("cycle,", &format!("{bad}\ncycle,"), 1);
+            let line = text.lines().position(|l| l == bad).unwrap() + 1;
+            match RunReport::from_csv_str(&text) {
+                Err(ReportError::BadMeta {
+                    line: l,
+                    key: "event",
+                    reason: r,
+                }) => {
+                    assert_eq!((l, r.as_str()), (line, reason), "{bad}");
+                }
+                other => panic!("{bad}: {other:?}"),
+            }
+        }
     }
 
     #[test]
@@ -857,6 +971,7 @@ mod tests {
         let report = RunReport {
             meta: meta(),
             records: vec![record(0), record(1)],
+            events: Vec::new(),
         };
         let text = report.to_csv_string().replace('\n', "\r\n\r\n");
         assert_eq!(RunReport::from_csv_str(&text).unwrap(), report);
@@ -866,6 +981,7 @@ mod tests {
         RunReport {
             meta: meta(),
             records: vec![record(0), record(1)],
+            events: Vec::new(),
         }
         .to_csv_string()
     }
@@ -1058,6 +1174,7 @@ mod tests {
         let s = RunReport {
             meta: meta(),
             records,
+            events: Vec::new(),
         }
         .summary();
         assert_eq!(s.cycles, 5);
@@ -1099,6 +1216,7 @@ mod tests {
         let s = RunReport {
             meta: meta(),
             records: vec![big.clone(), big],
+            events: Vec::new(),
         }
         .summary();
         assert_eq!(s.bytes_received, u64::MAX);

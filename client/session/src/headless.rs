@@ -8,14 +8,14 @@ use arbor_proto::SceneDescription;
 
 use crate::RunError;
 use crate::session::{RenderMode, Session, SessionConfig, compare};
-use arbor_client_core::backend::{Backend, CpuBackend};
+use arbor_client_core::backend::{Backend, BackendError, CpuBackend};
 use arbor_client_core::camera::{Camera, CameraPath};
 use arbor_client_core::cycle::CoreConfig;
 use arbor_client_core::image::Image;
 use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::slots::SlotBuffer;
 use arbor_client_net::{ClientConfig, ClientStats};
-use arbor_client_report::{CycleRecord, RunMeta, RunReport};
+use arbor_client_report::{CycleRecord, RunEvent, RunMeta, RunReport};
 
 /// A headless run: connection, camera path, cycle count and outputs.
 #[derive(Clone, Debug)]
@@ -38,6 +38,9 @@ pub struct HeadlessConfig {
     pub until_converged: bool,
     /// Render only every k-th cycle (1 = every cycle); the last cycle is always rendered.
     pub render_every: u32,
+    /// Lost GPU devices the run replaces with a new backend before a loss ends it (0: the
+    /// first loss ends the run). See [`run_headless_on`].
+    pub device_replacements: u32,
 }
 
 /// What a headless run produced.
@@ -81,11 +84,36 @@ pub fn run_headless(
 }
 
 /// [`run_headless`] on `backend`, calling `observer` after every cycle (tests check each frame
-/// with it).
+/// with it). With no other backend to take its place, a lost device ends the run.
 pub fn run_headless_with(
     config: HeadlessConfig,
     runtime: &tokio::runtime::Handle,
     backend: Box<dyn Backend>,
+    observer: impl FnMut(&CycleView<'_>),
+) -> Result<HeadlessRun, RunError> {
+    let mut backend = Some(backend);
+    run_headless_on(
+        config,
+        runtime,
+        move || {
+            backend.take().ok_or_else(|| {
+                BackendError::DeviceLost("no other backend to replace the lost one".into())
+            })
+        },
+        observer,
+    )
+}
+
+/// [`run_headless`] on the backends `make_backend` makes: the first for the run and, each time
+/// the device of the one in use is lost ([`BackendError::DeviceLost`]: a driver reset, the GPU
+/// removed), another to go on with, up to [`HeadlessConfig::device_replacements`] times. The
+/// resident slots are uploaded to the new one and the session goes on where it was; the cycle
+/// that failed has no record, and the report's [`RunEvent`]s say when and why. A backend that
+/// fails otherwise, or a replacement that cannot be made, ends the run with its error.
+pub fn run_headless_on(
+    config: HeadlessConfig,
+    runtime: &tokio::runtime::Handle,
+    mut make_backend: impl FnMut() -> Result<Box<dyn Backend>, BackendError>,
     mut observer: impl FnMut(&CycleView<'_>),
 ) -> Result<HeadlessRun, RunError> {
     config.core.validate()?;
@@ -116,9 +144,9 @@ pub fn run_headless_with(
             )),
         },
         runtime,
-        backend,
+        make_backend()?,
     )?;
-    let result = cycles(&config, &mut session, &mut observer);
+    let result = cycles(&config, &mut session, &mut make_backend, &mut observer);
     let client = session.client_stats();
     let scene = session.scene().clone();
     let channels = session.channels().to_vec();
@@ -144,6 +172,7 @@ pub fn run_headless_with(
 fn cycles(
     config: &HeadlessConfig,
     session: &mut Session,
+    make_backend: &mut impl FnMut() -> Result<Box<dyn Backend>, BackendError>,
     observer: &mut impl FnMut(&CycleView<'_>),
 ) -> Result<(RunReport, Image), RunError> {
     let scene = session.scene().clone();
@@ -163,6 +192,7 @@ fn cycles(
             treelet_bytes: scene.treelet_nodes * arbor_proto::limits::NODE_BYTES,
         },
         records: Vec::new(),
+        events: Vec::new(),
     };
     let mut image = Image::new(config.width, config.height);
     for cycle in 0..config.cycles {
@@ -173,24 +203,55 @@ fn cycles(
                 .camera(cycle, &frame, config.seed, config.width, config.height);
         let last = cycle + 1 == config.cycles;
         let render = last || cycle % config.render_every == 0;
-        let mut step = session.step(
-            &camera,
-            if render {
-                RenderMode::Image
-            } else {
-                RenderMode::Skip
-            },
-            config.reference.as_ref(),
-        )?;
-        let stop = last || (step.converged_now && config.until_converged);
-        if stop && step.image.is_none() {
-            // The run ends here: draw this cycle's frame after all.
-            let i = session.render(&camera)?;
-            if let Some(r) = &config.reference {
-                (step.record.image_rmse, step.record.differing_share) = compare(&i, r)?;
+        let stepped = session
+            .step(
+                &camera,
+                if render {
+                    RenderMode::Image
+                } else {
+                    RenderMode::Skip
+                },
+                config.reference.as_ref(),
+            )
+            .and_then(|mut step| {
+                if (last || (step.converged_now && config.until_converged)) && step.image.is_none()
+                {
+                    // The run ends here: draw this cycle's frame after all.
+                    let i = session.render(&camera)?;
+                    if let Some(r) = &config.reference {
+                        (step.record.image_rmse, step.record.differing_share) = compare(&i, r)?;
+                    }
+                    step.image = Some(i);
+                }
+                Ok(step)
+            });
+        let step = match stepped {
+            Ok(step) => step,
+            Err(RunError::Backend(BackendError::DeviceLost(reason)))
+                if (report.events.len() as u32) < config.device_replacements =>
+            {
+                let lost = Instant::now();
+                let time_s = session.started().elapsed().as_secs_f64();
+                tracing::warn!(cycle, %reason, "the GPU device was lost: replacing the backend");
+                session.replace_backend(make_backend()?)?;
+                report.events.push(RunEvent {
+                    cycle,
+                    time_s,
+                    what: format!(
+                        "the GPU device was lost ({reason}); replaced by {} in {:.1} ms",
+                        session.core().backend_name(),
+                        lost.elapsed().as_secs_f64() * 1e3
+                    ),
+                });
+                if last {
+                    // The run ends here: its frame from the new backend.
+                    image = session.render(&camera)?;
+                }
+                continue;
             }
-            step.image = Some(i);
-        }
+            Err(e) => return Err(e),
+        };
+        let stop = last || (step.converged_now && config.until_converged);
         let rendered = step.image.is_some();
         if let Some(i) = step.image {
             image = i;

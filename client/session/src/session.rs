@@ -319,6 +319,13 @@ impl Session {
         })
     }
 
+    /// Runs the passes on `backend` from now on, in place of one whose device was lost: the
+    /// resident slots are uploaded to it and the session goes on where it was (see
+    /// [`ClientCore::replace_backend`]); the connection is not touched.
+    pub fn replace_backend(&mut self, backend: Box<dyn Backend>) -> Result<(), RunError> {
+        Ok(self.core.replace_backend(backend)?)
+    }
+
     /// Renders (and reads back) the current view outside a step, e.g. the frame of the cycle
     /// that turned out to be the last.
     pub fn render(&mut self, camera: &Camera) -> Result<Image, RunError> {

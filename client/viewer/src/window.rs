@@ -269,6 +269,7 @@ impl App {
                 treelet_bytes: scene.treelet_nodes * arbor_proto::limits::NODE_BYTES,
             },
             records: Vec::new(),
+            events: Vec::new(),
         };
         println!(
             "window 0x{:x} {}x{} surface {:?}{} backend {backend}",

@@ -71,6 +71,7 @@ pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
         reference: None,
         until_converged: true,
         render_every: 50,
+        device_replacements: 0,
     };
     let rss_before = status_mib("VmRSS:");
     let runtime = tokio::runtime::Builder::new_multi_thread()

@@ -1,0 +1,159 @@
+//! A backend whose device was lost is replaced without starting over
+//! ([`ClientCore::replace_backend`]): the new one is given every slot of the buffer at once,
+//! nothing drawn by the old one is handed out again, and the run goes on from what it holds.
+//! One that cannot hold the buffer is refused and the old one stays. Checked offline on lion
+//! (1 KiB treelets) with a backend that runs the CPU twins and records what it is given; the GPU
+//! backend on a real (destroyed) device is in `gpu_e2e.rs`.
+
+use std::any::Any;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::{Arc, Mutex};
+
+use arbor_client_core::analysis::Feedback;
+use arbor_client_core::backend::{Backend, BackendError, CpuBackend, PassInput};
+use arbor_client_core::camera::CameraPath;
+use arbor_client_core::cycle::{ClientCore, CoreConfig};
+use arbor_client_core::image::Image;
+use arbor_client_core::render::render;
+use arbor_client_core::slots::SlotBuffer;
+use arbor_client_core::upload::UploadPlan;
+use arbor_proto::TreeletId;
+use arbor_tests::support::small_lion_decoded;
+
+/// The CPU twins, holding at most `max_slots` and recording the slots uploaded to them and the
+/// renders asked of them.
+#[derive(Debug)]
+struct Recording {
+    name: &'static str,
+    max_slots: u32,
+    uploaded: Arc<Mutex<Vec<u32>>>,
+    renders: Arc<AtomicU32>,
+}
+
+impl Recording {
+    fn new(name: &'static str, max_slots: u32) -> Self {
+        Self {
+            name,
+            max_slots,
+            uploaded: Arc::default(),
+            renders: Arc::default(),
+        }
+    }
+}
+
+impl Backend for Recording {
+    fn name(&self) -> String {
+        self.name.into()
+    }
+
+    fn max_slots(&self, _treelet_nodes: u32, _channels: &[arbor_proto::Channel]) -> u32 {
+        self.max_slots
+    }
+
+    fn analyse(
+        &mut self,
+        input: &PassInput<'_>,
+        pixels: &[u32],
+        cycle: u64,
+        out: &mut Feedback,
+    ) -> Result<(), BackendError> {
+        CpuBackend.analyse(input, pixels, cycle, out)
+    }
+
+    fn upload(&mut self, _slots: &SlotBuffer, plan: &UploadPlan) -> Result<(), BackendError> {
+        let mut uploaded = self.uploaded.lock().unwrap();
+        for r in &plan.ranges {
+            uploaded.extend(r.clone());
+        }
+        Ok(())
+    }
+
+    fn render(&mut self, input: &PassInput<'_>) -> Result<Image, BackendError> {
+        self.renders.fetch_add(1, Ordering::Relaxed);
+        CpuBackend.render(input)
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+#[test]
+fn a_replacement_gets_every_slot_and_the_run_goes_on_exactly() {
+    let (scene, treelets) = small_lion_decoded();
+    let channels = scene.layout.channels().to_vec();
+    let capacity = 1024;
+    let config = CoreConfig {
+        budget_bytes: u64::from(capacity) * SlotBuffer::slot_bytes(scene.treelet_nodes, &channels),
+        channels,
+        deep_push: false,
+        ..CoreConfig::default()
+    };
+    let root = treelets[&TreeletId::ROOT].clone();
+    let first = Recording::new("first", u32::MAX);
+    let mut core = ClientCore::with_backend(scene, config, root, Box::new(first)).unwrap();
+    assert_eq!(core.slots().capacity(), capacity);
+    let camera = CameraPath::Static.camera(0, core.frame(), 3, 96, 96);
+    let fresh = |core: &ClientCore| {
+        render(
+            &core.slots().view(),
+            core.frame(),
+            &camera,
+            core.lod_bias().bias(),
+            &core.config().light,
+        )
+    };
+    let step = |core: &mut ClientCore| {
+        let plan = core.plan(&camera).unwrap();
+        for (id, _) in &plan.requests {
+            core.handle_treelet(treelets[id].clone());
+        }
+        core.integrate();
+        core.upload().unwrap();
+        plan.converged
+    };
+    // Part of the way: a buffer with more than the root in it, and an image of it.
+    for _ in 0..6 {
+        step(&mut core);
+    }
+    let used = core.slots().used_slots();
+    assert!(used > 50, "only {used} slots in use after six cycles");
+    let before = core.render(&camera).unwrap();
+    assert!(before == fresh(&core));
+
+    // Too small for the buffer: refused, and the old backend goes on.
+    let small = Recording::new("small", capacity - 1);
+    let uploaded_small = small.uploaded.clone();
+    match core.replace_backend(Box::new(small)) {
+        Err(BackendError::OutOfMemory(reason)) => {
+            assert!(reason.contains(&format!("{}", capacity - 1)), "{reason}");
+            assert!(reason.contains(&format!("{capacity}")), "{reason}");
+        }
+        other => panic!("a backend of fewer slots than the buffer was taken: {other:?}"),
+    }
+    assert_eq!(core.backend_name(), "first");
+    assert!(uploaded_small.lock().unwrap().is_empty());
+
+    // The replacement: every slot at once, and it draws the next image itself.
+    let second = Recording::new("second", capacity);
+    let (uploaded, renders) = (second.uploaded.clone(), second.renders.clone());
+    core.replace_backend(Box::new(second)).unwrap();
+    assert_eq!(core.backend_name(), "second");
+    assert_eq!(
+        *uploaded.lock().unwrap(),
+        (0..capacity).collect::<Vec<u32>>(),
+        "the replacement was not given the whole buffer"
+    );
+    let again = core.render(&camera).unwrap();
+    assert!(
+        renders.load(Ordering::Relaxed) >= 1,
+        "the old backend's image was handed out"
+    );
+    assert!(again == before, "the same buffer drew a different image");
+
+    // The run goes on from what it holds to the exact picture.
+    let converged = (0..400).any(|_| step(&mut core));
+    assert!(converged, "the view did not converge after the replacement");
+    assert!(core.slots().used_slots() >= used);
+    assert!(core.render(&camera).unwrap() == fresh(&core));
+}
