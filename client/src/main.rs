@@ -266,6 +266,13 @@ struct ViewArgs {
     /// Exit with status 1 if the view has not converged after this many seconds.
     #[arg(long)]
     timeout_s: Option<f64>,
+    /// Lost GPU devices (a driver reset, the GPU removed) replaced by a new one, window surface
+    /// and renderer made again, before a loss ends the run; the run goes on with what it holds.
+    #[arg(long, default_value_t = 3)]
+    device_replacements: u32,
+    /// Fault injection for tests: destroy the window's GPU device after this many frames.
+    #[arg(long, hide = true)]
+    lose_device_after_frames: Option<u32>,
 }
 
 #[derive(Args, Debug)]
@@ -426,6 +433,8 @@ fn view(mut a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         exit_after_converged: a.exit_after_converged,
         hold_until_stdin_eof: a.hold_until_stdin_eof,
         timeout: a.timeout_s.map(timeout).transpose()?,
+        device_replacements: a.device_replacements,
+        lose_device_after: a.lose_device_after_frames,
     };
     // Absurd parameters are refused before a window opens.
     config.session.core.validate()?;

@@ -25,6 +25,9 @@
 //! * **Backends.** The first run uses `--backend gpu` (the wgpu renderer, drawn in place and
 //!   sampled by the blit), the second `--backend cpu` (CPU frames uploaded each cycle), so both
 //!   frame paths reach the window.
+//! * **A lost device.** The first run loses its device after [`LOSE_DEVICE_AFTER`] frames (the
+//!   hidden `--lose-device-after-frames`, which destroys it): the viewer must say it replaced it,
+//!   its report must carry the event, and everything above must still hold.
 //! * **Overlay.** The second run, in the same X server, keeps the statistics overlay on: outside
 //!   its panel the window is still the reference within the same tolerance; inside, the panel
 //!   darkens the frame and carries text.
@@ -52,6 +55,8 @@ use arbor_tests::streaming::{TOKEN, serve};
 
 const SIZE: (u32, u32) = (256, 192);
 const SEED: u64 = 7;
+/// Frames of the first run before its device is destroyed.
+const LOSE_DEVICE_AFTER: u32 = 5;
 /// A channel difference up to this counts as equal.
 const TOLERANCE: u8 = 2;
 /// Largest share of pixels allowed to differ by more than [`TOLERANCE`].
@@ -349,6 +354,10 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
         "--no-overlay".into(),
         "--screenshot".into(),
         shot.clone().into(),
+        // The device is lost after the fifth frame: the viewer replaces it (surface, blit and
+        // renderer made again, the session kept) and goes on to the same picture.
+        "--lose-device-after-frames".into(),
+        LOSE_DEVICE_AFTER.to_string().into(),
     ]);
     args.extend(["--report".into(), report_path.clone().into()]);
     let (bin2, display2) = (bin.clone(), display.clone());
@@ -357,6 +366,12 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
             .await
             .unwrap();
     eprintln!("viewer output:\n{viewer_stdout}");
+    assert!(
+        viewer_stdout.contains(&format!(
+            "event at cycle {LOSE_DEVICE_AFTER}: the GPU device was lost (destroyed); replaced by"
+        )),
+        "the viewer did not say it replaced the lost device"
+    );
 
     // The window as the X server shows it.
     assert_eq!(
@@ -396,6 +411,8 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
 
     // Many frames while streaming: the report has a record per frame.
     let report = RunReport::read_csv(&report_path).unwrap();
+    assert_eq!(report.events.len(), 1, "{:?}", report.events);
+    assert_eq!(report.events[0].cycle, LOSE_DEVICE_AFTER);
     let records = &report.records;
     let inserting: Vec<u32> = records
         .iter()

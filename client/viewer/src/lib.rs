@@ -20,6 +20,11 @@
 //!   slowly than the twins: on the 2-core build machine a 256×192 frame took 41–99 ms with the
 //!   CPU twins and 84–133 ms on lavapipe in the runs of `tests/tests/viewer_xvfb.rs`).
 //!
+//! A lost device (a driver reset, the GPU removed) is replaced up to `--device-replacements`
+//! times: a new device for the window, its surface, blit and renderer made again, the session
+//! given the new renderer ([`Session::replace_backend`](arbor_client_session::Session::replace_backend))
+//! and the run going on from what it holds; the report's events and standard output say so.
+//!
 //! For automated runs: `--screenshot` is written when the view converges with the camera never
 //! moved, `converged at cycle N` is printed then, `--exit-after-converged` ends the run there
 //! (after standard input closes, with `--hold-until-stdin-eof`, so a test can capture the
@@ -65,6 +70,11 @@ pub struct ViewerConfig {
     pub hold_until_stdin_eof: bool,
     /// Fail if the view has not converged this long after the start.
     pub timeout: Option<Duration>,
+    /// Lost GPU devices replaced by a new one (window surface, blit and renderer rebuilt, the
+    /// session kept) before a loss ends the run.
+    pub device_replacements: u32,
+    /// Fault injection for tests: destroy the window's device after this many frames, once.
+    pub lose_device_after: Option<u32>,
 }
 
 /// How a viewer run ended.

@@ -14,11 +14,11 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
-use arbor_client_core::backend::{Backend, CpuBackend};
+use arbor_client_core::backend::{Backend, BackendError, CpuBackend};
 use arbor_client_core::image::Image;
 use arbor_client_gpu::{GpuBackend, GpuContext};
-use arbor_client_report::{RunMeta, RunReport};
-use arbor_client_session::{RenderMode, Session};
+use arbor_client_report::{RunEvent, RunMeta, RunReport};
+use arbor_client_session::{RenderMode, RunError, Session};
 
 use super::blit::{Blit, FrameTexture, choose_surface_format, read_back};
 use super::controls::{Button, Controls, Move};
@@ -141,6 +141,75 @@ struct Running {
     converged_handled: bool,
     holding: bool,
     screenshots: u32,
+    /// The fault injection has lost the device.
+    device_lost: bool,
+}
+
+/// A device for `window` on the instance that makes its surface (a surface works only with the
+/// instance that made it), and the surface configured at `size`: the surface, the device, the
+/// configuration and whether the blit must decode sRGB.
+fn window_gpu(
+    event_loop: &ActiveEventLoop,
+    window: &Arc<Window>,
+    size: (u32, u32),
+) -> Result<
+    (
+        wgpu::Surface<'static>,
+        Arc<GpuContext>,
+        wgpu::SurfaceConfiguration,
+        bool,
+    ),
+    ViewerError,
+> {
+    let desc = wgpu::InstanceDescriptor::new_with_display_handle_from_env(Box::new(
+        event_loop.owned_display_handle(),
+    ));
+    let backends = desc.backends;
+    let instance = wgpu::Instance::new(desc);
+    let surface = instance
+        .create_surface(window.clone())
+        .map_err(|e| ViewerError::Gpu(format!("creating the window surface: {e}")))?;
+    let gpu = Arc::new(
+        GpuContext::with_instance(instance, backends, Some(&surface))
+            .map_err(|e| ViewerError::Gpu(e.to_string()))?,
+    );
+    let caps = surface.get_capabilities(&gpu.adapter);
+    let (format, decode_srgb) = choose_surface_format(&caps.formats)
+        .ok_or_else(|| ViewerError::Gpu("the surface offers no format".into()))?;
+    let surface_config = wgpu::SurfaceConfiguration {
+        usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+        format,
+        color_space: wgpu::SurfaceColorSpace::Auto,
+        width: size.0.max(1),
+        height: size.1.max(1),
+        desired_maximum_frame_latency: 2,
+        present_mode: wgpu::PresentMode::AutoVsync,
+        alpha_mode: wgpu::CompositeAlphaMode::Auto,
+        view_formats: vec![],
+    };
+    surface.configure(&gpu.device, &surface_config);
+    Ok((surface, gpu, surface_config, decode_srgb))
+}
+
+/// The renderer for the configured [`BackendChoice`] on `gpu`, and where its frames are read.
+fn make_backend(
+    config: &ViewerConfig,
+    gpu: &Arc<GpuContext>,
+    size: (u32, u32),
+) -> (Box<dyn Backend>, FrameSource) {
+    // As `create_backend`: a software adapter is slower than the CPU twins on the same cores.
+    let cpu = config.backend == BackendChoice::Cpu
+        || (config.backend == BackendChoice::Auto && gpu.is_software());
+    if cpu {
+        (
+            Box::new(CpuBackend),
+            FrameSource::Upload(FrameTexture::new(&gpu.device, size.0, size.1)),
+        )
+    } else {
+        let mut backend = GpuBackend::timed(gpu.clone());
+        backend.set_feedback_mode(config.feedback);
+        (Box::new(backend), FrameSource::InPlace)
+    }
 }
 
 impl ApplicationHandler for App {
@@ -218,39 +287,18 @@ impl App {
                 .create_window(attributes)
                 .map_err(|e| ViewerError::Window(e.to_string()))?,
         );
-        let desc = wgpu::InstanceDescriptor::new_with_display_handle_from_env(Box::new(
-            event_loop.owned_display_handle(),
-        ));
-        let backends = desc.backends;
-        let instance = wgpu::Instance::new(desc);
-        let surface = instance
-            .create_surface(window.clone())
-            .map_err(|e| ViewerError::Gpu(format!("creating the window surface: {e}")))?;
-        let gpu = Arc::new(
-            GpuContext::with_instance(instance, backends, Some(&surface))
-                .map_err(|e| ViewerError::Gpu(e.to_string()))?,
-        );
-        let caps = surface.get_capabilities(&gpu.adapter);
-        let (format, decode_srgb) = choose_surface_format(&caps.formats)
-            .ok_or_else(|| ViewerError::Gpu("the surface offers no format".into()))?;
         let size = window.inner_size();
-        let surface_config = wgpu::SurfaceConfiguration {
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
-            format,
-            color_space: wgpu::SurfaceColorSpace::Auto,
-            width: size.width.max(1),
-            height: size.height.max(1),
-            desired_maximum_frame_latency: 2,
-            present_mode: wgpu::PresentMode::AutoVsync,
-            alpha_mode: wgpu::CompositeAlphaMode::Auto,
-            view_formats: vec![],
-        };
-        surface.configure(&gpu.device, &surface_config);
+        let (surface, gpu, surface_config, decode_srgb) =
+            window_gpu(event_loop, &window, (size.width, size.height))?;
+        let format = surface_config.format;
         let overlay = Overlay::new();
         let blit = Blit::new(&gpu.device, format, decode_srgb, overlay.panel_size());
 
-        let (backend, source) =
-            self.make_backend(&gpu, (surface_config.width, surface_config.height));
+        let (backend, source) = make_backend(
+            &self.config,
+            &gpu,
+            (surface_config.width, surface_config.height),
+        );
         let session = Session::connect(self.config.session.clone(), &self.runtime, backend)?;
         let backend = session.core().backend_name();
         let frame = *session.core().frame();
@@ -302,28 +350,65 @@ impl App {
             converged_handled: false,
             holding: false,
             screenshots: 0,
+            device_lost: false,
         })
     }
 
-    /// The renderer for the configured [`BackendChoice`], and where its frames are read.
-    fn make_backend(
-        &self,
-        gpu: &Arc<GpuContext>,
-        size: (u32, u32),
-    ) -> (Box<dyn Backend>, FrameSource) {
-        // As `create_backend`: a software adapter is slower than the CPU twins on the same cores.
-        let cpu = self.config.backend == BackendChoice::Cpu
-            || (self.config.backend == BackendChoice::Auto && gpu.is_software());
-        if cpu {
-            (
-                Box::new(CpuBackend),
-                FrameSource::Upload(FrameTexture::new(&gpu.device, size.0, size.1)),
-            )
-        } else {
-            let mut backend = GpuBackend::timed(gpu.clone());
-            backend.set_feedback_mode(self.config.feedback);
-            (Box::new(backend), FrameSource::InPlace)
+    /// After a frame: a lost device is replaced while replacements are left (and the fault
+    /// injection of [`ViewerConfig::lose_device_after`] loses one).
+    fn after_frame(
+        &mut self,
+        event_loop: &ActiveEventLoop,
+        framed: Result<(), ViewerError>,
+    ) -> Result<(), ViewerError> {
+        let Some(state) = self.state.as_deref_mut() else {
+            return framed;
+        };
+        let frames = state.report.records.len() as u32;
+        if framed.is_ok() && self.config.lose_device_after == Some(frames) && !state.device_lost {
+            state.device_lost = true;
+            state.gpu.device.destroy();
         }
+        let Err(BackendError::DeviceLost(reason)) = state.gpu.check() else {
+            return framed;
+        };
+        if state.report.events.len() as u32 >= self.config.device_replacements {
+            return Err(RunError::Backend(BackendError::DeviceLost(reason)).into());
+        }
+        let lost = Instant::now();
+        let (surface, gpu, surface_config, decode_srgb) = window_gpu(
+            event_loop,
+            &state.window,
+            (state.surface_config.width, state.surface_config.height),
+        )?;
+        let (backend, source) = make_backend(
+            &self.config,
+            &gpu,
+            (surface_config.width, surface_config.height),
+        );
+        state.session.replace_backend(backend)?;
+        state.blit = Blit::new(
+            &gpu.device,
+            surface_config.format,
+            decode_srgb,
+            state.overlay.panel_size(),
+        );
+        (state.surface, state.gpu, state.surface_config, state.source) =
+            (surface, gpu, surface_config, source);
+        state.backend = state.session.core().backend_name();
+        state.refresh_overlay();
+        let event = RunEvent {
+            cycle: frames,
+            time_s: self.started.elapsed().as_secs_f64(),
+            what: format!(
+                "the GPU device was lost ({reason}); replaced by {} in {:.1} ms",
+                state.backend,
+                lost.elapsed().as_secs_f64() * 1e3
+            ),
+        };
+        println!("event at cycle {}: {}", event.cycle, event.what);
+        state.report.events.push(event);
+        Ok(())
     }
 
     fn key(&mut self, event_loop: &ActiveEventLoop, event: &KeyEvent) {
@@ -392,7 +477,11 @@ impl App {
         let Some(state) = self.state.as_deref_mut() else {
             return Ok(());
         };
-        state.frame()?;
+        let framed = state.frame();
+        self.after_frame(event_loop, framed)?;
+        let Some(state) = self.state.as_deref_mut() else {
+            return Ok(());
+        };
         let converged_at = state.session.converged_at();
         if let (Some(cycle), false) = (converged_at, state.converged_handled) {
             state.converged_handled = true;
