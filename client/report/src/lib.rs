@@ -274,6 +274,27 @@ pub struct RunEvent {
     pub what: String,
 }
 
+impl RunEvent {
+    /// The GPU device was lost at `cycle` (`time_s` into the run) for `reason`, and `backend`
+    /// took its place within `took`.
+    pub fn device_replaced(
+        cycle: u32,
+        time_s: f64,
+        reason: &str,
+        backend: &str,
+        took: std::time::Duration,
+    ) -> Self {
+        Self {
+            cycle,
+            time_s,
+            what: format!(
+                "the GPU device was lost ({reason}); replaced by {backend} in {:.1} ms",
+                took.as_secs_f64() * 1e3
+            ),
+        }
+    }
+}
+
 /// Why a report could not be written or read.
 #[derive(Debug, thiserror::Error)]
 pub enum ReportError {

@@ -234,15 +234,13 @@ fn cycles(
                 let time_s = session.started().elapsed().as_secs_f64();
                 tracing::warn!(cycle, %reason, "the GPU device was lost: replacing the backend");
                 session.replace_backend(make_backend()?)?;
-                report.events.push(RunEvent {
+                report.events.push(RunEvent::device_replaced(
                     cycle,
                     time_s,
-                    what: format!(
-                        "the GPU device was lost ({reason}); replaced by {} in {:.1} ms",
-                        session.core().backend_name(),
-                        lost.elapsed().as_secs_f64() * 1e3
-                    ),
-                });
+                    &reason,
+                    &session.core().backend_name(),
+                    lost.elapsed(),
+                ));
                 if last {
                     // The run ends here: its frame from the new backend.
                     image = session.render(&camera)?;

@@ -145,22 +145,25 @@ struct Running {
     device_lost: bool,
 }
 
+/// What draws to the window: its surface, the device, the surface's configuration and the blit.
+struct WindowGpu {
+    surface: wgpu::Surface<'static>,
+    gpu: Arc<GpuContext>,
+    surface_config: wgpu::SurfaceConfiguration,
+    blit: Blit,
+    /// The surface format is sRGB, so the blit decodes.
+    decode_srgb: bool,
+}
+
 /// A device for `window` on the instance that makes its surface (a surface works only with the
-/// instance that made it), and the surface configured at `size`: the surface, the device, the
-/// configuration and whether the blit must decode sRGB.
+/// instance that made it), the surface configured at `size` and a blit for an overlay panel of
+/// `panel` pixels.
 fn window_gpu(
     event_loop: &ActiveEventLoop,
     window: &Arc<Window>,
     size: (u32, u32),
-) -> Result<
-    (
-        wgpu::Surface<'static>,
-        Arc<GpuContext>,
-        wgpu::SurfaceConfiguration,
-        bool,
-    ),
-    ViewerError,
-> {
+    panel: (u32, u32),
+) -> Result<WindowGpu, ViewerError> {
     let desc = wgpu::InstanceDescriptor::new_with_display_handle_from_env(Box::new(
         event_loop.owned_display_handle(),
     ));
@@ -188,7 +191,14 @@ fn window_gpu(
         view_formats: vec![],
     };
     surface.configure(&gpu.device, &surface_config);
-    Ok((surface, gpu, surface_config, decode_srgb))
+    let blit = Blit::new(&gpu.device, format, decode_srgb, panel);
+    Ok(WindowGpu {
+        surface,
+        gpu,
+        surface_config,
+        blit,
+        decode_srgb,
+    })
 }
 
 /// The renderer for the configured [`BackendChoice`] on `gpu`, and where its frames are read.
@@ -288,11 +298,19 @@ impl App {
                 .map_err(|e| ViewerError::Window(e.to_string()))?,
         );
         let size = window.inner_size();
-        let (surface, gpu, surface_config, decode_srgb) =
-            window_gpu(event_loop, &window, (size.width, size.height))?;
-        let format = surface_config.format;
         let overlay = Overlay::new();
-        let blit = Blit::new(&gpu.device, format, decode_srgb, overlay.panel_size());
+        let WindowGpu {
+            surface,
+            gpu,
+            surface_config,
+            blit,
+            decode_srgb,
+        } = window_gpu(
+            event_loop,
+            &window,
+            (size.width, size.height),
+            overlay.panel_size(),
+        )?;
 
         let (backend, source) = make_backend(
             &self.config,
@@ -324,7 +342,7 @@ impl App {
             u64::from(window.id()),
             surface_config.width,
             surface_config.height,
-            format,
+            surface_config.format,
             if decode_srgb { " (decoding sRGB)" } else { "" },
         );
         let now = Instant::now();
@@ -376,36 +394,30 @@ impl App {
             return Err(RunError::Backend(BackendError::DeviceLost(reason)).into());
         }
         let lost = Instant::now();
-        let (surface, gpu, surface_config, decode_srgb) = window_gpu(
+        let time_s = state.session.started().elapsed().as_secs_f64();
+        let new = window_gpu(
             event_loop,
             &state.window,
             (state.surface_config.width, state.surface_config.height),
+            state.overlay.panel_size(),
         )?;
         let (backend, source) = make_backend(
             &self.config,
-            &gpu,
-            (surface_config.width, surface_config.height),
+            &new.gpu,
+            (new.surface_config.width, new.surface_config.height),
         );
         state.session.replace_backend(backend)?;
-        state.blit = Blit::new(
-            &gpu.device,
-            surface_config.format,
-            decode_srgb,
-            state.overlay.panel_size(),
-        );
-        (state.surface, state.gpu, state.surface_config, state.source) =
-            (surface, gpu, surface_config, source);
+        (
+            state.surface,
+            state.gpu,
+            state.surface_config,
+            state.blit,
+            state.source,
+        ) = (new.surface, new.gpu, new.surface_config, new.blit, source);
         state.backend = state.session.core().backend_name();
         state.refresh_overlay();
-        let event = RunEvent {
-            cycle: frames,
-            time_s: self.started.elapsed().as_secs_f64(),
-            what: format!(
-                "the GPU device was lost ({reason}); replaced by {} in {:.1} ms",
-                state.backend,
-                lost.elapsed().as_secs_f64() * 1e3
-            ),
-        };
+        let event =
+            RunEvent::device_replaced(frames, time_s, &reason, &state.backend, lost.elapsed());
         println!("event at cycle {}: {}", event.cycle, event.what);
         state.report.events.push(event);
         Ok(())
