@@ -55,15 +55,23 @@
 //! it. `ARBOR_REFINE_FILTER=lion/static/link` (any part of `scene/path/link/variant`; several
 //! separated by `|`) runs only the matching cases; `ARBOR_REFINE_SMALL=0` skips the 256² case
 //! and `ARBOR_REFINE_OVERSUB=0` the oversubscribed one.
+//!
+//! `ARBOR_REFINE_OUT=DIR` writes the CSVs and the chart there instead of `target/refine/`.
+//!
+//! `ARBOR_REFINE_BACKEND=gpu` runs the client sessions on the GPU instead of the CPU twins (one
+//! device for the whole bench; no GPU is an error, not a fallback). On these 2-core machines the
+//! twins' analysis pass is what the client spends most of a cycle on (engine's 512² view is
+//! known in full only after about 0.45 s of cycles), so the GPU rows, from a machine that lends
+//! one, show the same policies with that cost taken away.
 
 use std::collections::HashSet;
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 use arbor_client_core::analysis::AnalysisConfig;
-use arbor_client_core::backend::{CpuBackend, render_resident};
+use arbor_client_core::backend::{Backend, CpuBackend, render_resident};
 use arbor_client_core::camera::{Camera, CameraPath};
 use arbor_client_core::cycle::{CoreConfig, DEFAULT_LOOK_PAST, DEFAULT_PREFETCH_BELOW, Sampling};
 use arbor_client_core::image::Image;
@@ -72,6 +80,7 @@ use arbor_client_core::presort::PriorityPolicy;
 use arbor_client_core::render::Light;
 use arbor_client_core::slots::{DecodedTreelet, SlotBuffer, SlotConfig};
 use arbor_client_core::traverse::Lod;
+use arbor_client_gpu::{GpuBackend, GpuContext};
 use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
 use arbor_client_report::{CycleRecord, RunMeta, RunReport};
 use arbor_client_session::session::{RenderMode, Session, SessionConfig};
@@ -212,21 +221,67 @@ fn rest_before_jump() -> Duration {
     )
 }
 
+/// What the client sessions run their passes on (`ARBOR_REFINE_BACKEND`): the CPU twins
+/// (`cpu`, the default: what CI machines have), or the GPU (`gpu`: one device for the whole
+/// bench, each session with a backend of its own on it). The references and the RMSE-0 search
+/// render on the CPU twins either way: the GPU's images equal theirs (`gpu_real`, `gpu_e2e`).
+enum SessionBackend {
+    Cpu,
+    Gpu(Arc<GpuContext>),
+}
+
+impl SessionBackend {
+    /// The backend `ARBOR_REFINE_BACKEND` names, opened once. A GPU that cannot be opened ends
+    /// the bench with the reason: a figure labelled GPU must come from one.
+    fn get() -> &'static SessionBackend {
+        static CHOSEN: OnceLock<SessionBackend> = OnceLock::new();
+        CHOSEN.get_or_init(|| match std::env::var("ARBOR_REFINE_BACKEND").as_deref() {
+            Err(_) | Ok("cpu") => SessionBackend::Cpu,
+            Ok("gpu") => SessionBackend::Gpu(Arc::new(GpuContext::new(None).unwrap_or_else(|e| {
+                panic!("ARBOR_REFINE_BACKEND=gpu, but no GPU could be opened: {e}")
+            }))),
+            Ok(other) => panic!("ARBOR_REFINE_BACKEND={other:?}: expected cpu or gpu"),
+        })
+    }
+
+    /// A backend for one session.
+    fn make(&self) -> Box<dyn Backend> {
+        match self {
+            SessionBackend::Cpu => Box::new(CpuBackend),
+            SessionBackend::Gpu(ctx) => Box::new(GpuBackend::timed(ctx.clone())),
+        }
+    }
+
+    fn describe(&self) -> String {
+        match self {
+            SessionBackend::Cpu => "CPU twins".into(),
+            SessionBackend::Gpu(ctx) => format!("GPU: {}", ctx.describe()),
+        }
+    }
+}
+
 fn main() {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
         .unwrap();
-    let out = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/refine");
+    // `ARBOR_REFINE_OUT` for a binary carried to another machine, where this checkout's
+    // target directory does not exist.
+    let out = std::env::var_os("ARBOR_REFINE_OUT").map_or_else(
+        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/refine"),
+        PathBuf::from,
+    );
     std::fs::create_dir_all(&out).unwrap();
     let scenes = [
         ("points/lion_takanawa.copc.laz", "lion"),
         ("volumes/engine_256x256x128_u8.nrrd", "engine"),
     ];
     println!(
-        "# refine: {SIZE}×{SIZE}, {} MiB, 4 KiB treelets, CPU twins",
-        BUDGET >> 20
+        "# refine: {SIZE}×{SIZE}, {} MiB, 4 KiB treelets, client on the {} ({} cores)",
+        BUDGET >> 20,
+        SessionBackend::get().describe(),
+        std::thread::available_parallelism().map_or(0, |n| n.get())
     );
     println!(
         "{:<7} {:<6} {:<8} {:<24} {:>8} {:>8} {:>8} {:>13} {:>9} {:>7} {:>6} {:>8} {:>7} {:>8} {:>7}",
@@ -674,7 +729,7 @@ fn connect(
             first_camera: Some(first_camera),
         },
         runtime.handle(),
-        Box::new(CpuBackend),
+        SessionBackend::get().make(),
     )
     .unwrap()
 }
