@@ -120,6 +120,29 @@ async fn static_camera_converges_exactly_over_the_emulated_wan() {
         twice * 50 <= received,
         "{twice} of {received} treelets were received twice"
     );
+    // List-to-arrival latencies: a treelet that was not already on its way when a list first
+    // named it arrives a round trip (50 ms) later at the earliest; one pushed before it was
+    // listed may come sooner, so the bound is on the run's median, not on every cycle's.
+    let mut medians: Vec<f64> = r.iter().filter_map(|c| c.latency_p50_ms).collect();
+    assert!(!medians.is_empty(), "no cycle received a listed treelet");
+    for c in r {
+        assert_eq!(c.latency_p50_ms.is_some(), c.latency_max_ms.is_some());
+        if let (Some(p50), Some(max)) = (c.latency_p50_ms, c.latency_max_ms) {
+            assert!(
+                0.0 < p50 && p50 <= max,
+                "cycle {}: {p50} / {max} ms",
+                c.cycle
+            );
+            assert!(max <= c.time_s * 1e3, "cycle {}: {max} ms", c.cycle);
+        }
+    }
+    medians.sort_by(f64::total_cmp);
+    let median = medians[medians.len() / 2];
+    eprintln!("cycle medians of list-to-arrival latency: {medians:?}");
+    assert!(
+        median >= 50.0,
+        "median list-to-arrival latency {median:.1} ms, under the 50 ms round trip"
+    );
     // The run's report and chart, kept for people to look at.
     let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("client-e2e");
     std::fs::create_dir_all(&out).unwrap();

@@ -12,18 +12,21 @@
 //! # CSV format
 //!
 //! ```text
-//! # arbor run report v2
+//! # arbor run report v3
 //! # scene=…            (one `# key=value` line per RunMeta field, see META_KEYS)
 //! cycle,time_s,analysis_ms,…,differing_share      (the header: CSV_COLUMNS)
 //! 0,0.016,1.2,…,                                   (one row per cycle)
 //! ```
 //!
-//! * v2 added `received_twice` after `push_dropped`; a v1 file has one column fewer and is
-//!   refused with [`ReportError::ColumnCount`].
+//! * v2 added `received_twice` after `push_dropped`; a v1 file has one column fewer than v2
+//!   and is refused with [`ReportError::ColumnCount`].
+//! * v3 added `latency_p50_ms` and `latency_max_ms` at the end; a v2 file (its rows two cells
+//!   shorter, its header without them) is read with both empty.
 //! * Column names carry their unit (`_s`, `_ms`, `_levels`, …); see [`CSV_COLUMNS`].
 //! * Numbers are written with Rust's shortest round-trip formatting, so reading gives back the
 //!   identical bits (`NaN`, `inf` and `-inf` included).
-//! * An empty cell is `None` (only the optional columns `image_rmse` and `differing_share`).
+//! * An empty cell is `None` (only the optional columns `image_rmse`, `differing_share`,
+//!   `latency_p50_ms` and `latency_max_ms`).
 //! * Lines starting with `#` are comments; those of the form `# key=value` with a key from
 //!   [`META_KEYS`] carry [`RunMeta`]. Every meta key must be present; unknown keys are ignored.
 //!   Meta values escape `\` as `\\`, line feed as `\n` and carriage return as `\r`.
@@ -71,14 +74,27 @@ macro_rules! report_columns {
             out.pop();
         }
 
-        /// One data row's cells, in column order.
-        fn parse_row(line: usize, cells: &[&str]) -> Result<CycleRecord, ReportError> {
-            if cells.len() != CSV_COLUMNS.len() {
+        /// One data row's cells, in column order; `width` is the row width the header set (a
+        /// v2 report's rows lack the columns v3 added, which are then read as empty).
+        fn parse_row(
+            line: usize,
+            cells: &[&str],
+            width: usize,
+        ) -> Result<CycleRecord, ReportError> {
+            if cells.len() != width {
                 return Err(ReportError::ColumnCount {
                     line,
                     found: cells.len(),
+                    expected: width,
                 });
             }
+            let padded: Vec<&str>;
+            let cells = if width < CSV_COLUMNS.len() {
+                padded = cells.iter().copied().chain([""; V3_COLUMNS]).collect();
+                &padded[..]
+            } else {
+                cells
+            };
             let mut c = Cells {
                 line,
                 cells,
@@ -123,6 +139,8 @@ report_columns! {
     "error_pixels" => error.error_pixels: f64,
     "image_rmse" => image_rmse: opt_f64,
     "differing_share" => differing_share: opt_f64,
+    "latency_p50_ms" => latency_p50_ms: opt_f64,
+    "latency_max_ms" => latency_max_ms: opt_f64,
 }
 
 /// Cell writers by cell type: Rust's shortest round-trip formatting; `None` is an empty cell.
@@ -164,7 +182,10 @@ pub const META_KEYS: [&str; 8] = [
 const EVENT_KEY: &str = "event";
 
 /// The first line of every report file (a comment, so readers need not require it).
-const MAGIC_LINE: &str = "# arbor run report v2";
+const MAGIC_LINE: &str = "# arbor run report v3";
+
+/// Columns a v2 report lacks at the end of each row (`latency_p50_ms`, `latency_max_ms`).
+const V3_COLUMNS: usize = 2;
 
 /// What happened in one client cycle.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -228,6 +249,13 @@ pub struct CycleRecord {
     pub image_rmse: Option<f64>,
     /// Share of pixels that differ from the reference image (0..=1), when one was given.
     pub differing_share: Option<f64>,
+    /// Median time from the first list naming a treelet to its arrival, ms, over the treelets
+    /// this cycle received that a list had named (pushes are not; `None` when there were none).
+    /// Over a link it is the round trip plus what queued in front: the server's backlog, the
+    /// link's queue, lists that waited in the client's send buffer.
+    pub latency_p50_ms: Option<f64>,
+    /// The largest of those latencies, ms.
+    pub latency_max_ms: Option<f64>,
 }
 
 /// The settings a run was made with.
@@ -329,12 +357,14 @@ pub enum ReportError {
         found: String,
     },
     /// A data row does not have one cell per column.
-    #[error("line {line}: {found} columns, expected {}", CSV_COLUMNS.len())]
+    #[error("line {line}: {found} columns, expected {expected}")]
     ColumnCount {
         /// 1-based line number.
         line: usize,
         /// Number of cells in the row.
         found: usize,
+        /// Number of columns of the header (the current ones, or a v2 report's).
+        expected: usize,
     },
     /// A cell is not a number of its column's type (or is empty in a required column).
     #[error("line {line}, column {column} ({name}): `{value}` is not {kind}")]
@@ -428,7 +458,7 @@ impl RunReport {
     pub fn from_csv_str(text: &str) -> Result<RunReport, ReportError> {
         let mut meta: [Option<String>; META_KEYS.len()] = Default::default();
         let mut meta_lines = [0usize; META_KEYS.len()];
-        let mut header_seen = false;
+        let mut width = None;
         let mut records = Vec::new();
         let mut events = Vec::new();
         let mut last_line = 0;
@@ -460,14 +490,13 @@ impl RunReport {
                 continue;
             }
             let cells: Vec<&str> = trimmed.split(',').map(str::trim).collect();
-            if !header_seen {
-                check_header(line, &cells)?;
-                header_seen = true;
+            let Some(width) = width else {
+                width = Some(check_header(line, &cells)?);
                 continue;
-            }
-            records.push(parse_row(line, &cells)?);
+            };
+            records.push(parse_row(line, &cells, width)?);
         }
-        if !header_seen {
+        if width.is_none() {
             return Err(ReportError::MissingHeader {
                 line: last_line + 1,
             });
@@ -518,6 +547,18 @@ impl RunReport {
                         time_s: r.time_s,
                     })
             }),
+            latency_p50_range_ms: self.records.iter().filter_map(|r| r.latency_p50_ms).fold(
+                None,
+                |range, v| match range {
+                    None => Some((v, v)),
+                    Some((lo, hi)) => Some((v.min(lo), v.max(hi))),
+                },
+            ),
+            latency_max_ms: self
+                .records
+                .iter()
+                .filter_map(|r| r.latency_max_ms)
+                .reduce(f64::max),
         }
     }
 }
@@ -574,6 +615,11 @@ pub struct RunSummary {
     /// First record whose LOD bias differs from the first's: the target was adjusted to the
     /// memory budget.
     pub bias_adjusted: Option<Reached>,
+    /// Smallest and largest of the cycles' median list-to-arrival latencies, ms (`None`: no
+    /// cycle received a treelet a list had named, or a v2 report).
+    pub latency_p50_range_ms: Option<(f64, f64)>,
+    /// Largest list-to-arrival latency of the run, ms.
+    pub latency_max_ms: Option<f64>,
 }
 
 impl fmt::Display for RunSummary {
@@ -593,6 +639,12 @@ impl fmt::Display for RunSummary {
             write!(f, " ({:.3} MB/s)", mb / self.seconds)?;
         }
         writeln!(f)?;
+        if let (Some((lo, hi)), Some(max)) = (self.latency_p50_range_ms, self.latency_max_ms) {
+            writeln!(
+                f,
+                "latency:  list to arrival, cycle medians {lo:.1}–{hi:.1} ms, largest {max:.1} ms"
+            )?;
+        }
         writeln!(
             f,
             "slots:    {} inserted, {} evicted, {} dropped; {}/{} used at the end; {:.3} MB uploaded",
@@ -641,7 +693,13 @@ impl fmt::Display for RunSummary {
     }
 }
 
-fn check_header(line: usize, cells: &[&str]) -> Result<(), ReportError> {
+/// Checks the header row: the current columns, or a v2 report's (without the last
+/// [`V3_COLUMNS`]). Returns the width every data row must have.
+fn check_header(line: usize, cells: &[&str]) -> Result<usize, ReportError> {
+    let v2 = &CSV_COLUMNS[..CSV_COLUMNS.len() - V3_COLUMNS];
+    if cells == v2 {
+        return Ok(v2.len());
+    }
     for column in 0..cells.len().max(CSV_COLUMNS.len()) {
         let expected = CSV_COLUMNS.get(column).copied().unwrap_or("");
         let found = cells.get(column).copied().unwrap_or("");
@@ -654,7 +712,7 @@ fn check_header(line: usize, cells: &[&str]) -> Result<(), ReportError> {
             });
         }
     }
-    Ok(())
+    Ok(CSV_COLUMNS.len())
 }
 
 /// Reads the cells of one data row in column order.
@@ -841,6 +899,8 @@ mod tests {
             },
             image_rmse: Some(0.125),
             differing_share: None,
+            latency_p50_ms: Some(52.5),
+            latency_max_ms: Some(131.0),
         }
     }
 
@@ -909,6 +969,8 @@ mod tests {
     fn csv_header_has_units_and_empty_cells_for_none() {
         let mut r = record(7);
         r.image_rmse = None;
+        r.latency_p50_ms = None;
+        r.latency_max_ms = None;
         let text = RunReport {
             meta: meta(),
             records: vec![r],
@@ -921,7 +983,7 @@ mod tests {
         assert_eq!(lines[9], CSV_COLUMNS.join(","));
         assert!(lines[9].contains("time_s,analysis_ms") && lines[9].contains("image_rmse"));
         assert!(lines[10].starts_with("7,"));
-        assert!(lines[10].ends_with(",,"), "{}", lines[10]);
+        assert!(lines[10].ends_with(",,,,"), "{}", lines[10]);
         assert_eq!(lines.len(), 11);
     }
 
@@ -1015,6 +1077,58 @@ mod tests {
     }
 
     #[test]
+    fn a_v2_report_is_read_with_the_latencies_empty() {
+        let n = CSV_COLUMNS.len();
+        let v2: Vec<String> = good_text()
+            .lines()
+            .map(|l| {
+                if l == MAGIC_LINE {
+                    "# arbor run report v2".to_string()
+                } else if l.starts_with('#') {
+                    l.to_string()
+                } else {
+                    let cells: Vec<&str> = l.split(',').collect();
+                    assert_eq!(cells.len(), n);
+                    cells[..n - V3_COLUMNS].join(",")
+                }
+            })
+            .collect();
+        let read = RunReport::from_csv_str(&v2.join("\n")).unwrap();
+        let mut expected = vec![record(0), record(1)];
+        for r in &mut expected {
+            r.latency_p50_ms = None;
+            r.latency_max_ms = None;
+        }
+        assert_eq!(read.records, expected);
+        assert_eq!(read.meta, meta());
+        // A v3 header with a row of v2's width is an error, not a silent padding.
+        let current = good_text();
+        let row = current.lines().nth(10).unwrap();
+        let short: Vec<&str> = row.split(',').take(n - V3_COLUMNS).collect();
+        let err = RunReport::from_csv_str(&with_line(11, &short.join(","))).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                ReportError::ColumnCount { line: 11, found, expected }
+                    if found == n - V3_COLUMNS && expected == n
+            ),
+            "{err:?}"
+        );
+        // And a v2 header with a v3 row.
+        let mut mixed = v2.clone();
+        mixed[10] = row.to_string();
+        let err = RunReport::from_csv_str(&mixed.join("\n")).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                ReportError::ColumnCount { line: 11, found, expected }
+                    if found == n && expected == n - V3_COLUMNS
+            ),
+            "{err:?}"
+        );
+    }
+
+    #[test]
     fn wrong_column_count_names_the_line() {
         let good = good_text();
         let row = good.lines().nth(10).unwrap();
@@ -1022,8 +1136,8 @@ mod tests {
         assert!(
             matches!(
                 err,
-                ReportError::ColumnCount { line: 11, found }
-                    if found == CSV_COLUMNS.len() + 1
+                ReportError::ColumnCount { line: 11, found, expected }
+                    if found == CSV_COLUMNS.len() + 1 && expected == CSV_COLUMNS.len()
             ),
             "{err:?}"
         );
@@ -1037,7 +1151,7 @@ mod tests {
         assert!(
             matches!(
                 err,
-                ReportError::ColumnCount { line: 11, found } if found == n - 1
+                ReportError::ColumnCount { line: 11, found, .. } if found == n - 1
             ),
             "{err:?}"
         );
@@ -1223,6 +1337,26 @@ mod tests {
         assert_eq!(s.bias_adjusted.map(|r| r.cycle), Some(4));
         assert!(text.contains("LOD bias 1 -> 1.414"), "{text}");
 
+        // Latencies: the range of the cycles' medians and the largest, over the cycles that
+        // received listed treelets.
+        let mut records: Vec<CycleRecord> = (0..3).map(record).collect();
+        (records[0].latency_p50_ms, records[0].latency_max_ms) = (Some(30.0), Some(45.5));
+        (records[1].latency_p50_ms, records[1].latency_max_ms) = (None, None);
+        (records[2].latency_p50_ms, records[2].latency_max_ms) = (Some(12.25), Some(90.0));
+        let s = RunReport {
+            meta: meta(),
+            records,
+            events: Vec::new(),
+        }
+        .summary();
+        assert_eq!(s.latency_p50_range_ms, Some((12.25, 30.0)));
+        assert_eq!(s.latency_max_ms, Some(90.0));
+        let text = s.to_string();
+        assert!(
+            text.contains("latency:  list to arrival, cycle medians 12.2–30.0 ms, largest 90.0 ms"),
+            "{text}"
+        );
+
         let empty = RunReport::default().summary();
         assert_eq!(empty, RunSummary::default());
         let text = empty.to_string();
@@ -1231,6 +1365,7 @@ mod tests {
             "{text}"
         );
         assert!(text.contains("no reference"), "{text}");
+        assert!(!text.contains("latency"), "{text}");
 
         let mut big = record(0);
         big.bytes_received = u64::MAX;

@@ -237,6 +237,7 @@ impl Session {
         // What this cycle took off the connection, counted from the same treelets as its bytes
         // (the connection's own counter runs ahead: it counts what is queued for the session).
         let root_bytes = self.root_bytes.take();
+        let (latency_p50_ms, latency_max_ms) = latency_stats(&received);
         let treelets_received = received.len() as u32 + u32::from(root_bytes.is_some());
         let bytes_received = drained.bytes + root_bytes.unwrap_or(0);
         for t in drained.treelets {
@@ -303,6 +304,8 @@ impl Session {
             error: plan.error,
             image_rmse,
             differing_share,
+            latency_p50_ms,
+            latency_max_ms,
         };
         tracing::debug!(
             cycle,
@@ -404,6 +407,18 @@ pub(crate) fn take_events(
         }
     }
     Ok(received)
+}
+
+/// The median (the upper of the middle two) and the largest list-to-arrival latency, ms, of
+/// the treelets in `received` that a list named; pushes arrive unnamed, with a zero latency.
+fn latency_stats(received: &[ReceivedTreelet]) -> (Option<f64>, Option<f64>) {
+    let mut ms: Vec<f64> = received
+        .iter()
+        .filter(|t| !t.latency.is_zero())
+        .map(|t| t.latency.as_secs_f64() * 1e3)
+        .collect();
+    ms.sort_unstable_by(f64::total_cmp);
+    (ms.get(ms.len() / 2).copied(), ms.last().copied())
 }
 
 /// Decodes received treelets, keeping their order; undecodable ones are logged and counted.
