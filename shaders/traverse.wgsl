@@ -161,10 +161,9 @@ fn slab(lo: vec3<f32>, hi: vec3<f32>, dir: vec3<f32>) -> Slab {
     return slab_with(lo, hi, lo / dir, hi / dir, dir);
 }
 
-// `slab` with the face distances `t_lo = lo / dir`, `t_hi = hi / dir` given: the children of
-// one node share their faces, so the traversal divides 9 face coordinates per node instead of
-// 6 per child (the same quotients, so the same results). Components where `dir` is 0 are not
-// read.
+// `slab` with the face distances `t_lo = lo / dir`, `t_hi = hi / dir` given. Components where
+// `dir` is 0 are not read. The traversal tests a node's children with `child_slabs`, from the
+// same quotients (9 divided per node, not 6 per child), with the same results.
 fn slab_with(lo: vec3<f32>, hi: vec3<f32>, t_lo: vec3<f32>, t_hi: vec3<f32>, dir: vec3<f32>) -> Slab {
     var t_enter = -BIG;
     var t_exit = BIG;
@@ -201,6 +200,83 @@ fn slab_with(lo: vec3<f32>, hi: vec3<f32>, t_lo: vec3<f32>, t_hi: vec3<f32>, dir
         }
     }
     return Slab(t_enter <= t_exit && t_exit >= 0.0, t_enter, entry_axis, entry_sign);
+}
+
+// The slabs of one node's eight children, per axis: the ray's entry and exit in the low half
+// (`near0`, `far0`) and the high half (`near1`, `far1`), from the node's low, middle and high
+// faces and their distances — what `slab_with` derives per axis, ordered by the direction's
+// sign once per node instead of once per child (as `ChildFaces` in traverse.rs). An axis the
+// ray runs parallel to gives −BIG / BIG inside the closed half and BIG / −BIG outside it.
+struct ChildSlabs {
+    near0: vec3<f32>,
+    far0: vec3<f32>,
+    near1: vec3<f32>,
+    far1: vec3<f32>,
+}
+
+fn child_slabs(
+    lo: vec3<f32>,
+    mid: vec3<f32>,
+    hi: vec3<f32>,
+    t_lo: vec3<f32>,
+    t_mid: vec3<f32>,
+    t_hi: vec3<f32>,
+    dir: vec3<f32>,
+) -> ChildSlabs {
+    var s = ChildSlabs(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    for (var a = 0u; a < 3u; a++) {
+        let d = dir[a];
+        if d == 0.0 {
+            let in0 = lo[a] <= 0.0 && 0.0 <= mid[a];
+            let in1 = mid[a] <= 0.0 && 0.0 <= hi[a];
+            s.near0[a] = select(BIG, -BIG, in0);
+            s.far0[a] = select(-BIG, BIG, in0);
+            s.near1[a] = select(BIG, -BIG, in1);
+            s.far1[a] = select(-BIG, BIG, in1);
+        } else if d > 0.0 {
+            s.near0[a] = t_lo[a];
+            s.far0[a] = t_mid[a];
+            s.near1[a] = t_mid[a];
+            s.far1[a] = t_hi[a];
+        } else {
+            s.near0[a] = t_mid[a];
+            s.far0[a] = t_lo[a];
+            s.near1[a] = t_hi[a];
+            s.far1[a] = t_mid[a];
+        }
+    }
+    return s;
+}
+
+// The entry of child `i` (`upper`: its half per axis), or BIG when the ray misses it: the
+// largest of its three entries against the smallest of its three exits, as `slab_with` finds
+// them.
+fn child_enter(s: ChildSlabs, upper: vec3<bool>) -> f32 {
+    let n = select(s.near0, s.near1, upper);
+    let f = select(s.far0, s.far1, upper);
+    let t_enter = max(n.x, max(n.y, n.z));
+    let t_exit = min(f.x, min(f.y, f.z));
+    if t_enter <= t_exit && t_exit >= 0.0 {
+        return t_enter;
+    }
+    return BIG;
+}
+
+// The `Slab` of the picked child: its entry face is the first axis reaching the entry, as in
+// `slab_with`.
+fn child_slab(s: ChildSlabs, upper: vec3<bool>, t_enter: f32, dir: vec3<f32>) -> Slab {
+    let n = select(s.near0, s.near1, upper);
+    var e = -BIG;
+    var entry_axis = 0u;
+    var entry_sign = -1.0;
+    for (var a = 0u; a < 3u; a++) {
+        if dir[a] != 0.0 && n[a] > e {
+            e = n[a];
+            entry_axis = a;
+            entry_sign = select(1.0, -1.0, dir[a] > 0.0);
+        }
+    }
+    return Slab(true, t_enter, entry_axis, entry_sign);
 }
 
 // Edge of a voxel at `depth` (≤ 31), in units: exactly 2^(31 − depth).
@@ -306,10 +382,11 @@ fn trace(ray: Ray) -> Hit {
         let t_hi = hi / dir;
 
         // Pick the nearest remaining child that is hit and could beat the best hit.
+        let slabs = child_slabs(lo, mid, hi, t_lo, t_mid, t_hi, dir);
         var remaining = mask;
         var have_pick = false;
         var pick_i = 0u;
-        var pick_slab = Slab(false, 0.0, 0u, -1.0);
+        var pick_enter = 0.0;
         var pick_t = BIG;
         var next = BIG;
         for (var i = 0u; i < 8u; i++) {
@@ -317,19 +394,12 @@ fn trace(ray: Ray) -> Hit {
                 continue;
             }
             let bits = vec3<u32>((i >> 2u) & 1u, (i >> 1u) & 1u, i & 1u);
-            let upper = bits == vec3<u32>(1u);
-            let s = slab_with(
-                select(lo, mid, upper),
-                select(mid, hi, upper),
-                select(t_lo, t_mid, upper),
-                select(t_mid, t_hi, upper),
-                dir,
-            );
-            if !s.hit {
+            let t_enter = child_enter(slabs, bits == vec3<u32>(1u));
+            if t_enter == BIG {
                 remaining &= ~(1u << i);
                 continue;
             }
-            let t = max(s.t_enter, 0.0);
+            let t = max(t_enter, 0.0);
             if t >= best_t {
                 remaining &= ~(1u << i);
                 continue;
@@ -342,7 +412,7 @@ fn trace(ray: Ray) -> Hit {
                 }
                 have_pick = true;
                 pick_i = i;
-                pick_slab = s;
+                pick_enter = t_enter;
                 pick_t = t;
             }
         }
@@ -352,7 +422,9 @@ fn trace(ray: Ray) -> Hit {
         }
         let i = pick_i;
         let t = pick_t;
-        let child_cell = cell * 2u + vec3<u32>((i >> 2u) & 1u, (i >> 1u) & 1u, i & 1u);
+        let pick_bits = vec3<u32>((i >> 2u) & 1u, (i >> 1u) & 1u, i & 1u);
+        let pick_slab = child_slab(slabs, pick_bits == vec3<u32>(1u), pick_enter, dir);
+        let child_cell = cell * 2u + pick_bits;
         stack_mask[depth] = remaining & ~(1u << i);
         stack_next[depth] = next;
 
