@@ -2,8 +2,8 @@
 //!
 //! This module owns the picture of a [`RunReport`]; it reads nothing but the report, so a chart
 //! can be drawn during a run, after it, or from a CSV file read back with
-//! [`RunReport::read_csv`]. One image, [`WIDTH`]×[`HEIGHT`] pixels, two panels sharing the
-//! x axis (run time, s):
+//! [`RunReport::read_csv`]. One image, [`WIDTH`]×[`HEIGHT`] pixels, two or three panels
+//! sharing the x axis (run time, s):
 //!
 //! * top: screen-space error mean, p95 and max (octree levels, left axis) and, when any record
 //!   has one, image RMSE against the reference (right axis);
@@ -11,7 +11,12 @@
 //!   divided by the time since the previous record, or since the run started for the first; a
 //!   record whose time did not advance uses the sum of its phase durations instead, and is left
 //!   out when that is 0 too),
-//!   and slots used and slots total (right axis).
+//!   and slots used and slots total (right axis);
+//! * when any record has list-to-arrival latencies (report format v3), a third panel below:
+//!   each cycle's median and largest latency in ms, the time from the list that named a
+//!   treelet to its arrival — where a run waits on the link's queue rather than on its own
+//!   cycles. Reports without them (v2 files, runs that received nothing listed) keep the two
+//!   panels and their layout.
 //!
 //! Text is drawn by plotters' `ab_glyph` backend, which has no system font lookup: the DejaVu
 //! Sans font in `client/assets/` is compiled in and registered on first use. The picture is
@@ -19,7 +24,7 @@
 //! `bitmap_encoder` would pull in an older `image`).
 //!
 //! Every series is clipped to its panel's plotting area (`clip.rs`), so a spike never crosses
-//! into the other panel; every series has its own colour.
+//! into another panel; every series has its own colour.
 //!
 //! Degenerate reports never panic: values that are not finite are left out of the series,
 //! empty or zero-width axis ranges are widened, and values and ranges are clipped to ±10¹². An empty
@@ -46,7 +51,7 @@ pub const HEIGHT: u32 = 800;
 /// Largest magnitude an axis range may reach; plotters' tick computation needs finite spans.
 const RANGE_LIMIT: f64 = 1e12;
 
-/// Width of the right axis area of both panels, kept even when the top one has no right axis so
+/// Width of the right axis area of every panel, kept even when a panel has no right axis so
 /// that the panels' x axes line up.
 const RIGHT_AXIS: u32 = 80;
 
@@ -114,24 +119,26 @@ pub fn render_rgb(report: &RunReport, title: &str) -> Result<Vec<u8>, ChartError
     render_with_plot_areas(report, title).map(|(buf, _)| buf)
 }
 
-/// [`render_rgb`], also returning the plotting areas of the top and bottom panels.
+/// [`render_rgb`], also returning the plotting areas of the panels, top to bottom.
 pub(crate) fn render_with_plot_areas(
     report: &RunReport,
     title: &str,
-) -> Result<(Vec<u8>, [PlotArea; 2]), ChartError> {
+) -> Result<(Vec<u8>, Vec<PlotArea>), ChartError> {
     ensure_font()?;
-    let areas;
+    let mut areas = Vec::new();
     let mut buf = vec![0u8; WIDTH as usize * HEIGHT as usize * 3];
     {
         let root = BitMapBackend::with_buffer(&mut buf, (WIDTH, HEIGHT)).into_drawing_area();
         root.fill(&WHITE).map_err(draw_err)?;
         let body = root.titled(title, ("sans-serif", 26)).map_err(draw_err)?;
-        let panels = body.split_evenly((2, 1));
         let data = Series::from_report(&report.records);
-        areas = [
-            draw_error_panel(&panels[0], &data)?,
-            draw_traffic_panel(&panels[1], &data)?,
-        ];
+        let latency = !(data.latency_p50.is_empty() && data.latency_max.is_empty());
+        let panels = body.split_evenly((if latency { 3 } else { 2 }, 1));
+        areas.push(draw_error_panel(&panels[0], &data)?);
+        areas.push(draw_traffic_panel(&panels[1], &data, !latency)?);
+        if latency {
+            areas.push(draw_latency_panel(&panels[2], &data)?);
+        }
         if report.records.is_empty() {
             let style = ("sans-serif", 28)
                 .into_font()
@@ -160,6 +167,8 @@ struct Series {
     mb_per_s: Points,
     slots_used: Points,
     slots_total: Points,
+    latency_p50: Points,
+    latency_max: Points,
     markers: bool,
 }
 
@@ -204,6 +213,8 @@ impl Series {
             mb_per_s,
             slots_used: pts(&|r| Some(f64::from(r.slots_used))),
             slots_total: pts(&|r| Some(f64::from(r.slots_total))),
+            latency_p50: pts(&|r| r.latency_p50_ms),
+            latency_max: pts(&|r| r.latency_max_ms),
             markers: records.len() < MARKER_BELOW,
         }
     }
@@ -256,6 +267,8 @@ const RATE: RGBColor = RGBColor(44, 160, 44);
 // Every series has its own colour, so a pixel tells which series (and panel) it belongs to.
 const USED: RGBColor = RGBColor(23, 190, 207);
 const TOTAL: RGBColor = RGBColor(140, 86, 75);
+const LATENCY_P50: RGBColor = RGBColor(188, 189, 34);
+const LATENCY_MAX: RGBColor = RGBColor(227, 119, 194);
 
 /// One line of a panel.
 struct Line<'a> {
@@ -315,13 +328,15 @@ fn draw_error_panel(
     draw_panel(area, s, panel)
 }
 
+/// The traffic panel; `bottom`: it is the lowest panel and carries the x axis description.
 fn draw_traffic_panel(
     area: &DrawingArea<BitMapBackend<'_>, Shift>,
     s: &Series,
+    bottom: bool,
 ) -> Result<PlotArea, ChartError> {
     let panel = Panel {
         caption: "Traffic and slots",
-        x_desc: Some("run time (s)"),
+        x_desc: bottom.then_some(X_DESC),
         y_desc: "received (MB/s, 1 MB = 10⁶ B)",
         y2_desc: "slots",
         right_axis: true,
@@ -346,6 +361,37 @@ fn draw_traffic_panel(
     };
     draw_panel(area, s, panel)
 }
+
+fn draw_latency_panel(
+    area: &DrawingArea<BitMapBackend<'_>, Shift>,
+    s: &Series,
+) -> Result<PlotArea, ChartError> {
+    let panel = Panel {
+        caption: "List to arrival",
+        x_desc: Some(X_DESC),
+        y_desc: "latency (ms)",
+        y2_desc: "",
+        right_axis: false,
+        left: vec![
+            Line {
+                points: &s.latency_p50,
+                color: LATENCY_P50,
+                label: "cycle median (ms)",
+            },
+            Line {
+                points: &s.latency_max,
+                color: LATENCY_MAX,
+                label: "cycle largest (ms)",
+            },
+        ],
+        right: Vec::new(),
+        legend: SeriesLabelPosition::UpperRight,
+    };
+    draw_panel(area, s, panel)
+}
+
+/// The shared x axis's description, under the lowest panel.
+const X_DESC: &str = "run time (s)";
 
 /// Draws `panel` into `area`: axes from its lines' values, the lines (with markers for short
 /// reports) and the legend. A right line with no points is left out of the legend. Returns the
@@ -588,6 +634,11 @@ mod tests {
             if i % 11 == 3 && i > 0 {
                 r.time_s = report_time(i - 1);
             }
+            // Latencies with gaps (cycles that received nothing listed) and spikes.
+            if i % 5 != 0 {
+                r.latency_p50_ms = Some(20.0 + (i % 9) as f64);
+                r.latency_max_ms = Some(if i % 13 == 4 { 5_000.0 } else { 60.0 });
+            }
         }
         report
     }
@@ -596,36 +647,61 @@ mod tests {
         i as f64 / 30.0
     }
 
-    /// Every pixel of exactly a series colour lies inside the plotting area of its panel.
+    /// Every pixel of exactly a series colour lies inside the plotting area of its panel, with
+    /// the latency panel and without it.
     #[test]
     fn series_are_clipped_to_their_panels() {
-        let top = [MEAN, P95, MAX, RMSE];
-        let bottom = [RATE, USED, TOTAL];
-        for n in [12, 60, 400] {
-            let (buf, [top_area, bottom_area]) =
-                render_with_plot_areas(&spiky(n), "spikes").unwrap();
-            let mut drawn = 0usize;
-            for (i, px) in buf.chunks_exact(3).enumerate() {
-                let (x, y) = ((i % WIDTH as usize) as i32, (i / WIDTH as usize) as i32);
-                let colour = RGBColor(px[0], px[1], px[2]);
-                let inside = |a: &PlotArea| a.0.contains(&x) && a.1.contains(&y);
-                if top.contains(&colour) {
-                    drawn += 1;
-                    assert!(
-                        inside(&top_area),
-                        "{n}: {colour:?} at ({x}, {y}) outside {top_area:?}"
-                    );
+        let colours: [&[RGBColor]; 3] = [
+            &[MEAN, P95, MAX, RMSE],
+            &[RATE, USED, TOTAL],
+            &[LATENCY_P50, LATENCY_MAX],
+        ];
+        for latency in [true, false] {
+            for n in [12, 60, 400] {
+                let mut report = spiky(n);
+                if !latency {
+                    for r in &mut report.records {
+                        (r.latency_p50_ms, r.latency_max_ms) = (None, None);
+                    }
                 }
-                if bottom.contains(&colour) {
-                    drawn += 1;
-                    assert!(
-                        inside(&bottom_area),
-                        "{n}: {colour:?} at ({x}, {y}) outside {bottom_area:?}"
-                    );
+                let (buf, areas) = render_with_plot_areas(&report, "spikes").unwrap();
+                assert_eq!(areas.len(), if latency { 3 } else { 2 });
+                let mut drawn = [0usize; 3];
+                for (i, px) in buf.chunks_exact(3).enumerate() {
+                    let (x, y) = ((i % WIDTH as usize) as i32, (i / WIDTH as usize) as i32);
+                    let colour = RGBColor(px[0], px[1], px[2]);
+                    for (panel, area) in areas.iter().enumerate() {
+                        if colours[panel].contains(&colour) {
+                            drawn[panel] += 1;
+                            assert!(
+                                area.0.contains(&x) && area.1.contains(&y),
+                                "{n}: {colour:?} at ({x}, {y}) outside panel {panel} {area:?}"
+                            );
+                        }
+                    }
+                }
+                for (panel, &d) in drawn.iter().enumerate().take(areas.len()) {
+                    assert!(d > 300, "{n}: only {d} series pixels in panel {panel}");
                 }
             }
-            assert!(drawn > 1000, "{n}: only {drawn} series pixels");
         }
+    }
+
+    /// The latency panel appears exactly when a record has a latency, below the other two, and
+    /// a report without latencies keeps the two-panel layout.
+    #[test]
+    fn the_latency_panel_is_drawn_only_for_reports_with_latencies() {
+        let mut report = synthetic(60);
+        let (_, two) = render_with_plot_areas(&report, "without").unwrap();
+        assert_eq!(two.len(), 2);
+        report.records[30].latency_max_ms = Some(42.0);
+        let (_, three) = render_with_plot_areas(&report, "with").unwrap();
+        assert_eq!(three.len(), 3);
+        assert!(three[0].1.end <= three[1].1.start && three[1].1.end <= three[2].1.start);
+        assert!(
+            three[1].1.len() < two[1].1.len(),
+            "the panels share the height"
+        );
     }
 
     #[test]
