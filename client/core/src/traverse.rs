@@ -39,7 +39,7 @@
 //!    child (the same quotients), and the ray's interval in each half of each axis is ordered
 //!    by the direction's sign once per node too: a child's test is then the largest of three
 //!    entries against the smallest of three exits, without branches, and the entry face is
-//!    found only for the child picked — bit for bit the per-child [`slab`] test, 1.4–1.7×
+//!    found only for the child picked — bit for bit the per-child `slab` test, 1.4–1.7×
 //!    faster per ray. Drop the children missed or whose key is not below the best hit; pick
 //!    the smallest key (ties: lower child index), clear its bit and record the smallest key
 //!    of the rest. The child's record is at
@@ -230,10 +230,10 @@ impl ChildFaces {
     /// Slab test of child `i` (bit 2: x, bit 1: y, bit 0: z upper half): the same result as
     /// [`slab_with`] on the child's faces, bit for bit. Entry is the largest of the three
     /// nears and exit the smallest far, which is what `slab_with`'s loop computes (no value
-    /// here is NaN: faces are finite and a zero direction never divides); a parallel axis's
-    /// ±∞ never wins the entry, as `slab_with` skips it. The entry face (the first axis
-    /// reaching the entry, as in `slab_with`) is only needed for the child picked, so
-    /// [`ChildFaces::entry_face`] finds it then.
+    /// here is NaN: faces are sums of finite values, at worst ±∞, and a zero direction never
+    /// divides); a parallel axis's ±∞ never wins the entry, as `slab_with` skips it. The
+    /// entry face (the first axis reaching the entry, as in `slab_with`) is only needed for
+    /// the child picked, so [`ChildFaces::slab`] finds it then.
     #[inline]
     fn enter(&self, i: u8) -> Option<f64> {
         let b = halves(i);
