@@ -477,11 +477,8 @@ pub fn trace_past(
             stack_mask[depth] = 0;
             continue;
         };
-        let child_cell = [
-            cell[0] * 2 + u32::from((i >> 2) & 1),
-            cell[1] * 2 + u32::from((i >> 1) & 1),
-            cell[2] * 2 + u32::from(i & 1),
-        ];
+        let half = halves(i);
+        let child_cell = [0, 1, 2].map(|a| cell[a] * 2 + half[a] as u32);
         let s = faces.slab(i, t_enter, setup.dir);
         stack_mask[depth] = remaining & !(1 << i);
         stack_next[depth] = next;
