@@ -183,6 +183,92 @@ async fn a_hello_view_pushes_the_roots_refinement_within_its_free_slots() {
     server.shutdown().await;
 }
 
+/// While the view rests, the plan goes on below what was already sent for it: a list that
+/// names none of the treelets the Hello's plan sent (a client stops listing what is on its way)
+/// still gets the refinement below them, within its free slots and never a second copy; the
+/// same kind of list from another view gets only what it names.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_resting_view_is_pushed_on_below_what_was_sent_for_it() {
+    use std::collections::HashSet;
+    let tp = TestPool::new();
+    let server = start(tp.config()).await;
+    let d = server.pool().scene(SCENE).unwrap().description;
+    let view = in_front_of_the_cube();
+    let (c, mut control) = hello_with_root_and_view(&server, view).await;
+    assert!(matches!(
+        control.read().await,
+        Some(Frame::SceneInfo { .. })
+    ));
+    let sent: HashSet<TreeletId> = receive(&c.conn, 24, LONG)
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|(id, _)| id)
+        .collect();
+    assert_eq!(sent.len(), 24);
+    // Lists carry the eye in the scene's world, Hello in root-cube units.
+    let world = ViewHint {
+        eye: std::array::from_fn(|i| d.origin[i] + view.eye[i] * d.edge),
+        ..view
+    };
+    let unsent = |skip: &HashSet<TreeletId>| {
+        (0..d.treelet_count)
+            .rev()
+            .map(TreeletId)
+            .find(|id| !skip.contains(id))
+            .unwrap()
+    };
+    // One treelet elsewhere, with no error of its own: nothing to push below it.
+    let other = unsent(&sent);
+    let pushes = 20;
+    control
+        .send(&Frame::DeepRequestList {
+            seq: 1,
+            view: ViewHint {
+                free_slots: 1 + pushes,
+                ..world
+            },
+            items: vec![(other, 1.0, 0.0)],
+        })
+        .await;
+    let more: HashSet<TreeletId> = receive(&c.conn, 1 + pushes as usize, LONG)
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|(id, _)| id)
+        .collect();
+    assert_eq!(more.len(), 1 + pushes as usize, "distinct");
+    assert!(more.contains(&other));
+    assert!(more.is_disjoint(&sent), "nothing sent twice");
+    let beyond = receive(&c.conn, 1, Duration::from_millis(300)).await;
+    assert!(beyond.is_err(), "more than announced: {beyond:?}");
+
+    // Another view: what was sent for the first one implies nothing.
+    let all: HashSet<TreeletId> = sent.union(&more).copied().collect();
+    let another = unsent(&all);
+    let mut moved = world;
+    moved.eye[0] += 0.01 * d.edge;
+    control
+        .send(&Frame::DeepRequestList {
+            seq: 2,
+            view: ViewHint {
+                free_slots: 1 + pushes,
+                ..moved
+            },
+            items: vec![(another, 1.0, 0.0)],
+        })
+        .await;
+    let got = receive(&c.conn, 1, LONG).await.unwrap();
+    assert_eq!(got[0].0, another);
+    let beyond = receive(&c.conn, 1, Duration::from_millis(300)).await;
+    assert!(
+        beyond.is_err(),
+        "pushed below another view's treelets: {beyond:?}"
+    );
+    c.conn.close(0u32.into(), b"done");
+    server.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_timeline_records_what_was_listed_pushed_sent_and_acknowledged() {
     use arbor_server::service::timeline::{Breakdown, Event, NamedBy};

@@ -43,6 +43,9 @@
 //! (`arbor_server::service::timeline`) in every case and prints under its row when the view's
 //! last needed treelet was named, sent and acknowledged, and the bytes acknowledged up to then
 //! by who named them (the client's list or a push) and whether the view needed them.
+//! `ARBOR_REFINE_TIMELINE=2` adds a table every 50 ms: the needed treelets not yet named, named
+//! and waiting, in flight and acknowledged, and the megabytes sent and acknowledged, needed and
+//! not.
 //!
 //! `ARBOR_REFINE_REST_MS=N`: the first view rests N ms after converging (the client keeps
 //! stepping, its prefetch may use the idle link) before the jump; the bytes received in the
@@ -85,7 +88,7 @@ use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trus
 use arbor_client_report::{CycleRecord, RunMeta, RunReport};
 use arbor_client_session::session::{RenderMode, Session, SessionConfig};
 use arbor_proto::TreeletId;
-use arbor_server::service::timeline::{Breakdown, Event as TimelineEvent};
+use arbor_server::service::timeline::{Breakdown, Event as TimelineEvent, Progress, progress};
 use arbor_server::service::visibility::CutCaster;
 use arbor_tests::link::{LinkConfig, LinkEmulator};
 use arbor_tests::streaming::{Served, TOKEN, full, serve};
@@ -602,7 +605,8 @@ fn run_case(
         ..CoreConfig::default()
     };
     let timeline = &served.server.state.timeline;
-    let trace = std::env::var("ARBOR_REFINE_TIMELINE").as_deref() == Ok("1");
+    let trace_level = std::env::var("ARBOR_REFINE_TIMELINE").unwrap_or_default();
+    let trace = trace_level == "1" || trace_level == "2";
     if trace {
         timeline.start();
     }
@@ -677,10 +681,21 @@ fn run_case(
         outcome.timeline = Some(session.map_or_else(
             || "nothing listed in this phase".to_owned(),
             |s| {
-                Breakdown::of(&recording, s, phase_start, needed, |id| {
-                    served.wire_bytes[id.0 as usize]
-                })
-                .summary()
+                let bytes = |id: TreeletId| served.wire_bytes[id.0 as usize];
+                let mut text = Breakdown::of(&recording, s, phase_start, needed, bytes).summary();
+                if trace_level == "2" {
+                    let until = outcome.rmse0.unwrap_or(1.0);
+                    text += &progress_table(&progress(
+                        &recording,
+                        s,
+                        phase_start,
+                        needed,
+                        bytes,
+                        PROGRESS_STEP,
+                        until + PROGRESS_STEP,
+                    ));
+                }
+                text
             },
         ));
     }
@@ -999,4 +1014,30 @@ fn oversubscribed(runtime: &tokio::runtime::Runtime, out: &std::path::Path) {
             .write_csv(&out.join(format!("oversubscribed-{name}.csv")))
             .unwrap();
     }
+}
+
+/// Rows of [`progress_table`], seconds apart.
+const PROGRESS_STEP: f64 = 0.05;
+
+/// The lines `ARBOR_REFINE_TIMELINE=2` prints under a row.
+fn progress_table(rows: &[Progress]) -> String {
+    let mb = |b: u64| b as f64 / 1e6;
+    let mut out = String::from(
+        "\n      t s | needed: unnamed named  sent acked | MB sent need / not | MB acked need / not",
+    );
+    for p in rows {
+        out += &format!(
+            "\n    {:>5.2} | {:>15} {:>5} {:>5} {:>5} | {:>13.2} / {:<4.2} | {:>14.2} / {:<4.2}",
+            p.at,
+            p.unnamed,
+            p.named,
+            p.sent,
+            p.acked,
+            mb(p.sent_bytes.0),
+            mb(p.sent_bytes.1),
+            mb(p.acked_bytes.0),
+            mb(p.acked_bytes.1)
+        );
+    }
+    out
 }

@@ -16,7 +16,7 @@ use tokio::task::JoinSet;
 
 use super::batches::Batches;
 use super::connection::{ControlReader, End, Greeting, close, hello};
-use super::push::{WorldCube, cut_list, cut_saves, deep_list};
+use super::push::{PushAnchors, WorldCube, cut_list, cut_saves, deep_list_anchored};
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
 use super::shared::Shared;
 use super::shutdown::Shutdown;
@@ -120,6 +120,8 @@ struct Handler {
     /// The last deep list applied (sequence, view, items): re-planned when its view's cut
     /// arrives.
     last_deep: Option<DeepList>,
+    /// What was sent for the view the connection rests on: the frustum plan goes on below it.
+    anchors: PushAnchors,
 }
 
 impl Handler {
@@ -193,6 +195,7 @@ impl Handler {
             cut: None,
             cut_job: None,
             last_deep: None,
+            anchors: PushAnchors::default(),
         })
     }
 
@@ -369,9 +372,10 @@ impl Handler {
     }
 
     /// The list for a deep request: pushes from the view's visible cut when one answers it,
-    /// else from the frustum plan below the listed treelets.
+    /// else from the frustum plan below the listed treelets and what was already sent for the
+    /// same view ([`PushAnchors`]).
     fn plan(
-        &self,
+        &mut self,
         view: &ViewHint,
         items: &[(TreeletId, f32, f32)],
     ) -> (Vec<(TreeletId, f32)>, usize) {
@@ -385,9 +389,16 @@ impl Handler {
                 core.sched.was_delivered(self.id, t)
             });
         }
-        let scene = &self.ctx.scene;
+        let scene = self.ctx.scene.clone();
         let cube = WorldCube::of(&scene.stored.description);
-        deep_list(cube, view, items, MAX_REQUEST_ITEMS, |id| scene.shape(id))
+        self.anchors.for_view(view);
+        let roots = self.anchors.roots(items);
+        let (list, pushes) =
+            deep_list_anchored(cube, view, items, &roots, MAX_REQUEST_ITEMS, |id| {
+                scene.shape(id)
+            });
+        self.anchors.record(items, &pushes, |id| scene.shape(id));
+        (list, pushes.len())
     }
 
     /// Starts computing `view`'s visible cut on a blocking thread — the coarse one, or the fine
@@ -492,6 +503,7 @@ impl Handler {
     /// [`super::schedule::batch_limit`] of the window): start a stream task for it, ranked after
     /// the ones started before under the same list.
     fn on_batch(&mut self, batch: Vec<TreeletId>) -> Option<End> {
+        self.anchors.note_sent(&batch);
         if let Some(e) = self.conn.close_reason() {
             // Lost under our feet: do not churn through the queue opening streams.
             return Some(End::Lost(e));
@@ -532,7 +544,10 @@ impl Handler {
                 self.update_window();
                 None
             }
-            Outcome::Lost | Outcome::Cancelled | Outcome::StoppedByPeer => None,
+            Outcome::Lost | Outcome::Cancelled | Outcome::StoppedByPeer => {
+                self.anchors.note_unsent(batch);
+                None
+            }
         }
     }
 

@@ -12,6 +12,10 @@
 //! before it, split by who named them and whether the view needed them. Measured with it on
 //! the engine over the link emulator: the treelets of a view's tail were named 150–250 ms
 //! before they were sent, and half of the pushed bytes before them were not needed.
+//! [`progress`] samples the same moments every few milliseconds: how many needed treelets were
+//! still unnamed, named and waiting, in flight or acknowledged, and the bytes sent and
+//! acknowledged by then (it showed the link idle while needed treelets named by an earlier plan
+//! waited in no current list — see `push::PushAnchors`).
 
 use std::collections::{HashMap, HashSet};
 use std::sync::Mutex;
@@ -159,56 +163,7 @@ impl Breakdown {
         needed: &HashSet<TreeletId>,
         bytes: impl Fn(TreeletId) -> u64,
     ) -> Breakdown {
-        let secs = |at: &Instant| at.saturating_duration_since(start).as_secs_f64();
-        let mut moments: HashMap<TreeletId, TreeletMoments> = HashMap::new();
-        let mut delivered_order: Vec<(f64, TreeletId)> = Vec::new();
-        for event in &recording.events {
-            match event {
-                Event::Listed {
-                    session: s,
-                    at,
-                    listed,
-                    pushed,
-                } if *s == session => {
-                    let t = secs(at);
-                    let named = listed
-                        .iter()
-                        .map(|&id| (id, NamedBy::List))
-                        .chain(pushed.iter().map(|&id| (id, NamedBy::Push)));
-                    for (id, by) in named {
-                        let m = moments.entry(id).or_default();
-                        m.named.get_or_insert((t, by));
-                        if m.sent.is_none() {
-                            m.named_for_send = Some((t, by));
-                        }
-                    }
-                }
-                Event::Dispatched {
-                    session: s,
-                    at,
-                    batch,
-                } if *s == session => {
-                    for &id in batch {
-                        moments.entry(id).or_default().sent.get_or_insert(secs(at));
-                    }
-                }
-                Event::Ended {
-                    session: s,
-                    at,
-                    batch,
-                    delivered: true,
-                } if *s == session => {
-                    for &id in batch {
-                        let m = moments.entry(id).or_default();
-                        if m.delivered.is_none() {
-                            m.delivered = Some(secs(at));
-                            delivered_order.push((secs(at), id));
-                        }
-                    }
-                }
-                _ => {}
-            }
-        }
+        let (moments, delivered_order) = moments(recording, session, start);
         let last_needed = delivered_order
             .iter()
             .filter(|(_, id)| needed.contains(id))
@@ -299,6 +254,145 @@ impl Breakdown {
             }
         )
     }
+}
+
+/// Where a view's needed treelets stood at one moment, and the bytes handed to streams and
+/// acknowledged by then, split by whether the view needs them ([`progress`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Progress {
+    /// Seconds after the start.
+    pub at: f64,
+    /// Needed treelets not named yet.
+    pub unnamed: usize,
+    /// Named (listed or pushed), not handed to a stream yet.
+    pub named: usize,
+    /// Handed to a stream, not acknowledged yet.
+    pub sent: usize,
+    /// Acknowledged.
+    pub acked: usize,
+    /// Bytes handed to streams: `(needed, not needed)`.
+    pub sent_bytes: (u64, u64),
+    /// Bytes acknowledged: `(needed, not needed)`.
+    pub acked_bytes: (u64, u64),
+}
+
+/// [`Progress`] of `session` every `step` seconds after `start`, up to `until`: where the time
+/// between naming a needed treelet and its arrival went (a needed treelet named but not sent
+/// while the bytes sent stand still is one no current list names).
+pub fn progress(
+    recording: &Recording,
+    session: u64,
+    start: Instant,
+    needed: &HashSet<TreeletId>,
+    bytes: impl Fn(TreeletId) -> u64,
+    step: f64,
+    until: f64,
+) -> Vec<Progress> {
+    let (moments, _) = moments(recording, session, start);
+    let by = |t: Option<f64>, at: f64| t.is_some_and(|t| t <= at);
+    let steps = if step > 0.0 && until.is_finite() {
+        (until / step).floor().clamp(0.0, 1e6) as usize
+    } else {
+        0
+    };
+    (1..=steps)
+        .map(|k| {
+            let at = k as f64 * step;
+            let mut p = Progress {
+                at,
+                ..Progress::default()
+            };
+            for id in needed {
+                let m = moments.get(id).copied().unwrap_or_default();
+                if by(m.delivered, at) {
+                    p.acked += 1;
+                } else if by(m.sent, at) {
+                    p.sent += 1;
+                } else if by(m.named.map(|n| n.0), at) {
+                    p.named += 1;
+                } else {
+                    p.unnamed += 1;
+                }
+            }
+            for (id, m) in &moments {
+                let b = bytes(*id);
+                let side = |pair: &mut (u64, u64)| {
+                    if needed.contains(id) {
+                        pair.0 += b;
+                    } else {
+                        pair.1 += b;
+                    }
+                };
+                if by(m.sent, at) {
+                    side(&mut p.sent_bytes);
+                }
+                if by(m.delivered, at) {
+                    side(&mut p.acked_bytes);
+                }
+            }
+            p
+        })
+        .collect()
+}
+
+/// Every treelet's moments in `session`'s events, seconds after `start`, and the deliveries in
+/// the order they happened.
+fn moments(
+    recording: &Recording,
+    session: u64,
+    start: Instant,
+) -> (HashMap<TreeletId, TreeletMoments>, Vec<(f64, TreeletId)>) {
+    let secs = |at: &Instant| at.saturating_duration_since(start).as_secs_f64();
+    let mut moments: HashMap<TreeletId, TreeletMoments> = HashMap::new();
+    let mut delivered_order: Vec<(f64, TreeletId)> = Vec::new();
+    for event in &recording.events {
+        match event {
+            Event::Listed {
+                session: s,
+                at,
+                listed,
+                pushed,
+            } if *s == session => {
+                let t = secs(at);
+                let named = listed
+                    .iter()
+                    .map(|&id| (id, NamedBy::List))
+                    .chain(pushed.iter().map(|&id| (id, NamedBy::Push)));
+                for (id, by) in named {
+                    let m = moments.entry(id).or_default();
+                    m.named.get_or_insert((t, by));
+                    if m.sent.is_none() {
+                        m.named_for_send = Some((t, by));
+                    }
+                }
+            }
+            Event::Dispatched {
+                session: s,
+                at,
+                batch,
+            } if *s == session => {
+                for &id in batch {
+                    moments.entry(id).or_default().sent.get_or_insert(secs(at));
+                }
+            }
+            Event::Ended {
+                session: s,
+                at,
+                batch,
+                delivered: true,
+            } if *s == session => {
+                for &id in batch {
+                    let m = moments.entry(id).or_default();
+                    if m.delivered.is_none() {
+                        m.delivered = Some(secs(at));
+                        delivered_order.push((secs(at), id));
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+    (moments, delivered_order)
 }
 
 #[cfg(test)]
@@ -448,5 +542,38 @@ mod tests {
             s.contains("named before the recording 0 needed (0.00 MB) + 1 not (0.00 MB)"),
             "{s}"
         );
+
+        let p = progress(
+            &recording,
+            7,
+            t0,
+            &needed,
+            |id| 100 * u64::from(id.0),
+            0.05,
+            0.2,
+        );
+        assert_eq!(p.len(), 4);
+        for (k, p) in p.iter().enumerate() {
+            assert!((p.at - 0.05 * (k + 1) as f64).abs() < 1e-12, "{p:?}");
+        }
+        let counts = |p: &Progress| (p.unnamed, p.named, p.sent, p.acked);
+        assert_eq!(counts(&p[0]), (1, 1, 1, 0));
+        assert_eq!((p[0].sent_bytes, p[0].acked_bytes), ((100, 300), (0, 900)));
+        assert_eq!(counts(&p[1]), (0, 1, 1, 1));
+        assert_eq!(
+            (p[1].sent_bytes, p[1].acked_bytes),
+            ((300, 700), (100, 1200))
+        );
+        assert_eq!(
+            counts(&p[3]),
+            (0, 0, 1, 2),
+            "5 was reset, never acknowledged"
+        );
+        assert_eq!(
+            (p[3].sent_bytes, p[3].acked_bytes),
+            ((800, 700), (300, 1600))
+        );
+        assert!(progress(&recording, 7, t0, &needed, |_| 1, 0.0, 1.0).is_empty());
+        assert!(progress(&recording, 7, t0, &needed, |_| 1, 0.1, f64::INFINITY).is_empty());
     }
 }
