@@ -398,6 +398,8 @@ impl Handler {
                 scene.shape(id)
             });
         self.anchors.record(items, &pushes, |id| scene.shape(id));
+        self.anchors
+            .note_exhausted(cube, view, |id| scene.shape(id));
         (list, pushes.len())
     }
 

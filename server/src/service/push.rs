@@ -93,6 +93,18 @@ pub fn plan_pushes(
 /// from, and the depth its own descendants' roots must stay above.
 pub type PlannedPush = (TreeletId, u32, f64);
 
+/// A treelet already sent for the view ([`PushAnchors`]): never pushed again, and walked down
+/// from unless `walk` is false (nothing new below it: see [`PushAnchors::note_exhausted`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Anchor {
+    /// The treelet.
+    pub id: TreeletId,
+    /// The depth its descendants' roots must stay above.
+    pub limit: f64,
+    /// Whether the plan walks down from it.
+    pub walk: bool,
+}
+
 /// [`plan_pushes`] below the listed items and then below `anchors` — treelets already sent
 /// for this view ([`PushAnchors`]), each with the depth its descendants' roots must stay above —
 /// one breadth-first walk over both. Every push comes with the depth limit it inherited, so it
@@ -101,7 +113,7 @@ pub fn plan_pushes_anchored(
     cube: WorldCube,
     view: &ViewHint,
     items: &[(TreeletId, f32, f32)],
-    anchors: &[(TreeletId, f64)],
+    anchors: &[Anchor],
     budget: usize,
     mut shape: impl FnMut(TreeletId) -> Option<Arc<TreeletShape>>,
 ) -> Vec<PlannedPush> {
@@ -110,13 +122,19 @@ pub fn plan_pushes_anchored(
         return out;
     }
     let listed: HashSet<TreeletId> = items.iter().map(|i| i.0).collect();
-    let anchored: HashSet<TreeletId> = anchors.iter().map(|a| a.0).collect();
+    let anchored: HashSet<TreeletId> = anchors.iter().map(|a| a.id).collect();
     let mut pushed: HashSet<TreeletId> = HashSet::new();
     // The largest limit each treelet was walked with. A treelet has one parent, so without
     // anchors each is walked once; an anchor (or a push below one) may also be reached from a
     // listed treelet or another anchor with a larger limit, and is then walked again with it —
     // never pushed twice.
-    let mut walked: HashMap<TreeletId, f64> = HashMap::new();
+    // An anchor not walked from counts as walked with its own limit: what lies below it was
+    // sent or fails the tests, and its sent children are anchors of their own.
+    let mut walked: HashMap<TreeletId, f64> = anchors
+        .iter()
+        .filter(|a| !a.walk)
+        .map(|a| (a.id, a.limit))
+        .collect();
     // (treelet, generation, the depth its descendants' roots must stay above)
     let mut queue = VecDeque::new();
     let roots = items
@@ -131,7 +149,8 @@ pub fn plan_pushes_anchored(
         .chain(
             anchors
                 .iter()
-                .filter_map(|&(id, limit)| Some((id, limit, shape(id)?))),
+                .filter(|a| a.walk)
+                .filter_map(|a| Some((a.id, a.limit, shape(a.id)?))),
         );
     for (id, limit, s) in roots {
         let w = walked.entry(id).or_insert(limit);
@@ -189,7 +208,7 @@ pub fn deep_list_anchored(
     cube: WorldCube,
     view: &ViewHint,
     items: &[(TreeletId, f32, f32)],
-    anchors: &[(TreeletId, f64)],
+    anchors: &[Anchor],
     max_items: usize,
     shape: impl FnMut(TreeletId) -> Option<Arc<TreeletShape>>,
 ) -> (Vec<(TreeletId, f32)>, Vec<PlannedPush>) {
@@ -223,7 +242,9 @@ pub fn deep_list_anchored(
 /// planned with, and once it has been handed to a stream it is an *anchor*: the next plan walks
 /// down from the anchors too, skipping what was already sent. A new view starts over (a moving
 /// camera's old subtrees are not implied by its new view), and a treelet whose stream was reset
-/// or lost stops being an anchor (the client may not hold it). Bounded: at most
+/// or lost stops being an anchor (the client may not hold it). An anchor with nothing new
+/// below it is marked exhausted ([`PushAnchors::note_exhausted`]) and not walked again, so a
+/// plan's walk covers what is new, not everything sent for the view. Bounded: at most
 /// [`PushAnchors::MAX`] treelets are kept; beyond it new ones are not (the plan below the listed
 /// treelets goes on as without anchors).
 #[derive(Debug, Default)]
@@ -234,11 +255,14 @@ pub struct PushAnchors {
     limits: HashMap<TreeletId, f64>,
     /// Those of them handed to a stream (and not reset since).
     sent: HashSet<TreeletId>,
+    /// Sent treelets with nothing new below them: every child is sent, or fails the depth or
+    /// view test. Not walked from again (a plan costs what is new, not all that was sent).
+    exhausted: HashSet<TreeletId>,
 }
 
 impl PushAnchors {
     /// Most treelets kept.
-    pub const MAX: usize = 1 << 20;
+    pub const MAX: usize = 1 << 17;
 
     /// Starts over unless `view` is the view the anchors were kept for.
     pub fn for_view(&mut self, view: &ViewHint) {
@@ -249,22 +273,61 @@ impl PushAnchors {
         {
             self.limits.clear();
             self.sent.clear();
+            self.exhausted.clear();
             self.view = Some(*view);
         }
     }
 
-    /// The anchors to plan below besides `items`: sent, and not listed again.
-    pub fn roots(&self, items: &[(TreeletId, f32, f32)]) -> Vec<(TreeletId, f64)> {
+    /// The anchors to plan below besides `items`: sent, and not listed again; walked from
+    /// unless exhausted.
+    pub fn roots(&self, items: &[(TreeletId, f32, f32)]) -> Vec<Anchor> {
         let listed: HashSet<TreeletId> = items.iter().map(|i| i.0).collect();
-        let mut roots: Vec<(TreeletId, f64)> = self
+        let mut roots: Vec<Anchor> = self
             .sent
             .iter()
             .filter(|id| !listed.contains(id))
-            .filter_map(|id| self.limits.get(id).map(|&limit| (*id, limit)))
+            .filter_map(|id| {
+                self.limits.get(id).map(|&limit| Anchor {
+                    id: *id,
+                    limit,
+                    walk: !self.exhausted.contains(id),
+                })
+            })
             .collect();
         // Deterministic plans: the walk visits the roots in id order (parents before children).
-        roots.sort_by_key(|r| r.0);
+        roots.sort_by_key(|r| r.id);
         roots
+    }
+
+    /// Marks the sent treelets below which nothing is left to push for `view` (every child
+    /// sent, or too deep for its limit, or out of view or finer than a pixel), so later plans
+    /// do not walk them again. Checks only those not marked yet: one level each.
+    pub fn note_exhausted(
+        &mut self,
+        cube: WorldCube,
+        view: &ViewHint,
+        mut shape: impl FnMut(TreeletId) -> Option<Arc<TreeletShape>>,
+    ) {
+        let open: Vec<TreeletId> = self
+            .sent
+            .iter()
+            .filter(|id| !self.exhausted.contains(id))
+            .copied()
+            .collect();
+        for id in open {
+            let (Some(&limit), Some(s)) = (self.limits.get(&id), shape(id)) else {
+                continue;
+            };
+            let done = s.children.iter().all(|&(child, cell)| {
+                self.sent.contains(&child) || f64::from(cell.depth) >= limit || {
+                    let (min, max) = cube.cell_box(cell);
+                    !view.box_error(min, max).is_some_and(|e| e > 0.0)
+                }
+            });
+            if done {
+                self.exhausted.insert(id);
+            }
+        }
     }
 
     /// A plan was made: its listed items (limit from the error the client measured; a listed
@@ -281,7 +344,10 @@ impl PushAnchors {
             }
             if let Some(s) = shape(id) {
                 let limit = f64::from(s.root.depth) + f64::from(error.max(0.0));
-                self.limits.insert(id, limit);
+                if self.limits.insert(id, limit).is_some_and(|old| old < limit) {
+                    // Deeper now: what lies below may no longer be exhausted.
+                    self.exhausted.remove(&id);
+                }
             }
         }
         for &(id, _, limit) in pushes {
@@ -298,10 +364,15 @@ impl PushAnchors {
             .extend(batch.iter().filter(|id| self.limits.contains_key(id)));
     }
 
-    /// `batch`'s stream was reset or lost: the client may not hold it.
+    /// `batch`'s stream was reset or lost: the client may not hold it. (Rare: the exhausted
+    /// marks, which counted it as sent, start over.)
     pub fn note_unsent(&mut self, batch: &[TreeletId]) {
+        let mut any = false;
         for id in batch {
-            self.sent.remove(id);
+            any |= self.sent.remove(id);
+        }
+        if any {
+            self.exhausted.clear();
         }
     }
 
@@ -607,6 +678,7 @@ mod tests {
             .chain(first[..8].iter().map(|p| p.0))
             .collect();
         anchors.note_sent(&sent);
+        anchors.note_exhausted(CUBE, &view, shape);
         let other = [(TreeletId(100), 1.0, 0.0)];
         let (plain, plain_pushed) = deep_list(CUBE, &view, &other, 100, shape);
         assert_eq!(
@@ -617,6 +689,13 @@ mod tests {
         anchors.for_view(&view);
         let roots = anchors.roots(&other);
         assert_eq!(roots.len(), 9, "the root and its 8 children");
+        let walked: Vec<TreeletId> = roots.iter().filter(|r| r.walk).map(|r| r.id).collect();
+        assert_eq!(
+            walked.len(),
+            8,
+            "the root's children all went: it is exhausted"
+        );
+        assert!(!walked.contains(&TreeletId(0)));
         let (list, again) = deep_list_anchored(CUBE, &view, &other, &roots, 100, shape);
         let again_ids: Vec<TreeletId> = again.iter().map(|p| p.0).collect();
         for p in &first[8..] {
@@ -687,6 +766,7 @@ mod tests {
                 .map(|(_, id)| id)
                 .collect();
             anchors.note_sent(&sent);
+            anchors.note_exhausted(CUBE, &view, shape);
             let later: Vec<_> = later.iter().map(|&(id, e)| (TreeletId(id), 1.0, e)).collect();
             let roots = anchors.roots(&later);
             let plan = plan_pushes_anchored(CUBE, &view, &later, &roots, budget, shape);
@@ -698,7 +778,7 @@ mod tests {
                 }
             }
             let listed_ids: HashSet<_> = later.iter().map(|i| i.0).collect();
-            let root_ids: HashSet<_> = roots.iter().map(|r| r.0).collect();
+            let root_ids: HashSet<_> = roots.iter().map(|r| r.id).collect();
             let mut seen = HashSet::new();
             for &(id, _, limit) in &plan {
                 prop_assert!(seen.insert(id), "pushed twice");
