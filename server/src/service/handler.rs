@@ -393,10 +393,16 @@ impl Handler {
         let cube = WorldCube::of(&scene.stored.description);
         self.anchors.for_view(view);
         let roots = self.anchors.roots(items);
-        let (list, pushes) =
-            deep_list_anchored(cube, view, items, &roots, MAX_REQUEST_ITEMS, |id| {
-                scene.shape(id)
-            });
+        let anchors = &self.anchors;
+        let (list, pushes) = deep_list_anchored(
+            cube,
+            view,
+            items,
+            &roots,
+            |id| anchors.sent_limit(id),
+            MAX_REQUEST_ITEMS,
+            |id| scene.shape(id),
+        );
         self.anchors.record(items, &pushes, |id| scene.shape(id));
         self.anchors
             .note_exhausted(cube, view, |id| scene.shape(id));

@@ -83,7 +83,7 @@ pub fn plan_pushes(
     budget: usize,
     shape: impl FnMut(TreeletId) -> Option<Arc<TreeletShape>>,
 ) -> Vec<(TreeletId, u32)> {
-    plan_pushes_anchored(cube, view, items, &[], budget, shape)
+    plan_pushes_anchored(cube, view, items, &[], |_| None, budget, shape)
         .into_iter()
         .map(|(id, generation, _)| (id, generation))
         .collect()
@@ -93,27 +93,19 @@ pub fn plan_pushes(
 /// from, and the depth its own descendants' roots must stay above.
 pub type PlannedPush = (TreeletId, u32, f64);
 
-/// A treelet already sent for the view ([`PushAnchors`]): never pushed again, and walked down
-/// from unless `walk` is false (nothing new below it: see [`PushAnchors::note_exhausted`]).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Anchor {
-    /// The treelet.
-    pub id: TreeletId,
-    /// The depth its descendants' roots must stay above.
-    pub limit: f64,
-    /// Whether the plan walks down from it.
-    pub walk: bool,
-}
-
-/// [`plan_pushes`] below the listed items and then below `anchors` — treelets already sent
-/// for this view ([`PushAnchors`]), each with the depth its descendants' roots must stay above —
-/// one breadth-first walk over both. Every push comes with the depth limit it inherited, so it
-/// can be an anchor in turn.
+/// [`plan_pushes`] below the listed items and then below `roots` — anchors with something new
+/// below them ([`PushAnchors::roots`]), each with the depth its descendants' roots must stay
+/// above — one breadth-first walk over both. `anchor` gives the limit of every treelet already
+/// sent for the view: those are never pushed again, and one not walked from counts as walked
+/// with its own limit (what lies below it was sent or fails the tests, and its sent children
+/// are anchors of their own). Every push comes with the depth limit it inherited, so it can be
+/// an anchor in turn.
 pub fn plan_pushes_anchored(
     cube: WorldCube,
     view: &ViewHint,
     items: &[(TreeletId, f32, f32)],
-    anchors: &[Anchor],
+    roots: &[(TreeletId, f64)],
+    anchor: impl Fn(TreeletId) -> Option<f64>,
     budget: usize,
     mut shape: impl FnMut(TreeletId) -> Option<Arc<TreeletShape>>,
 ) -> Vec<PlannedPush> {
@@ -122,19 +114,12 @@ pub fn plan_pushes_anchored(
         return out;
     }
     let listed: HashSet<TreeletId> = items.iter().map(|i| i.0).collect();
-    let anchored: HashSet<TreeletId> = anchors.iter().map(|a| a.id).collect();
     let mut pushed: HashSet<TreeletId> = HashSet::new();
     // The largest limit each treelet was walked with. A treelet has one parent, so without
     // anchors each is walked once; an anchor (or a push below one) may also be reached from a
     // listed treelet or another anchor with a larger limit, and is then walked again with it —
     // never pushed twice.
-    // An anchor not walked from counts as walked with its own limit: what lies below it was
-    // sent or fails the tests, and its sent children are anchors of their own.
-    let mut walked: HashMap<TreeletId, f64> = anchors
-        .iter()
-        .filter(|a| !a.walk)
-        .map(|a| (a.id, a.limit))
-        .collect();
+    let mut walked: HashMap<TreeletId, f64> = HashMap::new();
     // (treelet, generation, the depth its descendants' roots must stay above)
     let mut queue = VecDeque::new();
     let roots = items
@@ -147,10 +132,9 @@ pub fn plan_pushes_anchored(
         .collect::<Vec<_>>()
         .into_iter()
         .chain(
-            anchors
+            roots
                 .iter()
-                .filter(|a| a.walk)
-                .filter_map(|a| Some((a.id, a.limit, shape(a.id)?))),
+                .filter_map(|&(id, limit)| Some((id, limit, shape(id)?))),
         );
     for (id, limit, s) in roots {
         let w = walked.entry(id).or_insert(limit);
@@ -165,7 +149,13 @@ pub fn plan_pushes_anchored(
             if f64::from(cell.depth) >= limit || listed.contains(&child) {
                 continue;
             }
-            if walked.get(&child).is_some_and(|&w| w >= limit) {
+            let sent = anchor(child);
+            if walked
+                .get(&child)
+                .copied()
+                .or(sent)
+                .is_some_and(|w| w >= limit)
+            {
                 continue;
             }
             let (min, max) = cube.cell_box(cell);
@@ -173,7 +163,7 @@ pub fn plan_pushes_anchored(
                 continue;
             }
             walked.insert(child, limit);
-            if !anchored.contains(&child) && pushed.insert(child) {
+            if sent.is_none() && pushed.insert(child) {
                 out.push((child, generation + 1, limit));
                 if out.len() >= budget {
                     return out;
@@ -198,24 +188,25 @@ pub fn deep_list(
     max_items: usize,
     shape: impl FnMut(TreeletId) -> Option<Arc<TreeletShape>>,
 ) -> (Vec<(TreeletId, f32)>, usize) {
-    let (list, pushes) = deep_list_anchored(cube, view, items, &[], max_items, shape);
+    let (list, pushes) = deep_list_anchored(cube, view, items, &[], |_| None, max_items, shape);
     (list, pushes.len())
 }
 
-/// [`deep_list`] with pushes below `anchors` too ([`plan_pushes_anchored`]): returns the list
+/// [`deep_list`] with pushes below `roots` too ([`plan_pushes_anchored`]): returns the list
 /// and the pushes in it, each with its generation and depth limit.
 pub fn deep_list_anchored(
     cube: WorldCube,
     view: &ViewHint,
     items: &[(TreeletId, f32, f32)],
-    anchors: &[Anchor],
+    roots: &[(TreeletId, f64)],
+    anchor: impl Fn(TreeletId) -> Option<f64>,
     max_items: usize,
     shape: impl FnMut(TreeletId) -> Option<Arc<TreeletShape>>,
 ) -> (Vec<(TreeletId, f32)>, Vec<PlannedPush>) {
     let budget = (view.free_slots as usize)
         .saturating_sub(items.len())
         .min(max_items.saturating_sub(items.len()));
-    let pushes = plan_pushes_anchored(cube, view, items, anchors, budget, shape);
+    let pushes = plan_pushes_anchored(cube, view, items, roots, anchor, budget, shape);
     let lowest = items.iter().map(|i| i.1).fold(f32::INFINITY, f32::min);
     let mut list: Vec<(TreeletId, f32)> = items.iter().map(|&(id, p, _)| (id, p)).collect();
     list.extend(
@@ -255,9 +246,10 @@ pub struct PushAnchors {
     limits: HashMap<TreeletId, f64>,
     /// Those of them handed to a stream (and not reset since).
     sent: HashSet<TreeletId>,
-    /// Sent treelets with nothing new below them: every child is sent, or fails the depth or
-    /// view test. Not walked from again (a plan costs what is new, not all that was sent).
-    exhausted: HashSet<TreeletId>,
+    /// Sent treelets that may have something new below them; the others are exhausted: every
+    /// child sent, or failing the depth or view test. Only these are walked from (a plan costs
+    /// what is new, not all that was sent).
+    open: HashSet<TreeletId>,
 }
 
 impl PushAnchors {
@@ -273,30 +265,32 @@ impl PushAnchors {
         {
             self.limits.clear();
             self.sent.clear();
-            self.exhausted.clear();
+            self.open.clear();
             self.view = Some(*view);
         }
     }
 
-    /// The anchors to plan below besides `items`: sent, and not listed again; walked from
-    /// unless exhausted.
-    pub fn roots(&self, items: &[(TreeletId, f32, f32)]) -> Vec<Anchor> {
+    /// The anchors to walk from besides `items`: open, and not listed again.
+    pub fn roots(&self, items: &[(TreeletId, f32, f32)]) -> Vec<(TreeletId, f64)> {
         let listed: HashSet<TreeletId> = items.iter().map(|i| i.0).collect();
-        let mut roots: Vec<Anchor> = self
-            .sent
+        let mut roots: Vec<(TreeletId, f64)> = self
+            .open
             .iter()
             .filter(|id| !listed.contains(id))
-            .filter_map(|id| {
-                self.limits.get(id).map(|&limit| Anchor {
-                    id: *id,
-                    limit,
-                    walk: !self.exhausted.contains(id),
-                })
-            })
+            .filter_map(|id| self.limits.get(id).map(|&limit| (*id, limit)))
             .collect();
         // Deterministic plans: the walk visits the roots in id order (parents before children).
-        roots.sort_by_key(|r| r.id);
+        roots.sort_by_key(|r| r.0);
         roots
+    }
+
+    /// The limit of `id` if it was sent for the view: an anchor, never pushed again.
+    pub fn sent_limit(&self, id: TreeletId) -> Option<f64> {
+        if self.sent.contains(&id) {
+            self.limits.get(&id).copied()
+        } else {
+            None
+        }
     }
 
     /// Marks the sent treelets below which nothing is left to push for `view` (every child
@@ -308,12 +302,7 @@ impl PushAnchors {
         view: &ViewHint,
         mut shape: impl FnMut(TreeletId) -> Option<Arc<TreeletShape>>,
     ) {
-        let open: Vec<TreeletId> = self
-            .sent
-            .iter()
-            .filter(|id| !self.exhausted.contains(id))
-            .copied()
-            .collect();
+        let open: Vec<TreeletId> = self.open.iter().copied().collect();
         for id in open {
             let (Some(&limit), Some(s)) = (self.limits.get(&id), shape(id)) else {
                 continue;
@@ -325,7 +314,7 @@ impl PushAnchors {
                 }
             });
             if done {
-                self.exhausted.insert(id);
+                self.open.remove(&id);
             }
         }
     }
@@ -344,9 +333,11 @@ impl PushAnchors {
             }
             if let Some(s) = shape(id) {
                 let limit = f64::from(s.root.depth) + f64::from(error.max(0.0));
-                if self.limits.insert(id, limit).is_some_and(|old| old < limit) {
+                if self.limits.insert(id, limit).is_some_and(|old| old < limit)
+                    && self.sent.contains(&id)
+                {
                     // Deeper now: what lies below may no longer be exhausted.
-                    self.exhausted.remove(&id);
+                    self.open.insert(id);
                 }
             }
         }
@@ -360,8 +351,11 @@ impl PushAnchors {
 
     /// `batch` was handed to a stream.
     pub fn note_sent(&mut self, batch: &[TreeletId]) {
-        self.sent
-            .extend(batch.iter().filter(|id| self.limits.contains_key(id)));
+        for &id in batch.iter().filter(|id| self.limits.contains_key(id)) {
+            if self.sent.insert(id) {
+                self.open.insert(id);
+            }
+        }
     }
 
     /// `batch`'s stream was reset or lost: the client may not hold it. (Rare: the exhausted
@@ -372,7 +366,7 @@ impl PushAnchors {
             any |= self.sent.remove(id);
         }
         if any {
-            self.exhausted.clear();
+            self.open.clone_from(&self.sent);
         }
     }
 
@@ -664,7 +658,15 @@ mod tests {
         let root = [(TreeletId(0), 1.0, 10.0)];
         let mut anchors = PushAnchors::default();
         anchors.for_view(&view);
-        let (_, first) = deep_list_anchored(CUBE, &view, &root, &anchors.roots(&root), 100, shape);
+        let (_, first) = deep_list_anchored(
+            CUBE,
+            &view,
+            &root,
+            &anchors.roots(&root),
+            |id| anchors.sent_limit(id),
+            100,
+            shape,
+        );
         assert_eq!(
             first.len(),
             12,
@@ -688,15 +690,26 @@ mod tests {
         assert_eq!(plain.len(), 1);
         anchors.for_view(&view);
         let roots = anchors.roots(&other);
-        assert_eq!(roots.len(), 9, "the root and its 8 children");
-        let walked: Vec<TreeletId> = roots.iter().filter(|r| r.walk).map(|r| r.id).collect();
+        let root_ids: Vec<TreeletId> = roots.iter().map(|r| r.0).collect();
         assert_eq!(
-            walked.len(),
-            8,
-            "the root's children all went: it is exhausted"
+            root_ids,
+            sent[1..],
+            "the root's 8 children; the root is exhausted (all its children went)"
         );
-        assert!(!walked.contains(&TreeletId(0)));
-        let (list, again) = deep_list_anchored(CUBE, &view, &other, &roots, 100, shape);
+        assert_eq!(
+            anchors.sent_limit(TreeletId(0)),
+            Some(10.0),
+            "still an anchor"
+        );
+        let (list, again) = deep_list_anchored(
+            CUBE,
+            &view,
+            &other,
+            &roots,
+            |id| anchors.sent_limit(id),
+            100,
+            shape,
+        );
         let again_ids: Vec<TreeletId> = again.iter().map(|p| p.0).collect();
         for p in &first[8..] {
             assert!(
@@ -755,7 +768,7 @@ mod tests {
             let items: Vec<_> = listed.iter().map(|&(id, e)| (TreeletId(id), 1.0, e)).collect();
             let mut anchors = PushAnchors::default();
             anchors.for_view(&view);
-            let first = plan_pushes_anchored(CUBE, &view, &items, &[], 10_000, shape);
+            let first = plan_pushes_anchored(CUBE, &view, &items, &[], |_| None, 10_000, shape);
             anchors.record(&items, &first, shape);
             let sent: Vec<TreeletId> = items
                 .iter()
@@ -769,7 +782,15 @@ mod tests {
             anchors.note_exhausted(CUBE, &view, shape);
             let later: Vec<_> = later.iter().map(|&(id, e)| (TreeletId(id), 1.0, e)).collect();
             let roots = anchors.roots(&later);
-            let plan = plan_pushes_anchored(CUBE, &view, &later, &roots, budget, shape);
+            let plan = plan_pushes_anchored(
+                CUBE,
+                &view,
+                &later,
+                &roots,
+                |id| anchors.sent_limit(id),
+                budget,
+                shape,
+            );
             prop_assert!(plan.len() <= budget);
             let mut parent_of = HashMap::new();
             for (id, s) in &t {
@@ -778,14 +799,14 @@ mod tests {
                 }
             }
             let listed_ids: HashSet<_> = later.iter().map(|i| i.0).collect();
-            let root_ids: HashSet<_> = roots.iter().map(|r| r.id).collect();
+            let is_anchor = |id: &TreeletId| anchors.sent_limit(*id).is_some();
             let mut seen = HashSet::new();
             for &(id, _, limit) in &plan {
                 prop_assert!(seen.insert(id), "pushed twice");
-                prop_assert!(!listed_ids.contains(&id) && !root_ids.contains(&id));
+                prop_assert!(!listed_ids.contains(&id) && !is_anchor(&id));
                 let parent = parent_of[&id];
                 prop_assert!(
-                    listed_ids.contains(&parent) || root_ids.contains(&parent) || seen.contains(&parent),
+                    listed_ids.contains(&parent) || is_anchor(&parent) || seen.contains(&parent),
                     "a push before its parent"
                 );
                 prop_assert!(f64::from(t[&id].root.depth) < limit, "deeper than its limit");
@@ -793,7 +814,7 @@ mod tests {
             if plan.len() < budget {
                 let plain = plan_pushes(CUBE, &view, &later, 10_000, shape);
                 for (id, _) in plain {
-                    prop_assert!(seen.contains(&id) || root_ids.contains(&id), "{id:?} lost");
+                    prop_assert!(seen.contains(&id) || is_anchor(&id), "{id:?} lost");
                 }
             }
         }
