@@ -373,7 +373,14 @@ impl ViewHint {
     /// nearest point of the box — or `None` when the box lies outside the view frustum. The
     /// frustum test is conservative (a box is out only when wholly outside one side plane or
     /// behind the eye); the distance is 0 inside the box, which makes the box infinitely coarse.
+    /// Testing many boxes against one view: [`ViewHint::frustum`] once, then
+    /// [`ViewFrustum::box_error`].
     pub fn box_error(&self, min: [f64; 3], max: [f64; 3]) -> Option<f64> {
+        self.frustum().box_error(min, max)
+    }
+
+    /// The view's frustum planes, computed once for many [`ViewFrustum::box_error`] tests.
+    pub fn frustum(&self) -> ViewFrustum {
         let v = |a: [f32; 3]| [f64::from(a[0]), f64::from(a[1]), f64::from(a[2])];
         let cross = |a: [f64; 3], b: [f64; 3]| {
             [
@@ -388,19 +395,47 @@ impl ViewHint {
         let right = cross(f, up);
         let h = f64::from(self.tan_half_fov_y);
         let w = h * f64::from(self.aspect);
-        // Inward normals of the four side planes through the eye, and the forward half-space.
-        let planes = [
-            cross(add(f, right, -w), up),
-            cross(up, add(f, right, w)),
-            cross(right, add(f, up, -h)),
-            cross(add(f, up, h), right),
-            f,
-        ];
-        let outside = |n: [f64; 3]| {
+        ViewFrustum {
+            eye: self.eye,
+            // Inward normals of the four side planes through the eye, and the forward
+            // half-space.
+            planes: [
+                cross(add(f, right, -w), up),
+                cross(up, add(f, right, w)),
+                cross(right, add(f, up, -h)),
+                cross(add(f, up, h), right),
+                f,
+            ],
+            footprint: f64::from(self.footprint),
+        }
+    }
+}
+
+/// A [`ViewHint`]'s frustum planes and footprint, for testing many boxes against one view
+/// ([`ViewHint::frustum`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ViewFrustum {
+    eye: [f64; 3],
+    planes: [[f64; 3]; 5],
+    footprint: f64,
+}
+
+impl ViewFrustum {
+    /// [`ViewHint::box_error`] of the view this was made from.
+    pub fn box_error(&self, min: [f64; 3], max: [f64; 3]) -> Option<f64> {
+        let ratio = self.coarseness(min, max)?;
+        let error = ratio.log2();
+        Some(if error.is_nan() { f64::INFINITY } else { error })
+    }
+
+    /// The box's edge over a pixel's footprint at its nearest point (`None` out of view):
+    /// what [`ViewFrustum::box_error`] takes the logarithm of.
+    fn coarseness(&self, min: [f64; 3], max: [f64; 3]) -> Option<f64> {
+        let outside = |n: &[f64; 3]| {
             let p = [0, 1, 2].map(|a| if n[a] >= 0.0 { max[a] } else { min[a] });
             (0..3).map(|a| n[a] * (p[a] - self.eye[a])).sum::<f64>() < 0.0
         };
-        if planes.iter().any(|&n| outside(n)) {
+        if self.planes.iter().any(outside) {
             return None;
         }
         let d2: f64 = (0..3)
@@ -412,8 +447,15 @@ impl ViewHint {
             })
             .sum();
         let edge = max[0] - min[0];
-        let error = (edge / (d2.sqrt() * f64::from(self.footprint))).log2();
-        Some(if error.is_nan() { f64::INFINITY } else { error })
+        Some(edge / (d2.sqrt() * self.footprint))
+    }
+
+    /// Whether a box is in view and coarser than a pixel: [`ViewFrustum::box_error`] > 0.
+    /// The same as testing the error, without the logarithm: `log2(r) > 0` exactly when
+    /// `r > 1`, and a NaN ratio counts as infinitely coarse.
+    pub fn refines(&self, min: [f64; 3], max: [f64; 3]) -> bool {
+        self.coarseness(min, max)
+            .is_some_and(|r| r.is_nan() || r > 1.0)
     }
 }
 
@@ -474,6 +516,52 @@ mod tests {
                 .unwrap()
                 < 0.0
         );
+    }
+
+    #[test]
+    fn refines_is_a_positive_box_error_without_the_logarithm() {
+        let v = ViewHint {
+            eye: [0.5, 0.5, 5.0],
+            forward: [0.0, 0.0, -1.0],
+            up: [0.0, 1.0, 0.0],
+            tan_half_fov_y: 0.5,
+            aspect: 1.25,
+            footprint: 0.01,
+            free_slots: 10,
+        };
+        let f = v.frustum();
+        let agree = |min: [f64; 3], max: [f64; 3]| {
+            assert_eq!(
+                f.refines(min, max),
+                v.box_error(min, max).is_some_and(|e| e > 0.0),
+                "{min:?} {max:?}"
+            );
+            assert_eq!(f.box_error(min, max), v.box_error(min, max));
+        };
+        // Boxes right at one pixel: edge = distance · footprint, and one ulp either side.
+        for d in [0.5f64, 1.0, 3.0, 4.0, 7.5, 1e3] {
+            let edge = d * 0.01;
+            for e in [edge, edge.next_up(), edge.next_down()] {
+                agree([0.5, 0.5, 5.0 - d - e], [0.5 + e, 0.5 + e, 5.0 - d]);
+            }
+        }
+        // The eye inside (infinitely coarse), a point box at the eye (0 / 0), out of view.
+        agree([0.0; 3], [10.0; 3]);
+        agree([0.5, 0.5, 5.0], [0.5, 0.5, 5.0]);
+        agree([0.0, 0.0, 6.0], [1.0, 1.0, 7.0]);
+        // A spread of boxes in and around the frustum (a fixed LCG, so the test is exact).
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for _ in 0..20_000 {
+            let min = [next() * 8.0 - 3.5, next() * 8.0 - 3.5, next() * 12.0 - 8.0];
+            let edge = 10f64.powf(next() * 4.0 - 3.0);
+            agree(min, [min[0] + edge, min[1] + edge, min[2] + edge]);
+        }
     }
 
     #[test]

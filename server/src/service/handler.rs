@@ -392,21 +392,20 @@ impl Handler {
         let scene = self.ctx.scene.clone();
         let cube = WorldCube::of(&scene.stored.description);
         self.anchors.for_view(view);
-        let roots = self.anchors.roots(items);
         let anchors = &self.anchors;
-        let (list, pushes) = deep_list_anchored(
+        let (list, plan) = deep_list_anchored(
             cube,
             view,
             items,
-            &roots,
+            anchors.roots(items),
             |id| anchors.sent_limit(id),
             MAX_REQUEST_ITEMS,
             |id| scene.shape(id),
         );
-        self.anchors.record(items, &pushes, |id| scene.shape(id));
         self.anchors
-            .note_exhausted(cube, view, |id| scene.shape(id));
-        (list, pushes.len())
+            .record(items, &plan.pushes, |id| scene.shape(id));
+        self.anchors.note_exhausted(&plan.exhausted);
+        (list, plan.pushes.len())
     }
 
     /// Starts computing `view`'s visible cut on a blocking thread — the coarse one, or the fine
