@@ -11,8 +11,10 @@
 //! of what it received nearest the eye, holds `ARBOR_PLAN_SLOTS` treelets (default 65,536:
 //! 256 MiB of 4 KiB treelets) and announces the slots it has free; the link sends the first
 //! `ARBOR_PLAN_SENT` (default 1,024) treelets of each list before the next list replaces it.
-//! `ARBOR_PLAN_SLOTS=1000000 ARBOR_PLAN_SENT=100000` shows the anchors filling up
-//! ([`PushAnchors::MAX`]).
+//! Plans are capped as the handler caps them (`push::push_cap`) for an in-flight window of
+//! `ARBOR_PLAN_WINDOW` treelets (default 1,024, the default `window_max`; 0: no cap, up to the
+//! free slots). `ARBOR_PLAN_SLOTS=1000000 ARBOR_PLAN_SENT=100000 ARBOR_PLAN_WINDOW=0` shows the
+//! anchors filling up ([`PushAnchors::MAX`]).
 //!
 //! `cargo bench -p arbor-server --bench push_plan` prints, per list: treelets received, kept
 //! for the view and open anchors; pushes planned and anchors closed; the anchored plan's time,
@@ -29,7 +31,7 @@ use arbor_proto::limits::MAX_REQUEST_ITEMS;
 use arbor_proto::treelet::TreeletId;
 use arbor_proto::wire::ViewHint;
 use arbor_server::service::push::{
-    PushAnchors, TreeletShape, WorldCube, deep_list, deep_list_anchored,
+    PushAnchors, TreeletShape, WorldCube, deep_list, deep_list_anchored, push_cap,
 };
 
 /// Levels of the octree one treelet spans.
@@ -147,6 +149,16 @@ fn main() {
     let slots = env_usize("ARBOR_PLAN_SLOTS", 65_536);
     let max_lists = env_usize("ARBOR_PLAN_LISTS", 400);
     let sent_per_list = env_usize("ARBOR_PLAN_SENT", 1024);
+    // The handler caps a list's pushes by the connection's in-flight window; 0: no cap (up to
+    // the client's free slots, as before the cap).
+    let window = env_usize("ARBOR_PLAN_WINDOW", 1024);
+    let max_items = |listed: usize| {
+        if window == 0 {
+            MAX_REQUEST_ITEMS
+        } else {
+            (listed + push_cap(window)).min(MAX_REQUEST_ITEMS)
+        }
+    };
     let cube = WorldCube {
         origin: [0.0; 3],
         edge: 1.0,
@@ -171,7 +183,7 @@ fn main() {
             .sum::<f64>()
     };
     println!(
-        "push plans of a resting view: terrain of {} treelets, {listed_per_list} listed per list, a client of {slots} slots, {sent_per_list} sent per list",
+        "push plans of a resting view: terrain of {} treelets, {listed_per_list} listed per list, a client of {slots} slots, {sent_per_list} sent per list, window {window} (0: no cap)",
         level_offset(LEVELS)
     );
     println!(
@@ -197,13 +209,10 @@ fn main() {
             .collect();
         // Each variant runs twice and the second is timed: the first warms the shapes it
         // reaches, as the server's shape cache is warm once a view has been served a while.
-        let plain_plan = deep_list(cube, &view, &items, MAX_REQUEST_ITEMS, |id| {
-            terrain.shape(id)
-        });
+        let cap = max_items(items.len());
+        let plain_plan = deep_list(cube, &view, &items, cap, |id| terrain.shape(id));
         let started = Instant::now();
-        let again = deep_list(cube, &view, &items, MAX_REQUEST_ITEMS, |id| {
-            terrain.shape(id)
-        });
+        let again = deep_list(cube, &view, &items, cap, |id| terrain.shape(id));
         let plain = started.elapsed();
         assert_eq!(plain_plan, again, "the plain plan is deterministic");
 
@@ -215,7 +224,7 @@ fn main() {
                 &items,
                 anchors.roots(&items),
                 |id| anchors.sent_limit(id),
-                MAX_REQUEST_ITEMS,
+                cap,
                 |id| terrain.shape(id),
             )
             .1

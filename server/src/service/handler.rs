@@ -16,7 +16,7 @@ use tokio::task::JoinSet;
 
 use super::batches::Batches;
 use super::connection::{ControlReader, End, Greeting, close, hello};
-use super::push::{PushAnchors, WorldCube, cut_list, cut_saves, deep_list_anchored};
+use super::push::{PushAnchors, WorldCube, cut_list, cut_saves, deep_list_anchored, push_cap};
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
 use super::shared::Shared;
 use super::shutdown::Shutdown;
@@ -399,7 +399,8 @@ impl Handler {
             items,
             anchors.roots(items),
             |id| anchors.sent_limit(id),
-            MAX_REQUEST_ITEMS,
+            // A few windows of pushes: more would be planned again before they could go out.
+            (items.len() + push_cap(self.window)).min(MAX_REQUEST_ITEMS),
             |id| scene.shape(id),
         );
         self.anchors

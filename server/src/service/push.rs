@@ -559,6 +559,27 @@ impl TreeIndex {
     }
 }
 
+/// In-flight windows' worth of pushes one list may carry ([`push_cap`]).
+pub const PUSH_WINDOWS_PER_LIST: usize = 8;
+/// Pushes one list may always carry, however small the window ([`push_cap`]).
+pub const MIN_PUSHES_PER_LIST: usize = 1024;
+
+/// Most pushes one list is given when the connection keeps `window` treelets in flight:
+/// [`PUSH_WINDOWS_PER_LIST`] windows, at least [`MIN_PUSHES_PER_LIST`].
+///
+/// A list is replaced by the next within a few round trips, and the link sends about one
+/// window a round trip, so pushes planned beyond a few windows are planned again (or dropped)
+/// before they could go out. Planning up to the client's free slots instead cost about 20 ms
+/// a list at city scale (65,535 pushes, `cargo bench -p arbor-server --bench push_plan`)
+/// where the link sent about a thousand of them before the next list; over the link emulator
+/// and on loopback a fixed cap of 256 or 1,024 pushes changed no time to RMSE 0 beyond the
+/// spread (docs/measurements.md, stop 42).
+pub fn push_cap(window: usize) -> usize {
+    window
+        .saturating_mul(PUSH_WINDOWS_PER_LIST)
+        .max(MIN_PUSHES_PER_LIST)
+}
+
 /// The priority a push of `generation` gets in a list whose lowest listed priority is
 /// `lowest`: below every listed item, and below the pushes of earlier generations.
 ///
@@ -1028,6 +1049,34 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn a_list_carries_a_few_windows_of_pushes() {
+        assert_eq!(push_cap(0), MIN_PUSHES_PER_LIST);
+        assert_eq!(
+            push_cap(8),
+            MIN_PUSHES_PER_LIST,
+            "the default smallest window"
+        );
+        assert_eq!(
+            push_cap(300),
+            2400,
+            "about a 100 Mbit/s, 50 ms link's window"
+        );
+        assert_eq!(push_cap(1024), 8192, "the default largest window");
+        assert_eq!(push_cap(usize::MAX), usize::MAX);
+        // The cap limits the plan like the free slots do, whichever is smaller.
+        let t = tree(4);
+        let shape = |id: TreeletId| t.get(&id).cloned();
+        let mut view = view_from([0.5, 0.5, 3.0], 0.001);
+        view.free_slots = 100_000;
+        let root = [(TreeletId(0), 1.0, 10.0)];
+        let cap = push_cap(8);
+        let (list, pushed) = deep_list(CUBE, &view, &root, root.len() + cap, shape);
+        assert_eq!((list.len(), pushed), (1 + cap, cap));
+        let (_, all) = deep_list(CUBE, &view, &root, usize::MAX, shape);
+        assert!(all > cap, "the view implies more than the cap: {all}");
     }
 
     #[test]
