@@ -490,17 +490,22 @@ mod tests {
         assert_eq!(FrameType::from_u8(7), None);
     }
 
-    #[test]
-    fn box_error_tests_the_frustum_and_the_projected_size() {
-        let v = ViewHint {
+    /// An eye at z = 5 looking down −z at the unit cube, a pixel of 0.01 radians.
+    fn looking_down_z(aspect: f32) -> ViewHint {
+        ViewHint {
             eye: [0.5, 0.5, 5.0],
             forward: [0.0, 0.0, -1.0],
             up: [0.0, 1.0, 0.0],
             tan_half_fov_y: 0.5,
-            aspect: 1.0,
+            aspect,
             footprint: 0.01,
             free_slots: 10,
-        };
+        }
+    }
+
+    #[test]
+    fn box_error_tests_the_frustum_and_the_projected_size() {
+        let v = looking_down_z(1.0);
         // A unit cube 4 units ahead: 1 / (4 · 0.01) = 25 pixels, log2 ≈ 4.64 levels.
         let e = v.box_error([0.0; 3], [1.0; 3]).unwrap();
         assert!((e - 25f64.log2()).abs() < 1e-6, "{e}");
@@ -520,15 +525,8 @@ mod tests {
 
     #[test]
     fn refines_is_a_positive_box_error_without_the_logarithm() {
-        let v = ViewHint {
-            eye: [0.5, 0.5, 5.0],
-            forward: [0.0, 0.0, -1.0],
-            up: [0.0, 1.0, 0.0],
-            tan_half_fov_y: 0.5,
-            aspect: 1.25,
-            footprint: 0.01,
-            free_slots: 10,
-        };
+        // A wider frame, so the side planes are not symmetric in x and y.
+        let v = looking_down_z(1.25);
         let f = v.frustum();
         let agree = |min: [f64; 3], max: [f64; 3]| {
             assert_eq!(

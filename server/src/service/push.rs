@@ -350,6 +350,7 @@ impl PushAnchors {
         let listed: FxHashSet<TreeletId> = items.iter().map(|i| i.0).collect();
         self.open
             .iter()
+            // Full: none, taken as nothing rather than by skipping each open anchor.
             .take(if self.full { 0 } else { usize::MAX })
             .filter(move |id| !listed.contains(id))
             .filter_map(|id| self.limits.get(id).map(|&limit| (*id, limit)))
@@ -769,15 +770,7 @@ mod tests {
         let root = [(TreeletId(0), 1.0, 10.0)];
         let mut anchors = PushAnchors::default();
         anchors.for_view(&view);
-        let (_, first) = deep_list_anchored(
-            CUBE,
-            &view,
-            &root,
-            anchors.roots(&root),
-            |id| anchors.sent_limit(id),
-            100,
-            shape,
-        );
+        let first = plan_with_anchors(&t, &anchors, &view, &root, 12);
         assert!(first.exhausted.is_empty(), "no anchors yet");
         let first = first.pushes;
         assert_eq!(
