@@ -36,6 +36,7 @@ const HOSTILE: &str = "<img src=x onerror=alert(1)>";
 struct Fixture {
     addr: SocketAddr,
     state: Arc<ServiceState>,
+    pool: Pool,
     description: Option<SceneDescription>,
     _dirs: Vec<TempDir>,
 }
@@ -111,7 +112,7 @@ async fn start(bunny: bool, token: &str) -> Fixture {
     let state = Arc::new(ServiceState::new(FINGERPRINT.into()));
     let app = router(AdminContext {
         state: state.clone(),
-        pool,
+        pool: pool.clone(),
         token: token.into(),
         probe_token: Some(PROBE.into()),
     });
@@ -121,6 +122,7 @@ async fn start(bunny: bool, token: &str) -> Fixture {
     Fixture {
         addr,
         state,
+        pool,
         description,
         _dirs: dirs,
     }
@@ -653,6 +655,77 @@ async fn every_route_needs_the_token_but_healthz() {
         "{r:?}"
     );
     assert!(!r.error().is_empty());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn metrics_report_the_server_wide_caches() {
+    use arbor_proto::TreeletId;
+    use arbor_server::service::shapes::ShapeCache;
+    use arbor_server::service::state::ServiceCaches;
+    use arbor_server::service::treelets::{MessageCache, ServedScene};
+    let f = start(true, TOKEN).await;
+    let bearer = bearer(TOKEN);
+    let auth = [("Authorization", bearer.as_str())];
+    let names = [
+        "arbor_message_cache_bytes",
+        "arbor_message_cache_hits_total",
+        "arbor_message_cache_misses_total",
+        "arbor_shape_cache_bytes",
+        "arbor_shape_cache_shapes",
+        "arbor_shape_cache_hits_total",
+        "arbor_shape_cache_misses_total",
+    ];
+    let fams = parse_prometheus(get(f.addr, "/metrics", &auth).await.text());
+    for name in names {
+        assert_eq!(
+            value(&fams, name, &[]),
+            0.0,
+            "{name} before the service set its caches"
+        );
+    }
+
+    let caches = ServiceCaches {
+        messages: Arc::new(MessageCache::new(1 << 20)),
+        shapes: Arc::new(ShapeCache::new(1 << 20)),
+    };
+    f.state.set_caches(caches.clone());
+    let d = f.description.as_ref().unwrap();
+    let served = ServedScene::with_caches(
+        f.pool.scene("bunny").unwrap(),
+        caches.messages.clone(),
+        caches.shapes.clone(),
+    );
+    let channels = d.layout.channels().to_vec();
+    let n = d.treelet_count;
+    for _ in 0..2 {
+        for i in 0..n {
+            served.message(TreeletId(i), &channels).unwrap();
+            served.shape(TreeletId(i)).unwrap();
+        }
+    }
+    let fams = parse_prometheus(get(f.addr, "/metrics", &auth).await.text());
+    let v = |name: &str| value(&fams, name, &[]);
+    let (message_bytes, ..) = caches.messages.figures();
+    let shapes = caches.shapes.figures();
+    assert!(message_bytes > 0 && shapes.bytes > 0);
+    let n = f64::from(n);
+    for (name, want) in [
+        ("arbor_message_cache_bytes", message_bytes as f64),
+        ("arbor_message_cache_hits_total", n),
+        ("arbor_message_cache_misses_total", n),
+        ("arbor_shape_cache_bytes", shapes.bytes as f64),
+        ("arbor_shape_cache_shapes", n),
+        ("arbor_shape_cache_hits_total", n),
+        ("arbor_shape_cache_misses_total", n),
+    ] {
+        assert_eq!(v(name), want, "{name}");
+    }
+    for (name, kind) in [
+        ("arbor_shape_cache_bytes", "gauge"),
+        ("arbor_shape_cache_hits_total", "counter"),
+    ] {
+        assert_eq!(fams[name].kind.as_deref(), Some(kind), "{name}");
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -1096,3 +1096,69 @@ async fn a_replacement_list_cancels_obsolete_treelets_in_flight() {
     assert!(client.conn.close_reason().is_none());
     server.shutdown().await;
 }
+
+/// The push plans' shapes, decoded from the real bunny pool through a shape cache far smaller
+/// than the scene's shapes: each equals the shape decoded through an unbounded cache, a child's
+/// root voxel is the leaf its parent names, and the small cache never holds more than its
+/// bytes while it keeps turning over.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shapes_through_a_small_shape_cache_are_exact_and_within_its_bytes() {
+    use arbor_server::service::shapes::ShapeCache;
+    use arbor_server::service::treelets::{MessageCache, ServedScene};
+    use std::sync::Arc;
+    let tp = TestPool::new();
+    let server = start(tp.config()).await;
+    let stored = server.pool().scene(SCENE).unwrap();
+    let count = stored.description.treelet_count;
+    let root = stored.description.root_treelet;
+    let serve = |shapes: &Arc<ShapeCache>| {
+        ServedScene::with_caches(
+            stored.clone(),
+            Arc::new(MessageCache::new(0)),
+            shapes.clone(),
+        )
+    };
+    let whole = serve(&Arc::new(ShapeCache::new(usize::MAX)));
+    let all: Vec<_> = (0..count)
+        .map(|i| {
+            whole
+                .shape(TreeletId(i))
+                .expect("every stored treelet has a shape")
+        })
+        .collect();
+    let with_children = all.iter().filter(|s| !s.children.is_empty()).count();
+    assert!(
+        with_children > 4 && count > 40,
+        "the bunny has a tree of treelets: {with_children} of {count} with children"
+    );
+    for s in &all {
+        for &(child, cell) in &s.children {
+            assert_eq!(all[child.0 as usize].root, cell, "treelet {}", child.0);
+        }
+    }
+
+    // Room for the root and a few more: a small share of what the scene's shapes take.
+    use arbor_server::service::shapes::shape_bytes;
+    let capacity = 4 * shape_bytes(&all[root.0 as usize]);
+    let total: usize = all.iter().map(|s| shape_bytes(s)).sum();
+    assert!(capacity * 4 < total, "{capacity} of {total} bytes");
+    let shapes = Arc::new(ShapeCache::new(capacity));
+    let small = serve(&shapes);
+    // Walks as the plans do: from the root down, the root again before every treelet.
+    for round in 0..3 {
+        for i in 0..count {
+            assert_eq!(small.shape(root).as_deref(), Some(&*all[root.0 as usize]));
+            let s = small.shape(TreeletId(i)).unwrap();
+            assert_eq!(*s, *all[i as usize], "round {round}, treelet {i}");
+            let f = shapes.figures();
+            assert!(f.bytes <= capacity, "{} bytes held in {capacity}", f.bytes);
+        }
+    }
+    let f = shapes.figures();
+    assert!(
+        f.misses > u64::from(count),
+        "a cache of {capacity} bytes cannot hold the bunny's {count} shapes: {f:?}"
+    );
+    assert!(f.hits >= 3 * u64::from(count), "the root is kept: {f:?}");
+    server.shutdown().await;
+}

@@ -621,9 +621,10 @@ fn cost_breakdown(dir: &std::path::Path, scene: &str) {
     let count = stored.description.treelet_count;
     let channels = stored.description.layout.channels().to_vec();
     let cold = arbor_server::service::treelets::MessageCache::new(0);
-    let served = arbor_server::service::treelets::ServedScene::with_cache(
+    let served = arbor_server::service::treelets::ServedScene::with_caches(
         stored.clone(),
         std::sync::Arc::new(cold),
+        std::sync::Arc::new(arbor_server::service::shapes::ShapeCache::new(0)),
     );
     let t = Instant::now();
     for i in 0..count {

@@ -17,6 +17,7 @@
 //! max_connection_memory = 67108864
 //! initial_window = 131072             # QUIC congestion window at the start, bytes
 //! message_cache_bytes = 67108864      # built treelet messages kept for sending again, server-wide
+//! shape_cache_bytes = 33554432        # decoded treelet shapes the push plans walk, server-wide
 //! visibility_grid = 0                 # rays along a resting view's longer side for the visible cut its pushes follow; 0: off
 //! visibility_fine_grid = 0            # a second, finer cut of the same view once the first is out; 0: none
 //! visibility_cache_bytes = 33554432   # node records per scene the visible cuts are cast through
@@ -179,6 +180,12 @@ pub struct ServeConfig {
     /// Bytes of built treelet messages kept server-wide, so a treelet sent again costs no pool
     /// read and no decompression (0: none kept).
     pub message_cache_bytes: u64,
+    /// Bytes of decoded treelet shapes (root voxel and refinable leaves) kept server-wide for
+    /// the deep-request push plans, so a plan walks its tree without a pool read and a
+    /// decompression per treelet (0: none kept, every lookup decodes). A shape's size follows
+    /// its child treelets: about 1.3 KB with 64 of them, so the default holds some 25,000 of
+    /// a city-scale scene's, far more than a few plans' walks touch.
+    pub shape_cache_bytes: u64,
     /// Rays along the longer side of a resting deep-request view that the server casts through
     /// its own tree to find the view's visible cut, whose treelets it then pushes
     /// (`service::visibility`); 0 (the default) turns it off: pushes follow frustum and
@@ -242,6 +249,8 @@ pub struct MemoryPlan {
 pub const DEFAULT_INITIAL_WINDOW: u64 = 128 << 10;
 /// Default [`ServeConfig::message_cache_bytes`]: 64 MiB.
 pub const DEFAULT_MESSAGE_CACHE_BYTES: u64 = 64 << 20;
+/// Default [`ServeConfig::shape_cache_bytes`]: 32 MiB.
+pub const DEFAULT_SHAPE_CACHE_BYTES: u64 = 32 << 20;
 /// Largest accepted [`ServeConfig::visibility_grid`] and [`ServeConfig::visibility_fine_grid`]
 /// (a 1024×1024 cast takes about half a second of CPU per view).
 pub const MAX_VISIBILITY_GRID: u32 = 1024;
@@ -288,6 +297,7 @@ struct FileConfig {
     max_connection_memory: Option<u64>,
     initial_window: Option<u64>,
     message_cache_bytes: Option<u64>,
+    shape_cache_bytes: Option<u64>,
     visibility_grid: Option<u32>,
     visibility_fine_grid: Option<u32>,
     visibility_cache_bytes: Option<u64>,
@@ -406,6 +416,7 @@ impl ServeConfig {
             max_connection_memory: 64 << 20,
             initial_window: DEFAULT_INITIAL_WINDOW,
             message_cache_bytes: DEFAULT_MESSAGE_CACHE_BYTES,
+            shape_cache_bytes: DEFAULT_SHAPE_CACHE_BYTES,
             visibility_grid: 0,
             visibility_fine_grid: 0,
             visibility_cache_bytes: DEFAULT_VISIBILITY_CACHE_BYTES,
@@ -504,6 +515,7 @@ impl ServeConfig {
             max_connection_memory,
             initial_window,
             message_cache_bytes,
+            shape_cache_bytes,
             visibility_grid,
             visibility_fine_grid,
             visibility_cache_bytes,
@@ -789,6 +801,7 @@ max_connections = 256
 idle_timeout_ms = 30000
 hello_timeout_ms = 5000
 max_connection_memory = 67108864
+shape_cache_bytes = 1048576
 window_min = 8
 window_max = 256
 slow_reader_timeout_ms = 10000
@@ -813,6 +826,7 @@ access = "public"
             AdminTokenSource::Inline("admin-secret".into())
         );
         assert!(matches!(c.tls, TlsSource::Files { .. }));
+        assert_eq!(c.shape_cache_bytes, 1 << 20);
         assert_eq!(c.default_access, Access::Token);
         assert_eq!(
             c.scenes["bunny"],

@@ -22,7 +22,8 @@
 //! * [`push`]: what a deep request's view would refine below its listed treelets (frustum and
 //!   projected size); [`visibility`]: what a resting view's rays need, cast through the server's
 //!   own tree with the client's traversal (off unless `visibility_grid` is set), followed where
-//!   it saves enough against the frustum plan ([`push::cut_saves`]).
+//!   it saves enough against the frustum plan ([`push::cut_saves`]); [`shapes`]: the treelet
+//!   shapes those plans walk, decoded once and kept server-wide within `shape_cache_bytes`.
 mod batches;
 pub mod config;
 pub mod connection;
@@ -31,6 +32,7 @@ pub mod push;
 pub mod reset;
 pub mod schedule;
 pub mod server;
+pub mod shapes;
 mod shared;
 pub mod shutdown;
 pub mod state;

@@ -22,19 +22,18 @@
 //! stops listing a treelet once it is on its way, and without the anchors the pushes still
 //! queued below it would be dropped with the next list.
 //!
-//! [`TreeIndex`] is the lookup: the root voxel and the refinable leaves of each treelet, decoded
-//! from its stored node block once and cached per scene.
+//! The shapes the plans walk (the root voxel and the refinable leaves of each treelet) come from
+//! [`super::shapes::ShapeCache`], decoded from the stored node blocks and kept server-wide within
+//! `shape_cache_bytes`.
 
 use std::collections::{BTreeSet, VecDeque};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
-use arbor_proto::codec::{self, PreparedDictionaries};
 use arbor_proto::wire::ViewHint;
-use arbor_proto::{Cell, Node, TreeletId};
+use arbor_proto::{Cell, TreeletId};
 use rustc_hash::{FxHashMap, FxHashSet};
 
 use super::visibility::VisibleCut;
-use crate::pool::StoredScene;
 
 /// A treelet's place in the tree: its root voxel and its refinable leaves.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -505,59 +504,6 @@ pub fn cut_saves(
     let needed = (cut.treelets.len() as f64 / share).ceil().max(1.0) as usize;
     let root_item = [(root, f32::MAX, ViewHint::MAX_ERROR)];
     plan_pushes(cube, &cut.view, &root_item, needed, shape).len() >= needed
-}
-
-/// Most treelet shapes kept per scene; beyond it the cache starts afresh (a shape costs one
-/// decompression to rebuild).
-const SHAPES_MAX: usize = 1 << 18;
-
-/// The shapes of a scene's treelets, decoded on first use.
-#[derive(Debug, Default)]
-pub struct TreeIndex {
-    shapes: Mutex<FxHashMap<TreeletId, Arc<TreeletShape>>>,
-}
-
-impl TreeIndex {
-    /// The shape of treelet `id` of `scene`; `None` if it is not stored or does not decode (the
-    /// push is then simply not made).
-    pub fn shape(
-        &self,
-        scene: &StoredScene,
-        dictionaries: &PreparedDictionaries,
-        id: TreeletId,
-    ) -> Option<Arc<TreeletShape>> {
-        if let Some(s) = self.lock().get(&id) {
-            return Some(s.clone());
-        }
-        let d = &scene.description;
-        let bytes = scene.nodes(id).ok()??;
-        let (treelet, places) = codec::decode_compressed_treelet_with_places_using(
-            &bytes,
-            d.max_depth,
-            dictionaries.nodes(),
-        )
-        .ok()?;
-        let children = places
-            .iter()
-            .zip(&treelet.nodes)
-            .filter(|(p, n)| p.is_leaf && n.first_child != Node::NONE)
-            .map(|(p, n)| (TreeletId(n.first_child), p.cell))
-            .collect();
-        let shape = Arc::new(TreeletShape {
-            root: treelet.header.root_cell(),
-            children,
-        });
-        let mut shapes = self.lock();
-        if shapes.len() >= SHAPES_MAX {
-            shapes.clear();
-        }
-        shapes.insert(id, shape.clone());
-        Some(shape)
-    }
-
-    fn lock(&self) -> std::sync::MutexGuard<'_, FxHashMap<TreeletId, Arc<TreeletShape>>> {
-        self.shapes.lock().unwrap_or_else(|p| p.into_inner())
-    }
 }
 
 /// In-flight windows' worth of pushes one list may carry ([`push_cap`]).

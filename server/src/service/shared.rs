@@ -12,7 +12,8 @@ use tokio::sync::{Notify, mpsc};
 
 use super::config::ServeConfig;
 use super::schedule::{ConnectionId, Scheduler, SchedulerConfig};
-use super::state::ServiceState;
+use super::shapes::ShapeCache;
+use super::state::{ServiceCaches, ServiceState};
 use super::treelets::{MessageCache, ServedScene};
 use crate::pool::{Pool, StoredScene};
 
@@ -42,6 +43,9 @@ pub(crate) struct Shared {
     scenes: Mutex<HashMap<String, Arc<ServedScene>>>,
     /// Built treelet messages of every scene, bounded by `message_cache_bytes`.
     pub messages: Arc<MessageCache>,
+    /// Decoded treelet shapes of every scene for the push plans, bounded by
+    /// `shape_cache_bytes`.
+    pub shapes: Arc<ShapeCache>,
     next_id: AtomicU64,
 }
 
@@ -50,6 +54,15 @@ impl Shared {
     /// in-flight cap is the sum of the largest windows every connection can have.
     pub(crate) fn new(config: ServeConfig, pool: Pool, state: Arc<ServiceState>) -> Self {
         let max_in_flight = config.max_connections.saturating_mul(config.window_max);
+        let caches = ServiceCaches {
+            messages: Arc::new(MessageCache::new(
+                usize::try_from(config.message_cache_bytes).unwrap_or(usize::MAX),
+            )),
+            shapes: Arc::new(ShapeCache::new(
+                usize::try_from(config.shape_cache_bytes).unwrap_or(usize::MAX),
+            )),
+        };
+        state.set_caches(caches.clone());
         Self {
             pool,
             state,
@@ -59,9 +72,8 @@ impl Shared {
             }),
             wake: Notify::new(),
             scenes: Mutex::new(HashMap::new()),
-            messages: Arc::new(MessageCache::new(
-                usize::try_from(config.message_cache_bytes).unwrap_or(usize::MAX),
-            )),
+            messages: caches.messages,
+            shapes: caches.shapes,
             next_id: AtomicU64::new(1),
             config,
         }
@@ -87,7 +99,11 @@ impl Shared {
         {
             return s.clone();
         }
-        let s = Arc::new(ServedScene::with_cache(stored, self.messages.clone()));
+        let s = Arc::new(ServedScene::with_caches(
+            stored,
+            self.messages.clone(),
+            self.shapes.clone(),
+        ));
         scenes.insert(name, s.clone());
         s
     }

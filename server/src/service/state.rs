@@ -6,14 +6,16 @@
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
-use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, SystemTime};
 
 use arbor_proto::Channel;
 use arbor_proto::wire::ErrorCode;
 use serde::Serialize;
 
+use super::shapes::ShapeCache;
+use super::treelets::MessageCache;
 use crate::prometheus::{Kind, PromText};
 
 /// Upper bounds (seconds) of the request-to-send latency histogram buckets.
@@ -168,6 +170,17 @@ pub struct ServiceState {
     pub fingerprint: String,
     /// Per-treelet timeline for benchmarks; off unless started.
     pub timeline: super::timeline::Timeline,
+    /// The server-wide caches, reported in `/metrics`; set once by the service as it starts.
+    caches: OnceLock<ServiceCaches>,
+}
+
+/// The caches every scene of a running service shares.
+#[derive(Clone, Debug)]
+pub struct ServiceCaches {
+    /// Built treelet messages (`message_cache_bytes`).
+    pub messages: Arc<MessageCache>,
+    /// Decoded treelet shapes for the push plans (`shape_cache_bytes`).
+    pub shapes: Arc<ShapeCache>,
 }
 
 impl ServiceState {
@@ -193,6 +206,12 @@ impl ServiceState {
 
     pub fn begin_shutdown(&self) {
         self.shutting_down.store(true, Ordering::Release);
+    }
+
+    /// Makes `caches` the ones `/metrics` reports; a second call changes nothing (one service
+    /// per state).
+    pub fn set_caches(&self, caches: ServiceCaches) {
+        let _ = self.caches.set(caches);
     }
 
     pub fn add_session(&self, info: SessionInfo) {
@@ -227,6 +246,56 @@ impl ServiceState {
     }
 
     /// Writes the service's families into `p`.
+    /// The caches' figures (zeros before the service set them).
+    fn write_cache_metrics(&self, p: &mut PromText) {
+        let (messages, shapes) = match self.caches.get() {
+            Some(c) => (c.messages.figures(), c.shapes.figures()),
+            None => ((0, 0, 0), Default::default()),
+        };
+        p.single(
+            "arbor_message_cache_bytes",
+            Kind::Gauge,
+            "Bytes of built treelet messages held (message_cache_bytes bounds it).",
+            messages.0,
+        )
+        .single(
+            "arbor_message_cache_hits_total",
+            Kind::Counter,
+            "Treelet messages sent from the message cache.",
+            messages.1,
+        )
+        .single(
+            "arbor_message_cache_misses_total",
+            Kind::Counter,
+            "Treelet messages built from the pool.",
+            messages.2,
+        )
+        .single(
+            "arbor_shape_cache_bytes",
+            Kind::Gauge,
+            "Bytes of decoded treelet shapes held for push plans (shape_cache_bytes bounds it).",
+            shapes.bytes,
+        )
+        .single(
+            "arbor_shape_cache_shapes",
+            Kind::Gauge,
+            "Decoded treelet shapes held for push plans.",
+            shapes.shapes,
+        )
+        .single(
+            "arbor_shape_cache_hits_total",
+            Kind::Counter,
+            "Treelet shapes push plans found in the shape cache.",
+            shapes.hits,
+        )
+        .single(
+            "arbor_shape_cache_misses_total",
+            Kind::Counter,
+            "Treelet shapes push plans decoded from the pool.",
+            shapes.misses,
+        );
+    }
+
     pub fn write_prometheus(&self, p: &mut PromText) {
         let m = &self.metrics;
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
@@ -280,6 +349,7 @@ impl ServiceState {
         for (name, help, value) in counters {
             p.single(name, Kind::Counter, help, load(value));
         }
+        self.write_cache_metrics(p);
         let sessions = self.sessions();
         let queued: u64 = sessions.iter().map(|s| s.queue_depth).sum();
         let in_flight: u64 = sessions.iter().map(|s| s.in_flight).sum();

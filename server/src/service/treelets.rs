@@ -23,7 +23,7 @@ use bytes::{Bytes, BytesMut};
 use arbor_client_core::slots::DecodedTreelet;
 use arbor_proto::wire::ViewHint;
 
-use super::push::TreeIndex;
+use super::shapes::ShapeCache;
 use super::visibility::{CutCaster, VisibleCut};
 use crate::pool::{PoolError, StoredScene};
 
@@ -167,8 +167,10 @@ impl MessageCache {
     }
 }
 
-/// Cache of a scene opened on its own (tools, benches): 16 MiB.
+/// Message cache of a scene opened on its own (tools, benches): 16 MiB.
 const DEFAULT_CACHE_BYTES: usize = 16 << 20;
+/// Shape cache of a scene opened on its own: 4 MiB.
+const DEFAULT_SHAPE_CACHE_BYTES: usize = 4 << 20;
 
 /// A scene opened for serving.
 pub struct ServedScene {
@@ -176,7 +178,7 @@ pub struct ServedScene {
     dictionaries: PreparedDictionaries,
     cache: Arc<MessageCache>,
     /// Treelet shapes for deep-request pushes.
-    pub tree: TreeIndex,
+    shapes: Arc<ShapeCache>,
     /// The root treelet's nodes for visible cuts, read by the first cut.
     cut_caster: Mutex<Option<Arc<CutCaster>>>,
     /// Visible cuts being cast now (each holds a buffer of `visibility_cache_bytes`).
@@ -193,18 +195,26 @@ impl std::fmt::Debug for ServedScene {
 }
 
 impl ServedScene {
-    /// A scene with a cache of its own.
+    /// A scene with caches of its own.
     pub fn new(stored: StoredScene) -> ServedScene {
-        Self::with_cache(stored, Arc::new(MessageCache::new(DEFAULT_CACHE_BYTES)))
+        Self::with_caches(
+            stored,
+            Arc::new(MessageCache::new(DEFAULT_CACHE_BYTES)),
+            Arc::new(ShapeCache::new(DEFAULT_SHAPE_CACHE_BYTES)),
+        )
     }
 
-    /// A scene sharing the server's message cache.
-    pub fn with_cache(stored: StoredScene, cache: Arc<MessageCache>) -> ServedScene {
+    /// A scene sharing the server's message and shape caches.
+    pub fn with_caches(
+        stored: StoredScene,
+        cache: Arc<MessageCache>,
+        shapes: Arc<ShapeCache>,
+    ) -> ServedScene {
         ServedScene {
             dictionaries: PreparedDictionaries::of(&stored.description),
             stored,
             cache,
-            tree: TreeIndex::default(),
+            shapes,
             cut_caster: Mutex::new(None),
             cuts_running: AtomicUsize::new(0),
         }
@@ -248,9 +258,9 @@ impl ServedScene {
         Some(caster.cut(view, grid, fetch))
     }
 
-    /// The shape of treelet `id` for deep-request pushes ([`TreeIndex::shape`]).
+    /// The shape of treelet `id` for deep-request pushes ([`ShapeCache::shape`]).
     pub fn shape(&self, id: TreeletId) -> Option<Arc<super::push::TreeletShape>> {
-        self.tree.shape(&self.stored, &self.dictionaries, id)
+        self.shapes.shape(&self.stored, &self.dictionaries, id)
     }
 
     pub fn treelet_count(&self) -> u32 {
