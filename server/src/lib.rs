@@ -5,7 +5,9 @@
 //!   of disk-backed columns (errors name the file and the place);
 //! * [`octree`] turns a source into treelets in bounded memory (docs/design.md §3);
 //! * [`pool`] stores scenes atomically in sled, already compressed, one tree per stream;
-//! * [`pipeline`] is the one entry point that runs those steps in order ([`pipeline::import_scene`]);
+//! * [`pipeline`] is the one entry point that runs those steps in order ([`pipeline::import_scene`]),
+//!   in a [`scratch`] directory its import keeps locked, so the next import removes what a
+//!   killed one left;
 //! * [`verify`] checks every invariant of a stored scene; [`memory`] measures an import's peak
 //!   memory for its report.
 //!
@@ -34,6 +36,7 @@ pub mod pipeline;
 pub mod pool;
 pub mod progress;
 pub mod prometheus;
+pub mod scratch;
 pub mod service;
 pub mod source;
 pub mod verify;

@@ -102,6 +102,7 @@ struct ImportArgs {
     #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..=1_048_576))]
     memory_budget_mib: u64,
     /// Scratch directory for the import's temporary files (default: the system temp dir).
+    /// Scratch directories that killed imports left there are removed first.
     #[arg(long)]
     scratch: Option<PathBuf>,
     /// Replace an existing scene of the same name (atomically).

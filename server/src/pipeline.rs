@@ -6,8 +6,10 @@
 //! behind are decided once:
 //!
 //! 1. the pool refuses a bad or taken name before any work ([`Pool::begin_import`]);
-//! 2. the file (or every tile of a point set) is parsed into disk-backed columns in a scratch directory (errors name the file
-//!    and the place, and the pool has not been touched yet);
+//! 2. the file (or every tile of a point set) is parsed into disk-backed columns in a scratch
+//!    directory (errors name the file and the place, and the pool has not been touched yet;
+//!    the scratch directories killed imports left beside it are removed first:
+//!    [`crate::scratch`]);
 //! 3. the octree is built straight into the import transaction;
 //! 4. the memory figures are recorded in the description and the transaction commits — the
 //!    scene becomes visible in one catalogue insert. A failure in 2–3 drops the transaction,
@@ -16,7 +18,6 @@
 use std::path::{Path, PathBuf};
 
 use arbor_proto::SceneDescription;
-use tempfile::TempDir;
 use thiserror::Error;
 
 use crate::import::tiles::import_tiles;
@@ -25,6 +26,7 @@ use crate::memory::{AnonPeakSampler, peak_rss_bytes};
 use crate::octree::{BuildError, BuildOptions, BuildTarget, build_scene_observed};
 use crate::pool::{Pool, PoolError};
 use crate::progress::{ImportProgress, Phase};
+use crate::scratch::ScratchDir;
 use crate::source::Source;
 
 /// What to import, and how.
@@ -56,7 +58,7 @@ pub struct ImportedScene {
     /// The parsed input (its columns are memory-mapped scratch files).
     pub source: Source,
     /// The scratch directory; removed on drop.
-    pub scratch: TempDir,
+    pub scratch: ScratchDir,
 }
 
 /// Why an import failed. The pool is unchanged in every case.
@@ -222,14 +224,8 @@ pub fn build_into_pool_observed(
     Ok((description, retired))
 }
 
-fn scratch_dir(parent: Option<&Path>) -> Result<TempDir, PipelineError> {
-    let mut builder = tempfile::Builder::new();
-    builder.prefix("arbor-import-");
-    match parent {
-        Some(dir) => builder.tempdir_in(dir),
-        None => builder.tempdir(),
-    }
-    .map_err(|source| PipelineError::Scratch {
+fn scratch_dir(parent: Option<&Path>) -> Result<ScratchDir, PipelineError> {
+    ScratchDir::new(parent).map_err(|source| PipelineError::Scratch {
         parent: parent.map(Path::to_path_buf),
         source,
     })

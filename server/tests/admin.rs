@@ -17,6 +17,7 @@ use arbor_server::admin::{AdminContext, router};
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
+use arbor_server::scratch::ScratchDir;
 use arbor_server::service::state::{LATENCY_BUCKETS, ServiceState, SessionInfo};
 use serde_json::Value;
 use tempfile::TempDir;
@@ -38,15 +39,28 @@ struct Fixture {
     state: Arc<ServiceState>,
     pool: Pool,
     description: Option<SceneDescription>,
-    _dirs: Vec<TempDir>,
+    _dirs: Dirs,
+}
+
+/// The pool's directory and the import's scratch files, removed on drop.
+struct Dirs {
+    _pool: TempDir,
+    _scratch: Option<ScratchDir>,
 }
 
 /// A pool in a tempdir; with `bunny`, holding the real bunny built at depth 5.
-fn pool(bunny: bool) -> (Pool, Option<SceneDescription>, Vec<TempDir>) {
+fn pool(bunny: bool) -> (Pool, Option<SceneDescription>, Dirs) {
     let dir = tempfile::tempdir().unwrap();
     let pool = Pool::open(dir.path()).unwrap();
     if !bunny {
-        return (pool, None, vec![dir]);
+        return (
+            pool,
+            None,
+            Dirs {
+                _pool: dir,
+                _scratch: None,
+            },
+        );
     }
     let path = Path::new(concat!(
         env!("CARGO_MANIFEST_DIR"),
@@ -70,7 +84,10 @@ fn pool(bunny: bool) -> (Pool, Option<SceneDescription>, Vec<TempDir>) {
     (
         pool,
         Some(imported.description),
-        vec![dir, imported.scratch],
+        Dirs {
+            _pool: dir,
+            _scratch: Some(imported.scratch),
+        },
     )
 }
 

@@ -1,6 +1,7 @@
 //! The `arbor-server` binary, run as a user would: import/list/info/verify/remove on a real scan,
 //! every bad input of the corpus through the CLI (clear message, non-zero exit, no panic, pool
-//! untouched), and imports killed with SIGKILL at many points (scene absent or complete).
+//! untouched), and imports killed with SIGKILL at many points (scene absent or complete, their
+//! scratch directories removed by the next import).
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
@@ -239,6 +240,18 @@ fn sigkill_mid_import_leaves_no_half_scene() {
         bunny.to_str().unwrap(),
     ]);
     let lion = data("points/lion_takanawa.copc.laz");
+    // The imports' scratch directories, to see what the killed ones leave.
+    let scratch = dir.path().join("scratch");
+    std::fs::create_dir(&scratch).unwrap();
+    let scratch_dirs = || {
+        std::fs::read_dir(&scratch)
+            .unwrap()
+            .filter(|e| {
+                let e = e.as_ref().unwrap();
+                e.file_name().to_string_lossy().starts_with("arbor-import-")
+            })
+            .count()
+    };
     let import = |name: &str| {
         bin()
             .args([
@@ -250,6 +263,8 @@ fn sigkill_mid_import_leaves_no_half_scene() {
                 "--quiet",
                 "--treelet-bytes",
                 "1024",
+                "--scratch",
+                scratch.to_str().unwrap(),
             ])
             .arg(&lion)
             .stdout(Stdio::null())
@@ -290,6 +305,15 @@ fn sigkill_mid_import_leaves_no_half_scene() {
         killed_mid_way >= 4,
         "only {killed_mid_way} kills landed during an import"
     );
+    // A killed import cannot remove its scratch directory; the next import removes it.
+    assert!(
+        scratch_dirs() <= 1,
+        "{} scratch directories of killed imports left: each import removes the earlier ones",
+        scratch_dirs()
+    );
+    assert!(import("after").wait().unwrap().success());
+    assert_eq!(scratch_dirs(), 0, "no scratch directory left");
+    ok(&["remove", "--db", &db, "--scene", "after"]);
     // Reopened after the kills: only the surviving scene's trees remain on disk.
     let deadline = Instant::now() + Duration::from_secs(10);
     let pool = loop {

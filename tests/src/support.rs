@@ -43,7 +43,16 @@ pub struct Built {
     pub scene: StoredScene,
     pub source: Source,
     pub pool_dir: TempDir,
-    pub scratch: TempDir,
+    pub scratch: Scratch,
+}
+
+/// What holds a built scene's scratch files (its source's columns) until it is dropped.
+#[derive(Debug)]
+pub enum Scratch {
+    /// The import's own, locked while it lives ([`arbor_server::scratch`]).
+    Import(arbor_server::scratch::ScratchDir),
+    /// The one a test made for its synthetic source.
+    Test(TempDir),
 }
 
 /// The lion scan at depth 8 in 1 KiB treelets: a real tree of several treelet levels, quick to
@@ -92,7 +101,7 @@ pub fn build_file(rel: &str, name: &str, opts: &BuildOptions) -> Built {
         scene,
         source: imported.source,
         pool_dir,
-        scratch: imported.scratch,
+        scratch: Scratch::Import(imported.scratch),
     }
 }
 
@@ -115,7 +124,7 @@ pub fn build_source(source: Source, scratch: TempDir, name: &str, opts: &BuildOp
         scene,
         source,
         pool_dir,
-        scratch,
+        scratch: Scratch::Test(scratch),
     }
 }
 

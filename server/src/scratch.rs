@@ -1,0 +1,203 @@
+//! Scratch directories of imports, and removing the ones killed imports left.
+//!
+//! An import parses its input into memory-mapped columns and spills sorted runs into a scratch
+//! directory: about 20–30 MB for a shared scan, tens of gigabytes for a 10⁸-point city. Dropped,
+//! a [`ScratchDir`] removes itself; but a process that is killed (SIGKILL, the OOM killer, a
+//! power cut) runs no destructor, and each such import used to leave its directory in `/tmp`
+//! for good.
+//!
+//! So every scratch directory holds an `owner.lock` file on which its import keeps an exclusive
+//! lock (`flock`) for as long as the directory lives. The kernel releases the lock when the
+//! process dies however it dies, so a directory whose lock can be taken has no owner: each new
+//! scratch directory first removes those beside it ([`sweep_abandoned`]). A directory without
+//! the lock file is left alone (another program's, or one being created this instant), and so is
+//! anything that is not a plain directory named `arbor-import-*`.
+
+use std::fs::{File, TryLockError};
+use std::io;
+use std::path::{Path, PathBuf};
+
+use tempfile::TempDir;
+
+/// Prefix of scratch directory names.
+pub const SCRATCH_PREFIX: &str = "arbor-import-";
+/// The file in a scratch directory its owner keeps locked.
+pub const OWNER_LOCK: &str = "owner.lock";
+
+/// An import's scratch directory: removed on drop, locked by its owner while it lives.
+#[derive(Debug)]
+pub struct ScratchDir {
+    // Declared first so it is closed (the lock released) before the directory is removed.
+    _owner: File,
+    dir: TempDir,
+}
+
+impl ScratchDir {
+    /// A new scratch directory in `parent` (default: the system's temporary directory), after
+    /// removing the abandoned ones there.
+    pub fn new(parent: Option<&Path>) -> io::Result<ScratchDir> {
+        let parent = parent.map_or_else(std::env::temp_dir, Path::to_path_buf);
+        let removed = sweep_abandoned(&parent);
+        if !removed.is_empty() {
+            tracing::info!(
+                parent = %parent.display(),
+                "removed {} scratch directories of imports that did not finish: {}",
+                removed.len(),
+                removed
+                    .iter()
+                    .filter_map(|p| p.file_name()?.to_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+        }
+        let dir = tempfile::Builder::new()
+            .prefix(SCRATCH_PREFIX)
+            .tempdir_in(&parent)?;
+        let owner = File::create(dir.path().join(OWNER_LOCK))?;
+        owner.lock()?;
+        Ok(ScratchDir { _owner: owner, dir })
+    }
+
+    /// Where the scratch files go.
+    pub fn path(&self) -> &Path {
+        self.dir.path()
+    }
+}
+
+/// Removes every scratch directory in `parent` whose owner is gone (its `owner.lock` exists and
+/// can be locked); returns the ones removed. Best effort: what cannot be read, locked or removed
+/// (another user's, one in use) stays, and a failure is logged, never returned.
+pub fn sweep_abandoned(parent: &Path) -> Vec<PathBuf> {
+    let Ok(entries) = std::fs::read_dir(parent) else {
+        return Vec::new();
+    };
+    let mut removed = Vec::new();
+    for entry in entries.flatten() {
+        let named = entry
+            .file_name()
+            .to_str()
+            .is_some_and(|n| n.starts_with(SCRATCH_PREFIX));
+        // `file_type` does not follow a symbolic link: a link is never entered or removed.
+        let is_dir = entry.file_type().is_ok_and(|t| t.is_dir());
+        if !named || !is_dir {
+            continue;
+        }
+        let path = entry.path();
+        if !abandoned(&path) {
+            continue;
+        }
+        match std::fs::remove_dir_all(&path) {
+            Ok(()) => removed.push(path),
+            Err(e) => tracing::warn!(
+                "could not remove the abandoned scratch directory {}: {e}",
+                path.display()
+            ),
+        }
+    }
+    removed
+}
+
+/// Whether `dir` is a scratch directory nobody holds: its lock file exists and the lock is free.
+fn abandoned(dir: &Path) -> bool {
+    let lock = dir.join(OWNER_LOCK);
+    // Not followed through a link: a link named like the lock file makes the directory
+    // someone else's.
+    if !std::fs::symlink_metadata(&lock).is_ok_and(|m| m.is_file()) {
+        return false;
+    }
+    let Ok(file) = File::open(&lock) else {
+        return false;
+    };
+    match file.try_lock() {
+        // Released as `file` closes, before the directory goes.
+        Ok(()) => true,
+        Err(TryLockError::WouldBlock) => false,
+        Err(TryLockError::Error(e)) => {
+            tracing::debug!("{}: {e}", lock.display());
+            false
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What a killed import leaves: a scratch directory with its lock file and data, unlocked.
+    fn abandoned_dir(parent: &Path, name: &str) -> PathBuf {
+        let dir = parent.join(name);
+        std::fs::create_dir(&dir).unwrap();
+        std::fs::write(dir.join(OWNER_LOCK), b"").unwrap();
+        std::fs::write(dir.join("src_positions.col"), [7u8; 4096]).unwrap();
+        dir
+    }
+
+    #[test]
+    fn a_new_scratch_dir_removes_the_abandoned_ones_and_nothing_else() {
+        let parent = tempfile::tempdir().unwrap();
+        let p = parent.path();
+        let dead = abandoned_dir(p, "arbor-import-dead1");
+        let dead2 = abandoned_dir(p, "arbor-import-dead2");
+        let live = ScratchDir::new(Some(p)).unwrap();
+        assert!(!dead.exists() && !dead2.exists(), "abandoned dirs removed");
+        std::fs::write(live.path().join("data.col"), b"x").unwrap();
+
+        // Left alone: a scratch dir without a lock file, another program's dir with a lock
+        // file, a link named like a scratch dir, a plain file named like one.
+        let unlocked = p.join("arbor-import-nolock");
+        std::fs::create_dir(&unlocked).unwrap();
+        let other = abandoned_dir(p, "other-tool-dir");
+        let target = abandoned_dir(p, "link-target");
+        std::os::unix::fs::symlink(&target, p.join("arbor-import-link")).unwrap();
+        std::fs::write(p.join("arbor-import-file"), b"not a dir").unwrap();
+        // A lock file that is a link to a file nobody locks.
+        let linked_lock = p.join("arbor-import-linked-lock");
+        std::fs::create_dir(&linked_lock).unwrap();
+        std::os::unix::fs::symlink(target.join(OWNER_LOCK), linked_lock.join(OWNER_LOCK)).unwrap();
+
+        let second = ScratchDir::new(Some(p)).unwrap();
+        assert!(
+            live.path().join("data.col").exists(),
+            "a live import's dir is kept"
+        );
+        for kept in [&unlocked, &other, &target, &linked_lock] {
+            assert!(kept.exists(), "{} kept", kept.display());
+        }
+        assert!(p.join("arbor-import-link").exists());
+        assert!(p.join("arbor-import-file").exists());
+        assert!(
+            target.join("src_positions.col").exists(),
+            "nothing removed through the link"
+        );
+
+        // Dropped: removed with its lock file; the other live one stays.
+        let gone = live.path().to_path_buf();
+        drop(live);
+        assert!(!gone.exists());
+        assert!(second.path().exists());
+        assert!(sweep_abandoned(p).is_empty(), "the live dir is locked");
+    }
+
+    #[test]
+    fn a_scratch_dir_of_a_dead_owner_is_removed_by_the_sweep() {
+        let parent = tempfile::tempdir().unwrap();
+        let p = parent.path();
+        let dir = ScratchDir::new(Some(p)).unwrap();
+        let path = dir.path().to_path_buf();
+        // As a killed process leaves it: the lock released (the file closed), the directory kept.
+        let ScratchDir { _owner, dir } = dir;
+        drop(_owner);
+        let kept = dir.keep();
+        assert_eq!(kept, path);
+        assert_eq!(sweep_abandoned(p), vec![path.clone()]);
+        assert!(!path.exists());
+    }
+
+    #[test]
+    fn a_missing_parent_is_an_error_not_a_panic() {
+        let parent = tempfile::tempdir().unwrap();
+        let missing = parent.path().join("does-not-exist");
+        assert!(sweep_abandoned(&missing).is_empty());
+        assert!(ScratchDir::new(Some(&missing)).is_err());
+    }
+}
