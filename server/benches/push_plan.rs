@@ -20,7 +20,10 @@
 //! for the view and open anchors; pushes planned and anchors closed; the anchored plan's time,
 //! the time to keep its results (record, exhausted, sent), and the plain plan's time on the
 //! same list (the lower bound: no anchors). Each plan runs twice and the second is timed, so
-//! the shapes it reads are warm, as in the server's shape cache.
+//! the shapes it reads are warm, as in the server's shape cache. The shapes go through a
+//! [`ShapeCache`] of `ARBOR_PLAN_SHAPE_BYTES` (default the server's `shape_cache_bytes`,
+//! 32 MiB), built on a miss as the server decodes them; the last line says how it served against
+//! the distinct shapes the run touched (what a cache without a bound would hold).
 
 use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
@@ -30,9 +33,11 @@ use arbor_proto::cell::Cell;
 use arbor_proto::limits::MAX_REQUEST_ITEMS;
 use arbor_proto::treelet::TreeletId;
 use arbor_proto::wire::ViewHint;
+use arbor_server::service::config::DEFAULT_SHAPE_CACHE_BYTES;
 use arbor_server::service::push::{
     PushAnchors, TreeletShape, WorldCube, deep_list, deep_list_anchored, push_cap,
 };
+use arbor_server::service::shapes::{ShapeCache, shape_bytes};
 
 /// Levels of the octree one treelet spans.
 const SPAN: u8 = 3;
@@ -55,7 +60,13 @@ fn level_offset(level: u8) -> u32 {
 
 /// The terrain's treelets, identified by level and their root cell's x / y at its depth.
 struct Terrain {
-    shapes: HashMap<TreeletId, Arc<TreeletShape>>,
+    /// The server's shapes, for the plans and the anchors.
+    shapes: ShapeCache,
+    /// Every shape the server built, with its bytes: what a cache without a bound would hold.
+    touched: HashMap<TreeletId, usize>,
+    /// The simulated client's own knowledge of what it received (it orders its list by it),
+    /// kept apart so that it does not count as the server's lookups.
+    client: HashMap<TreeletId, Arc<TreeletShape>>,
 }
 
 impl Terrain {
@@ -78,44 +89,62 @@ impl Terrain {
         (GROUND * (1u64 << depth) as f64) as u32
     }
 
+    /// The server's shape of `id`, through its shape cache.
     fn shape(&mut self, id: TreeletId) -> Option<Arc<TreeletShape>> {
         let (level, x, y) = Self::locate(id);
         if level >= LEVELS {
             return None;
         }
+        let touched = &mut self.touched;
+        self.shapes.get_or_decode(0, id, || {
+            let shape = Self::build(level, x, y);
+            touched.insert(id, shape_bytes(&shape));
+            Some(shape)
+        })
+    }
+
+    /// The simulated client's shape of `id`.
+    fn client_shape(&mut self, id: TreeletId) -> Option<Arc<TreeletShape>> {
+        let (level, x, y) = Self::locate(id);
+        if level >= LEVELS {
+            return None;
+        }
         Some(
-            self.shapes
+            self.client
                 .entry(id)
-                .or_insert_with(|| {
-                    let depth = SPAN * level;
-                    let root = Cell {
-                        depth,
-                        x,
-                        y,
-                        z: Self::ground_z(depth),
-                    };
-                    let below = depth + SPAN;
-                    let fan = 1u32 << SPAN;
-                    let children = if level + 1 < LEVELS {
-                        (0..fan * fan)
-                            .map(|k| {
-                                let (cx, cy) = (x * fan + k % fan, y * fan + k / fan);
-                                let cell = Cell {
-                                    depth: below,
-                                    x: cx,
-                                    y: cy,
-                                    z: Self::ground_z(below),
-                                };
-                                (Self::id(level + 1, cx, cy), cell)
-                            })
-                            .collect()
-                    } else {
-                        Vec::new()
-                    };
-                    Arc::new(TreeletShape { root, children })
-                })
+                .or_insert_with(|| Arc::new(Self::build(level, x, y)))
                 .clone(),
         )
+    }
+
+    /// The shape of the treelet at `level` whose root cell is at `x`, `y`.
+    fn build(level: u8, x: u32, y: u32) -> TreeletShape {
+        let depth = SPAN * level;
+        let root = Cell {
+            depth,
+            x,
+            y,
+            z: Self::ground_z(depth),
+        };
+        let below = depth + SPAN;
+        let fan = 1u32 << SPAN;
+        let children = if level + 1 < LEVELS {
+            (0..fan * fan)
+                .map(|k| {
+                    let (cx, cy) = (x * fan + k % fan, y * fan + k / fan);
+                    let cell = Cell {
+                        depth: below,
+                        x: cx,
+                        y: cy,
+                        z: Self::ground_z(below),
+                    };
+                    (Self::id(level + 1, cx, cy), cell)
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        TreeletShape { root, children }
     }
 }
 
@@ -163,8 +192,11 @@ fn main() {
         origin: [0.0; 3],
         edge: 1.0,
     };
+    let shape_cache_bytes = env_usize("ARBOR_PLAN_SHAPE_BYTES", DEFAULT_SHAPE_CACHE_BYTES as usize);
     let mut terrain = Terrain {
-        shapes: HashMap::new(),
+        shapes: ShapeCache::new(shape_cache_bytes),
+        touched: HashMap::new(),
+        client: HashMap::new(),
     };
     let mut anchors = PushAnchors::default();
     // The simulated client: what it received, and the children of those it has not yet listed
@@ -173,7 +205,9 @@ fn main() {
     let mut frontier: Vec<TreeletId> = vec![TreeletId::ROOT];
     let eye = view(0).eye;
     let distance = |terrain: &mut Terrain, id: TreeletId| {
-        let s = terrain.shape(id).expect("frontier treelets have shapes");
+        let s = terrain
+            .client_shape(id)
+            .expect("frontier treelets have shapes");
         let (min, max) = cube.cell_box(s.root);
         (0..3)
             .map(|a| {
@@ -269,7 +303,7 @@ fn main() {
         }
         for &id in &sent {
             if received.insert(id)
-                && let Some(s) = terrain.shape(id)
+                && let Some(s) = terrain.client_shape(id)
             {
                 frontier.extend(s.children.iter().filter_map(|&(child, cell)| {
                     let (min, max) = cube.cell_box(cell);
@@ -295,5 +329,16 @@ fn main() {
         ms(worst.1),
         worst.0,
         ms(plain_total) / lists as f64,
+    );
+    let f = terrain.shapes.figures();
+    println!(
+        "shape cache of {:.1} MiB: {} shapes in {:.1} MiB held, {} hits, {} misses; the run touched {} distinct shapes, {:.1} MiB",
+        shape_cache_bytes as f64 / 1048576.0,
+        f.shapes,
+        f.bytes as f64 / 1048576.0,
+        f.hits,
+        f.misses,
+        terrain.touched.len(),
+        terrain.touched.values().sum::<usize>() as f64 / 1048576.0,
     );
 }

@@ -90,18 +90,22 @@ impl ShapeCache {
         dictionaries: &PreparedDictionaries,
         id: TreeletId,
     ) -> Option<Arc<TreeletShape>> {
-        self.get_or_decode((scene.generation, id), || {
+        self.get_or_decode(scene.generation, id, || {
             decode_shape(scene, dictionaries, id)
         })
     }
 
-    /// The shape under `key`, or `decode`'s, kept if it fits. The lock is not held while
-    /// decoding: two lookups of the same missing shape may both decode it.
-    fn get_or_decode(
+    /// The shape of treelet `id` of the scene generation `generation`, or `decode`'s, kept if
+    /// it fits ([`ShapeCache::shape`] decodes from the pool; benchmarks bring their own). The
+    /// lock is not held while decoding: two lookups of the same missing shape may both decode
+    /// it.
+    pub fn get_or_decode(
         &self,
-        key: ShapeKey,
+        generation: u64,
+        id: TreeletId,
         decode: impl FnOnce() -> Option<TreeletShape>,
     ) -> Option<Arc<TreeletShape>> {
+        let key = (generation, id);
         {
             let mut g = self.lock();
             if let Some(s) = g.young.get(&key) {
@@ -202,7 +206,7 @@ mod tests {
     /// returns whether it decoded.
     fn look_up(cache: &ShapeCache, id: u32, children: usize) -> bool {
         let mut decoded = false;
-        let s = cache.get_or_decode((1, TreeletId(id)), || {
+        let s = cache.get_or_decode(1, TreeletId(id), || {
             decoded = true;
             Some(shape_with(children))
         });
@@ -215,7 +219,7 @@ mod tests {
         let cache = ShapeCache::new(1 << 20);
         assert!(look_up(&cache, 7, 3));
         assert!(!look_up(&cache, 7, 3));
-        let other = cache.get_or_decode((2, TreeletId(7)), || Some(shape_with(5)));
+        let other = cache.get_or_decode(2, TreeletId(7), || Some(shape_with(5)));
         assert_eq!(
             other.unwrap().children.len(),
             5,
@@ -232,7 +236,7 @@ mod tests {
     #[test]
     fn a_shape_that_does_not_decode_is_not_kept() {
         let cache = ShapeCache::new(1 << 20);
-        assert!(cache.get_or_decode((1, TreeletId(3)), || None).is_none());
+        assert!(cache.get_or_decode(1, TreeletId(3), || None).is_none());
         assert_eq!(cache.figures().shapes, 0);
         assert!(look_up(&cache, 3, 2), "decoded again on the next lookup");
     }
