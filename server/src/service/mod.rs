@@ -14,7 +14,8 @@
 //!   drop-to-finish plumbing; [`treelets`]: treelet messages from the pool and their cache
 //!   bounded in bytes; `streams`: a few treelets per stream; `batches`: which stream carries
 //!   which treelets and which streams a new list makes obsolete (plain data); `shared`: what the tasks share
-//!   (scheduler, routes, scenes, message cache).
+//!   (scheduler, routes, the scenes in use while a connection holds them, the message and
+//!   shape caches).
 //!
 //! The daemon ([`crate::daemon`]) starts this service and mounts the admin API beside it.
 //! * [`state`]: metrics, sessions and readiness shared with the admin API; [`timeline`]: what

@@ -3,7 +3,7 @@
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::Duration;
 
 use arbor_proto::TreeletId;
@@ -40,7 +40,10 @@ pub(crate) struct Shared {
     core: Mutex<Core>,
     /// Wakes the dispatcher: a list arrived, a treelet left the window, a window changed.
     pub wake: Notify,
-    scenes: Mutex<HashMap<String, Arc<ServedScene>>>,
+    /// The served form of each scene some connection uses, by name: held by the connections,
+    /// so a scene's served state (its prepared dictionaries, a visible cut's node buffer) lives
+    /// as long as someone is served it, not for the rest of the process.
+    scenes: Mutex<HashMap<String, Weak<ServedScene>>>,
     /// Built treelet messages of every scene, bounded by `message_cache_bytes`.
     pub messages: Arc<MessageCache>,
     /// Decoded treelet shapes of every scene for the push plans, bounded by
@@ -89,22 +92,92 @@ impl Shared {
         ConnectionId(self.next_id.fetch_add(1, Ordering::Relaxed))
     }
 
-    /// The served form of a stored scene, shared by its connections (rebuilt when the scene's
-    /// generation changed, i.e. it was re-imported).
+    /// The served form of a stored scene, shared by its connections while any holds it
+    /// (rebuilt when the scene's generation changed, i.e. it was re-imported, or when no
+    /// connection held it any more).
     pub(crate) fn served_scene(&self, stored: StoredScene) -> Arc<ServedScene> {
         let mut scenes = self.scenes.lock().unwrap_or_else(|p| p.into_inner());
         let name = stored.description.name.clone();
-        if let Some(s) = scenes.get(&name)
+        if let Some(s) = scenes.get(&name).and_then(Weak::upgrade)
             && s.stored.generation == stored.generation
         {
-            return s.clone();
+            return s;
         }
+        // Scenes nobody is served any more (removed, replaced, or just idle) leave the map
+        // here, so it holds no more names than scenes in use plus this one.
+        scenes.retain(|_, s| s.strong_count() > 0);
         let s = Arc::new(ServedScene::with_caches(
             stored,
             self.messages.clone(),
             self.shapes.clone(),
         ));
-        scenes.insert(name, s.clone());
+        scenes.insert(name, Arc::downgrade(&s));
         s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::octree::{BuildOptions, DepthChoice};
+    use crate::pipeline::{SceneImport, import_scene};
+
+    #[test]
+    fn a_served_scene_lives_as_long_as_a_connection_holds_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let pool = Pool::open(dir.path()).unwrap();
+        let input = std::path::Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../shared/data/meshes/stanford-bunny.obj"
+        ));
+        assert!(
+            input.exists(),
+            "the real scans in ../shared/data are required"
+        );
+        let request = SceneImport {
+            name: "bunny".into(),
+            input: input.to_path_buf(),
+            build: BuildOptions {
+                depth: DepthChoice::Fixed(4),
+                progress: false,
+                ..BuildOptions::default()
+            },
+            ..SceneImport::default()
+        };
+        import_scene(&pool, &request).unwrap();
+        let stored = pool.scene("bunny").unwrap();
+        let shared = Shared::new(
+            ServeConfig::new(dir.path()),
+            pool,
+            Arc::new(ServiceState::default()),
+        );
+        let held = |name: &str| {
+            let scenes = shared.scenes.lock().unwrap();
+            scenes.get(name).map(Weak::strong_count)
+        };
+
+        let a = shared.served_scene(stored.clone());
+        let b = shared.served_scene(stored.clone());
+        assert!(Arc::ptr_eq(&a, &b), "connections of one scene share it");
+        drop((a, b));
+        assert_eq!(
+            held("bunny"),
+            Some(0),
+            "nothing keeps it once they are gone"
+        );
+
+        // Another scene (a rename of the same trees) while nobody holds the first: the first
+        // leaves the map.
+        let mut other = stored.clone();
+        other.description.name = "other".into();
+        let c = shared.served_scene(other);
+        assert_eq!(held("bunny"), None);
+        assert_eq!(held("other"), Some(1));
+        let d = shared.served_scene(stored);
+        assert_eq!(held("bunny"), Some(1));
+        assert_eq!(held("other"), Some(1), "still held by its connection");
+        assert_eq!(d.stored.description.name, "bunny");
+        drop(c);
+        assert_eq!(shared.scenes.lock().unwrap().len(), 2);
     }
 }
