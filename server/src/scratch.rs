@@ -23,13 +23,16 @@ use tempfile::TempDir;
 pub const SCRATCH_PREFIX: &str = "arbor-import-";
 /// The file in a scratch directory its owner keeps locked.
 pub const OWNER_LOCK: &str = "owner.lock";
+/// The lock file before it is locked (a sweep ignores a directory that has only this).
+const OWNER_LOCK_NEW: &str = "owner.lock.new";
 
 /// An import's scratch directory: removed on drop, locked by its owner while it lives.
 #[derive(Debug)]
 pub struct ScratchDir {
-    // Declared first so it is closed (the lock released) before the directory is removed.
-    _owner: File,
     dir: TempDir,
+    // Declared after `dir`, so the lock is held until the directory is gone (unlinking an open
+    // file is fine on Unix): a sweep never sees a directory being removed as abandoned.
+    _owner: File,
 }
 
 impl ScratchDir {
@@ -53,9 +56,13 @@ impl ScratchDir {
         let dir = tempfile::Builder::new()
             .prefix(SCRATCH_PREFIX)
             .tempdir_in(&parent)?;
-        let owner = File::create(dir.path().join(OWNER_LOCK))?;
+        // Locked under another name, then renamed: a sweep that sees `owner.lock` always finds
+        // it locked, never in the instant between its creation and the lock.
+        let unlocked = dir.path().join(OWNER_LOCK_NEW);
+        let owner = File::create(&unlocked)?;
         owner.lock()?;
-        Ok(ScratchDir { _owner: owner, dir })
+        std::fs::rename(&unlocked, dir.path().join(OWNER_LOCK))?;
+        Ok(ScratchDir { dir, _owner: owner })
     }
 
     /// Where the scratch files go.
@@ -88,6 +95,8 @@ pub fn sweep_abandoned(parent: &Path) -> Vec<PathBuf> {
         }
         match std::fs::remove_dir_all(&path) {
             Ok(()) => removed.push(path),
+            // Removed by someone else meanwhile (its owner, as it finished, or another sweep).
+            Err(e) if e.kind() == io::ErrorKind::NotFound => {}
             Err(e) => tracing::warn!(
                 "could not remove the abandoned scratch directory {}: {e}",
                 path.display()
@@ -185,12 +194,40 @@ mod tests {
         let dir = ScratchDir::new(Some(p)).unwrap();
         let path = dir.path().to_path_buf();
         // As a killed process leaves it: the lock released (the file closed), the directory kept.
-        let ScratchDir { _owner, dir } = dir;
+        let ScratchDir { dir, _owner } = dir;
         drop(_owner);
         let kept = dir.keep();
         assert_eq!(kept, path);
         assert_eq!(sweep_abandoned(p), vec![path.clone()]);
         assert!(!path.exists());
+    }
+
+    #[test]
+    fn a_sweep_never_removes_a_scratch_dir_being_created() {
+        let parent = tempfile::tempdir().unwrap();
+        let p = parent.path().to_path_buf();
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let sweeper = {
+            let (p, stop) = (p.clone(), stop.clone());
+            std::thread::spawn(move || {
+                let mut removed = 0;
+                while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                    removed += sweep_abandoned(&p).len();
+                }
+                removed
+            })
+        };
+        for i in 0..300 {
+            let dir = ScratchDir::new(Some(&p)).unwrap();
+            std::fs::write(dir.path().join("column"), [1u8; 64])
+                .unwrap_or_else(|e| panic!("scratch dir {i} removed under its owner: {e}"));
+        }
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        assert_eq!(
+            sweeper.join().unwrap(),
+            0,
+            "only live scratch dirs were there"
+        );
     }
 
     #[test]
