@@ -10,8 +10,10 @@
 //! lock (`flock`) for as long as the directory lives. The kernel releases the lock when the
 //! process dies however it dies, so a directory whose lock can be taken has no owner: each new
 //! scratch directory first removes those beside it ([`sweep_abandoned`]). A directory without
-//! the lock file is left alone (another program's, or one being created this instant), and so is
-//! anything that is not a plain directory named `arbor-import-*`.
+//! the lock file is left alone (another program's, or one being created this instant: the lock
+//! file is locked before it gets its name), and so is anything that is not a plain directory
+//! named `arbor-import-*`. The owner holds the lock until its directory is gone, so a directory
+//! being removed is not taken for an abandoned one either.
 
 use std::fs::{File, TryLockError};
 use std::io;
@@ -23,7 +25,7 @@ use tempfile::TempDir;
 pub const SCRATCH_PREFIX: &str = "arbor-import-";
 /// The file in a scratch directory its owner keeps locked.
 pub const OWNER_LOCK: &str = "owner.lock";
-/// The lock file before it is locked (a sweep ignores a directory that has only this).
+/// The lock file's name until it is locked (a sweep ignores a directory that has only this).
 const OWNER_LOCK_NEW: &str = "owner.lock.new";
 
 /// An import's scratch directory: removed on drop, locked by its owner while it lives.
