@@ -213,7 +213,7 @@ const OPEN_VIEW_SHARE: f64 = 0.25;
 /// Share of the view that must be known before it can count as open.
 const OPEN_VIEW_KNOWN: f64 = 0.25;
 
-/// Side of the screen tiles [`DirtyTiles`] marks, pixels.
+/// Side of the screen tiles `DirtyTiles` marks, pixels.
 pub const DIRTY_TILE: u32 = 8;
 
 /// The screen tiles holding a known pixel that still wants refinement, and their neighbours.
@@ -1301,7 +1301,7 @@ impl ClientCore {
     /// displaces anything — and is dropped, and counted, when no slot is free, or when its
     /// parent is still not resident after [`ORPHAN_WAIT_INTEGRATIONS`] integrations (it waits
     /// in the backlog until then). An eviction can uncover a coarse leaf in front of a known
-    /// pixel, so the pixels that may see it are forgotten ([`Self::forget_evicted`]).
+    /// pixel, so the pixels that may see it are forgotten (`forget_evicted`).
     pub fn integrate(&mut self) -> Integration {
         self.arriving.clear();
         let mut inserted = 0;

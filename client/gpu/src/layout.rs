@@ -87,8 +87,8 @@ fn v4(v: glam::DVec3, w: f32) -> [f32; 4] {
 
 impl FrameUniform {
     /// The uniform for casting `camera`'s pixel rays into `frame` with `lod`, shading with
-    /// `light`, with the attribute arrays of `channels` bound. The feedback members are zero;
-    /// set them with [`FrameUniform::with_feedback`].
+    /// `light`, with the attribute arrays of `channels` bound. The analysis pass's sample count
+    /// and stride are zero; set them with [`FrameUniform::with_samples`].
     pub fn new(
         frame: &SceneFrame,
         camera: &Camera,

@@ -74,7 +74,7 @@ fn client_socket(bind: std::net::SocketAddr) -> std::io::Result<std::net::UdpSoc
     Ok(socket)
 }
 
-/// A client endpoint on `bind` over [`client_socket`]'s socket (quinn's `Endpoint::client` with a
+/// A client endpoint on `bind` over `client_socket`'s socket (quinn's `Endpoint::client` with a
 /// larger receive buffer). Needs a tokio runtime.
 pub fn client_endpoint(bind: std::net::SocketAddr) -> std::io::Result<quinn::Endpoint> {
     let runtime =

@@ -5,7 +5,7 @@
 //! 1. **fill** — treelets are filled breadth-first from a FIFO of jobs (top-down, so every child
 //!    id is higher than its parent's); independent jobs of one batch run in parallel; finished
 //!    treelets are appended to a scratch file of packed records;
-//! 2. **store** ([`store`]) — two streams at once into a [`TreeletSink`] (the pool): the node
+//! 2. **store** (`store`) — two streams at once into a [`TreeletSink`] (the pool): the node
 //!    blocks, compressed in id order with a zstd dictionary trained on evenly spread records; and
 //!    the attribute blocks, treelets read back level by level, deepest first, inner attributes
 //!    averaged bottom-up (a child treelet's root attribute feeding its parent's refinable leaf)

@@ -546,7 +546,7 @@ const NORMAL_MAX_POINTS: usize = 256;
 /// the PCA normal (smallest-eigenvalue axis of the covariance) of the points in its cell two
 /// levels above the target depth — a contiguous run of the sorted records, so one streaming
 /// pass with no neighbour search — or of the nearest enclosing cell with at least
-/// [`NORMAL_MIN_POINTS`]; oriented away from the cloud's centre like the general path's.
+/// `NORMAL_MIN_POINTS`; oriented away from the cloud's centre like the general path's.
 pub fn cell_normals(
     records: &[PointRecord],
     positions: &[[f64; 3]],
