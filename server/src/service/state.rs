@@ -245,7 +245,6 @@ impl ServiceState {
         p.finish()
     }
 
-    /// Writes the service's families into `p`.
     /// The caches' figures (zeros before the service set them).
     fn write_cache_metrics(&self, p: &mut PromText) {
         let (messages, shapes) = match self.caches.get() {
@@ -296,6 +295,7 @@ impl ServiceState {
         );
     }
 
+    /// Writes the service's families into `p`.
     pub fn write_prometheus(&self, p: &mut PromText) {
         let m = &self.metrics;
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
