@@ -4,7 +4,7 @@
 //!
 //! Why bounded in bytes: a shape holds one entry per child treelet, so its size follows the
 //! scene (a few children in a statue's treelet, 64 in a city terrain's, about 1.3 KB). A bound
-//! by count (262,144 shapes per scene before) let a city-scale scene hold about 340 MB, and
+//! by count (262,144 shapes per scene before) let a city-scale scene hold about 360 MB, and
 //! every scene its own.
 //!
 //! Why two generations rather than a full LRU: the push plan looks shapes up by the thousand
