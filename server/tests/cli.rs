@@ -248,7 +248,9 @@ fn sigkill_mid_import_leaves_no_half_scene() {
             .unwrap()
             .filter(|e| {
                 let e = e.as_ref().unwrap();
-                e.file_name().to_string_lossy().starts_with("arbor-import-")
+                e.file_name()
+                    .to_string_lossy()
+                    .starts_with(arbor_server::scratch::SCRATCH_PREFIX)
             })
             .count()
     };

@@ -12,9 +12,8 @@ use tokio::sync::{Notify, mpsc};
 
 use super::config::ServeConfig;
 use super::schedule::{ConnectionId, Scheduler, SchedulerConfig};
-use super::shapes::ShapeCache;
 use super::state::{ServiceCaches, ServiceState};
-use super::treelets::{MessageCache, ServedScene};
+use super::treelets::ServedScene;
 use crate::pool::{Pool, StoredScene};
 
 /// How long a closing connection waits for its last control frame (`Error`, `Goodbye`) to be
@@ -44,11 +43,9 @@ pub(crate) struct Shared {
     /// so a scene's served state (its prepared dictionaries, a visible cut's node buffer) lives
     /// as long as someone is served it, not for the rest of the process.
     scenes: Mutex<HashMap<String, Weak<ServedScene>>>,
-    /// Built treelet messages of every scene, bounded by `message_cache_bytes`.
-    pub messages: Arc<MessageCache>,
-    /// Decoded treelet shapes of every scene for the push plans, bounded by
-    /// `shape_cache_bytes`.
-    pub shapes: Arc<ShapeCache>,
+    /// Built treelet messages and decoded treelet shapes of every scene, each bounded in bytes
+    /// (`message_cache_bytes`, `shape_cache_bytes`); the same ones `/metrics` reports.
+    caches: ServiceCaches,
     next_id: AtomicU64,
 }
 
@@ -57,14 +54,7 @@ impl Shared {
     /// in-flight cap is the sum of the largest windows every connection can have.
     pub(crate) fn new(config: ServeConfig, pool: Pool, state: Arc<ServiceState>) -> Self {
         let max_in_flight = config.max_connections.saturating_mul(config.window_max);
-        let caches = ServiceCaches {
-            messages: Arc::new(MessageCache::new(
-                usize::try_from(config.message_cache_bytes).unwrap_or(usize::MAX),
-            )),
-            shapes: Arc::new(ShapeCache::new(
-                usize::try_from(config.shape_cache_bytes).unwrap_or(usize::MAX),
-            )),
-        };
+        let caches = ServiceCaches::for_config(&config);
         state.set_caches(caches.clone());
         Self {
             pool,
@@ -75,8 +65,7 @@ impl Shared {
             }),
             wake: Notify::new(),
             scenes: Mutex::new(HashMap::new()),
-            messages: caches.messages,
-            shapes: caches.shapes,
+            caches,
             next_id: AtomicU64::new(1),
             config,
         }
@@ -108,8 +97,8 @@ impl Shared {
         scenes.retain(|_, s| s.strong_count() > 0);
         let s = Arc::new(ServedScene::with_caches(
             stored,
-            self.messages.clone(),
-            self.shapes.clone(),
+            self.caches.messages.clone(),
+            self.caches.shapes.clone(),
         ));
         scenes.insert(name, Arc::downgrade(&s));
         s

@@ -183,6 +183,17 @@ pub struct ServiceCaches {
     pub shapes: Arc<ShapeCache>,
 }
 
+impl ServiceCaches {
+    /// Empty caches of the sizes `config` gives.
+    pub fn for_config(config: &super::config::ServeConfig) -> ServiceCaches {
+        let bytes = |b: u64| usize::try_from(b).unwrap_or(usize::MAX);
+        ServiceCaches {
+            messages: Arc::new(MessageCache::new(bytes(config.message_cache_bytes))),
+            shapes: Arc::new(ShapeCache::new(bytes(config.shape_cache_bytes))),
+        }
+    }
+}
+
 impl ServiceState {
     pub fn new(fingerprint: String) -> Self {
         Self {

@@ -168,9 +168,10 @@ impl MessageCache {
 }
 
 /// Message cache of a scene opened on its own (tools, benches): 16 MiB.
-const DEFAULT_CACHE_BYTES: usize = 16 << 20;
-/// Shape cache of a scene opened on its own: 4 MiB.
-const DEFAULT_SHAPE_CACHE_BYTES: usize = 4 << 20;
+const OWN_MESSAGE_CACHE_BYTES: usize = 16 << 20;
+/// Shape cache of a scene opened on its own: 4 MiB (a server shares one of
+/// `shape_cache_bytes`).
+const OWN_SHAPE_CACHE_BYTES: usize = 4 << 20;
 
 /// A scene opened for serving.
 pub struct ServedScene {
@@ -199,8 +200,8 @@ impl ServedScene {
     pub fn new(stored: StoredScene) -> ServedScene {
         Self::with_caches(
             stored,
-            Arc::new(MessageCache::new(DEFAULT_CACHE_BYTES)),
-            Arc::new(ShapeCache::new(DEFAULT_SHAPE_CACHE_BYTES)),
+            Arc::new(MessageCache::new(OWN_MESSAGE_CACHE_BYTES)),
+            Arc::new(ShapeCache::new(OWN_SHAPE_CACHE_BYTES)),
         )
     }
 
