@@ -25,7 +25,7 @@ use arbor_client_session::headless::{HeadlessConfig, run_headless_on};
 use arbor_client_session::reference::{ReferenceView, streamed_reference};
 use arbor_client_session::session::SessionConfig;
 use arbor_client_session::session::{FetchedScene, fetch_all, reference_image};
-use arbor_client_viewer::{Outcome, ViewerConfig};
+use arbor_client_viewer::{FrameScaleConfig, Outcome, ViewerConfig};
 use arbor_proto::Channel;
 use clap::{Args, Parser, Subcommand};
 
@@ -67,12 +67,16 @@ const VIEW_HELP: &str = "Controls:\n  \
     fly mode: W/S forward/back, A/D left/right, E/Q up/down, right-drag looks\n  \
     Tab switches mode, H toggles the overlay, F12 or P saves a screenshot, R writes the report,\n  \
     Esc quits\n\n\
+While the camera moves, frames are rendered smaller to stay within --moving-frame-ms (the\n\
+overlay says at what size); they are full size again a quarter second after it stops.\n\n\
 Examples:\n  \
     arbor-client view quic://127.0.0.1:4433/lion --cert-fingerprint HEX\n  \
     arbor-client view --server quic://127.0.0.1:4433/lion --cert-fingerprint HEX \\\n      \
         --size 1280x720 --budget-mib 16 --backend cpu --report view.csv\n  \
     arbor-client view --server quic://127.0.0.1:4433/lion --cert-fingerprint HEX \\\n      \
-        --size 256x192 --screenshot shot.png --exit-after-converged --timeout-s 60";
+        --size 256x192 --screenshot shot.png --exit-after-converged --timeout-s 60\n  \
+    arbor-client view --server quic://127.0.0.1:4433/lion --cert-fingerprint HEX \\\n      \
+        --backend cpu --moving-frame-ms 33 --min-moving-scale 0.5";
 
 #[derive(Args, Debug)]
 struct Connection {
@@ -273,6 +277,17 @@ struct ViewArgs {
     /// Fault injection for tests: destroy the window's GPU device after this many frames.
     #[arg(long, hide = true)]
     lose_device_after_frames: Option<u32>,
+    /// While the camera moves, frames are rendered smaller (each side scaled, stretched over
+    /// the window) so one takes at most this many milliseconds; full size again once it rests.
+    /// 0: always full size.
+    #[arg(long, default_value_t = 20.0)]
+    moving_frame_ms: f64,
+    /// Smallest scale of each side of a moving frame, in (0, 1].
+    #[arg(long, default_value_t = 0.25)]
+    min_moving_scale: f64,
+    /// Scripted motion for tests: zoom in a little in each of the first N frames.
+    #[arg(long, hide = true, default_value_t = 0)]
+    script_zoom_frames: u32,
 }
 
 #[derive(Args, Debug)]
@@ -384,6 +399,18 @@ fn timeout(seconds: f64) -> Result<Duration> {
         .with_context(|| format!("timeout {seconds} s must be positive and finite"))
 }
 
+fn frame_scale(moving_frame_ms: f64, min_scale: f64) -> Result<FrameScaleConfig> {
+    if !(moving_frame_ms.is_finite() && (0.0..=60_000.0).contains(&moving_frame_ms)) {
+        bail!("moving frame time {moving_frame_ms} ms must be in [0, 60000] (0: always full size)");
+    }
+    let config = FrameScaleConfig {
+        budget: (moving_frame_ms > 0.0).then(|| Duration::from_secs_f64(moving_frame_ms / 1e3)),
+        min_scale,
+    };
+    config.validate()?;
+    Ok(config)
+}
+
 fn budget_bytes(mib: f64) -> Result<u64> {
     if !(mib.is_finite() && mib > 0.0 && mib <= 1024.0 * 1024.0) {
         bail!("budget {mib} MiB must be in (0, 1 TiB]");
@@ -435,6 +462,8 @@ fn view(mut a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         timeout: a.timeout_s.map(timeout).transpose()?,
         device_replacements: a.device_replacements,
         lose_device_after: a.lose_device_after_frames,
+        frame_scale: frame_scale(a.moving_frame_ms, a.min_moving_scale)?,
+        scripted_zoom_frames: a.script_zoom_frames,
     };
     // Absurd parameters are refused before a window opens.
     config.session.core.validate()?;

@@ -172,6 +172,11 @@ fn view_takes_the_url_as_an_argument_or_with_server() {
         ("--load-limit=0", "load limit"),
         ("--feedback-ratio=0", "feedback ratio"),
         ("--lod-bias=NaN", "LOD bias"),
+        ("--moving-frame-ms=NaN", "moving frame time"),
+        ("--moving-frame-ms=-5", "moving frame time"),
+        ("--min-moving-scale=0", "smallest frame scale"),
+        ("--min-moving-scale=1.5", "smallest frame scale"),
+        ("--min-moving-scale=NaN", "smallest frame scale"),
     ] {
         let (code, stderr) = run(&[
             "view",

@@ -31,7 +31,11 @@
 //! * **Overlay.** The second run, in the same X server, keeps the statistics overlay on: outside
 //!   its panel the window is still the reference within the same tolerance; inside, the panel
 //!   darkens the frame and carries text.
-//! * **Timeout.** A third run with `--timeout-s 1` cannot converge in time and must exit 1 with
+//! * **Moving frames.** A third run, on the CPU renderer, zooms in during its first frames (the
+//!   hidden `--script-zoom-frames`) with a 1 ms moving-frame budget: the viewer must say it drew
+//!   the moving frames at a quarter of each side, then full size again once the camera rested,
+//!   and converge to the reference of the camera where the zoom ended, as exactly as above.
+//! * **Timeout.** A last run with `--timeout-s 1` cannot converge in time and must exit 1 with
 //!   a message saying so.
 
 use std::ffi::OsString;
@@ -50,6 +54,7 @@ use arbor_client_core::render::Light;
 use arbor_client_report::{CycleRecord, RunReport};
 use arbor_client_session::session::reference_image;
 use arbor_client_viewer::blit::{BACKGROUND, OVERLAY_MARGIN};
+use arbor_client_viewer::controls::Controls;
 use arbor_client_viewer::overlay::Overlay;
 use arbor_tests::streaming::{TOKEN, serve};
 
@@ -61,6 +66,8 @@ const LOSE_DEVICE_AFTER: u32 = 5;
 const TOLERANCE: u8 = 2;
 /// Largest share of pixels allowed to differ by more than [`TOLERANCE`].
 const MAX_DIFFERING_SHARE: f64 = 0.005;
+/// Frames of the moving run that zoom in.
+const ZOOM_FRAMES: u32 = 12;
 /// How long the viewer may take to converge.
 const CONVERGE_TIMEOUT: Duration = Duration::from_secs(240);
 
@@ -287,6 +294,16 @@ fn assert_within(what: &str, d: &Difference) {
     );
 }
 
+/// The whole captured window equals `reference` within the tolerance.
+fn assert_window_is(what: &str, reference: &Image, window: &Xwd) {
+    let d = compare(
+        reference,
+        |_, _| true,
+        |x, y| window.rgb[(y * SIZE.0 + x) as usize],
+    );
+    assert_within(what, &d);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     require_tool("xwd", &["-help"], "x11-apps");
@@ -300,16 +317,19 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     // The reference: the same camera with every treelet resident, on the CPU.
     let frame = SceneFrame::of(&description);
     let camera = CameraPath::Static.camera(0, &frame, SEED, SIZE.0, SIZE.1);
-    let reference = reference_image(
-        &description,
-        description.layout.channels(),
-        served.treelets.clone(),
-        &camera,
-        1.0,
-        &Light::default(),
-        &mut CpuBackend,
-    )
-    .unwrap();
+    let reference_of = |camera| {
+        reference_image(
+            &description,
+            description.layout.channels(),
+            served.treelets.clone(),
+            camera,
+            1.0,
+            &Light::default(),
+            &mut CpuBackend,
+        )
+        .unwrap()
+    };
+    let reference = reference_of(&camera);
     assert!(
         reference.coverage() > u64::from(SIZE.0 * SIZE.1 / 20),
         "the reference view shows too little of the scene ({} px)",
@@ -360,11 +380,7 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
         LOSE_DEVICE_AFTER.to_string().into(),
     ]);
     args.extend(["--report".into(), report_path.clone().into()]);
-    let (bin2, display2) = (bin.clone(), display.clone());
-    let (window, viewer_stdout, elapsed) =
-        tokio::task::spawn_blocking(move || run_viewer(&bin2, &display2, &args))
-            .await
-            .unwrap();
+    let (window, viewer_stdout, elapsed) = view(&bin, &display, args).await;
     eprintln!("viewer output:\n{viewer_stdout}");
     assert!(
         viewer_stdout.contains(&format!(
@@ -379,12 +395,7 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
         SIZE,
         "window size in the X server"
     );
-    let d = compare(
-        &reference,
-        |_, _| true,
-        |x, y| window.rgb[(y * SIZE.0 + x) as usize],
-    );
-    assert_within("window (xwd)", &d);
+    assert_window_is("window (xwd)", &reference, &window);
 
     // The screenshot: the frame texture read back.
     let screenshot = Image::load_png(&shot).unwrap();
@@ -451,13 +462,10 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
 
     // Again with the overlay, on the CPU renderer (frames uploaded each cycle): the panel
     // covers the top-left corner with text, the rest of the window is still the reference.
+    let moving_common = common.clone();
     let mut args = common;
     args.extend(["--backend".into(), "cpu".into()]);
-    let (bin2, display2) = (bin.clone(), display.clone());
-    let (window, viewer_stdout, _) =
-        tokio::task::spawn_blocking(move || run_viewer(&bin2, &display2, &args))
-            .await
-            .unwrap();
+    let (window, viewer_stdout, _) = view(&bin, &display, args).await;
     eprintln!("viewer output with the overlay:\n{viewer_stdout}");
     let (pw, ph) = Overlay::new().panel_size();
     let m = OVERLAY_MARGIN;
@@ -479,6 +487,62 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
         "the panel was not drawn: {panel:?}"
     );
     assert!(text > 300, "no text in the panel ({text} bright pixels)");
+
+    // A moving camera gets smaller frames; at rest the window is the full-size reference of
+    // where the camera stopped.
+    let mut controls = Controls::new(&frame, SEED);
+    for _ in 0..ZOOM_FRAMES {
+        controls.wheel(arbor_client_viewer::SCRIPTED_ZOOM_LINES);
+    }
+    let zoomed = controls.camera(SIZE.0, SIZE.1);
+    assert!(
+        zoomed.position.distance(camera.position) > 0.01 * frame.edge,
+        "the scripted zoom moves the camera"
+    );
+    let zoomed_reference = reference_of(&zoomed);
+    let mut args = moving_common;
+    args.extend(
+        [
+            "--backend",
+            "cpu",
+            "--no-overlay",
+            "--moving-frame-ms",
+            "1",
+            "--script-zoom-frames",
+            &ZOOM_FRAMES.to_string(),
+        ]
+        .map(OsString::from),
+    );
+    let moving_report = out.path().join("moving.csv");
+    args.extend(["--report".into(), moving_report.clone().into()]);
+    let (window, viewer_stdout, _) = view(&bin, &display, args).await;
+    eprintln!("viewer output while moving:\n{viewer_stdout}");
+    let (small, full) = (
+        format!("moving: frames at {}x{}", SIZE.0 / 4, SIZE.1 / 4),
+        format!("resting: frames at full size {}x{}", SIZE.0, SIZE.1),
+    );
+    let (at_small, at_full) = (viewer_stdout.find(&small), viewer_stdout.find(&full));
+    assert!(
+        at_small.is_some() && at_full > at_small,
+        "moving frames at a quarter of each side, then full size: {viewer_stdout}"
+    );
+    assert!(
+        viewer_stdout.find("converged at cycle") > at_full,
+        "converged only at full size: {viewer_stdout}"
+    );
+    assert_window_is("window after moving", &zoomed_reference, &window);
+    // What the smaller frames saved (a figure, not a timed assertion).
+    let records = RunReport::read_csv(&moving_report).unwrap().records;
+    let step_ms = |r: &CycleRecord| r.analysis_ms + r.presort_ms + r.upload_ms + r.render_ms;
+    let mean_ms = |rs: &[CycleRecord]| rs.iter().map(step_ms).sum::<f64>() / rs.len() as f64;
+    let moving = &records[1..ZOOM_FRAMES as usize];
+    let resting = &records[records.len().saturating_sub(10)..];
+    eprintln!(
+        "analysis + presort + upload + render per frame: {:.2} ms moving at a quarter of each \
+         side, {:.2} ms for the last full-size frames",
+        mean_ms(moving),
+        mean_ms(resting)
+    );
 
     // A view that cannot converge in time fails with a message and status 1: one treelet
     // inserted per cycle cannot bring the hundreds the view needs within a second.
@@ -535,6 +599,14 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     assert_eq!(code, Some(1), "{stderr}");
     assert!(stderr.contains("did not converge within 1.0 s"), "{stderr}");
     served.server.shutdown().await;
+}
+
+/// [`run_viewer`] off the async workers.
+async fn view(bin: &Path, display: &str, args: Vec<OsString>) -> (Xwd, String, f64) {
+    let (bin, display) = (bin.to_path_buf(), display.to_owned());
+    tokio::task::spawn_blocking(move || run_viewer(&bin, &display, &args))
+        .await
+        .unwrap()
 }
 
 /// Runs `bin` with `args` on `display` until it prints that it converged, grabs its window, then

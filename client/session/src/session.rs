@@ -65,6 +65,9 @@ pub struct Step {
     /// none sees unloaded detail coarser than a pixel at the bias in effect (see
     /// [`Session::converged_at`]).
     pub converged_now: bool,
+    /// This step's view is converged (every pixel known and final), whether or not an earlier
+    /// one was: a viewer whose frame size changes asks this of each full-size frame.
+    pub converged: bool,
 }
 
 /// A connected session.
@@ -319,6 +322,7 @@ impl Session {
             record,
             image,
             converged_now,
+            converged: plan.converged,
         })
     }
 

@@ -20,6 +20,10 @@
 //!   slowly than the twins: on the 2-core build machine a 256×192 frame took 41–99 ms with the
 //!   CPU twins and 84–133 ms on lavapipe in the runs of `tests/tests/viewer_xvfb.rs`).
 //!
+//! While the camera moves, frames are drawn smaller so each stays within a frame budget
+//! ([`frame_scale`]), and full size again once it rests; only a full-size frame counts as
+//! converged.
+//!
 //! A lost device (a driver reset, the GPU removed) is replaced up to `--device-replacements`
 //! times: a new device for the window, its surface, blit and renderer made again, the session
 //! given the new renderer ([`Session::replace_backend`](arbor_client_session::Session::replace_backend))
@@ -34,6 +38,7 @@
 
 pub mod blit;
 pub mod controls;
+pub mod frame_scale;
 pub mod overlay;
 mod window;
 
@@ -42,6 +47,8 @@ use std::time::Duration;
 
 use arbor_client_gpu::{BackendChoice, FeedbackMode};
 use arbor_client_session::{RunError, SessionConfig};
+
+pub use frame_scale::FrameScaleConfig;
 
 pub use window::run;
 
@@ -75,7 +82,15 @@ pub struct ViewerConfig {
     pub device_replacements: u32,
     /// Fault injection for tests: destroy the window's device after this many frames, once.
     pub lose_device_after: Option<u32>,
+    /// Frames rendered smaller while the camera moves ([`frame_scale`]).
+    pub frame_scale: FrameScaleConfig,
+    /// Scripted motion for tests: the wheel turns by [`SCRIPTED_ZOOM_LINES`] in each of the
+    /// first this many frames, as a user zooming in would.
+    pub scripted_zoom_frames: u32,
 }
+
+/// Wheel notches per frame of [`ViewerConfig::scripted_zoom_frames`].
+pub const SCRIPTED_ZOOM_LINES: f64 = 0.05;
 
 /// How a viewer run ended.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -152,6 +152,9 @@ pub struct OverlayStats {
     pub frame_ms: f64,
     /// Frames per second over the last interval.
     pub fps: f64,
+    /// The latest frame's size, pixels, when it was scaled down from the window's while the
+    /// camera moved ([`crate::frame_scale`]); `None` at full size.
+    pub scaled_frame: Option<(u32, u32)>,
     /// The latest cycle.
     pub record: CycleRecord,
     /// Received bytes per second over the last interval.
@@ -168,7 +171,13 @@ impl OverlayStats {
         let r = &self.record;
         vec![
             format!("{} | {} (Tab)", self.backend, self.mode),
-            format!("frame {:.1} ms  {:.1} fps", self.frame_ms, self.fps),
+            match self.scaled_frame {
+                Some((w, h)) => format!(
+                    "frame {:.1} ms  {:.1} fps  moving at {w}×{h}",
+                    self.frame_ms, self.fps
+                ),
+                None => format!("frame {:.1} ms  {:.1} fps", self.frame_ms, self.fps),
+            },
             format!(
                 "analysis {:.2}  presort {:.2}  integrate {:.2} ms",
                 r.analysis_ms, r.presort_ms, r.integrate_ms
@@ -274,6 +283,7 @@ mod tests {
             mode: "orbit",
             frame_ms: 16.3,
             fps: 61.5,
+            scaled_frame: None,
             record: CycleRecord {
                 cycle: 42,
                 analysis_ms: 1.5,
@@ -324,5 +334,13 @@ mod tests {
             ..stats
         };
         assert!(done.lines().join("\n").contains("converged at 40"));
+        assert!(!done.lines().join("\n").contains("moving at"));
+        let moving = OverlayStats {
+            scaled_frame: Some((320, 240)),
+            ..done
+        };
+        let lines = moving.lines();
+        assert!(lines.len() <= LINES as usize);
+        assert!(lines[1].contains("16.3 ms") && lines[1].contains("moving at 320×240"));
     }
 }

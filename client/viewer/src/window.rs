@@ -7,6 +7,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
+use glam::DVec3;
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
 use winit::event::{ElementState, KeyEvent, MouseButton, MouseScrollDelta, WindowEvent};
@@ -22,8 +23,9 @@ use arbor_client_session::{RenderMode, RunError, Session};
 
 use super::blit::{Blit, FrameTexture, choose_surface_format, read_back};
 use super::controls::{Button, Controls, Move};
+use super::frame_scale::FrameScale;
 use super::overlay::{Overlay, OverlayStats};
-use super::{BackendChoice, Outcome, ViewerConfig, ViewerError, chart_path};
+use super::{BackendChoice, Outcome, SCRIPTED_ZOOM_LINES, ViewerConfig, ViewerError, chart_path};
 
 /// How often the overlay text is refreshed (its figures are averages over this interval).
 const OVERLAY_INTERVAL: Duration = Duration::from_millis(250);
@@ -143,6 +145,19 @@ struct Running {
     screenshots: u32,
     /// The fault injection has lost the device.
     device_lost: bool,
+    /// The frame size while the camera moves.
+    frame_scale: FrameScale,
+    /// The clock `frame_scale` is fed with.
+    clock_start: Instant,
+    /// The previous frame's camera pose (position, forward, up), to see it move.
+    last_pose: Option<[DVec3; 3]>,
+    /// The latest frame's size when it was scaled down.
+    scaled_frame: Option<(u32, u32)>,
+    /// [`ViewerConfig::scripted_zoom_frames`].
+    scripted_zoom_frames: u32,
+    /// The first cycle whose full-size frame was converged (a scaled frame's convergence is a
+    /// coarser picture's, so it does not count).
+    converged_at: Option<u32>,
 }
 
 /// What draws to the window: its surface, the device, the surface's configuration and the blit.
@@ -283,7 +298,7 @@ impl App {
     }
 
     fn close(&mut self, event_loop: &ActiveEventLoop) {
-        let converged_at = self.state.as_ref().and_then(|s| s.session.converged_at());
+        let converged_at = self.state.as_ref().and_then(|s| s.converged_at);
         self.outcome.get_or_insert(Outcome::Closed { converged_at });
         event_loop.exit();
     }
@@ -369,6 +384,12 @@ impl App {
             holding: false,
             screenshots: 0,
             device_lost: false,
+            frame_scale: FrameScale::new(self.config.frame_scale),
+            clock_start: now,
+            last_pose: None,
+            scaled_frame: None,
+            converged_at: None,
+            scripted_zoom_frames: self.config.scripted_zoom_frames,
         })
     }
 
@@ -494,7 +515,7 @@ impl App {
         let Some(state) = self.state.as_deref_mut() else {
             return Ok(());
         };
-        let converged_at = state.session.converged_at();
+        let converged_at = state.converged_at;
         if let (Some(cycle), false) = (converged_at, state.converged_handled) {
             state.converged_handled = true;
             if !state.controls.moved()
@@ -547,18 +568,48 @@ impl Running {
         self.controls
             .advance((now - self.last_frame).as_secs_f64().min(0.25));
         self.last_frame = now;
+        if (self.report.records.len() as u64) < u64::from(self.scripted_zoom_frames) {
+            self.controls.wheel(SCRIPTED_ZOOM_LINES);
+        }
         let (width, height) = (self.surface_config.width, self.surface_config.height);
-        let camera = self.controls.camera(width, height);
+        // A moving camera gets a smaller frame, stretched over the window by the blit.
+        let clock = (now - self.clock_start).as_secs_f64();
+        let full = self.controls.camera(width, height);
+        let pose = [full.position, full.forward, full.up];
+        if self.last_pose.is_some_and(|p| p != pose) {
+            self.frame_scale.handle_motion(clock);
+        }
+        self.last_pose = Some(pose);
+        let scale = self.frame_scale.poll_scale(clock);
+        let size = self.frame_scale.poll_size(clock, width, height);
+        let camera = if size == (width, height) {
+            full
+        } else {
+            self.controls.camera(size.0, size.1)
+        };
+        let scaled = (size != (width, height)).then_some(size);
+        match (self.scaled_frame, scaled) {
+            (None, Some((w, h))) => println!("moving: frames at {w}x{h}"),
+            (Some(_), None) => println!("resting: frames at full size {width}x{height}"),
+            _ => {}
+        }
+        self.scaled_frame = scaled;
         let mode = match self.source {
             FrameSource::Upload(_) => RenderMode::Image,
             FrameSource::InPlace => RenderMode::InPlace,
         };
+        let step_started = Instant::now();
         let step = self.session.step(&camera, mode, None)?;
         if let (FrameSource::Upload(texture), Some(image)) = (&mut self.source, &step.image) {
             if texture.size() != (image.width, image.height) {
                 *texture = FrameTexture::new(&self.gpu.device, image.width, image.height);
             }
             texture.upload(&self.gpu.queue, image);
+        }
+        self.frame_scale
+            .handle_frame(scale, step_started.elapsed().as_secs_f64());
+        if self.converged_at.is_none() && step.converged && self.scaled_frame.is_none() {
+            self.converged_at = Some(step.record.cycle);
         }
         self.interval.frames += 1;
         self.interval.bytes += step.record.bytes_received;
@@ -633,10 +684,11 @@ impl Running {
             mode: self.controls.mode().name(),
             frame_ms: elapsed * 1e3 / frames,
             fps: f64::from(self.interval.frames) / elapsed,
+            scaled_frame: self.scaled_frame,
             record: self.report.records.last().cloned().unwrap_or_default(),
             bytes_per_s: self.interval.bytes as f64 / elapsed,
             treelets_received: self.session.client_stats().treelets_received,
-            converged_at: self.session.converged_at(),
+            converged_at: self.converged_at,
         };
         self.blit
             .set_overlay(&self.gpu.queue, &self.overlay.draw(&stats.lines()));
