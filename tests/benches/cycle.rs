@@ -1,8 +1,10 @@
 //! CPU phases of one client cycle, on a real scan: the analysis twin (128×128 feedback of a
 //! 1024² frame), presort (both priority policies, 1,000+ distinct requests), the slot update
 //! (ageing, visibility, 256 insertions into a full buffer with evictions) and the upload range
-//! merge (fill ratio 0, 0.6 and 1), and decoding 256 received treelets with the scene's zstd
-//! dictionaries raw (loaded on every block) and prepared once.
+//! merge (fill ratio 0, 0.6 and 1), the CPU render of the full frame with the cost of its rays
+//! (generated per ray from the camera against `PixelRays`, in one run), and decoding 256
+//! received treelets with the scene's zstd dictionaries raw (loaded on every block) and prepared
+//! once.
 //!
 //! `cargo bench -p arbor-tests --bench cycle` (release). Prints a table; no assertion on time.
 
@@ -12,7 +14,9 @@ use arbor_client_core::analysis::{AnalysisConfig, Feedback, analyse};
 use arbor_client_core::camera::CameraPath;
 use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::presort::{Presort, PriorityPolicy};
+use arbor_client_core::render::{Light, render};
 use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
+use arbor_client_core::traverse::Ray;
 use arbor_client_core::upload::merge_ranges;
 use arbor_proto::codec::PreparedDictionaries;
 use arbor_server::octree::BuildOptions;
@@ -137,6 +141,40 @@ fn main() {
         "{:<44} {:>10.3}",
         format!("analysis twin ({}² samples, {hits} hits)", FRAME / RATIO),
         ms(t_analysis)
+    );
+    // The CPU render of the full frame, and what generating its rays costs: per ray from the
+    // camera (the tangent, aspect and right vector each time) against `PixelRays` (once).
+    let (t_render, image) = best(REPS, || {
+        render(&slots.view(), &frame, &camera, 1.0, &Light::default())
+    });
+    let pixels = FRAME * FRAME;
+    let ray_sum = |ray: &dyn Fn(f64, f64) -> Ray| {
+        (0..pixels)
+            .map(|i| {
+                ray(f64::from(i % FRAME) + 0.5, f64::from(i / FRAME) + 0.5)
+                    .dir
+                    .x
+            })
+            .sum::<f64>()
+    };
+    let (t_per_ray, a) = best(REPS, || ray_sum(&|x, y| camera.ray(x, y)));
+    let rays = camera.pixel_rays();
+    let (t_shared, b) = best(REPS, || ray_sum(&|x, y| rays.ray(x, y)));
+    assert_eq!(a.to_bits(), b.to_bits(), "the same rays either way");
+    println!(
+        "{:<44} {:>10.3}",
+        format!("CPU render ({FRAME}², {} px covered)", image.coverage()),
+        ms(t_render)
+    );
+    println!(
+        "{:<44} {:>10.3}",
+        format!("{FRAME}² rays, one thread: Camera::ray each"),
+        ms(t_per_ray)
+    );
+    println!(
+        "{:<44} {:>10.3}",
+        format!("{FRAME}² rays, one thread: PixelRays"),
+        ms(t_shared)
     );
     for policy in [PriorityPolicy::MaxError, PriorityPolicy::ErrorTimesPixels] {
         let mut p = Presort::new(policy, 65_536);

@@ -16,7 +16,7 @@ use arbor_proto::Node;
 use bytemuck::{Pod, Zeroable};
 use rayon::prelude::*;
 
-use crate::camera::Camera;
+use crate::camera::{Camera, PixelRays};
 use crate::incore::{IncoreView, SceneFrame};
 use crate::traverse::{Lod, trace};
 
@@ -204,6 +204,7 @@ pub fn analyse_pixels(
     out.pixels.extend_from_slice(pixels);
     out.samples.clear();
     out.samples.resize(pixels.len(), FeedbackSample::MISS);
+    let rays = camera.pixel_rays();
     out.samples
         .par_chunks_mut(256)
         .zip(pixels.par_chunks(256))
@@ -211,23 +212,23 @@ pub fn analyse_pixels(
             for (sample, &p) in samples.iter_mut().zip(pixels) {
                 let (px, py) = unpack_pixel(p);
                 if px < camera.width && py < camera.height {
-                    *sample = sample_pixel(view, frame, camera, &lod, px, py);
+                    *sample = sample_pixel(view, frame, &rays, &lod, px, py);
                 }
             }
         });
 }
 
 /// The feedback sample of full-resolution pixel `(px, py)`: the render pass's ray for that
-/// pixel, traced with the same LOD rule.
+/// pixel ([`Camera::pixel_rays`]), traced with the same LOD rule.
 pub fn sample_pixel(
     view: &IncoreView<'_>,
     frame: &SceneFrame,
-    camera: &Camera,
+    rays: &PixelRays,
     lod: &Lod,
     px: u32,
     py: u32,
 ) -> FeedbackSample {
-    let ray = camera.ray(f64::from(px) + 0.5, f64::from(py) + 0.5);
+    let ray = rays.ray(f64::from(px) + 0.5, f64::from(py) + 0.5);
     match trace(view, frame, &ray, lod) {
         None => FeedbackSample::MISS,
         Some(hit) => FeedbackSample {

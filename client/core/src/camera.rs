@@ -134,22 +134,57 @@ impl Camera {
     }
 
     /// The ray through continuous pixel coordinates `(px, py)`: pixel `(x, y)`'s centre is
-    /// `(x + 0.5, y + 0.5)`, `y` grows downward. The direction has unit length.
+    /// `(x + 0.5, y + 0.5)`, `y` grows downward. The direction has unit length. For many rays
+    /// of one camera, [`Camera::pixel_rays`] computes what they share once.
     pub fn ray(&self, px: f64, py: f64) -> Ray {
-        let h = (self.fov_y * 0.5).tan();
-        let aspect = f64::from(self.width) / f64::from(self.height);
-        let sx = (2.0 * px / f64::from(self.width) - 1.0) * h * aspect;
-        let sy = (1.0 - 2.0 * py / f64::from(self.height)) * h;
-        let dir = (self.forward + self.right() * sx + self.up * sy).normalize_or_zero();
-        Ray {
+        self.pixel_rays().ray(px, py)
+    }
+
+    /// The rays of this camera, with what every ray shares (the tangent of the half field of
+    /// view, the aspect, the right vector) computed once; bit for bit [`Camera::ray`].
+    pub fn pixel_rays(&self) -> PixelRays {
+        PixelRays {
             origin: self.position,
-            dir,
+            forward: self.forward,
+            right: self.right(),
+            up: self.up,
+            tan_half_fov_y: (self.fov_y * 0.5).tan(),
+            aspect: f64::from(self.width) / f64::from(self.height),
+            width: f64::from(self.width),
+            height: f64::from(self.height),
         }
     }
 
     /// Angle of one pixel at the image centre: `2·tan(fov_y/2)/height`.
     pub fn pixel_angle(&self) -> f64 {
         2.0 * (self.fov_y * 0.5).tan() / f64::from(self.height)
+    }
+}
+
+/// The rays of one [`Camera`] ([`Camera::pixel_rays`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PixelRays {
+    origin: DVec3,
+    forward: DVec3,
+    right: DVec3,
+    up: DVec3,
+    tan_half_fov_y: f64,
+    aspect: f64,
+    width: f64,
+    height: f64,
+}
+
+impl PixelRays {
+    /// The ray through continuous pixel coordinates `(px, py)`, as [`Camera::ray`] says.
+    pub fn ray(&self, px: f64, py: f64) -> Ray {
+        let h = self.tan_half_fov_y;
+        let sx = (2.0 * px / self.width - 1.0) * h * self.aspect;
+        let sy = (1.0 - 2.0 * py / self.height) * h;
+        let dir = (self.forward + self.right * sx + self.up * sy).normalize_or_zero();
+        Ray {
+            origin: self.origin,
+            dir,
+        }
     }
 }
 

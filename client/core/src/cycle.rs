@@ -1059,10 +1059,11 @@ impl ClientCore {
             max_depth: self.frame.max_depth,
         };
         let (view, frame) = (self.slots.view(), self.frame);
+        let rays = camera.pixel_rays();
         let mut behind: Vec<(TreeletId, f32)> = wanting
             .par_iter()
             .flat_map_iter(|&i| {
-                let ray = camera.ray(f64::from(i % width) + 0.5, f64::from(i / width) + 0.5);
+                let ray = rays.ray(f64::from(i % width) + 0.5, f64::from(i / width) + 0.5);
                 looked_past(&view, &frame, &ray, &lod, depth)
             })
             .collect();

@@ -9,7 +9,7 @@ use arbor_proto::Channel;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::camera::Camera;
+use crate::camera::{Camera, PixelRays};
 use crate::image::Image;
 use crate::incore::{IncoreView, SceneFrame};
 use crate::traverse::{Hit, Lod, Ray, trace};
@@ -109,12 +109,13 @@ pub fn render(
     if row_bytes == 0 {
         return img;
     }
+    let rays = camera.pixel_rays();
     img.rgba
         .par_chunks_mut(row_bytes)
         .enumerate()
         .for_each(|(y, row)| {
             for (x, px) in row.chunks_exact_mut(4).enumerate() {
-                px.copy_from_slice(&render_pixel(view, frame, camera, &lod, light, x, y));
+                px.copy_from_slice(&render_pixel(view, frame, &rays, &lod, light, x, y));
             }
         });
     img
@@ -124,13 +125,13 @@ pub fn render(
 fn render_pixel(
     view: &IncoreView<'_>,
     frame: &SceneFrame,
-    camera: &Camera,
+    rays: &PixelRays,
     lod: &Lod,
     light: &Light,
     x: usize,
     y: usize,
 ) -> [u8; 4] {
-    let ray = camera.ray(x as f64 + 0.5, y as f64 + 0.5);
+    let ray = rays.ray(x as f64 + 0.5, y as f64 + 0.5);
     trace(view, frame, &ray, lod).map_or([0; 4], |hit| shade(&hit, view, &ray, light))
 }
 
@@ -160,6 +161,7 @@ pub fn render_rects(
     if row_bytes == 0 {
         return;
     }
+    let rays = camera.pixel_rays();
     image
         .rgba
         .par_chunks_mut(row_bytes)
@@ -180,7 +182,7 @@ pub fn render_rects(
                 for x in x0.max(next)..=x1 {
                     let (x, at) = (x as usize, x as usize * 4);
                     row[at..at + 4]
-                        .copy_from_slice(&render_pixel(view, frame, camera, &lod, light, x, y));
+                        .copy_from_slice(&render_pixel(view, frame, &rays, &lod, light, x, y));
                 }
                 next = next.max(x1 + 1);
             }

@@ -196,11 +196,12 @@ impl CutCaster {
         let mut pending: Vec<(u32, u32)> = (0..camera.height)
             .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
             .collect();
+        let rays = camera.pixel_rays();
         while !pending.is_empty() {
             let mut missing: Vec<TreeletId> = Vec::new();
             let mut again = Vec::new();
             for &(x, y) in &pending {
-                let ray = camera.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
+                let ray = rays.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
                 cast.rays_cast += 1;
                 if let Some(hit) = trace(&slots.view(), &self.frame, &ray, lod)
                     && hit.leaf
