@@ -66,7 +66,7 @@ const VIEW_HELP: &str = "Controls:\n  \
     orbit mode (start): left-drag turns about the scene centre, wheel zooms\n  \
     fly mode: W/S forward/back, A/D left/right, E/Q up/down, right-drag looks\n  \
     Tab switches mode, H toggles the overlay, F12 or P saves a screenshot, R writes the report,\n  \
-    Esc quits\n\n\
+    - and = make the picture coarser or finer by half an octree level (the LOD bias), Esc quits\n\n\
 While the camera moves, frames are rendered smaller to stay within --moving-frame-ms (the\n\
 overlay says at what size); they are full size again a quarter second after it stops.\n\n\
 Examples:\n  \

@@ -74,13 +74,12 @@ use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 use arbor_client_core::analysis::AnalysisConfig;
-use arbor_client_core::backend::{Backend, CpuBackend, render_resident};
+use arbor_client_core::backend::{Backend, CpuBackend};
 use arbor_client_core::camera::{Camera, CameraPath};
 use arbor_client_core::cycle::{CoreConfig, DEFAULT_LOOK_PAST, DEFAULT_PREFETCH_BELOW, Sampling};
 use arbor_client_core::image::Image;
 use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::presort::PriorityPolicy;
-use arbor_client_core::render::Light;
 use arbor_client_core::slots::{DecodedTreelet, SlotBuffer, SlotConfig};
 use arbor_client_core::traverse::Lod;
 use arbor_client_gpu::{GpuBackend, GpuContext};
@@ -91,7 +90,7 @@ use arbor_proto::TreeletId;
 use arbor_server::service::timeline::{Breakdown, Event as TimelineEvent, Progress, progress};
 use arbor_server::service::visibility::CutCaster;
 use arbor_tests::link::{LinkConfig, LinkEmulator};
-use arbor_tests::streaming::{Served, TOKEN, full, serve};
+use arbor_tests::streaming::{Served, TOKEN, cpu_render_at, full, serve};
 
 const SIZE: u32 = 512;
 const BUDGET: u64 = 64 << 20;
@@ -803,15 +802,7 @@ fn judge(
     let last = r.last().unwrap();
     let converged = (last.known_share == 1.0 && last.error.max == 0.0).then(|| at(r.len() - 1));
     let bias = last.lod_bias;
-    let reference = render_resident(
-        full,
-        frame,
-        camera,
-        bias,
-        &Light::default(),
-        &mut CpuBackend,
-    )
-    .expect("the CPU backend does not fail");
+    let reference = cpu_render_at(full, frame, camera, bias);
     let exact =
         |i: usize| render_subset(served, &phase.resident[i], frame, camera, bias) == reference;
     let rmse0 = if exact(r.len() - 1) {
@@ -872,15 +863,7 @@ fn render_subset(
     for id in sorted.into_iter().filter(|id| id.0 != 0) {
         slots.insert(served.treelets[id.0 as usize].clone());
     }
-    render_resident(
-        &slots,
-        frame,
-        camera,
-        bias,
-        &Light::default(),
-        &mut CpuBackend,
-    )
-    .expect("the CPU backend does not fail")
+    cpu_render_at(&slots, frame, camera, bias)
 }
 
 /// The treelets a view needs resident to render exactly what the fully resident scene renders:
@@ -970,15 +953,7 @@ fn oversubscribed(runtime: &tokio::runtime::Runtime, out: &std::path::Path) {
         let converged = session.converged_at();
         session.close(runtime.handle());
         let bias = records.last().unwrap().lod_bias;
-        let reference = render_resident(
-            &full,
-            &frame,
-            &camera,
-            bias,
-            &Light::default(),
-            &mut CpuBackend,
-        )
-        .expect("the CPU backend does not fail");
+        let reference = cpu_render_at(&full, &frame, &camera, bias);
         let received: u64 = records.iter().map(|r| r.bytes_received).sum();
         let tail: u64 = records[CYCLES - 100..]
             .iter()

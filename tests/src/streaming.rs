@@ -8,9 +8,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use arbor_client_core::analysis::AnalysisConfig;
-use arbor_client_core::backend::Backend;
 use arbor_client_core::backend::render_resident;
-use arbor_client_core::camera::CameraPath;
+use arbor_client_core::backend::{Backend, CpuBackend};
+use arbor_client_core::camera::{Camera, CameraPath};
 use arbor_client_core::cycle::CoreConfig;
 use arbor_client_core::image::Image;
 use arbor_client_core::incore::SceneFrame;
@@ -196,6 +196,20 @@ pub fn reference(
     let camera = path.camera(cycle, &frame, 7, SIZE.0, SIZE.1);
     render_resident(full, &frame, &camera, 1.0, &Light::default(), backend)
         .expect("rendering the reference")
+}
+
+/// What `camera` sees of the treelets in `slots` at LOD bias `bias`, on the CPU twins: with
+/// every treelet resident, the reference a run at that bias must converge to.
+pub fn cpu_render_at(slots: &SlotBuffer, frame: &SceneFrame, camera: &Camera, bias: f64) -> Image {
+    render_resident(
+        slots,
+        frame,
+        camera,
+        bias,
+        &Light::default(),
+        &mut CpuBackend,
+    )
+    .expect("the CPU backend does not fail")
 }
 
 /// Treelets the view of `path` at `cycle` needs resident: those holding every pixel's hit in

@@ -12,6 +12,8 @@
 //! * **Orbiting camera, small budget**: memory stays within the budget every cycle, and no
 //!   pixel that the reference of that cycle's camera covers is ever empty.
 //! * **Over the link emulator** (25 ms each way, 100 Mbit/s): the same convergence.
+//! * **A new LOD bias mid-run** (the viewer's quality keys, `Session::set_lod_bias`): the
+//!   picture converges to the reference rendered at that bias, exactly, and back.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -19,13 +21,15 @@ use std::time::Duration;
 use arbor_client_core::backend::CpuBackend;
 use arbor_client_core::camera::CameraPath;
 use arbor_client_core::cycle::Sampling;
+use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::presort::PriorityPolicy;
 use arbor_client_core::slots::SlotBuffer;
 use arbor_client_session::headless::run_headless_with;
+use arbor_client_session::session::{RenderMode, Session, SessionConfig};
 use arbor_tests::link::{LinkConfig, LinkEmulator};
 use arbor_tests::streaming::{
-    SIZE, assert_report_accounts, converge, converge_with, full, headless, needed_treelets,
-    reference, scene_bytes, serve,
+    SIZE, assert_report_accounts, converge, converge_with, cpu_render_at, full, headless,
+    needed_treelets, reference, scene_bytes, serve,
 };
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -265,15 +269,7 @@ async fn oversubscribed_view_settles_on_a_coarser_exact_picture_and_stops_reques
     // Exact: the biased reference, every treelet resident, same camera.
     let frame = arbor_client_core::incore::SceneFrame::of(&served.scene);
     let camera = CameraPath::Static.camera(0, &frame, 7, SIZE.0, SIZE.1);
-    let biased = arbor_client_core::backend::render_resident(
-        &full,
-        &frame,
-        &camera,
-        bias,
-        &arbor_client_core::render::Light::default(),
-        &mut CpuBackend,
-    )
-    .expect("the CPU backend does not fail");
+    let biased = cpu_render_at(&full, &frame, &camera, bias);
     assert_eq!(
         run.image, biased,
         "the settled picture is the biased reference"
@@ -285,4 +281,67 @@ async fn oversubscribed_view_settles_on_a_coarser_exact_picture_and_stops_reques
         summary.contains("LOD bias"),
         "the summary says the target was adjusted: {summary}"
     );
+}
+
+/// The viewer's quality keys: a session told a coarser LOD bias converges to the reference
+/// rendered at that bias, exactly, and back at 1 to the unbiased one; an absurd bias is refused
+/// and changes nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_session_follows_a_new_lod_bias_to_its_exact_reference_and_back() {
+    let served = Arc::new(serve("points/lion_takanawa.copc.laz", "lion", 1024).await);
+    let full = full(&served);
+    let cfg = headless(
+        served.server.quic_addr,
+        &served,
+        CameraPath::Static,
+        2 * scene_bytes(&served),
+    );
+    let frame = SceneFrame::of(&served.scene);
+    let camera = CameraPath::Static.camera(0, &frame, cfg.seed, SIZE.0, SIZE.1);
+    let handle = tokio::runtime::Handle::current();
+    let served2 = served.clone();
+    tokio::task::spawn_blocking(move || {
+        let mut session = Session::connect(
+            SessionConfig {
+                client: cfg.client,
+                core: cfg.core,
+                connect_timeout: cfg.connect_timeout,
+                first_camera: None,
+            },
+            &handle,
+            Box::new(CpuBackend),
+        )
+        .unwrap();
+        let converge_at = |session: &mut Session, bias: f64| {
+            for _ in 0..2000 {
+                let step = session.step(&camera, RenderMode::Image, None).unwrap();
+                if step.converged {
+                    assert_eq!(step.record.lod_bias, bias, "the bias in effect");
+                    let reference = cpu_render_at(&full, &frame, &camera, bias);
+                    assert_eq!(
+                        step.image.unwrap(),
+                        reference,
+                        "converged at bias {bias}: the reference at that bias"
+                    );
+                    return step.record.cycle;
+                }
+                std::thread::sleep(Duration::from_millis(2));
+            }
+            panic!("no convergence at bias {bias} within 2,000 cycles");
+        };
+        let first = converge_at(&mut session, 1.0);
+        session.set_lod_bias(4.0).unwrap();
+        let coarse = converge_at(&mut session, 4.0);
+        assert!(coarse > first);
+        let err = session.set_lod_bias(f64::NAN).unwrap_err();
+        assert!(err.to_string().contains("LOD bias"), "{err}");
+        assert_eq!(session.core().lod_bias().base(), 4.0, "unchanged");
+        session.set_lod_bias(1.0).unwrap();
+        converge_at(&mut session, 1.0);
+        let coarse = cpu_render_at(&full, &frame, &camera, 4.0);
+        let fine = reference(&served2, &full, &CameraPath::Static, 0, &mut CpuBackend);
+        assert_ne!(coarse, fine, "the two biases are two pictures");
+    })
+    .await
+    .unwrap();
 }

@@ -14,15 +14,15 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use arbor_client_core::analysis::AnalysisConfig;
-use arbor_client_core::backend::{CpuBackend, render_resident};
+use arbor_client_core::backend::CpuBackend;
 use arbor_client_core::camera::CameraPath;
 use arbor_client_core::cycle::CoreConfig;
 use arbor_client_core::incore::SceneFrame;
-use arbor_client_core::render::Light;
 use arbor_client_core::slots::SlotBuffer;
 use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
 use arbor_client_session::headless::{HeadlessConfig, run_headless_with};
 use arbor_server::octree::{BuildOptions, DepthChoice};
+use arbor_tests::streaming::cpu_render_at;
 use arbor_tests::support::{build_file, copy_dir, decoded_treelets};
 
 /// The `arbor-server` binary of this build, beside this test's executable.
@@ -141,15 +141,7 @@ async fn the_client_fails_over_to_a_replica_and_converges_exactly() {
     let full = SlotBuffer::fully_resident(&scene, scene.layout.channels(), treelets).unwrap();
     let frame = SceneFrame::of(&scene);
     let camera = CameraPath::Static.camera(0, &frame, 7, SIZE.0, SIZE.1);
-    let reference = render_resident(
-        &full,
-        &frame,
-        &camera,
-        1.0,
-        &Light::default(),
-        &mut CpuBackend,
-    )
-    .expect("the CPU backend does not fail");
+    let reference = cpu_render_at(&full, &frame, &camera, 1.0);
     let config = HeadlessConfig {
         client: ClientConfig::new(a.url("lion"), Trust::Fingerprint(a.fingerprint.clone()))
             .with_replicas([b.url("lion")]),

@@ -79,6 +79,15 @@ impl LodBiasControl {
         self.first_raised_at
     }
 
+    /// The user chose another configured bias: the control starts afresh around it (no steps,
+    /// nothing locked).
+    pub fn set_base(&mut self, base: f64) {
+        *self = Self {
+            first_raised_at: self.first_raised_at,
+            ..Self::new(base)
+        };
+    }
+
     /// The camera moved: a lower may be tried again.
     pub fn view_changed(&mut self) {
         self.locked = false;
@@ -116,6 +125,22 @@ mod tests {
             room: 100 - visible,
             capacity: 100,
         }
+    }
+
+    #[test]
+    fn a_new_base_starts_the_control_afresh() {
+        let mut c = LodBiasControl::new(1.0);
+        assert!(c.update(3, need(90, 30)));
+        assert!(c.update(4, need(30, 0)));
+        assert!(c.update(5, need(95, 10)), "a failed lower: locked");
+        c.set_base(4.0);
+        assert_eq!((c.base(), c.steps(), c.bias()), (4.0, 0, 4.0));
+        assert_eq!(c.first_raised_at(), Some(3), "the run's history is kept");
+        assert!(c.update(6, need(90, 30)));
+        assert!(
+            c.update(7, need(30, 0)),
+            "not locked any more: a lower is tried"
+        );
     }
 
     #[test]

@@ -328,6 +328,17 @@ impl Default for CoreConfig {
     }
 }
 
+/// Refuses a LOD bias that is not finite and in (0, 1e6].
+fn validate_lod_bias(lod_bias: f64) -> Result<(), CoreError> {
+    if lod_bias.is_finite() && lod_bias > 0.0 && lod_bias <= 1e6 {
+        Ok(())
+    } else {
+        Err(CoreError::Invalid(format!(
+            "LOD bias {lod_bias} must be finite and in (0, 1e6]"
+        )))
+    }
+}
+
 impl CoreConfig {
     /// Checks ranges that would otherwise only fail deep inside a cycle.
     pub fn validate(&self) -> Result<(), CoreError> {
@@ -339,12 +350,7 @@ impl CoreConfig {
                 crate::analysis::MAX_FEEDBACK_RATIO
             )));
         }
-        if !(a.lod_bias.is_finite() && a.lod_bias > 0.0 && a.lod_bias <= 1e6) {
-            return Err(CoreError::Invalid(format!(
-                "LOD bias {} must be finite and in (0, 1e6]",
-                a.lod_bias
-            )));
-        }
+        validate_lod_bias(a.lod_bias)?;
         if !(0.0..=1.0).contains(&self.fill_ratio) {
             return Err(CoreError::Invalid(format!(
                 "fill ratio {} not in 0..=1",
@@ -615,6 +621,22 @@ impl ClientCore {
     /// The LOD bias control (the bias in effect, when it was first raised).
     pub fn lod_bias(&self) -> &LodBiasControl {
         &self.bias
+    }
+
+    /// Makes `base` the configured LOD bias from the next cycle on (a viewer's quality keys):
+    /// the view's knowledge starts afresh under it, as for a new camera, and the memory control
+    /// starts again around it. Refused, changing nothing, when `base` is not finite and in
+    /// (0, 1e6].
+    pub fn set_lod_bias(&mut self, base: f64) -> Result<(), CoreError> {
+        validate_lod_bias(base)?;
+        if base == self.bias.base() {
+            return Ok(());
+        }
+        self.config.analysis.lod_bias = base;
+        self.bias.set_base(base);
+        self.coverage.reset(self.cycle);
+        self.forget_pins();
+        Ok(())
     }
 
     /// Cycles planned so far.

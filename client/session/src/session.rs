@@ -19,7 +19,7 @@ use arbor_proto::{Channel, SceneDescription, TreeletId};
 use arbor_client_core::backend::{Backend, render_resident};
 use arbor_client_core::camera::Camera;
 use arbor_client_core::coverage::SampleBudget;
-use arbor_client_core::cycle::{ClientCore, CoreConfig};
+use arbor_client_core::cycle::{ClientCore, CoreConfig, CoreError};
 use arbor_client_core::image::Image;
 use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::render::Light;
@@ -167,6 +167,13 @@ impl Session {
 
     pub fn core(&self) -> &ClientCore {
         &self.core
+    }
+
+    /// Makes `base` the configured LOD bias from the next step on
+    /// ([`ClientCore::set_lod_bias`]): above 1 a coarser picture that needs fewer treelets,
+    /// below 1 a finer one. Refused, changing nothing, when not finite and in (0, 1e6].
+    pub fn set_lod_bias(&mut self, base: f64) -> Result<(), CoreError> {
+        self.core.set_lod_bias(base)
     }
 
     pub fn client_stats(&self) -> ClientStats {

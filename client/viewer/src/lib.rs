@@ -20,6 +20,9 @@
 //!   slowly than the twins: on the 2-core build machine a 256×192 frame took 41–99 ms with the
 //!   CPU twins and 84–133 ms on lavapipe in the runs of `tests/tests/viewer_xvfb.rs`).
 //!
+//! `-` and `=` make the picture coarser or finer by half an octree level ([`next_lod_bias`],
+//! through [`Session::set_lod_bias`](arbor_client_session::Session::set_lod_bias)).
+//!
 //! While the camera moves, frames are drawn smaller so each stays within a frame budget
 //! ([`frame_scale`]), and full size again once it rests; only a full-size frame counts as
 //! converged.
@@ -122,6 +125,27 @@ impl From<winit::error::EventLoopError> for ViewerError {
     }
 }
 
+/// Smallest LOD bias the quality keys reach: detail down to a quarter pixel.
+pub const MIN_KEY_LOD_BIAS: f64 = 0.25;
+/// Largest LOD bias the quality keys reach: voxels up to 64 pixels.
+pub const MAX_KEY_LOD_BIAS: f64 = 64.0;
+
+/// The LOD bias after a quality key (`-` coarser, `=` finer): half an octree level (a factor
+/// √2) from the nearest half level to `current`, within [`MIN_KEY_LOD_BIAS`] and
+/// [`MAX_KEY_LOD_BIAS`]. Snapping to half levels keeps a run of presses from drifting, so `-`
+/// then `=` returns to the bias it started from.
+pub fn next_lod_bias(current: f64, coarser: bool) -> f64 {
+    let half_levels = |b: f64| (2.0 * b.log2()).round();
+    let (lo, hi) = (half_levels(MIN_KEY_LOD_BIAS), half_levels(MAX_KEY_LOD_BIAS));
+    let k = if current.is_finite() && current > 0.0 {
+        half_levels(current).clamp(lo, hi)
+    } else {
+        0.0
+    };
+    let next = if coarser { k + 1.0 } else { k - 1.0 };
+    2f64.powf(next.clamp(lo, hi) / 2.0)
+}
+
 /// The chart path that goes with a report path: `run.csv` → `run-chart.png`.
 pub fn chart_path(report: &std::path::Path) -> PathBuf {
     let stem = report
@@ -133,6 +157,30 @@ pub fn chart_path(report: &std::path::Path) -> PathBuf {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn quality_keys_move_by_half_levels_within_bounds() {
+        let b = next_lod_bias(1.0, true);
+        assert!((b - 2f64.sqrt()).abs() < 1e-12);
+        assert_eq!(next_lod_bias(b, false), 1.0, "- then = is where it started");
+        assert_eq!(next_lod_bias(next_lod_bias(1.0, true), true), 2.0);
+        // A bias from the command line between half levels snaps to the nearest first.
+        assert_eq!(next_lod_bias(1.1, true), 2f64.sqrt());
+        let mut b = 1.0;
+        for _ in 0..40 {
+            b = next_lod_bias(b, true);
+        }
+        assert_eq!(b, MAX_KEY_LOD_BIAS);
+        for _ in 0..40 {
+            b = next_lod_bias(b, false);
+        }
+        assert_eq!(b, MIN_KEY_LOD_BIAS);
+        // Beyond the bounds (from the command line) the keys come back within them; absurd
+        // values start from 1.
+        assert_eq!(next_lod_bias(1000.0, true), MAX_KEY_LOD_BIAS);
+        assert_eq!(next_lod_bias(1000.0, false), 2f64.powf(11.0 / 2.0));
+        assert_eq!(next_lod_bias(f64::NAN, true), 2f64.sqrt());
+    }
 
     #[test]
     fn chart_goes_beside_the_report() {

@@ -184,8 +184,8 @@ impl OverlayStats {
             ),
             format!("upload {:.2}  render {:.2} ms", r.upload_ms, r.render_ms),
             format!(
-                "slots {}/{}  requests {}",
-                r.slots_used, r.slots_total, r.requests_sent
+                "slots {}/{}  requests {}  LOD bias {:.2} (-/=)",
+                r.slots_used, r.slots_total, r.requests_sent, r.lod_bias
             ),
             format!(
                 "{:.2} MB/s  {} treelets received",
@@ -294,6 +294,7 @@ mod tests {
                 slots_used: 120,
                 slots_total: 512,
                 requests_sent: 17,
+                lod_bias: 1.41,
                 error: ErrorSummary {
                     mean: 0.125,
                     max: 3.0,
@@ -320,6 +321,7 @@ mod tests {
             "render 9.75",
             "slots 120/512",
             "requests 17",
+            "LOD bias 1.41",
             "2.50 MB/s",
             "99 treelets",
             "max 3.00",

@@ -25,7 +25,10 @@ use super::blit::{Blit, FrameTexture, choose_surface_format, read_back};
 use super::controls::{Button, Controls, Move};
 use super::frame_scale::FrameScale;
 use super::overlay::{Overlay, OverlayStats};
-use super::{BackendChoice, Outcome, SCRIPTED_ZOOM_LINES, ViewerConfig, ViewerError, chart_path};
+use super::{
+    BackendChoice, Outcome, SCRIPTED_ZOOM_LINES, ViewerConfig, ViewerError, chart_path,
+    next_lod_bias,
+};
 
 /// How often the overlay text is refreshed (its figures are averages over this interval).
 const OVERLAY_INTERVAL: Duration = Duration::from_millis(250);
@@ -489,6 +492,14 @@ impl App {
                     state.screenshots
                 ));
                 state.screenshot(&path)
+            }
+            KeyCode::Minus | KeyCode::NumpadSubtract | KeyCode::Equal | KeyCode::NumpadAdd => {
+                let coarser = matches!(code, KeyCode::Minus | KeyCode::NumpadSubtract);
+                let base = state.session.core().lod_bias().base();
+                state
+                    .session
+                    .set_lod_bias(next_lod_bias(base, coarser))
+                    .map_err(|e| ViewerError::Session(RunError::from(e)))
             }
             KeyCode::KeyR => {
                 let path = self
