@@ -66,7 +66,8 @@ const VIEW_HELP: &str = "Controls:\n  \
     orbit mode (start): left-drag turns about the scene centre, wheel zooms\n  \
     fly mode: W/S forward/back, A/D left/right, E/Q up/down, right-drag looks\n  \
     Tab switches mode, H toggles the overlay, F12 or P saves a screenshot, R writes the report,\n  \
-    - and = make the picture coarser or finer by half an octree level (the LOD bias), Esc quits\n\n\
+    - and = make the picture coarser or finer by half an octree level (the LOD bias),\n  \
+    C prints the camera as --camera-path look:… (for view, render and reference), Esc quits\n\n\
 While the camera moves, frames are rendered smaller to stay within --moving-frame-ms (the\n\
 overlay says at what size); they are full size again a quarter second after it stops.\n\n\
 Examples:\n  \
@@ -110,7 +111,8 @@ struct Connection {
 
 #[derive(Args, Debug)]
 struct View {
-    /// static, orbit:DEG_PER_CYCLE, fly-in:CYCLES or jump:EVERY.
+    /// static, orbit:DEG_PER_CYCLE, fly-in:CYCLES, jump:EVERY, or look:EX,EY,EZ:TX,TY,TZ (a
+    /// fixed camera, points in scene edges from the centre; the viewer's C key prints one).
     #[arg(long, default_value = "static")]
     camera_path: String,
     /// Seed of the camera path's viewpoint.
@@ -231,6 +233,10 @@ struct ViewArgs {
     /// Window size WxH (frames follow the window).
     #[arg(long, default_value = "1024x768")]
     size: String,
+    /// Where the camera starts: static (seeded by --seed) or look:EX,EY,EZ:TX,TY,TZ, a
+    /// bookmark the C key prints (points in scene edges from the centre).
+    #[arg(long, default_value = "static")]
+    camera_path: String,
     /// Scales the pixel footprint of the LOD test (>1 coarser).
     #[arg(long, default_value_t = 1.0)]
     lod_bias: f64,
@@ -427,6 +433,10 @@ fn view(mut a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         .with_context(|| format!("backend {:?} (auto, gpu or cpu)", a.backend))?;
     let feedback = FeedbackMode::parse(&a.feedback)
         .with_context(|| format!("feedback {:?} (auto, wait or pipelined)", a.feedback))?;
+    let start = match CameraPath::parse(&a.camera_path)? {
+        p @ (CameraPath::Static | CameraPath::Look { .. }) => p,
+        other => bail!("the viewer starts from static or look:…, not {other}: it moves by hand"),
+    };
     let config = ViewerConfig {
         session: SessionConfig {
             client: client_config(&a.connection)?,
@@ -441,15 +451,10 @@ fn view(mut a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
                 ..CoreConfig::default()
             },
             connect_timeout: timeout(a.connection.connect_timeout)?,
-            first_camera: Some(CameraPath::Static.camera(
-                0,
-                &SceneFrame::UNIT,
-                a.seed,
-                width,
-                height,
-            )),
+            first_camera: Some(start.camera(0, &SceneFrame::UNIT, a.seed, width, height)),
         },
         seed: a.seed,
+        start,
         width,
         height,
         backend,

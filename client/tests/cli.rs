@@ -177,6 +177,9 @@ fn view_takes_the_url_as_an_argument_or_with_server() {
         ("--min-moving-scale=0", "smallest frame scale"),
         ("--min-moving-scale=1.5", "smallest frame scale"),
         ("--min-moving-scale=NaN", "smallest frame scale"),
+        ("--camera-path=orbit:2", "moves by hand"),
+        ("--camera-path=look:1,2,3:1,2,3", "the eye is the target"),
+        ("--camera-path=look:1,2,3", "two points"),
     ] {
         let (code, stderr) = run(&[
             "view",

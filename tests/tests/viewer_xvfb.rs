@@ -31,11 +31,12 @@
 //! * **Overlay.** The second run, in the same X server, keeps the statistics overlay on: outside
 //!   its panel the window is still the reference within the same tolerance; inside, the panel
 //!   darkens the frame and carries text.
-//! * **Moving frames.** A third run, on the GPU renderer (its target remade at each size), zooms
-//!   in during its first frames (the hidden `--script-zoom-frames`) with a 1 ms moving-frame
-//!   budget: the viewer must say it drew the moving frames at a quarter of each side, then full
-//!   size again once the camera rested, and converge to the reference of the camera where the
-//!   zoom ended, within the same tolerance.
+//! * **Moving frames.** A third run, on the GPU renderer (its target remade at each size),
+//!   starts from a `--camera-path look:…` bookmark of the first runs' camera and zooms in during
+//!   its first frames (the hidden `--script-zoom-frames`) with a 1 ms moving-frame budget: the
+//!   viewer must say it drew the moving frames at a quarter of each side, then full size again
+//!   once the camera rested, and converge to the reference of the camera where the zoom ended,
+//!   within the same tolerance.
 //! * **Timeout.** A last run with `--timeout-s 1` cannot converge in time and must exit 1 with
 //!   a message saying so.
 
@@ -491,7 +492,9 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
 
     // A moving camera gets smaller frames; at rest the window is the full-size reference of
     // where the camera stopped.
-    let mut controls = Controls::new(&frame, SEED);
+    // It starts from a bookmark (what the C key prints) of the first runs' camera.
+    let bookmark = CameraPath::look_of(&camera, &frame);
+    let mut controls = Controls::starting_at(&frame, &bookmark, SEED);
     for _ in 0..ZOOM_FRAMES {
         controls.wheel(arbor_client_viewer::SCRIPTED_ZOOM_LINES);
     }
@@ -511,6 +514,8 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
             "1",
             "--script-zoom-frames",
             &ZOOM_FRAMES.to_string(),
+            "--camera-path",
+            &bookmark.to_string(),
         ]
         .map(OsString::from),
     );

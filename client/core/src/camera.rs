@@ -230,12 +230,22 @@ pub enum CameraPath {
         /// Cycles between jumps.
         every: u32,
     },
+    /// A fixed camera at `eye` looking at `target`, both in scene edges from the scene
+    /// centre (so the same text means the same view of a scene wherever its coordinates lie);
+    /// what the viewer's `C` key prints.
+    Look {
+        /// Eye position, edges from the centre.
+        eye: [f64; 3],
+        /// A point the camera looks at, edges from the centre; not `eye`.
+        target: [f64; 3],
+    },
 }
 
 /// A camera path the command line could not read.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 #[error(
-    "camera path {input:?}: {reason} (expected static, orbit:DEG, fly-in:CYCLES or jump:EVERY)"
+    "camera path {input:?}: {reason} (expected static, orbit:DEG, fly-in:CYCLES, jump:EVERY or \
+     look:EX,EY,EZ:TX,TY,TZ)"
 )]
 pub struct ParsePathError {
     /// The text as given.
@@ -245,7 +255,9 @@ pub struct ParsePathError {
 }
 
 impl CameraPath {
-    /// Reads `static`, `orbit:DEG`, `fly-in:CYCLES` or `jump:EVERY` (`CYCLES`, `EVERY` ≥ 1).
+    /// Reads `static`, `orbit:DEG`, `fly-in:CYCLES`, `jump:EVERY` (`CYCLES`, `EVERY` ≥ 1) or
+    /// `look:EX,EY,EZ:TX,TY,TZ` (finite, in scene edges from the centre, the eye not the
+    /// target).
     pub fn parse(s: &str) -> Result<CameraPath, ParsePathError> {
         let err = |reason: &str| ParsePathError {
             input: s.to_owned(),
@@ -273,8 +285,25 @@ impl CameraPath {
             ("jump", Some(v)) => Ok(CameraPath::Jump {
                 every: count(v, "jump interval")?,
             }),
+            ("look", Some(v)) => {
+                let triple = |t: &str| -> Option<[f64; 3]> {
+                    let mut it = t.split(',').map(|c| c.trim().parse::<f64>().ok());
+                    let xyz = [it.next()??, it.next()??, it.next()??];
+                    (it.next().is_none() && xyz.iter().all(|c| c.is_finite())).then_some(xyz)
+                };
+                let parsed = v
+                    .split_once(':')
+                    .and_then(|(e, t)| Some((triple(e)?, triple(t)?)));
+                let Some((eye, target)) = parsed else {
+                    return Err(err("look takes two points of three finite numbers"));
+                };
+                if eye == target {
+                    return Err(err("the eye is the target"));
+                }
+                Ok(CameraPath::Look { eye, target })
+            }
             ("static", Some(_)) => Err(err("static takes no value")),
-            ("orbit" | "fly-in" | "jump", None) => Err(err("missing value after ':'")),
+            ("orbit" | "fly-in" | "jump" | "look", None) => Err(err("missing value after ':'")),
             _ => Err(err("unknown path kind")),
         }
     }
@@ -309,6 +338,10 @@ impl CameraPath {
         let azimuth = rng.next_f64() * TAU;
         let elevation = (rng.next_f64() * 2.0 - 1.0) * MAX_ELEVATION;
         let (dir, distance) = match *self {
+            CameraPath::Look { eye, target } => {
+                let at = |p: [f64; 3]| centre + DVec3::from_array(p) * edge;
+                return looking(at(eye), at(target), width, height);
+            }
             CameraPath::Static => (spherical(azimuth, elevation), distance_factor * edge),
             CameraPath::Orbit { degrees_per_cycle } => {
                 // Reduce the angle in degrees first so long runs keep full precision.
@@ -336,16 +369,32 @@ impl CameraPath {
                 (DVec3::new(r * phi.cos(), r * phi.sin(), z), 1.5 * edge)
             }
         };
-        let position = centre + dir * distance;
-        let forward = (centre - position).try_normalize().unwrap_or(-DVec3::Y);
-        Camera {
-            position,
-            forward,
-            up: orthonormal_up(forward, WORLD_UP),
-            fov_y: DEFAULT_FOV_Y,
-            width: width.clamp(1, MAX_FRAME_SIDE),
-            height: height.clamp(1, MAX_FRAME_SIDE),
+        looking(centre + dir * distance, centre, width, height)
+    }
+
+    /// The [`CameraPath::Look`] path of a camera, in the edges of `frame` (the inverse of
+    /// [`CameraPath::camera`] for it, up to rounding): the target is one edge ahead.
+    pub fn look_of(camera: &Camera, frame: &SceneFrame) -> CameraPath {
+        let centre = DVec3::from_array(frame.centre());
+        let eye = (camera.position - centre) / frame.edge;
+        CameraPath::Look {
+            eye: eye.to_array(),
+            target: (eye + camera.forward).to_array(),
         }
+    }
+}
+
+/// A path's camera at `position` looking at `target` (straight down -Y when they coincide or
+/// are not finite), up towards [`WORLD_UP`], `width` and `height` clamped.
+fn looking(position: DVec3, target: DVec3, width: u32, height: u32) -> Camera {
+    let forward = (target - position).try_normalize().unwrap_or(-DVec3::Y);
+    Camera {
+        position,
+        forward,
+        up: orthonormal_up(forward, WORLD_UP),
+        fov_y: DEFAULT_FOV_Y,
+        width: width.clamp(1, MAX_FRAME_SIDE),
+        height: height.clamp(1, MAX_FRAME_SIDE),
     }
 }
 
@@ -364,6 +413,12 @@ impl fmt::Display for CameraPath {
             CameraPath::Orbit { degrees_per_cycle } => write!(f, "orbit:{degrees_per_cycle}"),
             CameraPath::FlyIn { cycles } => write!(f, "fly-in:{cycles}"),
             CameraPath::Jump { every } => write!(f, "jump:{every}"),
+            // Debug's digits: the shortest that read back exactly, with an exponent where long.
+            CameraPath::Look { eye, target } => write!(
+                f,
+                "look:{:?},{:?},{:?}:{:?},{:?},{:?}",
+                eye[0], eye[1], eye[2], target[0], target[1], target[2]
+            ),
         }
     }
 }
@@ -461,7 +516,15 @@ mod tests {
 
     #[test]
     fn parse_round_trips_and_rejects() {
-        for s in ["static", "orbit:2.5", "orbit:-1", "fly-in:30", "jump:4"] {
+        for s in [
+            "static",
+            "orbit:2.5",
+            "orbit:-1",
+            "fly-in:30",
+            "jump:4",
+            "look:1.6,0.0,0.25:0.0,0.0,0.0",
+            "look:-0.1,2e-7,0.3333333333333333:1e300,-4.0,5.0",
+        ] {
             let p = CameraPath::parse(s).unwrap();
             assert_eq!(p.to_string(), s);
             assert_eq!(s.parse::<CameraPath>().unwrap(), p);
@@ -479,9 +542,50 @@ mod tests {
             "static:1",
             "spin:3",
             "Static",
+            "look",
+            "look:1,2,3",
+            "look:1,2:3,4",
+            "look:1,2,3:4,5,6,7",
+            "look:1,2,3:4,5,NaN",
+            "look:1,2,inf:4,5,6",
+            "look:1,2,3:1,2,3",
+            "look:1,2,3:4,5,6:7,8,9",
         ] {
             let e = CameraPath::parse(s).unwrap_err();
             assert!(e.to_string().contains("expected static"), "{e}");
+        }
+    }
+
+    #[test]
+    fn a_look_path_is_its_points_in_edges_from_the_centre_and_inverts() {
+        let f = frame();
+        let centre = DVec3::from_array(f.centre());
+        // Whole numbers and spaces after commas are read too.
+        let path = CameraPath::parse("look:1.5, -0.5, 0.25:0.1,0,0").unwrap();
+        for cycle in [0, 7, 1000] {
+            let c = path.camera(cycle, &f, 99, 64, 48);
+            assert_eq!(c.position, centre + DVec3::new(1.5, -0.5, 0.25) * f.edge);
+            let to_target = centre + DVec3::new(0.1, 0.0, 0.0) * f.edge - c.position;
+            assert!((c.forward - to_target.normalize()).length() < 1e-15);
+            assert!(c.up.dot(c.forward).abs() < 1e-15 && c.up.z > 0.0);
+            assert_eq!((c.width, c.height), (64, 48));
+        }
+        // Any camera, printed as a look path and read back, is the same view up to rounding,
+        // in a scene far from the origin too.
+        let far = SceneFrame {
+            origin: [6.4e6, -2.1e6, 310.0],
+            edge: 1024.0,
+            max_depth: 20,
+        };
+        for seed in 0..20 {
+            for f in [frame(), far] {
+                let c = CameraPath::Jump { every: 1 }.camera(seed, &f, seed.into(), 32, 32);
+                let text = CameraPath::look_of(&c, &f).to_string();
+                let back = CameraPath::parse(&text).unwrap().camera(0, &f, 0, 32, 32);
+                let tolerance = 1e-12 * f.edge.max(c.position.abs().max_element());
+                assert!((back.position - c.position).length() <= tolerance, "{text}");
+                assert!((back.forward - c.forward).length() < 1e-12, "{text}");
+            }
         }
     }
 

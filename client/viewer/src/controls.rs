@@ -102,11 +102,17 @@ pub struct Controls {
 impl Controls {
     /// Controls starting at [`CameraPath::Static`]'s camera for `seed`, in orbit mode.
     pub fn new(frame: &SceneFrame, seed: u64) -> Self {
+        Self::starting_at(frame, &CameraPath::Static, seed)
+    }
+
+    /// Controls starting at `path`'s first camera for `seed`, in orbit mode (orbiting the
+    /// scene centre).
+    pub fn starting_at(frame: &SceneFrame, path: &CameraPath, seed: u64) -> Self {
         Self {
             mode: Mode::Orbit,
             centre: DVec3::from_array(frame.centre()),
             edge: frame.edge,
-            pose: CameraPath::Static.camera(0, frame, seed, 1, 1),
+            pose: path.camera(0, frame, seed, 1, 1),
             held: [false; 6],
             drag: None,
             cursor: None,

@@ -20,6 +20,9 @@
 //!   slowly than the twins: on the 2-core build machine a 256×192 frame took 41–99 ms with the
 //!   CPU twins and 84–133 ms on lavapipe in the runs of `tests/tests/viewer_xvfb.rs`).
 //!
+//! `C` prints the camera as a `--camera-path look:…` bookmark, which `view` (its start) and
+//! the headless commands take.
+//!
 //! `-` and `=` make the picture coarser or finer by half an octree level ([`next_lod_bias`],
 //! through [`Session::set_lod_bias`](arbor_client_session::Session::set_lod_bias)).
 //!
@@ -48,6 +51,7 @@ mod window;
 use std::path::PathBuf;
 use std::time::Duration;
 
+use arbor_client_core::camera::CameraPath;
 use arbor_client_gpu::{BackendChoice, FeedbackMode};
 use arbor_client_session::{RunError, SessionConfig};
 
@@ -61,6 +65,8 @@ pub struct ViewerConfig {
     pub session: SessionConfig,
     /// Seed of the start camera ([`CameraPath::Static`](arbor_client_core::camera::CameraPath::Static)).
     pub seed: u64,
+    /// Where the camera starts: `Static` (seeded) or a `Look` bookmark.
+    pub start: CameraPath,
     /// Window inner size, pixels; frames follow the window's size.
     pub width: u32,
     pub height: u32,

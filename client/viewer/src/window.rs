@@ -16,6 +16,7 @@ use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
 use arbor_client_core::backend::{Backend, BackendError, CpuBackend};
+use arbor_client_core::camera::CameraPath;
 use arbor_client_core::image::Image;
 use arbor_client_gpu::{GpuBackend, GpuContext};
 use arbor_client_report::{RunEvent, RunMeta, RunReport};
@@ -372,7 +373,7 @@ impl App {
             blit,
             source,
             session,
-            controls: Controls::new(&frame, self.config.seed),
+            controls: Controls::starting_at(&frame, &self.config.start, self.config.seed),
             overlay,
             show_overlay: self.config.overlay,
             report,
@@ -492,6 +493,15 @@ impl App {
                     state.screenshots
                 ));
                 state.screenshot(&path)
+            }
+            KeyCode::KeyC => {
+                let frame = state.session.core().frame();
+                let camera = state.controls.camera(1, 1);
+                println!(
+                    "camera: --camera-path {}",
+                    CameraPath::look_of(&camera, frame)
+                );
+                Ok(())
             }
             KeyCode::Minus | KeyCode::NumpadSubtract | KeyCode::Equal | KeyCode::NumpadAdd => {
                 let coarser = matches!(code, KeyCode::Minus | KeyCode::NumpadSubtract);
