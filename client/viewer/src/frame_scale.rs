@@ -13,11 +13,12 @@
 //! Plain data with time passed in, like the session's scheduler:
 //! [`FrameScale::handle_motion`] says the camera moved, [`FrameScale::handle_frame`] what a
 //! frame cost, and [`FrameScale::poll_size`] gives the next frame's size. The cost model is that
-//! a frame's time grows with its pixels: each frame's time divided by its pixel fraction (the
-//! square of the scale) estimates a full frame's, smoothed over frames; the moving scale is the
-//! largest whose estimate fits the budget, in steps of [`SCALE_STEP`] so the renderer's targets
-//! are not remade every frame. It falls at once when frames are over the budget and rises one
-//! step at a time when they are well under it.
+//! a frame's time grows with its pixels: each moving frame's time divided by its pixel fraction
+//! (the square of the scale) estimates a full frame's, smoothed over frames; the moving scale is
+//! the largest whose estimate fits the budget, in steps of [`SCALE_STEP`] so the renderer's
+//! targets are not remade every frame. It falls at once when frames are over the budget and
+//! rises one step at a time when they are well under it. Resting frames teach nothing: an
+//! unchanged view is often not redrawn at all.
 
 use std::time::Duration;
 
@@ -130,12 +131,17 @@ impl FrameScale {
         }
     }
 
-    /// One finished frame, drawn at `scale`, whose step took `seconds`. Non-finite or
-    /// non-positive figures are ignored.
-    pub fn handle_frame(&mut self, scale: f64, seconds: f64) {
+    /// One finished frame, drawn at `now` at `scale`, whose step took `seconds`. Only moving
+    /// frames teach the governor: a resting view's frames are often not drawn at all (the
+    /// renderer skips an unchanged one), so their times say nothing of a moving frame's.
+    /// Non-finite or non-positive figures are ignored.
+    pub fn handle_frame(&mut self, now: f64, scale: f64, seconds: f64) {
         let Some(budget) = self.config.budget.map(|b| b.as_secs_f64()) else {
             return;
         };
+        if !self.moving(now) {
+            return;
+        }
         if !(seconds.is_finite() && seconds > 0.0 && scale > 0.0 && scale <= 1.0) {
             return;
         }
@@ -189,7 +195,7 @@ mod tests {
                 g.handle_motion(now);
             }
             let scale = g.poll_scale(now);
-            g.handle_frame(scale, full_seconds * scale * scale);
+            g.handle_frame(now, scale, full_seconds * scale * scale);
         }
         now
     }
@@ -224,9 +230,9 @@ mod tests {
         assert!(!g.moving(rest));
         assert_eq!(g.poll_scale(rest), 1.0);
         assert_eq!(g.poll_size(rest, 1024, 768), (1024, 768));
-        // Full-size frames at rest cost the same per pixel: the moving scale is kept, and the
-        // next move starts at it at once.
-        let now = run(&mut g, rest, 20, false, 0.160);
+        // Frames at rest, however cheap (an unchanged view is not redrawn), teach nothing: the
+        // moving scale is kept, and the next move starts at it at once.
+        let now = run(&mut g, rest, 60, false, 0.001);
         g.handle_motion(now);
         assert_eq!(
             g.poll_scale(now),
@@ -286,13 +292,13 @@ mod tests {
         let mut g = governor(20, 0.25);
         g.handle_motion(0.0);
         for bad in [f64::NAN, f64::INFINITY, -1.0, 0.0] {
-            g.handle_frame(1.0, bad);
-            g.handle_frame(bad, 0.5);
+            g.handle_frame(0.0, 1.0, bad);
+            g.handle_frame(0.0, bad, 0.5);
         }
         assert_eq!(g.poll_scale(0.0), 1.0, "nothing learned from absurd inputs");
         let mut g = governor(20, 0.25);
-        g.handle_frame(1.0, 10.0);
         g.handle_motion(f64::NAN);
+        g.handle_frame(0.0, 1.0, 10.0);
         assert_eq!(g.poll_size(0.0, 7, 3), (7, 3), "a NaN time is no motion");
         // A tiny window never gets a zero side.
         let mut g = governor(1, 0.25);

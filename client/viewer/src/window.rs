@@ -628,7 +628,7 @@ impl Running {
             texture.upload(&self.gpu.queue, image);
         }
         self.frame_scale
-            .handle_frame(scale, step_started.elapsed().as_secs_f64());
+            .handle_frame(clock, scale, step_started.elapsed().as_secs_f64());
         if self.converged_at.is_none() && step.converged && self.scaled_frame.is_none() {
             self.converged_at = Some(step.record.cycle);
         }
