@@ -63,7 +63,7 @@ pub use window::run;
 #[derive(Clone, Debug)]
 pub struct ViewerConfig {
     pub session: SessionConfig,
-    /// Seed of the start camera ([`CameraPath::Static`](arbor_client_core::camera::CameraPath::Static)).
+    /// Seed of the start camera ([`CameraPath::Static`]).
     pub seed: u64,
     /// Where the camera starts: `Static` (seeded) or a `Look` bookmark.
     pub start: CameraPath,
