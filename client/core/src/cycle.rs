@@ -624,8 +624,8 @@ impl ClientCore {
     }
 
     /// Makes `base` the configured LOD bias from the next cycle on (a viewer's quality keys):
-    /// the view's knowledge starts afresh under it, as for a new camera, and the memory control
-    /// starts again around it. Refused, changing nothing, when `base` is not finite and in
+    /// the view's knowledge and hints start afresh under it, as when the memory control moves
+    /// the bias, and that control starts again around it. Refused, changing nothing, when `base` is not finite and in
     /// (0, 1e6].
     pub fn set_lod_bias(&mut self, base: f64) -> Result<(), CoreError> {
         validate_lod_bias(base)?;
@@ -634,7 +634,10 @@ impl ClientCore {
         }
         self.config.analysis.lod_bias = base;
         self.bias.set_base(base);
-        self.coverage.reset(self.cycle);
+        // A new target, as when the memory control moves the bias: passes judged against the
+        // old one are neither knowledge nor hints, and the control is no longer raising.
+        self.coverage.reset_target(self.cycle);
+        self.bias_unsettled = false;
         self.forget_pins();
         Ok(())
     }
