@@ -59,6 +59,13 @@
 //! separated by `|`) runs only the matching cases; `ARBOR_REFINE_SMALL=0` skips the 256² case
 //! and `ARBOR_REFINE_OVERSUB=0` the oversubscribed one.
 //!
+//! Every session and floor measurement is a first contact: the server forgets what it
+//! remembered of the client's path (`arbor_server::service::path_memory`) before each, so its
+//! connection slow-starts from the initial window, as the physical limit's handshake assumes.
+//! `ARBOR_REFINE_RETURNING=1` measures returning clients instead: the server keeps its memory,
+//! and each case of the main table runs once more first, unmeasured, so every measured run and
+//! its floor follow a session on the same path and resume its congestion window.
+//!
 //! `ARBOR_REFINE_OUT=DIR` writes the CSVs and the chart there instead of `target/refine/`.
 //!
 //! `ARBOR_REFINE_BACKEND=gpu` runs the client sessions on the GPU instead of the CPU twins (one
@@ -214,6 +221,18 @@ struct Outcome {
 
 /// How long the first view rests after converging before the jump (`ARBOR_REFINE_REST_MS`,
 /// default 0: the jump comes right at convergence).
+/// Whether the bench measures returning clients (`ARBOR_REFINE_RETURNING=1`, module docs).
+fn returning() -> bool {
+    std::env::var("ARBOR_REFINE_RETURNING").is_ok_and(|v| v == "1")
+}
+
+/// Makes the next connection a first contact unless returning clients are measured.
+fn first_contact_unless_returning(served: &Served) {
+    if !returning() {
+        served.server.state.paths().clear();
+    }
+}
+
 fn rest_before_jump() -> Duration {
     Duration::from_millis(
         std::env::var("ARBOR_REFINE_REST_MS")
@@ -332,6 +351,9 @@ fn main() {
                         .is_none_or(|f| f.split('|').any(|f| label.contains(f)))
                     {
                         continue;
+                    }
+                    if returning() {
+                        run_case(&runtime, &served, &full, v, jump, transport, SIZE);
                     }
                     let mut runs: Vec<(Outcome, RunReport)> = (0..repeats)
                         .map(|_| run_case(&runtime, &served, &full, v, jump, transport, SIZE))
@@ -511,6 +533,7 @@ async fn floor_once(
     first: &HashSet<TreeletId>,
     jump: Option<&HashSet<TreeletId>>,
 ) -> f64 {
+    first_contact_unless_returning(served);
     let link = LinkEmulator::start(served.server.quic_addr, LinkConfig::wan(DELAY, RATE))
         .await
         .unwrap();
@@ -735,6 +758,7 @@ fn connect(
     };
     let client = ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
         .with_token(TOKEN);
+    first_contact_unless_returning(served);
     Session::connect(
         SessionConfig {
             client,

@@ -107,6 +107,12 @@ pub async fn serve_with(
     if let Some(grid) = env("ARBOR_VISIBILITY_FINE_GRID") {
         cfg.visibility_fine_grid = grid;
     }
+    if let Some(window) = std::env::var("ARBOR_INITIAL_WINDOW")
+        .ok()
+        .and_then(|w| w.parse().ok())
+    {
+        cfg.initial_window = window;
+    }
     let server = start_with(cfg, options).await.unwrap();
     Served {
         server,

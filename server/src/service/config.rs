@@ -16,6 +16,7 @@
 //! hello_timeout_ms = 5000
 //! max_connection_memory = 67108864
 //! initial_window = 131072             # QUIC congestion window at the start, bytes
+//! path_memory_secs = 600              # a returning client's address resumes its last window for this long; 0: off
 //! message_cache_bytes = 67108864      # built treelet messages kept for sending again, server-wide
 //! shape_cache_bytes = 33554432        # decoded treelet shapes the push plans walk, server-wide
 //! visibility_grid = 0                 # rays along a resting view's longer side for the visible cut its pushes follow; 0: off
@@ -177,6 +178,10 @@ pub struct ServeConfig {
     /// packets) needs eight slow-start round trips to carry a 3 MB view; a larger start is how
     /// content servers fill a fresh connection sooner.
     pub initial_window: u64,
+    /// How long a client address's last congestion window and RTT are remembered, seconds, so
+    /// its next connection resumes at half that window once its first RTT confirms the same
+    /// path (`service::path_memory`, careful resume); 0 turns it off.
+    pub path_memory_secs: u64,
     /// Bytes of built treelet messages kept server-wide, so a treelet sent again costs no pool
     /// read and no decompression (0: none kept).
     pub message_cache_bytes: u64,
@@ -261,6 +266,10 @@ pub const DEFAULT_VISIBILITY_CACHE_BYTES: u64 = 32 << 20;
 /// Smallest accepted [`ServeConfig::visibility_cache_bytes`]: room for the largest treelets'
 /// top levels.
 pub const MIN_VISIBILITY_CACHE_BYTES: u64 = 1 << 20;
+/// Default [`ServeConfig::path_memory_secs`]: ten minutes.
+pub const DEFAULT_PATH_MEMORY_SECS: u64 = 600;
+/// Largest accepted [`ServeConfig::path_memory_secs`]: a day (paths change).
+pub const MAX_PATH_MEMORY_SECS: u64 = 86_400;
 /// Smallest accepted initial window (two full-size packets).
 pub const MIN_INITIAL_WINDOW: u64 = 2400;
 /// Largest accepted initial window.
@@ -296,6 +305,7 @@ struct FileConfig {
     hello_timeout_ms: Option<u64>,
     max_connection_memory: Option<u64>,
     initial_window: Option<u64>,
+    path_memory_secs: Option<u64>,
     message_cache_bytes: Option<u64>,
     shape_cache_bytes: Option<u64>,
     visibility_grid: Option<u32>,
@@ -415,6 +425,7 @@ impl ServeConfig {
             hello_timeout_ms: 5_000,
             max_connection_memory: 64 << 20,
             initial_window: DEFAULT_INITIAL_WINDOW,
+            path_memory_secs: DEFAULT_PATH_MEMORY_SECS,
             message_cache_bytes: DEFAULT_MESSAGE_CACHE_BYTES,
             shape_cache_bytes: DEFAULT_SHAPE_CACHE_BYTES,
             visibility_grid: 0,
@@ -514,6 +525,7 @@ impl ServeConfig {
             hello_timeout_ms,
             max_connection_memory,
             initial_window,
+            path_memory_secs,
             message_cache_bytes,
             shape_cache_bytes,
             visibility_grid,
@@ -581,6 +593,12 @@ impl ServeConfig {
             return Err(invalid(
                 "initial_window",
                 format!("{MIN_INITIAL_WINDOW}..={MAX_INITIAL_WINDOW} bytes"),
+            ));
+        }
+        if self.path_memory_secs > MAX_PATH_MEMORY_SECS {
+            return Err(invalid(
+                "path_memory_secs",
+                format!("at most {MAX_PATH_MEMORY_SECS} seconds (0 turns it off)"),
             ));
         }
         if self.visibility_grid > MAX_VISIBILITY_GRID {
@@ -687,6 +705,11 @@ impl ServeConfig {
 
     pub fn idle_timeout(&self) -> Duration {
         Duration::from_millis(self.idle_timeout_ms)
+    }
+
+    /// How long path records are used ([`ServeConfig::path_memory_secs`]; zero: off).
+    pub fn path_memory(&self) -> Duration {
+        Duration::from_secs(self.path_memory_secs)
     }
 
     pub fn hello_timeout(&self) -> Duration {
@@ -970,6 +993,8 @@ access = "public"
             ("visibility_follow_share = nan", "visibility_follow_share"),
             ("visibility_follow_share = -0.5", "visibility_follow_share"),
             ("initial_window = 1000000000", "initial_window"),
+            ("path_memory_secs = 100000", "path_memory_secs"),
+            ("path_memory_secs = -1", "path_memory_secs"),
             ("window_min = 10\nwindow_max = 9", "window_min"),
             ("window_max = 1000000", "window_max"),
             ("max_connection_memory = 1000", "max_connection_memory"),

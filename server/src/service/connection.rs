@@ -143,7 +143,11 @@ pub(crate) async fn run(
     let span = tracing::info_span!("conn", id = id.0, %peer, scene = tracing::field::Empty);
     async move {
         let deadline = tokio::time::Instant::now() + shared.config.hello_timeout();
-        let connecting = match incoming.accept() {
+        let accepted = match shared.server_config_for(peer.ip()) {
+            Some(resumed) => incoming.accept_with(resumed),
+            None => incoming.accept(),
+        };
+        let connecting = match accepted {
             Ok(c) => c,
             Err(e) => {
                 tracing::debug!("accept failed: {e}");
@@ -169,6 +173,7 @@ pub(crate) async fn run(
 
         let mut control = None;
         let end = handler::serve(&shared, id, &conn, shutdown, deadline, &mut control).await;
+        shared.handle_close(peer.ip(), &conn);
 
         // Unregister before closing so no treelet is offered to a dying connection.
         {

@@ -25,10 +25,14 @@
 //!   own tree with the client's traversal (off unless `visibility_grid` is set), followed where
 //!   it saves enough against the frustum plan ([`push::cut_saves`]); [`shapes`]: the treelet
 //!   shapes those plans walk, decoded once and kept server-wide within `shape_cache_bytes`.
+//! * [`path_memory`]: each client address's last congestion window and RTT, so a returning
+//!   client's connection resumes near the rate its path carried instead of slow-starting
+//!   (careful resume; `path_memory_secs`).
 mod batches;
 pub mod config;
 pub mod connection;
 mod handler;
+pub mod path_memory;
 pub mod push;
 pub mod reset;
 pub mod schedule;

@@ -144,7 +144,12 @@ impl RunningService {
     }
 }
 
-fn transport_config(config: &ServeConfig) -> quinn::TransportConfig {
+/// The QUIC transport of every connection; `congestion` builds its congestion controller
+/// (Cubic from `initial_window`, or a resumed path's, see [`super::path_memory`]).
+pub(crate) fn transport_config(
+    config: &ServeConfig,
+    congestion: Arc<dyn quinn::congestion::ControllerFactory + Send + Sync>,
+) -> quinn::TransportConfig {
     let plan = config.memory_plan();
     let varint = |v: u64| quinn::VarInt::from_u64(v).unwrap_or(quinn::VarInt::MAX);
     let mut t = quinn::TransportConfig::default();
@@ -162,10 +167,15 @@ fn transport_config(config: &ServeConfig) -> quinn::TransportConfig {
     let mut acks = quinn::AckFrequencyConfig::default();
     acks.max_ack_delay(Some(ACK_DELAY));
     t.ack_frequency_config(Some(acks));
+    t.congestion_controller_factory(congestion);
+    t
+}
+
+/// Cubic starting at `initial_window`.
+pub(crate) fn cubic_config(config: &ServeConfig) -> quinn::congestion::CubicConfig {
     let mut cubic = quinn::congestion::CubicConfig::default();
     cubic.initial_window(config.initial_window);
-    t.congestion_controller_factory(std::sync::Arc::new(cubic));
-    t
+    cubic
 }
 
 /// Longest delay the server asks clients to hold an ACK back (see `transport_config`).
@@ -224,13 +234,19 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
         }
     }
     let identity = tls::load_or_create(&config.tls, config.data_dir())?;
-    let server_config = tls::quic_server_config(&identity, transport_config(&config))?;
+    let transport = transport_config(&config, Arc::new(cubic_config(&config)));
+    let server_config = tls::quic_server_config(&identity, transport)?;
     let endpoint_config = super::reset::endpoint_config(&identity);
     let endpoint = std::net::UdpSocket::bind(config.listen)
         .and_then(|socket| {
             let runtime = quinn::default_runtime()
                 .ok_or_else(|| std::io::Error::other("no async runtime"))?;
-            quinn::Endpoint::new(endpoint_config, Some(server_config), socket, runtime)
+            quinn::Endpoint::new(
+                endpoint_config,
+                Some(server_config.clone()),
+                socket,
+                runtime,
+            )
         })
         .map_err(|source| ServeError::Bind {
             what: "QUIC",
@@ -250,7 +266,9 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
 
     let state = Arc::new(ServiceState::new(identity.fingerprint.clone()));
     let (trigger, shutdown) = shutdown::channel(config.shutdown_grace());
-    let shared = Arc::new(Shared::new(config, pool.clone(), state.clone()));
+    let shared = Arc::new(
+        Shared::new(config, pool.clone(), state.clone()).with_server_config(server_config),
+    );
 
     let dispatcher = tokio::spawn(dispatch(shared.clone(), shutdown.clone()));
     state.set_ready(true);

@@ -2,16 +2,19 @@
 //! with the routes to every connection's task under one lock.
 
 use std::collections::HashMap;
+use std::net::IpAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, Weak};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use arbor_proto::TreeletId;
 use rustc_hash::FxHashMap;
 use tokio::sync::{Notify, mpsc};
 
 use super::config::ServeConfig;
+use super::path_memory::ResumeFactory;
 use super::schedule::{ConnectionId, Scheduler, SchedulerConfig};
+use super::server::{cubic_config, transport_config};
 use super::state::{ServiceCaches, ServiceState};
 use super::treelets::ServedScene;
 use crate::pool::{Pool, StoredScene};
@@ -47,6 +50,10 @@ pub(crate) struct Shared {
     /// (`message_cache_bytes`, `shape_cache_bytes`); the same ones `/metrics` reports.
     caches: ServiceCaches,
     next_id: AtomicU64,
+    /// What every connection is accepted with; a connection resuming a remembered path gets a
+    /// copy with its own congestion controller. `None` (tests of the shared state alone): no
+    /// resumption.
+    server_config: Option<quinn::ServerConfig>,
 }
 
 impl Shared {
@@ -56,6 +63,7 @@ impl Shared {
         let max_in_flight = config.max_connections.saturating_mul(config.window_max);
         let caches = ServiceCaches::for_config(&config);
         state.set_caches(caches.clone());
+        state.paths().set_lifetime(config.path_memory());
         Self {
             pool,
             state,
@@ -68,7 +76,41 @@ impl Shared {
             caches,
             next_id: AtomicU64::new(1),
             config,
+            server_config: None,
         }
+    }
+
+    /// The shared state accepting connections with `server_config`.
+    pub(crate) fn with_server_config(mut self, server_config: quinn::ServerConfig) -> Self {
+        self.server_config = Some(server_config);
+        self
+    }
+
+    /// The server config for a new connection from `peer`: the common one, or, when its path
+    /// is remembered, a copy whose congestion controller may resume it
+    /// ([`super::path_memory`]).
+    pub(crate) fn server_config_for(&self, peer: IpAddr) -> Option<Arc<quinn::ServerConfig>> {
+        let base = self.server_config.as_ref()?;
+        let resume =
+            self.state
+                .paths()
+                .poll_resume(peer, Instant::now(), self.config.initial_window)?;
+        let factory = ResumeFactory {
+            cubic: Arc::new(cubic_config(&self.config)),
+            resume,
+            counters: self.state.metrics.path_resumes.clone(),
+        };
+        let mut resumed = base.clone();
+        resumed.transport_config(Arc::new(transport_config(&self.config, Arc::new(factory))));
+        Some(Arc::new(resumed))
+    }
+
+    /// A connection from `peer` ended; remembers its path's window and RTT.
+    pub(crate) fn handle_close(&self, peer: IpAddr, conn: &quinn::Connection) {
+        let window = conn.stats().path.cwnd;
+        self.state
+            .paths()
+            .handle_close(peer, Instant::now(), window, conn.rtt());
     }
 
     pub(crate) fn core(&self) -> MutexGuard<'_, Core> {

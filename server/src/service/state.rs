@@ -14,6 +14,7 @@ use arbor_proto::Channel;
 use arbor_proto::wire::ErrorCode;
 use serde::Serialize;
 
+use super::path_memory::{PathMemory, ResumeCounters};
 use super::shapes::ShapeCache;
 use super::treelets::MessageCache;
 use crate::prometheus::{Kind, PromText};
@@ -100,6 +101,8 @@ pub struct Metrics {
     pub visible_cuts: AtomicU64,
     /// Request-to-send latency: from the first list naming a treelet to its stream finishing.
     pub request_to_send: Histogram,
+    /// What connections resumed from a remembered path did (`service::path_memory`).
+    pub path_resumes: Arc<ResumeCounters>,
     errors: [AtomicU64; ErrorCode::ALL.len()],
 }
 
@@ -172,6 +175,9 @@ pub struct ServiceState {
     pub timeline: super::timeline::Timeline,
     /// The server-wide caches, reported in `/metrics`; set once by the service as it starts.
     caches: OnceLock<ServiceCaches>,
+    /// Congestion windows and RTTs of recent connections by client address; off (lifetime
+    /// zero) until the service sets `path_memory_secs`.
+    paths: Mutex<PathMemory>,
 }
 
 /// The caches every scene of a running service shares.
@@ -223,6 +229,12 @@ impl ServiceState {
     /// per state).
     pub fn set_caches(&self, caches: ServiceCaches) {
         let _ = self.caches.set(caches);
+    }
+
+    /// What the service remembers of its clients' paths (benchmarks clear it to measure first
+    /// contacts).
+    pub fn paths(&self) -> std::sync::MutexGuard<'_, PathMemory> {
+        self.paths.lock().unwrap_or_else(|p| p.into_inner())
     }
 
     pub fn add_session(&self, info: SessionInfo) {
@@ -310,7 +322,8 @@ impl ServiceState {
     pub fn write_prometheus(&self, p: &mut PromText) {
         let m = &self.metrics;
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
-        let counters: [(&str, &str, &AtomicU64); 9] = [
+        let resumes = &m.path_resumes;
+        let counters: [(&str, &str, &AtomicU64); 12] = [
             (
                 "arbor_connections_accepted_total",
                 "QUIC connections accepted.",
@@ -356,11 +369,32 @@ impl ServiceState {
                 "Visible cuts cast through the server's tree for resting views.",
                 &m.visible_cuts,
             ),
+            (
+                "arbor_path_resumes_total",
+                "Connections that resumed a remembered path's congestion window.",
+                &resumes.jumped,
+            ),
+            (
+                "arbor_path_resumes_refused_total",
+                "Connections from a remembered address whose RTT showed another path.",
+                &resumes.refused,
+            ),
+            (
+                "arbor_path_resume_retreats_total",
+                "Resumed windows given up at a loss before the path confirmed them.",
+                &resumes.retreated,
+            ),
         ];
         for (name, help, value) in counters {
             p.single(name, Kind::Counter, help, load(value));
         }
         self.write_cache_metrics(p);
+        p.single(
+            "arbor_paths_remembered",
+            Kind::Gauge,
+            "Client addresses whose last congestion window is remembered.",
+            self.paths().len() as u64,
+        );
         let sessions = self.sessions();
         let queued: u64 = sessions.iter().map(|s| s.queue_depth).sum();
         let in_flight: u64 = sessions.iter().map(|s| s.in_flight).sum();

@@ -1,0 +1,551 @@
+//! What the server remembers of each client's network path, so that a returning client's
+//! connection starts near the rate the last one reached instead of slow-starting again.
+//!
+//! A new QUIC connection starts with the configured initial window (`initial_window`, 128 KiB)
+//! and doubles it every round trip. On a 100 Mbit/s link with 50 ms round trips that takes four
+//! round trips to fill the pipe, a fifth of a typical first view's time (docs/measurements.md,
+//! stop 45). A viewer reconnects to the same server often: another scene, a restarted viewer, a
+//! replica. This module is the careful-resume scheme of the IETF (draft-ietf-tsvwg-careful-resume),
+//! done by the sender, keyed by the client's IP address:
+//!
+//! 1. When a connection ends, [`PathMemory::handle_close`] keeps its path's congestion window
+//!    and smoothed RTT for the client's address, for `path_memory_secs` (bounded in entries,
+//!    the oldest forgotten first).
+//! 2. A new connection from that address gets a [`ResumedCubic`] controller
+//!    ([`PathMemory::poll_resume`]). It starts like any other, with the initial window
+//!    (*reconnaissance*). Its first acknowledgement measures the path: if the RTT lies within
+//!    half to ten times the saved one, the path is taken for the same and the window jumps to
+//!    half the saved window (*unvalidated*); quinn's pacer spreads it over the round trip.
+//!    Otherwise the connection goes on as a new one.
+//! 3. The jump ends when Cubic's own window — which slow start grows by every acknowledged
+//!    byte, so it reaches the jump once the jump's bytes are acknowledged — catches up (the
+//!    path carried it), or at the first congestion event, when Cubic's window of what was
+//!    really acknowledged, reduced, takes over (*safe retreat*), or after [`UNVALIDATED_RTTS`]
+//!    round trips of a connection that had too little to send to validate it.
+//!
+//! [`ResumeState`] is that decision as plain data, tested without quinn; [`ResumedCubic`] is
+//! the thin [`Controller`] around Cubic that feeds it.
+
+use std::any::Any;
+use std::collections::HashMap;
+use std::net::IpAddr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use quinn::congestion::{Controller, ControllerFactory, ControllerMetrics, Cubic, CubicConfig};
+
+/// Most client addresses remembered; beyond it the oldest record is forgotten.
+pub const MAX_PATHS: usize = 4096;
+/// Largest window a resumed connection jumps to, bytes.
+pub const MAX_JUMP: u64 = 8 << 20;
+/// RTTs below this count as this when paths are compared (quinn's timer granularity), so two
+/// loopback connections are the same path however their microseconds differ.
+pub const RTT_FLOOR: Duration = Duration::from_millis(1);
+/// How many saved RTTs the jump may last without being validated.
+pub const UNVALIDATED_RTTS: u32 = 8;
+
+/// What a path taught its last connection.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PathRecord {
+    /// The congestion window when the connection ended, bytes.
+    pub window: u64,
+    /// The smoothed RTT then.
+    pub rtt: Duration,
+    /// When it was recorded.
+    pub at: Instant,
+}
+
+/// What a new connection on a remembered path may start with.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Resume {
+    /// The window to jump to once the path is confirmed, bytes: half the saved window.
+    pub jump: u64,
+    /// The saved RTT the first measurement is compared with.
+    pub rtt: Duration,
+}
+
+/// Congestion windows and RTTs of recent connections, by client address.
+#[derive(Debug)]
+pub struct PathMemory {
+    records: HashMap<IpAddr, PathRecord>,
+    /// How long a record is used; zero: nothing is remembered.
+    lifetime: Duration,
+    capacity: usize,
+}
+
+impl Default for PathMemory {
+    fn default() -> Self {
+        PathMemory::new(Duration::ZERO, MAX_PATHS)
+    }
+}
+
+impl PathMemory {
+    /// A memory keeping records for `lifetime` (zero: off), at most `capacity` of them.
+    pub fn new(lifetime: Duration, capacity: usize) -> Self {
+        PathMemory {
+            records: HashMap::new(),
+            lifetime,
+            capacity: capacity.max(1),
+        }
+    }
+
+    /// Changes how long records are used (zero turns the memory off and forgets everything).
+    pub fn set_lifetime(&mut self, lifetime: Duration) {
+        self.lifetime = lifetime;
+        if lifetime.is_zero() {
+            self.records.clear();
+        }
+    }
+
+    /// A connection from `peer` ended with `window` bytes of congestion window and `rtt`.
+    /// Replaces what was known of `peer`; a window or RTT of zero teaches nothing.
+    pub fn handle_close(&mut self, peer: IpAddr, now: Instant, window: u64, rtt: Duration) {
+        if self.lifetime.is_zero() || window == 0 || rtt.is_zero() {
+            return;
+        }
+        self.expire(now);
+        if self.records.len() >= self.capacity && !self.records.contains_key(&peer) {
+            let oldest = self
+                .records
+                .iter()
+                .min_by_key(|(_, r)| r.at)
+                .map(|(a, _)| *a);
+            if let Some(oldest) = oldest {
+                self.records.remove(&oldest);
+            }
+        }
+        self.records.insert(
+            peer,
+            PathRecord {
+                window,
+                rtt,
+                at: now,
+            },
+        );
+    }
+
+    /// What a new connection from `peer` may resume, given the `initial_window` it would start
+    /// with: `None` when nothing recent is known or the jump would not exceed it.
+    pub fn poll_resume(
+        &mut self,
+        peer: IpAddr,
+        now: Instant,
+        initial_window: u64,
+    ) -> Option<Resume> {
+        self.expire(now);
+        let record = self.records.get(&peer)?;
+        let jump = (record.window / 2).min(MAX_JUMP);
+        (jump > initial_window).then_some(Resume {
+            jump,
+            rtt: record.rtt,
+        })
+    }
+
+    /// The record of `peer`, if one is kept.
+    pub fn get(&self, peer: IpAddr) -> Option<&PathRecord> {
+        self.records.get(&peer)
+    }
+
+    /// Records kept.
+    pub fn len(&self) -> usize {
+        self.records.len()
+    }
+
+    /// Whether no record is kept.
+    pub fn is_empty(&self) -> bool {
+        self.records.is_empty()
+    }
+
+    /// Forgets every path (benchmarks measure first contacts with it).
+    pub fn clear(&mut self) {
+        self.records.clear();
+    }
+
+    fn expire(&mut self, now: Instant) {
+        let lifetime = self.lifetime;
+        self.records
+            .retain(|_, r| now.saturating_duration_since(r.at) < lifetime);
+    }
+}
+
+/// Where a resumed connection stands (see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Phase {
+    /// The initial window, until the first acknowledgement measures the path.
+    Reconnaissance,
+    /// The jump is in effect, since the given time.
+    Unvalidated { since: Instant },
+    /// An ordinary connection from here on.
+    Done,
+}
+
+/// What happened to a resumption, for the counters.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ResumeEvent {
+    /// The path was confirmed and the window jumped.
+    Jumped,
+    /// The path's RTT differed too much from the saved one: no jump.
+    Refused,
+    /// A congestion event during the jump ended it.
+    Retreated,
+}
+
+/// The careful-resume decision as plain data, with time and measurements passed in.
+#[derive(Clone, Copy, Debug)]
+pub struct ResumeState {
+    resume: Resume,
+    phase: Phase,
+}
+
+impl ResumeState {
+    pub fn new(resume: Resume) -> Self {
+        ResumeState {
+            resume,
+            phase: Phase::Reconnaissance,
+        }
+    }
+
+    pub fn phase(&self) -> Phase {
+        self.phase
+    }
+
+    /// An acknowledgement arrived for a packet that took `rtt` to be acknowledged; Cubic's own
+    /// window is now `inner_window`.
+    pub fn handle_ack(
+        &mut self,
+        now: Instant,
+        rtt: Duration,
+        inner_window: u64,
+    ) -> Option<ResumeEvent> {
+        match self.phase {
+            Phase::Reconnaissance => {
+                let (now_rtt, saved) = (rtt.max(RTT_FLOOR), self.resume.rtt.max(RTT_FLOOR));
+                if now_rtt * 2 < saved || now_rtt > saved * 10 {
+                    self.phase = Phase::Done;
+                    Some(ResumeEvent::Refused)
+                } else {
+                    self.phase = Phase::Unvalidated { since: now };
+                    Some(ResumeEvent::Jumped)
+                }
+            }
+            Phase::Unvalidated { since } => {
+                let bound = self.resume.rtt.max(RTT_FLOOR) * UNVALIDATED_RTTS;
+                if inner_window >= self.resume.jump || now.saturating_duration_since(since) > bound
+                {
+                    self.phase = Phase::Done;
+                }
+                None
+            }
+            Phase::Done => None,
+        }
+    }
+
+    /// Packets were lost or marked congested.
+    pub fn handle_congestion(&mut self) -> Option<ResumeEvent> {
+        let retreat = matches!(self.phase, Phase::Unvalidated { .. });
+        self.phase = Phase::Done;
+        retreat.then_some(ResumeEvent::Retreated)
+    }
+
+    /// The window in effect, given Cubic's own.
+    pub fn window(&self, inner_window: u64) -> u64 {
+        match self.phase {
+            Phase::Unvalidated { .. } => inner_window.max(self.resume.jump),
+            _ => inner_window,
+        }
+    }
+}
+
+/// Counts of what resumed connections did (the service's metrics hold one).
+#[derive(Debug, Default)]
+pub struct ResumeCounters {
+    /// Connections whose window jumped.
+    pub jumped: AtomicU64,
+    /// Connections whose path's RTT did not match the saved one.
+    pub refused: AtomicU64,
+    /// Jumps ended by a congestion event.
+    pub retreated: AtomicU64,
+}
+
+impl ResumeCounters {
+    fn count(&self, event: ResumeEvent) {
+        let counter = match event {
+            ResumeEvent::Jumped => &self.jumped,
+            ResumeEvent::Refused => &self.refused,
+            ResumeEvent::Retreated => &self.retreated,
+        };
+        counter.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+/// Builds [`ResumedCubic`] controllers for one connection.
+#[derive(Debug)]
+pub struct ResumeFactory {
+    pub cubic: Arc<CubicConfig>,
+    pub resume: Resume,
+    pub counters: Arc<ResumeCounters>,
+}
+
+impl ControllerFactory for ResumeFactory {
+    fn build(self: Arc<Self>, now: Instant, current_mtu: u16) -> Box<dyn Controller> {
+        Box::new(ResumedCubic {
+            inner: Cubic::new(self.cubic.clone(), now, current_mtu),
+            state: ResumeState::new(self.resume),
+            counters: self.counters.clone(),
+        })
+    }
+}
+
+/// Cubic with a careful-resume jump (see the module docs).
+#[derive(Clone, Debug)]
+pub struct ResumedCubic {
+    inner: Cubic,
+    state: ResumeState,
+    counters: Arc<ResumeCounters>,
+}
+
+impl ResumedCubic {
+    fn note(&self, event: Option<ResumeEvent>) {
+        if let Some(event) = event {
+            self.counters.count(event);
+            tracing::debug!(?event, jump = self.state.resume.jump, "path resume");
+        }
+    }
+}
+
+impl Controller for ResumedCubic {
+    fn on_sent(&mut self, now: Instant, bytes: u64, last_packet_number: u64) {
+        self.inner.on_sent(now, bytes, last_packet_number);
+    }
+
+    fn on_ack(
+        &mut self,
+        now: Instant,
+        sent: Instant,
+        bytes: u64,
+        app_limited: bool,
+        rtt: &quinn_proto::RttEstimator,
+    ) {
+        self.inner.on_ack(now, sent, bytes, app_limited, rtt);
+        // The acknowledged packet's own round trip: the estimator may not have a sample yet
+        // (it then reports the configured initial RTT, 333 ms, which would pass for any path).
+        let measured = now.saturating_duration_since(sent);
+        let event = self.state.handle_ack(now, measured, self.inner.window());
+        self.note(event);
+    }
+
+    fn on_end_acks(
+        &mut self,
+        now: Instant,
+        in_flight: u64,
+        app_limited: bool,
+        largest_packet_num_acked: Option<u64>,
+    ) {
+        self.inner
+            .on_end_acks(now, in_flight, app_limited, largest_packet_num_acked);
+    }
+
+    fn on_congestion_event(
+        &mut self,
+        now: Instant,
+        sent: Instant,
+        is_persistent_congestion: bool,
+        lost_bytes: u64,
+    ) {
+        self.inner
+            .on_congestion_event(now, sent, is_persistent_congestion, lost_bytes);
+        let event = self.state.handle_congestion();
+        self.note(event);
+    }
+
+    fn on_mtu_update(&mut self, new_mtu: u16) {
+        self.inner.on_mtu_update(new_mtu);
+    }
+
+    fn window(&self) -> u64 {
+        self.state.window(self.inner.window())
+    }
+
+    fn metrics(&self) -> ControllerMetrics {
+        let mut m = self.inner.metrics();
+        m.congestion_window = self.window();
+        m
+    }
+
+    fn clone_box(&self) -> Box<dyn Controller> {
+        Box::new(self.clone())
+    }
+
+    fn initial_window(&self) -> u64 {
+        self.inner.initial_window()
+    }
+
+    fn into_any(self: Box<Self>) -> Box<dyn Any> {
+        self
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::net::Ipv4Addr;
+
+    const MS: Duration = Duration::from_millis(1);
+
+    fn ip(last: u8) -> IpAddr {
+        IpAddr::V4(Ipv4Addr::new(10, 0, 0, last))
+    }
+
+    #[test]
+    fn a_returning_address_resumes_at_half_its_window_until_the_record_expires() {
+        let t0 = Instant::now();
+        let mut m = PathMemory::new(Duration::from_secs(600), 16);
+        assert_eq!(m.poll_resume(ip(1), t0, 128 << 10), None, "nothing known");
+        m.handle_close(ip(1), t0, 1 << 20, 50 * MS);
+        assert_eq!(
+            m.poll_resume(ip(1), t0 + MS, 128 << 10),
+            Some(Resume {
+                jump: 512 << 10,
+                rtt: 50 * MS
+            })
+        );
+        assert_eq!(m.poll_resume(ip(2), t0, 128 << 10), None, "another address");
+        // A window not worth a jump: half of it is below the initial window.
+        m.handle_close(ip(3), t0, 200 << 10, 50 * MS);
+        assert_eq!(m.poll_resume(ip(3), t0, 128 << 10), None);
+        // Huge windows are capped.
+        m.handle_close(ip(4), t0, u64::MAX, 50 * MS);
+        assert_eq!(m.poll_resume(ip(4), t0, 128 << 10).unwrap().jump, MAX_JUMP);
+        // Nothing learned from zeros.
+        m.handle_close(ip(5), t0, 0, 50 * MS);
+        m.handle_close(ip(6), t0, 1 << 20, Duration::ZERO);
+        assert!(m.get(ip(5)).is_none() && m.get(ip(6)).is_none());
+        // Expired after the lifetime.
+        assert_eq!(
+            m.poll_resume(ip(1), t0 + Duration::from_secs(600), 128 << 10),
+            None
+        );
+        assert!(m.is_empty(), "expired records are dropped");
+    }
+
+    #[test]
+    fn the_memory_stays_within_its_capacity_forgetting_the_oldest() {
+        let t0 = Instant::now();
+        let mut m = PathMemory::new(Duration::from_secs(600), 3);
+        for i in 0..10u8 {
+            m.handle_close(ip(i), t0 + u32::from(i) * MS, 1 << 20, 10 * MS);
+            assert!(m.len() <= 3);
+        }
+        assert!(m.get(ip(9)).is_some() && m.get(ip(7)).is_some());
+        assert!(m.get(ip(6)).is_none() && m.get(ip(0)).is_none());
+        // A known address is updated in place, evicting nothing.
+        m.handle_close(ip(8), t0 + 20 * MS, 4 << 20, 10 * MS);
+        assert_eq!(m.len(), 3);
+        assert_eq!(m.get(ip(8)).unwrap().window, 4 << 20);
+    }
+
+    #[test]
+    fn an_off_memory_keeps_nothing() {
+        let t0 = Instant::now();
+        let mut m = PathMemory::default();
+        m.handle_close(ip(1), t0, 1 << 20, 10 * MS);
+        assert!(m.is_empty());
+        let mut m = PathMemory::new(Duration::from_secs(1), 8);
+        m.handle_close(ip(1), t0, 1 << 20, 10 * MS);
+        m.set_lifetime(Duration::ZERO);
+        assert!(m.is_empty());
+    }
+
+    fn resume() -> Resume {
+        Resume {
+            jump: 512 << 10,
+            rtt: 50 * MS,
+        }
+    }
+
+    #[test]
+    fn a_confirmed_path_jumps_and_hands_over_once_cubic_catches_up() {
+        let t0 = Instant::now();
+        let mut s = ResumeState::new(resume());
+        assert_eq!(
+            s.window(128 << 10),
+            128 << 10,
+            "reconnaissance: the initial window"
+        );
+        assert_eq!(
+            s.handle_ack(t0, 60 * MS, 130 << 10),
+            Some(ResumeEvent::Jumped)
+        );
+        assert_eq!(s.window(130 << 10), 512 << 10);
+        assert_eq!(s.handle_ack(t0 + 10 * MS, 55 * MS, 400 << 10), None);
+        assert!(matches!(s.phase(), Phase::Unvalidated { .. }));
+        assert_eq!(s.window(400 << 10), 512 << 10);
+        // Slow start carried Cubic's own window to the jump: validated.
+        assert_eq!(s.handle_ack(t0 + 60 * MS, 55 * MS, 520 << 10), None);
+        assert_eq!(s.phase(), Phase::Done);
+        assert_eq!(s.window(520 << 10), 520 << 10);
+        assert_eq!(s.window(100 << 10), 100 << 10, "Cubic's from here on");
+    }
+
+    #[test]
+    fn a_different_rtt_refuses_the_jump_on_both_sides_of_the_band() {
+        for rtt in [24 * MS, 501 * MS] {
+            let mut s = ResumeState::new(resume());
+            assert_eq!(
+                s.handle_ack(Instant::now(), rtt, 130 << 10),
+                Some(ResumeEvent::Refused),
+                "{rtt:?}"
+            );
+            assert_eq!(s.window(130 << 10), 130 << 10);
+            assert_eq!(s.phase(), Phase::Done);
+        }
+        for rtt in [25 * MS, 500 * MS] {
+            let mut s = ResumeState::new(resume());
+            assert_eq!(
+                s.handle_ack(Instant::now(), rtt, 130 << 10),
+                Some(ResumeEvent::Jumped),
+                "{rtt:?} is within the band"
+            );
+        }
+        // Sub-millisecond paths (loopback) compare at the floor.
+        let mut s = ResumeState::new(Resume {
+            jump: 512 << 10,
+            rtt: Duration::from_micros(90),
+        });
+        assert_eq!(
+            s.handle_ack(Instant::now(), Duration::from_micros(30), 130 << 10),
+            Some(ResumeEvent::Jumped)
+        );
+    }
+
+    #[test]
+    fn a_loss_during_the_jump_retreats_to_cubics_window() {
+        let t0 = Instant::now();
+        let mut s = ResumeState::new(resume());
+        s.handle_ack(t0, 50 * MS, 130 << 10);
+        assert_eq!(s.handle_congestion(), Some(ResumeEvent::Retreated));
+        assert_eq!(s.window(91 << 10), 91 << 10);
+        assert_eq!(s.handle_congestion(), None, "once");
+        // Before the jump, a loss just ends the resumption.
+        let mut s = ResumeState::new(resume());
+        assert_eq!(s.handle_congestion(), None);
+        assert_eq!(s.handle_ack(t0, 50 * MS, 130 << 10), None);
+        assert_eq!(s.window(130 << 10), 130 << 10);
+    }
+
+    #[test]
+    fn an_unvalidated_jump_ends_after_its_round_trips() {
+        let t0 = Instant::now();
+        let mut s = ResumeState::new(resume());
+        s.handle_ack(t0, 50 * MS, 130 << 10);
+        s.handle_ack(t0 + 50 * MS * UNVALIDATED_RTTS, 50 * MS, 130 << 10);
+        assert!(
+            matches!(s.phase(), Phase::Unvalidated { .. }),
+            "not past the bound yet"
+        );
+        s.handle_ack(t0 + 50 * MS * UNVALIDATED_RTTS + MS, 50 * MS, 130 << 10);
+        assert_eq!(s.phase(), Phase::Done);
+        assert_eq!(s.window(130 << 10), 130 << 10);
+    }
+}
