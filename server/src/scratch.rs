@@ -10,14 +10,17 @@
 //! lock (`flock`) for as long as the directory lives. The kernel releases the lock when the
 //! process dies however it dies, so a directory whose lock can be taken has no owner: each new
 //! scratch directory first removes those beside it ([`sweep_abandoned`]). A directory without
-//! the lock file is left alone (another program's, or one being created this instant: the lock
-//! file is locked before it gets its name), and so is anything that is not a plain directory
-//! named `arbor-import-*`. The owner holds the lock until its directory is gone, so a directory
-//! being removed is not taken for an abandoned one either.
+//! the lock file is left alone while anything in it changed within [`STALE_UNLOCKED`] (one being
+//! created this instant: the lock file is locked before it gets its name); older, it is what a
+//! process killed in that instant, or an Arbor from before the lock files, left, and it goes
+//! too. Anything that is not a plain directory named `arbor-import-*` is left alone. The owner
+//! holds the lock until its directory is gone, so a directory being removed is not taken for an
+//! abandoned one either.
 
 use std::fs::{File, TryLockError};
 use std::io;
 use std::path::{Path, PathBuf};
+use std::time::{Duration, SystemTime};
 
 use tempfile::TempDir;
 
@@ -25,8 +28,13 @@ use tempfile::TempDir;
 pub const SCRATCH_PREFIX: &str = "arbor-import-";
 /// The file in a scratch directory its owner keeps locked.
 pub const OWNER_LOCK: &str = "owner.lock";
-/// The lock file's name until it is locked (a sweep ignores a directory that has only this).
+/// The lock file's name until it is locked (a sweep ignores a directory that has only this,
+/// unless it is stale).
 const OWNER_LOCK_NEW: &str = "owner.lock.new";
+/// How long a scratch directory without a lock file must have been unchanged (it and every
+/// entry in it) before a sweep takes it for abandoned. A day: an import writes its columns and
+/// runs continually, and the largest measured (10⁸ points) takes minutes.
+pub const STALE_UNLOCKED: Duration = Duration::from_secs(24 * 60 * 60);
 
 /// An import's scratch directory: removed on drop, locked by its owner while it lives.
 #[derive(Debug)]
@@ -74,7 +82,8 @@ impl ScratchDir {
 }
 
 /// Removes every scratch directory in `parent` whose owner is gone (its `owner.lock` exists and
-/// can be locked); returns the ones removed. Best effort: what cannot be read, locked or removed
+/// can be locked, or it has none and nothing in it changed for [`STALE_UNLOCKED`]); returns the
+/// ones removed. Best effort: what cannot be read, locked or removed
 /// (another user's, one in use) stays, and a failure is logged, never returned.
 pub fn sweep_abandoned(parent: &Path) -> Vec<PathBuf> {
     let Ok(entries) = std::fs::read_dir(parent) else {
@@ -92,7 +101,7 @@ pub fn sweep_abandoned(parent: &Path) -> Vec<PathBuf> {
             continue;
         }
         let path = entry.path();
-        if !abandoned(&path) {
+        if !abandoned(&path, SystemTime::now()) {
             continue;
         }
         match std::fs::remove_dir_all(&path) {
@@ -108,13 +117,17 @@ pub fn sweep_abandoned(parent: &Path) -> Vec<PathBuf> {
     removed
 }
 
-/// Whether `dir` is a scratch directory nobody holds: its lock file exists and the lock is free.
-fn abandoned(dir: &Path) -> bool {
+/// Whether `dir` is a scratch directory nobody holds at `now`: its lock file exists and the
+/// lock is free, or it has no lock file and is stale.
+fn abandoned(dir: &Path, now: SystemTime) -> bool {
     let lock = dir.join(OWNER_LOCK);
     // Not followed through a link: a link named like the lock file makes the directory
     // someone else's.
-    if !std::fs::symlink_metadata(&lock).is_ok_and(|m| m.is_file()) {
-        return false;
+    match std::fs::symlink_metadata(&lock) {
+        Ok(m) if m.is_file() => {}
+        Ok(_) => return false,
+        Err(e) if e.kind() == io::ErrorKind::NotFound => return unchanged_since(dir, now),
+        Err(_) => return false,
     }
     let Ok(file) = File::open(&lock) else {
         return false;
@@ -128,6 +141,25 @@ fn abandoned(dir: &Path) -> bool {
             false
         }
     }
+}
+
+/// Whether `dir` and every entry in it are plain files or directories unchanged for
+/// [`STALE_UNLOCKED`] before `now` (a link or an unreadable entry: not stale, left alone).
+fn unchanged_since(dir: &Path, now: SystemTime) -> bool {
+    let stale = |m: &std::fs::Metadata| {
+        m.modified()
+            .is_ok_and(|t| now.duration_since(t).is_ok_and(|age| age >= STALE_UNLOCKED))
+    };
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return false;
+    };
+    if !std::fs::symlink_metadata(dir).is_ok_and(|m| stale(&m)) {
+        return false;
+    }
+    entries.into_iter().all(|e| {
+        e.and_then(|e| e.path().symlink_metadata())
+            .is_ok_and(|m| !m.file_type().is_symlink() && stale(&m))
+    })
 }
 
 #[cfg(test)]
@@ -153,8 +185,8 @@ mod tests {
         assert!(!dead.exists() && !dead2.exists(), "abandoned dirs removed");
         std::fs::write(live.path().join("data.col"), b"x").unwrap();
 
-        // Left alone: a scratch dir without a lock file, another program's dir with a lock
-        // file, a link named like a scratch dir, a plain file named like one.
+        // Left alone: a recent scratch dir without a lock file, another program's dir with a
+        // lock file, a link named like a scratch dir, a plain file named like one.
         let unlocked = p.join("arbor-import-nolock");
         std::fs::create_dir(&unlocked).unwrap();
         let other = abandoned_dir(p, "other-tool-dir");
@@ -230,6 +262,54 @@ mod tests {
             0,
             "only live scratch dirs were there"
         );
+    }
+
+    /// Sets the modification time of `path` (a file or a directory) `age` into the past.
+    fn age(path: &Path, age: Duration) {
+        let t = SystemTime::now() - age;
+        std::fs::File::open(path).unwrap().set_modified(t).unwrap();
+    }
+
+    #[test]
+    fn a_stale_scratch_dir_without_a_lock_file_is_removed_and_a_recent_one_kept() {
+        let parent = tempfile::tempdir().unwrap();
+        let p = parent.path();
+        let old = STALE_UNLOCKED + Duration::from_secs(60);
+        // What a process killed between creating the directory and naming its lock left, and
+        // what an import from before the lock files left: both a day old.
+        let half_made = p.join("arbor-import-halfmade");
+        std::fs::create_dir(&half_made).unwrap();
+        std::fs::write(half_made.join(OWNER_LOCK_NEW), b"").unwrap();
+        age(&half_made.join(OWNER_LOCK_NEW), old);
+        age(&half_made, old);
+        let legacy = p.join("arbor-import-legacy");
+        std::fs::create_dir(&legacy).unwrap();
+        std::fs::write(legacy.join("src_positions.col"), [3u8; 256]).unwrap();
+        age(&legacy.join("src_positions.col"), old);
+        age(&legacy, old);
+        // Kept: an old directory with one entry written recently (an import still writing),
+        // a recent empty one, an old one holding a link, an old one of another name.
+        let writing = p.join("arbor-import-writing");
+        std::fs::create_dir(&writing).unwrap();
+        std::fs::write(writing.join("run-0"), b"x").unwrap();
+        age(&writing, old);
+        let recent = p.join("arbor-import-recent");
+        std::fs::create_dir(&recent).unwrap();
+        let linked = p.join("arbor-import-linked");
+        std::fs::create_dir(&linked).unwrap();
+        std::os::unix::fs::symlink(&legacy, linked.join("elsewhere")).unwrap();
+        age(&linked, old);
+        let other = p.join("other-tool-dir");
+        std::fs::create_dir(&other).unwrap();
+        age(&other, old);
+
+        let mut removed = sweep_abandoned(p);
+        removed.sort();
+        assert_eq!(removed, vec![half_made.clone(), legacy.clone()]);
+        assert!(!half_made.exists() && !legacy.exists());
+        for kept in [&writing, &recent, &linked, &other] {
+            assert!(kept.exists(), "{} kept", kept.display());
+        }
     }
 
     #[test]
