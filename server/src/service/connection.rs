@@ -143,9 +143,9 @@ pub(crate) async fn run(
     let span = tracing::info_span!("conn", id = id.0, %peer, scene = tracing::field::Empty);
     async move {
         let deadline = tokio::time::Instant::now() + shared.config.hello_timeout();
-        let accepted = match shared.server_config_for(peer.ip()) {
-            Some(resumed) => incoming.accept_with(resumed),
-            None => incoming.accept(),
+        let (accepted, observer) = match shared.server_config_for(peer.ip()) {
+            Some((own, observer)) => (incoming.accept_with(own), Some(observer)),
+            None => (incoming.accept(), None),
         };
         let connecting = match accepted {
             Ok(c) => c,
@@ -173,7 +173,7 @@ pub(crate) async fn run(
 
         let mut control = None;
         let end = handler::serve(&shared, id, &conn, shutdown, deadline, &mut control).await;
-        shared.handle_close(peer.ip(), &conn);
+        shared.handle_close(peer.ip(), &conn, observer.as_deref());
 
         // Unregister before closing so no treelet is offered to a dying connection.
         {

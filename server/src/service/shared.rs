@@ -12,7 +12,7 @@ use rustc_hash::FxHashMap;
 use tokio::sync::{Notify, mpsc};
 
 use super::config::ServeConfig;
-use super::path_memory::ResumeFactory;
+use super::path_memory::{PathFactory, PathObserver};
 use super::schedule::{ConnectionId, Scheduler, SchedulerConfig};
 use super::server::{cubic_config, transport_config};
 use super::state::{ServiceCaches, ServiceState};
@@ -86,31 +86,48 @@ impl Shared {
         self
     }
 
-    /// The server config for a new connection from `peer`: the common one, or, when its path
-    /// is remembered, a copy whose congestion controller may resume it
-    /// ([`super::path_memory`]).
-    pub(crate) fn server_config_for(&self, peer: IpAddr) -> Option<Arc<quinn::ServerConfig>> {
+    /// The server config for a new connection from `peer`, with its own congestion
+    /// controller: one that notes the path's round trips in the returned observer and, when
+    /// the path is remembered, may resume it ([`super::path_memory`]). `None` without a server
+    /// config or with the memory off: the common config.
+    pub(crate) fn server_config_for(
+        &self,
+        peer: IpAddr,
+    ) -> Option<(Arc<quinn::ServerConfig>, Arc<PathObserver>)> {
         let base = self.server_config.as_ref()?;
+        if self.config.path_memory().is_zero() {
+            return None;
+        }
         let resume =
             self.state
                 .paths()
-                .poll_resume(peer, Instant::now(), self.config.initial_window)?;
-        let factory = ResumeFactory {
+                .poll_resume(peer, Instant::now(), self.config.initial_window);
+        let observer = Arc::new(PathObserver::default());
+        let factory = PathFactory {
             cubic: Arc::new(cubic_config(&self.config)),
             resume,
             counters: self.state.metrics.path_resumes.clone(),
+            observer: observer.clone(),
         };
-        let mut resumed = base.clone();
-        resumed.transport_config(Arc::new(transport_config(&self.config, Arc::new(factory))));
-        Some(Arc::new(resumed))
+        let mut own = base.clone();
+        own.transport_config(Arc::new(transport_config(&self.config, Arc::new(factory))));
+        Some((Arc::new(own), observer))
     }
 
-    /// A connection from `peer` ended; remembers its path's window and RTT.
-    pub(crate) fn handle_close(&self, peer: IpAddr, conn: &quinn::Connection) {
+    /// A connection from `peer` ended; remembers its path's window and smallest round trip.
+    pub(crate) fn handle_close(
+        &self,
+        peer: IpAddr,
+        conn: &quinn::Connection,
+        observer: Option<&PathObserver>,
+    ) {
+        let Some(rtt) = observer.and_then(PathObserver::min_rtt) else {
+            return;
+        };
         let window = conn.stats().path.cwnd;
         self.state
             .paths()
-            .handle_close(peer, Instant::now(), window, conn.rtt());
+            .handle_close(peer, Instant::now(), window, rtt);
     }
 
     pub(crate) fn core(&self) -> MutexGuard<'_, Core> {
