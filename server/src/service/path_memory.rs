@@ -29,13 +29,23 @@
 //!
 //! [`ResumeState`] is that decision as plain data, tested without quinn; [`PathCubic`] is the
 //! thin [`Controller`] around Cubic that feeds it.
+//!
+//! A graceful shutdown writes the records to [`PATHS_FILE`] in the data directory
+//! ([`PathMemory::save`]) and the next start reads them back ([`PathMemory::load`]), ages
+//! carried over, so a rolling restart does not send every returning client back to slow start.
+//! The file is a hint: one that cannot be read or parsed is logged and ignored, never a reason
+//! not to serve.
 
 use std::any::Any;
 use std::collections::HashMap;
+use std::io::Write as _;
 use std::net::IpAddr;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::time::{Duration, Instant};
+use std::time::{Duration, Instant, SystemTime};
+
+use serde::{Deserialize, Serialize};
 
 use quinn::congestion::{Controller, ControllerFactory, ControllerMetrics, Cubic, CubicConfig};
 
@@ -48,6 +58,51 @@ pub const MAX_JUMP: u64 = 8 << 20;
 pub const RTT_FLOOR: Duration = Duration::from_millis(1);
 /// How many saved RTTs the jump may last without being validated.
 pub const UNVALIDATED_RTTS: u32 = 8;
+
+/// The file in the data directory a graceful shutdown writes the records to.
+pub const PATHS_FILE: &str = "path-memory.json";
+/// Largest [`PATHS_FILE`] read back (4,096 records take about 400 KB).
+pub const MAX_PATHS_FILE_BYTES: u64 = 4 << 20;
+/// Format version of [`PATHS_FILE`].
+const PATHS_FILE_VERSION: u32 = 1;
+
+/// Why [`PathMemory::load`] or [`PathMemory::save`] failed.
+#[derive(Debug, thiserror::Error)]
+pub enum PathFileError {
+    /// The file could not be read or written.
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The file is larger than [`MAX_PATHS_FILE_BYTES`].
+    #[error("{}: {bytes} bytes, more than the {MAX_PATHS_FILE_BYTES} a path memory takes", path.display())]
+    TooLarge { path: PathBuf, bytes: u64 },
+    /// The file is not a path memory of this format.
+    #[error("{}: not a path memory: {reason}", path.display())]
+    Format { path: PathBuf, reason: String },
+}
+
+/// [`PATHS_FILE`]'s contents.
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SavedPaths {
+    version: u32,
+    /// When the file was written, milliseconds since the Unix epoch.
+    saved_at_unix_ms: u64,
+    records: Vec<SavedPath>,
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SavedPath {
+    addr: IpAddr,
+    window: u64,
+    rtt_ns: u64,
+    /// The record's age when the file was written, milliseconds.
+    age_ms: u64,
+}
 
 /// What a path taught its last connection.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -166,11 +221,103 @@ impl PathMemory {
         self.records.clear();
     }
 
+    /// Writes the records still in use at `now` to `path` (a temporary file, then renamed):
+    /// addresses, windows, RTTs and ages, with the wall-clock time of writing.
+    pub fn save(&mut self, path: &Path, now: Instant) -> Result<usize, PathFileError> {
+        self.expire(now);
+        let io = |source| PathFileError::Io {
+            path: path.to_owned(),
+            source,
+        };
+        let saved = SavedPaths {
+            version: PATHS_FILE_VERSION,
+            saved_at_unix_ms: unix_ms(SystemTime::now()),
+            records: self
+                .records
+                .iter()
+                .map(|(addr, r)| SavedPath {
+                    addr: *addr,
+                    window: r.window,
+                    rtt_ns: u64::try_from(r.rtt.as_nanos()).unwrap_or(u64::MAX),
+                    age_ms: u64::try_from(now.saturating_duration_since(r.at).as_millis())
+                        .unwrap_or(u64::MAX),
+                })
+                .collect(),
+        };
+        let text = serde_json::to_vec(&saved).map_err(|e| io(std::io::Error::other(e)))?;
+        let tmp = path.with_extension("json.tmp");
+        let mut f = std::fs::File::create(&tmp).map_err(io)?;
+        f.write_all(&text).map_err(io)?;
+        f.sync_all().map_err(io)?;
+        drop(f);
+        std::fs::rename(&tmp, path).map_err(io)?;
+        Ok(saved.records.len())
+    }
+
+    /// Reads records written by [`PathMemory::save`] from `path`, each aged by its age then
+    /// plus the wall-clock time since; those past the lifetime, with a zero window or RTT, or
+    /// beyond the capacity (the oldest first) are left out. A missing file is no record.
+    /// Returns how many records the memory holds then.
+    pub fn load(&mut self, path: &Path, now: Instant) -> Result<usize, PathFileError> {
+        let format = |reason: String| PathFileError::Format {
+            path: path.to_owned(),
+            reason,
+        };
+        let io = |source| PathFileError::Io {
+            path: path.to_owned(),
+            source,
+        };
+        let bytes = match std::fs::metadata(path) {
+            Ok(m) => m.len(),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(0),
+            Err(e) => return Err(io(e)),
+        };
+        if bytes > MAX_PATHS_FILE_BYTES {
+            return Err(PathFileError::TooLarge {
+                path: path.to_owned(),
+                bytes,
+            });
+        }
+        let text = std::fs::read(path).map_err(io)?;
+        let saved: SavedPaths = serde_json::from_slice(&text).map_err(|e| format(e.to_string()))?;
+        if saved.version != PATHS_FILE_VERSION {
+            return Err(format(format!(
+                "version {} (this server reads {PATHS_FILE_VERSION})",
+                saved.version
+            )));
+        }
+        // A clock set back since the file was written counts as no time passed.
+        let since_saved = unix_ms(SystemTime::now()).saturating_sub(saved.saved_at_unix_ms);
+        let mut records: Vec<(IpAddr, u64, Duration, Duration)> = saved
+            .records
+            .into_iter()
+            .map(|r| {
+                let age = Duration::from_millis(r.age_ms.saturating_add(since_saved));
+                (r.addr, r.window, Duration::from_nanos(r.rtt_ns), age)
+            })
+            .filter(|&(_, window, rtt, age)| window > 0 && !rtt.is_zero() && age < self.lifetime)
+            .collect();
+        records.sort_by_key(|&(_, _, _, age)| std::cmp::Reverse(age));
+        for (addr, window, rtt, age) in records {
+            // Oldest first, so beyond the capacity the newest stay. An age reaching back
+            // before this machine's monotonic clock began cannot be placed: left out.
+            if let Some(at) = now.checked_sub(age) {
+                self.handle_close(addr, at, window, rtt);
+            }
+        }
+        Ok(self.records.len())
+    }
+
     fn expire(&mut self, now: Instant) {
         let lifetime = self.lifetime;
         self.records
             .retain(|_, r| now.saturating_duration_since(r.at) < lifetime);
     }
+}
+
+fn unix_ms(t: SystemTime) -> u64 {
+    t.duration_since(SystemTime::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
 }
 
 /// Where a resumed connection stands (see the module docs).
@@ -573,6 +720,88 @@ mod tests {
         assert_eq!(s.handle_congestion(), None);
         assert_eq!(s.handle_ack(t0, 50 * MS, 130 << 10), None);
         assert_eq!(s.window(130 << 10), 130 << 10);
+    }
+
+    #[test]
+    fn saved_records_come_back_with_their_ages_and_expired_ones_do_not() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join(PATHS_FILE);
+        let t0 = Instant::now();
+        let later = t0 + Duration::from_secs(500);
+        let mut m = PathMemory::new(Duration::from_secs(600), 16);
+        m.handle_close(ip(1), t0, 1 << 20, 50 * MS);
+        m.handle_close(ip(2), t0 + Duration::from_secs(400), 2 << 20, 80 * MS);
+        assert_eq!(m.save(&file, later).unwrap(), 2);
+
+        let now = Instant::now() + Duration::from_secs(1000);
+        let mut back = PathMemory::new(Duration::from_secs(600), 16);
+        assert_eq!(back.load(&file, now).unwrap(), 2);
+        let r1 = *back.get(ip(1)).unwrap();
+        assert_eq!((r1.window, r1.rtt), (1 << 20, 50 * MS));
+        let age = now.duration_since(r1.at);
+        assert!(
+            (Duration::from_secs(500)..Duration::from_secs(510)).contains(&age),
+            "the age carried over: {age:?}"
+        );
+        assert_eq!(back.get(ip(2)).unwrap().window, 2 << 20);
+
+        // A shorter lifetime leaves out what is older than it; a small capacity keeps the newest.
+        let mut short = PathMemory::new(Duration::from_secs(300), 16);
+        assert_eq!(short.load(&file, now).unwrap(), 1);
+        assert!(short.get(ip(1)).is_none() && short.get(ip(2)).is_some());
+        let mut one = PathMemory::new(Duration::from_secs(600), 1);
+        assert_eq!(one.load(&file, now).unwrap(), 1);
+        assert!(one.get(ip(2)).is_some());
+    }
+
+    #[test]
+    fn a_bad_paths_file_is_an_error_naming_it_and_loads_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join(PATHS_FILE);
+        let mut m = PathMemory::new(Duration::from_secs(600), 16);
+        assert_eq!(
+            m.load(&file, Instant::now()).unwrap(),
+            0,
+            "no file: no record"
+        );
+        for text in [
+            "not json",
+            r#"{"version":2,"saved_at_unix_ms":0,"records":[]}"#,
+            r#"{"version":1,"saved_at_unix_ms":0,"records":[{"addr":"x","window":1,"rtt_ns":1,"age_ms":0}]}"#,
+            r#"{"version":1,"saved_at_unix_ms":0,"records":[],"extra":1}"#,
+            r#"{"version":1,"saved_at_unix_ms":0,"records":[{"addr":"10.0.0.1","window":-1,"rtt_ns":1,"age_ms":0}]}"#,
+        ] {
+            std::fs::write(&file, text).unwrap();
+            let e = m.load(&file, Instant::now()).unwrap_err();
+            assert!(matches!(e, PathFileError::Format { .. }), "{text}: {e}");
+            assert!(e.to_string().contains(PATHS_FILE), "{e}");
+        }
+        std::fs::write(&file, vec![b' '; MAX_PATHS_FILE_BYTES as usize + 1]).unwrap();
+        assert!(matches!(
+            m.load(&file, Instant::now()),
+            Err(PathFileError::TooLarge { .. })
+        ));
+        // Absurd values in a well-formed file are left out, not trusted.
+        std::fs::write(
+            &file,
+            format!(
+                r#"{{"version":1,"saved_at_unix_ms":{},"records":[
+                {{"addr":"10.0.0.1","window":0,"rtt_ns":1000000,"age_ms":0}},
+                {{"addr":"10.0.0.2","window":1000000,"rtt_ns":0,"age_ms":0}},
+                {{"addr":"10.0.0.3","window":1000000,"rtt_ns":1000000,"age_ms":18446744073709551615}},
+                {{"addr":"10.0.0.4","window":18446744073709551615,"rtt_ns":18446744073709551615,"age_ms":0}}]}}"#,
+                unix_ms(SystemTime::now())
+            ),
+        )
+        .unwrap();
+        assert_eq!(m.load(&file, Instant::now()).unwrap(), 1);
+        assert_eq!(
+            m.poll_resume(ip(4), Instant::now(), 128 << 10)
+                .unwrap()
+                .jump,
+            MAX_JUMP
+        );
+        assert_eq!(m.len(), 1);
     }
 
     #[test]

@@ -51,6 +51,7 @@ use tokio::task::JoinHandle;
 
 use super::config::{ConfigError, ServeConfig};
 use super::connection;
+use super::path_memory;
 use super::shared::{CLOSE_FLUSH, Core, Shared};
 use super::shutdown::{self, Shutdown, ShutdownTrigger};
 use super::state::ServiceState;
@@ -270,6 +271,7 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
         Shared::new(config, pool.clone(), state.clone()).with_server_config(server_config),
     );
 
+    load_paths(&shared);
     let dispatcher = tokio::spawn(dispatch(shared.clone(), shutdown.clone()));
     state.set_ready(true);
     tracing::info!(
@@ -435,5 +437,34 @@ async fn supervise(
         tracing::debug!("endpoint not idle within {WAIT_IDLE_BOUND:?}");
     }
     dispatcher.abort();
+    save_paths(&shared);
     tracing::info!("stopped");
+}
+
+/// Reads the path memory a previous run saved (`path_memory::PATHS_FILE`); a file that cannot
+/// be read is logged, and the service starts without it.
+fn load_paths(shared: &Shared) {
+    if shared.config.path_memory().is_zero() {
+        return;
+    }
+    let file = shared.config.data_dir().join(path_memory::PATHS_FILE);
+    match shared.state.paths().load(&file, std::time::Instant::now()) {
+        Ok(0) => {}
+        Ok(n) => {
+            tracing::info!(file = %file.display(), "remembering the paths of {n} client addresses")
+        }
+        Err(e) => tracing::warn!("path memory not loaded, starting without it: {e}"),
+    }
+}
+
+/// Writes the path memory for the next run, once every connection has ended.
+fn save_paths(shared: &Shared) {
+    if shared.config.path_memory().is_zero() {
+        return;
+    }
+    let file = shared.config.data_dir().join(path_memory::PATHS_FILE);
+    match shared.state.paths().save(&file, std::time::Instant::now()) {
+        Ok(n) => tracing::debug!(file = %file.display(), "saved the paths of {n} client addresses"),
+        Err(e) => tracing::warn!("path memory not saved: {e}"),
+    }
 }
