@@ -1162,13 +1162,71 @@ async fn graceful_shutdown_ends_the_server() {
 }
 
 #[tokio::test]
+async fn remembered_paths_are_listed_and_forgotten_through_the_api() {
+    let f = start(false, TOKEN).await;
+    let auth_value = bearer(TOKEN);
+    let auth = [("Authorization", auth_value.as_str())];
+    {
+        let mut paths = f.state.paths();
+        paths.set_lifetime(Duration::from_secs(600));
+        paths.set_initial_window(128 << 10);
+        let now = std::time::Instant::now();
+        paths.handle_close(
+            "10.1.2.3".parse().unwrap(),
+            now,
+            1 << 20,
+            Duration::from_millis(50),
+        );
+        paths.handle_close(
+            "::1".parse().unwrap(),
+            now,
+            200 << 10,
+            Duration::from_micros(300),
+        );
+    }
+    let r = get(f.addr, "/v1/paths", &[]).await;
+    assert_eq!(r.status, 401, "no token");
+    let r = http(f.addr, "DELETE", "/v1/paths", &[], b"").await;
+    assert_eq!(r.status, 401, "no token");
+    assert_eq!(f.state.paths().len(), 2, "a refused DELETE forgets nothing");
+
+    let r = get(f.addr, "/v1/paths", &auth).await;
+    assert_eq!(r.status, 200, "{r:?}");
+    let v = r.json();
+    let list = v.as_array().unwrap();
+    assert_eq!(list.len(), 2, "{v}");
+    let far = list.iter().find(|p| p["addr"] == "10.1.2.3").unwrap();
+    assert_eq!(far["window_bytes"], 1 << 20);
+    assert_eq!(far["jump_bytes"], 512 << 10);
+    assert_eq!(far["rtt_ms"], 50.0);
+    assert!(far["age_s"].as_f64().unwrap() >= 0.0);
+    let near = list.iter().find(|p| p["addr"] == "::1").unwrap();
+    assert_eq!(
+        near["jump_bytes"], 0,
+        "half of 200 KiB is not above the initial window"
+    );
+
+    let r = http(f.addr, "DELETE", "/v1/paths", &auth, b"").await;
+    assert_eq!(r.status, 200, "{r:?}");
+    assert_eq!(r.json()["forgotten"], 2);
+    let r = get(f.addr, "/v1/paths", &auth).await;
+    assert_eq!(r.json(), serde_json::json!([]));
+}
+
+#[tokio::test]
 async fn the_probe_token_opens_readiness_only() {
     let f = start(false, TOKEN).await;
     f.state.set_ready(true);
     let probe = bearer(PROBE);
     let r = get(f.addr, "/readyz", &[("Authorization", probe.as_str())]).await;
     assert_eq!(r.status, 200, "probe token on /readyz");
-    for path in ["/metrics", "/v1/scenes", "/v1/sessions", "/v1/server"] {
+    for path in [
+        "/metrics",
+        "/v1/scenes",
+        "/v1/sessions",
+        "/v1/server",
+        "/v1/paths",
+    ] {
         let r = get(f.addr, path, &[("Authorization", probe.as_str())]).await;
         assert_eq!(r.status, 401, "probe token accepted on {path}");
     }

@@ -11,6 +11,8 @@
 //! | `GET /v1/scenes/{name}` | token  | one scene, `404` JSON error when unknown                 |
 //! | `GET /v1/sessions`      | token  | JSON array of live connections and their counters        |
 //! | `GET /v1/server`        | token  | fingerprint, readiness, shutting down, uptime, version   |
+//! | `GET /v1/paths`         | token  | JSON array of remembered client paths (path memory)      |
+//! | `DELETE /v1/paths`      | token  | forgets them (after a network change): `{"forgotten": n}` |
 //! | `POST /v1/scenes`       | token  | JSON import request: `202` + import id (see below)       |
 //! | `DELETE /v1/scenes/{name}` | token | removes a scene; its sessions finish on it            |
 //! | `GET /v1/imports`       | token  | JSON array of imports (queued, running, last finished)   |
@@ -131,6 +133,7 @@ pub fn router_with_imports(ctx: AdminContext, imports: Option<LiveImports>) -> R
         .route("/v1/imports", get(imports::list))
         .route("/v1/imports/{id}", get(imports::status))
         .route("/v1/sessions", get(sessions))
+        .route("/v1/paths", get(paths).delete(forget_paths))
         .route("/v1/server", get(server))
         .route_layer(middleware::from_fn_with_state(app.clone(), require_auth));
     Router::new()
@@ -372,6 +375,17 @@ async fn scene(
 
 async fn sessions(State(app): State<Shared>) -> Response {
     axum::Json(app.state.sessions()).into_response()
+}
+
+async fn paths(State(app): State<Shared>) -> Response {
+    let views = app.state.paths().snapshot(Instant::now());
+    axum::Json(views).into_response()
+}
+
+async fn forget_paths(State(app): State<Shared>) -> Response {
+    let forgotten = app.state.paths().clear();
+    tracing::info!(forgotten, "path memory cleared through the admin API");
+    axum::Json(serde_json::json!({ "forgotten": forgotten })).into_response()
 }
 
 async fn server(State(app): State<Shared>) -> Response {

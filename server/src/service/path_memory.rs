@@ -115,6 +115,22 @@ pub struct PathRecord {
     pub at: Instant,
 }
 
+/// One remembered path as the admin API shows it (`GET /v1/paths`).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct PathView {
+    /// The client's IP address.
+    pub addr: IpAddr,
+    /// The congestion window its last connection ended with, bytes.
+    pub window_bytes: u64,
+    /// What its next connection would jump to once the path is confirmed, bytes; 0: no jump
+    /// (half the window is not above the initial window).
+    pub jump_bytes: u64,
+    /// The smallest round trip of its last connection, milliseconds.
+    pub rtt_ms: f64,
+    /// Seconds since the record was made.
+    pub age_s: f64,
+}
+
 /// What a new connection on a remembered path may start with.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Resume {
@@ -131,6 +147,9 @@ pub struct PathMemory {
     /// How long a record is used; zero: nothing is remembered.
     lifetime: Duration,
     capacity: usize,
+    /// The window connections start with, for what [`PathMemory::snapshot`] says they would
+    /// jump to.
+    initial_window: u64,
 }
 
 impl Default for PathMemory {
@@ -146,6 +165,7 @@ impl PathMemory {
             records: HashMap::new(),
             lifetime,
             capacity: capacity.max(1),
+            initial_window: 0,
         }
     }
 
@@ -155,6 +175,11 @@ impl PathMemory {
         if lifetime.is_zero() {
             self.records.clear();
         }
+    }
+
+    /// Sets the window connections start with (what [`PathMemory::snapshot`] compares with).
+    pub fn set_initial_window(&mut self, initial_window: u64) {
+        self.initial_window = initial_window;
     }
 
     /// A connection from `peer` ended with `window` bytes of congestion window and `rtt`.
@@ -201,6 +226,28 @@ impl PathMemory {
         })
     }
 
+    /// The records in use at `now`, newest first, with what each would resume.
+    pub fn snapshot(&mut self, now: Instant) -> Vec<PathView> {
+        self.expire(now);
+        let initial_window = self.initial_window;
+        let mut views: Vec<PathView> = self
+            .records
+            .iter()
+            .map(|(addr, r)| {
+                let jump = (r.window / 2).min(MAX_JUMP);
+                PathView {
+                    addr: *addr,
+                    window_bytes: r.window,
+                    jump_bytes: if jump > initial_window { jump } else { 0 },
+                    rtt_ms: r.rtt.as_secs_f64() * 1e3,
+                    age_s: now.saturating_duration_since(r.at).as_secs_f64(),
+                }
+            })
+            .collect();
+        views.sort_by(|a, b| a.age_s.total_cmp(&b.age_s).then(a.addr.cmp(&b.addr)));
+        views
+    }
+
     /// The record of `peer`, if one is kept.
     pub fn get(&self, peer: IpAddr) -> Option<&PathRecord> {
         self.records.get(&peer)
@@ -216,9 +263,12 @@ impl PathMemory {
         self.records.is_empty()
     }
 
-    /// Forgets every path (benchmarks measure first contacts with it).
-    pub fn clear(&mut self) {
+    /// Forgets every path (benchmarks measure first contacts with it; `DELETE /v1/paths`);
+    /// returns how many were kept.
+    pub fn clear(&mut self) -> usize {
+        let n = self.records.len();
         self.records.clear();
+        n
     }
 
     /// Writes the records still in use at `now` to `path` (a temporary file, then renamed):

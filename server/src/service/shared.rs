@@ -63,7 +63,11 @@ impl Shared {
         let max_in_flight = config.max_connections.saturating_mul(config.window_max);
         let caches = ServiceCaches::for_config(&config);
         state.set_caches(caches.clone());
-        state.paths().set_lifetime(config.path_memory());
+        {
+            let mut paths = state.paths();
+            paths.set_lifetime(config.path_memory());
+            paths.set_initial_window(config.initial_window);
+        }
         Self {
             pool,
             state,
