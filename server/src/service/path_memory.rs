@@ -209,39 +209,36 @@ impl PathMemory {
         );
     }
 
-    /// What a new connection from `peer` may resume, given the `initial_window` it would start
-    /// with: `None` when nothing recent is known or the jump would not exceed it.
-    pub fn poll_resume(
-        &mut self,
-        peer: IpAddr,
-        now: Instant,
-        initial_window: u64,
-    ) -> Option<Resume> {
+    /// What a new connection from `peer` may resume: `None` when nothing recent is known or
+    /// the jump would not exceed the initial window ([`PathMemory::set_initial_window`]).
+    pub fn poll_resume(&mut self, peer: IpAddr, now: Instant) -> Option<Resume> {
         self.expire(now);
         let record = self.records.get(&peer)?;
-        let jump = (record.window / 2).min(MAX_JUMP);
-        (jump > initial_window).then_some(Resume {
-            jump,
+        Some(Resume {
+            jump: self.jump(record)?,
             rtt: record.rtt,
         })
+    }
+
+    /// The window a connection on `record`'s path jumps to: half the saved window, at most
+    /// [`MAX_JUMP`]; `None` when that is not above the initial window.
+    fn jump(&self, record: &PathRecord) -> Option<u64> {
+        let jump = (record.window / 2).min(MAX_JUMP);
+        (jump > self.initial_window).then_some(jump)
     }
 
     /// The records in use at `now`, newest first, with what each would resume.
     pub fn snapshot(&mut self, now: Instant) -> Vec<PathView> {
         self.expire(now);
-        let initial_window = self.initial_window;
         let mut views: Vec<PathView> = self
             .records
             .iter()
-            .map(|(addr, r)| {
-                let jump = (r.window / 2).min(MAX_JUMP);
-                PathView {
-                    addr: *addr,
-                    window_bytes: r.window,
-                    jump_bytes: if jump > initial_window { jump } else { 0 },
-                    rtt_ms: r.rtt.as_secs_f64() * 1e3,
-                    age_s: now.saturating_duration_since(r.at).as_secs_f64(),
-                }
+            .map(|(addr, r)| PathView {
+                addr: *addr,
+                window_bytes: r.window,
+                jump_bytes: self.jump(r).unwrap_or(0),
+                rtt_ms: r.rtt.as_secs_f64() * 1e3,
+                age_s: now.saturating_duration_since(r.at).as_secs_f64(),
             })
             .collect();
         views.sort_by(|a, b| a.age_s.total_cmp(&b.age_s).then(a.addr.cmp(&b.addr)));
@@ -639,31 +636,29 @@ mod tests {
     fn a_returning_address_resumes_at_half_its_window_until_the_record_expires() {
         let t0 = Instant::now();
         let mut m = PathMemory::new(Duration::from_secs(600), 16);
-        assert_eq!(m.poll_resume(ip(1), t0, 128 << 10), None, "nothing known");
+        m.set_initial_window(128 << 10);
+        assert_eq!(m.poll_resume(ip(1), t0), None, "nothing known");
         m.handle_close(ip(1), t0, 1 << 20, 50 * MS);
         assert_eq!(
-            m.poll_resume(ip(1), t0 + MS, 128 << 10),
+            m.poll_resume(ip(1), t0 + MS),
             Some(Resume {
                 jump: 512 << 10,
                 rtt: 50 * MS
             })
         );
-        assert_eq!(m.poll_resume(ip(2), t0, 128 << 10), None, "another address");
+        assert_eq!(m.poll_resume(ip(2), t0), None, "another address");
         // A window not worth a jump: half of it is below the initial window.
         m.handle_close(ip(3), t0, 200 << 10, 50 * MS);
-        assert_eq!(m.poll_resume(ip(3), t0, 128 << 10), None);
+        assert_eq!(m.poll_resume(ip(3), t0), None);
         // Huge windows are capped.
         m.handle_close(ip(4), t0, u64::MAX, 50 * MS);
-        assert_eq!(m.poll_resume(ip(4), t0, 128 << 10).unwrap().jump, MAX_JUMP);
+        assert_eq!(m.poll_resume(ip(4), t0).unwrap().jump, MAX_JUMP);
         // Nothing learned from zeros.
         m.handle_close(ip(5), t0, 0, 50 * MS);
         m.handle_close(ip(6), t0, 1 << 20, Duration::ZERO);
         assert!(m.get(ip(5)).is_none() && m.get(ip(6)).is_none());
         // Expired after the lifetime.
-        assert_eq!(
-            m.poll_resume(ip(1), t0 + Duration::from_secs(600), 128 << 10),
-            None
-        );
+        assert_eq!(m.poll_resume(ip(1), t0 + Duration::from_secs(600)), None);
         assert!(m.is_empty(), "expired records are dropped");
     }
 
@@ -809,6 +804,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let file = dir.path().join(PATHS_FILE);
         let mut m = PathMemory::new(Duration::from_secs(600), 16);
+        m.set_initial_window(128 << 10);
         assert_eq!(
             m.load(&file, Instant::now()).unwrap(),
             0,
@@ -845,12 +841,7 @@ mod tests {
         )
         .unwrap();
         assert_eq!(m.load(&file, Instant::now()).unwrap(), 1);
-        assert_eq!(
-            m.poll_resume(ip(4), Instant::now(), 128 << 10)
-                .unwrap()
-                .jump,
-            MAX_JUMP
-        );
+        assert_eq!(m.poll_resume(ip(4), Instant::now()).unwrap().jump, MAX_JUMP);
         assert_eq!(m.len(), 1);
     }
 

@@ -102,10 +102,7 @@ impl Shared {
         if self.config.path_memory().is_zero() {
             return None;
         }
-        let resume =
-            self.state
-                .paths()
-                .poll_resume(peer, Instant::now(), self.config.initial_window);
+        let resume = self.state.paths().poll_resume(peer, Instant::now());
         let observer = Arc::new(PathObserver::default());
         let factory = PathFactory {
             cubic: Arc::new(cubic_config(&self.config)),
