@@ -27,6 +27,14 @@
 //!   from the second list). What any policy would reach knowing the view's needs in advance,
 //!   with no client work: the limit plus what the transport adds (QUIC slow start from the
 //!   server's initial window, queueing, acknowledgement timing).
+//! * the **joint floors** of the jump over the link, printed once under the jump's first row:
+//!   the same raw client fetching, from connecting, the first view's needs and then, in the
+//!   same list, the jump's (an oracle of the jump), and the first view's needs and those of
+//!   [`JUMP_DIRECTIONS`] jump cameras (what a policy that cannot know the next camera must
+//!   hold to be ready for it), each against the first view's limit. A policy faster than the
+//!   frustum policy on the jump (a cycle or two: the frustum policy's first view fetched its
+//!   whole frustum) must hold the jump's needs when its first view converges, so these floors
+//!   bound from below what its first view can reach.
 //!
 //! Prints tables; writes each run's CSV and one chart with every variant of the case "lion,
 //! static, link" to `target/refine/`. No assertion on time.
@@ -335,6 +343,7 @@ fn main() {
         for jump in [false, true] {
             for transport in [Transport::Loopback, Transport::Link] {
                 let mut floor: Option<Option<f64>> = None;
+                let mut joint_printed = false;
                 for v in VARIANTS {
                     let label = format!(
                         "{name}/{}/{}/{}",
@@ -370,6 +379,22 @@ fn main() {
                             .then(|| transport_floor(&runtime, &served, jump, repeats))
                     });
                     print_row(name, jump, transport, v, &o, range, floor);
+                    if floor.is_some() && jump && !joint_printed {
+                        joint_printed = true;
+                        let j = joint_floor(&runtime, &served, repeats);
+                        println!(
+                            "    both views' needs in one list from connecting (an oracle of the \
+                             jump): {:.3} s = {:.2}× the first view's limit {:.3} s; the first \
+                             view's and {JUMP_DIRECTIONS} jump directions' needs ({:.2} MB, \
+                             what a policy must hold to be ready for any jump): {:.3} s = {:.2}×",
+                            j.oracle,
+                            j.oracle / j.limit,
+                            j.limit,
+                            j.every_bytes as f64 / 1e6,
+                            j.every,
+                            j.every / j.limit
+                        );
+                    }
                     if let Some(t) = &o.timeline {
                         println!("    {t}");
                     }
@@ -528,6 +553,87 @@ fn transport_floor(
     times[runs / 2]
 }
 
+/// Jump directions whose needs [`joint_floor`] gathers for a policy that cannot know the next
+/// camera (the bench's jump is the first of them).
+const JUMP_DIRECTIONS: u32 = 64;
+
+/// What [`joint_floor`] measured.
+struct JointFloor {
+    /// The first view's physical limit, seconds.
+    limit: f64,
+    /// Both views' needs in one list, seconds from connecting (median).
+    oracle: f64,
+    /// The first view's and every jump direction's needs in one list (median).
+    every: f64,
+    every_bytes: u64,
+}
+
+/// The jump case's joint floors (module docs), medians of `runs`: the first view's needs and
+/// the jump's in one list from connecting, the first view's ranked first — what a policy
+/// faster than the frustum policy on the jump (whose view must be resident when the first one
+/// converges) could reach at best if it knew the jump — and the same with the needs of
+/// [`JUMP_DIRECTIONS`] jump cameras, what a policy must hold when it cannot know the jump.
+fn joint_floor(runtime: &tokio::runtime::Runtime, served: &Served, runs: usize) -> JointFloor {
+    let frame = SceneFrame::of(&served.scene);
+    let first = CameraPath::Static.camera(0, &frame, SEED, SIZE, SIZE);
+    let first_needs = needed(served, &frame, &first, 1.0);
+    let jump_needs = |k: u32| -> HashSet<TreeletId> {
+        let camera = CameraPath::Jump { every: 1 }.camera(k, &frame, SEED, SIZE, SIZE);
+        needed(served, &frame, &camera, 1.0)
+            .difference(&first_needs)
+            .copied()
+            .collect()
+    };
+    let oracle_needs = jump_needs(1);
+    let every_needs: HashSet<TreeletId> = (1..=JUMP_DIRECTIONS).flat_map(jump_needs).collect();
+    let bytes = |set: &HashSet<TreeletId>| -> u64 {
+        set.iter().map(|id| served.wire_bytes[id.0 as usize]).sum()
+    };
+    let rtt = 2.0 * DELAY.as_secs_f64();
+    let limit = bytes(&first_needs) as f64 / RATE as f64 + 2.0 * rtt;
+    let median = |then: &HashSet<TreeletId>| {
+        let mut times: Vec<f64> = (0..runs)
+            .map(|_| {
+                runtime.block_on(async {
+                    first_contact_unless_returning(served);
+                    let link =
+                        LinkEmulator::start(served.server.quic_addr, LinkConfig::wan(DELAY, RATE))
+                            .await
+                            .unwrap();
+                    let mut client = floor_client(served, &link);
+                    let start = Instant::now();
+                    fetch_tiers(&mut client, served, &[&first_needs, then]).await;
+                    let took = start.elapsed();
+                    client.close().await;
+                    link.shutdown().await;
+                    took.as_secs_f64()
+                })
+            })
+            .collect();
+        times.sort_by(f64::total_cmp);
+        times[runs / 2]
+    };
+    JointFloor {
+        limit,
+        oracle: median(&oracle_needs),
+        every: median(&every_needs),
+        every_bytes: bytes(&first_needs) + bytes(&every_needs),
+    }
+}
+
+/// A raw treelet client of `served` through `link`, every channel.
+fn floor_client(served: &Served, link: &LinkEmulator) -> TreeletClient {
+    let url = ServerUrl {
+        host: link.local_addr().ip().to_string(),
+        port: link.local_addr().port(),
+        scene: served.scene.name.clone(),
+    };
+    let config = ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
+        .with_token(TOKEN)
+        .with_channels(served.scene.layout.channels().iter().copied());
+    TreeletClient::start(config).unwrap()
+}
+
 async fn floor_once(
     served: &Served,
     first: &HashSet<TreeletId>,
@@ -537,18 +643,10 @@ async fn floor_once(
     let link = LinkEmulator::start(served.server.quic_addr, LinkConfig::wan(DELAY, RATE))
         .await
         .unwrap();
-    let url = ServerUrl {
-        host: link.local_addr().ip().to_string(),
-        port: link.local_addr().port(),
-        scene: served.scene.name.clone(),
-    };
-    let config = ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
-        .with_token(TOKEN)
-        .with_channels(served.scene.layout.channels().iter().copied());
     // The list goes out with the connection (the client sends its latest list on connecting),
     // so the static floor counts the handshake as the limit does.
     let start = Instant::now();
-    let mut client = TreeletClient::start(config).unwrap();
+    let mut client = floor_client(served, &link);
     fetch_all(&mut client, served, first).await;
     let took = match jump {
         None => start.elapsed(),
@@ -566,6 +664,15 @@ async fn fetch_all(
     served: &Served,
     wanted: &HashSet<TreeletId>,
 ) -> Duration {
+    fetch_tiers(client, served, &[wanted]).await
+}
+
+/// [`fetch_all`] of several sets in one list, each set ranked below the one before.
+async fn fetch_tiers(
+    client: &mut TreeletClient,
+    served: &Served,
+    tiers: &[&HashSet<TreeletId>],
+) -> Duration {
     let level = |mut id: TreeletId| {
         let mut level = 0u32;
         while id != TreeletId::ROOT && !id.is_none() {
@@ -574,10 +681,18 @@ async fn fetch_all(
         }
         level
     };
-    let list: Vec<(TreeletId, f32)> = wanted.iter().map(|&id| (id, -(level(id) as f32))).collect();
+    let list: Vec<(TreeletId, f32)> = tiers
+        .iter()
+        .enumerate()
+        .flat_map(|(tier, wanted)| {
+            wanted
+                .iter()
+                .map(move |&id| (id, -((tier as u32 * 1000 + level(id)) as f32)))
+        })
+        .collect();
     let t = Instant::now();
     client.request(list).unwrap();
-    let mut left: HashSet<TreeletId> = wanted.clone();
+    let mut left: HashSet<TreeletId> = tiers.iter().flat_map(|w| w.iter().copied()).collect();
     while !left.is_empty() {
         match tokio::time::timeout(Duration::from_secs(60), client.next_event()).await {
             Ok(Some(ClientEvent::Treelet(tr))) => {
