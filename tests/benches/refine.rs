@@ -553,6 +553,13 @@ fn transport_floor(
     times[runs / 2]
 }
 
+/// The physical limit of `bytes` over the link (module docs): their time at the link's rate,
+/// one round trip for the request, and one more for the handshake of a fresh connection.
+fn physical_limit(bytes: u64, handshake: bool) -> f64 {
+    let rtt = 2.0 * DELAY.as_secs_f64();
+    bytes as f64 / RATE as f64 + rtt + if handshake { rtt } else { 0.0 }
+}
+
 /// Jump directions whose needs [`joint_floor`] gathers for a policy that cannot know the next
 /// camera (the bench's jump is the first of them).
 const JUMP_DIRECTIONS: u32 = 64;
@@ -589,8 +596,7 @@ fn joint_floor(runtime: &tokio::runtime::Runtime, served: &Served, runs: usize) 
     let bytes = |set: &HashSet<TreeletId>| -> u64 {
         set.iter().map(|id| served.wire_bytes[id.0 as usize]).sum()
     };
-    let rtt = 2.0 * DELAY.as_secs_f64();
-    let limit = bytes(&first_needs) as f64 / RATE as f64 + 2.0 * rtt;
+    let limit = physical_limit(bytes(&first_needs), true);
     let median = |then: &HashSet<TreeletId>| {
         let mut times: Vec<f64> = (0..runs)
             .map(|_| {
@@ -962,8 +968,7 @@ fn judge(
             .iter()
             .map(|id| served.wire_bytes[id.0 as usize])
             .sum();
-        let rtt = 2.0 * DELAY.as_secs_f64();
-        bytes as f64 / RATE as f64 + rtt + if handshake { rtt } else { 0.0 }
+        physical_limit(bytes, handshake)
     });
     Outcome {
         error0,
