@@ -227,8 +227,6 @@ struct Outcome {
     rest_bytes: Option<u64>,
 }
 
-/// How long the first view rests after converging before the jump (`ARBOR_REFINE_REST_MS`,
-/// default 0: the jump comes right at convergence).
 /// Whether the bench measures returning clients (`ARBOR_REFINE_RETURNING=1`, module docs).
 fn returning() -> bool {
     std::env::var("ARBOR_REFINE_RETURNING").is_ok_and(|v| v == "1")
@@ -241,6 +239,8 @@ fn first_contact_unless_returning(served: &Served) {
     }
 }
 
+/// How long the first view rests after converging before the jump (`ARBOR_REFINE_REST_MS`,
+/// default 0: the jump comes right at convergence).
 fn rest_before_jump() -> Duration {
     Duration::from_millis(
         std::env::var("ARBOR_REFINE_REST_MS")
@@ -343,6 +343,7 @@ fn main() {
         for jump in [false, true] {
             for transport in [Transport::Loopback, Transport::Link] {
                 let mut floor: Option<Option<f64>> = None;
+                let mut needs: Option<CaseNeeds> = None;
                 let mut joint_printed = false;
                 for v in VARIANTS {
                     let label = format!(
@@ -375,13 +376,26 @@ fn main() {
                     // A rest leaves more resident than the first view's needs, which the floor's
                     // jump assumes: no floor then.
                     let floor = *floor.get_or_insert_with(|| {
-                        (transport == Transport::Link && !(jump && o.rest_bytes.is_some()))
-                            .then(|| transport_floor(&runtime, &served, jump, repeats))
+                        (transport == Transport::Link && !(jump && o.rest_bytes.is_some())).then(
+                            || {
+                                let n = needs.get_or_insert_with(|| case_needs(&served, jump));
+                                transport_floor(&runtime, &served, n, repeats)
+                            },
+                        )
                     });
                     print_row(name, jump, transport, v, &o, range, floor);
-                    if floor.is_some() && jump && !joint_printed {
+                    // With a floor measured, the case's needs are known.
+                    if let (
+                        Some(_),
+                        Some(CaseNeeds {
+                            first,
+                            jump: Some(oracle),
+                        }),
+                    ) = (floor, &needs)
+                        && !joint_printed
+                    {
                         joint_printed = true;
-                        let j = joint_floor(&runtime, &served, repeats);
+                        let j = joint_floor(&runtime, &served, first, oracle, repeats);
                         println!(
                             "    both views' needs in one list from connecting (an oracle of the \
                              jump): {:.3} s = {:.2}× the first view's limit {:.3} s; the first \
@@ -527,30 +541,55 @@ fn print_row(
     );
 }
 
+/// What a case's views need: the first view's treelets, and for a jump those of the jump's
+/// camera not among them.
+struct CaseNeeds {
+    first: HashSet<TreeletId>,
+    jump: Option<HashSet<TreeletId>>,
+}
+
+fn case_needs(served: &Served, jump: bool) -> CaseNeeds {
+    let first = camera_needs(served, 0, None);
+    let jump = jump.then(|| camera_needs(served, 1, Some(&first)));
+    CaseNeeds { first, jump }
+}
+
+/// What camera `k` of the bench's path needs (0: the static first view, `k` ≥ 1: the `k`-th
+/// jump), less `known`.
+fn camera_needs(served: &Served, k: u32, known: Option<&HashSet<TreeletId>>) -> HashSet<TreeletId> {
+    let frame = SceneFrame::of(&served.scene);
+    let path = if k == 0 {
+        CameraPath::Static
+    } else {
+        CameraPath::Jump { every: 1 }
+    };
+    let camera = path.camera(k, &frame, SEED, SIZE, SIZE);
+    let mut needs = needed(served, &frame, &camera, 1.0);
+    if let Some(known) = known {
+        needs.retain(|id| !known.contains(id));
+    }
+    needs
+}
+
+/// The median of `runs` measurements.
+fn median_of(runs: usize, measure: impl FnMut(usize) -> f64) -> f64 {
+    let mut times: Vec<f64> = (0..runs).map(measure).collect();
+    times.sort_by(f64::total_cmp);
+    times[runs / 2]
+}
+
 /// The transport floor of a case (module docs), the median of `runs` measurements: a raw
 /// treelet client whose first list names exactly the first view's needed treelets, parents
-/// first; for `jump`, then the jump's needed treelets not yet received, timed from that list.
+/// first; for a jump, then the jump's needed treelets not yet received, timed from that list.
 fn transport_floor(
     runtime: &tokio::runtime::Runtime,
     served: &Served,
-    jump: bool,
+    needs: &CaseNeeds,
     runs: usize,
 ) -> f64 {
-    let frame = SceneFrame::of(&served.scene);
-    let first = CameraPath::Static.camera(0, &frame, SEED, SIZE, SIZE);
-    let first_needs = needed(served, &frame, &first, 1.0);
-    let jump_needs: Option<HashSet<TreeletId>> = jump.then(|| {
-        let camera = CameraPath::Jump { every: 1 }.camera(1, &frame, SEED, SIZE, SIZE);
-        needed(served, &frame, &camera, 1.0)
-            .difference(&first_needs)
-            .copied()
-            .collect()
-    });
-    let mut times: Vec<f64> = (0..runs)
-        .map(|_| runtime.block_on(floor_once(served, &first_needs, jump_needs.as_ref())))
-        .collect();
-    times.sort_by(f64::total_cmp);
-    times[runs / 2]
+    median_of(runs, |_| {
+        runtime.block_on(floor_once(served, &[&needs.first], needs.jump.as_ref()))
+    })
 }
 
 /// The physical limit of `bytes` over the link (module docs): their time at the link's rate,
@@ -580,50 +619,30 @@ struct JointFloor {
 /// faster than the frustum policy on the jump (whose view must be resident when the first one
 /// converges) could reach at best if it knew the jump — and the same with the needs of
 /// [`JUMP_DIRECTIONS`] jump cameras, what a policy must hold when it cannot know the jump.
-fn joint_floor(runtime: &tokio::runtime::Runtime, served: &Served, runs: usize) -> JointFloor {
-    let frame = SceneFrame::of(&served.scene);
-    let first = CameraPath::Static.camera(0, &frame, SEED, SIZE, SIZE);
-    let first_needs = needed(served, &frame, &first, 1.0);
-    let jump_needs = |k: u32| -> HashSet<TreeletId> {
-        let camera = CameraPath::Jump { every: 1 }.camera(k, &frame, SEED, SIZE, SIZE);
-        needed(served, &frame, &camera, 1.0)
-            .difference(&first_needs)
-            .copied()
-            .collect()
-    };
-    let oracle_needs = jump_needs(1);
-    let every_needs: HashSet<TreeletId> = (1..=JUMP_DIRECTIONS).flat_map(jump_needs).collect();
+fn joint_floor(
+    runtime: &tokio::runtime::Runtime,
+    served: &Served,
+    first: &HashSet<TreeletId>,
+    oracle: &HashSet<TreeletId>,
+    runs: usize,
+) -> JointFloor {
+    let mut every = oracle.clone();
+    for k in 2..=JUMP_DIRECTIONS {
+        every.extend(camera_needs(served, k, Some(first)));
+    }
     let bytes = |set: &HashSet<TreeletId>| -> u64 {
         set.iter().map(|id| served.wire_bytes[id.0 as usize]).sum()
     };
-    let limit = physical_limit(bytes(&first_needs), true);
-    let median = |then: &HashSet<TreeletId>| {
-        let mut times: Vec<f64> = (0..runs)
-            .map(|_| {
-                runtime.block_on(async {
-                    first_contact_unless_returning(served);
-                    let link =
-                        LinkEmulator::start(served.server.quic_addr, LinkConfig::wan(DELAY, RATE))
-                            .await
-                            .unwrap();
-                    let mut client = floor_client(served, &link);
-                    let start = Instant::now();
-                    fetch_tiers(&mut client, served, &[&first_needs, then]).await;
-                    let took = start.elapsed();
-                    client.close().await;
-                    link.shutdown().await;
-                    took.as_secs_f64()
-                })
-            })
-            .collect();
-        times.sort_by(f64::total_cmp);
-        times[runs / 2]
+    let joint = |then: &HashSet<TreeletId>| {
+        median_of(runs, |_| {
+            runtime.block_on(floor_once(served, &[first, then], None))
+        })
     };
     JointFloor {
-        limit,
-        oracle: median(&oracle_needs),
-        every: median(&every_needs),
-        every_bytes: bytes(&first_needs) + bytes(&every_needs),
+        limit: physical_limit(bytes(first), true),
+        oracle: joint(oracle),
+        every: joint(&every),
+        every_bytes: bytes(first) + bytes(&every),
     }
 }
 
@@ -640,9 +659,12 @@ fn floor_client(served: &Served, link: &LinkEmulator) -> TreeletClient {
     TreeletClient::start(config).unwrap()
 }
 
+/// One floor measurement from connecting: `first` in one list (each set ranked below the one
+/// before, [`fetch_tiers`]) until all arrived, then, if given, `jump` in a second list, timed
+/// from that list.
 async fn floor_once(
     served: &Served,
-    first: &HashSet<TreeletId>,
+    first: &[&HashSet<TreeletId>],
     jump: Option<&HashSet<TreeletId>>,
 ) -> f64 {
     first_contact_unless_returning(served);
@@ -653,7 +675,7 @@ async fn floor_once(
     // so the static floor counts the handshake as the limit does.
     let start = Instant::now();
     let mut client = floor_client(served, &link);
-    fetch_all(&mut client, served, first).await;
+    fetch_tiers(&mut client, served, first).await;
     let took = match jump {
         None => start.elapsed(),
         Some(jump) => fetch_all(&mut client, served, jump).await,
