@@ -142,6 +142,14 @@ pub enum FrameError {
         /// Position in the list.
         index: usize,
     },
+    /// A deep request list's prefetch start lies beyond its items.
+    #[error("prefetch from item {prefetch_from}, but the list has {count} items")]
+    BadPrefetchStart {
+        /// The start found.
+        prefetch_from: u32,
+        /// The list's items.
+        count: usize,
+    },
     /// An error code this build does not know.
     #[error("unknown error code {0}")]
     UnknownErrorCode(u32),
@@ -213,7 +221,8 @@ impl FrameError {
             | FrameError::BadView(_)
             | FrameError::BadHelloView(_)
             | FrameError::UnknownFlags(_)
-            | FrameError::BadError { .. } => ErrorCode::ProtocolViolation,
+            | FrameError::BadError { .. }
+            | FrameError::BadPrefetchStart { .. } => ErrorCode::ProtocolViolation,
         }
     }
 }
@@ -459,7 +468,9 @@ fn parse_request_list(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
 fn parse_deep_request_list(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
     let seq = r.u64("list seq")?;
     let view = parse_view(r)?;
+    let prefetch_from = r.u32("prefetch start")?;
     let count = list_length(r, 12, "deep request list items")?;
+    check_prefetch_start(prefetch_from, count)?;
     let mut items = Vec::with_capacity(count);
     for index in 0..count {
         let treelet = TreeletId(r.u32("treelet id")?);
@@ -468,7 +479,22 @@ fn parse_deep_request_list(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
         check_deep_item(index, treelet, priority, error)?;
         items.push((treelet, priority, error));
     }
-    Ok(Frame::DeepRequestList { seq, view, items })
+    Ok(Frame::DeepRequestList {
+        seq,
+        view,
+        items,
+        prefetch_from,
+    })
+}
+
+fn check_prefetch_start(prefetch_from: u32, count: usize) -> Result<(), FrameError> {
+    if prefetch_from as usize > count {
+        return Err(FrameError::BadPrefetchStart {
+            prefetch_from,
+            count,
+        });
+    }
+    Ok(())
 }
 
 fn check_deep_item(
@@ -570,16 +596,23 @@ pub fn encode(frame: &Frame) -> Result<Vec<u8>, FrameError> {
                 out.extend_from_slice(&priority.to_bits().to_le_bytes());
             }
         }
-        Frame::DeepRequestList { seq, view, items } => {
+        Frame::DeepRequestList {
+            seq,
+            view,
+            items,
+            prefetch_from,
+        } => {
             if items.len() > MAX_REQUEST_ITEMS {
                 return Err(FrameError::ListTooLong {
                     len: items.len(),
                     limit: MAX_REQUEST_ITEMS,
                 });
             }
-            out.reserve(12 + ViewHint::BYTES + 12 * items.len());
+            check_prefetch_start(*prefetch_from, items.len())?;
+            out.reserve(16 + ViewHint::BYTES + 12 * items.len());
             out.extend_from_slice(&seq.to_le_bytes());
             put_view(&mut out, view)?;
+            out.extend_from_slice(&prefetch_from.to_le_bytes());
             out.extend_from_slice(&(items.len() as u32).to_le_bytes());
             for (index, &(treelet, priority, error)) in items.iter().enumerate() {
                 check_deep_item(index, treelet, priority, error)?;
@@ -1283,9 +1316,10 @@ mod tests {
             seq: 9,
             view: view(),
             items: vec![(TreeletId(5), 3.0, 2.5), (TreeletId(7), 1.0, -64.0)],
+            prefetch_from: 1,
         };
         let bytes = encode(&f).unwrap();
-        assert_eq!(bytes.len(), 5 + 8 + ViewHint::BYTES + 4 + 2 * 12);
+        assert_eq!(bytes.len(), 5 + 8 + ViewHint::BYTES + 4 + 4 + 2 * 12);
         assert_eq!(parse(&bytes).unwrap(), f);
         let mut d = FrameDecoder::for_server();
         assert_eq!(d.push(&bytes), bytes.len());
@@ -1310,13 +1344,15 @@ mod tests {
                 seq: 1,
                 view: view(),
                 items: vec![],
+                prefetch_from: 0,
             })
             .unwrap();
             assert!(
                 encode(&Frame::DeepRequestList {
                     seq: 1,
                     view: v,
-                    items: vec![]
+                    items: vec![],
+                    prefetch_from: 0,
                 })
                 .is_err(),
                 "{what}"
@@ -1345,18 +1381,47 @@ mod tests {
                 seq: 1,
                 view: view(),
                 items: vec![(TreeletId(1), 1.0, error)],
+                prefetch_from: 1,
             };
             assert!(encode(&f).is_err());
             let mut forged = encode(&Frame::DeepRequestList {
                 seq: 1,
                 view: view(),
                 items: vec![(TreeletId(1), 1.0, 0.0)],
+                prefetch_from: 1,
             })
             .unwrap();
             let at = forged.len() - 4;
             forged[at..].copy_from_slice(&error.to_bits().to_le_bytes());
             let e = parse(&forged).unwrap_err();
             assert!(matches!(e, FrameError::BadError { index: 0, .. }), "{e}");
+        }
+        // A prefetch start beyond the items: refused by the encoder, and forged, by the decoder.
+        let two = |prefetch_from| Frame::DeepRequestList {
+            seq: 1,
+            view: view(),
+            items: vec![(TreeletId(1), 2.0, 0.0), (TreeletId(2), 1.0, 0.0)],
+            prefetch_from,
+        };
+        assert!(encode(&two(2)).is_ok());
+        let e = encode(&two(3)).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                FrameError::BadPrefetchStart {
+                    prefetch_from: 3,
+                    count: 2
+                }
+            ),
+            "{e}"
+        );
+        for start in [3, u32::MAX] {
+            let mut forged = encode(&two(0)).unwrap();
+            let at = 5 + 8 + ViewHint::BYTES;
+            forged[at..at + 4].copy_from_slice(&start.to_le_bytes());
+            let e = parse(&forged).unwrap_err();
+            assert!(matches!(e, FrameError::BadPrefetchStart { .. }), "{e}");
+            assert_eq!(e.code(), ErrorCode::ProtocolViolation);
         }
     }
 
@@ -1496,7 +1561,7 @@ mod tests {
             parse(&raw(3, &p)),
             Err(FrameError::TrailingBytes { .. })
         ));
-        let mut p = hello_payload(1, b"lion", &[0], b"");
+        let mut p = hello_payload(PROTOCOL_VERSION, b"lion", &[0], b"");
         // One byte after the token is the flags; unknown flags are refused, and a second byte
         // is trailing.
         p.push(9);
@@ -1582,9 +1647,17 @@ mod tests {
 
     #[test]
     fn bad_strings_are_rejected() {
-        let e = parse(&raw(1, &hello_payload(1, b"li\xffon", &[], b""))).unwrap_err();
+        let e = parse(&raw(
+            1,
+            &hello_payload(PROTOCOL_VERSION, b"li\xffon", &[], b""),
+        ))
+        .unwrap_err();
         assert_eq!(e, FrameError::BadUtf8 { what: "scene name" });
-        let e = parse(&raw(1, &hello_payload(1, b"lion", &[], b"\xc3"))).unwrap_err();
+        let e = parse(&raw(
+            1,
+            &hello_payload(PROTOCOL_VERSION, b"lion", &[], b"\xc3"),
+        ))
+        .unwrap_err();
         assert_eq!(
             e,
             FrameError::BadUtf8 {
@@ -1600,7 +1673,11 @@ mod tests {
         ));
         // Over-long token: decided by its length field.
         let token = vec![b'a'; MAX_TOKEN_BYTES + 1];
-        let e = parse(&raw(1, &hello_payload(1, b"lion", &[], &token))).unwrap_err();
+        let e = parse(&raw(
+            1,
+            &hello_payload(PROTOCOL_VERSION, b"lion", &[], &token),
+        ))
+        .unwrap_err();
         assert!(matches!(
             e,
             FrameError::FieldTooLong {
@@ -1609,7 +1686,7 @@ mod tests {
             }
         ));
         let f = Frame::Hello {
-            version: 1,
+            version: PROTOCOL_VERSION,
             scene: "lion".into(),
             channels: vec![],
             token: "a".repeat(MAX_TOKEN_BYTES + 1),
@@ -1628,7 +1705,7 @@ mod tests {
     #[test]
     fn bad_scene_names_are_rejected() {
         for name in [&b""[..], b".hidden", b"a b", b"../etc", &[b'a'; 129]] {
-            let e = parse(&raw(1, &hello_payload(1, name, &[], b""))).unwrap_err();
+            let e = parse(&raw(1, &hello_payload(PROTOCOL_VERSION, name, &[], b""))).unwrap_err();
             assert!(matches!(e, FrameError::BadSceneName(_)), "{name:?}: {e}");
             assert_eq!(e.code(), ErrorCode::UnknownScene);
         }
@@ -1636,7 +1713,11 @@ mod tests {
 
     #[test]
     fn hello_channel_and_version_errors() {
-        let e = parse(&raw(1, &hello_payload(1, b"lion", &[0; 9], b""))).unwrap_err();
+        let e = parse(&raw(
+            1,
+            &hello_payload(PROTOCOL_VERSION, b"lion", &[0; 9], b""),
+        ))
+        .unwrap_err();
         assert_eq!(
             e,
             FrameError::TooManyChannels {
@@ -1645,19 +1726,28 @@ mod tests {
             }
         );
         assert_eq!(e.code(), ErrorCode::TooManyChannels);
-        let e = parse(&raw(1, &hello_payload(1, b"lion", &[1, 7], b""))).unwrap_err();
+        let e = parse(&raw(
+            1,
+            &hello_payload(PROTOCOL_VERSION, b"lion", &[1, 7], b""),
+        ))
+        .unwrap_err();
         assert_eq!(e, FrameError::UnknownChannel(7));
         assert_eq!(e.code(), ErrorCode::UnknownChannel);
-        let e = parse(&raw(1, &hello_payload(1, b"lion", &[1, 1], b""))).unwrap_err();
+        let e = parse(&raw(
+            1,
+            &hello_payload(PROTOCOL_VERSION, b"lion", &[1, 1], b""),
+        ))
+        .unwrap_err();
         assert_eq!(e, FrameError::DuplicateChannel(Channel::Normal));
         // A future version is answered with UnsupportedVersion whatever follows it.
-        let mut p = 2u16.to_le_bytes().to_vec();
+        let future = PROTOCOL_VERSION + 1;
+        let mut p = future.to_le_bytes().to_vec();
         p.extend_from_slice(b"anything at all");
         let e = parse(&raw(1, &p)).unwrap_err();
-        assert_eq!(e, FrameError::UnsupportedVersion { found: 2 });
+        assert_eq!(e, FrameError::UnsupportedVersion { found: future });
         assert_eq!(e.code(), ErrorCode::UnsupportedVersion);
         let f = Frame::Hello {
-            version: 1,
+            version: PROTOCOL_VERSION,
             scene: "lion".into(),
             channels: vec![Channel::Color; 9],
             token: String::new(),

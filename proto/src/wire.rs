@@ -51,7 +51,7 @@ pub const ALPN: &[u8] = b"arbor/1";
 
 /// Version carried in [`Frame::Hello`]. A server answers any other version with
 /// [`ErrorCode::UnsupportedVersion`].
-pub const PROTOCOL_VERSION: u16 = 1;
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// Why a connection, a stream or a request ended. Sent in [`Frame::Error`] and
 /// [`Frame::Goodbye`], and used unchanged as the QUIC application close code (and stream reset
@@ -244,7 +244,8 @@ pub enum Frame {
     /// this view would refine without waiting to be asked (docs/design.md §10, server-assisted
     /// deep requests): the camera, the slots the client has free, and per item the screen-space
     /// error the client measured at the leaf it refines. Layout: `u64 seq`, the [`ViewHint`]
-    /// (see [`ViewHint::BYTES`]), `u32 count`, `count × (u32 id, f32 priority, f32 error)`.
+    /// (see [`ViewHint::BYTES`]), `u32 prefetch_from`, `u32 count`, `count × (u32 id, f32
+    /// priority, f32 error)`.
     DeepRequestList {
         /// Increases with every list the client sends.
         seq: u64,
@@ -254,6 +255,12 @@ pub enum Frame {
         /// [`crate::limits::MAX_REQUEST_ITEMS`]; priorities finite, errors within
         /// ±[`ViewHint::MAX_ERROR`].
         items: Vec<(TreeletId, f32, f32)>,
+        /// Items from this index on are **prefetch**: the client's guesses from the frustum at
+        /// what this view or the next camera move may need, not what its samples or rays
+        /// found. A server that knows the view's visible cut sends them after the cut's
+        /// pushes and keeps only a few in flight, so a new view's list does not queue behind
+        /// them on the link. At most `items.len()` (then nothing is prefetch).
+        prefetch_from: u32,
     },
     /// Either direction: orderly end. Layout: `u32 code`.
     Goodbye {

@@ -229,6 +229,7 @@ async fn a_resting_view_is_pushed_on_below_what_was_sent_for_it() {
                 ..world
             },
             items: vec![(other, 1.0, 0.0)],
+            prefetch_from: 1,
         })
         .await;
     let more: HashSet<TreeletId> = receive(&c.conn, 1 + pushes as usize, LONG)
@@ -256,6 +257,7 @@ async fn a_resting_view_is_pushed_on_below_what_was_sent_for_it() {
                 ..moved
             },
             items: vec![(another, 1.0, 0.0)],
+            prefetch_from: 1,
         })
         .await;
     let got = receive(&c.conn, 1, LONG).await.unwrap();
@@ -362,7 +364,7 @@ async fn a_resting_view_gets_its_visible_cut_pushed_in_place_of_the_frustum_plan
         ..view
     };
     let cut = ServedScene::new(stored)
-        .visible_cut(&world, CUT_GRID, budget)
+        .visible_cut(&world, CUT_GRID, &[], budget)
         .unwrap();
     assert!(cut.complete);
     let expected: HashSet<TreeletId> = cut.treelets.iter().map(|&(_, id)| id).collect();
@@ -588,6 +590,7 @@ async fn hostile_clients_end_only_their_own_connection() {
         seq: 1,
         view,
         items: vec![(TreeletId(0), 1.0, 3.0)],
+        prefetch_from: 1,
     })
     .unwrap();
     let forge = |at: usize, bytes: &[u8]| {
@@ -599,9 +602,12 @@ async fn hostile_clients_end_only_their_own_connection() {
     let nan_eye = forge(13 + 8, &f64::NAN.to_bits().to_le_bytes());
     let huge_free_slots = forge(13 + ViewHint::BYTES - 4, &u32::MAX.to_le_bytes());
     let absurd_levels = forge(deep.len() - 4, &1.0e6f32.to_bits().to_le_bytes());
+    // The prefetch start follows the view.
+    let prefetch_past_the_items = forge(13 + ViewHint::BYTES, &2u32.to_le_bytes());
     let long_deep_list = {
         let count = MAX_REQUEST_ITEMS as u32 + 1;
         let mut p = deep[5..13 + ViewHint::BYTES].to_vec();
+        p.extend_from_slice(&count.to_le_bytes());
         p.extend_from_slice(&count.to_le_bytes());
         for i in 0..count {
             p.extend_from_slice(&(i % d.treelet_count).to_le_bytes());
@@ -618,6 +624,7 @@ async fn hostile_clients_end_only_their_own_connection() {
         seq: 1,
         view,
         items: vec![(TreeletId(d.treelet_count), 1.0, 3.0)],
+        prefetch_from: 1,
     })
     .unwrap();
 
@@ -697,6 +704,12 @@ async fn hostile_clients_end_only_their_own_connection() {
             "deep list with an error of a million levels",
             true,
             absurd_levels,
+            ErrorCode::ProtocolViolation,
+        ),
+        (
+            "deep list whose prefetch starts past its items",
+            true,
+            prefetch_past_the_items,
             ErrorCode::ProtocolViolation,
         ),
         (
@@ -877,9 +890,9 @@ async fn hostile_clients_end_only_their_own_connection() {
     assert_eq!(server.state.sessions().len(), 1);
     let m = &server.state.metrics;
     assert_eq!(m.errors(ErrorCode::SlowReader), 1);
-    // Garbage twice, a second Hello, three forged deep lists, two forged Hello views, the
+    // Garbage twice, a second Hello, four forged deep lists, two forged Hello views, the
     // silent client.
-    assert_eq!(m.errors(ErrorCode::ProtocolViolation), 9);
+    assert_eq!(m.errors(ErrorCode::ProtocolViolation), 10);
     server.shutdown().await;
 }
 

@@ -254,6 +254,17 @@ fn a_roomy_view_is_topped_up_from_the_frustum_below_every_sampled_item() {
     let (mut whole_frustum, mut with_errors) = (0, 0);
     for plan in with_prefetch {
         let sampled = plan.distinct_requests;
+        // The plan says where its prefetch starts (the deep list's `prefetch_from`): after the
+        // sampled items and the look-past, and every prefetch item ranks below them.
+        assert!(
+            (sampled..plan.requests.len()).contains(&plan.prefetch_from),
+            "prefetch from {} of {} ({sampled} sampled)",
+            plan.prefetch_from,
+            plan.requests.len()
+        );
+        let (found, guessed) = plan.requests.split_at(plan.prefetch_from);
+        let lowest_found = found.iter().map(|r| r.1).fold(f32::INFINITY, f32::min);
+        assert!(guessed.iter().all(|r| r.1 < lowest_found));
         let lowest_sampled = plan.requests[..sampled]
             .iter()
             .map(|r| r.1)
@@ -305,6 +316,7 @@ fn a_roomy_view_is_topped_up_from_the_frustum_below_every_sampled_item() {
     );
     let plans = refine(&mut core, &treelets);
     assert!(plans.iter().all(|p| prefetched(p).is_empty()));
+    assert!(plans.iter().all(|p| p.prefetch_from == p.requests.len()));
 }
 
 #[test]
@@ -347,6 +359,8 @@ fn looking_past_coarse_hits_lists_what_lies_behind_below_every_sampled_item() {
     let plans = refine(&mut core, &treelets);
     let mut looked_past = 0;
     for plan in &plans {
+        // Look-past items are found by rays, not guessed: no prefetch.
+        assert_eq!(plan.prefetch_from, plan.requests.len());
         let sampled = plan.distinct_requests.min(plan.requests.len());
         let lowest_sampled = plan.requests[..sampled]
             .iter()

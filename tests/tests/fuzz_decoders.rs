@@ -179,6 +179,7 @@ fn seeds() -> Seeds {
                         ..view
                     },
                     items: items.iter().map(|&(t, p)| (t, p, 2.5)).collect(),
+                    prefetch_from: items.len() as u32 / 2,
                 })
                 .unwrap(),
             );

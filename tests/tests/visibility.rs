@@ -212,6 +212,51 @@ fn with_the_cut_resident_every_ray_stops_where_the_whole_tree_stops_it() {
 }
 
 #[test]
+fn a_fine_cut_cast_from_a_coarse_one_is_the_coarse_cut_and_the_fine_one_together() {
+    let lion = lion();
+    let caster = lion.caster(lion.whole_scene_bytes() * 2);
+    for (what, camera) in lion.views() {
+        let view = hint(&camera);
+        let coarse = caster.cut(&view, GRID / 4, lion.fetch());
+        let fine = caster.cut(&view, GRID, lion.fetch());
+        let from = caster.cut_from(&view, GRID, &coarse.treelets, lion.fetch());
+        assert!(coarse.complete && fine.complete && from.complete, "{what}");
+        let union: BTreeSet<TreeletId> = ids(&coarse).union(&ids(&fine)).copied().collect();
+        assert_eq!(ids(&from), union, "{what}");
+        assert_eq!(
+            ids(&from).len(),
+            from.treelets.len(),
+            "{what}: each treelet once"
+        );
+        // Parents first still, and fewer rays: the rounds up to the coarse cut are not cast again.
+        let position = |id: TreeletId| from.treelets.iter().position(|&(_, t)| t == id);
+        for &(_, id) in &from.treelets {
+            let parent = lion.treelets[id.0 as usize].treelet.header.parent_id;
+            if parent != TreeletId::ROOT {
+                assert!(
+                    position(parent) < position(id),
+                    "{what}: {parent} before {id}"
+                );
+            }
+        }
+        assert!(
+            from.rays_cast <= fine.rays_cast,
+            "{what}: {} rays",
+            from.rays_cast
+        );
+        assert_eq!(from.grid, GRID);
+    }
+    // A seed that cannot be read makes the cut incomplete.
+    let view = hint(&lion.views()[0].1);
+    let coarse = caster.cut(&view, GRID / 4, lion.fetch());
+    let unreadable = coarse.treelets[0].1;
+    let cut = caster.cut_from(&view, GRID, &coarse.treelets, |id: TreeletId| {
+        (id != unreadable).then(|| nodes_only(&lion.treelets[id.0 as usize]))
+    });
+    assert!(!cut.complete);
+}
+
+#[test]
 fn too_small_a_buffer_or_an_unreadable_treelet_gives_an_incomplete_cut_of_needed_treelets() {
     let lion = lion();
     let view = hint(&lion.views()[0].1);

@@ -389,6 +389,11 @@ pub struct Plan {
     pub requests: Vec<(TreeletId, f32)>,
     /// Per request, the screen-space error (levels) measured at the leaf it refines.
     pub errors: Vec<f32>,
+    /// Requests from this index on are the frustum prefetch ([`CoreConfig::prefetch_below`]):
+    /// guesses, not what the samples or the look-past rays found (`requests.len()`: none). A
+    /// deep list says so to the server, which sends them after a visible cut's pushes and
+    /// keeps few in flight, so the next view's list does not queue behind them.
+    pub prefetch_from: usize,
     /// The view of this cycle for a deep request list, when [`CoreConfig::deep_push`] is on and
     /// the view is expressible (see [`ViewHint::check`]).
     pub view: Option<ViewHint>,
@@ -863,8 +868,10 @@ impl ClientCore {
             }
         }
         self.note_evictions();
+        let mut prefetch_from = requests.len();
         if !bias_changed {
             self.look_past(&mut requests);
+            prefetch_from = requests.len();
             self.prefetch(&mut requests);
         }
         // Ask for no more than could be inserted: with an oversubscribed budget the rest would
@@ -878,6 +885,7 @@ impl ClientCore {
         };
         let room = (room as usize).min(self.backlog_cap());
         requests.truncate(room.saturating_sub(self.pending()));
+        let prefetch_from = prefetch_from.min(requests.len());
         self.evicted_outside += evicted;
         let error = self.error_summary();
         let samples = self.feedback.samples.iter().filter(|s| s.is_hit()).count() as u32;
@@ -891,6 +899,7 @@ impl ClientCore {
         Plan {
             view: self.view_hint(push_budget),
             errors: requests.iter().map(|r| r.error).collect(),
+            prefetch_from,
             requests: requests.iter().map(|r| (r.id, r.priority)).collect(),
             distinct_requests: distinct,
             samples,

@@ -135,13 +135,16 @@ impl TreeletClient {
 
     /// Replaces the request list with a deep one ([`arbor_proto::wire::Frame::DeepRequestList`]):
     /// `(treelet, priority, error in levels)` and the view the errors were measured in, so the
-    /// server may also send the descendants that view would refine. Errors are clamped to
-    /// ±[`ViewHint::MAX_ERROR`].
+    /// server may also send the descendants that view would refine. Items from `prefetch_from`
+    /// on are prefetch (the frame's `prefetch_from`; `items.len()` or more: none). Errors are
+    /// clamped to ±[`ViewHint::MAX_ERROR`].
     pub fn request_deep(
         &self,
         items: Vec<(TreeletId, f32, f32)>,
         view: ViewHint,
+        prefetch_from: usize,
     ) -> Result<(), ClientError> {
+        let prefetch_from = prefetch_from.min(items.len());
         view.check()
             .map_err(|e| ClientError::InvalidRequest(format!("view: {e}")))?;
         if let Some((i, (id, _, e))) = items.iter().enumerate().find(|(_, (_, _, e))| e.is_nan()) {
@@ -156,7 +159,7 @@ impl TreeletClient {
         self.check(&plain)?;
         self.lists.send_replace(Some(Arc::new(Wishes {
             items: plain,
-            deep: Some((view, errors)),
+            deep: Some((view, errors, prefetch_from)),
         })));
         Ok(())
     }

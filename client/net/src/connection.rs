@@ -31,8 +31,9 @@ pub(crate) type RequestList = Arc<Wishes>;
 #[derive(Debug)]
 pub(crate) struct Wishes {
     pub items: Vec<(TreeletId, f32)>,
-    /// The view and the errors, one per item, of a [`Frame::DeepRequestList`].
-    pub deep: Option<(ViewHint, Vec<f32>)>,
+    /// The view, the errors (one per item) and the index of the first prefetch item of a
+    /// [`Frame::DeepRequestList`].
+    pub deep: Option<(ViewHint, Vec<f32>, usize)>,
 }
 
 impl Wishes {
@@ -52,8 +53,8 @@ impl Wishes {
                 (None, None) => true,
                 // Views are checked finite, so `==` is exact (the free slots included); the
                 // errors come one per item, so their lengths already agree.
-                (Some((va, ea)), Some((vb, eb))) => {
-                    va == vb && ea.iter().zip(eb).all(|(&a, &b)| same(a, b))
+                (Some((va, ea, pa)), Some((vb, eb, pb))) => {
+                    va == vb && pa == pb && ea.iter().zip(eb).all(|(&a, &b)| same(a, b))
                 }
                 _ => false,
             }
@@ -473,17 +474,27 @@ async fn send_lists(
                     .filter(|(id, _)| keep(*id))
                     .collect(),
             },
-            Some((view, errors)) => Frame::DeepRequestList {
-                seq,
-                view: *view,
-                items: list
+            Some((view, errors, prefetch_from)) => {
+                // The prefetch start counts the items kept before it.
+                let mut kept_before = 0u32;
+                let items = list
                     .items
                     .iter()
                     .zip(errors)
-                    .filter(|((id, _), _)| keep(*id))
-                    .map(|(&(id, p), &e)| (id, p, e))
-                    .collect(),
-            },
+                    .enumerate()
+                    .filter(|(_, ((id, _), _))| keep(*id))
+                    .map(|(i, (&(id, p), &e))| {
+                        kept_before += u32::from(i < *prefetch_from);
+                        (id, p, e)
+                    })
+                    .collect();
+                Frame::DeepRequestList {
+                    seq,
+                    view: *view,
+                    items,
+                    prefetch_from: kept_before,
+                }
+            }
         };
         let bytes = match encode(&frame) {
             Ok(b) => b,

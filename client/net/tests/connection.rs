@@ -227,9 +227,9 @@ async fn a_list_saying_exactly_what_the_last_said_is_not_sent_again() {
         free_slots: 8,
     };
     let deep = vec![(TreeletId(1), 1.0, 2.0), (TreeletId(2), 1.0, 2.0)];
-    client.request_deep(deep.clone(), view).unwrap();
+    client.request_deep(deep.clone(), view, 2).unwrap();
     wait_handled(&client, 4).await;
-    client.request_deep(deep.clone(), view).unwrap();
+    client.request_deep(deep.clone(), view, 2).unwrap();
     wait_handled(&client, 5).await;
     assert_eq!(
         (client.stats().lists_sent, client.stats().lists_unchanged),
@@ -238,11 +238,12 @@ async fn a_list_saying_exactly_what_the_last_said_is_not_sent_again() {
     // Fewer free slots change the view: sent.
     client
         .request_deep(
-            deep,
+            deep.clone(),
             arbor_proto::wire::ViewHint {
                 free_slots: 7,
                 ..view
             },
+            2,
         )
         .unwrap();
     tokio::time::timeout(WAIT, async {
@@ -254,6 +255,29 @@ async fn a_list_saying_exactly_what_the_last_said_is_not_sent_again() {
     .unwrap();
     assert_eq!(server.log().lists.len(), 4);
     assert_eq!(client.stats().lists_sent, 4);
+    // Another prefetch start changes the list: sent. An id the scene does not have is left
+    // out, and the start counts only the items kept before it.
+    let mut with_unknown = deep.clone();
+    with_unknown.insert(0, (TreeletId(u32::MAX - 1), 3.0, 1.0));
+    for (list, prefetch_from, logged) in [(deep.clone(), 1, 5), (with_unknown, 2, 6)] {
+        client.request_deep(list, view, prefetch_from).unwrap();
+        tokio::time::timeout(WAIT, async {
+            while server.log().lists.len() < logged {
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+        })
+        .await
+        .unwrap();
+    }
+    {
+        let log = server.log();
+        assert_eq!(log.prefetch_starts, [2, 2, 1, 1]);
+        assert_eq!(
+            log.lists[5].2,
+            [(TreeletId(1), 1.0), (TreeletId(2), 1.0)],
+            "the unknown id is not sent"
+        );
+    }
     client.close().await;
     server.stop(ErrorCode::NoError).await;
 }

@@ -236,7 +236,7 @@ impl Session {
                     .zip(&plan.errors)
                     .map(|(&(id, p), &e)| (id, p, e))
                     .collect();
-                self.client.request_deep(items, view)?
+                self.client.request_deep(items, view, plan.prefetch_from)?
             }
             None => self.client.request(plan.requests.clone())?,
         }

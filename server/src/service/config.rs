@@ -19,8 +19,8 @@
 //! path_memory_secs = 600              # a returning client's address resumes its last window for this long; 0: off
 //! message_cache_bytes = 67108864      # built treelet messages kept for sending again, server-wide
 //! shape_cache_bytes = 33554432        # decoded treelet shapes the push plans walk, server-wide
-//! visibility_grid = 0                 # rays along a resting view's longer side for the visible cut its pushes follow; 0: off
-//! visibility_fine_grid = 0            # a second, finer cut of the same view once the first is out; 0: none
+//! visibility_grid = 128               # rays along a resting view's longer side for the visible cut its pushes follow; 0: off
+//! visibility_fine_grid = 512          # a second, finer cut of the same view once the first is out; 0: none
 //! visibility_cache_bytes = 33554432   # node records per scene the visible cuts are cast through
 //! visibility_follow_share = 0.5       # a cut is followed only if it holds at most this share of the frustum plan; 1: always
 //! window_min = 8
@@ -193,14 +193,16 @@ pub struct ServeConfig {
     pub shape_cache_bytes: u64,
     /// Rays along the longer side of a resting deep-request view that the server casts through
     /// its own tree to find the view's visible cut, whose treelets it then pushes
-    /// (`service::visibility`); 0 (the default) turns it off: pushes follow frustum and
-    /// projected size alone. Measured in docs/measurements.md (stop 27): less than the frustum
-    /// plan on a static view, but a client's jump right after converging finds less of its new
-    /// view already there.
+    /// (`service::visibility`); 0 turns it off: pushes follow frustum and projected size alone.
+    /// Default [`DEFAULT_VISIBILITY_GRID`]. Measured in docs/measurements.md (stops 27, 45 and
+    /// 47): engine's static view over the link emulator converges at 1.8× the physical limit
+    /// with cuts and 2.6× without; its camera jump, with the client's prefetch set apart
+    /// (`push::cut_list`), at 1.6× the jump's limit.
     pub visibility_grid: u32,
     /// Rays along the longer side of a second cut of the same view, cast once the first one's
-    /// pushes are out, for what the coarse grid's rays missed; 0: none, else above
-    /// `visibility_grid`.
+    /// pushes are out, for what the coarse grid's rays missed (cast from the coarse cut:
+    /// `visibility::CutCaster::cut_from`); 0: none, else above `visibility_grid`. Default
+    /// [`DEFAULT_VISIBILITY_FINE_GRID`].
     pub visibility_fine_grid: u32,
     /// Bytes of node records per served scene that visible cuts are cast through (allocated by
     /// a scene's first cut).
@@ -259,6 +261,10 @@ pub const DEFAULT_SHAPE_CACHE_BYTES: u64 = 32 << 20;
 /// Largest accepted [`ServeConfig::visibility_grid`] and [`ServeConfig::visibility_fine_grid`]
 /// (a 1024×1024 cast takes about half a second of CPU per view).
 pub const MAX_VISIBILITY_GRID: u32 = 1024;
+/// Default [`ServeConfig::visibility_grid`].
+pub const DEFAULT_VISIBILITY_GRID: u32 = 128;
+/// Default [`ServeConfig::visibility_fine_grid`]: a 512² client frame's own rays.
+pub const DEFAULT_VISIBILITY_FINE_GRID: u32 = 512;
 /// Default [`ServeConfig::visibility_follow_share`]: a cut must save at least half.
 pub const DEFAULT_VISIBILITY_FOLLOW_SHARE: f64 = 0.5;
 /// Default [`ServeConfig::visibility_cache_bytes`]: 32 MiB.
@@ -428,8 +434,8 @@ impl ServeConfig {
             path_memory_secs: DEFAULT_PATH_MEMORY_SECS,
             message_cache_bytes: DEFAULT_MESSAGE_CACHE_BYTES,
             shape_cache_bytes: DEFAULT_SHAPE_CACHE_BYTES,
-            visibility_grid: 0,
-            visibility_fine_grid: 0,
+            visibility_grid: DEFAULT_VISIBILITY_GRID,
+            visibility_fine_grid: DEFAULT_VISIBILITY_FINE_GRID,
             visibility_cache_bytes: DEFAULT_VISIBILITY_CACHE_BYTES,
             visibility_follow_share: DEFAULT_VISIBILITY_FOLLOW_SHARE,
             window_min: 8,

@@ -16,7 +16,9 @@ use tokio::task::JoinSet;
 
 use super::batches::Batches;
 use super::connection::{ControlReader, End, Greeting, close, hello};
-use super::push::{PushAnchors, WorldCube, cut_list, cut_saves, deep_list_anchored, push_cap};
+use super::push::{
+    PlannedList, PushAnchors, WorldCube, cut_list, cut_saves, deep_list_anchored, push_cap,
+};
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
 use super::shared::Shared;
 use super::shutdown::Shutdown;
@@ -77,7 +79,7 @@ pub(super) async fn serve(
     // root, as deep as the view refines (the client has measured nothing yet).
     let first = match (send_root, view) {
         (false, _) => None,
-        (true, None) => handler.on_request_list(0, vec![(root, f32::MAX)], 0),
+        (true, None) => handler.on_request_list(0, PlannedList::plain(vec![(root, f32::MAX)])),
         (true, Some(view)) => handler.on_hello_view(root, &view),
     };
     if let Some(end) = first {
@@ -88,8 +90,8 @@ pub(super) async fn serve(
     end
 }
 
-/// A deep request list as applied: its sequence number, view and items.
-type DeepList = (u64, ViewHint, Vec<(TreeletId, f32, f32)>);
+/// A deep request list as applied: its sequence number, view, items and prefetch start.
+type DeepList = (u64, ViewHint, Vec<(TreeletId, f32, f32)>, usize);
 
 /// The state of one connection's main loop.
 struct Handler {
@@ -117,7 +119,8 @@ struct Handler {
     cut: Option<(Arc<VisibleCut>, bool)>,
     /// The cut being computed, off the async workers, with whether it saves enough.
     cut_job: Option<tokio::task::JoinHandle<Option<(VisibleCut, bool)>>>,
-    /// The last deep list applied (sequence, view, items): re-planned when its view's cut
+    /// The last deep list applied (sequence, view, items, prefetch start): re-planned when its
+    /// view's cut
     /// arrives.
     last_deep: Option<DeepList>,
     /// What was sent for the view the connection rests on: the frustum plan goes on below it.
@@ -157,7 +160,9 @@ impl Handler {
                 window,
                 max_queue: MAX_REQUEST_ITEMS,
                 redelivery_guard: ConnectionConfig::default().redelivery_guard,
-                remember_deliveries: shared.config.visibility_grid > 0,
+                // From the first deep list on, with visible cuts (`on_deep_request_list`): a
+                // client of plain lists gets no cut and pays no record per delivery.
+                remember_deliveries: false,
             };
             if let Err(e) = core.sched.add_connection(id, config) {
                 tracing::error!("{e}");
@@ -227,10 +232,15 @@ impl Handler {
     /// A control frame from the client (or the end of its control stream).
     fn on_frame(&mut self, frame: Result<Option<Frame>, End>) -> Option<End> {
         match frame {
-            Ok(Some(Frame::RequestList { seq, items })) => self.on_request_list(seq, items, 0),
-            Ok(Some(Frame::DeepRequestList { seq, view, items })) => {
-                self.on_deep_request_list(seq, &view, &items)
+            Ok(Some(Frame::RequestList { seq, items })) => {
+                self.on_request_list(seq, PlannedList::plain(items))
             }
+            Ok(Some(Frame::DeepRequestList {
+                seq,
+                view,
+                items,
+                prefetch_from,
+            })) => self.on_deep_request_list(seq, &view, &items, prefetch_from as usize),
             Ok(Some(Frame::Goodbye { code })) => Some(close(
                 ErrorCode::NoError,
                 format!("client said goodbye ({code})"),
@@ -255,14 +265,9 @@ impl Handler {
 
     /// A new request list (its last `pushed` items planned by the server): replaces the
     /// scheduler's queue and resets the streams of treelets in flight that it no longer names.
-    fn on_request_list(
-        &mut self,
-        seq: u64,
-        items: Vec<(TreeletId, f32)>,
-        pushed: usize,
-    ) -> Option<End> {
+    fn on_request_list(&mut self, seq: u64, list: PlannedList) -> Option<End> {
         let count = self.treelet_count;
-        if let Some((t, _)) = items.iter().find(|(t, _)| t.0 >= count) {
+        if let Some((t, _)) = list.items.iter().find(|(t, _)| t.0 >= count) {
             return Some(close(
                 ErrorCode::UnknownTreelet,
                 format!("treelet {} does not exist (the scene has {count})", t.0),
@@ -271,19 +276,18 @@ impl Handler {
         let m = &self.shared.state.metrics;
         m.request_lists.fetch_add(1, Ordering::Relaxed);
         m.request_items
-            .fetch_add(items.len() as u64, Ordering::Relaxed);
-        self.apply_list(seq, items, pushed, false)
+            .fetch_add(list.items.len() as u64, Ordering::Relaxed);
+        self.apply_list(seq, list, false)
     }
 
     /// Hands a list to the scheduler — a new one, or (`replan`) the last one again with pushes
     /// planned anew — and resets the streams it no longer wants.
-    fn apply_list(
-        &mut self,
-        seq: u64,
-        items: Vec<(TreeletId, f32)>,
-        pushed: usize,
-        replan: bool,
-    ) -> Option<End> {
+    fn apply_list(&mut self, seq: u64, list: PlannedList, replan: bool) -> Option<End> {
+        let PlannedList {
+            items,
+            pushed,
+            prefetch_below,
+        } = list;
         let named = self
             .shared
             .state
@@ -293,10 +297,12 @@ impl Handler {
         let outcome = {
             let mut core = self.shared.core();
             let now = Instant::now();
-            if replan {
-                core.sched.handle_replanned_list(self.id, seq, items, now)
-            } else {
-                core.sched.handle_request_list(self.id, seq, items, now)
+            match (prefetch_below, replan) {
+                (Some(below), _) => core
+                    .sched
+                    .handle_list_with_prefetch(self.id, seq, items, below, replan, now),
+                (None, true) => core.sched.handle_replanned_list(self.id, seq, items, now),
+                (None, false) => core.sched.handle_request_list(self.id, seq, items, now),
             }
         };
         match outcome {
@@ -341,6 +347,7 @@ impl Handler {
         seq: u64,
         view: &ViewHint,
         items: &[(TreeletId, f32, f32)],
+        prefetch_from: usize,
     ) -> Option<End> {
         let count = self.treelet_count;
         if let Some((t, _, _)) = items.iter().find(|(t, _, _)| t.0 >= count) {
@@ -352,40 +359,47 @@ impl Handler {
         // A view named twice in a row (or `Hello`'s) is resting: worth a visible cut. A moving
         // camera's views are never cast; its pushes follow the frustum plan.
         if self.shared.config.visibility_grid > 0 {
+            if self.last_deep.is_none() {
+                let _ = self.shared.core().sched.remember_deliveries(self.id);
+            }
             let resting = seq == 0
                 || self
                     .last_deep
                     .as_ref()
-                    .is_some_and(|(_, last, _)| same_view(last, view));
-            self.last_deep = Some((seq, *view, items.to_vec()));
+                    .is_some_and(|(_, last, _, _)| same_view(last, view));
+            self.last_deep = Some((seq, *view, items.to_vec(), prefetch_from));
             if resting {
                 self.start_cut(view);
             }
         }
-        let (list, pushed) = self.plan(view, items);
+        let list = self.plan(view, items, prefetch_from);
         self.shared
             .state
             .metrics
             .pushes_planned
-            .fetch_add(pushed as u64, Ordering::Relaxed);
-        self.on_request_list(seq, list, pushed)
+            .fetch_add(list.pushed as u64, Ordering::Relaxed);
+        self.on_request_list(seq, list)
     }
 
     /// The list for a deep request: pushes from the view's visible cut when one answers it,
-    /// else from the frustum plan below the listed treelets and what was already sent for the
-    /// same view ([`PushAnchors`]).
+    /// with the prefetch it does not hold set apart ([`cut_list`]), else from the frustum plan
+    /// below the listed treelets and what was already sent for the same view
+    /// ([`PushAnchors`]). Without a cut nothing tells a guess from a need, so nothing is set
+    /// apart: the frustum plan also pushes below prefetch items, and holding those back would
+    /// hold back their pushes too.
     fn plan(
         &mut self,
         view: &ViewHint,
         items: &[(TreeletId, f32, f32)],
-    ) -> (Vec<(TreeletId, f32)>, usize) {
+        prefetch_from: usize,
+    ) -> PlannedList {
         if let Some((cut, _)) = self
             .cut
             .as_ref()
             .filter(|(c, followed)| *followed && c.complete && c.answers(view))
         {
             let core = self.shared.core();
-            return cut_list(cut, view, items, MAX_REQUEST_ITEMS, |t| {
+            return cut_list(cut, view, items, prefetch_from, MAX_REQUEST_ITEMS, |t| {
                 core.sched.was_delivered(self.id, t)
             });
         }
@@ -406,7 +420,11 @@ impl Handler {
         self.anchors
             .record(items, &plan.pushes, |id| scene.shape(id));
         self.anchors.note_exhausted(&plan.exhausted);
-        (list, plan.pushes.len())
+        PlannedList {
+            items: list,
+            pushed: plan.pushes.len(),
+            prefetch_below: None,
+        }
     }
 
     /// Starts computing `view`'s visible cut on a blocking thread — the coarse one, or the fine
@@ -420,9 +438,9 @@ impl Handler {
         if coarse == 0 || self.cut_job.is_some() {
             return;
         }
-        let grid = match self.cut.as_ref().filter(|(c, _)| c.answers(view)) {
-            None => coarse,
-            Some((c, true)) if fine > c.grid => fine,
+        let (grid, seed) = match self.cut.as_ref().filter(|(c, _)| c.answers(view)) {
+            None => (coarse, Vec::new()),
+            Some((c, true)) if fine > c.grid => (fine, c.treelets.clone()),
             Some(_) => return,
         };
         let scene = self.ctx.scene.clone();
@@ -430,7 +448,7 @@ impl Handler {
         let share = self.shared.config.visibility_follow_share;
         let view = *view;
         self.cut_job = Some(tokio::task::spawn_blocking(move || {
-            let cut = scene.visible_cut(&view, grid, budget)?;
+            let cut = scene.visible_cut(&view, grid, &seed, budget)?;
             let d = &scene.stored.description;
             let followed = cut_saves(WorldCube::of(d), &cut, d.root_treelet, share, |id| {
                 scene.shape(id)
@@ -468,18 +486,18 @@ impl Handler {
             .visible_cuts
             .fetch_add(1, Ordering::Relaxed);
         self.cut = Some((cut.clone(), followed));
-        let (seq, view, items) = self.last_deep.clone()?;
+        let (seq, view, items, prefetch_from) = self.last_deep.clone()?;
         if !(followed && cut.complete && cut.answers(&view)) {
             return None;
         }
-        let (list, pushed) = self.plan(&view, &items);
+        let list = self.plan(&view, &items, prefetch_from);
         self.shared
             .state
             .metrics
             .pushes_planned
-            .fetch_add(pushed as u64, Ordering::Relaxed);
+            .fetch_add(list.pushed as u64, Ordering::Relaxed);
         self.start_cut(&view);
-        self.apply_list(seq, list, pushed, true)
+        self.apply_list(seq, list, true)
     }
 
     /// `Hello`'s view ([`arbor_proto::wire::HELLO_VIEW`], eye in root-cube units): the root
@@ -496,7 +514,7 @@ impl Handler {
                 format!("Hello view in this scene's world: {e}"),
             ));
         }
-        self.on_deep_request_list(0, &view, &[(root, f32::MAX, ViewHint::MAX_ERROR)])
+        self.on_deep_request_list(0, &view, &[(root, f32::MAX, ViewHint::MAX_ERROR)], 1)
     }
 
     /// Resets the streams of batches the latest list wants nothing of any more; a batch with

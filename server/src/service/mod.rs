@@ -22,7 +22,7 @@
 //!   was listed, pushed, sent and acknowledged when, for benchmarks (off unless started).
 //! * [`push`]: what a deep request's view would refine below its listed treelets (frustum and
 //!   projected size); [`visibility`]: what a resting view's rays need, cast through the server's
-//!   own tree with the client's traversal (off unless `visibility_grid` is set), followed where
+//!   own tree with the client's traversal (`visibility_grid`, on by default), followed where
 //!   it saves enough against the frustum plan ([`push::cut_saves`]); [`shapes`]: the treelet
 //!   shapes those plans walk, decoded once and kept server-wide within `shape_cache_bytes`.
 //! * [`path_memory`]: each client address's last congestion window and RTT, so a returning

@@ -447,25 +447,80 @@ impl PushAnchors {
     }
 }
 
+/// A request list as the service hands it to the scheduler: what the client listed, planned
+/// with the server's pushes ([`cut_list`], [`deep_list_anchored`]) or as it came.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlannedList {
+    /// The listed items, the prefetch set apart and the pushes (the last `pushed`), each at the
+    /// priority it is sent by.
+    pub items: Vec<(TreeletId, f32)>,
+    /// How many of `items`, at its end, are pushes.
+    pub pushed: usize,
+    /// The prefetch set apart ranks below this and nothing else does
+    /// ([`super::schedule::Scheduler::handle_list_with_prefetch`]); `None`: nothing is.
+    pub prefetch_below: Option<f32>,
+}
+
+impl PlannedList {
+    /// A list as the client sent it: no pushes, nothing set apart.
+    pub fn plain(items: Vec<(TreeletId, f32)>) -> PlannedList {
+        PlannedList {
+            items,
+            pushed: 0,
+            prefetch_below: None,
+        }
+    }
+}
+
+/// The push generation of the first prefetch item outside a cut: below every level's pushes.
+const PREFETCH_GENERATION: u32 = u8::MAX as u32 + 2;
+
 /// The list a deep request becomes when the server knows the view's visible cut
 /// ([`super::visibility`]): the listed items at their priorities, then the cut's treelets the
 /// client neither listed nor was `delivered` (parents first, a level's pushes below the level
-/// above), within the free slots it announced beyond its listed items and the list size limit.
-/// Unlike [`deep_list`], the pushes need not descend from a listed treelet: the cut already says
-/// which treelets the view needs, and a needed treelet below one delivered earlier is pushed as
-/// soon as its own parent was. Returns the list and the number of pushes in it.
+/// above), within the free slots it announced beyond its listed items and the list size limit,
+/// then the client's prefetch (`items[prefetch_from..]`) that the cut does not hold, in the
+/// client's order. The cut says what the view needs; the prefetch outside it is a guess at a
+/// later view, so it goes after every need and is marked to be kept to a few in flight
+/// ([`PlannedList::prefetch_below`]). Prefetch the cut holds keeps its place. Unlike [`deep_list`],
+/// the pushes need not descend from a listed treelet: the cut already says which treelets the
+/// view needs, and a needed treelet below one delivered earlier is pushed as soon as its own
+/// parent was.
 pub fn cut_list(
     cut: &VisibleCut,
     view: &ViewHint,
     items: &[(TreeletId, f32, f32)],
+    prefetch_from: usize,
     max_items: usize,
     delivered: impl Fn(TreeletId) -> bool,
-) -> (Vec<(TreeletId, f32)>, usize) {
+) -> PlannedList {
     let budget = (view.free_slots as usize)
         .saturating_sub(items.len())
         .min(max_items.saturating_sub(items.len()));
-    let lowest = items.iter().map(|i| i.1).fold(f32::INFINITY, f32::min);
-    let mut list: Vec<(TreeletId, f32)> = items.iter().map(|&(id, p, _)| (id, p)).collect();
+    let prefetch_from = prefetch_from.min(items.len());
+    let in_cut: FxHashSet<TreeletId> = if prefetch_from < items.len() {
+        cut.treelets.iter().map(|&(_, id)| id).collect()
+    } else {
+        FxHashSet::default()
+    };
+    let (mut list, mut outside) = (Vec::with_capacity(items.len()), Vec::new());
+    for (i, &(id, priority, _)) in items.iter().enumerate() {
+        if i < prefetch_from || in_cut.contains(&id) {
+            list.push((id, priority));
+        } else {
+            outside.push((id, priority));
+        }
+    }
+    let lowest = list.iter().map(|i| i.1).fold(f32::INFINITY, f32::min);
+    outside.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+    let prefetch_below =
+        (!outside.is_empty()).then(|| push_priority(lowest, PREFETCH_GENERATION - 1));
+    list.extend(
+        outside
+            .iter()
+            .zip(PREFETCH_GENERATION..)
+            .map(|(&(id, _), generation)| (id, push_priority(lowest, generation))),
+    );
     let listed: FxHashSet<TreeletId> = items.iter().map(|i| i.0).collect();
     let before = list.len();
     list.extend(
@@ -476,7 +531,11 @@ pub fn cut_list(
             .map(|&(level, id)| (id, push_priority(lowest, u32::from(level)))),
     );
     let pushed = list.len() - before;
-    (list, pushed)
+    PlannedList {
+        items: list,
+        pushed,
+        prefetch_below,
+    }
 }
 
 /// Whether following `cut` is worth it: whether it holds at most `share` of the treelets the
@@ -571,24 +630,34 @@ mod tests {
         out
     }
 
-    #[test]
-    fn a_cut_list_pushes_the_cut_minus_listed_and_delivered_parents_first_within_the_slots() {
-        let mut view = view_from([0.5, 0.5, 3.0], 0.001);
-        let cut = VisibleCut {
+    /// A complete cut of `view` holding `treelets` as `(level, id)`.
+    fn cut_of(view: ViewHint, treelets: &[(u8, u32)]) -> VisibleCut {
+        VisibleCut {
             view,
-            treelets: [(1, 4), (1, 7), (2, 9), (2, 12), (3, 20)]
-                .map(|(level, id)| (level, TreeletId(id)))
-                .to_vec(),
+            treelets: treelets
+                .iter()
+                .map(|&(level, id)| (level, TreeletId(id)))
+                .collect(),
             complete: true,
             grid: 8,
             rays_cast: 0,
             took: std::time::Duration::ZERO,
-        };
+        }
+    }
+
+    #[test]
+    fn a_cut_list_pushes_the_cut_minus_listed_and_delivered_parents_first_within_the_slots() {
+        let mut view = view_from([0.5, 0.5, 3.0], 0.001);
+        let cut = cut_of(view, &[(1, 4), (1, 7), (2, 9), (2, 12), (3, 20)]);
         let items = [(TreeletId(7), 5.0, 2.0), (TreeletId(30), -3.0, 1.0)];
         let delivered = |id: TreeletId| id == TreeletId(9);
         view.free_slots = 2 + 10;
-        let (list, pushed) = cut_list(&cut, &view, &items, 100, delivered);
-        assert_eq!(pushed, 3);
+        let PlannedList {
+            items: list,
+            pushed,
+            prefetch_below,
+        } = cut_list(&cut, &view, &items, items.len(), 100, delivered);
+        assert_eq!((pushed, prefetch_below), (3, None));
         let ids: Vec<u32> = list.iter().map(|&(id, _)| id.0).collect();
         assert_eq!(
             ids,
@@ -604,15 +673,60 @@ mod tests {
         );
         // Two free slots beyond the listed items: the two shallowest.
         view.free_slots = 4;
-        let (list, pushed) = cut_list(&cut, &view, &items, 100, delivered);
+        let PlannedList {
+            items: list,
+            pushed,
+            ..
+        } = cut_list(&cut, &view, &items, 2, 100, delivered);
         assert_eq!(pushed, 2);
         assert_eq!(list.len(), 4);
         assert_eq!((list[2].0, list[3].0), (TreeletId(4), TreeletId(12)));
         // No room beyond the listed items, or the list limit reached: no pushes.
         view.free_slots = 1;
-        assert_eq!(cut_list(&cut, &view, &items, 100, delivered).1, 0);
+        assert_eq!(cut_list(&cut, &view, &items, 2, 100, delivered).pushed, 0);
         view.free_slots = 100;
-        assert_eq!(cut_list(&cut, &view, &items, 3, delivered).1, 1);
+        assert_eq!(cut_list(&cut, &view, &items, 2, 3, delivered).pushed, 1);
+    }
+
+    #[test]
+    fn a_cut_list_sends_the_prefetch_the_cut_does_not_hold_after_its_pushes() {
+        let mut view = view_from([0.5, 0.5, 3.0], 0.001);
+        view.free_slots = 100;
+        let cut = cut_of(view, &[(1, 4), (1, 7), (2, 12), (3, 20)]);
+        // Prefetch from the third item: 20 is in the cut, 41 and 40 are not (41 ranks first).
+        let items = [
+            (TreeletId(7), 5.0, 2.0),
+            (TreeletId(30), 1.0, 1.0),
+            (TreeletId(20), 0.5, 0.0),
+            (TreeletId(41), 0.25, 0.0),
+            (TreeletId(40), 0.125, 0.0),
+        ];
+        let planned = cut_list(&cut, &view, &items, 2, 100, |_| false);
+        let below = planned.prefetch_below.expect("prefetch outside the cut");
+        let ids: Vec<u32> = planned.items.iter().map(|&(id, _)| id.0).collect();
+        assert_eq!(ids, [7, 30, 20, 41, 40, 4, 12], "the pushes last");
+        assert_eq!(planned.pushed, 2);
+        let priority = |id: u32| planned.items.iter().find(|x| x.0.0 == id).unwrap().1;
+        // What the cut holds keeps its place; the pushes rank below every listed item, the
+        // prefetch outside the cut below every push, in the client's order; the mark lies
+        // between them.
+        assert_eq!((priority(7), priority(30), priority(20)), (5.0, 1.0, 0.5));
+        assert!(priority(12) < 0.5 && priority(12) > below);
+        assert!(below > priority(41) && priority(41) > priority(40));
+        // Without prefetch, or all of it in the cut: nothing is marked.
+        assert_eq!(
+            cut_list(&cut, &view, &items, 5, 100, |_| false).prefetch_below,
+            None
+        );
+        assert_eq!(
+            cut_list(&cut, &view, &items[..3], 2, 100, |_| false).prefetch_below,
+            None
+        );
+        // A start past the items is no prefetch.
+        assert_eq!(
+            cut_list(&cut, &view, &items, 99, 100, |_| false).prefetch_below,
+            None
+        );
     }
 
     #[test]

@@ -6,6 +6,8 @@
 //! * [`Scheduler::handle_request_list`] — a `RequestList` arrived. It **replaces** the
 //!   connection's previous list; a list whose `seq` is not above the last accepted one is stale
 //!   and ignored.
+//!   [`Scheduler::handle_list_with_prefetch`] does the same for a list whose lowest-ranked
+//!   items are prefetch (see *In-flight window*).
 //! * [`Scheduler::poll_transmit`] — the next `(connection, treelet)` to start sending, or `None`.
 //!   The treelet enters the connection's in-flight window at once. [`Scheduler::poll_batch`]
 //!   takes the next connection's next few treelets at once, one stream's batch (what the service
@@ -64,7 +66,10 @@
 //! A connection may have at most `window` treelets in flight (started and not yet delivered or
 //! cancelled). Everything in flight is committed: a new list takes effect after at most `window`
 //! more treelets. Sizing the window to the bandwidth-delay product keeps the link busy while
-//! making that about one round trip; see [`window_for`].
+//! making that about one round trip; see [`window_for`]. Of a list's prefetch (the client's
+//! guesses for later views, ranked below everything else), at most a
+//! [`PREFETCH_SHARE_OF_WINDOW`]th of the window is in flight: prefetch fills the link's idle
+//! room without standing between a new view's list and the link.
 //!
 //! # Fairness
 //!
@@ -91,6 +96,11 @@ use super::treelets::MAX_TREELETS_PER_STREAM;
 /// Batches hold at most this share of a connection's window, so several are in flight and the
 /// window refills while a batch is acknowledged.
 pub const BATCHES_PER_WINDOW: usize = 4;
+
+/// Prefetch treelets hold at most this share of a connection's window
+/// ([`Scheduler::handle_list_with_prefetch`]): engine's jump over the link emulator took
+/// 0.22 s with prefetch unbounded and 0.15 s at an eighth (docs/measurements.md, stop 47).
+pub const PREFETCH_SHARE_OF_WINDOW: usize = 8;
 
 /// The most treelets [`Scheduler::poll_batch`] hands out at once to a connection with `window`:
 /// a quarter of the window, at least 1, at most [`MAX_TREELETS_PER_STREAM`].
@@ -281,6 +291,8 @@ struct Flight {
     /// When the client first asked for it (see [`Wanted::since`]).
     since: Instant,
     sent: bool,
+    /// Started as prefetch ([`Scheduler::handle_list_with_prefetch`]).
+    prefetch: bool,
 }
 
 #[derive(Debug)]
@@ -304,6 +316,11 @@ struct Conn {
     /// Every treelet delivered on this connection when it remembers deliveries (forgotten all
     /// at once at [`Conn::delivered_cap`]): pushes planned from a visible cut leave them out.
     delivered_ever: FxHashSet<TreeletId>,
+    /// Items of the current list ranked below this are prefetch
+    /// ([`Scheduler::handle_list_with_prefetch`]); `None`: nothing is.
+    prefetch_below: Option<f32>,
+    /// Flights started as prefetch.
+    prefetch_in_flight: usize,
     in_ring: bool,
     stats: ConnectionStats,
 }
@@ -321,6 +338,8 @@ impl Conn {
             recent: VecDeque::new(),
             recent_at: FxHashMap::default(),
             delivered_ever: FxHashSet::default(),
+            prefetch_below: None,
+            prefetch_in_flight: 0,
             in_ring: false,
             stats: ConnectionStats::default(),
         }
@@ -345,29 +364,80 @@ impl Conn {
     }
 
     fn eligible(&self) -> bool {
-        self.has_work() && self.in_flight.len() < self.config.window
+        self.has_work() && self.in_flight.len() < self.config.window && !self.prefetch_held()
     }
 
-    /// Takes the best of the cursor and the retry heap: the treelet and since when it is
-    /// wanted.
-    fn pop(&mut self, now: Instant) -> Option<(TreeletId, Instant)> {
+    /// Prefetch treelets this connection may have in flight: [`PREFETCH_SHARE_OF_WINDOW`] of
+    /// its window, at least one.
+    fn prefetch_window(&self) -> usize {
+        (self.config.window / PREFETCH_SHARE_OF_WINDOW).max(1)
+    }
+
+    /// Whether an item of `priority` is prefetch in the current list.
+    fn is_prefetch(&self, priority: f32) -> bool {
+        self.prefetch_below.is_some_and(|below| priority < below)
+    }
+
+    /// Whether the next item is prefetch and the prefetch window is full. Prefetch ranks below
+    /// everything else of its list, so nothing else waits behind it.
+    fn prefetch_held(&self) -> bool {
+        self.prefetch_below.is_some()
+            && self.prefetch_in_flight >= self.prefetch_window()
+            && self.peek().is_some_and(|(_, p)| self.is_prefetch(p))
+    }
+
+    /// The item [`Conn::pop`] would take, with its priority.
+    fn peek(&self) -> Option<(TreeletId, f32)> {
+        let head = self.queue.get(self.cursor).map(|h| (h.id, h.priority));
+        let retry = self.retry.peek().map(|r| (r.0, r.1));
+        match (head, retry) {
+            (Some(h), Some(r)) if rank(&r, &h) == Ordering::Less => Some(r),
+            (Some(h), _) => Some(h),
+            (None, r) => r,
+        }
+    }
+
+    /// Takes the best of the cursor and the retry heap: the treelet, since when it is wanted,
+    /// and its priority.
+    fn pop(&mut self, now: Instant) -> Option<(TreeletId, Instant, f32)> {
         let head = self.queue.get(self.cursor).copied();
         let retry = self.retry.peek().map(|r| (r.0, r.1));
         match (head, retry) {
             (Some(h), Some(r)) if rank(&r, &(h.id, h.priority)) == Ordering::Less => {
                 self.retry.pop();
-                Some((r.0, self.wanted(r.0).map_or(now, |w| w.since)))
+                Some((r.0, self.wanted(r.0).map_or(now, |w| w.since), r.1))
             }
             (Some(h), _) => {
                 self.cursor += 1;
-                Some((h.id, h.since))
+                Some((h.id, h.since, h.priority))
             }
             (None, Some(r)) => {
                 self.retry.pop();
-                Some((r.0, self.wanted(r.0).map_or(now, |w| w.since)))
+                Some((r.0, self.wanted(r.0).map_or(now, |w| w.since), r.1))
             }
             (None, None) => None,
         }
+    }
+
+    /// Puts `treelet` in flight.
+    fn start(&mut self, treelet: TreeletId, since: Instant, priority: f32) {
+        let prefetch = self.is_prefetch(priority);
+        self.prefetch_in_flight += usize::from(prefetch);
+        self.in_flight.insert(
+            treelet,
+            Flight {
+                since,
+                sent: false,
+                prefetch,
+            },
+        );
+    }
+
+    /// Takes `treelet` out of flight.
+    fn finish(&mut self, treelet: TreeletId) -> Option<Flight> {
+        let flight = self.in_flight.remove(&treelet)?;
+        self.prefetch_in_flight -= usize::from(flight.prefetch);
+        Some(flight)
     }
 
     /// `treelet` is sent in full at `now`: its request-to-send latency, unless it is not in
@@ -538,6 +608,17 @@ impl Scheduler {
         Ok(())
     }
 
+    /// Connection `id` remembers its deliveries from now on
+    /// ([`ConnectionConfig::remember_deliveries`]).
+    pub fn remember_deliveries(&mut self, id: ConnectionId) -> Result<(), ScheduleError> {
+        let conn = self
+            .conns
+            .get_mut(&id)
+            .ok_or(ScheduleError::UnknownConnection(id))?;
+        conn.config.remember_deliveries = true;
+        Ok(())
+    }
+
     /// Changes a connection's redelivery guard (from a new RTT estimate).
     pub fn set_redelivery_guard(
         &mut self,
@@ -561,7 +642,28 @@ impl Scheduler {
         items: Vec<(TreeletId, f32)>,
         now: Instant,
     ) -> Result<ListOutcome, ScheduleError> {
-        self.apply_list(id, seq, items, now, false)
+        self.apply_list(id, seq, items, None, now, false)
+    }
+
+    /// [`Scheduler::handle_request_list`], or with `replan` [`Scheduler::handle_replanned_list`],
+    /// for a list whose items ranked below `prefetch_below` are **prefetch**: guesses at what a
+    /// later view may need. At most [`PREFETCH_SHARE_OF_WINDOW`] of the window (at least one)
+    /// of them are in flight at once; the connection sends nothing more until one is
+    /// delivered or cancelled. Prefetch ranks below everything else of its list, so only
+    /// prefetch waits: the link keeps room, and a new view's list is not queued behind
+    /// prefetch already on it (measured: engine's camera jump over the link emulator, docs/
+    /// measurements.md, stop 47). A non-finite `prefetch_below` is ignored.
+    pub fn handle_list_with_prefetch(
+        &mut self,
+        id: ConnectionId,
+        seq: u64,
+        items: Vec<(TreeletId, f32)>,
+        prefetch_below: f32,
+        replan: bool,
+        now: Instant,
+    ) -> Result<ListOutcome, ScheduleError> {
+        let below = prefetch_below.is_finite().then_some(prefetch_below);
+        self.apply_list(id, seq, items, below, now, replan)
     }
 
     /// The service re-planned the pushes of the list it accepted last, `seq` (a view's visible
@@ -575,7 +677,7 @@ impl Scheduler {
         items: Vec<(TreeletId, f32)>,
         now: Instant,
     ) -> Result<ListOutcome, ScheduleError> {
-        self.apply_list(id, seq, items, now, true)
+        self.apply_list(id, seq, items, None, now, true)
     }
 
     fn apply_list(
@@ -583,6 +685,7 @@ impl Scheduler {
         id: ConnectionId,
         seq: u64,
         mut items: Vec<(TreeletId, f32)>,
+        prefetch_below: Option<f32>,
         now: Instant,
         replan: bool,
     ) -> Result<ListOutcome, ScheduleError> {
@@ -674,6 +777,7 @@ impl Scheduler {
         conn.queue = queue;
         conn.cursor = 0;
         conn.retry.clear();
+        conn.prefetch_below = prefetch_below;
         let queued = conn.queue.len();
         self.wake(id);
         Ok(ListOutcome::Applied {
@@ -769,10 +873,9 @@ impl Scheduler {
             batch.reserve(most);
             while batch.len() < most
                 && conn.eligible()
-                && let Some((treelet, since)) = conn.pop(now)
+                && let Some((treelet, since, priority)) = conn.pop(now)
             {
-                conn.in_flight
-                    .insert(treelet, Flight { since, sent: false });
+                conn.start(treelet, since, priority);
                 batch.push(treelet);
             }
             if conn.eligible() {
@@ -847,7 +950,7 @@ impl Scheduler {
         };
         let mut delivered = 0;
         for &t in treelets {
-            if conn.in_flight.remove(&t).is_some() {
+            if conn.finish(t).is_some() {
                 conn.record_delivery(t, now);
                 delivered += 1;
             }
@@ -883,7 +986,7 @@ impl Scheduler {
         treelet: TreeletId,
     ) -> Option<(&mut Conn, Flight)> {
         let conn = self.conns.get_mut(&id)?;
-        let flight = conn.in_flight.remove(&treelet)?;
+        let flight = conn.finish(treelet)?;
         self.total_in_flight -= 1;
         Some((conn, flight))
     }
@@ -937,6 +1040,43 @@ mod tests {
         let mut s = Scheduler::default();
         s.add_connection(conn, cfg(window)).unwrap();
         s
+    }
+
+    #[test]
+    fn prefetch_beyond_its_share_of_the_window_waits_and_nothing_else_does() {
+        let now = Instant::now();
+        // Window 16: two prefetch treelets in flight at most.
+        let mut s = one(A, 16);
+        let items = list(&[(1, 10.0), (2, 9.0), (3, 1.0), (4, 0.9), (5, 0.8), (6, 0.7)]);
+        s.handle_list_with_prefetch(A, 1, items.clone(), 2.0, false, now)
+            .unwrap();
+        assert_eq!(
+            drain(&mut s, now),
+            [(A, 1), (A, 2), (A, 3), (A, 4)],
+            "everything above the mark, and two below it"
+        );
+        // A delivered prefetch makes room for one more; a delivered listed item does not.
+        s.handle_delivered(A, t(1), now);
+        assert_eq!(drain(&mut s, now), []);
+        s.handle_delivered(A, t(3), now);
+        assert_eq!(drain(&mut s, now), [(A, 5)]);
+        // A cancelled prefetch leaves the window and comes back first, in its rank.
+        assert!(s.handle_cancelled(A, t(4)));
+        assert_eq!(drain(&mut s, now), [(A, 4)]);
+        // A list ranked above the mark is never held: the same items, nothing set apart, go on
+        // although two prefetch treelets are still in flight (counted until they end).
+        s.handle_request_list(A, 2, items.clone(), now).unwrap();
+        assert_eq!(drain(&mut s, now), [(A, 1), (A, 3), (A, 6)]);
+        // A replanned list keeps the rule, and a non-finite mark sets nothing apart.
+        let mut s = one(A, 8);
+        s.handle_request_list(A, 1, items.clone(), now).unwrap();
+        s.handle_list_with_prefetch(A, 1, items.clone(), 2.0, true, now)
+            .unwrap();
+        assert_eq!(drain(&mut s, now), [(A, 1), (A, 2), (A, 3)]);
+        let mut s = one(A, 8);
+        s.handle_list_with_prefetch(A, 1, items, f32::NAN, false, now)
+            .unwrap();
+        assert_eq!(drain(&mut s, now).len(), 6);
     }
 
     #[test]
@@ -1003,6 +1143,16 @@ mod tests {
         }
         assert!(!s.was_delivered(A, t(1)), "forgotten at the cap");
         assert!(s.was_delivered(A, t(24)));
+        // Turned on later: only what is delivered from then on.
+        let mut s = one(A, 4);
+        s.handle_request_list(A, 1, list(&[(1, 2.0), (2, 1.0)]), now)
+            .unwrap();
+        assert_eq!(drain(&mut s, now), [(A, 1), (A, 2)]);
+        s.handle_delivered(A, t(1), now).unwrap();
+        s.remember_deliveries(A).unwrap();
+        assert!(s.remember_deliveries(B).is_err(), "unknown connection");
+        s.handle_delivered(A, t(2), now).unwrap();
+        assert!(!s.was_delivered(A, t(1)) && s.was_delivered(A, t(2)));
         // With the largest lists the record stops at DELIVERIES_REMEMBERED.
         let mut s = Scheduler::default();
         s.add_connection(
@@ -1565,6 +1715,8 @@ mod tests {
             conn: u64,
             seq: u64,
             items: Vec<(u32, i8)>,
+            /// Items ranked below this are prefetch ([`Scheduler::handle_list_with_prefetch`]).
+            prefetch_below: Option<i8>,
         },
         Poll,
         PollBatch,
@@ -1607,8 +1759,18 @@ mod tests {
     fn op() -> impl Strategy<Value = Op> {
         let conn = 0u64..3;
         prop_oneof![
-            3 => (conn.clone(), 0u64..12, proptest::collection::vec((0u32..24, -3i8..4), 0..20))
-                .prop_map(|(conn, seq, items)| Op::List { conn, seq, items }),
+            3 => (
+                conn.clone(),
+                0u64..12,
+                proptest::collection::vec((0u32..24, -3i8..4), 0..20),
+                proptest::option::of(-3i8..5),
+            )
+                .prop_map(|(conn, seq, items, prefetch_below)| Op::List {
+                    conn,
+                    seq,
+                    items,
+                    prefetch_below,
+                }),
             6 => Just(Op::Poll),
             3 => Just(Op::PollBatch),
             2 => (conn.clone(), any::<usize>()).prop_map(|(conn, pick)| Op::Sent { conn, pick }),
@@ -1636,9 +1798,40 @@ mod tests {
         /// delivered since.
         blocked: HashSet<u32>,
         delivered_at: Map<u32, Instant>,
+        /// The current list's prefetch mark.
+        prefetch_below: Option<f32>,
+        /// In flight, started as prefetch.
+        prefetch: HashSet<u32>,
     }
 
     impl Model {
+        fn is_prefetch(&self, priority: f32) -> bool {
+            self.prefetch_below.is_some_and(|b| priority < b)
+        }
+
+        fn prefetch_window(&self) -> usize {
+            (self.window / PREFETCH_SHARE_OF_WINDOW).max(1)
+        }
+
+        /// The queue's head is prefetch and the prefetch window is full.
+        fn held(&self) -> bool {
+            self.prefetch.len() >= self.prefetch_window()
+                && self.queue().first().is_some_and(|x| self.is_prefetch(x.1))
+        }
+
+        /// Starts `x`, as prefetch if its priority says so.
+        fn start(&mut self, x: u32) {
+            if self.is_prefetch(self.current[&x]) {
+                self.prefetch.insert(x);
+            }
+            self.in_flight.insert(x);
+        }
+
+        fn end(&mut self, x: u32) -> bool {
+            self.prefetch.remove(&x);
+            self.in_flight.remove(&x)
+        }
+
         fn queue(&self) -> Vec<(TreeletId, f32)> {
             let mut q: Vec<_> = self
                 .current
@@ -1682,13 +1875,19 @@ mod tests {
             };
             for op in ops {
                 match op {
-                    Op::List { conn, seq, items } => {
-                        let r = s.handle_request_list(
-                            ConnectionId(conn),
-                            seq,
-                            items.iter().map(|&(i, p)| (t(i), f32::from(p))).collect(),
-                            now,
-                        );
+                    Op::List { conn, seq, items, prefetch_below } => {
+                        let listed = items.iter().map(|&(i, p)| (t(i), f32::from(p))).collect();
+                        let r = match prefetch_below {
+                            None => s.handle_request_list(ConnectionId(conn), seq, listed, now),
+                            Some(b) => s.handle_list_with_prefetch(
+                                ConnectionId(conn),
+                                seq,
+                                listed,
+                                f32::from(b),
+                                false,
+                                now,
+                            ),
+                        };
                         let Some(m) = model.get_mut(&conn) else {
                             prop_assert!(r.is_err());
                             continue;
@@ -1699,6 +1898,7 @@ mod tests {
                             continue;
                         }
                         m.last_seq = Some(seq);
+                        m.prefetch_below = prefetch_below.map(f32::from);
                         m.current.clear();
                         for &(i, p) in &items {
                             let e = m.current.entry(i).or_insert(f32::from(p));
@@ -1735,16 +1935,18 @@ mod tests {
                                 prop_assert!(m.current.contains_key(&x.0), "not in the current list");
                                 prop_assert!(!m.in_flight.contains(&x.0), "in flight twice");
                                 prop_assert!(!m.blocked.contains(&x.0), "resent under the same list");
+                                prop_assert!(!m.held(), "prefetch beyond its window");
                                 let best = m.queue()[0];
                                 prop_assert_eq!(best.0, x, "not the highest-ranked");
-                                m.in_flight.insert(x.0);
+                                m.start(x.0);
                             }
                             None => {
                                 for m in model.values() {
                                     prop_assert!(
                                         total >= max_in_flight
                                             || m.in_flight.len() >= m.window
-                                            || m.queue().is_empty(),
+                                            || m.queue().is_empty()
+                                            || m.held(),
                                         "idle with work and room"
                                     );
                                 }
@@ -1757,18 +1959,20 @@ mod tests {
                         match s.poll_batch(now, &mut batch) {
                             Some(c) => {
                                 let m = model.get_mut(&c.0).unwrap();
-                                let queue = m.queue();
                                 // The connection's best treelets, as many as its batch limit,
-                                // its window room, the global room and its queue allow.
+                                // its window room, the global room and its queue allow, up to
+                                // the first prefetch beyond the prefetch window.
                                 let most = batch_limit(m.window)
                                     .min(m.window.saturating_sub(m.in_flight.len()))
-                                    .min(max_in_flight.saturating_sub(total))
-                                    .min(queue.len());
-                                prop_assert!(most > 0, "a batch without room or work");
-                                let expected: Vec<TreeletId> =
-                                    queue[..most].iter().map(|x| x.0).collect();
+                                    .min(max_in_flight.saturating_sub(total));
+                                let mut expected = Vec::new();
+                                while expected.len() < most && !m.held() {
+                                    let Some(&(x, _)) = m.queue().first() else { break };
+                                    m.start(x.0);
+                                    expected.push(x);
+                                }
+                                prop_assert!(!expected.is_empty(), "a batch without room or work");
                                 prop_assert_eq!(&batch, &expected);
-                                m.in_flight.extend(batch.iter().map(|x| x.0));
                             }
                             None => {
                                 prop_assert!(batch.is_empty());
@@ -1776,7 +1980,8 @@ mod tests {
                                     prop_assert!(
                                         total >= max_in_flight
                                             || m.in_flight.len() >= m.window
-                                            || m.queue().is_empty(),
+                                            || m.queue().is_empty()
+                                            || m.held(),
                                         "idle with work and room"
                                     );
                                 }
@@ -1821,7 +2026,7 @@ mod tests {
                         };
                         let x = pick(m, p);
                         let r = s.handle_delivered(ConnectionId(conn), t(x), now);
-                        prop_assert_eq!(r.is_some(), m.in_flight.remove(&x));
+                        prop_assert_eq!(r.is_some(), m.end(x));
                         if r.is_some() {
                             m.blocked.insert(x);
                             m.delivered_at.insert(x, now);
@@ -1841,7 +2046,7 @@ mod tests {
                         let n = s.handle_delivered_all(ConnectionId(conn), &ids, now);
                         let mut expected = 0;
                         for x in xs {
-                            if m.in_flight.remove(&x) {
+                            if m.end(x) {
                                 expected += 1;
                                 m.blocked.insert(x);
                                 m.delivered_at.insert(x, now);
@@ -1855,7 +2060,7 @@ mod tests {
                             continue;
                         };
                         let x = pick(m, p);
-                        prop_assert_eq!(s.handle_cancelled(ConnectionId(conn), t(x)), m.in_flight.remove(&x));
+                        prop_assert_eq!(s.handle_cancelled(ConnectionId(conn), t(x)), m.end(x));
                     }
                     Op::Window { conn, window } => {
                         let r = s.set_window(ConnectionId(conn), window);

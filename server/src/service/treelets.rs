@@ -221,12 +221,19 @@ impl ServedScene {
         }
     }
 
-    /// The visible cut of `view` with `grid` rays along the longer side ([`CutCaster::cut`]),
-    /// in a buffer of at most `budget_bytes` of node records. `None` when the root treelet
+    /// The visible cut of `view` with `grid` rays along the longer side, from `seed` (a coarser
+    /// cut of the same view, or nothing: [`CutCaster::cut_from`]), in a buffer of at most
+    /// `budget_bytes` of node records. `None` when the root treelet
     /// cannot be read or does not fit, or [`MAX_CUTS_RUNNING`] cuts of this scene are being
     /// cast already (their buffers bound the memory). Blocks for the cast (milliseconds): call
     /// it off the async workers.
-    pub fn visible_cut(&self, view: &ViewHint, grid: u32, budget_bytes: u64) -> Option<VisibleCut> {
+    pub fn visible_cut(
+        &self,
+        view: &ViewHint,
+        grid: u32,
+        seed: &[(u8, TreeletId)],
+        budget_bytes: u64,
+    ) -> Option<VisibleCut> {
         struct Running<'a>(&'a AtomicUsize);
         impl Drop for Running<'_> {
             fn drop(&mut self) {
@@ -256,7 +263,7 @@ impl ServedScene {
             }
             caster.clone()?
         };
-        Some(caster.cut(view, grid, fetch))
+        Some(caster.cut_from(view, grid, seed, fetch))
     }
 
     /// The shape of treelet `id` for deep-request pushes ([`ShapeCache::shape`]).

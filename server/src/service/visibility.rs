@@ -30,6 +30,7 @@ use arbor_client_core::traverse::{Lod, trace};
 use arbor_proto::wire::ViewHint;
 use arbor_proto::{SceneDescription, TreeletId};
 use glam::DVec3;
+use rayon::prelude::*;
 
 /// The treelets a view needs, as [`CutCaster::cut`] found them.
 #[derive(Clone, Debug, PartialEq)]
@@ -155,13 +156,29 @@ impl CutCaster {
         grid: u32,
         fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
     ) -> VisibleCut {
+        self.cut_from(view, grid, &[], fetch)
+    }
+
+    /// [`CutCaster::cut`], with the buffer first holding `seed` (`(level, treelet)`, parents
+    /// first: a coarser cut of the same view). The result is `seed` plus what this grid's rays
+    /// need beyond it: a ray passing through a seeded treelet does not name it again, but the
+    /// seed is in the cut already. A finer grid after a coarser one then casts one full round
+    /// and short ones for what the coarse rays missed, instead of every round from the root
+    /// (engine at 512 rays after 128, on two shared cores: 100–150 ms from the root).
+    pub fn cut_from(
+        &self,
+        view: &ViewHint,
+        grid: u32,
+        seed: &[(u8, TreeletId)],
+        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
+    ) -> VisibleCut {
         let start = std::time::Instant::now();
         let lod = Lod {
             pixel_angle: f64::from(view.footprint),
             lod_bias: 1.0,
             max_depth: self.frame.max_depth,
         };
-        let cast = self.cast(&grid_camera(view, grid), &lod, fetch);
+        let cast = self.cast_from(&grid_camera(view, grid), &lod, seed, fetch);
         VisibleCut {
             view: *view,
             treelets: cast.treelets,
@@ -181,6 +198,18 @@ impl CutCaster {
         &self,
         camera: &Camera,
         lod: &Lod,
+        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
+    ) -> Cast {
+        self.cast_from(camera, lod, &[], fetch)
+    }
+
+    /// [`CutCaster::cast`] with the buffer first holding `seed` ([`CutCaster::cut_from`]); a
+    /// seeded treelet that cannot be read or inserted leaves the cast incomplete.
+    pub fn cast_from(
+        &self,
+        camera: &Camera,
+        lod: &Lod,
+        seed: &[(u8, TreeletId)],
         mut fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
     ) -> Cast {
         let mut cast = Cast {
@@ -193,25 +222,31 @@ impl CutCaster {
             cast.complete = false;
             return cast;
         };
+        for &(level, id) in seed {
+            match fetch(id).map(|t| slots.insert(t)) {
+                Some(InsertOutcome::Inserted { .. }) => cast.treelets.push((level, id)),
+                _ => cast.complete = false,
+            }
+        }
         let mut pending: Vec<(u32, u32)> = (0..camera.height)
             .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
             .collect();
         let rays = camera.pixel_rays();
         while !pending.is_empty() {
-            let mut missing: Vec<TreeletId> = Vec::new();
-            let mut again = Vec::new();
-            for &(x, y) in &pending {
-                let ray = rays.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
-                cast.rays_cast += 1;
-                if let Some(hit) = trace(&slots.view(), &self.frame, &ray, lod)
-                    && hit.leaf
-                    && !hit.subtreelet.is_none()
-                    && hit.error > 0.0
-                {
-                    missing.push(hit.subtreelet);
-                    again.push((x, y));
-                }
-            }
+            cast.rays_cast += pending.len() as u64;
+            // The rays of a round are independent; the buffer is only read until all are cast.
+            let view = slots.view();
+            let stopped_short: Vec<((u32, u32), TreeletId)> = pending
+                .par_iter()
+                .filter_map(|&(x, y)| {
+                    let ray = rays.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
+                    trace(&view, &self.frame, &ray, lod)
+                        .filter(|hit| hit.leaf && !hit.subtreelet.is_none() && hit.error > 0.0)
+                        .map(|hit| ((x, y), hit.subtreelet))
+                })
+                .collect();
+            let again: Vec<(u32, u32)> = stopped_short.iter().map(|&(xy, _)| xy).collect();
+            let mut missing: Vec<TreeletId> = stopped_short.into_iter().map(|(_, t)| t).collect();
             missing.sort_unstable();
             missing.dedup();
             let mut progress = false;

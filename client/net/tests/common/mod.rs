@@ -203,6 +203,8 @@ pub struct Log {
     pub hellos: Vec<(Vec<Channel>, String)>,
     /// `(connection number from 0, seq, items)` of every request list.
     pub lists: Vec<LoggedList>,
+    /// The prefetch start of every deep request list, in order.
+    pub prefetch_starts: Vec<u32>,
     /// Treelets sent, in order.
     pub sent: Vec<TreeletId>,
     pub goodbyes: usize,
@@ -398,11 +400,20 @@ async fn serve(conn: Connection, b: Behaviour, log: Arc<Mutex<Log>>, index: usiz
                 }
             }
             // Logged (as id and priority) but not answered: the fake server pushes nothing.
-            Frame::DeepRequestList { seq, items, .. } => log.lock().unwrap().lists.push((
-                index,
+            Frame::DeepRequestList {
                 seq,
-                items.iter().map(|&(id, p, _)| (id, p)).collect(),
-            )),
+                items,
+                prefetch_from,
+                ..
+            } => {
+                let mut log = log.lock().unwrap();
+                log.lists.push((
+                    index,
+                    seq,
+                    items.iter().map(|&(id, p, _)| (id, p)).collect(),
+                ));
+                log.prefetch_starts.push(prefetch_from);
+            }
             Frame::Goodbye { .. } => log.lock().unwrap().goodbyes += 1,
             _ => {}
         }
