@@ -14,7 +14,9 @@ use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotCo
 use arbor_client_core::traverse::{Lod, trace};
 use arbor_proto::wire::ViewHint;
 use arbor_proto::{Cell, TreeletId};
-use arbor_server::service::visibility::{CutCaster, VisibleCut, grid_camera, same_view};
+use arbor_server::service::visibility::{
+    CutCaster, VisibleCut, frame_rays, grid_camera, same_view,
+};
 use arbor_tests::support::{decoded_treelets, small_lion};
 use glam::DVec3;
 
@@ -280,6 +282,31 @@ fn too_small_a_buffer_or_an_unreadable_treelet_gives_an_incomplete_cut_of_needed
     assert!(!ids(&cut).is_empty());
     assert!(ids(&cut).is_subset(&expected));
     assert!(cut.treelets.iter().all(|&(level, _)| level == 1));
+}
+
+#[test]
+fn a_hint_tells_the_rays_of_its_frame() {
+    let lion = lion();
+    for (what, camera) in lion.views() {
+        let view = hint(&camera);
+        assert_eq!(frame_rays(&view), camera.width.max(camera.height), "{what}");
+        // At LOD bias 2 the client's pixels count as half as many.
+        let coarser = ViewHint {
+            footprint: view.footprint * 2.0,
+            ..view
+        };
+        assert_eq!(
+            frame_rays(&coarser),
+            camera.width.max(camera.height) / 2,
+            "{what}"
+        );
+    }
+    let portrait = Camera {
+        width: 90,
+        height: 300,
+        ..lion.views()[0].1
+    };
+    assert_eq!(frame_rays(&hint(&portrait)), 300);
 }
 
 #[test]

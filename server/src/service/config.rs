@@ -202,7 +202,8 @@ pub struct ServeConfig {
     /// Rays along the longer side of a second cut of the same view, cast once the first one's
     /// pushes are out, for what the coarse grid's rays missed (cast from the coarse cut:
     /// `visibility::CutCaster::cut_from`); 0: none, else above `visibility_grid`. Default
-    /// [`DEFAULT_VISIBILITY_FINE_GRID`].
+    /// [`DEFAULT_VISIBILITY_FINE_GRID`]. Neither grid exceeds a client's own frame (the rays
+    /// its hint implies, `visibility::frame_rays`).
     pub visibility_fine_grid: u32,
     /// Bytes of node records per served scene that visible cuts are cast through (allocated by
     /// a scene's first cut).

@@ -25,7 +25,7 @@ use super::shutdown::Shutdown;
 use super::streams::{CANCEL_CODE, OpenStream, Outcome, StreamCtx, open_in_order, send_batch};
 use super::timeline::Event;
 use super::treelets::ServedScene;
-use super::visibility::{VisibleCut, same_view};
+use super::visibility::{VisibleCut, frame_rays, same_view};
 
 /// How often the window and the slow-reader watchdog are updated.
 const TICK: Duration = Duration::from_millis(50);
@@ -430,11 +430,14 @@ impl Handler {
     /// Starts computing `view`'s visible cut on a blocking thread — the coarse one, or the fine
     /// one once the coarse one answers the view and is followed — unless visible cuts are off,
     /// one is being computed, or the last one answers this view at the finest grid configured
-    /// (or was not worth following: a finer cast would not change that much). The same thread
+    /// (or was not worth following: a finer cast would not change that much). Neither grid
+    /// exceeds the client's own frame ([`frame_rays`]). The same thread
     /// then decides whether the cut saves enough against the frustum plan to be followed.
     fn start_cut(&mut self, view: &ViewHint) {
-        let coarse = self.shared.config.visibility_grid;
-        let fine = self.shared.config.visibility_fine_grid;
+        // No finer than the client's own frame: a small client's view needs no more rays.
+        let rays = frame_rays(view);
+        let coarse = self.shared.config.visibility_grid.min(rays);
+        let fine = self.shared.config.visibility_fine_grid.min(rays);
         if coarse == 0 || self.cut_job.is_some() {
             return;
         }

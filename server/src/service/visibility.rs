@@ -92,6 +92,16 @@ pub fn same_view(a: &ViewHint, b: &ViewHint) -> bool {
         )
 }
 
+/// Pixels along the longer side of the frame `view` was taken with, counted at its LOD bias (a
+/// bias above 1 counts coarser pixels, as the client's own LOD does): a cut cast with more rays
+/// than these only casts rays the client has no pixel for. At least 1.
+pub fn frame_rays(view: &ViewHint) -> u32 {
+    let rays = 2.0 * f64::from(view.tan_half_fov_y) * f64::from(view.aspect).max(1.0)
+        / f64::from(view.footprint);
+    // A checked hint keeps this finite; `as` saturates anyway.
+    (rays.round() as u32).max(1)
+}
+
 /// The camera of `view` with `grid` rays along its longer side (at least one along the other).
 /// The hint carries directions as `f32`: they are renormalised and `up` made orthogonal again.
 pub fn grid_camera(view: &ViewHint, grid: u32) -> Camera {
