@@ -21,7 +21,7 @@
 //! missed; the client's own feedback still asks for it. The buffer is bounded in bytes (node
 //! records only); when it cannot take the next treelet, or a treelet cannot be read, the cut is
 //! marked incomplete and the service keeps the frustum plan. Each round's rays are cast in
-//! parallel on a pool of half the machine's cores (`cut_pool`). Pure
+//! parallel on a pool of half the machine's cores, at least two (`cut_pool`). Pure
 //! apart from the `fetch` closure that reads a node block, so the tests compare it with casts
 //! over the fully resident scene.
 
@@ -292,17 +292,18 @@ impl CutCaster {
 }
 
 /// The threads visible cuts cast their rays on, shared by every scene: half the machine's cores,
-/// at least one, so the cuts of resting views leave the other half to streaming. On the two
-/// cores the refine bench shares with its client, one thread and two gave engine's jump alike
-/// (medians of five, 0.160 / 0.165 s against 0.153 / 0.172 s; docs/measurements.md, stop 47):
-/// what made the fine cut fast was casting it from the coarse one. `None` (casting on the
-/// calling thread) if the pool cannot be built.
+/// so on a larger server the cuts of resting views leave the other half to streaming, but at
+/// least two: a cut is a burst of tens of milliseconds that decides how soon a view's pushes
+/// are exact. On the two cores the refine bench shares with its client, engine's jump (medians
+/// of five, alternating) took 0.160 / 0.165 s first contact and 0.166 / 0.156 s returning with
+/// one thread, 0.153 / 0.172 s and 0.136 / 0.153 s with two (docs/measurements.md, stop 47).
+/// `None` (casting on the calling thread) if the pool cannot be built.
 fn cut_pool() -> Option<&'static rayon::ThreadPool> {
     static POOL: OnceLock<Option<rayon::ThreadPool>> = OnceLock::new();
     POOL.get_or_init(|| {
         let cores = std::thread::available_parallelism().map_or(2, |n| n.get());
         rayon::ThreadPoolBuilder::new()
-            .num_threads((cores / 2).max(1))
+            .num_threads((cores / 2).max(2))
             .thread_name(|i| format!("arbor-cut-{i}"))
             .build()
             .map_err(|e| tracing::warn!("no thread pool for visible cuts, casting on one: {e}"))
