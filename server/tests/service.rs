@@ -345,27 +345,11 @@ async fn the_timeline_records_what_was_listed_pushed_sent_and_acknowledged() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_resting_view_gets_its_visible_cut_pushed_in_place_of_the_frustum_plan() {
-    use arbor_server::service::treelets::ServedScene;
     use std::collections::HashSet;
     let tp = TestPool::new();
-    // Every cut followed, however much of the frustum plan it holds; no finer cut.
-    let config = with_cuts(&tp, 0, 1.0);
-    let budget = config.visibility_cache_bytes;
-    let server = start(config).await;
-    let stored = server.pool().scene(SCENE).unwrap();
-    let d = stored.description.clone();
-    let view = ViewHint {
-        free_slots: 4096,
-        ..in_front_of_the_cube()
-    };
-    // What the server should find: the same cut, cast here through the same pool.
-    let world = ViewHint {
-        eye: std::array::from_fn(|i| d.origin[i] + view.eye[i] * d.edge),
-        ..view
-    };
-    let cut = ServedScene::new(stored)
-        .visible_cut(&world, CUT_GRID, &[], budget)
-        .unwrap();
+    let Cutting {
+        server, view, cut, ..
+    } = cutting(&tp).await;
     assert!(cut.complete);
     let expected: HashSet<TreeletId> = cut.treelets.iter().map(|&(_, id)| id).collect();
     assert!(
@@ -396,6 +380,60 @@ async fn a_resting_view_gets_its_visible_cut_pushed_in_place_of_the_frustum_plan
     );
     // Everything the cut names arrives: pushed now, or sent under the frustum plan before.
     receive_all_of(&c, &expected).await;
+    c.conn.close(0u32.into(), b"done");
+    server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn prefetch_the_cut_does_not_hold_is_set_apart_and_still_arrives() {
+    use std::collections::HashSet;
+    let tp = TestPool::new();
+    let Cutting {
+        server,
+        view,
+        world,
+        cut,
+        treelet_count,
+    } = cutting(&tp).await;
+    let in_cut: HashSet<TreeletId> = cut.treelets.iter().map(|&(_, id)| id).collect();
+    // Prefetch the cut does not hold, after one listed item the cut holds.
+    let outside: Vec<TreeletId> = (1..treelet_count)
+        .map(TreeletId)
+        .filter(|id| !in_cut.contains(id))
+        .take(6)
+        .collect();
+    assert_eq!(
+        outside.len(),
+        6,
+        "the scene has treelets the view does not need"
+    );
+    let first = cut.treelets[0].1;
+    let mut items = vec![(first, 10.0, 1.0)];
+    items.extend(outside.iter().map(|&id| (id, 1.0, 0.0)));
+    let (c, mut control) = hello_with_root_and_view(&server, view).await;
+    // The same view as Hello's: resting, so its cut answers this list (at once, or when it is
+    // ready and the list is planned again).
+    control
+        .send(&Frame::DeepRequestList {
+            seq: 1,
+            view: world,
+            items,
+            prefetch_from: 1,
+        })
+        .await;
+    let set_apart = &server.state.metrics.prefetch_set_apart;
+    let deadline = Instant::now() + LONG;
+    while set_apart.load(Ordering::Relaxed) < outside.len() as u64 {
+        assert!(
+            Instant::now() < deadline,
+            "the prefetch was never set apart"
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    // Set apart, not dropped: it arrives after the cut.
+    let mut wanted: HashSet<TreeletId> = outside.iter().copied().collect();
+    wanted.insert(first);
+    receive_all_of(&c, &wanted).await;
     c.conn.close(0u32.into(), b"done");
     server.shutdown().await;
 }
@@ -438,6 +476,44 @@ async fn a_cut_that_saves_too_little_leaves_the_frustum_plan_in_place() {
     receive_all_of(&c, &planned).await;
     c.conn.close(0u32.into(), b"done");
     server.shutdown().await;
+}
+
+/// A server following every cut (however much of the frustum plan it holds; no finer cut), a
+/// view in front of the cube (root-cube units, as `Hello` takes it, and in the world), and the
+/// cut the server should find for it, cast here through the same pool.
+struct Cutting {
+    server: arbor_server::daemon::RunningServer,
+    view: ViewHint,
+    world: ViewHint,
+    cut: arbor_server::service::visibility::VisibleCut,
+    treelet_count: u32,
+}
+
+async fn cutting(tp: &TestPool) -> Cutting {
+    use arbor_server::service::treelets::ServedScene;
+    let config = with_cuts(tp, 0, 1.0);
+    let budget = config.visibility_cache_bytes;
+    let server = start(config).await;
+    let stored = server.pool().scene(SCENE).unwrap();
+    let d = stored.description.clone();
+    let view = ViewHint {
+        free_slots: 4096,
+        ..in_front_of_the_cube()
+    };
+    let world = ViewHint {
+        eye: std::array::from_fn(|i| d.origin[i] + view.eye[i] * d.edge),
+        ..view
+    };
+    let cut = ServedScene::new(stored)
+        .visible_cut(&world, CUT_GRID, &[], budget)
+        .unwrap();
+    Cutting {
+        server,
+        view,
+        world,
+        cut,
+        treelet_count: d.treelet_count,
+    }
 }
 
 /// Rays along the longer side of the visible cuts in these tests.

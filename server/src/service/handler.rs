@@ -287,7 +287,13 @@ impl Handler {
             items,
             pushed,
             prefetch_below,
+            set_apart,
         } = list;
+        self.shared
+            .state
+            .metrics
+            .prefetch_set_apart
+            .fetch_add(set_apart as u64, Ordering::Relaxed);
         let named = self
             .shared
             .state
@@ -424,6 +430,7 @@ impl Handler {
             items: list,
             pushed: plan.pushes.len(),
             prefetch_below: None,
+            set_apart: 0,
         }
     }
 

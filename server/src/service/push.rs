@@ -459,6 +459,8 @@ pub struct PlannedList {
     /// The prefetch set apart ranks below this and nothing else does
     /// ([`super::schedule::Scheduler::handle_list_with_prefetch`]); `None`: nothing is.
     pub prefetch_below: Option<f32>,
+    /// How many items are set apart so.
+    pub set_apart: usize,
 }
 
 impl PlannedList {
@@ -468,6 +470,7 @@ impl PlannedList {
             items,
             pushed: 0,
             prefetch_below: None,
+            set_apart: 0,
         }
     }
 }
@@ -535,6 +538,7 @@ pub fn cut_list(
         items: list,
         pushed,
         prefetch_below,
+        set_apart: outside.len(),
     }
 }
 
@@ -656,8 +660,9 @@ mod tests {
             items: list,
             pushed,
             prefetch_below,
+            set_apart,
         } = cut_list(&cut, &view, &items, items.len(), 100, delivered);
-        assert_eq!((pushed, prefetch_below), (3, None));
+        assert_eq!((pushed, prefetch_below, set_apart), (3, None, 0));
         let ids: Vec<u32> = list.iter().map(|&(id, _)| id.0).collect();
         assert_eq!(
             ids,
@@ -705,7 +710,7 @@ mod tests {
         let below = planned.prefetch_below.expect("prefetch outside the cut");
         let ids: Vec<u32> = planned.items.iter().map(|&(id, _)| id.0).collect();
         assert_eq!(ids, [7, 30, 20, 41, 40, 4, 12], "the pushes last");
-        assert_eq!(planned.pushed, 2);
+        assert_eq!((planned.pushed, planned.set_apart), (2, 2));
         let priority = |id: u32| planned.items.iter().find(|x| x.0.0 == id).unwrap().1;
         // What the cut holds keeps its place; the pushes rank below every listed item, the
         // prefetch outside the cut below every push, in the client's order; the mark lies

@@ -99,6 +99,9 @@ pub struct Metrics {
     pub pushes_planned: AtomicU64,
     /// Visible cuts computed for resting views (`service::visibility`).
     pub visible_cuts: AtomicU64,
+    /// Prefetch items of deep request lists set apart under a visible cut (sent after its
+    /// pushes, few in flight: `push::cut_list`), summed over lists.
+    pub prefetch_set_apart: AtomicU64,
     /// Request-to-send latency: from the first list naming a treelet to its stream finishing.
     pub request_to_send: Histogram,
     /// What connections resumed from a remembered path did (`service::path_memory`).
@@ -323,7 +326,7 @@ impl ServiceState {
         let m = &self.metrics;
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
         let resumes = &m.path_resumes;
-        let counters: [(&str, &str, &AtomicU64); 12] = [
+        let counters: [(&str, &str, &AtomicU64); 13] = [
             (
                 "arbor_connections_accepted_total",
                 "QUIC connections accepted.",
@@ -368,6 +371,12 @@ impl ServiceState {
                 "arbor_visible_cuts_total",
                 "Visible cuts cast through the server's tree for resting views.",
                 &m.visible_cuts,
+            ),
+            (
+                "arbor_prefetch_set_apart_total",
+                "Prefetch items of deep request lists sent after a visible cut's pushes, summed \
+                 over lists.",
+                &m.prefetch_set_apart,
             ),
             (
                 "arbor_path_resumes_total",
