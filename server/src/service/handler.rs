@@ -120,8 +120,7 @@ struct Handler {
     /// The cut being computed, off the async workers, with whether it saves enough.
     cut_job: Option<tokio::task::JoinHandle<Option<(VisibleCut, bool)>>>,
     /// The last deep list applied (sequence, view, items, prefetch start): re-planned when its
-    /// view's cut
-    /// arrives.
+    /// view's cut arrives.
     last_deep: Option<DeepList>,
     /// What was sent for the view the connection rests on: the frustum plan goes on below it.
     anchors: PushAnchors,
@@ -289,10 +288,9 @@ impl Handler {
             prefetch_below,
             set_apart,
         } = list;
-        self.shared
-            .state
-            .metrics
-            .prefetch_set_apart
+        let m = &self.shared.state.metrics;
+        m.pushes_planned.fetch_add(pushed as u64, Ordering::Relaxed);
+        m.prefetch_set_apart
             .fetch_add(set_apart as u64, Ordering::Relaxed);
         let named = self
             .shared
@@ -379,11 +377,6 @@ impl Handler {
             }
         }
         let list = self.plan(view, items, prefetch_from);
-        self.shared
-            .state
-            .metrics
-            .pushes_planned
-            .fetch_add(list.pushed as u64, Ordering::Relaxed);
         self.on_request_list(seq, list)
     }
 
@@ -438,8 +431,9 @@ impl Handler {
     /// one once the coarse one answers the view and is followed — unless visible cuts are off,
     /// one is being computed, or the last one answers this view at the finest grid configured
     /// (or was not worth following: a finer cast would not change that much). Neither grid
-    /// exceeds the client's own frame ([`frame_rays`]). The same thread
-    /// then decides whether the cut saves enough against the frustum plan to be followed.
+    /// exceeds the client's own frame ([`frame_rays`]); the fine one is cast from the coarse
+    /// one. The same thread then decides whether the cut saves enough against the frustum plan
+    /// to be followed.
     fn start_cut(&mut self, view: &ViewHint) {
         // No finer than the client's own frame: a small client's view needs no more rays.
         let rays = frame_rays(view);
@@ -448,9 +442,9 @@ impl Handler {
         if coarse == 0 || self.cut_job.is_some() {
             return;
         }
-        let (grid, seed) = match self.cut.as_ref().filter(|(c, _)| c.answers(view)) {
-            None => (coarse, Vec::new()),
-            Some((c, true)) if fine > c.grid => (fine, c.treelets.clone()),
+        let (grid, coarse_cut) = match self.cut.as_ref().filter(|(c, _)| c.answers(view)) {
+            None => (coarse, None),
+            Some((c, true)) if fine > c.grid => (fine, Some(c.clone())),
             Some(_) => return,
         };
         let scene = self.ctx.scene.clone();
@@ -458,7 +452,8 @@ impl Handler {
         let share = self.shared.config.visibility_follow_share;
         let view = *view;
         self.cut_job = Some(tokio::task::spawn_blocking(move || {
-            let cut = scene.visible_cut(&view, grid, &seed, budget)?;
+            let seed = coarse_cut.as_ref().map_or(&[][..], |c| &c.treelets);
+            let cut = scene.visible_cut(&view, grid, seed, budget)?;
             let d = &scene.stored.description;
             let followed = cut_saves(WorldCube::of(d), &cut, d.root_treelet, share, |id| {
                 scene.shape(id)
@@ -501,11 +496,6 @@ impl Handler {
             return None;
         }
         let list = self.plan(&view, &items, prefetch_from);
-        self.shared
-            .state
-            .metrics
-            .pushes_planned
-            .fetch_add(list.pushed as u64, Ordering::Relaxed);
         self.start_cut(&view);
         self.apply_list(seq, list, true)
     }

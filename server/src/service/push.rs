@@ -485,10 +485,10 @@ const PREFETCH_GENERATION: u32 = u8::MAX as u32 + 2;
 /// then the client's prefetch (`items[prefetch_from..]`) that the cut does not hold, in the
 /// client's order. The cut says what the view needs; the prefetch outside it is a guess at a
 /// later view, so it goes after every need and is marked to be kept to a few in flight
-/// ([`PlannedList::prefetch_below`]). Prefetch the cut holds keeps its place. Unlike [`deep_list`],
-/// the pushes need not descend from a listed treelet: the cut already says which treelets the
-/// view needs, and a needed treelet below one delivered earlier is pushed as soon as its own
-/// parent was.
+/// ([`PlannedList::prefetch_below`]). Prefetch the cut holds keeps its place. Unlike
+/// [`deep_list`], the pushes need not descend from a listed treelet: the cut already says which
+/// treelets the view needs, and a needed treelet below one delivered earlier is pushed as soon
+/// as its own parent was.
 pub fn cut_list(
     cut: &VisibleCut,
     view: &ViewHint,

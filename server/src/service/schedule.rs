@@ -400,22 +400,16 @@ impl Conn {
     /// Takes the best of the cursor and the retry heap: the treelet, since when it is wanted,
     /// and its priority.
     fn pop(&mut self, now: Instant) -> Option<(TreeletId, Instant, f32)> {
-        let head = self.queue.get(self.cursor).copied();
-        let retry = self.retry.peek().map(|r| (r.0, r.1));
-        match (head, retry) {
-            (Some(h), Some(r)) if rank(&r, &(h.id, h.priority)) == Ordering::Less => {
-                self.retry.pop();
-                Some((r.0, self.wanted(r.0).map_or(now, |w| w.since), r.1))
-            }
-            (Some(h), _) => {
+        let (id, priority) = self.peek()?;
+        match self.queue.get(self.cursor) {
+            Some(head) if head.id == id => {
                 self.cursor += 1;
-                Some((h.id, h.since, h.priority))
+                Some((id, head.since, priority))
             }
-            (None, Some(r)) => {
+            _ => {
                 self.retry.pop();
-                Some((r.0, self.wanted(r.0).map_or(now, |w| w.since), r.1))
+                Some((id, self.wanted(id).map_or(now, |w| w.since), priority))
             }
-            (None, None) => None,
         }
     }
 

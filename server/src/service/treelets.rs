@@ -223,10 +223,9 @@ impl ServedScene {
 
     /// The visible cut of `view` with `grid` rays along the longer side, from `seed` (a coarser
     /// cut of the same view, or nothing: [`CutCaster::cut_from`]), in a buffer of at most
-    /// `budget_bytes` of node records. `None` when the root treelet
-    /// cannot be read or does not fit, or [`MAX_CUTS_RUNNING`] cuts of this scene are being
-    /// cast already (their buffers bound the memory). Blocks for the cast (milliseconds): call
-    /// it off the async workers.
+    /// `budget_bytes` of node records. `None` when the root treelet cannot be read or does not
+    /// fit, or [`MAX_CUTS_RUNNING`] cuts of this scene are being cast already (their buffers
+    /// bound the memory). Blocks for the cast (milliseconds): call it off the async workers.
     pub fn visible_cut(
         &self,
         view: &ViewHint,

@@ -218,7 +218,7 @@ impl CutCaster {
 
     /// [`CutCaster::cast`] with the buffer first holding `seed` ([`CutCaster::cut_from`]); a
     /// seeded treelet that cannot be read or inserted leaves the cast incomplete.
-    pub fn cast_from(
+    fn cast_from(
         &self,
         camera: &Camera,
         lod: &Lod,
@@ -255,12 +255,10 @@ impl CutCaster {
                     .filter(|hit| hit.leaf && !hit.subtreelet.is_none() && hit.error > 0.0)
                     .map(|hit| ((x, y), hit.subtreelet))
             };
-            let stopped_short: Vec<((u32, u32), TreeletId)> = match cut_pool() {
-                Some(pool) => pool.install(|| pending.par_iter().filter_map(stops_short).collect()),
-                None => pending.iter().filter_map(stops_short).collect(),
+            let (again, mut missing): (Vec<(u32, u32)>, Vec<TreeletId>) = match cut_pool() {
+                Some(pool) => pool.install(|| pending.par_iter().filter_map(stops_short).unzip()),
+                None => pending.iter().filter_map(stops_short).unzip(),
             };
-            let again: Vec<(u32, u32)> = stopped_short.iter().map(|&(xy, _)| xy).collect();
-            let mut missing: Vec<TreeletId> = stopped_short.into_iter().map(|(_, t)| t).collect();
             missing.sort_unstable();
             missing.dedup();
             let mut progress = false;
