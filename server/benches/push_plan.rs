@@ -194,7 +194,7 @@ fn main() {
     };
     let shape_cache_bytes = env_usize("ARBOR_PLAN_SHAPE_BYTES", DEFAULT_SHAPE_CACHE_BYTES as usize);
     let mut terrain = Terrain {
-        shapes: ShapeCache::new(shape_cache_bytes),
+        shapes: ShapeCache::for_shapes(shape_cache_bytes),
         touched: HashMap::new(),
         client: HashMap::new(),
     };
@@ -334,7 +334,7 @@ fn main() {
     println!(
         "shape cache of {:.1} MiB: {} shapes in {:.1} MiB held, {} hits, {} misses; the run touched {} distinct shapes, {:.1} MiB",
         shape_cache_bytes as f64 / 1048576.0,
-        f.shapes,
+        f.entries,
         f.bytes as f64 / 1048576.0,
         f.hits,
         f.misses,

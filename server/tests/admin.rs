@@ -680,6 +680,7 @@ async fn metrics_report_the_server_wide_caches() {
     use arbor_server::service::shapes::ShapeCache;
     use arbor_server::service::state::ServiceCaches;
     use arbor_server::service::treelets::{MessageCache, ServedScene};
+    use arbor_server::service::visibility::NodeCache;
     let f = start(true, TOKEN).await;
     let bearer = bearer(TOKEN);
     let auth = [("Authorization", bearer.as_str())];
@@ -691,6 +692,10 @@ async fn metrics_report_the_server_wide_caches() {
         "arbor_shape_cache_shapes",
         "arbor_shape_cache_hits_total",
         "arbor_shape_cache_misses_total",
+        "arbor_cut_node_cache_bytes",
+        "arbor_cut_node_cache_treelets",
+        "arbor_cut_node_cache_hits_total",
+        "arbor_cut_node_cache_misses_total",
     ];
     let fams = parse_prometheus(get(f.addr, "/metrics", &auth).await.text());
     for name in names {
@@ -703,15 +708,12 @@ async fn metrics_report_the_server_wide_caches() {
 
     let caches = ServiceCaches {
         messages: Arc::new(MessageCache::new(1 << 20)),
-        shapes: Arc::new(ShapeCache::new(1 << 20)),
+        shapes: Arc::new(ShapeCache::for_shapes(1 << 20)),
+        cut_nodes: Arc::new(NodeCache::for_nodes(1 << 20)),
     };
     f.state.set_caches(caches.clone());
     let d = f.description.as_ref().unwrap();
-    let served = ServedScene::with_caches(
-        f.pool.scene("bunny").unwrap(),
-        caches.messages.clone(),
-        caches.shapes.clone(),
-    );
+    let served = ServedScene::with_caches(f.pool.scene("bunny").unwrap(), &caches);
     let channels = d.layout.channels().to_vec();
     let n = d.treelet_count;
     for _ in 0..2 {
@@ -720,11 +722,48 @@ async fn metrics_report_the_server_wide_caches() {
             served.shape(TreeletId(i)).unwrap();
         }
     }
+    // The same view's cut twice: the second reads every treelet from the cut node cache.
+    let view = arbor_proto::wire::ViewHint {
+        eye: std::array::from_fn(|i| d.origin[i] + d.edge * [0.5, 0.5, 2.5][i]),
+        forward: [0.0, 0.0, -1.0],
+        up: [0.0, 1.0, 0.0],
+        tan_half_fov_y: 0.6,
+        aspect: 1.0,
+        footprint: 1.2 / 64.0,
+        free_slots: 0,
+    };
+    let cuts: Vec<_> = (0..2)
+        .map(|_| {
+            served
+                .visible_cut(&view, 32, &[], 1 << 24, |_| true)
+                .unwrap()
+        })
+        .collect();
+    assert_eq!(cuts[0].treelets, cuts[1].treelets);
+    assert!(
+        cuts[0].complete && cuts[0].treelets.len() > 1,
+        "{:?}",
+        cuts[0]
+    );
     let fams = parse_prometheus(get(f.addr, "/metrics", &auth).await.text());
     let v = |name: &str| value(&fams, name, &[]);
     let (message_bytes, ..) = caches.messages.figures();
     let shapes = caches.shapes.figures();
     assert!(message_bytes > 0 && shapes.bytes > 0);
+    let nodes = caches.cut_nodes.figures();
+    // The root (read once, when the scene's caster is made) and the cut's treelets, each
+    // decoded by the first cut and read again by the second.
+    let cut = cuts[0].treelets.len() as u64;
+    assert_eq!((nodes.misses, nodes.hits), (cut + 1, cut), "{nodes:?}");
+    assert_eq!(nodes.entries as u64, cut + 1);
+    for (name, want) in [
+        ("arbor_cut_node_cache_bytes", nodes.bytes as f64),
+        ("arbor_cut_node_cache_treelets", (cut + 1) as f64),
+        ("arbor_cut_node_cache_hits_total", cut as f64),
+        ("arbor_cut_node_cache_misses_total", (cut + 1) as f64),
+    ] {
+        assert_eq!(v(name), want, "{name}");
+    }
     let n = f64::from(n);
     for (name, want) in [
         ("arbor_message_cache_bytes", message_bytes as f64),

@@ -505,7 +505,7 @@ async fn cutting(tp: &TestPool) -> Cutting {
         ..view
     };
     let cut = ServedScene::new(stored)
-        .visible_cut(&world, CUT_GRID, &[], budget)
+        .visible_cut(&world, CUT_GRID, &[], budget, |_| true)
         .unwrap();
     Cutting {
         server,
@@ -1193,7 +1193,9 @@ async fn a_replacement_list_cancels_obsolete_treelets_in_flight() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shapes_through_a_small_shape_cache_are_exact_and_within_its_bytes() {
     use arbor_server::service::shapes::ShapeCache;
+    use arbor_server::service::state::ServiceCaches;
     use arbor_server::service::treelets::{MessageCache, ServedScene};
+    use arbor_server::service::visibility::NodeCache;
     use std::sync::Arc;
     let tp = TestPool::new();
     let server = start(tp.config()).await;
@@ -1201,13 +1203,14 @@ async fn shapes_through_a_small_shape_cache_are_exact_and_within_its_bytes() {
     let count = stored.description.treelet_count;
     let root = stored.description.root_treelet;
     let serve = |shapes: &Arc<ShapeCache>| {
-        ServedScene::with_caches(
-            stored.clone(),
-            Arc::new(MessageCache::new(0)),
-            shapes.clone(),
-        )
+        let caches = ServiceCaches {
+            messages: Arc::new(MessageCache::new(0)),
+            shapes: shapes.clone(),
+            cut_nodes: Arc::new(NodeCache::for_nodes(0)),
+        };
+        ServedScene::with_caches(stored.clone(), &caches)
     };
-    let whole = serve(&Arc::new(ShapeCache::new(usize::MAX)));
+    let whole = serve(&Arc::new(ShapeCache::for_shapes(usize::MAX)));
     let all: Vec<_> = (0..count)
         .map(|i| {
             whole
@@ -1231,7 +1234,7 @@ async fn shapes_through_a_small_shape_cache_are_exact_and_within_its_bytes() {
     let capacity = 4 * shape_bytes(&all[root.0 as usize]);
     let total: usize = all.iter().map(|s| shape_bytes(s)).sum();
     assert!(capacity * 4 < total, "{capacity} of {total} bytes");
-    let shapes = Arc::new(ShapeCache::new(capacity));
+    let shapes = Arc::new(ShapeCache::for_shapes(capacity));
     let small = serve(&shapes);
     // Walks as the plans do: from the root down, the root again before every treelet.
     for round in 0..3 {

@@ -620,12 +620,12 @@ fn cost_breakdown(dir: &std::path::Path, scene: &str) {
     let stored = pool.scene(scene).unwrap();
     let count = stored.description.treelet_count;
     let channels = stored.description.layout.channels().to_vec();
-    let cold = arbor_server::service::treelets::MessageCache::new(0);
-    let served = arbor_server::service::treelets::ServedScene::with_caches(
-        stored.clone(),
-        std::sync::Arc::new(cold),
-        std::sync::Arc::new(arbor_server::service::shapes::ShapeCache::new(0)),
-    );
+    let cold = arbor_server::service::state::ServiceCaches {
+        messages: Arc::new(arbor_server::service::treelets::MessageCache::new(0)),
+        shapes: Arc::new(arbor_server::service::shapes::ShapeCache::for_shapes(0)),
+        cut_nodes: Arc::new(arbor_server::service::visibility::NodeCache::for_nodes(0)),
+    };
+    let served = arbor_server::service::treelets::ServedScene::with_caches(stored.clone(), &cold);
     let t = Instant::now();
     for i in 0..count {
         std::hint::black_box(served.message(TreeletId(i), &channels).unwrap());

@@ -15,7 +15,7 @@ use arbor_client_core::traverse::{Lod, trace};
 use arbor_proto::wire::ViewHint;
 use arbor_proto::{Cell, TreeletId};
 use arbor_server::service::visibility::{
-    CutCaster, VisibleCut, frame_rays, grid_camera, same_view,
+    CutCaster, FIRST_WORTH_CHECK, VisibleCut, frame_rays, grid_camera, same_view,
 };
 use arbor_tests::support::{decoded_treelets, small_lion};
 use glam::DVec3;
@@ -221,7 +221,7 @@ fn a_fine_cut_cast_from_a_coarse_one_is_the_coarse_cut_and_the_fine_one_together
         let view = hint(&camera);
         let coarse = caster.cut(&view, GRID / 4, lion.fetch());
         let fine = caster.cut(&view, GRID, lion.fetch());
-        let from = caster.cut_from(&view, GRID, &coarse.treelets, lion.fetch());
+        let from = caster.cut_from(&view, GRID, &coarse.treelets, lion.fetch(), |_| true);
         assert!(coarse.complete && fine.complete && from.complete, "{what}");
         let union: BTreeSet<TreeletId> = ids(&coarse).union(&ids(&fine)).copied().collect();
         assert_eq!(ids(&from), union, "{what}");
@@ -252,10 +252,77 @@ fn a_fine_cut_cast_from_a_coarse_one_is_the_coarse_cut_and_the_fine_one_together
     let view = hint(&lion.views()[0].1);
     let coarse = caster.cut(&view, GRID / 4, lion.fetch());
     let unreadable = coarse.treelets[0].1;
-    let cut = caster.cut_from(&view, GRID, &coarse.treelets, |id: TreeletId| {
-        (id != unreadable).then(|| nodes_only(&lion.treelets[id.0 as usize]))
-    });
+    let cut = caster.cut_from(
+        &view,
+        GRID,
+        &coarse.treelets,
+        |id: TreeletId| (id != unreadable).then(|| nodes_only(&lion.treelets[id.0 as usize])),
+        |_| true,
+    );
     assert!(!cut.complete);
+}
+
+#[test]
+fn a_cut_is_abandoned_where_it_grows_past_what_is_worth_casting() {
+    let lion = lion();
+    let caster = lion.caster(lion.whole_scene_bytes() * 2);
+    let mut asked_at_all = 0;
+    for (what, camera) in lion.views() {
+        let view = hint(&camera);
+        let whole = caster.cut(&view, GRID, lion.fetch());
+        // Asked each time the cut has doubled, from FIRST_WORTH_CHECK on; a yes changes nothing.
+        let mut asked = Vec::new();
+        let cut = caster.cut_from(&view, GRID, &[], lion.fetch(), |n| {
+            asked.push(n);
+            true
+        });
+        assert_eq!(cut.treelets, whole.treelets, "{what}");
+        assert!(cut.complete && !cut.abandoned, "{what}");
+        let mut last = FIRST_WORTH_CHECK / 2;
+        for &n in &asked {
+            assert!(
+                n >= 2 * last && n <= whole.treelets.len(),
+                "{what}: {asked:?}"
+            );
+            last = n;
+        }
+        assert_eq!(
+            asked.is_empty(),
+            whole.treelets.len() < FIRST_WORTH_CHECK,
+            "{what}: {} treelets, asked at {asked:?}",
+            whole.treelets.len()
+        );
+        let Some(&first) = asked.first() else {
+            continue;
+        };
+        asked_at_all += 1;
+        // A no stops the cast there: what it holds is needed, but not all of it.
+        let mut again = Vec::new();
+        let cut = caster.cut_from(&view, GRID, &[], lion.fetch(), |n| {
+            again.push(n);
+            false
+        });
+        assert!(cut.abandoned && !cut.complete, "{what}");
+        assert_eq!(again, [first], "{what}");
+        assert_eq!(cut.treelets.len(), first, "{what}");
+        assert!(ids(&cut).is_subset(&ids(&whole)), "{what}");
+        assert!(cut.treelets.len() < whole.treelets.len(), "{what}");
+        // A seeded cast is asked first at twice its seed.
+        let seed = &whole.treelets[..first];
+        let mut seeded = Vec::new();
+        caster.cut_from(&view, GRID, seed, lion.fetch(), |n| {
+            seeded.push(n);
+            true
+        });
+        assert!(
+            seeded.first().is_none_or(|&n| n >= 2 * first),
+            "{what}: {seeded:?}"
+        );
+    }
+    assert!(
+        asked_at_all > 0,
+        "no lion view's cut reached {FIRST_WORTH_CHECK} treelets: the test checks nothing"
+    );
 }
 
 #[test]

@@ -22,6 +22,7 @@
 //! visibility_grid = 128               # rays along a resting view's longer side for the visible cut its pushes follow; 0: off
 //! visibility_fine_grid = 512          # a second, finer cut of the same view once the first is out; 0: none
 //! visibility_cache_bytes = 33554432   # node records per scene the visible cuts are cast through
+//! visibility_node_cache_bytes = 67108864 # decoded node records kept between cuts, server-wide
 //! visibility_follow_share = 0.5       # a cut is followed only if it holds at most this share of the frustum plan; 1: always
 //! window_min = 8
 //! window_max = 1024
@@ -208,6 +209,14 @@ pub struct ServeConfig {
     /// Bytes of node records per served scene that visible cuts are cast through (allocated by
     /// a scene's first cut).
     pub visibility_cache_bytes: u64,
+    /// Bytes of decoded node records kept server-wide between visible cuts
+    /// (`visibility::NodeCache`), so that a cut reads from the pool and decodes only what no
+    /// recent cut read (0: none kept). About 4.2 KB a treelet of 512 nodes. The default is
+    /// twice `visibility_cache_bytes`: what one cut's buffer holds, read again, fits in the
+    /// young generation while the old one keeps the cut before it (on the 10⁸-point city, 32
+    /// MiB turned over within one fine cut and saved little; 64 and 128 MiB about the same,
+    /// docs/measurements.md, stop 48).
+    pub visibility_node_cache_bytes: u64,
     /// A view's visible cut is followed only when it holds at most this share of the treelets
     /// the frustum plan would push for the same view (`push::cut_saves`): a view that sees most
     /// of its frustum keeps the frustum plan, which also prefetches for the next view, and is
@@ -270,6 +279,9 @@ pub const DEFAULT_VISIBILITY_FINE_GRID: u32 = 512;
 pub const DEFAULT_VISIBILITY_FOLLOW_SHARE: f64 = 0.5;
 /// Default [`ServeConfig::visibility_cache_bytes`]: 32 MiB.
 pub const DEFAULT_VISIBILITY_CACHE_BYTES: u64 = 32 << 20;
+/// Default [`ServeConfig::visibility_node_cache_bytes`]: 64 MiB, twice
+/// [`DEFAULT_VISIBILITY_CACHE_BYTES`].
+pub const DEFAULT_VISIBILITY_NODE_CACHE_BYTES: u64 = 2 * DEFAULT_VISIBILITY_CACHE_BYTES;
 /// Smallest accepted [`ServeConfig::visibility_cache_bytes`]: room for the largest treelets'
 /// top levels.
 pub const MIN_VISIBILITY_CACHE_BYTES: u64 = 1 << 20;
@@ -318,6 +330,7 @@ struct FileConfig {
     visibility_grid: Option<u32>,
     visibility_fine_grid: Option<u32>,
     visibility_cache_bytes: Option<u64>,
+    visibility_node_cache_bytes: Option<u64>,
     visibility_follow_share: Option<f64>,
     window_min: Option<usize>,
     window_max: Option<usize>,
@@ -438,6 +451,7 @@ impl ServeConfig {
             visibility_grid: DEFAULT_VISIBILITY_GRID,
             visibility_fine_grid: DEFAULT_VISIBILITY_FINE_GRID,
             visibility_cache_bytes: DEFAULT_VISIBILITY_CACHE_BYTES,
+            visibility_node_cache_bytes: DEFAULT_VISIBILITY_NODE_CACHE_BYTES,
             visibility_follow_share: DEFAULT_VISIBILITY_FOLLOW_SHARE,
             window_min: 8,
             window_max: 1024,
@@ -538,6 +552,7 @@ impl ServeConfig {
             visibility_grid,
             visibility_fine_grid,
             visibility_cache_bytes,
+            visibility_node_cache_bytes,
             visibility_follow_share,
             window_min,
             window_max,

@@ -432,8 +432,8 @@ impl Handler {
     /// one is being computed, or the last one answers this view at the finest grid configured
     /// (or was not worth following: a finer cast would not change that much). Neither grid
     /// exceeds the client's own frame ([`frame_rays`]); the fine one is cast from the coarse
-    /// one. The same thread then decides whether the cut saves enough against the frustum plan
-    /// to be followed.
+    /// one. The same thread decides whether the cut saves enough against the frustum plan to be
+    /// followed, and stops casting it as soon as it has grown too large for that.
     fn start_cut(&mut self, view: &ViewHint) {
         // No finer than the client's own frame: a small client's view needs no more rays.
         let rays = frame_rays(view);
@@ -453,11 +453,19 @@ impl Handler {
         let view = *view;
         self.cut_job = Some(tokio::task::spawn_blocking(move || {
             let seed = coarse_cut.as_ref().map_or(&[][..], |c| &c.treelets);
-            let cut = scene.visible_cut(&view, grid, seed, budget)?;
             let d = &scene.stored.description;
-            let followed = cut_saves(WorldCube::of(d), &cut, d.root_treelet, share, |id| {
-                scene.shape(id)
-            });
+            let saves = |treelets: usize| {
+                cut_saves(
+                    WorldCube::of(d),
+                    &view,
+                    treelets,
+                    d.root_treelet,
+                    share,
+                    |id| scene.shape(id),
+                )
+            };
+            let cut = scene.visible_cut(&view, grid, seed, budget, &saves)?;
+            let followed = !cut.abandoned && saves(cut.treelets.len());
             Some((cut, followed))
         }));
     }

@@ -31,6 +31,7 @@
 mod batches;
 pub mod config;
 pub mod connection;
+pub mod generations;
 mod handler;
 pub mod path_memory;
 pub mod push;

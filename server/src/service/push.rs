@@ -542,16 +542,19 @@ pub fn cut_list(
     }
 }
 
-/// Whether following `cut` is worth it: whether it holds at most `share` of the treelets the
-/// frustum plan would push for the same view from the root (every descendant in the frustum that
-/// projects larger than a pixel). A view that sees most of what lies in its frustum (a statue
-/// from the front) gains little from its cut and loses what the frustum plan would have
-/// prefetched for the next view; an occluded one (an engine, a building's interior) saves most
-/// of its bytes. The frustum plan is walked only as far as the decision needs, so the work is
-/// bounded by the cut's size over `share`. `share` ≥ 1: always.
+/// Whether following a visible cut of `treelets` treelets for `view` is worth it: whether it
+/// holds at most `share` of the treelets the frustum plan would push for the same view from the
+/// root (every descendant in the frustum that projects larger than a pixel). A view that sees
+/// most of what lies in its frustum (a statue from the front, a city from above) gains little
+/// from its cut and loses what the frustum plan would have prefetched for the next view; an
+/// occluded one (an engine, a building's interior) saves most of its bytes. The frustum plan is
+/// walked only as far as the decision needs, so the work is bounded by `treelets` over
+/// `share`. `share` ≥ 1: always. A larger cut of the same view saves less: the answer for a
+/// cut still being cast (`CutCaster::cut_from`'s `worthwhile`) holds for what it grows into.
 pub fn cut_saves(
     cube: WorldCube,
-    cut: &VisibleCut,
+    view: &ViewHint,
+    treelets: usize,
     root: TreeletId,
     share: f64,
     shape: impl FnMut(TreeletId) -> Option<Arc<TreeletShape>>,
@@ -564,9 +567,9 @@ pub fn cut_saves(
     }
     // The frustum plan must hold at least this many for the cut to be within `share` of it
     // (`as` saturates: a tiny share asks for more than any plan holds).
-    let needed = (cut.treelets.len() as f64 / share).ceil().max(1.0) as usize;
+    let needed = (treelets as f64 / share).ceil().max(1.0) as usize;
     let root_item = [(root, f32::MAX, ViewHint::MAX_ERROR)];
-    plan_pushes(cube, &cut.view, &root_item, needed, shape).len() >= needed
+    plan_pushes(cube, view, &root_item, needed, shape).len() >= needed
 }
 
 /// In-flight windows' worth of pushes one list may carry ([`push_cap`]).
@@ -643,6 +646,7 @@ mod tests {
                 .map(|&(level, id)| (level, TreeletId(id)))
                 .collect(),
             complete: true,
+            abandoned: false,
             grid: 8,
             rays_cast: 0,
             took: std::time::Duration::ZERO,
@@ -748,15 +752,7 @@ mod tests {
         )
         .len();
         assert_eq!(frustum, 8 + 64 + 512, "the whole tree is in view");
-        let cut_of = |n: usize| VisibleCut {
-            view,
-            treelets: (1..=n as u32).map(|i| (1, TreeletId(i))).collect(),
-            complete: true,
-            grid: 8,
-            rays_cast: 0,
-            took: std::time::Duration::ZERO,
-        };
-        let saves = |n: usize, share: f64| cut_saves(CUBE, &cut_of(n), TreeletId(0), share, shape);
+        let saves = |n: usize, share: f64| cut_saves(CUBE, &view, n, TreeletId(0), share, shape);
         // Exactly half the frustum plan is within a share of one half; one more is not.
         assert!(saves(frustum / 2, 0.5));
         assert!(!saves(frustum / 2 + 1, 0.5));
@@ -769,11 +765,10 @@ mod tests {
         // An empty cut (nothing visible below the root) always saves.
         assert!(saves(0, 0.5));
         // A view that sees only part of the tree has a smaller frustum plan.
-        let mut aside = cut_of(100);
-        aside.view = view_from([1.5, 0.5, 2.0], 0.001);
+        let aside = view_from([1.5, 0.5, 2.0], 0.001);
         let side = plan_pushes(
             CUBE,
-            &aside.view,
+            &aside,
             &[(TreeletId(0), f32::MAX, ViewHint::MAX_ERROR)],
             usize::MAX,
             shape,
@@ -781,7 +776,7 @@ mod tests {
         .len();
         assert!(side > 0 && side < frustum, "{side} of {frustum}");
         assert_eq!(
-            cut_saves(CUBE, &aside, TreeletId(0), 0.5, shape),
+            cut_saves(CUBE, &aside, 100, TreeletId(0), 0.5, shape),
             100 * 2 <= side
         );
     }

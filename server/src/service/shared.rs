@@ -155,11 +155,7 @@ impl Shared {
         // Scenes nobody is served any more (removed, replaced, or just idle) leave the map
         // here, so it holds no more names than scenes in use plus this one.
         scenes.retain(|_, s| s.strong_count() > 0);
-        let s = Arc::new(ServedScene::with_caches(
-            stored,
-            self.caches.messages.clone(),
-            self.caches.shapes.clone(),
-        ));
+        let s = Arc::new(ServedScene::with_caches(stored, &self.caches));
         scenes.insert(name, Arc::downgrade(&s));
         s
     }

@@ -17,6 +17,7 @@ use serde::Serialize;
 use super::path_memory::{PathMemory, ResumeCounters};
 use super::shapes::ShapeCache;
 use super::treelets::MessageCache;
+use super::visibility::NodeCache;
 use crate::prometheus::{Kind, PromText};
 
 /// Upper bounds (seconds) of the request-to-send latency histogram buckets.
@@ -190,6 +191,8 @@ pub struct ServiceCaches {
     pub messages: Arc<MessageCache>,
     /// Decoded treelet shapes for the push plans (`shape_cache_bytes`).
     pub shapes: Arc<ShapeCache>,
+    /// Decoded node records for the visible cuts (`visibility_node_cache_bytes`).
+    pub cut_nodes: Arc<NodeCache>,
 }
 
 impl ServiceCaches {
@@ -198,7 +201,10 @@ impl ServiceCaches {
         let bytes = |b: u64| usize::try_from(b).unwrap_or(usize::MAX);
         ServiceCaches {
             messages: Arc::new(MessageCache::new(bytes(config.message_cache_bytes))),
-            shapes: Arc::new(ShapeCache::new(bytes(config.shape_cache_bytes))),
+            shapes: Arc::new(ShapeCache::for_shapes(bytes(config.shape_cache_bytes))),
+            cut_nodes: Arc::new(NodeCache::for_nodes(bytes(
+                config.visibility_node_cache_bytes,
+            ))),
         }
     }
 }
@@ -273,9 +279,13 @@ impl ServiceState {
 
     /// The caches' figures (zeros before the service set them).
     fn write_cache_metrics(&self, p: &mut PromText) {
-        let (messages, shapes) = match self.caches.get() {
-            Some(c) => (c.messages.figures(), c.shapes.figures()),
-            None => ((0, 0, 0), Default::default()),
+        let (messages, shapes, cut_nodes) = match self.caches.get() {
+            Some(c) => (
+                c.messages.figures(),
+                c.shapes.figures(),
+                c.cut_nodes.figures(),
+            ),
+            None => ((0, 0, 0), Default::default(), Default::default()),
         };
         p.single(
             "arbor_message_cache_bytes",
@@ -305,7 +315,7 @@ impl ServiceState {
             "arbor_shape_cache_shapes",
             Kind::Gauge,
             "Decoded treelet shapes held for push plans.",
-            shapes.shapes,
+            shapes.entries,
         )
         .single(
             "arbor_shape_cache_hits_total",
@@ -318,6 +328,30 @@ impl ServiceState {
             Kind::Counter,
             "Treelet shapes push plans decoded from the pool.",
             shapes.misses,
+        )
+        .single(
+            "arbor_cut_node_cache_bytes",
+            Kind::Gauge,
+            "Bytes of decoded node records held for visible cuts (visibility_node_cache_bytes bounds it).",
+            cut_nodes.bytes,
+        )
+        .single(
+            "arbor_cut_node_cache_treelets",
+            Kind::Gauge,
+            "Decoded treelets held for visible cuts.",
+            cut_nodes.entries,
+        )
+        .single(
+            "arbor_cut_node_cache_hits_total",
+            Kind::Counter,
+            "Treelets visible cuts found in the cut node cache.",
+            cut_nodes.hits,
+        )
+        .single(
+            "arbor_cut_node_cache_misses_total",
+            Kind::Counter,
+            "Treelets visible cuts read and decoded from the pool.",
+            cut_nodes.misses,
         );
     }
 

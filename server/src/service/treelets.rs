@@ -24,7 +24,8 @@ use arbor_client_core::slots::DecodedTreelet;
 use arbor_proto::wire::ViewHint;
 
 use super::shapes::ShapeCache;
-use super::visibility::{CutCaster, VisibleCut};
+use super::state::ServiceCaches;
+use super::visibility::{CutCaster, NodeCache, VisibleCut};
 use crate::pool::{PoolError, StoredScene};
 
 /// Why a treelet message could not be built. Always the server's fault (the pool), never the
@@ -172,6 +173,9 @@ const OWN_MESSAGE_CACHE_BYTES: usize = 16 << 20;
 /// Shape cache of a scene opened on its own: 4 MiB (a server shares one of
 /// `shape_cache_bytes`).
 const OWN_SHAPE_CACHE_BYTES: usize = 4 << 20;
+/// Cut node cache of a scene opened on its own: 4 MiB (a server shares one of
+/// `visibility_node_cache_bytes`).
+const OWN_CUT_NODE_CACHE_BYTES: usize = 4 << 20;
 
 /// A scene opened for serving.
 pub struct ServedScene {
@@ -180,6 +184,8 @@ pub struct ServedScene {
     cache: Arc<MessageCache>,
     /// Treelet shapes for deep-request pushes.
     shapes: Arc<ShapeCache>,
+    /// Decoded node records for visible cuts.
+    cut_nodes: Arc<NodeCache>,
     /// The root treelet's nodes for visible cuts, read by the first cut.
     cut_caster: Mutex<Option<Arc<CutCaster>>>,
     /// Visible cuts being cast now (each holds a buffer of `visibility_cache_bytes`).
@@ -200,22 +206,22 @@ impl ServedScene {
     pub fn new(stored: StoredScene) -> ServedScene {
         Self::with_caches(
             stored,
-            Arc::new(MessageCache::new(OWN_MESSAGE_CACHE_BYTES)),
-            Arc::new(ShapeCache::new(OWN_SHAPE_CACHE_BYTES)),
+            &ServiceCaches {
+                messages: Arc::new(MessageCache::new(OWN_MESSAGE_CACHE_BYTES)),
+                shapes: Arc::new(ShapeCache::for_shapes(OWN_SHAPE_CACHE_BYTES)),
+                cut_nodes: Arc::new(NodeCache::for_nodes(OWN_CUT_NODE_CACHE_BYTES)),
+            },
         )
     }
 
-    /// A scene sharing the server's message and shape caches.
-    pub fn with_caches(
-        stored: StoredScene,
-        cache: Arc<MessageCache>,
-        shapes: Arc<ShapeCache>,
-    ) -> ServedScene {
+    /// A scene sharing the server's caches.
+    pub fn with_caches(stored: StoredScene, caches: &ServiceCaches) -> ServedScene {
         ServedScene {
             dictionaries: PreparedDictionaries::of(&stored.description),
             stored,
-            cache,
-            shapes,
+            cache: caches.messages.clone(),
+            shapes: caches.shapes.clone(),
+            cut_nodes: caches.cut_nodes.clone(),
             cut_caster: Mutex::new(None),
             cuts_running: AtomicUsize::new(0),
         }
@@ -223,15 +229,18 @@ impl ServedScene {
 
     /// The visible cut of `view` with `grid` rays along the longer side, from `seed` (a coarser
     /// cut of the same view, or nothing: [`CutCaster::cut_from`]), in a buffer of at most
-    /// `budget_bytes` of node records. `None` when the root treelet cannot be read or does not
-    /// fit, or [`MAX_CUTS_RUNNING`] cuts of this scene are being cast already (their buffers
-    /// bound the memory). Blocks for the cast (milliseconds): call it off the async workers.
+    /// `budget_bytes` of node records, abandoned once `worthwhile` says a cut that large is not
+    /// worth following ([`CutCaster::cut_from`]). `None` when the root treelet cannot be read or
+    /// does not fit, or [`MAX_CUTS_RUNNING`] cuts of this scene are being cast already (their
+    /// buffers bound the memory). Blocks for the cast (milliseconds): call it off the async
+    /// workers.
     pub fn visible_cut(
         &self,
         view: &ViewHint,
         grid: u32,
         seed: &[(u8, TreeletId)],
         budget_bytes: u64,
+        worthwhile: impl FnMut(usize) -> bool,
     ) -> Option<VisibleCut> {
         struct Running<'a>(&'a AtomicUsize);
         impl Drop for Running<'_> {
@@ -245,8 +254,21 @@ impl ServedScene {
         }
         let d = &self.stored.description;
         let fetch = |id: TreeletId| {
-            let block = self.stored.nodes(id).ok()??;
-            DecodedTreelet::from_blocks_prepared(id, &block, &[], d, &self.dictionaries, &[]).ok()
+            let decoded = self
+                .cut_nodes
+                .get_or_decode(self.stored.generation, id, || {
+                    let block = self.stored.nodes(id).ok()??;
+                    DecodedTreelet::from_blocks_prepared(
+                        id,
+                        &block,
+                        &[],
+                        d,
+                        &self.dictionaries,
+                        &[],
+                    )
+                    .ok()
+                })?;
+            Some(DecodedTreelet::clone(&decoded))
         };
         let caster = {
             let mut caster = self.cut_caster.lock().unwrap_or_else(|p| p.into_inner());
@@ -262,7 +284,7 @@ impl ServedScene {
             }
             caster.clone()?
         };
-        Some(caster.cut_from(view, grid, seed, fetch))
+        Some(caster.cut_from(view, grid, seed, fetch, worthwhile))
     }
 
     /// The shape of treelet `id` for deep-request pushes ([`ShapeCache::shape`]).

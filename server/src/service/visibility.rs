@@ -30,10 +30,40 @@ use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig, SlotError};
 use arbor_client_core::traverse::{Lod, trace};
 use arbor_proto::wire::ViewHint;
-use arbor_proto::{SceneDescription, TreeletId};
+use arbor_proto::{Node, SceneDescription, TreeletId};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::sync::OnceLock;
+
+use super::generations::GenerationCache;
+
+/// The node records visible cuts are cast through, decoded and validated as a cut reads them
+/// (no channels), kept server-wide between cuts within `visibility_node_cache_bytes` (two
+/// generations, [`super::generations`]). A cut reads thousands of treelets and decoding them
+/// (decompressing and validating the node block) was about half of its time: a fine cut reads
+/// again the coarse cut it is cast from, a client raising its LOD bias step by step casts much
+/// the same treelets again, and clients looking at the same place read the same ones. On the
+/// 10⁸-point city it cut the server's CPU time per converging view by a third to a half
+/// (docs/measurements.md, stop 48).
+pub type NodeCache = GenerationCache<DecodedTreelet>;
+
+/// A decoded treelet's own bytes: its node records and what holds them.
+fn node_bytes(t: &DecodedTreelet) -> usize {
+    size_of::<DecodedTreelet>()
+        + t.treelet.nodes.capacity() * size_of::<Node>()
+        + t.attributes
+            .iter()
+            .map(|(_, a)| size_of::<(arbor_proto::Channel, Vec<u8>)>() + a.capacity())
+            .sum::<usize>()
+}
+
+impl NodeCache {
+    /// A cache of at most `capacity` bytes of decoded treelets (0: nothing is kept, every cut
+    /// decodes what it reads).
+    pub fn for_nodes(capacity: usize) -> NodeCache {
+        GenerationCache::new(capacity, node_bytes)
+    }
+}
 
 /// The treelets a view needs, as [`CutCaster::cut`] found them.
 #[derive(Clone, Debug, PartialEq)]
@@ -46,9 +76,13 @@ pub struct VisibleCut {
     /// until the subtree is there). Parents before children (by level — treelets above it —
     /// then id). The root treelet is left out: every client holds it.
     pub treelets: Vec<(u8, TreeletId)>,
-    /// Every ray stopped where the view's LOD accepts it. `false`: the buffer ran out of room or
-    /// a treelet could not be read, and the rays that needed it stopped short.
+    /// Every ray stopped where the view's LOD accepts it. `false`: the buffer ran out of room,
+    /// a treelet could not be read and the rays that needed it stopped short, or the cast was
+    /// abandoned.
     pub complete: bool,
+    /// The cast was stopped once the cut had grown past what could still be worth following
+    /// (the `worthwhile` test of [`CutCaster::cut_from`]); `treelets` is then what it held so far.
+    pub abandoned: bool,
     /// Rays along the longer side of the frame it was cast with.
     pub grid: u32,
     /// Rays cast in all rounds.
@@ -129,6 +163,10 @@ pub fn grid_camera(view: &ViewHint, grid: u32) -> Camera {
     }
 }
 
+/// Treelets a cut holds before [`CutCaster::cut_from`] first asks whether it is still worth
+/// casting: below it the question (a walk of the frustum plan) costs about as much as the cast.
+pub const FIRST_WORTH_CHECK: usize = 256;
+
 /// Casts a scene's visible cuts: holds the root treelet's nodes and the buffer size a cut may
 /// use; every cut builds its own buffer from them.
 #[derive(Debug)]
@@ -169,7 +207,7 @@ impl CutCaster {
         grid: u32,
         fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
     ) -> VisibleCut {
-        self.cut_from(view, grid, &[], fetch)
+        self.cut_from(view, grid, &[], fetch, |_| true)
     }
 
     /// [`CutCaster::cut`], with the buffer first holding `seed` (`(level, treelet)`, parents
@@ -178,12 +216,21 @@ impl CutCaster {
     /// seed is in the cut already. A finer grid after a coarser one then casts one full round
     /// and short ones for what the coarse rays missed, instead of every round from the root
     /// (engine at 512 rays after 128, on two shared cores: 100–150 ms from the root).
+    ///
+    /// `worthwhile(n)` says whether a cut of `n` treelets could still be worth following; it is
+    /// asked each time the cut has doubled (from twice the seed, at least
+    /// [`FIRST_WORTH_CHECK`] treelets). A cut only grows as it is cast, so once the answer is
+    /// no the cast stops, [`VisibleCut::abandoned`]: at city scale most of a resting view's
+    /// rays meet what the frustum plan pushes anyway, and a cut cast to the end only to be
+    /// found not worth following cost the server several times what serving the view did
+    /// (docs/measurements.md, stop 48).
     pub fn cut_from(
         &self,
         view: &ViewHint,
         grid: u32,
         seed: &[(u8, TreeletId)],
         fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
+        worthwhile: impl FnMut(usize) -> bool,
     ) -> VisibleCut {
         let start = std::time::Instant::now();
         let lod = Lod {
@@ -191,11 +238,12 @@ impl CutCaster {
             lod_bias: 1.0,
             max_depth: self.frame.max_depth,
         };
-        let cast = self.cast_from(&grid_camera(view, grid), &lod, seed, fetch);
+        let cast = self.cast_from(&grid_camera(view, grid), &lod, seed, fetch, worthwhile);
         VisibleCut {
             view: *view,
             treelets: cast.treelets,
             complete: cast.complete,
+            abandoned: cast.abandoned,
             grid,
             rays_cast: cast.rays_cast,
             took: start.elapsed(),
@@ -213,21 +261,24 @@ impl CutCaster {
         lod: &Lod,
         fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
     ) -> Cast {
-        self.cast_from(camera, lod, &[], fetch)
+        self.cast_from(camera, lod, &[], fetch, |_| true)
     }
 
-    /// [`CutCaster::cast`] with the buffer first holding `seed` ([`CutCaster::cut_from`]); a
-    /// seeded treelet that cannot be read or inserted leaves the cast incomplete.
+    /// [`CutCaster::cast`] with the buffer first holding `seed`, abandoned once `worthwhile`
+    /// says no ([`CutCaster::cut_from`]); a seeded treelet that cannot be read or inserted
+    /// leaves the cast incomplete.
     fn cast_from(
         &self,
         camera: &Camera,
         lod: &Lod,
         seed: &[(u8, TreeletId)],
         mut fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
+        mut worthwhile: impl FnMut(usize) -> bool,
     ) -> Cast {
         let mut cast = Cast {
             treelets: Vec::new(),
             complete: true,
+            abandoned: false,
             rays_cast: 0,
         };
         let Ok(mut slots) = SlotBuffer::new(self.config.clone(), self.root.clone()) else {
@@ -241,6 +292,7 @@ impl CutCaster {
                 _ => cast.complete = false,
             }
         }
+        let mut next_check = (2 * cast.treelets.len()).max(FIRST_WORTH_CHECK);
         let mut pending: Vec<(u32, u32)> = (0..camera.height)
             .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
             .collect();
@@ -277,8 +329,16 @@ impl CutCaster {
                 } else {
                     cast.complete = false;
                 }
+                if cast.treelets.len() >= next_check {
+                    if !worthwhile(cast.treelets.len()) {
+                        cast.abandoned = true;
+                        cast.complete = false;
+                        break;
+                    }
+                    next_check = 2 * cast.treelets.len();
+                }
             }
-            if !progress {
+            if !progress || cast.abandoned {
                 // Nothing more can be loaded: those rays stop at the hulls they reached.
                 break;
             }
@@ -317,6 +377,8 @@ pub struct Cast {
     pub treelets: Vec<(u8, TreeletId)>,
     /// Every ray stopped where the whole tree stops it.
     pub complete: bool,
+    /// Stopped because `worthwhile` said no ([`VisibleCut::abandoned`]).
+    pub abandoned: bool,
     /// Rays cast in all rounds.
     pub rays_cast: u64,
 }
