@@ -710,6 +710,7 @@ async fn metrics_report_the_server_wide_caches() {
         messages: Arc::new(MessageCache::new(1 << 20)),
         shapes: Arc::new(ShapeCache::for_shapes(1 << 20)),
         cut_nodes: Arc::new(NodeCache::for_nodes(1 << 20)),
+        fine_cuts: Arc::default(),
     };
     f.state.set_caches(caches.clone());
     let d = f.description.as_ref().unwrap();

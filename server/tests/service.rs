@@ -439,6 +439,86 @@ async fn prefetch_the_cut_does_not_hold_is_set_apart_and_still_arrives() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_scene_whose_fine_cuts_go_unused_skips_them_and_keeps_its_coarse_cuts() {
+    use arbor_server::service::push::{WorldCube, plan_pushes};
+    use arbor_server::service::treelets::ServedScene;
+    use arbor_server::service::visibility::FINE_CUTS_WASTED_BEFORE_SKIPPING;
+    let tp = TestPool::new();
+    const FINE: u32 = 4 * CUT_GRID;
+    // A share that follows the coarse cut of the view and no cut larger than it: every fine
+    // cut is cast from a followed coarse cut and wasted.
+    let (view, share) = {
+        let Cutting {
+            server,
+            view,
+            world,
+            cut: coarse,
+            ..
+        } = cutting(&tp).await;
+        let stored = server.pool().scene(SCENE).unwrap();
+        let served = ServedScene::new(stored.clone());
+        let d = &stored.description;
+        let fine = served
+            .visible_cut(&world, FINE, &[], 1 << 26, |_| true)
+            .unwrap();
+        let (c, f) = (coarse.treelets.len(), fine.treelets.len());
+        assert!(
+            coarse.complete && fine.complete && f > c,
+            "{c} then {f} treelets"
+        );
+        let root = [(d.root_treelet, f32::MAX, ViewHint::MAX_ERROR)];
+        let frustum = plan_pushes(WorldCube::of(d), &world, &root, usize::MAX, |id| {
+            served.shape(id)
+        })
+        .len();
+        assert!(frustum > c, "{frustum} in the frustum plan");
+        server.shutdown().await;
+        (view, (c as f64 + 0.5) / frustum as f64)
+    };
+    let server = start(with_cuts(&tp, FINE, share)).await;
+    let metrics = &server.state.metrics;
+    async fn wait_for(what: &str, ok: impl Fn() -> bool) {
+        let deadline = Instant::now() + LONG;
+        while !ok() {
+            assert!(Instant::now() < deadline, "waited in vain for {what}");
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    }
+    // Clients one after another, each closed before the next (the scene's served state goes
+    // with the last connection holding it; what the service learned of the scene stays): each
+    // rests on the view, gets its coarse cut and then a fine one, until enough were wasted.
+    let per_view = 2u64;
+    for k in 1..=u64::from(FINE_CUTS_WASTED_BEFORE_SKIPPING) {
+        let (c, _control) = hello_with_root_and_view(&server, view).await;
+        let cuts = &metrics.visible_cuts;
+        wait_for(&format!("cut {}", per_view * k), || {
+            cuts.load(Ordering::Relaxed) >= per_view * k
+        })
+        .await;
+        c.conn.close(0u32.into(), b"done");
+        let open = &metrics.connections_open;
+        wait_for("the connection's end", || open.load(Ordering::Relaxed) == 0).await;
+    }
+    // The next client's view gets its coarse cut only.
+    let (c, _control) = hello_with_root_and_view(&server, view).await;
+    let skipped = &metrics.fine_cuts_skipped;
+    wait_for("a skipped fine cut", || {
+        skipped.load(Ordering::Relaxed) == 1
+    })
+    .await;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let cast = u64::from(FINE_CUTS_WASTED_BEFORE_SKIPPING) * per_view + 1;
+    assert_eq!(metrics.visible_cuts.load(Ordering::Relaxed), cast);
+    assert_eq!(
+        skipped.load(Ordering::Relaxed),
+        1,
+        "skipped once for the view, not once per list"
+    );
+    c.conn.close(0u32.into(), b"done");
+    server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_cut_that_saves_too_little_leaves_the_frustum_plan_in_place() {
     use std::collections::HashSet;
     let tp = TestPool::new();
@@ -1207,6 +1287,7 @@ async fn shapes_through_a_small_shape_cache_are_exact_and_within_its_bytes() {
             messages: Arc::new(MessageCache::new(0)),
             shapes: shapes.clone(),
             cut_nodes: Arc::new(NodeCache::for_nodes(0)),
+            fine_cuts: Arc::default(),
         };
         ServedScene::with_caches(stored.clone(), &caches)
     };

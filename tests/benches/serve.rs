@@ -624,6 +624,7 @@ fn cost_breakdown(dir: &std::path::Path, scene: &str) {
         messages: Arc::new(arbor_server::service::treelets::MessageCache::new(0)),
         shapes: Arc::new(arbor_server::service::shapes::ShapeCache::for_shapes(0)),
         cut_nodes: Arc::new(arbor_server::service::visibility::NodeCache::for_nodes(0)),
+        fine_cuts: Arc::default(),
     };
     let served = arbor_server::service::treelets::ServedScene::with_caches(stored.clone(), &cold);
     let t = Instant::now();

@@ -204,7 +204,8 @@ pub struct ServeConfig {
     /// pushes are out, for what the coarse grid's rays missed (cast from the coarse cut:
     /// `visibility::CutCaster::cut_from`); 0: none, else above `visibility_grid`. Default
     /// [`DEFAULT_VISIBILITY_FINE_GRID`]. Neither grid exceeds a client's own frame (the rays
-    /// its hint implies, `visibility::frame_rays`).
+    /// its hint implies, `visibility::frame_rays`). A scene whose fine cuts keep going unused
+    /// casts only a few of them (`visibility::FineCutGate`).
     pub visibility_fine_grid: u32,
     /// Bytes of node records per served scene that visible cuts are cast through (allocated by
     /// a scene's first cut).

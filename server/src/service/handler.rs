@@ -119,6 +119,9 @@ struct Handler {
     cut: Option<(Arc<VisibleCut>, bool)>,
     /// The cut being computed, off the async workers, with whether it saves enough.
     cut_job: Option<tokio::task::JoinHandle<Option<(VisibleCut, bool)>>>,
+    /// The view whose fine cut the scene's gate skipped (`ServedScene::should_cast_fine_cut`):
+    /// asked once per view, not once per list.
+    fine_skipped: Option<ViewHint>,
     /// The last deep list applied (sequence, view, items, prefetch start): re-planned when its
     /// view's cut arrives.
     last_deep: Option<DeepList>,
@@ -198,6 +201,7 @@ impl Handler {
             treelet_count,
             cut: None,
             cut_job: None,
+            fine_skipped: None,
             last_deep: None,
             anchors: PushAnchors::default(),
         })
@@ -432,8 +436,9 @@ impl Handler {
     /// one is being computed, or the last one answers this view at the finest grid configured
     /// (or was not worth following: a finer cast would not change that much). Neither grid
     /// exceeds the client's own frame ([`frame_rays`]); the fine one is cast from the coarse
-    /// one. The same thread decides whether the cut saves enough against the frustum plan to be
-    /// followed, and stops casting it as soon as it has grown too large for that.
+    /// one, unless the scene's last fine cuts went unused (`FineCutGate`). The same thread
+    /// decides whether the cut saves enough against the frustum plan to be followed, and stops
+    /// casting it as soon as it has grown too large for that.
     fn start_cut(&mut self, view: &ViewHint) {
         // No finer than the client's own frame: a small client's view needs no more rays.
         let rays = frame_rays(view);
@@ -444,7 +449,25 @@ impl Handler {
         }
         let (grid, coarse_cut) = match self.cut.as_ref().filter(|(c, _)| c.answers(view)) {
             None => (coarse, None),
-            Some((c, true)) if fine > c.grid => (fine, Some(c.clone())),
+            Some((c, true)) if fine > c.grid => {
+                if self
+                    .fine_skipped
+                    .as_ref()
+                    .is_some_and(|v| same_view(v, view))
+                {
+                    return;
+                }
+                if !self.ctx.scene.should_cast_fine_cut() {
+                    self.fine_skipped = Some(*view);
+                    self.shared
+                        .state
+                        .metrics
+                        .fine_cuts_skipped
+                        .fetch_add(1, Ordering::Relaxed);
+                    return;
+                }
+                (fine, Some(c.clone()))
+            }
             Some(_) => return,
         };
         let scene = self.ctx.scene.clone();
@@ -466,6 +489,9 @@ impl Handler {
             };
             let cut = scene.visible_cut(&view, grid, seed, budget, &saves)?;
             let followed = !cut.abandoned && saves(cut.treelets.len());
+            if coarse_cut.is_some() {
+                scene.record_fine_cut(followed && cut.complete);
+            }
             Some((cut, followed))
         }));
     }

@@ -17,7 +17,7 @@ use serde::Serialize;
 use super::path_memory::{PathMemory, ResumeCounters};
 use super::shapes::ShapeCache;
 use super::treelets::MessageCache;
-use super::visibility::NodeCache;
+use super::visibility::{FineCutGates, NodeCache};
 use crate::prometheus::{Kind, PromText};
 
 /// Upper bounds (seconds) of the request-to-send latency histogram buckets.
@@ -100,6 +100,9 @@ pub struct Metrics {
     pub pushes_planned: AtomicU64,
     /// Visible cuts computed for resting views (`service::visibility`).
     pub visible_cuts: AtomicU64,
+    /// Fine cuts not cast because the scene's last fine cuts went unused
+    /// (`visibility::FineCutGate`).
+    pub fine_cuts_skipped: AtomicU64,
     /// Prefetch items of deep request lists set apart under a visible cut (sent after its
     /// pushes, few in flight: `push::cut_list`), summed over lists.
     pub prefetch_set_apart: AtomicU64,
@@ -184,7 +187,7 @@ pub struct ServiceState {
     paths: Mutex<PathMemory>,
 }
 
-/// The caches every scene of a running service shares.
+/// The caches every scene of a running service shares, and what it learned of each scene.
 #[derive(Clone, Debug)]
 pub struct ServiceCaches {
     /// Built treelet messages (`message_cache_bytes`).
@@ -193,6 +196,8 @@ pub struct ServiceCaches {
     pub shapes: Arc<ShapeCache>,
     /// Decoded node records for the visible cuts (`visibility_node_cache_bytes`).
     pub cut_nodes: Arc<NodeCache>,
+    /// What each scene's fine cuts have been worth lately (`visibility::FineCutGate`).
+    pub fine_cuts: Arc<FineCutGates>,
 }
 
 impl ServiceCaches {
@@ -205,6 +210,7 @@ impl ServiceCaches {
             cut_nodes: Arc::new(NodeCache::for_nodes(bytes(
                 config.visibility_node_cache_bytes,
             ))),
+            fine_cuts: Arc::default(),
         }
     }
 }
@@ -360,7 +366,7 @@ impl ServiceState {
         let m = &self.metrics;
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
         let resumes = &m.path_resumes;
-        let counters: [(&str, &str, &AtomicU64); 13] = [
+        let counters: [(&str, &str, &AtomicU64); 14] = [
             (
                 "arbor_connections_accepted_total",
                 "QUIC connections accepted.",
@@ -405,6 +411,12 @@ impl ServiceState {
                 "arbor_visible_cuts_total",
                 "Visible cuts cast through the server's tree for resting views.",
                 &m.visible_cuts,
+            ),
+            (
+                "arbor_fine_cuts_skipped_total",
+                "Fine visible cuts not cast because the scene's last fine cuts went unused \
+                 (incomplete or not followed).",
+                &m.fine_cuts_skipped,
             ),
             (
                 "arbor_prefetch_set_apart_total",

@@ -25,7 +25,7 @@ use arbor_proto::wire::ViewHint;
 
 use super::shapes::ShapeCache;
 use super::state::ServiceCaches;
-use super::visibility::{CutCaster, NodeCache, VisibleCut};
+use super::visibility::{CutCaster, FineCutGates, NodeCache, VisibleCut};
 use crate::pool::{PoolError, StoredScene};
 
 /// Why a treelet message could not be built. Always the server's fault (the pool), never the
@@ -190,6 +190,8 @@ pub struct ServedScene {
     cut_caster: Mutex<Option<Arc<CutCaster>>>,
     /// Visible cuts being cast now (each holds a buffer of `visibility_cache_bytes`).
     cuts_running: AtomicUsize,
+    /// Whether the fine cuts of the scenes have been of use lately.
+    fine_cuts: Arc<FineCutGates>,
 }
 
 impl std::fmt::Debug for ServedScene {
@@ -210,6 +212,7 @@ impl ServedScene {
                 messages: Arc::new(MessageCache::new(OWN_MESSAGE_CACHE_BYTES)),
                 shapes: Arc::new(ShapeCache::for_shapes(OWN_SHAPE_CACHE_BYTES)),
                 cut_nodes: Arc::new(NodeCache::for_nodes(OWN_CUT_NODE_CACHE_BYTES)),
+                fine_cuts: Arc::default(),
             },
         )
     }
@@ -224,6 +227,7 @@ impl ServedScene {
             cut_nodes: caches.cut_nodes.clone(),
             cut_caster: Mutex::new(None),
             cuts_running: AtomicUsize::new(0),
+            fine_cuts: caches.fine_cuts.clone(),
         }
     }
 
@@ -285,6 +289,17 @@ impl ServedScene {
             caster.clone()?
         };
         Some(caster.cut_from(view, grid, seed, fetch, worthwhile))
+    }
+
+    /// Whether a resting view's fine cut should be cast, by what this scene's last fine cuts
+    /// were worth (`visibility::FineCutGate::should_cast`).
+    pub fn should_cast_fine_cut(&self) -> bool {
+        self.fine_cuts.should_cast(self.stored.generation)
+    }
+
+    /// A fine cut of this scene was cast: `used` when complete and followed.
+    pub fn record_fine_cut(&self, used: bool) {
+        self.fine_cuts.record(self.stored.generation, used);
     }
 
     /// The shape of treelet `id` for deep-request pushes ([`ShapeCache::shape`]).

@@ -163,6 +163,82 @@ pub fn grid_camera(view: &ViewHint, grid: u32) -> Camera {
     }
 }
 
+/// Fine cuts of a scene in a row that were not used before the next ones are skipped
+/// ([`FineCutGate`]).
+pub const FINE_CUTS_WASTED_BEFORE_SKIPPING: u32 = 4;
+/// While a scene's fine cuts are skipped, every this many a fine cut is cast all the same, to
+/// find out whether the views have changed (a client walking from a plaza into a building).
+pub const FINE_CUT_PROBE_EVERY: u32 = 16;
+
+/// Whether a scene's fine cuts are worth casting, learned from the last ones (one per scene,
+/// shared by its connections). A fine cut is used when it is complete and followed; otherwise
+/// it was work for nothing. Where the views of a scene see most of their frustum, or need more
+/// than a cut's buffer holds, every fine cut is wasted: on the 10⁸-point city the fine cuts of
+/// a converging 1024×768 view were three quarters of the server's CPU for it and none was used
+/// (docs/measurements.md, stop 48). After [`FINE_CUTS_WASTED_BEFORE_SKIPPING`] wasted in a row
+/// the scene's resting views keep their coarse cut (still followed where it saves) and only
+/// every [`FINE_CUT_PROBE_EVERY`]th fine cut is cast; one that is used opens the gate again.
+/// Plain data: the handler asks and records, the tests drive it directly.
+#[derive(Debug, Default)]
+pub struct FineCutGate {
+    wasted_in_row: u32,
+    skipped_in_row: u32,
+}
+
+impl FineCutGate {
+    /// Whether the next fine cut should be cast; a `false` counts as one skipped.
+    pub fn should_cast(&mut self) -> bool {
+        if self.wasted_in_row < FINE_CUTS_WASTED_BEFORE_SKIPPING {
+            return true;
+        }
+        self.skipped_in_row += 1;
+        if self.skipped_in_row >= FINE_CUT_PROBE_EVERY {
+            self.skipped_in_row = 0;
+            return true;
+        }
+        false
+    }
+
+    /// A fine cut was cast: `used` when it was complete and followed.
+    pub fn record(&mut self, used: bool) {
+        if used {
+            *self = FineCutGate::default();
+        } else {
+            self.wasted_in_row = self.wasted_in_row.saturating_add(1);
+        }
+    }
+}
+
+/// The [`FineCutGate`]s of every scene a service serves, by scene generation (unique in a pool).
+/// A scene's served state is dropped when no connection holds it; what its fine cuts were
+/// worth is kept here, so a city viewed by one client after another learns it once.
+#[derive(Debug, Default)]
+pub struct FineCutGates(std::sync::Mutex<rustc_hash::FxHashMap<u64, FineCutGate>>);
+
+/// Generations [`FineCutGates`] keeps before it forgets them all (re-imports over months).
+const MAX_GATED_GENERATIONS: usize = 4096;
+
+impl FineCutGates {
+    fn with<T>(&self, generation: u64, f: impl FnOnce(&mut FineCutGate) -> T) -> T {
+        // Every call leaves each gate's two counters consistent.
+        let mut gates = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        if gates.len() >= MAX_GATED_GENERATIONS && !gates.contains_key(&generation) {
+            gates.clear();
+        }
+        f(gates.entry(generation).or_default())
+    }
+
+    /// [`FineCutGate::should_cast`] for the scene of `generation`.
+    pub fn should_cast(&self, generation: u64) -> bool {
+        self.with(generation, FineCutGate::should_cast)
+    }
+
+    /// [`FineCutGate::record`] for the scene of `generation`.
+    pub fn record(&self, generation: u64, used: bool) {
+        self.with(generation, |g| g.record(used));
+    }
+}
+
 /// Treelets a cut holds before [`CutCaster::cut_from`] first asks whether it is still worth
 /// casting: below it the question (a walk of the frustum plan) costs about as much as the cast.
 pub const FIRST_WORTH_CHECK: usize = 256;
@@ -393,4 +469,44 @@ fn level_of(slots: &SlotBuffer, slot: u32) -> u8 {
         s = slots.parent_slot(p);
     }
     level
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_scene_whose_fine_cuts_go_unused_casts_only_probes_until_one_is_used() {
+        let mut gate = FineCutGate::default();
+        // Open at first, and while fewer than the limit were wasted in a row.
+        for _ in 0..FINE_CUTS_WASTED_BEFORE_SKIPPING - 1 {
+            assert!(gate.should_cast());
+            gate.record(false);
+        }
+        assert!(gate.should_cast());
+        gate.record(true);
+        for _ in 0..FINE_CUTS_WASTED_BEFORE_SKIPPING {
+            assert!(gate.should_cast(), "a used cut starts the count again");
+            gate.record(false);
+        }
+        // Closed: one probe in every FINE_CUT_PROBE_EVERY.
+        for round in 0..3 {
+            for skip in 1..FINE_CUT_PROBE_EVERY {
+                assert!(!gate.should_cast(), "round {round}, skip {skip}");
+            }
+            assert!(gate.should_cast(), "round {round}: the probe");
+            gate.record(false);
+        }
+        // A used probe opens the gate.
+        for _ in 1..FINE_CUT_PROBE_EVERY {
+            assert!(!gate.should_cast());
+        }
+        assert!(gate.should_cast());
+        gate.record(true);
+        for _ in 0..FINE_CUTS_WASTED_BEFORE_SKIPPING {
+            assert!(gate.should_cast());
+            gate.record(false);
+        }
+        assert!(!gate.should_cast());
+    }
 }
