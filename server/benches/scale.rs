@@ -13,12 +13,15 @@
 //!   `target/peer/PotreeConverter`, built there by `scripts/build-potree-converter` when missing,
 //!   from `ARBOR_POTREE_SRC` or a clone of its public repository: it is not part of this
 //!   project). When it cannot be had the comparison row says SKIPPED, loudly;
-//! * `ARBOR_SCALE_STREAM=0` — skip serving and streaming.
+//! * `ARBOR_SCALE_STREAM=0` — skip serving and streaming;
+//! * `ARBOR_SCALE_STREAM_ONLY=1` — only serve and stream, from the pool a previous run left in
+//!   `ARBOR_SCALE_DIR` (no tiles, import or verify).
 //!
 //! Figures: points/s of each tool, Arbor's time per phase of each run (from its log's phase
 //! lines), peak anonymous RSS (sampled `RssAnon` of the child), peak scratch bytes on disk, pool
 //! bytes (compressed blocks), sled's size on disk, `verify` time; then a 1024×768 view streamed
-//! at a 64 MiB budget: client peak RSS and time to converge.
+//! at a 64 MiB budget from a server with visible cuts on and one with them off: time to
+//! converge, the server's CPU time per view, client peak RSS.
 
 #[path = "scale/city.rs"]
 mod city;
@@ -137,6 +140,16 @@ fn main() {
     let base = std::env::var_os("ARBOR_SCALE_DIR")
         .map(PathBuf::from)
         .unwrap_or_else(|| root().join("target/scale"));
+    if env_u64("ARBOR_SCALE_STREAM_ONLY", 0) != 0 {
+        let pool = base.join("pool");
+        assert!(
+            pool.exists(),
+            "ARBOR_SCALE_STREAM_ONLY: no pool at {} (run the bench once without it)",
+            pool.display()
+        );
+        stream::serve_and_stream(env!("CARGO_BIN_EXE_arbor-server"), &pool, "city");
+        return;
+    }
     let tiles_dir = base.join(format!("tiles-{points}"));
     let t0 = std::time::Instant::now();
     let tiles = city::city(&root().join("../shared/data"), &tiles_dir, points);

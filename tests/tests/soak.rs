@@ -4,7 +4,12 @@
 //! treelet), the server's RSS flat (its slope over the second half, after warm-up, is printed),
 //! and the p50/p99 latency from sending a list to the first treelet of it arriving.
 //!
-//! Ignored (it takes 10 minutes; `.config/nextest.toml` gives it 16 before it is stopped):
+//! Two soaks: plain request lists, and deep lists whose clients rest on a random view of the
+//! scene for two to four lists before they move on, so the server casts visible cuts for them
+//! (coarse and fine, through its node cache, with the fine-cut gate and the prefetch set
+//! apart) while it serves everyone; the server's cut figures from `/metrics` are printed.
+//!
+//! Ignored (10 minutes each; `.config/nextest.toml` gives each 16 before it is stopped):
 //! `cargo build -p arbor-server && cargo nextest run -p arbor-tests --test soak --run-ignored only --no-capture`
 
 use std::collections::HashSet;
@@ -16,8 +21,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
-use arbor_proto::TreeletId;
 use arbor_proto::rng::SplitMix64;
+use arbor_proto::wire::ViewHint;
+use arbor_proto::{SceneDescription, TreeletId};
 use arbor_server::octree::BuildOptions;
 use arbor_tests::support::{build_file, copy_dir};
 use tokio::sync::Mutex;
@@ -80,13 +86,55 @@ struct Tally {
     errors: AtomicU64,
 }
 
+/// Lists a client of the resting-view soak sends for one view before it moves on: at least
+/// two (a view named twice in a row is resting, so the server casts its cut), at most this.
+const LISTS_PER_VIEW: u64 = 4;
+
+/// A random view of `scene` for a 256² frame: from a random direction, 1.2–3 edges from the
+/// centre of its cube, looking at the centre.
+fn random_view(scene: &SceneDescription, rng: &mut SplitMix64) -> ViewHint {
+    let dir = loop {
+        let v: [f64; 3] = std::array::from_fn(|_| rng.next_f64() * 2.0 - 1.0);
+        let n = v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        if (0.1..=1.0).contains(&n) {
+            break v.map(|x| x / n);
+        }
+    };
+    let distance = scene.edge * (1.2 + 1.8 * rng.next_f64());
+    let eye = std::array::from_fn(|i| scene.origin[i] + 0.5 * scene.edge + dir[i] * distance);
+    let forward = dir.map(|x| -x);
+    // Up: the axis least along the view, made orthogonal to it.
+    let axis = (0..3)
+        .min_by(|&a, &b| forward[a].abs().total_cmp(&forward[b].abs()))
+        .unwrap();
+    let mut up = [0.0; 3];
+    up[axis] = 1.0;
+    let along = up[axis] * forward[axis];
+    let up = std::array::from_fn::<f64, 3, _>(|i| up[i] - along * forward[i]);
+    let n = up.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let view = ViewHint {
+        eye,
+        forward: forward.map(|x| x as f32),
+        up: up.map(|x| (x / n) as f32),
+        tan_half_fov_y: 0.5,
+        aspect: 1.0,
+        footprint: 1.0 / 256.0,
+        free_slots: 512,
+    };
+    view.check().expect("a valid view");
+    view
+}
+
 /// One client: a new random list every 100–300 ms until `stop`; latencies from each list to
-/// the first treelet of it.
+/// the first treelet of it. With `resting_views`, deep lists: the same random view for two to
+/// [`LISTS_PER_VIEW`] lists, then another, the last quarter of each list its prefetch.
+#[allow(clippy::too_many_arguments)]
 async fn client(
     url: ServerUrl,
     fingerprint: String,
     treelets: u32,
     seed: u64,
+    resting_views: bool,
     stop: Arc<AtomicBool>,
     tally: Arc<Tally>,
     latencies: Arc<Mutex<Vec<f64>>>,
@@ -99,6 +147,8 @@ async fn client(
     let mut sent_at: Option<Instant> = None;
     let mut next_list = Instant::now();
     let mut mine = Vec::new();
+    // The view and how many more lists name it.
+    let mut view: Option<(ViewHint, u64)> = None;
     while !stop.load(Ordering::Relaxed) {
         if Instant::now() >= next_list {
             let start = rng.below(u64::from(treelets)) as u32;
@@ -109,7 +159,22 @@ async fn client(
                 })
                 .collect();
             wanted = list.iter().map(|x| x.0).collect();
-            c.request(list).unwrap();
+            match c.scene().filter(|_| resting_views) {
+                Some(scene) => {
+                    let (v, left) = match view.take() {
+                        Some((v, left)) if left > 0 => (v, left),
+                        _ => (
+                            random_view(&scene, &mut rng),
+                            1 + rng.below(LISTS_PER_VIEW - 1),
+                        ),
+                    };
+                    view = Some((v, left - 1));
+                    let prefetch_from = list.len() * 3 / 4;
+                    let items = list.into_iter().map(|(id, p)| (id, p, 4.0)).collect();
+                    c.request_deep(items, v, prefetch_from).unwrap();
+                }
+                None => c.request(list).unwrap(),
+            }
             tally.lists.fetch_add(1, Ordering::Relaxed);
             sent_at = Some(Instant::now());
             next_list = Instant::now() + Duration::from_millis(100 + rng.below(200));
@@ -146,6 +211,34 @@ async fn client(
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "10 minutes; run with --release -- --ignored --nocapture"]
 async fn sixty_four_clients_for_ten_minutes() {
+    soak(false).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "10 minutes; run with --release -- --ignored --nocapture"]
+async fn sixty_four_clients_resting_on_views_for_ten_minutes() {
+    soak(true).await;
+}
+
+/// The value of metric `name` (no labels) in the server's `/metrics`, read over the admin
+/// listener with its token (cleartext: it listens on loopback).
+fn metric(admin: std::net::SocketAddr, token: &str, name: &str) -> f64 {
+    use std::io::{Read as _, Write as _};
+    let mut s = std::net::TcpStream::connect(admin).unwrap();
+    write!(
+        s,
+        "GET /metrics HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {token}\r\n\
+         Connection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut text = String::new();
+    s.read_to_string(&mut text).unwrap();
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
+        .unwrap_or_else(|| panic!("{name} not in /metrics"))
+}
+
+async fn soak(resting_views: bool) {
     let secs: u64 = std::env::var("ARBOR_SOAK_SECS")
         .ok()
         .and_then(|s| s.parse().ok())
@@ -176,7 +269,14 @@ async fn sixty_four_clients_for_ten_minutes() {
     .await
     .unwrap();
     let mut child = Command::new(server_binary())
-        .args(["serve", "--listen", "127.0.0.1:0", "--admin", "off", "--db"])
+        .args([
+            "serve",
+            "--listen",
+            "127.0.0.1:0",
+            "--admin",
+            "127.0.0.1:0",
+            "--db",
+        ])
         .arg(&pool)
         .arg("--data-dir")
         .arg(work.path().join("state"))
@@ -185,15 +285,20 @@ async fn sixty_four_clients_for_ten_minutes() {
         .spawn()
         .unwrap();
     let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
-    let (mut addr, mut fp) = (None, None);
-    while addr.is_none() || fp.is_none() {
+    let (mut addr, mut fp, mut admin, mut token) = (None, None, None, None);
+    while addr.is_none() || fp.is_none() || admin.is_none() || token.is_none() {
         let line = lines.next().expect("serve printed its lines").unwrap();
         if let Some(a) = line.strip_prefix("quic ") {
             addr = Some(a.parse::<std::net::SocketAddr>().unwrap());
         } else if let Some(f) = line.strip_prefix("fingerprint ") {
             fp = Some(f.to_owned());
+        } else if let Some(a) = line.strip_prefix("admin ") {
+            admin = Some(a.parse::<std::net::SocketAddr>().unwrap());
+        } else if let Some(p) = line.strip_prefix("admin-token-file ") {
+            token = Some(std::fs::read_to_string(p).unwrap().trim().to_owned());
         }
     }
+    let (admin, token) = (admin.unwrap(), token.unwrap());
     std::thread::spawn(move || lines.for_each(drop));
     let server = Server(child);
     let pid = server.0.id();
@@ -214,6 +319,7 @@ async fn sixty_four_clients_for_ten_minutes() {
             fp.clone(),
             treelets,
             i as u64 + 1,
+            resting_views,
             stop.clone(),
             tally.clone(),
             latencies.clone(),
@@ -261,10 +367,27 @@ async fn sixty_four_clients_for_ten_minutes() {
         q(1.0),
         lat.len(),
     );
+    let m = |name: &str| metric(admin, &token, name);
+    let cuts = m("arbor_visible_cuts_total");
+    eprintln!(
+        "server: {cuts} visible cuts, {} fine cuts skipped, cut node cache {} hits / {} \
+         misses ({:.1} MB held), {} prefetch items set apart, {} pushes planned",
+        m("arbor_fine_cuts_skipped_total"),
+        m("arbor_cut_node_cache_hits_total"),
+        m("arbor_cut_node_cache_misses_total"),
+        m("arbor_cut_node_cache_bytes") / 1e6,
+        m("arbor_prefetch_set_apart_total"),
+        m("arbor_pushes_planned_total"),
+    );
     assert_eq!(
         tally.errors.load(Ordering::Relaxed),
         0,
         "errors during the soak"
+    );
+    assert_eq!(
+        cuts > 0.0,
+        resting_views,
+        "visible cuts are cast for resting views, and only for them"
     );
     assert!(!lat.is_empty(), "no list was ever answered");
     // Flat: the second half grows by less than 1 % of the resident set per minute.

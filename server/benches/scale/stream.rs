@@ -1,11 +1,14 @@
 //! Serving the imported scene with the real `arbor-server serve` (its own process) and
 //! streaming one 1024×768 view into a 64 MiB slot buffer with the real headless client in this
-//! process, until the view converges exactly. Figures: time to converge, cycles, treelets and
-//! bytes received, client peak RSS (this process's `VmHWM`, against its RSS before the run).
+//! process, until the view converges exactly; three times from a server with visible cuts on
+//! (the default) and three times from one with them off (`visibility_grid = 0`), the first of
+//! each from a fresh server. Figures per view: time to converge, cycles, treelets and bytes
+//! received, and the server's CPU time for it (user + system of its process, `/proc/PID/stat`);
+//! then the client's peak RSS (this process's `VmHWM`, against its RSS before the runs).
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use arbor_client_core::analysis::AnalysisConfig;
@@ -13,6 +16,11 @@ use arbor_client_core::camera::CameraPath;
 use arbor_client_core::cycle::CoreConfig;
 use arbor_client_net::{ClientConfig, ServerUrl, Trust};
 use arbor_client_session::headless::{HeadlessConfig, run_headless};
+
+/// Views streamed from each server.
+const VIEWS: usize = 3;
+/// The client's slot budget.
+const BUDGET: u64 = 64 << 20;
 
 fn status_mib(field: &str) -> f64 {
     std::fs::read_to_string("/proc/self/status")
@@ -25,40 +33,88 @@ fn status_mib(field: &str) -> f64 {
         .map_or(0.0, |kib| kib / 1024.0)
 }
 
-pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
-    let state = tempfile::tempdir().unwrap();
-    let mut server = Command::new(server_bin)
-        .args(["serve", "--listen", "127.0.0.1:0", "--admin", "off", "--db"])
-        .arg(pool)
-        .arg("--data-dir")
-        .arg(state.path())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("starting arbor-server serve");
-    let mut lines = BufReader::new(server.stdout.take().unwrap()).lines();
-    let (mut addr, mut fingerprint) = (None, None);
-    while addr.is_none() || fingerprint.is_none() {
-        let line = lines.next().expect("serve output").unwrap();
-        if let Some(a) = line.strip_prefix("quic ") {
-            addr = Some(a.parse::<std::net::SocketAddr>().unwrap());
+/// A running `arbor-server serve` on loopback.
+struct Server {
+    child: Child,
+    url: ServerUrl,
+    fingerprint: String,
+    _state: tempfile::TempDir,
+}
+
+impl Server {
+    /// Starts serving `pool`, with `config` (TOML) when given; scenes are public either way.
+    fn start(server_bin: &str, pool: &Path, scene: &str, config: Option<&str>) -> Server {
+        let state = tempfile::tempdir().unwrap();
+        let mut cmd = Command::new(server_bin);
+        cmd.args(["serve", "--listen", "127.0.0.1:0", "--admin", "off", "--db"])
+            .arg(pool)
+            .arg("--data-dir")
+            .arg(state.path());
+        if let Some(config) = config {
+            let file = state.path().join("serve.toml");
+            std::fs::write(&file, format!("default_access = \"public\"\n{config}\n")).unwrap();
+            cmd.arg("--config").arg(file);
         }
-        if let Some(f) = line.strip_prefix("fingerprint ") {
-            fingerprint = Some(f.to_owned());
+        let mut child = cmd
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("starting arbor-server serve");
+        let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+        let (mut addr, mut fingerprint) = (None, None);
+        while addr.is_none() || fingerprint.is_none() {
+            let line = lines.next().expect("serve output").unwrap();
+            if let Some(a) = line.strip_prefix("quic ") {
+                addr = Some(a.parse::<std::net::SocketAddr>().unwrap());
+            }
+            if let Some(f) = line.strip_prefix("fingerprint ") {
+                fingerprint = Some(f.to_owned());
+            }
+        }
+        let addr = addr.unwrap();
+        Server {
+            child,
+            url: ServerUrl {
+                host: addr.ip().to_string(),
+                port: addr.port(),
+                scene: scene.to_owned(),
+            },
+            fingerprint: fingerprint.unwrap(),
+            _state: state,
         }
     }
-    let addr = addr.unwrap();
-    let url = ServerUrl {
-        host: addr.ip().to_string(),
-        port: addr.port(),
-        scene: scene.to_owned(),
-    };
-    let budget = 64u64 << 20;
+
+    /// The server process's user + system CPU time so far, seconds (clock ticks of 1/100 s).
+    fn cpu_seconds(&self) -> f64 {
+        let s =
+            std::fs::read_to_string(format!("/proc/{}/stat", self.child.id())).unwrap_or_default();
+        let after = s.rsplit_once(')').map_or("", |(_, r)| r);
+        let f: Vec<u64> = after
+            .split_whitespace()
+            .map(|v| v.parse().unwrap_or(0))
+            .collect();
+        // Fields 14 and 15 (utime, stime) are at 11 and 12 after the command.
+        (f.get(11).copied().unwrap_or(0) + f.get(12).copied().unwrap_or(0)) as f64 / 100.0
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Streams the view from `server` until it converges; prints one line of figures.
+fn stream_view(server: &Server, what: &str, runtime: &tokio::runtime::Runtime) {
     let config = HeadlessConfig {
-        client: ClientConfig::new(url, Trust::Fingerprint(fingerprint.unwrap())),
+        client: ClientConfig::new(
+            server.url.clone(),
+            Trust::Fingerprint(server.fingerprint.clone()),
+        ),
         core: CoreConfig {
             analysis: AnalysisConfig::default(),
-            budget_bytes: budget,
+            budget_bytes: BUDGET,
             ..CoreConfig::default()
         },
         camera_path: CameraPath::Static,
@@ -73,21 +129,16 @@ pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
         render_every: 50,
         device_replacements: 0,
     };
-    let rss_before = status_mib("VmRSS:");
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
+    let cpu = server.cpu_seconds();
     let run = run_headless(config, runtime.handle()).expect("headless run");
+    let cpu = server.cpu_seconds() - cpu;
     let s = run.report.summary();
     let converged = run
         .converged_at
         .and_then(|c| run.report.records.get(c as usize))
         .map(|r| r.time_s);
-    println!();
     println!(
-        "stream 1024x768, budget 64 MiB: {} in {} cycles ({:.1} s); {} treelets, {:.1} MiB received; slots peak {} of {}",
+        "  {what}: {} in {} cycles ({:.1} s); {} treelets, {:.1} MiB received; slots peak {} of {}; server CPU {cpu:.2} s",
         match converged {
             Some(t) => format!("converged exactly at {t:.2} s"),
             None => "NOT converged".into(),
@@ -99,12 +150,38 @@ pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
         run.peak_slots,
         run.capacity
     );
+}
+
+pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
+    let rss_before = status_mib("VmRSS:");
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    println!();
     println!(
-        "client RSS: peak {:.1} MiB (before the run {:.1} MiB; slot buffer {:.1} MiB)",
+        "stream 1024x768, budget {} MiB, loopback; {VIEWS} views per server, the first from a fresh one:",
+        BUDGET >> 20
+    );
+    for (servers, config) in [
+        ("visible cuts on (the default)", None),
+        (
+            "visible cuts off (visibility_grid = 0)",
+            Some("visibility_grid = 0"),
+        ),
+    ] {
+        println!(" {servers}");
+        let server = Server::start(server_bin, pool, scene, config);
+        for view in 0..VIEWS {
+            let what = if view == 0 { "first view" } else { "again" };
+            stream_view(&server, what, &runtime);
+        }
+    }
+    println!(
+        "client RSS: peak {:.1} MiB (before the runs {:.1} MiB; slot buffer {:.1} MiB)",
         status_mib("VmHWM:"),
         rss_before,
-        (u64::from(run.capacity) * run.slot_bytes) as f64 / f64::from(1 << 20)
+        BUDGET as f64 / f64::from(1 << 20)
     );
-    let _ = server.kill();
-    let _ = server.wait();
 }
