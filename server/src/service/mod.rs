@@ -24,7 +24,9 @@
 //!   projected size); [`visibility`]: what a resting view's rays need, cast through the server's
 //!   own tree with the client's traversal (`visibility_grid`, on by default), followed where
 //!   it saves enough against the frustum plan ([`push::cut_saves`]); [`shapes`]: the treelet
-//!   shapes those plans walk, decoded once and kept server-wide within `shape_cache_bytes`.
+//!   shapes those plans walk, decoded once and kept server-wide within `shape_cache_bytes`;
+//!   [`generations`]: the byte-bounded cache of two generations that holds those shapes and
+//!   the node records the cuts read (`visibility_node_cache_bytes`).
 //! * [`path_memory`]: each client address's last congestion window and RTT, so a returning
 //!   client's connection resumes near the rate its path carried instead of slow-starting
 //!   (careful resume; `path_memory_secs`).
