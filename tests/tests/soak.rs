@@ -1,8 +1,9 @@
 //! Soak: 64 clients on loopback against a real `arbor-server` process for 10 minutes
 //! (`ARBOR_SOAK_SECS` to change), each replacing its request list every 100–300 ms with a new
 //! random part of lion (4 KiB treelets): 0 errors (no disconnect, no undecodable or unasked
-//! treelet), the server's RSS flat (its slope over the second half, after warm-up, is printed),
-//! and the p50/p99 latency from sending a list to the first treelet of it arriving.
+//! treelet), the server's RSS flat (the slope of its per-minute medians over the second half,
+//! after warm-up, is printed), and the p50/p99 latency from sending a list to the first
+//! treelet of it arriving.
 //!
 //! Two soaks: plain request lists, and deep lists whose clients rest on a random view of the
 //! scene for two to four lists before they move on, so the server casts visible cuts for them
@@ -66,6 +67,29 @@ fn rss_kib(pid: u32) -> u64 {
         .expect("VmRSS in /proc/PID/status")
 }
 
+/// The median of each minute's `(seconds, KiB)` samples, at the minute's middle: a resident
+/// set that swings with buffers taken and given back (a visible cut holds 32 MiB while it is
+/// cast) is judged by its typical level, not by where each sample happened to fall.
+fn per_minute_medians(samples: &[(f64, f64)]) -> Vec<(f64, f64)> {
+    let mut minutes: Vec<Vec<f64>> = Vec::new();
+    for &(t, kib) in samples {
+        let m = (t / 60.0) as usize;
+        if minutes.len() <= m {
+            minutes.resize(m + 1, Vec::new());
+        }
+        minutes[m].push(kib);
+    }
+    minutes
+        .into_iter()
+        .enumerate()
+        .filter(|(_, v)| !v.is_empty())
+        .map(|(m, mut v)| {
+            v.sort_by(f64::total_cmp);
+            (m as f64 * 60.0 + 30.0, v[v.len() / 2])
+        })
+        .collect()
+}
+
 /// Least-squares slope of `(seconds, KiB)` samples, KiB per minute.
 fn slope_per_minute(samples: &[(f64, f64)]) -> f64 {
     let n = samples.len() as f64;
@@ -125,20 +149,33 @@ fn random_view(scene: &SceneDescription, rng: &mut SplitMix64) -> ViewHint {
     view
 }
 
+/// What one soak client asks for.
+#[derive(Clone)]
+struct Plan {
+    url: ServerUrl,
+    fingerprint: String,
+    /// Treelets in the scene.
+    treelets: u32,
+    /// Deep lists resting on views, else plain lists.
+    resting_views: bool,
+}
+
 /// One client: a new random list every 100–300 ms until `stop`; latencies from each list to
 /// the first treelet of it. With `resting_views`, deep lists: the same random view for two to
 /// [`LISTS_PER_VIEW`] lists, then another, the last quarter of each list its prefetch.
-#[allow(clippy::too_many_arguments)]
 async fn client(
-    url: ServerUrl,
-    fingerprint: String,
-    treelets: u32,
+    plan: Plan,
     seed: u64,
-    resting_views: bool,
     stop: Arc<AtomicBool>,
     tally: Arc<Tally>,
     latencies: Arc<Mutex<Vec<f64>>>,
 ) {
+    let Plan {
+        url,
+        fingerprint,
+        treelets,
+        resting_views,
+    } = plan;
     let config = ClientConfig::new(url, Trust::Fingerprint(fingerprint))
         .with_channels([arbor_proto::Channel::Color]);
     let mut c = TreeletClient::start(config).unwrap();
@@ -165,7 +202,7 @@ async fn client(
                         Some((v, left)) if left > 0 => (v, left),
                         _ => (
                             random_view(&scene, &mut rng),
-                            1 + rng.below(LISTS_PER_VIEW - 1),
+                            2 + rng.below(LISTS_PER_VIEW - 1),
                         ),
                     };
                     view = Some((v, left - 1));
@@ -302,11 +339,16 @@ async fn soak(resting_views: bool) {
     std::thread::spawn(move || lines.for_each(drop));
     let server = Server(child);
     let pid = server.0.id();
-    let (addr, fp) = (addr.unwrap(), fp.unwrap());
-    let url = ServerUrl {
-        host: addr.ip().to_string(),
-        port: addr.port(),
-        scene: "lion".into(),
+    let addr = addr.unwrap();
+    let plan = Plan {
+        url: ServerUrl {
+            host: addr.ip().to_string(),
+            port: addr.port(),
+            scene: "lion".into(),
+        },
+        fingerprint: fp.unwrap(),
+        treelets,
+        resting_views,
     };
 
     let stop = Arc::new(AtomicBool::new(false));
@@ -315,11 +357,8 @@ async fn soak(resting_views: bool) {
     let mut tasks = Vec::new();
     for i in 0..CLIENTS {
         tasks.push(tokio::spawn(client(
-            url.clone(),
-            fp.clone(),
-            treelets,
+            plan.clone(),
             i as u64 + 1,
-            resting_views,
             stop.clone(),
             tally.clone(),
             latencies.clone(),
@@ -348,13 +387,23 @@ async fn soak(resting_views: bool) {
     let mut lat = std::mem::take(&mut *latencies.lock().await);
     lat.sort_by(f64::total_cmp);
     let q = |p: f64| lat[((lat.len() as f64 - 1.0) * p).round() as usize] * 1e3;
-    let second_half: Vec<(f64, f64)> = samples[samples.len() / 2..].to_vec();
+    // Each minute's median; the slope over the second half of them.
+    let medians = per_minute_medians(&samples);
+    let second_half: Vec<(f64, f64)> = if medians.len() >= 4 {
+        medians[medians.len() / 2..].to_vec()
+    } else {
+        samples[samples.len() / 2..].to_vec()
+    };
     let slope = slope_per_minute(&second_half);
+    eprintln!(
+        "server RSS, each minute's median (KiB): {:?}",
+        medians.iter().map(|m| m.1 as u64).collect::<Vec<_>>()
+    );
     let (first, last) = (samples[0].1, samples.last().unwrap().1);
     let elapsed = started.elapsed().as_secs_f64();
     eprintln!(
         "soak: {CLIENTS} clients, {elapsed:.0} s, {} lists, {} treelets ({:.1} MB, {:.0}/s), {} \
-         errors; server RSS {first:.0} -> {last:.0} KiB, slope over the second half \
+         errors; server RSS {first:.0} -> {last:.0} KiB, slope of the minutes' medians over the second half \
          {slope:+.1} KiB/min; list to first treelet p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms \
          ({} lists answered)",
         tally.lists.load(Ordering::Relaxed),
