@@ -422,14 +422,10 @@ async fn prefetch_the_cut_does_not_hold_is_set_apart_and_still_arrives() {
         })
         .await;
     let set_apart = &server.state.metrics.prefetch_set_apart;
-    let deadline = Instant::now() + LONG;
-    while set_apart.load(Ordering::Relaxed) < outside.len() as u64 {
-        assert!(
-            Instant::now() < deadline,
-            "the prefetch was never set apart"
-        );
-        tokio::time::sleep(Duration::from_millis(5)).await;
-    }
+    wait_for("the prefetch set apart", || {
+        set_apart.load(Ordering::Relaxed) >= outside.len() as u64
+    })
+    .await;
     // Set apart, not dropped: it arrives after the cut.
     let mut wanted: HashSet<TreeletId> = outside.iter().copied().collect();
     wanted.insert(first);
@@ -477,13 +473,6 @@ async fn a_scene_whose_fine_cuts_go_unused_skips_them_and_keeps_its_coarse_cuts(
     };
     let server = start(with_cuts(&tp, FINE, share)).await;
     let metrics = &server.state.metrics;
-    async fn wait_for(what: &str, ok: impl Fn() -> bool) {
-        let deadline = Instant::now() + LONG;
-        while !ok() {
-            assert!(Instant::now() < deadline, "waited in vain for {what}");
-            tokio::time::sleep(Duration::from_millis(5)).await;
-        }
-    }
     // Clients one after another, each closed before the next (the scene's served state goes
     // with the last connection holding it; what the service learned of the scene stays): each
     // rests on the view, gets its coarse cut and then a fine one, until enough were wasted.
@@ -532,11 +521,7 @@ async fn a_cut_that_saves_too_little_leaves_the_frustum_plan_in_place() {
     timeline.start();
     let (c, _control) = hello_with_root_and_view(&server, view).await;
     let cuts = &server.state.metrics.visible_cuts;
-    let deadline = Instant::now() + LONG;
-    while cuts.load(Ordering::Relaxed) == 0 {
-        assert!(Instant::now() < deadline, "no visible cut was cast");
-        tokio::time::sleep(Duration::from_millis(5)).await;
-    }
+    wait_for("a visible cut", || cuts.load(Ordering::Relaxed) > 0).await;
     // A followed cut re-plans the list in the same step that counts it; give it ample time.
     tokio::time::sleep(Duration::from_millis(200)).await;
     let lists = pushes_per_list(timeline);
@@ -593,6 +578,15 @@ async fn cutting(tp: &TestPool) -> Cutting {
         world,
         cut,
         treelet_count: d.treelet_count,
+    }
+}
+
+/// Waits until `ok` holds, at most [`LONG`]; fails naming `what` it waited for.
+async fn wait_for(what: &str, ok: impl Fn() -> bool) {
+    let deadline = Instant::now() + LONG;
+    while !ok() {
+        assert!(Instant::now() < deadline, "waited in vain for {what}");
+        tokio::time::sleep(Duration::from_millis(5)).await;
     }
 }
 

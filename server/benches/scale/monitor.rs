@@ -43,15 +43,21 @@ fn status_kib(pid: u32, field: &str) -> Option<u64> {
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
 }
 
-/// Clock ticks of user + system time of the children this process has waited for.
-fn children_cpu_ticks() -> u64 {
-    let s = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+/// The numeric fields of `/proc/{process}/stat` after the command (`process`: a pid or
+/// `self`), so field `n` of proc(5) is at `n - 3`; empty if it cannot be read.
+pub fn stat_fields(process: &str) -> Vec<u64> {
+    let s = std::fs::read_to_string(format!("/proc/{process}/stat")).unwrap_or_default();
     let after = s.rsplit_once(')').map_or("", |(_, r)| r);
-    let f: Vec<u64> = after
+    after
         .split_whitespace()
         .map(|v| v.parse().unwrap_or(0))
-        .collect();
-    // Fields 16 and 17 (cutime, cstime) are at 13 and 14 after the command.
+        .collect()
+}
+
+/// Clock ticks of user + system time of the children this process has waited for.
+fn children_cpu_ticks() -> u64 {
+    let f = stat_fields("self");
+    // Fields 16 and 17 (cutime, cstime).
     f.get(13).copied().unwrap_or(0) + f.get(14).copied().unwrap_or(0)
 }
 

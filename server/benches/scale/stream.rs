@@ -86,14 +86,8 @@ impl Server {
 
     /// The server process's user + system CPU time so far, seconds (clock ticks of 1/100 s).
     fn cpu_seconds(&self) -> f64 {
-        let s =
-            std::fs::read_to_string(format!("/proc/{}/stat", self.child.id())).unwrap_or_default();
-        let after = s.rsplit_once(')').map_or("", |(_, r)| r);
-        let f: Vec<u64> = after
-            .split_whitespace()
-            .map(|v| v.parse().unwrap_or(0))
-            .collect();
-        // Fields 14 and 15 (utime, stime) are at 11 and 12 after the command.
+        let f = super::monitor::stat_fields(&self.child.id().to_string());
+        // Fields 14 and 15 (utime, stime).
         (f.get(11).copied().unwrap_or(0) + f.get(12).copied().unwrap_or(0)) as f64 / 100.0
     }
 }
