@@ -15,7 +15,11 @@
 //!   project). When it cannot be had the comparison row says SKIPPED, loudly;
 //! * `ARBOR_SCALE_STREAM=0` — skip serving and streaming;
 //! * `ARBOR_SCALE_STREAM_ONLY=1` — only serve and stream, from the pool a previous run left in
-//!   `ARBOR_SCALE_DIR` (no tiles, import or verify).
+//!   `ARBOR_SCALE_DIR` (no tiles, import or verify);
+//! * `ARBOR_SCALE_SERVER_BIN=PATH` — the stream step serves from this `arbor-server` instead of
+//!   the one built with the bench (another build's, to compare two in turns);
+//! * `ARBOR_SCALE_SERVER_LOG=FILE` — append the stream step's servers' logs (stderr, with
+//!   `RUST_LOG` as set) to FILE instead of dropping them.
 //!
 //! Figures: points/s of each tool, Arbor's time per phase of each run (from its log's phase
 //! lines), peak anonymous RSS (sampled `RssAnon` of the child), peak scratch bytes on disk, pool
@@ -147,7 +151,7 @@ fn main() {
             "ARBOR_SCALE_STREAM_ONLY: no pool at {} (run the bench once without it)",
             pool.display()
         );
-        stream::serve_and_stream(env!("CARGO_BIN_EXE_arbor-server"), &pool, "city");
+        stream::serve_and_stream(&stream_server_bin(), &pool, "city");
         return;
     }
     let tiles_dir = base.join(format!("tiles-{points}"));
@@ -249,7 +253,7 @@ fn main() {
     );
     println!("{}", figures.2);
     if env_u64("ARBOR_SCALE_STREAM", 1) != 0 {
-        stream::serve_and_stream(env!("CARGO_BIN_EXE_arbor-server"), &pool, "city");
+        stream::serve_and_stream(&stream_server_bin(), &pool, "city");
     }
 }
 
@@ -269,4 +273,10 @@ fn pool_figures(pool: &Path) -> (u64, u64, String) {
             .unwrap_or(0)
     };
     (field("bytes            "), dir_bytes(pool), info)
+}
+
+/// The `arbor-server` the stream step serves from (`ARBOR_SCALE_SERVER_BIN`, else this build's).
+fn stream_server_bin() -> String {
+    std::env::var("ARBOR_SCALE_SERVER_BIN")
+        .unwrap_or_else(|_| env!("CARGO_BIN_EXE_arbor-server").to_owned())
 }

@@ -498,22 +498,7 @@ async fn serve(config: ServeConfig, options: DaemonOptions) -> Result<()> {
     let mut term = signal(SignalKind::terminate()).context("installing the SIGTERM handler")?;
     let mut int = signal(SignalKind::interrupt()).context("installing the SIGINT handler")?;
     let server = arbor_server::daemon::start_with(config, options).await?;
-    {
-        let mut out = std::io::stdout().lock();
-        writeln!(out, "quic {}", server.quic_addr)?;
-        match server.admin_addr {
-            Some(a) => writeln!(out, "admin {a}")?,
-            None => writeln!(out, "admin off")?,
-        }
-        writeln!(out, "fingerprint {}", server.fingerprint)?;
-        match &server.admin_token_origin {
-            AdminTokenOrigin::Config => writeln!(out, "admin-token config")?,
-            AdminTokenOrigin::File(p) | AdminTokenOrigin::Generated { path: p, .. } => {
-                writeln!(out, "admin-token-file {}", p.display())?
-            }
-        }
-        out.flush()?;
-    }
+    announce(&server);
     let trigger = server.shutdown_trigger();
     let mut stopped = std::pin::pin!(server.wait());
     let signal = tokio::select! {
@@ -525,6 +510,31 @@ async fn serve(config: ServeConfig, options: DaemonOptions) -> Result<()> {
     trigger.trigger();
     stopped.await;
     Ok(())
+}
+
+/// Prints the serving lines on stdout (see `serve --help`) in one write, so that a reader
+/// that stops at the line it wanted (a script, a test harness) cannot close the pipe between
+/// two of them. The service is up by then: if stdout is gone it goes on serving, with a
+/// warning in the log, rather than stopping for want of an audience.
+fn announce(server: &arbor_server::daemon::RunningServer) {
+    use std::fmt::Write as _;
+    let mut lines = String::new();
+    let _ = writeln!(lines, "quic {}", server.quic_addr);
+    let _ = match server.admin_addr {
+        Some(a) => writeln!(lines, "admin {a}"),
+        None => writeln!(lines, "admin off"),
+    };
+    let _ = writeln!(lines, "fingerprint {}", server.fingerprint);
+    let _ = match &server.admin_token_origin {
+        AdminTokenOrigin::Config => writeln!(lines, "admin-token config"),
+        AdminTokenOrigin::File(p) | AdminTokenOrigin::Generated { path: p, .. } => {
+            writeln!(lines, "admin-token-file {}", p.display())
+        }
+    };
+    let mut out = std::io::stdout().lock();
+    if let Err(e) = out.write_all(lines.as_bytes()).and_then(|()| out.flush()) {
+        tracing::warn!("could not print the serving lines on stdout ({e}); serving on");
+    }
 }
 
 fn channel_names(d: &arbor_proto::SceneDescription) -> String {

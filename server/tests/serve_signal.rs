@@ -188,6 +188,64 @@ async fn sigterm_closes_clients_with_shutting_down_and_exits_0() {
     assert_eq!(status.code(), Some(0), "{status}");
 }
 
+/// A reader that leaves before the serving lines are written (a script that read what it
+/// needed, a closed terminal) does not stop the service: the write fails, the server warns and
+/// serves on, and still ends cleanly on SIGTERM.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_closed_stdout_does_not_stop_the_service() {
+    let (dir, config) = bunny_pool_and_config();
+    let port = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let log = dir.path().join("serve.log");
+    let mut child = Command::new(BIN)
+        .args(["serve", "--db"])
+        .arg(dir.path().join("pool"))
+        .args(["--listen", &format!("127.0.0.1:{port}"), "--admin", "off"])
+        .arg("--config")
+        .arg(&config)
+        .arg("--data-dir")
+        .arg(dir.path().join("state"))
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let t0 = Instant::now();
+    let warned = loop {
+        let text = std::fs::read_to_string(&log).unwrap_or_default();
+        if text.contains("could not print the serving lines") {
+            break text;
+        }
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "serve exited with its stdout closed: {text}"
+        );
+        assert!(t0.elapsed() < Duration::from_secs(20), "no warning: {text}");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert!(warned.contains("Broken pipe"), "{warned}");
+    std::thread::sleep(Duration::from_millis(200));
+    assert!(child.try_wait().unwrap().is_none(), "still serving");
+    // The fingerprint it could not print: that of the certificate it made in its data dir.
+    let fingerprint = arbor_server::service::tls::load_or_create(
+        &arbor_server::service::config::TlsSource::SelfSigned,
+        &dir.path().join("state"),
+    )
+    .unwrap()
+    .fingerprint;
+    let addr: std::net::SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
+    let client = connect(addr, &fingerprint).await;
+    let (_control, info) = hello(&client.conn, SCENE, &[Channel::Normal], TOKEN).await;
+    info.unwrap();
+    signal(&child, "-TERM");
+    let status = wait_exit(&mut child, Duration::from_secs(4));
+    assert_eq!(status.code(), Some(0), "{status}");
+}
+
 #[test]
 fn serve_help_has_examples_and_bad_config_is_named() {
     let out = Command::new(BIN)

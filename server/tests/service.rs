@@ -508,6 +508,68 @@ async fn a_scene_whose_fine_cuts_go_unused_skips_them_and_keeps_its_coarse_cuts(
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_resting_list_that_fills_every_free_slot_itself_gets_no_cut_until_one_has_room() {
+    let tp = TestPool::new();
+    let setup = cutting(&tp).await;
+    let (server, view, world) = (&setup.server, setup.view, setup.world);
+    let metrics = &server.state.metrics;
+    let (cuts, idle) = (&metrics.visible_cuts, &metrics.cuts_without_work);
+    // Hello names the root and announces one free slot: the root takes it, nothing is left to
+    // push and there is no prefetch, so its view, resting by definition, gets no cut.
+    let full = ViewHint {
+        free_slots: 1,
+        ..view
+    };
+    let (c, mut control) = hello_with_root_and_view(server, full).await;
+    wait_for("Hello's list counted without work", || {
+        idle.load(Ordering::Relaxed) == 1
+    })
+    .await;
+    // The same view again, a budget-bound client's list: as many items as free slots.
+    let listed: Vec<(TreeletId, f32, f32)> = setup.cut.treelets[..2]
+        .iter()
+        .map(|&(_, id)| (id, 10.0, 1.0))
+        .collect();
+    let send = |seq: u64, free_slots: u32, prefetch_from: u32| Frame::DeepRequestList {
+        seq,
+        view: ViewHint {
+            free_slots,
+            ..world
+        },
+        items: listed.clone(),
+        prefetch_from,
+    };
+    control.send(&send(1, 2, 2)).await;
+    wait_for("the second list counted without work", || {
+        idle.load(Ordering::Relaxed) == 2
+    })
+    .await;
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    assert_eq!(
+        cuts.load(Ordering::Relaxed),
+        0,
+        "no cut for lists without room"
+    );
+    // Still no room, but prefetch for a cut to set apart: cast.
+    control.send(&send(2, 2, 1)).await;
+    wait_for("a cut for prefetch to set apart", || {
+        cuts.load(Ordering::Relaxed) == 1
+    })
+    .await;
+    assert_eq!(idle.load(Ordering::Relaxed), 2);
+    c.conn.close(0u32.into(), b"done");
+    // A new client of the same view with room beyond its list gets its cut.
+    let (c, _control) = hello_with_root_and_view(server, view).await;
+    wait_for("a cut for a list with room", || {
+        cuts.load(Ordering::Relaxed) == 2
+    })
+    .await;
+    assert_eq!(idle.load(Ordering::Relaxed), 2);
+    c.conn.close(0u32.into(), b"done");
+    setup.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_cut_that_saves_too_little_leaves_the_frustum_plan_in_place() {
     use std::collections::HashSet;
     let tp = TestPool::new();

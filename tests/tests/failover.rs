@@ -74,7 +74,8 @@ impl Replica {
                 fingerprint = Some(f.to_owned());
             }
         }
-        // Keep the pipe open and drained: a server whose stdout is closed fails on its next line.
+        // Keep the pipe open and drained (the server serves on without it, but nothing it
+        // prints should block on a full pipe).
         std::thread::spawn(move || lines.for_each(drop));
         Replica {
             child,

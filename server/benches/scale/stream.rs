@@ -38,6 +38,9 @@ struct Server {
     child: Child,
     url: ServerUrl,
     fingerprint: String,
+    /// Kept open: a server (before stop 49) whose stdout closed before its last serving line
+    /// stopped serving.
+    _stdout: std::io::Lines<BufReader<std::process::ChildStdout>>,
     _state: tempfile::TempDir,
 }
 
@@ -55,9 +58,19 @@ impl Server {
             std::fs::write(&file, format!("default_access = \"public\"\n{config}\n")).unwrap();
             cmd.arg("--config").arg(file);
         }
+        let stderr = match std::env::var_os("ARBOR_SCALE_SERVER_LOG") {
+            Some(path) => Stdio::from(
+                std::fs::OpenOptions::new()
+                    .create(true)
+                    .append(true)
+                    .open(&path)
+                    .expect("ARBOR_SCALE_SERVER_LOG: opening the file"),
+            ),
+            None => Stdio::null(),
+        };
         let mut child = cmd
             .stdout(Stdio::piped())
-            .stderr(Stdio::null())
+            .stderr(stderr)
             .spawn()
             .expect("starting arbor-server serve");
         let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
@@ -80,6 +93,7 @@ impl Server {
                 scene: scene.to_owned(),
             },
             fingerprint: fingerprint.unwrap(),
+            _stdout: lines,
             _state: state,
         }
     }

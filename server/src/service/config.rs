@@ -195,7 +195,8 @@ pub struct ServeConfig {
     /// Rays along the longer side of a resting deep-request view that the server casts through
     /// its own tree to find the view's visible cut, whose treelets it then pushes
     /// (`service::visibility`); 0 turns it off: pushes follow frustum and projected size alone.
-    /// Default [`DEFAULT_VISIBILITY_GRID`]. Measured in docs/measurements.md (stops 27, 45 and
+    /// A resting list that leaves a cut nothing to decide (no free slots beyond its items, no
+    /// prefetch: `push::cut_has_work`) gets none. Default [`DEFAULT_VISIBILITY_GRID`]. Measured in docs/measurements.md (stops 27, 45 and
     /// 47): engine's static view over the link emulator converges at 1.8× the physical limit
     /// with cuts and 2.6× without; its camera jump, with the client's prefetch set apart
     /// (`push::cut_list`), at 1.6× the jump's limit.

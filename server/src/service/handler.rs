@@ -17,7 +17,8 @@ use tokio::task::JoinSet;
 use super::batches::Batches;
 use super::connection::{ControlReader, End, Greeting, close, hello};
 use super::push::{
-    PlannedList, PushAnchors, WorldCube, cut_list, cut_saves, deep_list_anchored, push_cap,
+    PlannedList, PushAnchors, WorldCube, cut_has_work, cut_list, cut_saves, deep_list_anchored,
+    push_cap,
 };
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
 use super::shared::Shared;
@@ -377,7 +378,7 @@ impl Handler {
                     .is_some_and(|(_, last, _, _)| same_view(last, view));
             self.last_deep = Some((seq, *view, items.to_vec(), prefetch_from));
             if resting {
-                self.start_cut(view);
+                self.start_cut();
             }
         }
         let list = self.plan(view, items, prefetch_from);
@@ -431,20 +432,34 @@ impl Handler {
         }
     }
 
-    /// Starts computing `view`'s visible cut on a blocking thread — the coarse one, or the fine
-    /// one once the coarse one answers the view and is followed — unless visible cuts are off,
-    /// one is being computed, or the last one answers this view at the finest grid configured
-    /// (or was not worth following: a finer cast would not change that much). Neither grid
+    /// Starts computing the visible cut of the last deep list's view on a blocking thread — the
+    /// coarse one, or the fine one once the coarse one answers the view and is followed —
+    /// unless visible cuts are off, one is being computed, the list leaves a cut nothing to
+    /// decide ([`cut_has_work`]: a budget-bound client's lists fill every free slot
+    /// themselves), or the last cut answers this view at the finest grid configured (or was
+    /// not worth following: a finer cast would not change that much). Neither grid
     /// exceeds the client's own frame ([`frame_rays`]); the fine one is cast from the coarse
     /// one, unless the scene's last fine cuts went unused (`FineCutGate`). The same thread
     /// decides whether the cut saves enough against the frustum plan to be followed, and stops
     /// casting it as soon as it has grown too large for that.
-    fn start_cut(&mut self, view: &ViewHint) {
+    fn start_cut(&mut self) {
+        let Some((_, view, items, prefetch_from)) = &self.last_deep else {
+            return;
+        };
+        let view = &view.clone();
         // No finer than the client's own frame: a small client's view needs no more rays.
         let rays = frame_rays(view);
         let coarse = self.shared.config.visibility_grid.min(rays);
         let fine = self.shared.config.visibility_fine_grid.min(rays);
         if coarse == 0 || self.cut_job.is_some() {
+            return;
+        }
+        if !cut_has_work(view, items.len(), *prefetch_from) {
+            self.shared
+                .state
+                .metrics
+                .cuts_without_work
+                .fetch_add(1, Ordering::Relaxed);
             return;
         }
         let (grid, coarse_cut) = match self.cut.as_ref().filter(|(c, _)| c.answers(view)) {
@@ -530,7 +545,7 @@ impl Handler {
             return None;
         }
         let list = self.plan(&view, &items, prefetch_from);
-        self.start_cut(&view);
+        self.start_cut();
         self.apply_list(seq, list, true)
     }
 

@@ -542,6 +542,17 @@ pub fn cut_list(
     }
 }
 
+/// Whether a visible cut could change the deep list of `listed` items for `view` whose
+/// prefetch starts at `prefetch_from` ([`cut_list`]): it chooses the pushes, which only the
+/// free slots beyond the listed items take, and sets apart the prefetch it does not hold. A
+/// list with neither leaves a cut nothing to decide. That is the usual list of a client whose
+/// budget bounds its view (docs/measurements.md, stop 49): each one fills every free slot
+/// itself, and while its LOD bias settles it sends no prefetch either, so a cut cast for each
+/// bias step would be thrown away.
+pub fn cut_has_work(view: &ViewHint, listed: usize, prefetch_from: usize) -> bool {
+    view.free_slots as usize > listed || prefetch_from < listed
+}
+
 /// Whether following a visible cut of `treelets` treelets for `view` is worth it: whether it
 /// holds at most `share` of the treelets the frustum plan would push for the same view from the
 /// root (every descendant in the frustum that projects larger than a pixel). A view that sees
@@ -1130,6 +1141,22 @@ mod tests {
         assert_eq!((list.len(), pushed), (1 + cap, cap));
         let (_, all) = deep_list(CUBE, &view, &root, usize::MAX, shape);
         assert!(all > cap, "the view implies more than the cap: {all}");
+    }
+
+    #[test]
+    fn a_cut_has_work_only_with_room_for_pushes_or_prefetch_to_set_apart() {
+        let mut view = view_from([0.5, 0.5, 3.0], 0.001);
+        view.free_slots = 10;
+        assert!(
+            !cut_has_work(&view, 10, 10),
+            "every free slot listed, no prefetch"
+        );
+        assert!(!cut_has_work(&view, 12, 12), "more listed than free");
+        assert!(cut_has_work(&view, 9, 9), "one slot left to push into");
+        assert!(cut_has_work(&view, 10, 8), "prefetch to set apart");
+        view.free_slots = 0;
+        assert!(!cut_has_work(&view, 0, 0), "an empty list of a full client");
+        assert!(cut_has_work(&view, 3, 0), "all of it prefetch");
     }
 
     #[test]

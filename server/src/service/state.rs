@@ -103,6 +103,9 @@ pub struct Metrics {
     /// Fine cuts not cast because the scene's last fine cuts went unused
     /// (`visibility::FineCutGate`).
     pub fine_cuts_skipped: AtomicU64,
+    /// Resting deep lists for which no cut was cast because it could not have changed them:
+    /// no free slots beyond the listed items and no prefetch (`push::cut_has_work`).
+    pub cuts_without_work: AtomicU64,
     /// Prefetch items of deep request lists set apart under a visible cut (sent after its
     /// pushes, few in flight: `push::cut_list`), summed over lists.
     pub prefetch_set_apart: AtomicU64,
@@ -366,7 +369,7 @@ impl ServiceState {
         let m = &self.metrics;
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
         let resumes = &m.path_resumes;
-        let counters: [(&str, &str, &AtomicU64); 14] = [
+        let counters: [(&str, &str, &AtomicU64); 15] = [
             (
                 "arbor_connections_accepted_total",
                 "QUIC connections accepted.",
@@ -417,6 +420,12 @@ impl ServiceState {
                 "Fine visible cuts not cast because the scene's last fine cuts went unused \
                  (incomplete or not followed).",
                 &m.fine_cuts_skipped,
+            ),
+            (
+                "arbor_cuts_without_work_total",
+                "Resting deep lists for which no visible cut was cast because it could not have \
+                 changed them (no free slots beyond the listed items, no prefetch).",
+                &m.cuts_without_work,
             ),
             (
                 "arbor_prefetch_set_apart_total",
