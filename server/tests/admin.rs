@@ -790,6 +790,9 @@ async fn metrics_parse_and_report_the_state_and_the_pool() {
     let f = start(true, TOKEN).await;
     fill(&f.state);
     f.state.set_ready(true);
+    // Recorded at the start with seven scenes; reported for the one the pool holds now.
+    let bound = arbor_server::service::config::ServeConfig::new("p").memory_bound(7);
+    f.state.set_memory_bound(bound);
     let r = get(f.addr, "/metrics", &[("Authorization", &bearer(TOKEN))]).await;
     assert_eq!(r.status, 200, "{r:?}");
     let ct = r.header("content-type").unwrap();
@@ -817,6 +820,12 @@ async fn metrics_parse_and_report_the_state_and_the_pool() {
     ] {
         assert_eq!(v(name), want, "{name}");
     }
+    let now = bound.with_scenes(1);
+    for (part, bytes) in now.parts() {
+        let got = value(&fams, "arbor_memory_bound_bytes", &[("part", part)]);
+        assert_eq!(got, bytes as f64, "{part}");
+    }
+    assert_eq!(now.cut_buffers() * 7, bound.cut_buffers());
     for (kind, n) in [("frame_too_large", 2.0), ("unauthorized", 1.0)] {
         assert_eq!(value(&fams, "arbor_errors_total", &[("kind", kind)]), n);
     }

@@ -385,6 +385,13 @@ async fn the_client_reconnects_when_the_server_is_back_and_metrics_count_the_tra
     assert_eq!(sample(&metrics, "arbor_request_items_total"), n as f64);
     assert_eq!(sample(&metrics, "arbor_connections_accepted_total"), 1.0);
     assert_eq!(sample(&metrics, "arbor_connections_open"), 1.0);
+    // The memory bound of the config it runs (defaults but for the grace), one scene.
+    let bound = arbor_server::service::config::ServeConfig::new("pool").memory_bound(1);
+    for (part, bytes) in bound.parts() {
+        let name = format!("arbor_memory_bound_bytes{{part=\"{part}\"}}");
+        assert_eq!(sample(&metrics, &name), bytes as f64, "{part}");
+    }
+    assert!(bound.cut_buffers() > 0 && bound.connections > 0);
     assert_eq!(
         sample(&metrics, "arbor_request_to_send_seconds_count"),
         n as f64

@@ -94,6 +94,18 @@ pub(super) fn render(state: &ServiceState, uptime: Duration, pool: Option<&PoolF
     if let Some(pool) = pool {
         p.sample("arbor_pool_disk_bytes", &[], pool.disk_bytes);
     }
+    p.family(
+        "arbor_memory_bound_bytes",
+        Kind::Gauge,
+        "The most memory the service's own bounds let it hold, by part, for the scenes the pool \
+         holds now (runtime, allocator slack and admin API on top).",
+    );
+    if let Some(bound) = state.memory_bound() {
+        let bound = pool.map_or(bound, |p| bound.with_scenes(p.scenes.len()));
+        for (part, bytes) in bound.parts() {
+            p.sample("arbor_memory_bound_bytes", &[("part", part)], bytes);
+        }
+    }
     scene_families(&mut p, pool.map_or(&[][..], |p| &p.scenes[..]));
     p.finish()
 }

@@ -264,6 +264,65 @@ pub struct MemoryPlan {
     pub send_window: u64,
 }
 
+/// The most memory the service's own bounds let it hold, by part (bytes): what a replica's
+/// memory limit must cover, with the runtime, the allocator's slack and the admin API on top
+/// (deploy/README.md, *Memory*). Logged when the service starts; `/metrics` reports it as
+/// `arbor_memory_bound_bytes` for the scenes the pool holds at the scrape.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MemoryBound {
+    /// sled's page cache ([`crate::pool::POOL_CACHE_BYTES`]).
+    pub pool_cache: u64,
+    /// `max_connections` × `max_connection_memory`.
+    pub connections: u64,
+    /// Built treelet messages (`message_cache_bytes`).
+    pub message_cache: u64,
+    /// Decoded treelet shapes (`shape_cache_bytes`).
+    pub shape_cache: u64,
+    /// Decoded node records of the visible cuts (`visibility_node_cache_bytes`; 0 with cuts
+    /// off).
+    pub cut_node_cache: u64,
+    /// One scene's visible-cut buffers: at most
+    /// [`MAX_CUTS_RUNNING`](super::treelets::MAX_CUTS_RUNNING) cast at once, each of
+    /// `visibility_cache_bytes` (0 with cuts off).
+    pub cut_buffers_per_scene: u64,
+    /// Scenes that may be served at once: every scene of the pool.
+    pub scenes: u64,
+}
+
+impl MemoryBound {
+    /// Every scene's visible-cut buffers.
+    pub fn cut_buffers(&self) -> u64 {
+        self.cut_buffers_per_scene.saturating_mul(self.scenes)
+    }
+
+    /// The same bound for a pool of `scenes` scenes (a live import adds some).
+    pub fn with_scenes(self, scenes: usize) -> MemoryBound {
+        MemoryBound {
+            scenes: scenes as u64,
+            ..self
+        }
+    }
+
+    /// The parts by name, as `/metrics` labels them.
+    pub fn parts(&self) -> [(&'static str, u64); 6] {
+        [
+            ("pool_cache", self.pool_cache),
+            ("connections", self.connections),
+            ("message_cache", self.message_cache),
+            ("shape_cache", self.shape_cache),
+            ("cut_node_cache", self.cut_node_cache),
+            ("cut_buffers", self.cut_buffers()),
+        ]
+    }
+
+    /// All parts together.
+    pub fn total(&self) -> u64 {
+        self.parts()
+            .iter()
+            .fold(0u64, |sum, &(_, b)| sum.saturating_add(b))
+    }
+}
+
 /// Default [`ServeConfig::initial_window`]: 128 KiB.
 pub const DEFAULT_INITIAL_WINDOW: u64 = 128 << 10;
 /// Default [`ServeConfig::message_cache_bytes`]: 64 MiB.
@@ -769,6 +828,30 @@ impl ServeConfig {
         }
     }
 
+    /// The most memory this configuration's bounds let the service hold with `scenes` scenes
+    /// in the pool ([`MemoryBound`]).
+    pub fn memory_bound(&self, scenes: usize) -> MemoryBound {
+        let cuts = self.visibility_grid > 0;
+        MemoryBound {
+            pool_cache: crate::pool::POOL_CACHE_BYTES,
+            connections: (self.max_connections as u64).saturating_mul(self.max_connection_memory),
+            message_cache: self.message_cache_bytes,
+            shape_cache: self.shape_cache_bytes,
+            cut_node_cache: if cuts {
+                self.visibility_node_cache_bytes
+            } else {
+                0
+            },
+            cut_buffers_per_scene: if cuts {
+                (super::treelets::MAX_CUTS_RUNNING as u64)
+                    .saturating_mul(self.visibility_cache_bytes)
+            } else {
+                0
+            },
+            scenes: scenes as u64,
+        }
+    }
+
     /// Whether `token` opens `scene`. `exists` says whether the pool has the scene.
     ///
     /// Unknown scene → [`ErrorCode::UnknownScene`] (checked first); a scene that needs a token
@@ -922,6 +1005,31 @@ access = "public"
         assert!(
             c.probe_token.is_some(),
             "the ConfigMap sets the probe token"
+        );
+        // The replicas' memory limit covers the ConfigMap's memory bound for the scenes it
+        // names, with room for the runtime, the allocator's slack and the admin API.
+        let bound = c.memory_bound(c.scenes.len());
+        let deployment =
+            std::fs::read_to_string(root.join("deploy/kubernetes/deployment.yaml")).unwrap();
+        let (_, server) = deployment
+            .split_once("# Memory: worst case")
+            .expect("the server container's memory comment");
+        let (_, limits) = server.split_once("limits:").expect("its limits");
+        let mib: u64 = limits
+            .lines()
+            .find_map(|l| {
+                l.trim()
+                    .strip_prefix("memory: ")?
+                    .strip_suffix("Mi")?
+                    .parse()
+                    .ok()
+            })
+            .expect("a memory limit in Mi");
+        const RUNTIME_ALLOWANCE: u64 = 128 << 20;
+        assert!(
+            bound.total() + RUNTIME_ALLOWANCE <= mib << 20,
+            "limit {mib} MiB against a bound of {} MiB + the runtime: {bound:?}",
+            bound.total() >> 20
         );
     }
 
@@ -1110,6 +1218,36 @@ access = "public"
         // A configured scene that the pool lacks is unknown too.
         c.scenes.insert("gone".into(), SceneAccess::Public);
         assert_eq!(c.access("gone", "", exists), Err(ErrorCode::UnknownScene));
+    }
+
+    #[test]
+    fn the_memory_bound_counts_every_bounded_part() {
+        let mut c = ServeConfig::new("p");
+        c.max_connections = 64;
+        c.max_connection_memory = 16 << 20;
+        let b = c.memory_bound(2);
+        let mib = |v: u64| v >> 20;
+        assert_eq!(
+            (
+                mib(b.pool_cache),
+                mib(b.connections),
+                mib(b.message_cache),
+                mib(b.shape_cache),
+                mib(b.cut_node_cache),
+                mib(b.cut_buffers())
+            ),
+            (128, 1024, 64, 32, 64, 2 * 2 * 32),
+            "the defaults with cuts on, two scenes"
+        );
+        assert_eq!(mib(b.total()), 128 + 1024 + 64 + 32 + 64 + 128);
+        assert_eq!(b.parts().iter().map(|p| p.1).sum::<u64>(), b.total());
+        assert_eq!(b.with_scenes(5).cut_buffers(), 5 * 2 * (32 << 20));
+        c.visibility_grid = 0;
+        let off = c.memory_bound(2);
+        assert_eq!((off.cut_node_cache, off.cut_buffers()), (0, 0), "cuts off");
+        c.max_connections = usize::MAX;
+        c.max_connection_memory = u64::MAX;
+        assert_eq!(c.memory_bound(usize::MAX).total(), u64::MAX, "saturates");
     }
 
     #[test]

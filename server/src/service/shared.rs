@@ -63,6 +63,19 @@ impl Shared {
         let max_in_flight = config.max_connections.saturating_mul(config.window_max);
         let caches = ServiceCaches::for_config(&config);
         state.set_caches(caches.clone());
+        let scenes = pool.scenes().map_or(0, |s| s.len());
+        let bound = config.memory_bound(scenes);
+        let mib = |b: u64| b >> 20;
+        tracing::info!(
+            total_mib = mib(bound.total()),
+            connections_mib = mib(bound.connections),
+            caches_mib = mib(bound.message_cache + bound.shape_cache + bound.cut_node_cache),
+            cut_buffers_mib = mib(bound.cut_buffers()),
+            pool_cache_mib = mib(bound.pool_cache),
+            scenes,
+            "memory bound (runtime, allocator slack and admin API on top)"
+        );
+        state.set_memory_bound(bound);
         {
             let mut paths = state.paths();
             paths.set_lifetime(config.path_memory());

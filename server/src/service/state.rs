@@ -185,6 +185,9 @@ pub struct ServiceState {
     pub timeline: super::timeline::Timeline,
     /// The server-wide caches, reported in `/metrics`; set once by the service as it starts.
     caches: OnceLock<ServiceCaches>,
+    /// The service's memory bound, with the scenes the pool held at the start; set once by
+    /// the service as it starts.
+    memory_bound: OnceLock<super::config::MemoryBound>,
     /// Congestion windows and RTTs of recent connections by client address; off (lifetime
     /// zero) until the service sets `path_memory_secs`.
     paths: Mutex<PathMemory>,
@@ -247,6 +250,16 @@ impl ServiceState {
     /// per state).
     pub fn set_caches(&self, caches: ServiceCaches) {
         let _ = self.caches.set(caches);
+    }
+
+    /// Records the service's memory bound (a second call changes nothing).
+    pub fn set_memory_bound(&self, bound: super::config::MemoryBound) {
+        let _ = self.memory_bound.set(bound);
+    }
+
+    /// The service's memory bound, once it started.
+    pub fn memory_bound(&self) -> Option<super::config::MemoryBound> {
+        self.memory_bound.get().copied()
     }
 
     /// What the service remembers of its clients' paths (benchmarks clear it to measure first
