@@ -61,7 +61,8 @@ pub const DEFAULT_LISTEN: &str = "127.0.0.1:4433";
 /// Default admin listen address.
 pub const DEFAULT_ADMIN_LISTEN: &str = "127.0.0.1:9090";
 /// Smallest accepted `max_connection_memory`: one maximal control frame in the decoder, a
-/// maximal request list in the scheduler, and room for receive and send buffers.
+/// maximal request list in the scheduler, the deliveries it remembers, and room for receive
+/// and send buffers.
 pub const MIN_CONNECTION_MEMORY: u64 = 8 << 20;
 
 /// What is wrong with a configuration. Every variant names the key it is about.
@@ -258,6 +259,9 @@ pub struct MemoryPlan {
     pub decoder: u64,
     /// Scheduler state for the longest request list (fixed by the protocol).
     pub request_list: u64,
+    /// The deliveries a connection remembers once it sends deep lists with visible cuts on
+    /// (`schedule::DELIVERIES_REMEMBERED`).
+    pub deliveries: u64,
     /// QUIC connection- and stream-level receive window (what the client may send unread).
     pub receive_window: u64,
     /// QUIC send window: unacknowledged treelet bytes buffered for this connection.
@@ -815,14 +819,18 @@ impl ServeConfig {
         let decoder = (MAX_FRAME_BYTES + arbor_proto::limits::FRAME_HEADER_BYTES) as u64;
         // Scheduler: by-id index (16 B) + send queue (8 B) + hash/heap overhead per item.
         let request_list = MAX_REQUEST_ITEMS as u64 * 48;
+        // Deliveries remembered for visible cuts: a 4-byte id and a control byte per bucket,
+        // at most twice as many buckets as ids.
+        let deliveries = super::schedule::DELIVERIES_REMEMBERED as u64 * 10;
         let rest = self
             .max_connection_memory
-            .saturating_sub(decoder + request_list);
+            .saturating_sub(decoder + request_list + deliveries);
         let receive_window = (rest / 8).clamp(64 << 10, 2 << 20);
         let send_window = rest.saturating_sub(receive_window).max(256 << 10);
         MemoryPlan {
             decoder,
             request_list,
+            deliveries,
             receive_window,
             send_window,
         }
@@ -1257,7 +1265,7 @@ access = "public"
             c.max_connection_memory = m;
             let p = c.memory_plan();
             assert!(
-                p.decoder + p.request_list + p.receive_window + p.send_window <= m,
+                p.decoder + p.request_list + p.deliveries + p.receive_window + p.send_window <= m,
                 "{p:?}"
             );
             assert!(p.receive_window >= 64 << 10 && p.receive_window <= 2 << 20);
