@@ -325,6 +325,63 @@ fn a_cut_is_abandoned_where_it_grows_past_what_is_worth_casting() {
     );
 }
 
+/// The calling thread's nice value, from `/proc/thread-self/stat` (field 19).
+fn thread_nice() -> i32 {
+    let stat = std::fs::read_to_string("/proc/thread-self/stat").unwrap();
+    let (_, after_name) = stat.rsplit_once(')').unwrap();
+    after_name
+        .split_whitespace()
+        .nth(16)
+        .unwrap()
+        .parse()
+        .unwrap()
+}
+
+#[test]
+fn a_cut_reads_decodes_and_casts_on_the_cut_threads_which_yield_to_streaming() {
+    use arbor_server::service::visibility::CUT_NICE;
+    use std::sync::Mutex;
+    // The pool is built by this test's first cut, from this thread (one test per process).
+    let base = thread_nice();
+    let lion = lion();
+    let caster = lion.caster(lion.whole_scene_bytes() * 2);
+    let (_, camera) = &lion.views()[0];
+    let seen = Mutex::new(Vec::new());
+    let note = || {
+        let name = std::thread::current().name().unwrap_or("").to_owned();
+        seen.lock().unwrap().push((name, thread_nice()));
+    };
+    let mut fetch = lion.fetch();
+    let cut = caster.cut_from(
+        &hint(camera),
+        GRID,
+        &[],
+        |id| {
+            note();
+            fetch(id)
+        },
+        |_| {
+            note();
+            true
+        },
+    );
+    assert!(cut.complete && cut.treelets.len() >= FIRST_WORTH_CHECK);
+    let seen = seen.into_inner().unwrap();
+    assert!(
+        seen.len() > cut.treelets.len(),
+        "every read and check noted"
+    );
+    for (name, nice) in &seen {
+        assert!(name.starts_with("arbor-cut-"), "ran on {name:?}");
+        assert_eq!(*nice, (base + CUT_NICE).min(19), "{name}");
+    }
+    assert_eq!(
+        thread_nice(),
+        base,
+        "the caller's own priority is left alone"
+    );
+}
+
 #[test]
 fn too_small_a_buffer_or_an_unreadable_treelet_gives_an_incomplete_cut_of_needed_treelets() {
     let lion = lion();

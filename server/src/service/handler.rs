@@ -502,7 +502,7 @@ impl Handler {
                     |id| scene.shape(id),
                 )
             };
-            let cut = scene.visible_cut(&view, grid, seed, budget, &saves)?;
+            let cut = scene.visible_cut(&view, grid, seed, budget, saves)?;
             let followed = !cut.abandoned && saves(cut.treelets.len());
             if coarse_cut.is_some() {
                 scene.record_fine_cut(followed && cut.complete);

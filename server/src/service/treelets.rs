@@ -244,7 +244,7 @@ impl ServedScene {
         grid: u32,
         seed: &[(u8, TreeletId)],
         budget_bytes: u64,
-        worthwhile: impl FnMut(usize) -> bool,
+        worthwhile: impl FnMut(usize) -> bool + Send,
     ) -> Option<VisibleCut> {
         struct Running<'a>(&'a AtomicUsize);
         impl Drop for Running<'_> {

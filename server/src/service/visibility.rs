@@ -281,7 +281,7 @@ impl CutCaster {
         &self,
         view: &ViewHint,
         grid: u32,
-        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
+        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet> + Send,
     ) -> VisibleCut {
         self.cut_from(view, grid, &[], fetch, |_| true)
     }
@@ -305,8 +305,8 @@ impl CutCaster {
         view: &ViewHint,
         grid: u32,
         seed: &[(u8, TreeletId)],
-        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
-        worthwhile: impl FnMut(usize) -> bool,
+        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet> + Send,
+        worthwhile: impl FnMut(usize) -> bool + Send,
     ) -> VisibleCut {
         let start = std::time::Instant::now();
         let lod = Lod {
@@ -335,7 +335,7 @@ impl CutCaster {
         &self,
         camera: &Camera,
         lod: &Lod,
-        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
+        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet> + Send,
     ) -> Cast {
         self.cast_from(camera, lod, &[], fetch, |_| true)
     }
@@ -343,13 +343,33 @@ impl CutCaster {
     /// [`CutCaster::cast`] with the buffer first holding `seed`, abandoned once `worthwhile`
     /// says no ([`CutCaster::cut_from`]); a seeded treelet that cannot be read or inserted
     /// leaves the cast incomplete.
+    ///
+    /// The whole cast — reading and decoding what it loads as well as its rays — runs on the
+    /// cut threads ([`cut_pool`]), which yield to streaming.
     fn cast_from(
+        &self,
+        camera: &Camera,
+        lod: &Lod,
+        seed: &[(u8, TreeletId)],
+        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet> + Send,
+        worthwhile: impl FnMut(usize) -> bool + Send,
+    ) -> Cast {
+        match cut_pool() {
+            Some(pool) => pool.install(|| self.cast_on(camera, lod, seed, fetch, worthwhile, true)),
+            None => self.cast_on(camera, lod, seed, fetch, worthwhile, false),
+        }
+    }
+
+    /// [`CutCaster::cast_from`] on the calling thread, each round's rays in parallel on the
+    /// current rayon pool when `parallel`.
+    fn cast_on(
         &self,
         camera: &Camera,
         lod: &Lod,
         seed: &[(u8, TreeletId)],
         mut fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
         mut worthwhile: impl FnMut(usize) -> bool,
+        parallel: bool,
     ) -> Cast {
         let mut cast = Cast {
             treelets: Vec::new(),
@@ -383,9 +403,10 @@ impl CutCaster {
                     .filter(|hit| hit.leaf && !hit.subtreelet.is_none() && hit.error > 0.0)
                     .map(|hit| ((x, y), hit.subtreelet))
             };
-            let (again, mut missing): (Vec<(u32, u32)>, Vec<TreeletId>) = match cut_pool() {
-                Some(pool) => pool.install(|| pending.par_iter().filter_map(stops_short).unzip()),
-                None => pending.iter().filter_map(stops_short).unzip(),
+            let (again, mut missing): (Vec<(u32, u32)>, Vec<TreeletId>) = if parallel {
+                pending.par_iter().filter_map(stops_short).unzip()
+            } else {
+                pending.iter().filter_map(stops_short).unzip()
             };
             missing.sort_unstable();
             missing.dedup();
@@ -439,11 +460,30 @@ fn cut_pool() -> Option<&'static rayon::ThreadPool> {
         rayon::ThreadPoolBuilder::new()
             .num_threads((cores / 2).max(2))
             .thread_name(|i| format!("arbor-cut-{i}"))
+            .start_handler(|_| yield_to_streaming())
             .build()
             .map_err(|e| tracing::warn!("no thread pool for visible cuts, casting on one: {e}"))
             .ok()
     })
     .as_ref()
+}
+
+/// How much nicer than the rest of the server the cut threads run: a cut is a burst of
+/// background work for one resting view, and on a busy server it should not take the cores
+/// from streaming every client's lists (5 steps nicer, a cut thread gets about a quarter of a
+/// core that a streaming thread wants).
+pub const CUT_NICE: i32 = 5;
+
+/// Makes the calling thread [`CUT_NICE`] steps nicer than it was (a per-thread attribute on
+/// Linux, inherited from the thread that built the pool), at most 19; a refusal is logged and
+/// the cuts run at the server's priority.
+fn yield_to_streaming() {
+    let tid = rustix::thread::gettid();
+    let nicer = rustix::process::getpriority_process(Some(tid))
+        .and_then(|now| rustix::process::setpriority_process(Some(tid), (now + CUT_NICE).min(19)));
+    if let Err(e) = nicer {
+        tracing::warn!("could not make a cut thread {CUT_NICE} steps nicer: {e}");
+    }
 }
 
 /// What [`CutCaster::cast`] loaded.
