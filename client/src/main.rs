@@ -564,23 +564,28 @@ fn render(a: RenderArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         arbor_client_report::chart::draw(&run.report, path, &title)
             .with_context(|| format!("drawing {}", path.display()))?;
     }
-    println!("backend: {}", run.backend);
-    println!("{}", run.report.summary());
-    for e in &run.report.events {
-        println!("event at cycle {} ({:.3} s): {}", e.cycle, e.time_s, e.what);
-    }
-    println!(
+    let mut lines = vec![
+        format!("backend: {}", run.backend),
+        run.report.summary().to_string(),
+    ];
+    lines.extend(
+        run.report
+            .events
+            .iter()
+            .map(|e| format!("event at cycle {} ({:.3} s): {}", e.cycle, e.time_s, e.what)),
+    );
+    lines.push(format!(
         "slots: peak {} of {} ({} B each, {:.2} MiB)",
         run.peak_slots,
         run.capacity,
         run.slot_bytes,
         (u64::from(run.capacity) * run.slot_bytes) as f64 / (1024.0 * 1024.0)
-    );
-    match run.converged_at {
-        Some(c) => println!("converged at cycle {c}"),
-        None => println!("not converged"),
-    }
-    Ok(())
+    ));
+    lines.push(match run.converged_at {
+        Some(c) => format!("converged at cycle {c}"),
+        None => "not converged".to_owned(),
+    });
+    say(&lines)
 }
 
 fn reference(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
@@ -615,7 +620,7 @@ fn reference(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
     image
         .save_png(&a.out)
         .with_context(|| format!("writing {}", a.out.display()))?;
-    println!(
+    say(&[format!(
         "reference of {} ({} treelets) on {} at cycle {} of {}: {} covered pixels → {}",
         scene.name,
         scene.treelet_count,
@@ -624,8 +629,7 @@ fn reference(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
         a.view.camera_path,
         image.coverage(),
         a.out.display()
-    );
-    Ok(())
+    )])
 }
 
 /// `reference` fetching only the treelets the view's fully refined cut needs.
@@ -654,25 +658,41 @@ fn streamed(a: ReferenceArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
     r.image
         .save_png(&a.out)
         .with_context(|| format!("writing {}", a.out.display()))?;
-    println!(
-        "reference of {} on {} at cycle {} of {}: {} covered pixels → {}",
-        r.scene.name,
-        backend.name(),
-        a.cycle,
-        a.view.camera_path,
-        r.image.coverage(),
-        a.out.display()
-    );
-    println!(
-        "fetched {} of {} treelets in {} rounds ({:.2} s); cut held at most {:.1} MiB; peak RSS {:.1} MiB",
-        r.treelets,
-        r.scene.treelet_count,
-        r.rounds,
-        r.seconds,
-        r.peak_cut_bytes as f64 / f64::from(1 << 20),
-        peak_rss_mib()
-    );
-    Ok(())
+    say(&[
+        format!(
+            "reference of {} on {} at cycle {} of {}: {} covered pixels → {}",
+            r.scene.name,
+            backend.name(),
+            a.cycle,
+            a.view.camera_path,
+            r.image.coverage(),
+            a.out.display()
+        ),
+        format!(
+            "fetched {} of {} treelets in {} rounds ({:.2} s); cut held at most {:.1} MiB; peak RSS {:.1} MiB",
+            r.treelets,
+            r.scene.treelet_count,
+            r.rounds,
+            r.seconds,
+            r.peak_cut_bytes as f64 / f64::from(1 << 20),
+            peak_rss_mib()
+        ),
+    ])
+}
+
+/// Prints a command's closing lines on stdout once its files are written. A reader gone away
+/// (`| head`) is no error: the work is done and the exit status says so.
+fn say(lines: &[String]) -> Result<()> {
+    use std::io::Write as _;
+    let text: String = lines.iter().map(|l| format!("{l}\n")).collect();
+    let mut stdout = std::io::stdout().lock();
+    match stdout
+        .write_all(text.as_bytes())
+        .and_then(|()| stdout.flush())
+    {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e).context("writing to stdout"),
+        _ => Ok(()),
+    }
 }
 
 /// The process's peak resident set (`VmHWM`), MiB; 0 where /proc does not say.

@@ -264,6 +264,24 @@ fn parse_spacing(s: &str) -> Result<[f64; 3], String> {
     Ok(d)
 }
 
+/// `writeln!` into a command's output text (a `String`: it cannot fail).
+macro_rules! line {
+    ($out:expr, $($arg:tt)*) => {{
+        use std::fmt::Write as _;
+        let _ = writeln!($out, $($arg)*);
+    }};
+}
+
+/// Writes a command's output to stdout. A reader that has gone away (`| head`) ends the
+/// output, not the command, and is no error: the exit status still says how the command went.
+fn emit(text: &str) -> Result<()> {
+    let mut out = std::io::stdout().lock();
+    match out.write_all(text.as_bytes()).and_then(|()| out.flush()) {
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
+        r => r.context("writing to stdout"),
+    }
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     arbor_server::logging::init(cli.log_format);
@@ -285,7 +303,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
         Command::Import(args) => import(args),
         Command::List { db } => {
             let pool = open(&db)?;
-            println!(
+            let mut out = String::new();
+            line!(
+                out,
                 "{:<20} {:>6} {:>9} {:>5} {:>6} {:>9} {:>10} {:>11} {:>6} {:>8} {:>8}  channels",
                 "scene",
                 "kind",
@@ -301,7 +321,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
             );
             for d in pool.scenes()? {
                 let bytes = d.stats.node_bytes + d.stats.channel_bytes.iter().sum::<u64>();
-                println!(
+                line!(
+                    out,
                     "{:<20} {:>6} {:>9} {:>5} {:>6} {:>9} {:>10} {:>11} {:>6.2} {:>8.2} {:>8.1}  {}",
                     d.name,
                     format!("{:?}", d.source_kind).to_lowercase(),
@@ -317,37 +338,44 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     channel_names(&d)
                 );
             }
+            emit(&out)?;
             Ok(ExitCode::SUCCESS)
         }
         Command::Info { db, scene } => {
             let pool = open(&db)?;
             let s = pool.scene(&scene)?;
-            print_info(&s.description, Some(pool.disk_bytes()?));
+            emit(&info_text(&s.description, Some(pool.disk_bytes()?)))?;
             Ok(ExitCode::SUCCESS)
         }
         Command::Verify { db, scene } => {
             let pool = open(&db)?;
             let s = pool.scene(&scene)?;
             let r = verify::verify_scene(&s)?;
-            println!(
+            let mut out = String::new();
+            line!(
+                out,
                 "{scene}: {} treelets, {} voxels ({} at the target depth)",
-                r.treelets, r.voxels, r.leaf_voxels
+                r.treelets,
+                r.voxels,
+                r.leaf_voxels
             );
-            if r.is_ok() {
-                println!("ok: every invariant holds");
-                Ok(ExitCode::SUCCESS)
+            let code = if r.is_ok() {
+                line!(out, "ok: every invariant holds");
+                ExitCode::SUCCESS
             } else {
                 for p in &r.problems {
-                    println!("problem: {p}");
+                    line!(out, "problem: {p}");
                 }
-                println!("FAILED: {} problems", r.problem_count);
-                Ok(ExitCode::from(2))
-            }
+                line!(out, "FAILED: {} problems", r.problem_count);
+                ExitCode::from(2)
+            };
+            emit(&out)?;
+            Ok(code)
         }
         Command::Remove { db, scene } => {
             let pool = open(&db)?;
             pool.remove(&scene)?;
-            println!("removed {scene}");
+            emit(&format!("removed {scene}\n"))?;
             Ok(ExitCode::SUCCESS)
         }
         Command::Serve {
@@ -452,7 +480,7 @@ fn import(args: ImportArgs) -> Result<ExitCode> {
         scratch_parent: scratch,
     };
     let desc = import_scene(&pool, &request)?.description;
-    print_info(&desc, Some(pool.disk_bytes()?));
+    emit(&info_text(&desc, Some(pool.disk_bytes()?)))?;
     Ok(ExitCode::SUCCESS)
 }
 
@@ -480,7 +508,9 @@ fn import_remote(url: &remote_import::AdminUrl, args: &ImportArgs) -> Result<Exi
         "allow_mixed_crs": args.allow_mixed_crs,
     });
     let done = remote_import::run(url, token.trim(), &job)?;
-    println!(
+    let mut out = String::new();
+    line!(
+        out,
         "imported {}: {} treelets, {} voxels, {} primitives in {:.1} s",
         args.scene,
         done["treelets"],
@@ -488,6 +518,7 @@ fn import_remote(url: &remote_import::AdminUrl, args: &ImportArgs) -> Result<Exi
         done["primitives"],
         done["seconds"].as_f64().unwrap_or(0.0)
     );
+    emit(&out)?;
     Ok(ExitCode::SUCCESS)
 }
 
@@ -546,16 +577,20 @@ fn channel_names(d: &arbor_proto::SceneDescription) -> String {
         .join(",")
 }
 
-fn print_info(d: &arbor_proto::SceneDescription, disk: Option<u64>) {
+fn info_text(d: &arbor_proto::SceneDescription, disk: Option<u64>) -> String {
+    let mut out = String::new();
     let s = &d.stats;
     let pool_bytes = s.node_bytes + s.channel_bytes.iter().sum::<u64>();
-    println!("scene            {}", d.name);
-    println!("source           {}", d.source);
-    println!(
+    line!(out, "scene            {}", d.name);
+    line!(out, "source           {}", d.source);
+    line!(
+        out,
         "kind             {:?}, {} primitives",
-        d.source_kind, d.primitives
+        d.source_kind,
+        d.primitives
     );
-    println!(
+    line!(
+        out,
         "depth            {} ({}), data resolution {:.6}",
         d.max_depth,
         match d.build.requested_depth {
@@ -564,20 +599,31 @@ fn print_info(d: &arbor_proto::SceneDescription, disk: Option<u64>) {
         },
         d.build.data_resolution
     );
-    println!("root cube        origin {:?}, edge {}", d.origin, d.edge);
-    println!(
+    line!(
+        out,
+        "root cube        origin {:?}, edge {}",
+        d.origin,
+        d.edge
+    );
+    line!(
+        out,
         "treelets         {} of {} bytes ({} nodes)",
-        d.treelet_count, d.build.treelet_bytes, d.treelet_nodes
+        d.treelet_count,
+        d.build.treelet_bytes,
+        d.treelet_nodes
     );
-    println!(
+    line!(
+        out,
         "voxels           {} ({} at the target depth)",
-        s.voxels, s.leaf_voxels
+        s.voxels,
+        s.leaf_voxels
     );
-    println!("channels         {}", channel_names(d));
+    line!(out, "channels         {}", channel_names(d));
     if let Some(iso) = d.build.iso {
-        println!("iso threshold    {iso}");
+        line!(out, "iso threshold    {iso}");
     }
-    println!(
+    line!(
+        out,
         "bytes            {} compressed ({} nodes + {:?} channels), {} raw, {:.2} bytes/voxel",
         pool_bytes,
         s.node_bytes,
@@ -585,13 +631,15 @@ fn print_info(d: &arbor_proto::SceneDescription, disk: Option<u64>) {
         s.raw_bytes,
         pool_bytes as f64 / s.voxels.max(1) as f64
     );
-    println!(
+    line!(
+        out,
         "compression      zstd level {}, dictionaries {}",
         d.build.zstd_level,
         if d.build.dictionary { "yes" } else { "no" }
     );
     let mib = |b: u64| b as f64 / f64::from(1 << 20);
-    println!(
+    line!(
+        out,
         "build            {:.2} s, peak RSS {:.1} MiB ({:.1} MiB anonymous), id lists peak {:.1} MiB, spilled {:.1} MiB",
         s.build_seconds,
         mib(s.peak_rss_bytes),
@@ -600,6 +648,7 @@ fn print_info(d: &arbor_proto::SceneDescription, disk: Option<u64>) {
         mib(s.spilled_bytes)
     );
     if let Some(b) = disk {
-        println!("pool on disk     {b} bytes (whole database)");
+        line!(out, "pool on disk     {b} bytes (whole database)");
     }
+    out
 }

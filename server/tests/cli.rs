@@ -42,6 +42,18 @@ fn ok(args: &[&str]) -> String {
     out
 }
 
+/// Runs with stdout a pipe whose reader is gone before anything is written.
+fn with_stdout_closed(args: &[&str]) -> Output {
+    let mut child = bin()
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("running arbor-server");
+    drop(child.stdout.take());
+    child.wait_with_output().unwrap()
+}
+
 fn db_arg(dir: &Path) -> String {
     dir.to_str().unwrap().to_owned()
 }
@@ -74,6 +86,16 @@ fn import_list_info_verify_remove() {
     }
     let v = ok(&["verify", "--db", &db, "--scene", "bunny"]);
     assert!(v.contains("ok: every invariant holds"), "{v}");
+    // A reader that leaves at once (`| head -0`) ends the output, not the command.
+    for args in [
+        &["list", "--db", &db][..],
+        &["info", "--db", &db, "--scene", "bunny"],
+        &["verify", "--db", &db, "--scene", "bunny"],
+    ] {
+        let o = with_stdout_closed(args);
+        let err = text(&o).1;
+        assert!(o.status.success() && !err.contains("panicked"), "{args:?}: {err}");
+    }
     // A second import of the same name is refused, --replace is accepted.
     let o = run(&["import", "--db", &db, "--scene", "bunny", "--quiet", bunny]);
     assert!(!o.status.success());
