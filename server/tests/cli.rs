@@ -94,7 +94,10 @@ fn import_list_info_verify_remove() {
     ] {
         let o = with_stdout_closed(args);
         let err = text(&o).1;
-        assert!(o.status.success() && !err.contains("panicked"), "{args:?}: {err}");
+        assert!(
+            o.status.success() && !err.contains("panicked"),
+            "{args:?}: {err}"
+        );
     }
     // A second import of the same name is refused, --replace is accepted.
     let o = run(&["import", "--db", &db, "--scene", "bunny", "--quiet", bunny]);
