@@ -446,7 +446,8 @@ impl Handler {
         let Some((_, view, items, prefetch_from)) = &self.last_deep else {
             return;
         };
-        let view = &view.clone();
+        let (view, has_work) = (*view, cut_has_work(view, items.len(), *prefetch_from));
+        let view = &view;
         // No finer than the client's own frame: a small client's view needs no more rays.
         let rays = frame_rays(view);
         let coarse = self.shared.config.visibility_grid.min(rays);
@@ -454,7 +455,7 @@ impl Handler {
         if coarse == 0 || self.cut_job.is_some() {
             return;
         }
-        if !cut_has_work(view, items.len(), *prefetch_from) {
+        if !has_work {
             self.shared
                 .state
                 .metrics
