@@ -525,6 +525,13 @@ fn import_remote(url: &remote_import::AdminUrl, args: &ImportArgs) -> Result<Exi
 /// Runs the service until SIGINT or SIGTERM, then shuts it down gracefully.
 async fn serve(config: ServeConfig, options: DaemonOptions) -> Result<()> {
     use tokio::signal::unix::{SignalKind, signal};
+    if !config.transparent_huge_pages {
+        // Process-wide, before the service allocates its caches: the allocator's requests for
+        // huge pages are then ignored (`transparent_huge_pages` in the config).
+        if let Err(e) = rustix::thread::disable_transparent_huge_pages(true) {
+            tracing::warn!("could not turn transparent huge pages off: {e}");
+        }
+    }
     // Handlers first, so a signal that arrives right after the addresses are printed is not lost.
     let mut term = signal(SignalKind::terminate()).context("installing the SIGTERM handler")?;
     let mut int = signal(SignalKind::interrupt()).context("installing the SIGINT handler")?;

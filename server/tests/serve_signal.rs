@@ -77,6 +77,14 @@ fn serve_on(dir: &Path, config: &Path, listen: &str) -> Serving {
     }
 }
 
+/// `THP_enabled` of a process (`/proc/PID/status`): 0 once it turned transparent huge pages off.
+fn thp_enabled(child: &Child) -> Option<u8> {
+    std::fs::read_to_string(format!("/proc/{}/status", child.id()))
+        .ok()?
+        .lines()
+        .find_map(|l| l.strip_prefix("THP_enabled:")?.trim().parse().ok())
+}
+
 fn signal(child: &Child, sig: &str) {
     let ok = Command::new("kill")
         .args([sig, &child.id().to_string()])
@@ -135,6 +143,7 @@ async fn sigterm_closes_clients_with_shutting_down_and_exits_0() {
     let (dir, config) = bunny_pool_and_config();
     let mut s = serve(dir.path(), &config);
     assert_eq!(s.fingerprint.len(), 64);
+    assert_eq!(thp_enabled(&s.child), Some(0), "huge pages off by default");
     assert!(s.admin.starts_with("127.0.0.1:"), "{}", s.admin);
     let token_file = Path::new(&s.token_file);
     assert!(token_file.starts_with(dir.path().join("state")));
@@ -200,12 +209,17 @@ async fn a_closed_stdout_does_not_stop_the_service() {
         .unwrap()
         .port();
     let log = dir.path().join("serve.log");
+    // This server lets its allocator ask for transparent huge pages (the key precedes the
+    // scene tables).
+    let with_thp = dir.path().join("thp.toml");
+    let text = std::fs::read_to_string(&config).unwrap();
+    std::fs::write(&with_thp, format!("transparent_huge_pages = true\n{text}")).unwrap();
     let mut child = Command::new(BIN)
         .args(["serve", "--db"])
         .arg(dir.path().join("pool"))
         .args(["--listen", &format!("127.0.0.1:{port}"), "--admin", "off"])
         .arg("--config")
-        .arg(&config)
+        .arg(&with_thp)
         .arg("--data-dir")
         .arg(dir.path().join("state"))
         .env("RUST_LOG", "info")
@@ -230,6 +244,11 @@ async fn a_closed_stdout_does_not_stop_the_service() {
     assert!(warned.contains("Broken pipe"), "{warned}");
     std::thread::sleep(Duration::from_millis(200));
     assert!(child.try_wait().unwrap().is_none(), "still serving");
+    assert_eq!(
+        thp_enabled(&child),
+        Some(1),
+        "transparent_huge_pages = true"
+    );
     // The fingerprint it could not print: that of the certificate it made in its data dir.
     let fingerprint = arbor_server::service::tls::load_or_create(
         &arbor_server::service::config::TlsSource::SelfSigned,

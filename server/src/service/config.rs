@@ -28,6 +28,7 @@
 //! window_max = 1024
 //! slow_reader_timeout_ms = 10000
 //! shutdown_grace_ms = 5000
+//! transparent_huge_pages = false     # let the allocator ask for them (the kernel may stall to compact memory)
 //! default_access = "token"              # scenes without a [scenes.NAME] entry: "token" or "public"
 //!
 //! [scenes.bunny]
@@ -180,6 +181,12 @@ pub struct ServeConfig {
     /// packets) needs eight slow-start round trips to carry a 3 MB view; a larger start is how
     /// content servers fill a fresh connection sooner.
     pub initial_window: u64,
+    /// Whether `arbor-server serve` lets its allocator ask for transparent huge pages. Off by
+    /// default: where the kernel compacts memory on demand for them (`defrag = madvise`, a
+    /// common default), a fresh server's first views stalled on it at random — on the
+    /// 10⁸-point city, first views took 0.89–1.53 s to converge with them and 0.88–1.02 s
+    /// without (docs/measurements.md, stop 49).
+    pub transparent_huge_pages: bool,
     /// How long a client address's last congestion window and RTT are remembered, seconds, so
     /// its next connection resumes at half that window once its first RTT confirms the same
     /// path (`service::path_memory`, careful resume); 0 turns it off.
@@ -390,6 +397,7 @@ struct FileConfig {
     max_connection_memory: Option<u64>,
     initial_window: Option<u64>,
     path_memory_secs: Option<u64>,
+    transparent_huge_pages: Option<bool>,
     message_cache_bytes: Option<u64>,
     shape_cache_bytes: Option<u64>,
     visibility_grid: Option<u32>,
@@ -511,6 +519,7 @@ impl ServeConfig {
             max_connection_memory: 64 << 20,
             initial_window: DEFAULT_INITIAL_WINDOW,
             path_memory_secs: DEFAULT_PATH_MEMORY_SECS,
+            transparent_huge_pages: false,
             message_cache_bytes: DEFAULT_MESSAGE_CACHE_BYTES,
             shape_cache_bytes: DEFAULT_SHAPE_CACHE_BYTES,
             visibility_grid: DEFAULT_VISIBILITY_GRID,
@@ -612,6 +621,7 @@ impl ServeConfig {
             max_connection_memory,
             initial_window,
             path_memory_secs,
+            transparent_huge_pages,
             message_cache_bytes,
             shape_cache_bytes,
             visibility_grid,
