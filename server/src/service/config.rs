@@ -28,7 +28,7 @@
 //! window_max = 1024
 //! slow_reader_timeout_ms = 10000
 //! shutdown_grace_ms = 5000
-//! transparent_huge_pages = false     # let the allocator ask for them (the kernel may stall to compact memory)
+//! transparent_huge_pages = false        # let the allocator ask for them (the kernel may stall to compact memory)
 //! default_access = "token"              # scenes without a [scenes.NAME] entry: "token" or "public"
 //!
 //! [scenes.bunny]
@@ -204,10 +204,11 @@ pub struct ServeConfig {
     /// its own tree to find the view's visible cut, whose treelets it then pushes
     /// (`service::visibility`); 0 turns it off: pushes follow frustum and projected size alone.
     /// A resting list that leaves a cut nothing to decide (no free slots beyond its items, no
-    /// prefetch: `push::cut_has_work`) gets none. Default [`DEFAULT_VISIBILITY_GRID`]. Measured in docs/measurements.md (stops 27, 45 and
-    /// 47): engine's static view over the link emulator converges at 1.8× the physical limit
-    /// with cuts and 2.6× without; its camera jump, with the client's prefetch set apart
-    /// (`push::cut_list`), at 1.6× the jump's limit.
+    /// prefetch: `push::cut_has_work`) gets none. Default [`DEFAULT_VISIBILITY_GRID`].
+    /// Measured in docs/measurements.md (stops 27, 45 and 47): engine's static view over the
+    /// link emulator converges at 1.8× the physical limit with cuts and 2.6× without; its
+    /// camera jump, with the client's prefetch set apart (`push::cut_list`), at 1.6× the
+    /// jump's limit.
     pub visibility_grid: u32,
     /// Rays along the longer side of a second cut of the same view, cast once the first one's
     /// pushes are out, for what the coarse grid's rays missed (cast from the coarse cut:
