@@ -59,6 +59,7 @@ use arbor_client_viewer::blit::{BACKGROUND, OVERLAY_MARGIN};
 use arbor_client_viewer::controls::Controls;
 use arbor_client_viewer::overlay::Overlay;
 use arbor_tests::streaming::{TOKEN, serve};
+use arbor_tests::support::arbor_client_binary;
 
 const SIZE: (u32, u32) = (256, 192);
 const SEED: u64 = 7;
@@ -132,63 +133,6 @@ fn start_xvfb() -> (Reaped, String) {
         }
     }
     panic!("could not start Xvfb on any display :90..:189");
-}
-
-/// Builds `arbor-client` for this test binary's profile and target directory; returns its path.
-fn arbor_client_binary() -> PathBuf {
-    let exe = std::env::current_exe().unwrap();
-    // target/<profile dir>/deps/<test binary>
-    let profile_dir = exe.parent().and_then(Path::parent).unwrap().to_owned();
-    let target_dir = profile_dir.parent().unwrap();
-    let profile = match profile_dir.file_name().unwrap().to_str().unwrap() {
-        "debug" => "dev".to_owned(),
-        other => other.to_owned(),
-    };
-    let manifest = Path::new(env!("CARGO_MANIFEST_DIR")).join("../Cargo.toml");
-    let mut cargo = Command::new(env!("CARGO"));
-    // Cargo sets these for the test process; build scripts (ring's) rerun when they change, so
-    // passing them on would rebuild those crates here and again in the next outer build.
-    for (key, _) in std::env::vars_os() {
-        let key = key.to_string_lossy();
-        if key.starts_with("CARGO_PKG_")
-            || key.starts_with("CARGO_BIN_EXE_")
-            || matches!(
-                &*key,
-                "CARGO_MANIFEST_DIR"
-                    | "CARGO_MANIFEST_PATH"
-                    | "CARGO_MANIFEST_LINKS"
-                    | "CARGO_CRATE_NAME"
-                    | "CARGO_BIN_NAME"
-                    | "CARGO_PRIMARY_PACKAGE"
-                    | "CARGO_TARGET_TMPDIR"
-                    | "CARGO_RUSTC_CURRENT_DIR"
-                    | "OUT_DIR"
-            )
-        {
-            cargo.env_remove(&*key);
-        }
-    }
-    let status = cargo
-        .args([
-            "build",
-            "--quiet",
-            "-p",
-            "arbor-client",
-            "--bin",
-            "arbor-client",
-        ])
-        .arg("--profile")
-        .arg(&profile)
-        .arg("--manifest-path")
-        .arg(&manifest)
-        .arg("--target-dir")
-        .arg(target_dir)
-        .status()
-        .expect("running cargo build for arbor-client");
-    assert!(status.success(), "cargo build of arbor-client failed");
-    let bin = profile_dir.join("arbor-client");
-    assert!(bin.exists(), "{} was not built", bin.display());
-    bin
 }
 
 /// An XWD dump of a 24/32-bit TrueColor window: `width × height` RGB pixels.

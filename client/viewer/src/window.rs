@@ -98,7 +98,11 @@ fn write_report(report: &RunReport, path: &Path) -> Result<(), ViewerError> {
     );
     arbor_client_report::chart::draw(report, &chart, &title)
         .map_err(|e| ViewerError::Output(format!("drawing {}: {e}", chart.display())))?;
-    println!("report: {} and {}", path.display(), chart.display());
+    say(format_args!(
+        "report: {} and {}",
+        path.display(),
+        chart.display()
+    ));
     Ok(())
 }
 
@@ -356,14 +360,14 @@ impl App {
             records: Vec::new(),
             events: Vec::new(),
         };
-        println!(
+        say(format_args!(
             "window 0x{:x} {}x{} surface {:?}{} backend {backend}",
             u64::from(window.id()),
             surface_config.width,
             surface_config.height,
             surface_config.format,
             if decode_srgb { " (decoding sRGB)" } else { "" },
-        );
+        ));
         let now = Instant::now();
         Ok(Running {
             surface,
@@ -443,7 +447,10 @@ impl App {
         state.refresh_overlay();
         let event =
             RunEvent::device_replaced(frames, time_s, &reason, &state.backend, lost.elapsed());
-        println!("event at cycle {}: {}", event.cycle, event.what);
+        say(format_args!(
+            "event at cycle {}: {}",
+            event.cycle, event.what
+        ));
         state.report.events.push(event);
         Ok(())
     }
@@ -497,10 +504,10 @@ impl App {
             KeyCode::KeyC => {
                 let frame = state.session.core().frame();
                 let camera = state.controls.camera(1, 1);
-                println!(
+                say(format_args!(
                     "camera: --camera-path {}",
                     CameraPath::look_of(&camera, frame)
-                );
+                ));
                 Ok(())
             }
             KeyCode::Minus | KeyCode::NumpadSubtract | KeyCode::Equal | KeyCode::NumpadAdd => {
@@ -544,7 +551,7 @@ impl App {
             {
                 state.screenshot(path)?;
             }
-            println!("converged at cycle {cycle}");
+            say(format_args!("converged at cycle {cycle}"));
             if self.config.exit_after_converged {
                 if self.config.hold_until_stdin_eof {
                     state.holding = true;
@@ -610,8 +617,10 @@ impl Running {
         };
         let scaled = (size != (width, height)).then_some(size);
         match (self.scaled_frame, scaled) {
-            (None, Some((w, h))) => println!("moving: frames at {w}x{h}"),
-            (Some(_), None) => println!("resting: frames at full size {width}x{height}"),
+            (None, Some((w, h))) => say(format_args!("moving: frames at {w}x{h}")),
+            (Some(_), None) => say(format_args!(
+                "resting: frames at full size {width}x{height}"
+            )),
             _ => {}
         }
         self.scaled_frame = scaled;
@@ -728,7 +737,47 @@ impl Running {
         image
             .save_png(path)
             .map_err(|e| ViewerError::Output(e.to_string()))?;
-        println!("screenshot: {}", path.display());
+        say(format_args!("screenshot: {}", path.display()));
         Ok(())
+    }
+}
+
+/// Prints one status line on stdout. A reader that has gone away (`arbor-client view … | head
+/// -1`) only ends the lines it would have read; the viewer goes on (`println!` panics on the
+/// broken pipe).
+fn say(line: std::fmt::Arguments<'_>) {
+    say_to(&mut std::io::stdout().lock(), line);
+}
+
+fn say_to(out: &mut impl std::io::Write, line: std::fmt::Arguments<'_>) {
+    // Nothing to do about a failed status line: the run's results are its files.
+    let _ = out
+        .write_fmt(line)
+        .and_then(|()| out.write_all(b"\n"))
+        .and_then(|()| out.flush());
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Stdout whose reader has gone away.
+    struct ClosedPipe;
+
+    impl std::io::Write for ClosedPipe {
+        fn write(&mut self, _: &[u8]) -> std::io::Result<usize> {
+            Err(std::io::ErrorKind::BrokenPipe.into())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Err(std::io::ErrorKind::BrokenPipe.into())
+        }
+    }
+
+    #[test]
+    fn a_status_line_to_a_closed_pipe_is_dropped_quietly() {
+        say_to(&mut ClosedPipe, format_args!("converged at cycle {}", 7));
+        let mut written = Vec::new();
+        say_to(&mut written, format_args!("converged at cycle {}", 7));
+        assert_eq!(written, b"converged at cycle 7\n");
     }
 }
