@@ -10,7 +10,9 @@
 //!   scene's mean message size, the same number per connection, the same in-flight window; its
 //!   client counts the chunks quinn hands over without copying them, as Arbor's client reads;
 //! * one client fetching the whole 4 KiB scene against raw quinn's bulk rate on one stream of the
-//!   same bytes (best runs, medians, and the median of the ratios of runs taken turn by turn);
+//!   same bytes (best runs, medians, and the median of the ratios of runs taken turn by turn),
+//!   with the CPU the process spent in each timed window (server and client share the cores,
+//!   so the share of them a fetch keeps busy says whether CPU or waiting decides its time);
 //! * over the link emulator (25 ms each way, 100 Mbit/s): time until the top 1,000 of a list
 //!   (random priorities over all treelets of the 4 KiB scene) have arrived.
 //!
@@ -152,14 +154,32 @@ async fn receive(c: &mut TreeletClient, n: usize) -> u64 {
     bytes
 }
 
-/// `clients` concurrent clients each fetching the first `per_client` treelets; (seconds, bytes).
+/// What one timed run took: from the lists (or request) to the last byte, the bytes received,
+/// and the CPU the whole process (both ends: server and client share it) spent in that window.
+#[derive(Clone, Copy, Debug)]
+struct Timed {
+    secs: f64,
+    bytes: u64,
+    cpu: Duration,
+}
+
+/// CPU time of the whole process so far, every thread (`CLOCK_PROCESS_CPUTIME_ID`).
+fn process_cpu() -> Duration {
+    let t = rustix::time::clock_gettime(rustix::time::ClockId::ProcessCPUTime);
+    Duration::new(
+        t.tv_sec.max(0) as u64,
+        t.tv_nsec.clamp(0, 999_999_999) as u32,
+    )
+}
+
+/// `clients` concurrent clients each fetching the first `per_client` treelets.
 async fn arbor_run(
     addr: SocketAddr,
     fp: &str,
     scene: &SceneDescription,
     clients: usize,
     per_client: usize,
-) -> (f64, u64) {
+) -> Timed {
     let mut cs = Vec::new();
     for _ in 0..clients {
         let mut c = client(addr, scene, fp);
@@ -172,6 +192,7 @@ async fn arbor_run(
     // The clock runs from the lists to the last treelet; connecting and closing are outside
     // it, for every row alike.
     let t = Instant::now();
+    let cpu = process_cpu();
     let mut tasks = Vec::new();
     for mut c in cs {
         c.request(list.clone()).unwrap();
@@ -187,10 +208,15 @@ async fn arbor_run(
         last = last.max(at);
         done.push(c);
     }
+    let cpu = process_cpu().saturating_sub(cpu);
     for c in done {
         c.close().await;
     }
-    ((last - t).as_secs_f64(), bytes)
+    Timed {
+        secs: (last - t).as_secs_f64(),
+        bytes,
+        cpu,
+    }
 }
 
 mod raw {
@@ -318,13 +344,14 @@ mod raw {
     }
 
     /// `clients` concurrent clients, connected before the clock starts and closed after it
-    /// stops (like Arbor's rows); (seconds, bytes).
-    pub async fn run(raw: &Raw, clients: usize, count: u32, size: u32, window: u32) -> (f64, u64) {
+    /// stops (like Arbor's rows).
+    pub async fn run(raw: &Raw, clients: usize, count: u32, size: u32, window: u32) -> Timed {
         let mut connected = Vec::new();
         for _ in 0..clients {
             connected.push(connect(raw.addr, raw.client_config.clone()).await);
         }
         let t = Instant::now();
+        let cpu = process_cpu();
         let tasks: Vec<_> = connected
             .iter()
             .map(|(_, conn)| tokio::spawn(fetch(conn.clone(), count, size, window)))
@@ -335,11 +362,16 @@ mod raw {
             bytes += b;
             last = last.max(at);
         }
+        let cpu = process_cpu().saturating_sub(cpu);
         for (ep, conn) in connected {
             conn.close(0u32.into(), b"done");
             ep.wait_idle().await;
         }
-        ((last - t).as_secs_f64(), bytes)
+        Timed {
+            secs: (last - t).as_secs_f64(),
+            bytes,
+            cpu,
+        }
     }
 }
 
@@ -352,14 +384,14 @@ mod counting {
     use arbor_proto::wire::{Frame, PROTOCOL_VERSION};
 
     /// Fetches the first `count` treelets of `scene` until `bytes` have arrived on treelet
-    /// streams; (seconds from the list to the last byte, bytes).
+    /// streams, timed from the list to the last byte.
     pub async fn run(
         addr: SocketAddr,
         fingerprint: &str,
         scene: &SceneDescription,
         count: u32,
         bytes: u64,
-    ) -> (f64, u64) {
+    ) -> Timed {
         let trust = Trust::Fingerprint(fingerprint.into());
         let config =
             arbor_client_net::transport::quinn_client_config(&trust, Duration::from_secs(30))
@@ -395,6 +427,7 @@ mod counting {
         })
         .unwrap();
         let t = Instant::now();
+        let cpu = process_cpu();
         send.write_all(&list).await.unwrap();
         // One shared counter; the last byte wakes the caller.
         let got = Arc::new(std::sync::atomic::AtomicU64::new(0));
@@ -427,10 +460,15 @@ mod counting {
         }
         let got = got.load(std::sync::atomic::Ordering::Relaxed);
         let secs = t.elapsed().as_secs_f64();
+        let cpu = process_cpu().saturating_sub(cpu);
         accept.abort();
         conn.close(0u32.into(), b"done");
         ep.wait_idle().await;
-        (secs, got)
+        Timed {
+            secs,
+            bytes: got,
+            cpu,
+        }
     }
 }
 
@@ -773,8 +811,8 @@ async fn main() {
         // One client fetching lion-4k again and again, for a profiler.
         let n = scenes[1].treelet_count as usize;
         for _ in 0..runs.parse().unwrap_or(300) {
-            let (secs, _) = arbor_run(addr, &fp, &scenes[1], 1, n).await;
-            println!("{:.0} treelets/s", n as f64 / secs);
+            let run = arbor_run(addr, &fp, &scenes[1], 1, n).await;
+            println!("{:.0} treelets/s", n as f64 / run.secs);
         }
         return;
     }
@@ -783,8 +821,8 @@ async fn main() {
         let n = scenes[1].treelet_count;
         let bytes: u64 = files.iter().map(|f| f.len() as u64).sum();
         for _ in 0..runs.parse().unwrap_or(300) {
-            let (secs, b) = counting::run(addr, &fp, &scenes[1], n, bytes).await;
-            println!("{:.1} MB/s", b as f64 / secs / 1e6);
+            let run = counting::run(addr, &fp, &scenes[1], n, bytes).await;
+            println!("{:.1} MB/s", run.bytes as f64 / run.secs / 1e6);
         }
         return;
     }
@@ -792,8 +830,8 @@ async fn main() {
     if let Ok(runs) = std::env::var("ARBOR_BENCH_PROFILE_RAW") {
         // One raw stream of lion-4k's bytes again and again: the profiler's reference.
         for _ in 0..runs.parse().unwrap_or(300) {
-            let (secs, b) = raw::run(&raw, 1, 1, 2_600_000, 1).await;
-            println!("{:.0} MB/s", b as f64 / secs / 1e6);
+            let run = raw::run(&raw, 1, 1, 2_600_000, 1).await;
+            println!("{:.0} MB/s", run.bytes as f64 / run.secs / 1e6);
         }
         return;
     }
@@ -835,7 +873,7 @@ async fn main() {
             let (mut a, mut g, mut r) = (Vec::new(), Vec::new(), Vec::new());
             let mut mean = 0;
             for _ in 0..ROUNDS {
-                let (secs, bytes) = arbor_run(addr, &fp, d, clients, per_client).await;
+                let Timed { secs, bytes, .. } = arbor_run(addr, &fp, d, clients, per_client).await;
                 mean = (bytes as f64 / n).round() as u32;
                 a.push((n / secs, bytes as f64 / secs / 1e6));
                 if let Some(ng) = nginx.as_ref().filter(|_| d.name == "lion-4k") {
@@ -846,8 +884,11 @@ async fn main() {
                         g.push(x);
                     }
                 }
-                let (rsecs, rbytes) =
-                    raw::run(&raw, clients, per_client as u32, mean, WINDOW as u32).await;
+                let Timed {
+                    secs: rsecs,
+                    bytes: rbytes,
+                    ..
+                } = raw::run(&raw, clients, per_client as u32, mean, WINDOW as u32).await;
                 r.push((n / rsecs, rbytes as f64 / rsecs / 1e6));
             }
             let (a, r) = (best(&a), best(&r));
@@ -876,7 +917,11 @@ async fn main() {
             );
         }
     }
-    let (bsecs, bbytes) = raw::run(&raw, 1, 1, 64 << 20, 1).await;
+    let Timed {
+        secs: bsecs,
+        bytes: bbytes,
+        ..
+    } = raw::run(&raw, 1, 1, 64 << 20, 1).await;
     let bulk = bbytes as f64 / bsecs / 1e6;
     println!("raw quinn bulk, one 64 MiB stream: {bulk:.1} MB/s");
     drop(nginx);
@@ -897,6 +942,9 @@ async fn main() {
     let d = &scenes[1];
     let whole = d.treelet_count as usize;
     let (mut a, mut r) = (Vec::new(), Vec::new());
+    // CPU of the whole process per fetch, milliseconds: Arbor, raw quinn's one stream, the
+    // counting client.
+    let (mut a_cpu, mut r_cpu, mut c_cpu) = (Vec::new(), Vec::new(), Vec::new());
     // With ARBOR_BENCH_WHOLE, in the same turns: raw quinn on as many streams as Arbor's
     // batches, and Arbor's server sending to a client that only counts bytes.
     let (mut split, mut counted) = (Vec::new(), Vec::new());
@@ -905,17 +953,24 @@ async fn main() {
     let mut total = 0;
     // A whole scene is a few megabytes, tens of milliseconds: more runs than the rows above.
     for _ in 0..whole_only.unwrap_or(WHOLE_ROUNDS) {
-        let (secs, bytes) = arbor_run(addr, &fp, d, 1, whole).await;
+        let run = arbor_run(addr, &fp, d, 1, whole).await;
+        let bytes = run.bytes;
         total = bytes;
-        a.push((whole as f64 / secs, bytes as f64 / secs / 1e6));
-        let (rsecs, rbytes) = raw::run(&raw, 1, 1, bytes as u32, 1).await;
-        r.push((1.0 / rsecs, rbytes as f64 / rsecs / 1e6));
+        a.push((whole as f64 / run.secs, bytes as f64 / run.secs / 1e6));
+        a_cpu.push(run.cpu.as_secs_f64() * 1e3);
+        let raw_run = raw::run(&raw, 1, 1, bytes as u32, 1).await;
+        r.push((
+            1.0 / raw_run.secs,
+            raw_run.bytes as f64 / raw_run.secs / 1e6,
+        ));
+        r_cpu.push(raw_run.cpu.as_secs_f64() * 1e3);
         if whole_only.is_some() {
             let size = (bytes / u64::from(split_streams)) as u32;
-            let (ssecs, sbytes) = raw::run(&raw, 1, split_streams, size, split_streams).await;
-            split.push((1.0 / ssecs, sbytes as f64 / ssecs / 1e6));
-            let (csecs, cbytes) = counting::run(addr, &fp, d, whole as u32, bytes).await;
-            counted.push((1.0 / csecs, cbytes as f64 / csecs / 1e6));
+            let s = raw::run(&raw, 1, split_streams, size, split_streams).await;
+            split.push((1.0 / s.secs, s.bytes as f64 / s.secs / 1e6));
+            let c = counting::run(addr, &fp, d, whole as u32, bytes).await;
+            counted.push((1.0 / c.secs, c.bytes as f64 / c.secs / 1e6));
+            c_cpu.push(c.cpu.as_secs_f64() * 1e3);
         }
     }
     let (a_median, r_median) = (median(&a), median(&r));
@@ -941,6 +996,19 @@ async fn main() {
         "  turn by turn (Arbor's run over raw quinn's right after it): median {turns:.2}x \
          ({turns_low:.2}–{turns_high:.2}x over {rounds} turns)"
     );
+    // The fetch runs server and client on the same cores: when their CPU fills the cores for
+    // the whole fetch, CPU is what a faster fetch has to save.
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as f64;
+    let wall_ms = |mb_per_s: f64| 1e3 * total as f64 / (mb_per_s * 1e6);
+    let (a_cpu, r_cpu) = (median_of(a_cpu), median_of(r_cpu));
+    let (a_wall, r_wall) = (wall_ms(a_median), wall_ms(r_median));
+    println!(
+        "  CPU of both ends per fetch, medians: Arbor {a_cpu:.2} ms in {a_wall:.2} ms of wall \
+         time ({:.0} % of {cores} cores), raw quinn one stream {r_cpu:.2} ms in {r_wall:.2} ms \
+         ({:.0} %)",
+        100.0 * a_cpu / (cores * a_wall),
+        100.0 * r_cpu / (cores * r_wall),
+    );
     if whole_only.is_some() {
         println!(
             "  medians: raw quinn, the same bytes on {split_streams} streams at once: {:.1} MB/s",
@@ -953,8 +1021,10 @@ async fn main() {
             median(&counted) / r_median
         );
         println!(
-            "  turn by turn, the counting client over raw quinn: median {:.2}x",
-            paired(&counted, &r).0
+            "  turn by turn, the counting client over raw quinn: median {:.2}x; its CPU of both \
+             ends per fetch {:.2} ms (medians)",
+            paired(&counted, &r).0,
+            median_of(c_cpu)
         );
         server.shutdown().await;
         return;
