@@ -9,10 +9,16 @@
 //! So every scratch directory holds an `owner.lock` file on which its import keeps an exclusive
 //! lock (`flock`) for as long as the directory lives. The kernel releases the lock when the
 //! process dies however it dies, so a directory whose lock can be taken has no owner: each new
-//! scratch directory first removes those beside it ([`sweep_abandoned`]). A directory without
-//! the lock file is left alone while anything in it changed within [`STALE_UNLOCKED`] (one being
-//! created this instant: the lock file is locked before it gets its name); older, it is what a
-//! process killed in that instant, or an Arbor from before the lock files, left, and it goes
+//! scratch directory first removes those beside it ([`sweep_abandoned`]).
+//!
+//! Creating a directory and its lock file takes a few steps, and a process may be killed between
+//! them. So creating and sweeping both hold a lock on one file in the parent ([`CREATE_LOCK`]):
+//! a sweep that holds it sees no directory half-created by a live import, and a directory
+//! without its lock file that is empty or holds only the lock file still unnamed
+//! (`owner.lock.new`) is what a process killed between those steps left; it goes at once.
+//! (Before, it stayed for a day, and `server/tests/cli.rs`' kills now and then landed there.)
+//! Any other directory without the lock file is left alone while anything in it changed within
+//! [`STALE_UNLOCKED`]: an Arbor from before the lock files may be writing it; older, it goes
 //! too. Anything that is not a plain directory named `arbor-import-*` is left alone. The owner
 //! holds the lock until its directory is gone, so a directory being removed is not taken for an
 //! abandoned one either.
@@ -28,6 +34,10 @@ use tempfile::TempDir;
 pub const SCRATCH_PREFIX: &str = "arbor-import-";
 /// The file in a scratch directory its owner keeps locked.
 pub const OWNER_LOCK: &str = "owner.lock";
+/// The file in a scratch directories' parent that creating a scratch directory and sweeping
+/// lock, so that a sweep never meets a directory a live import is still creating. Kept (a few
+/// bytes of nothing); not named like a scratch directory.
+pub const CREATE_LOCK: &str = ".arbor-import.lock";
 /// The lock file's name until it is locked (a sweep ignores a directory that has only this,
 /// unless it is stale).
 const OWNER_LOCK_NEW: &str = "owner.lock.new";
@@ -39,10 +49,28 @@ pub const STALE_UNLOCKED: Duration = Duration::from_secs(24 * 60 * 60);
 /// An import's scratch directory: removed on drop, locked by its owner while it lives.
 #[derive(Debug)]
 pub struct ScratchDir {
-    dir: TempDir,
-    // Declared after `dir`, so the lock is held until the directory is gone (unlinking an open
-    // file is fine on Unix): a sweep never sees a directory being removed as abandoned.
-    _owner: File,
+    /// `None` only once dropped (or abandoned in a test).
+    dir: Option<TempDir>,
+    /// Closed after `dir` is removed, so the lock is held until the directory is gone
+    /// (unlinking an open file is fine on Unix): a sweep never sees a directory being removed
+    /// as abandoned.
+    owner: Option<File>,
+    /// Where [`CREATE_LOCK`] lies.
+    parent: PathBuf,
+}
+
+impl Drop for ScratchDir {
+    fn drop(&mut self) {
+        // Removed under the creation lock: a sweep never meets it half removed, empty with its
+        // lock file already unlinked, which it would take for half-created.
+        let _creating = lock_creation(&self.parent).ok();
+        if let Some(dir) = self.dir.take()
+            && let Err(e) = dir.close()
+        {
+            tracing::warn!("could not remove a scratch directory: {e}");
+        }
+        self.owner = None;
+    }
 }
 
 impl ScratchDir {
@@ -50,7 +78,9 @@ impl ScratchDir {
     /// removing the abandoned ones there.
     pub fn new(parent: Option<&Path>) -> io::Result<ScratchDir> {
         let parent = parent.map_or_else(std::env::temp_dir, Path::to_path_buf);
-        let removed = sweep_abandoned(&parent);
+        // Held until the directory and its lock file are made (released as it drops).
+        let creating = lock_creation(&parent)?;
+        let removed = sweep(&parent, true);
         if !removed.is_empty() {
             tracing::info!(
                 parent = %parent.display(),
@@ -72,12 +102,20 @@ impl ScratchDir {
         let owner = File::create(&unlocked)?;
         owner.lock()?;
         std::fs::rename(&unlocked, dir.path().join(OWNER_LOCK))?;
-        Ok(ScratchDir { dir, _owner: owner })
+        drop(creating);
+        Ok(ScratchDir {
+            dir: Some(dir),
+            owner: Some(owner),
+            parent,
+        })
     }
 
     /// Where the scratch files go.
     pub fn path(&self) -> &Path {
-        self.dir.path()
+        self.dir
+            .as_ref()
+            .expect("a scratch directory lives until dropped")
+            .path()
     }
 }
 
@@ -86,6 +124,28 @@ impl ScratchDir {
 /// ones removed. Best effort: what cannot be read, locked or removed
 /// (another user's, one in use) stays, and a failure is logged, never returned.
 pub fn sweep_abandoned(parent: &Path) -> Vec<PathBuf> {
+    match lock_creation(parent) {
+        Ok(_creating) => sweep(parent, true),
+        // A parent where the lock cannot be made (read-only, missing): no half-created
+        // directory is judged, the rest as always.
+        Err(_) => sweep(parent, false),
+    }
+}
+
+/// [`CREATE_LOCK`] in `parent`, created if missing and locked exclusively (waiting for a
+/// creation or sweep in progress); the lock goes when the file closes.
+fn lock_creation(parent: &Path) -> io::Result<File> {
+    let file = File::options()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(parent.join(CREATE_LOCK))?;
+    file.lock()?;
+    Ok(file)
+}
+
+/// [`sweep_abandoned`]; `creators_locked_out` when the caller holds [`CREATE_LOCK`].
+fn sweep(parent: &Path, creators_locked_out: bool) -> Vec<PathBuf> {
     let Ok(entries) = std::fs::read_dir(parent) else {
         return Vec::new();
     };
@@ -101,7 +161,7 @@ pub fn sweep_abandoned(parent: &Path) -> Vec<PathBuf> {
             continue;
         }
         let path = entry.path();
-        if !abandoned(&path, SystemTime::now()) {
+        if !abandoned(&path, SystemTime::now(), creators_locked_out) {
             continue;
         }
         match std::fs::remove_dir_all(&path) {
@@ -118,15 +178,18 @@ pub fn sweep_abandoned(parent: &Path) -> Vec<PathBuf> {
 }
 
 /// Whether `dir` is a scratch directory nobody holds at `now`: its lock file exists and the
-/// lock is free, or it has no lock file and is stale.
-fn abandoned(dir: &Path, now: SystemTime) -> bool {
+/// lock is free, or it has none and is half-created while `creators_locked_out` (see
+/// [`half_created`]) or stale.
+fn abandoned(dir: &Path, now: SystemTime, creators_locked_out: bool) -> bool {
     let lock = dir.join(OWNER_LOCK);
     // Not followed through a link: a link named like the lock file makes the directory
     // someone else's.
     match std::fs::symlink_metadata(&lock) {
         Ok(m) if m.is_file() => {}
         Ok(_) => return false,
-        Err(e) if e.kind() == io::ErrorKind::NotFound => return unchanged_since(dir, now),
+        Err(e) if e.kind() == io::ErrorKind::NotFound => {
+            return (creators_locked_out && half_created(dir)) || unchanged_since(dir, now);
+        }
         Err(_) => return false,
     }
     let Ok(file) = File::open(&lock) else {
@@ -140,6 +203,21 @@ fn abandoned(dir: &Path, now: SystemTime) -> bool {
             tracing::debug!("{}: {e}", lock.display());
             false
         }
+    }
+}
+
+/// Whether `dir` is as [`ScratchDir::new`] leaves it when killed before its lock file is named:
+/// empty, or holding only the unnamed lock file (a plain file). Only meaningful while no
+/// creation can be in progress, that is under [`CREATE_LOCK`].
+fn half_created(dir: &Path) -> bool {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return false;
+    };
+    let entries: Vec<_> = entries.take(2).collect();
+    match entries.as_slice() {
+        [] => true,
+        [Ok(e)] => e.file_name() == OWNER_LOCK_NEW && e.file_type().is_ok_and(|t| t.is_file()),
+        _ => false,
     }
 }
 
@@ -185,10 +263,12 @@ mod tests {
         assert!(!dead.exists() && !dead2.exists(), "abandoned dirs removed");
         std::fs::write(live.path().join("data.col"), b"x").unwrap();
 
-        // Left alone: a recent scratch dir without a lock file, another program's dir with a
-        // lock file, a link named like a scratch dir, a plain file named like one.
+        // Left alone: a recent scratch dir without a lock file but with data (an import from
+        // before the lock files), another program's dir with a lock file, a link named like a
+        // scratch dir, a plain file named like one.
         let unlocked = p.join("arbor-import-nolock");
         std::fs::create_dir(&unlocked).unwrap();
+        std::fs::write(unlocked.join("src_positions.col"), b"x").unwrap();
         let other = abandoned_dir(p, "other-tool-dir");
         let target = abandoned_dir(p, "link-target");
         std::os::unix::fs::symlink(&target, p.join("arbor-import-link")).unwrap();
@@ -228,9 +308,10 @@ mod tests {
         let dir = ScratchDir::new(Some(p)).unwrap();
         let path = dir.path().to_path_buf();
         // As a killed process leaves it: the lock released (the file closed), the directory kept.
-        let ScratchDir { dir, _owner } = dir;
-        drop(_owner);
-        let kept = dir.keep();
+        let mut dir = dir;
+        dir.owner = None;
+        let kept = dir.dir.take().unwrap().keep();
+        drop(dir);
         assert_eq!(kept, path);
         assert_eq!(sweep_abandoned(p), vec![path.clone()]);
         assert!(!path.exists());
@@ -288,13 +369,15 @@ mod tests {
         age(&legacy.join("src_positions.col"), old);
         age(&legacy, old);
         // Kept: an old directory with one entry written recently (an import still writing),
-        // a recent empty one, an old one holding a link, an old one of another name.
+        // a recent one with data (an import from before the lock files), an old one holding a
+        // link, an old one of another name.
         let writing = p.join("arbor-import-writing");
         std::fs::create_dir(&writing).unwrap();
         std::fs::write(writing.join("run-0"), b"x").unwrap();
         age(&writing, old);
         let recent = p.join("arbor-import-recent");
         std::fs::create_dir(&recent).unwrap();
+        std::fs::write(recent.join("src_positions.col"), [3u8; 256]).unwrap();
         let linked = p.join("arbor-import-linked");
         std::fs::create_dir(&linked).unwrap();
         std::os::unix::fs::symlink(&legacy, linked.join("elsewhere")).unwrap();
@@ -310,6 +393,54 @@ mod tests {
         for kept in [&writing, &recent, &linked, &other] {
             assert!(kept.exists(), "{} kept", kept.display());
         }
+    }
+
+    #[test]
+    fn a_directory_half_created_by_a_killed_import_goes_at_once() {
+        let parent = tempfile::tempdir().unwrap();
+        let p = parent.path();
+        // Killed right after making the directory, and right after making the lock file
+        // (unnamed, unlocked): both recent.
+        let empty = p.join("arbor-import-empty");
+        std::fs::create_dir(&empty).unwrap();
+        let unnamed = p.join("arbor-import-unnamed");
+        std::fs::create_dir(&unnamed).unwrap();
+        std::fs::write(unnamed.join(OWNER_LOCK_NEW), b"").unwrap();
+        // Kept: one with data and no lock file, one whose unnamed lock file is a directory.
+        let data = p.join("arbor-import-data");
+        std::fs::create_dir(&data).unwrap();
+        std::fs::write(data.join("run-0"), b"x").unwrap();
+        let odd = p.join("arbor-import-odd");
+        std::fs::create_dir_all(odd.join(OWNER_LOCK_NEW)).unwrap();
+
+        let live = ScratchDir::new(Some(p)).unwrap();
+        assert!(
+            !empty.exists() && !unnamed.exists(),
+            "half-created dirs removed"
+        );
+        for kept in [&data, &odd] {
+            assert!(kept.exists(), "{} kept", kept.display());
+        }
+        assert!(p.join(CREATE_LOCK).is_file());
+
+        // While the creation lock is held elsewhere (an import making its directory), a sweep
+        // waits for it rather than judge a half-made directory.
+        let creating = lock_creation(p).unwrap();
+        let half = p.join("arbor-import-half");
+        std::fs::create_dir(&half).unwrap();
+        let sweeper = {
+            let p = p.to_path_buf();
+            std::thread::spawn(move || sweep_abandoned(&p))
+        };
+        std::thread::sleep(Duration::from_millis(50));
+        assert!(half.exists(), "not swept while the creation lock is held");
+        std::fs::write(half.join(OWNER_LOCK), b"").unwrap();
+        let locked = File::open(half.join(OWNER_LOCK)).unwrap();
+        locked.lock().unwrap();
+        drop(creating);
+        assert!(sweeper.join().unwrap().is_empty(), "its owner holds it now");
+        assert!(half.exists());
+        drop(live);
     }
 
     #[test]
