@@ -16,7 +16,10 @@
 //! a sweep that holds it sees no directory half-created by a live import, and a directory
 //! without its lock file that is empty or holds only the lock file still unnamed
 //! (`owner.lock.new`) is what a process killed between those steps left; it goes at once.
-//! (Before, it stayed for a day, and `server/tests/cli.rs`' kills now and then landed there.)
+//! Removing one is cut short by a kill as easily (its lock file may go first), so an owner or
+//! a sweep renames a directory to [`REMOVING_PREFIX`] before removing it, and a sweep removes
+//! what is left so named. (Before, both stayed for a day, and `server/tests/cli.rs`' kills now
+//! and then landed there.)
 //! Any other directory without the lock file is left alone while anything in it changed within
 //! [`STALE_UNLOCKED`]: an Arbor from before the lock files may be writing it; older, it goes
 //! too. Anything that is not a plain directory named `arbor-import-*` is left alone. The owner
@@ -34,6 +37,10 @@ use tempfile::TempDir;
 pub const SCRATCH_PREFIX: &str = "arbor-import-";
 /// The file in a scratch directory its owner keeps locked.
 pub const OWNER_LOCK: &str = "owner.lock";
+/// Prefix a scratch directory is renamed to just before it is removed, by its owner or a
+/// sweep: whatever is left named so is a removal that did not finish. (A scratch directory's
+/// own name is the prefix and six letters or digits, never this.)
+pub const REMOVING_PREFIX: &str = "arbor-import-removing-";
 /// The file in a scratch directories' parent that creating a scratch directory and sweeping
 /// lock, so that a sweep never meets a directory a live import is still creating. Kept (a few
 /// bytes of nothing); not named like a scratch directory.
@@ -64,10 +71,14 @@ impl Drop for ScratchDir {
         // Removed under the creation lock: a sweep never meets it half removed, empty with its
         // lock file already unlinked, which it would take for half-created.
         let _creating = lock_creation(&self.parent).ok();
-        if let Some(dir) = self.dir.take()
-            && let Err(e) = dir.close()
-        {
-            tracing::warn!("could not remove a scratch directory: {e}");
+        if let Some(dir) = self.dir.take() {
+            let path = dir.keep();
+            if let Err(e) = remove_scratch(&path) {
+                tracing::warn!(
+                    "could not remove the scratch directory {}: {e}",
+                    path.display()
+                );
+            }
         }
         self.owner = None;
     }
@@ -164,7 +175,7 @@ fn sweep(parent: &Path, creators_locked_out: bool) -> Vec<PathBuf> {
         if !abandoned(&path, SystemTime::now(), creators_locked_out) {
             continue;
         }
-        match std::fs::remove_dir_all(&path) {
+        match remove_scratch(&path) {
             Ok(()) => removed.push(path),
             // Removed by someone else meanwhile (its owner, as it finished, or another sweep).
             Err(e) if e.kind() == io::ErrorKind::NotFound => {}
@@ -177,10 +188,37 @@ fn sweep(parent: &Path, creators_locked_out: bool) -> Vec<PathBuf> {
     removed
 }
 
+/// Removes scratch directory `path`, renamed first to [`REMOVING_PREFIX`]: a process killed
+/// while removing it (its lock file may already be gone) leaves a directory named as such,
+/// which the next sweep removes. One already so named is removed as it is.
+fn remove_scratch(path: &Path) -> io::Result<()> {
+    let name = path
+        .file_name()
+        .and_then(|n| n.to_str())
+        .ok_or_else(|| io::Error::other("not a scratch directory's name"))?;
+    if name.starts_with(REMOVING_PREFIX) {
+        return std::fs::remove_dir_all(path);
+    }
+    let doomed = path.with_file_name(format!(
+        "{REMOVING_PREFIX}{}",
+        name.strip_prefix(SCRATCH_PREFIX).unwrap_or(name)
+    ));
+    std::fs::rename(path, &doomed)?;
+    std::fs::remove_dir_all(&doomed)
+}
+
 /// Whether `dir` is a scratch directory nobody holds at `now`: its lock file exists and the
 /// lock is free, or it has none and is half-created while `creators_locked_out` (see
 /// [`half_created`]) or stale.
 fn abandoned(dir: &Path, now: SystemTime, creators_locked_out: bool) -> bool {
+    // A removal its process did not finish (removing it again, alongside, does no harm).
+    if dir
+        .file_name()
+        .and_then(|n| n.to_str())
+        .is_some_and(|n| n.starts_with(REMOVING_PREFIX))
+    {
+        return true;
+    }
     let lock = dir.join(OWNER_LOCK);
     // Not followed through a link: a link named like the lock file makes the directory
     // someone else's.
@@ -441,6 +479,29 @@ mod tests {
         assert!(sweeper.join().unwrap().is_empty(), "its owner holds it now");
         assert!(half.exists());
         drop(live);
+    }
+
+    #[test]
+    fn a_removal_cut_short_is_finished_by_the_next_sweep() {
+        let parent = tempfile::tempdir().unwrap();
+        let p = parent.path();
+        // A sweep or an owner killed while removing: renamed, lock file gone, data left.
+        let cut_short = p.join(format!("{REMOVING_PREFIX}abc123"));
+        std::fs::create_dir(&cut_short).unwrap();
+        std::fs::write(cut_short.join("src_positions.col"), [9u8; 512]).unwrap();
+        assert_eq!(sweep_abandoned(p), vec![cut_short.clone()]);
+        assert!(!cut_short.exists());
+        // An owner's own removal leaves nothing under either name.
+        let dir = ScratchDir::new(Some(p)).unwrap();
+        let name = dir.path().file_name().unwrap().to_str().unwrap().to_owned();
+        std::fs::write(dir.path().join("data.col"), b"x").unwrap();
+        drop(dir);
+        let left: Vec<_> = std::fs::read_dir(p)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .filter(|n| n != CREATE_LOCK)
+            .collect();
+        assert!(left.is_empty(), "{name} removed, nothing left: {left:?}");
     }
 
     #[test]
