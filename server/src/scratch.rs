@@ -89,9 +89,10 @@ impl ScratchDir {
     /// removing the abandoned ones there.
     pub fn new(parent: Option<&Path>) -> io::Result<ScratchDir> {
         let parent = parent.map_or_else(std::env::temp_dir, Path::to_path_buf);
-        // Held until the directory and its lock file are made (released as it drops).
-        let creating = lock_creation(&parent)?;
-        let removed = sweep(&parent, true);
+        // Held until the directory and its lock file are made (released as it drops). Without
+        // it (a lock file nobody may open) the import goes on, judging no half-made directory.
+        let creating = lock_creation(&parent).ok();
+        let removed = sweep(&parent, creating.is_some());
         if !removed.is_empty() {
             tracing::info!(
                 parent = %parent.display(),
@@ -144,13 +145,16 @@ pub fn sweep_abandoned(parent: &Path) -> Vec<PathBuf> {
 }
 
 /// [`CREATE_LOCK`] in `parent`, created if missing and locked exclusively (waiting for a
-/// creation or sweep in progress); the lock goes when the file closes.
+/// creation or sweep in progress); the lock goes when the file closes. Opened for reading
+/// when it cannot be for writing (another user's in a shared `/tmp`: `flock` needs neither).
 fn lock_creation(parent: &Path) -> io::Result<File> {
+    let path = parent.join(CREATE_LOCK);
     let file = File::options()
         .create(true)
         .truncate(false)
         .write(true)
-        .open(parent.join(CREATE_LOCK))?;
+        .open(&path)
+        .or_else(|_| File::open(&path))?;
     file.lock()?;
     Ok(file)
 }
@@ -479,6 +483,25 @@ mod tests {
         assert!(sweeper.join().unwrap().is_empty(), "its owner holds it now");
         assert!(half.exists());
         drop(live);
+    }
+
+    #[test]
+    fn a_creation_lock_file_that_cannot_be_written_still_locks() {
+        use std::os::unix::fs::PermissionsExt as _;
+        let parent = tempfile::tempdir().unwrap();
+        let p = parent.path();
+        // As another user's lock file in a shared /tmp looks to this one (root ignores modes,
+        // so the read-only open is what is checked here, the mode only where it applies).
+        std::fs::write(p.join(CREATE_LOCK), b"").unwrap();
+        std::fs::set_permissions(p.join(CREATE_LOCK), std::fs::Permissions::from_mode(0o444))
+            .unwrap();
+        let held = lock_creation(p).unwrap();
+        let half = p.join("arbor-import-half");
+        std::fs::create_dir(&half).unwrap();
+        drop(held);
+        let dir = ScratchDir::new(Some(p)).unwrap();
+        assert!(!half.exists(), "swept under the lock");
+        drop(dir);
     }
 
     #[test]
