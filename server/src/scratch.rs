@@ -45,8 +45,8 @@ pub const REMOVING_PREFIX: &str = "arbor-import-removing-";
 /// lock, so that a sweep never meets a directory a live import is still creating. Kept (a few
 /// bytes of nothing); not named like a scratch directory.
 pub const CREATE_LOCK: &str = ".arbor-import.lock";
-/// The lock file's name until it is locked (a sweep ignores a directory that has only this,
-/// unless it is stale).
+/// The lock file's name until it is locked (a directory that has only this is half-created:
+/// see [`half_created`]).
 const OWNER_LOCK_NEW: &str = "owner.lock.new";
 /// How long a scratch directory without a lock file must have been unchanged (it and every
 /// entry in it) before a sweep takes it for abandoned. A day: an import writes its columns and
@@ -61,7 +61,7 @@ pub struct ScratchDir {
     /// Closed after `dir` is removed, so the lock is held until the directory is gone
     /// (unlinking an open file is fine on Unix): a sweep never sees a directory being removed
     /// as abandoned.
-    owner: Option<File>,
+    _owner: Option<File>,
     /// Where [`CREATE_LOCK`] lies.
     parent: PathBuf,
 }
@@ -80,7 +80,6 @@ impl Drop for ScratchDir {
                 );
             }
         }
-        self.owner = None;
     }
 }
 
@@ -117,7 +116,7 @@ impl ScratchDir {
         drop(creating);
         Ok(ScratchDir {
             dir: Some(dir),
-            owner: Some(owner),
+            _owner: Some(owner),
             parent,
         })
     }
@@ -196,13 +195,13 @@ fn sweep(parent: &Path, creators_locked_out: bool) -> Vec<PathBuf> {
 /// while removing it (its lock file may already be gone) leaves a directory named as such,
 /// which the next sweep removes. One already so named is removed as it is.
 fn remove_scratch(path: &Path) -> io::Result<()> {
+    if removal_cut_short(path) {
+        return std::fs::remove_dir_all(path);
+    }
     let name = path
         .file_name()
         .and_then(|n| n.to_str())
         .ok_or_else(|| io::Error::other("not a scratch directory's name"))?;
-    if name.starts_with(REMOVING_PREFIX) {
-        return std::fs::remove_dir_all(path);
-    }
     let doomed = path.with_file_name(format!(
         "{REMOVING_PREFIX}{}",
         name.strip_prefix(SCRATCH_PREFIX).unwrap_or(name)
@@ -211,16 +210,19 @@ fn remove_scratch(path: &Path) -> io::Result<()> {
     std::fs::remove_dir_all(&doomed)
 }
 
+/// Whether `dir` is named as a removal in progress, or one its process did not finish.
+fn removal_cut_short(dir: &Path) -> bool {
+    dir.file_name()
+        .and_then(|n| n.to_str())
+        .is_some_and(|n| n.starts_with(REMOVING_PREFIX))
+}
+
 /// Whether `dir` is a scratch directory nobody holds at `now`: its lock file exists and the
 /// lock is free, or it has none and is half-created while `creators_locked_out` (see
 /// [`half_created`]) or stale.
 fn abandoned(dir: &Path, now: SystemTime, creators_locked_out: bool) -> bool {
-    // A removal its process did not finish (removing it again, alongside, does no harm).
-    if dir
-        .file_name()
-        .and_then(|n| n.to_str())
-        .is_some_and(|n| n.starts_with(REMOVING_PREFIX))
-    {
+    // Removing it again, alongside a removal still running, does no harm.
+    if removal_cut_short(dir) {
         return true;
     }
     let lock = dir.join(OWNER_LOCK);
@@ -351,7 +353,7 @@ mod tests {
         let path = dir.path().to_path_buf();
         // As a killed process leaves it: the lock released (the file closed), the directory kept.
         let mut dir = dir;
-        dir.owner = None;
+        dir._owner = None;
         let kept = dir.dir.take().unwrap().keep();
         drop(dir);
         assert_eq!(kept, path);

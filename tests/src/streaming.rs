@@ -49,6 +49,21 @@ pub struct Served {
     _data_dir: TempDir,
 }
 
+impl Served {
+    /// The `arbor-client` arguments that reach scene `name` of this server: its URL, the
+    /// certificate's fingerprint and the clients' token.
+    pub fn client_args(&self, name: &str) -> [String; 6] {
+        [
+            "--server".into(),
+            format!("quic://{}/{name}", self.server.quic_addr),
+            "--cert-fingerprint".into(),
+            self.server.fingerprint.clone(),
+            "--token".into(),
+            TOKEN.into(),
+        ]
+    }
+}
+
 /// Builds a real scan (`treelet_bytes` treelets) into a fresh pool and serves it.
 pub async fn serve(rel: &str, name: &str, treelet_bytes: u32) -> Served {
     serve_with(rel, name, treelet_bytes, DaemonOptions::default()).await

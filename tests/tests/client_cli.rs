@@ -9,7 +9,7 @@ use std::path::Path;
 use std::process::{Output, Stdio};
 
 use arbor_client_core::image::Image;
-use arbor_tests::streaming::{TOKEN, serve};
+use arbor_tests::streaming::serve;
 use arbor_tests::support::arbor_client_binary;
 
 /// Runs `bin args` with its stdout a pipe whose reading end is closed before the command
@@ -44,23 +44,10 @@ async fn render_and_reference_write_their_files_when_stdout_is_closed() {
         .await
         .unwrap();
     let served = serve("points/lion_takanawa.copc.laz", "lion", 1024).await;
-    let url = format!("quic://{}/lion", served.server.quic_addr);
-    let fingerprint = served.server.fingerprint.clone();
     let out = tempfile::tempdir().unwrap();
     let file = |name: &str| out.path().join(name).to_str().unwrap().to_owned();
-    let connection = [
-        "--server",
-        &url,
-        "--cert-fingerprint",
-        &fingerprint,
-        "--token",
-        TOKEN,
-        "--size",
-        "64x64",
-        "--backend",
-        "cpu",
-    ]
-    .map(str::to_owned);
+    let mut connection = served.client_args("lion").to_vec();
+    connection.extend(["--size", "64x64", "--backend", "cpu"].map(str::to_owned));
 
     let mut reference: Vec<String> = vec!["reference".into()];
     reference.extend(connection.iter().cloned());

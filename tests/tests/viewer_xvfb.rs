@@ -58,7 +58,7 @@ use arbor_client_session::session::reference_image;
 use arbor_client_viewer::blit::{BACKGROUND, OVERLAY_MARGIN};
 use arbor_client_viewer::controls::Controls;
 use arbor_client_viewer::overlay::Overlay;
-use arbor_tests::streaming::{TOKEN, serve};
+use arbor_tests::streaming::serve;
 use arbor_tests::support::arbor_client_binary;
 
 const SIZE: (u32, u32) = (256, 192);
@@ -285,34 +285,30 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     let out = tempfile::tempdir().unwrap();
     let shot = out.path().join("shot.png");
     let report_path = out.path().join("view.csv");
-    let url = format!("quic://{}/lion", served.server.quic_addr);
-    let fingerprint = served.server.fingerprint.clone();
+    let connection = served.client_args("lion");
     let (xvfb, display) = tokio::task::spawn_blocking(start_xvfb).await.unwrap();
-    let common: Vec<OsString> = [
-        "view",
-        "--server",
-        &url,
-        "--cert-fingerprint",
-        &fingerprint,
-        "--token",
-        TOKEN,
-        "--size",
-        "256x192",
-        "--seed",
-        &SEED.to_string(),
-        "--feedback-ratio",
-        "4",
-        // At most 128 treelets per frame, so the arrivals (about 8,000 treelets of 1 KiB) are
-        // seen over many frames: with the default limit refinement converges in ~25 cycles.
-        "--load-limit",
-        "128",
-        "--exit-after-converged",
-        "--hold-until-stdin-eof",
-        "--timeout-s",
-        &CONVERGE_TIMEOUT.as_secs().to_string(),
-    ]
-    .map(OsString::from)
-    .into();
+    let mut common: Vec<OsString> = std::iter::once("view".into())
+        .chain(connection.iter().map(OsString::from))
+        .collect();
+    common.extend(
+        [
+            "--size",
+            "256x192",
+            "--seed",
+            &SEED.to_string(),
+            "--feedback-ratio",
+            "4",
+            // At most 128 treelets per frame, so the arrivals (about 8,000 treelets of 1 KiB) are
+            // seen over many frames: with the default limit refinement converges in ~25 cycles.
+            "--load-limit",
+            "128",
+            "--exit-after-converged",
+            "--hold-until-stdin-eof",
+            "--timeout-s",
+            &CONVERGE_TIMEOUT.as_secs().to_string(),
+        ]
+        .map(OsString::from),
+    );
     let mut args = common.clone();
     args.extend([
         "--backend".into(),
@@ -482,24 +478,21 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
 
     // A view that cannot converge in time fails with a message and status 1: one treelet
     // inserted per cycle cannot bring the hundreds the view needs within a second.
-    let args: Vec<OsString> = [
-        "view",
-        "--server",
-        &url,
-        "--cert-fingerprint",
-        &fingerprint,
-        "--token",
-        TOKEN,
-        "--size",
-        "256x192",
-        "--load-limit",
-        "1",
-        "--exit-after-converged",
-        "--timeout-s",
-        "1",
-    ]
-    .map(OsString::from)
-    .into();
+    let mut args: Vec<OsString> = std::iter::once("view".into())
+        .chain(connection.iter().map(OsString::from))
+        .collect();
+    args.extend(
+        [
+            "--size",
+            "256x192",
+            "--load-limit",
+            "1",
+            "--exit-after-converged",
+            "--timeout-s",
+            "1",
+        ]
+        .map(OsString::from),
+    );
     let (code, stderr) = tokio::task::spawn_blocking(move || {
         let runtime_dir = tempfile::tempdir().unwrap();
         let mut viewer = Reaped(
