@@ -285,30 +285,31 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     let out = tempfile::tempdir().unwrap();
     let shot = out.path().join("shot.png");
     let report_path = out.path().join("view.csv");
-    let connection = served.client_args("lion");
+    // `arbor-client view` on this server with `options`.
+    let view_args = |options: &[&str]| -> Vec<OsString> {
+        std::iter::once("view".to_owned())
+            .chain(served.client_args("lion"))
+            .chain(options.iter().map(|o| (*o).to_owned()))
+            .map(OsString::from)
+            .collect()
+    };
     let (xvfb, display) = tokio::task::spawn_blocking(start_xvfb).await.unwrap();
-    let mut common: Vec<OsString> = std::iter::once("view".into())
-        .chain(connection.iter().map(OsString::from))
-        .collect();
-    common.extend(
-        [
-            "--size",
-            "256x192",
-            "--seed",
-            &SEED.to_string(),
-            "--feedback-ratio",
-            "4",
-            // At most 128 treelets per frame, so the arrivals (about 8,000 treelets of 1 KiB) are
-            // seen over many frames: with the default limit refinement converges in ~25 cycles.
-            "--load-limit",
-            "128",
-            "--exit-after-converged",
-            "--hold-until-stdin-eof",
-            "--timeout-s",
-            &CONVERGE_TIMEOUT.as_secs().to_string(),
-        ]
-        .map(OsString::from),
-    );
+    let common = view_args(&[
+        "--size",
+        "256x192",
+        "--seed",
+        &SEED.to_string(),
+        "--feedback-ratio",
+        "4",
+        // At most 128 treelets per frame, so the arrivals (about 8,000 treelets of 1 KiB) are
+        // seen over many frames: with the default limit refinement converges in ~25 cycles.
+        "--load-limit",
+        "128",
+        "--exit-after-converged",
+        "--hold-until-stdin-eof",
+        "--timeout-s",
+        &CONVERGE_TIMEOUT.as_secs().to_string(),
+    ]);
     let mut args = common.clone();
     args.extend([
         "--backend".into(),
@@ -478,21 +479,15 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
 
     // A view that cannot converge in time fails with a message and status 1: one treelet
     // inserted per cycle cannot bring the hundreds the view needs within a second.
-    let mut args: Vec<OsString> = std::iter::once("view".into())
-        .chain(connection.iter().map(OsString::from))
-        .collect();
-    args.extend(
-        [
-            "--size",
-            "256x192",
-            "--load-limit",
-            "1",
-            "--exit-after-converged",
-            "--timeout-s",
-            "1",
-        ]
-        .map(OsString::from),
-    );
+    let args = view_args(&[
+        "--size",
+        "256x192",
+        "--load-limit",
+        "1",
+        "--exit-after-converged",
+        "--timeout-s",
+        "1",
+    ]);
     let (code, stderr) = tokio::task::spawn_blocking(move || {
         let runtime_dir = tempfile::tempdir().unwrap();
         let mut viewer = Reaped(
