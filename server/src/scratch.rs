@@ -12,14 +12,19 @@
 //! scratch directory first removes those beside it ([`sweep_abandoned`]).
 //!
 //! Creating a directory and its lock file takes a few steps, and a process may be killed between
-//! them. So creating and sweeping both hold a lock on one file in the parent ([`CREATE_LOCK`]):
-//! a sweep that holds it sees no directory half-created by a live import, and a directory
-//! without its lock file that is empty or holds only the lock file still unnamed
+//! them. So creating and judging what to sweep both hold a lock on one file in the parent
+//! ([`CREATE_LOCK`]): a sweep that holds it sees no directory half-created by a live import, and
+//! a directory without its lock file that is empty or holds only the lock file still unnamed
 //! (`owner.lock.new`) is what a process killed between those steps left; it goes at once.
-//! Removing one is cut short by a kill as easily (its lock file may go first), so an owner or
-//! a sweep renames a directory to [`REMOVING_PREFIX`] before removing it, and a sweep removes
-//! what is left so named. (Before, both stayed for a day, and `server/tests/cli.rs`' kills now
-//! and then landed there.)
+//!
+//! Removing is the slow part (a killed 10⁸-point import leaves tens of gigabytes), so it happens
+//! after the creation lock is released, and no other import waits for it to start its own. A
+//! sweep *claims* a directory under the lock: it keeps the directory's `owner.lock` locked and
+//! renames the directory to [`REMOVING_PREFIX`]; an owner does the same with its own. The
+//! removal unlinks the lock file last, so while it runs every other sweep finds the lock held
+//! and leaves the directory to it; a removal cut short by a kill leaves the lock file unlocked
+//! (or, killed at the very end, an empty directory: left for [`REMOVAL_GRACE`], in which its
+//! remover would have removed it), and the next sweep finishes it.
 //! Any other directory without the lock file is left alone while anything in it changed within
 //! [`STALE_UNLOCKED`]: an Arbor from before the lock files may be writing it; older, it goes
 //! too. Anything that is not a plain directory named `arbor-import-*` is left alone. The owner
@@ -41,13 +46,17 @@ pub const OWNER_LOCK: &str = "owner.lock";
 /// sweep: whatever is left named so is a removal that did not finish. (A scratch directory's
 /// own name is the prefix and six letters or digits, never this.)
 pub const REMOVING_PREFIX: &str = "arbor-import-removing-";
-/// The file in a scratch directories' parent that creating a scratch directory and sweeping
-/// lock, so that a sweep never meets a directory a live import is still creating. Kept (a few
-/// bytes of nothing); not named like a scratch directory.
+/// The file in a scratch directories' parent that creating a scratch directory and judging what
+/// to sweep lock (never removing, the slow part), so that a sweep never meets a directory a live
+/// import is still creating. Kept (a few bytes of nothing); not named like a scratch directory.
 pub const CREATE_LOCK: &str = ".arbor-import.lock";
 /// The lock file's name until it is locked (a directory that has only this is half-created:
 /// see [`half_created`]).
 const OWNER_LOCK_NEW: &str = "owner.lock.new";
+/// How long a directory named as a removal, empty and without its lock file, is left to its
+/// remover (which removes it microseconds after unlinking the lock file) before a sweep takes
+/// it for one whose remover was killed at its very end.
+pub const REMOVAL_GRACE: Duration = Duration::from_secs(60);
 /// How long a scratch directory without a lock file must have been unchanged (it and every
 /// entry in it) before a sweep takes it for abandoned. A day: an import writes its columns and
 /// runs continually, and the largest measured (10⁸ points) takes minutes.
@@ -62,23 +71,20 @@ pub struct ScratchDir {
     /// (unlinking an open file is fine on Unix): a sweep never sees a directory being removed
     /// as abandoned.
     _owner: Option<File>,
-    /// Where [`CREATE_LOCK`] lies.
-    parent: PathBuf,
 }
 
 impl Drop for ScratchDir {
     fn drop(&mut self) {
-        // Removed under the creation lock: a sweep never meets it half removed, empty with its
-        // lock file already unlinked, which it would take for half-created.
-        let _creating = lock_creation(&self.parent).ok();
-        if let Some(dir) = self.dir.take() {
-            let path = dir.keep();
-            if let Err(e) = remove_scratch(&path) {
-                tracing::warn!(
-                    "could not remove the scratch directory {}: {e}",
-                    path.display()
-                );
-            }
+        let Some(dir) = self.dir.take() else { return };
+        let path = dir.keep();
+        // The lock goes with the claim and is released once the lock file is unlinked, last:
+        // a sweep never takes the directory for abandoned while it is being removed.
+        let removed = claim(&path, self._owner.take()).and_then(Doomed::remove);
+        if let Err(e) = removed {
+            tracing::warn!(
+                "could not remove the scratch directory {}: {e}",
+                path.display()
+            );
         }
     }
 }
@@ -88,10 +94,14 @@ impl ScratchDir {
     /// removing the abandoned ones there.
     pub fn new(parent: Option<&Path>) -> io::Result<ScratchDir> {
         let parent = parent.map_or_else(std::env::temp_dir, Path::to_path_buf);
-        // Held until the directory and its lock file are made (released as it drops). Without
-        // it (a lock file nobody may open) the import goes on, judging no half-made directory.
+        // Held until the directory and its lock file are made. Without it (a lock file nobody
+        // may open) the import goes on, judging no half-made directory.
         let creating = lock_creation(&parent).ok();
-        let removed = sweep(&parent, creating.is_some());
+        let doomed = claim_abandoned(&parent, creating.is_some());
+        let made = create_locked(&parent);
+        drop(creating);
+        // Removed with the creation lock released: other imports start meanwhile.
+        let removed = remove_all(doomed);
         if !removed.is_empty() {
             tracing::info!(
                 parent = %parent.display(),
@@ -104,20 +114,10 @@ impl ScratchDir {
                     .join(", ")
             );
         }
-        let dir = tempfile::Builder::new()
-            .prefix(SCRATCH_PREFIX)
-            .tempdir_in(&parent)?;
-        // Locked under another name, then renamed: a sweep that sees `owner.lock` always finds
-        // it locked, never in the instant between its creation and the lock.
-        let unlocked = dir.path().join(OWNER_LOCK_NEW);
-        let owner = File::create(&unlocked)?;
-        owner.lock()?;
-        std::fs::rename(&unlocked, dir.path().join(OWNER_LOCK))?;
-        drop(creating);
+        let (dir, owner) = made?;
         Ok(ScratchDir {
             dir: Some(dir),
             _owner: Some(owner),
-            parent,
         })
     }
 
@@ -130,17 +130,32 @@ impl ScratchDir {
     }
 }
 
+/// A new scratch directory in `parent` and its lock file, locked (call under [`CREATE_LOCK`]).
+fn create_locked(parent: &Path) -> io::Result<(TempDir, File)> {
+    let dir = tempfile::Builder::new()
+        .prefix(SCRATCH_PREFIX)
+        .tempdir_in(parent)?;
+    // Locked under another name, then renamed: a sweep that sees `owner.lock` always finds it
+    // locked, never in the instant between its creation and the lock.
+    let unlocked = dir.path().join(OWNER_LOCK_NEW);
+    let owner = File::create(&unlocked)?;
+    owner.lock()?;
+    std::fs::rename(&unlocked, dir.path().join(OWNER_LOCK))?;
+    Ok((dir, owner))
+}
+
 /// Removes every scratch directory in `parent` whose owner is gone (its `owner.lock` exists and
 /// can be locked, or it has none and nothing in it changed for [`STALE_UNLOCKED`]); returns the
-/// ones removed. Best effort: what cannot be read, locked or removed
+/// ones removed, by the names they had. Best effort: what cannot be read, locked or removed
 /// (another user's, one in use) stays, and a failure is logged, never returned.
 pub fn sweep_abandoned(parent: &Path) -> Vec<PathBuf> {
-    match lock_creation(parent) {
-        Ok(_creating) => sweep(parent, true),
+    let doomed = {
         // A parent where the lock cannot be made (read-only, missing): no half-created
         // directory is judged, the rest as always.
-        Err(_) => sweep(parent, false),
-    }
+        let creating = lock_creation(parent).ok();
+        claim_abandoned(parent, creating.is_some())
+    };
+    remove_all(doomed)
 }
 
 /// [`CREATE_LOCK`] in `parent`, created if missing and locked exclusively (waiting for a
@@ -158,12 +173,78 @@ fn lock_creation(parent: &Path) -> io::Result<File> {
     Ok(file)
 }
 
-/// [`sweep_abandoned`]; `creators_locked_out` when the caller holds [`CREATE_LOCK`].
-fn sweep(parent: &Path, creators_locked_out: bool) -> Vec<PathBuf> {
+/// A scratch directory claimed for removal: renamed to [`REMOVING_PREFIX`], its lock file (when
+/// it has one) held locked until [`Doomed::remove`] unlinks it.
+#[derive(Debug)]
+struct Doomed {
+    /// The name it had when claimed (what a sweep reports).
+    original: PathBuf,
+    /// Its name now.
+    path: PathBuf,
+    /// The open, locked `owner.lock`; `None` for a directory that has none.
+    _lock: Option<File>,
+}
+
+impl Doomed {
+    /// Removes everything in the directory but its lock file, then the lock file, then the
+    /// directory: a removal cut short leaves the lock file for the next sweep to find unlocked.
+    /// Returns the name the directory had when claimed.
+    fn remove(self) -> io::Result<PathBuf> {
+        let gone_already = |r: io::Result<()>| match r {
+            Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(()),
+            r => r,
+        };
+        for entry in std::fs::read_dir(&self.path)? {
+            let entry = entry?;
+            if entry.file_name() == OWNER_LOCK {
+                continue;
+            }
+            // `file_type` does not follow a link: a link is unlinked, never entered.
+            let removed = if entry.file_type()?.is_dir() {
+                std::fs::remove_dir_all(entry.path())
+            } else {
+                std::fs::remove_file(entry.path())
+            };
+            gone_already(removed)?;
+        }
+        gone_already(std::fs::remove_file(self.path.join(OWNER_LOCK)))?;
+        // Empty by now, unless another sweep finished it meanwhile (one without a lock file).
+        gone_already(std::fs::remove_dir(&self.path))?;
+        Ok(self.original)
+    }
+}
+
+/// Claims `dir` for removal with its lock file `lock` (held locked, or `None` when it has none):
+/// renamed to [`REMOVING_PREFIX`] unless it is so named already.
+fn claim(dir: &Path, lock: Option<File>) -> io::Result<Doomed> {
+    let path = if removal_cut_short(dir) {
+        dir.to_path_buf()
+    } else {
+        let name = dir
+            .file_name()
+            .and_then(|n| n.to_str())
+            .ok_or_else(|| io::Error::other("not a scratch directory's name"))?;
+        let doomed = dir.with_file_name(format!(
+            "{REMOVING_PREFIX}{}",
+            name.strip_prefix(SCRATCH_PREFIX).unwrap_or(name)
+        ));
+        std::fs::rename(dir, &doomed)?;
+        doomed
+    };
+    Ok(Doomed {
+        original: dir.to_path_buf(),
+        path,
+        _lock: lock,
+    })
+}
+
+/// Claims the abandoned scratch directories in `parent` (see [`sweep_abandoned`]);
+/// `creators_locked_out` when the caller holds [`CREATE_LOCK`]. Quick: nothing is removed yet.
+fn claim_abandoned(parent: &Path, creators_locked_out: bool) -> Vec<Doomed> {
     let Ok(entries) = std::fs::read_dir(parent) else {
         return Vec::new();
     };
-    let mut removed = Vec::new();
+    let mut doomed = Vec::new();
     for entry in entries.flatten() {
         let named = entry
             .file_name()
@@ -175,39 +256,42 @@ fn sweep(parent: &Path, creators_locked_out: bool) -> Vec<PathBuf> {
             continue;
         }
         let path = entry.path();
-        if !abandoned(&path, SystemTime::now(), creators_locked_out) {
+        let Some(lock) = abandoned(&path, SystemTime::now(), creators_locked_out) else {
             continue;
-        }
-        match remove_scratch(&path) {
-            Ok(()) => removed.push(path),
-            // Removed by someone else meanwhile (its owner, as it finished, or another sweep).
-            Err(e) if e.kind() == io::ErrorKind::NotFound => {}
-            Err(e) => tracing::warn!(
-                "could not remove the abandoned scratch directory {}: {e}",
-                path.display()
-            ),
-        }
+        };
+        // Not found: removed by someone else meanwhile (its owner, as it finished, or another
+        // sweep).
+        doomed.extend(logged(claim(&path, lock), "claim", &path));
+    }
+    doomed
+}
+
+/// Removes the claimed directories; returns the names they had. Failures are logged.
+fn remove_all(doomed: Vec<Doomed>) -> Vec<PathBuf> {
+    let mut removed = Vec::new();
+    for d in doomed {
+        let path = d.path.clone();
+        // Not found: finished by someone else meanwhile (a cut-short removal without a lock
+        // file).
+        removed.extend(logged(d.remove(), "remove", &path));
     }
     removed
 }
 
-/// Removes scratch directory `path`, renamed first to [`REMOVING_PREFIX`]: a process killed
-/// while removing it (its lock file may already be gone) leaves a directory named as such,
-/// which the next sweep removes. One already so named is removed as it is.
-fn remove_scratch(path: &Path) -> io::Result<()> {
-    if removal_cut_short(path) {
-        return std::fs::remove_dir_all(path);
+/// `r`'s value; a failure to `doing` the abandoned directory `path` logged, unless it was not
+/// found (someone else got there first).
+fn logged<T>(r: io::Result<T>, doing: &str, path: &Path) -> Option<T> {
+    match r {
+        Ok(v) => Some(v),
+        Err(e) if e.kind() == io::ErrorKind::NotFound => None,
+        Err(e) => {
+            tracing::warn!(
+                "could not {doing} the abandoned scratch directory {}: {e}",
+                path.display()
+            );
+            None
+        }
     }
-    let name = path
-        .file_name()
-        .and_then(|n| n.to_str())
-        .ok_or_else(|| io::Error::other("not a scratch directory's name"))?;
-    let doomed = path.with_file_name(format!(
-        "{REMOVING_PREFIX}{}",
-        name.strip_prefix(SCRATCH_PREFIX).unwrap_or(name)
-    ));
-    std::fs::rename(path, &doomed)?;
-    std::fs::remove_dir_all(&doomed)
 }
 
 /// Whether `dir` is named as a removal in progress, or one its process did not finish.
@@ -217,37 +301,50 @@ fn removal_cut_short(dir: &Path) -> bool {
         .is_some_and(|n| n.starts_with(REMOVING_PREFIX))
 }
 
-/// Whether `dir` is a scratch directory nobody holds at `now`: its lock file exists and the
-/// lock is free, or it has none and is half-created while `creators_locked_out` (see
-/// [`half_created`]) or stale.
-fn abandoned(dir: &Path, now: SystemTime, creators_locked_out: bool) -> bool {
-    // Removing it again, alongside a removal still running, does no harm.
-    if removal_cut_short(dir) {
-        return true;
-    }
+/// Whether `dir` is a scratch directory nobody holds at `now`, and if so its lock file, locked
+/// (`Some(None)` when it has none): its lock file exists and the lock is free (a removal in
+/// progress holds it too), or it has none and is a removal cut short (not one just finishing,
+/// see [`removal_finishing`]), half-created while `creators_locked_out` (see [`half_created`]), or stale.
+fn abandoned(dir: &Path, now: SystemTime, creators_locked_out: bool) -> Option<Option<File>> {
     let lock = dir.join(OWNER_LOCK);
     // Not followed through a link: a link named like the lock file makes the directory
     // someone else's.
     match std::fs::symlink_metadata(&lock) {
         Ok(m) if m.is_file() => {}
-        Ok(_) => return false,
+        Ok(_) => return None,
         Err(e) if e.kind() == io::ErrorKind::NotFound => {
-            return (creators_locked_out && half_created(dir)) || unchanged_since(dir, now);
+            let unowned = if removal_cut_short(dir) {
+                !removal_finishing(dir, now)
+            } else {
+                (creators_locked_out && half_created(dir)) || unchanged_since(dir, now)
+            };
+            return unowned.then_some(None);
         }
-        Err(_) => return false,
+        Err(_) => return None,
     }
-    let Ok(file) = File::open(&lock) else {
-        return false;
-    };
+    let file = File::open(&lock).ok()?;
     match file.try_lock() {
-        // Released as `file` closes, before the directory goes.
-        Ok(()) => true,
-        Err(TryLockError::WouldBlock) => false,
+        Ok(()) => Some(Some(file)),
+        Err(TryLockError::WouldBlock) => None,
         Err(TryLockError::Error(e)) => {
             tracing::debug!("{}: {e}", lock.display());
-            false
+            None
         }
     }
+}
+
+/// Whether `dir`, named as a removal and without its lock file, is empty and changed within
+/// [`REMOVAL_GRACE`] of `now`: its remover has just unlinked the lock file and is about to remove
+/// the directory (a sweep would report it as its own). One left empty longer was cut short.
+fn removal_finishing(dir: &Path, now: SystemTime) -> bool {
+    let empty = std::fs::read_dir(dir).is_ok_and(|mut e| e.next().is_none());
+    let recent = std::fs::symlink_metadata(dir)
+        .and_then(|m| m.modified())
+        .is_ok_and(|t| {
+            now.duration_since(t)
+                .map_or(true, |age| age < REMOVAL_GRACE)
+        });
+    empty && recent
 }
 
 /// Whether `dir` is as [`ScratchDir::new`] leaves it when killed before its lock file is named:
@@ -514,19 +611,87 @@ mod tests {
         let cut_short = p.join(format!("{REMOVING_PREFIX}abc123"));
         std::fs::create_dir(&cut_short).unwrap();
         std::fs::write(cut_short.join("src_positions.col"), [9u8; 512]).unwrap();
-        assert_eq!(sweep_abandoned(p), vec![cut_short.clone()]);
+        // Empty, without a lock file: a remover about to remove it (left alone), or one killed
+        // at the very end (removed once it is older than the grace).
+        let finishing = p.join(format!("{REMOVING_PREFIX}fin123"));
+        std::fs::create_dir(&finishing).unwrap();
+        let finished_long_ago = p.join(format!("{REMOVING_PREFIX}old123"));
+        std::fs::create_dir(&finished_long_ago).unwrap();
+        age(&finished_long_ago, REMOVAL_GRACE + Duration::from_secs(1));
+        let mut removed = sweep_abandoned(p);
+        removed.sort();
+        assert_eq!(removed, vec![cut_short.clone(), finished_long_ago]);
         assert!(!cut_short.exists());
+        assert!(finishing.exists(), "left to its remover");
+        std::fs::remove_dir(&finishing).unwrap();
         // An owner's own removal leaves nothing under either name.
         let dir = ScratchDir::new(Some(p)).unwrap();
         let name = dir.path().file_name().unwrap().to_str().unwrap().to_owned();
         std::fs::write(dir.path().join("data.col"), b"x").unwrap();
         drop(dir);
-        let left: Vec<_> = std::fs::read_dir(p)
+        let left = entries(p);
+        assert!(left.is_empty(), "{name} removed, nothing left: {left:?}");
+    }
+
+    /// Names of what is in `parent` but the creation lock file.
+    fn entries(parent: &Path) -> Vec<String> {
+        let mut names: Vec<_> = std::fs::read_dir(parent)
             .unwrap()
             .map(|e| e.unwrap().file_name().into_string().unwrap())
             .filter(|n| n != CREATE_LOCK)
             .collect();
-        assert!(left.is_empty(), "{name} removed, nothing left: {left:?}");
+        names.sort();
+        names
+    }
+
+    #[test]
+    fn removing_runs_with_the_creation_lock_released_and_is_left_to_its_remover() {
+        let parent = tempfile::tempdir().unwrap();
+        let p = parent.path();
+        let dead = abandoned_dir(p, "arbor-import-big");
+        std::fs::create_dir(dead.join("runs")).unwrap();
+        for i in 0..50 {
+            std::fs::write(dead.join("runs").join(format!("run-{i}")), [1u8; 1024]).unwrap();
+        }
+        let doomed = {
+            let _creating = lock_creation(p).unwrap();
+            claim_abandoned(p, true)
+        };
+        let renamed = p.join(format!("{REMOVING_PREFIX}big"));
+        assert_eq!(doomed.len(), 1);
+        assert_eq!(doomed[0].path, renamed);
+        assert!(!dead.exists() && renamed.join("runs/run-49").exists());
+
+        // While it is being removed: the creation lock is free, another import makes its
+        // directory, and neither it nor a sweep touches the one being removed.
+        let lock = File::open(p.join(CREATE_LOCK)).unwrap();
+        assert!(lock.try_lock().is_ok(), "the creation lock is free");
+        drop(lock);
+        let other = ScratchDir::new(Some(p)).unwrap();
+        assert!(sweep_abandoned(p).is_empty(), "left to its remover");
+        assert!(renamed.join("runs/run-49").exists());
+
+        assert_eq!(remove_all(doomed), vec![dead]);
+        assert!(!renamed.exists());
+        drop(other);
+        assert!(entries(p).is_empty(), "{:?}", entries(p));
+    }
+
+    #[test]
+    fn a_removal_killed_halfway_is_finished_by_the_next_sweep() {
+        let parent = tempfile::tempdir().unwrap();
+        let p = parent.path();
+        let dead = abandoned_dir(p, "arbor-import-half");
+        std::fs::write(dead.join("run-0"), [2u8; 64]).unwrap();
+        let mut doomed = claim_abandoned(p, true);
+        let d = doomed.pop().unwrap();
+        // Killed after one file went: the lock released, the lock file and the rest left.
+        std::fs::remove_file(d.path.join("src_positions.col")).unwrap();
+        let renamed = d.path.clone();
+        drop(d);
+        assert!(renamed.join(OWNER_LOCK).exists() && renamed.join("run-0").exists());
+        assert_eq!(sweep_abandoned(p), vec![renamed]);
+        assert!(entries(p).is_empty(), "{:?}", entries(p));
     }
 
     #[test]
