@@ -9,21 +9,28 @@
 //! * raw quinn, measured the same way: one server-opened unidirectional stream per message of the
 //!   scene's mean message size, the same number per connection, the same in-flight window; its
 //!   client counts the chunks quinn hands over without copying them, as Arbor's client reads;
+//!   with Arbor's transport settings (initial window, ACK-frequency request, the client's
+//!   windows and UDP socket), so that only what is served and how differs;
 //! * one client fetching the whole 4 KiB scene against raw quinn's bulk rate on one stream of the
 //!   same bytes (best runs, medians, and the median of the ratios of runs taken turn by turn),
 //!   with the CPU the process spent in each timed window (server and client share the cores,
 //!   so the share of them a fetch keeps busy says whether CPU or waiting decides its time);
+//! * the same with each end on a CPU of its own, as on two machines (their own runtimes,
+//!   pinned; see [`split_ends`]): sharing the cores, the two ends mostly take turns on one;
 //! * over the link emulator (25 ms each way, 100 Mbit/s): time until the top 1,000 of a list
 //!   (random priorities over all treelets of the 4 KiB scene) have arrived.
 //!
 //! `cargo bench -p arbor-tests --bench serve` (ARBOR_BENCH_QUICK=1: fewer treelets per client;
 //! ARBOR_BENCH_WHOLE=N: only the whole-scene row, N runs in turns, for experiments, followed by
 //! two rows that split the gap: raw quinn sending the same bytes on as many streams as Arbor
-//! uses, and Arbor's server sending to a client that only counts bytes;
+//! uses, and Arbor's server sending to a client that only counts bytes, then the row with each
+//! end on a CPU of its own;
 //! ARBOR_BENCH_PROFILE=N / ARBOR_BENCH_PROFILE_RAW=N / ARBOR_BENCH_PROFILE_COUNTING=N: N
 //! whole-scene fetches by Arbor's client / by one raw quinn stream of the same size / by the
 //! counting client, nothing else, for a profiler or `/usr/bin/time`, served with the
-//! whole-scene row's adaptive window; `WMIN` / `WMAX` change its bounds).
+//! whole-scene row's adaptive window; `WMIN` / `WMAX` change its bounds;
+//! ARBOR_BENCH_PROFILE_SPLIT=N / ARBOR_BENCH_PROFILE_SPLIT_RAW=N: the same with each end on a
+//! CPU of its own, in threads named `server-end` and `client-end` for `perf report --sort comm`).
 //! Never run in CI.
 
 use std::net::SocketAddr;
@@ -244,8 +251,17 @@ mod raw {
         tls.alpn_protocols = vec![b"raw".to_vec()];
         let mut sc =
             quinn::ServerConfig::with_crypto(Arc::new(QuicServerConfig::try_from(tls).unwrap()));
+        // Arbor's transport settings, so that the rows compare what is served and how, not
+        // the tuning: the server's initial window and ACK-frequency request, the client's
+        // windows (below).
         let mut tc = quinn::TransportConfig::default();
         tc.max_concurrent_uni_streams(1024u32.into());
+        let mut cubic = quinn::congestion::CubicConfig::default();
+        cubic.initial_window(arbor_server::service::config::DEFAULT_INITIAL_WINDOW);
+        tc.congestion_controller_factory(Arc::new(cubic));
+        let mut acks = quinn::AckFrequencyConfig::default();
+        acks.max_ack_delay(Some(arbor_server::service::server::ACK_DELAY));
+        tc.ack_frequency_config(Some(acks));
         sc.transport_config(Arc::new(tc));
         let endpoint = quinn::Endpoint::server(sc, "127.0.0.1:0".parse().unwrap()).unwrap();
         let addr = endpoint.local_addr().unwrap();
@@ -289,7 +305,9 @@ mod raw {
             .with_no_client_auth();
         ctls.alpn_protocols = vec![b"raw".to_vec()];
         let mut cc = quinn::ClientConfig::new(Arc::new(QuicClientConfig::try_from(ctls).unwrap()));
-        let mut tc = quinn::TransportConfig::default();
+        let mut tc = arbor_client_net::transport::transport_config(
+            arbor_client_net::transport::IDLE_TIMEOUT,
+        );
         tc.max_concurrent_uni_streams(1024u32.into());
         cc.transport_config(Arc::new(tc));
         Raw {
@@ -782,6 +800,21 @@ async fn main() {
     })
     .await
     .unwrap();
+    // Each end on a CPU of its own, for a profiler: before any other server holds the pool.
+    let split_profile = [
+        ("ARBOR_BENCH_PROFILE_SPLIT", SplitProfile::Arbor),
+        (
+            "ARBOR_BENCH_PROFILE_SPLIT_RAW",
+            SplitProfile::Raw(files.iter().map(|f| f.len() as u32).sum()),
+        ),
+    ]
+    .into_iter()
+    .find_map(|(var, p)| Some((std::env::var(var).ok()?, p)));
+    if let Some((runs, p)) = split_profile {
+        let runs = runs.parse().unwrap_or(300);
+        split_ends(pool_dir.path(), data_dir.path(), &scenes[1], runs, Some(p)).await;
+        return;
+    }
     // Loopback comparison: Arbor's window fixed to raw quinn's.
     // ARBOR_BENCH_WINDOW=MIN,MAX: other window bounds for Arbor (experiments).
     let window = std::env::var("ARBOR_BENCH_WINDOW")
@@ -1027,6 +1060,7 @@ async fn main() {
             median_of(c_cpu)
         );
         server.shutdown().await;
+        split_ends(pool_dir.path(), data_dir.path(), d, rounds, None).await;
         return;
     }
     let link = LinkEmulator::start(
@@ -1086,6 +1120,183 @@ async fn main() {
     c.close().await;
     link.shutdown().await;
     server.shutdown().await;
+    split_ends(pool_dir.path(), data_dir.path(), d, rounds, None).await;
     cost_breakdown(pool_dir.path(), "lion-4k");
     cost_breakdown(pool_dir.path(), "lion-1k");
+}
+
+/// CPU time of the calling thread so far (`CLOCK_THREAD_CPUTIME_ID`).
+fn thread_cpu() -> Duration {
+    let t = rustix::time::clock_gettime(rustix::time::ClockId::ThreadCPUTime);
+    Duration::new(
+        t.tv_sec.max(0) as u64,
+        t.tv_nsec.clamp(0, 999_999_999) as u32,
+    )
+}
+
+/// A runtime of one worker whose threads (the worker and any blocking ones) run on CPU `cpu`
+/// only.
+fn pinned_runtime(cpu: usize, name: &str) -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .thread_name(name)
+        .enable_all()
+        .on_thread_start(move || {
+            let mut set = rustix::thread::CpuSet::new();
+            set.set(cpu);
+            rustix::thread::sched_setaffinity(None, &set).expect("pin a thread to its CPU");
+        })
+        .build()
+        .unwrap()
+}
+
+/// What [`split_ends`] fetches for a profiler, instead of the row.
+#[derive(Clone, Copy)]
+enum SplitProfile {
+    /// Arbor's whole-scene fetches only.
+    Arbor,
+    /// Raw quinn's one stream of this many bytes only.
+    Raw(u32),
+}
+
+/// The whole-scene row again with the server's end and the client's end each on a CPU of its
+/// own, as when they run on two machines: each has its own runtime of one worker, pinned.
+/// Arbor against raw quinn's one stream of the same bytes, `runs` turns (or, with `profile`,
+/// only one of the two, `runs` times, and nothing printed).
+///
+/// Why a row of its own: in the row above both ends share the cores, and the two ends mostly
+/// take turns on one CPU (the row's CPU share: about one of two cores busy). Separate runtimes
+/// left unpinned measure the same as that row, so it is where the kernel runs the threads, not
+/// the runtime; pinned, both ends work at once, as on two machines.
+async fn split_ends(
+    pool: &std::path::Path,
+    data: &std::path::Path,
+    d: &SceneDescription,
+    runs: usize,
+    profile: Option<SplitProfile>,
+) {
+    let allowed = rustix::thread::sched_getaffinity(None).expect("the CPUs this process may use");
+    let cpus: Vec<usize> = (0..rustix::thread::CpuSet::MAX_CPU)
+        .filter(|&c| allowed.is_set(c))
+        .take(2)
+        .collect();
+    let [server_cpu, client_cpu] = cpus[..] else {
+        println!(
+            "whole {} with each end on a CPU of its own: SKIPPED, this process may run on {} \
+             CPU(s), the row needs two",
+            d.name,
+            cpus.len()
+        );
+        return;
+    };
+    // Named for profilers (`perf report --sort comm`).
+    let server_rt = pinned_runtime(server_cpu, "server-end");
+    let client_rt = pinned_runtime(client_cpu, "client-end");
+    let config = serve_config(pool, data, adaptive_window());
+    let server = server_rt
+        .spawn(async move { start(config).await.unwrap() })
+        .await
+        .unwrap();
+    let raw = Arc::new(server_rt.spawn(async { raw::start() }).await.unwrap());
+    let (addr, fp) = (server.quic_addr, server.fingerprint.clone());
+    let whole = d.treelet_count as usize;
+    let (mut a, mut r, mut a_cpu, mut r_cpu) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    // CPU of each end's worker thread per fetch with its connection and close, milliseconds:
+    // (server, client).
+    let (mut a_ends, mut r_ends) = (Vec::new(), Vec::new());
+    let ends_cpu = async || {
+        let server = server_rt.spawn(async { thread_cpu() }).await.unwrap();
+        let client = client_rt.spawn(async { thread_cpu() }).await.unwrap();
+        (server, client)
+    };
+    let ends_ms = |(s0, c0): (Duration, Duration), (s1, c1): (Duration, Duration)| {
+        ((s1 - s0).as_secs_f64() * 1e3, (c1 - c0).as_secs_f64() * 1e3)
+    };
+    let mut total = 0;
+    for _ in 0..runs {
+        let (fp, scene) = (fp.clone(), d.clone());
+        match profile {
+            Some(SplitProfile::Arbor) => {
+                let run =
+                    client_rt.spawn(async move { arbor_run(addr, &fp, &scene, 1, whole).await });
+                run.await.unwrap();
+                continue;
+            }
+            Some(SplitProfile::Raw(bytes)) => {
+                let raw = raw.clone();
+                client_rt
+                    .spawn(async move { raw::run(&raw, 1, 1, bytes, 1).await })
+                    .await
+                    .unwrap();
+                continue;
+            }
+            None => {}
+        }
+        let before = ends_cpu().await;
+        let run = client_rt
+            .spawn(async move { arbor_run(addr, &fp, &scene, 1, whole).await })
+            .await
+            .unwrap();
+        a_ends.push(ends_ms(before, ends_cpu().await));
+        total = run.bytes;
+        a.push((whole as f64 / run.secs, run.bytes as f64 / run.secs / 1e6));
+        a_cpu.push(run.cpu.as_secs_f64() * 1e3);
+        let (raw, bytes) = (raw.clone(), run.bytes as u32);
+        let before = ends_cpu().await;
+        let raw_run = client_rt
+            .spawn(async move { raw::run(&raw, 1, 1, bytes, 1).await })
+            .await
+            .unwrap();
+        r_ends.push(ends_ms(before, ends_cpu().await));
+        r.push((
+            1.0 / raw_run.secs,
+            raw_run.bytes as f64 / raw_run.secs / 1e6,
+        ));
+        r_cpu.push(raw_run.cpu.as_secs_f64() * 1e3);
+    }
+    if profile.is_none() {
+        let (a_median, r_median) = (median(&a), median(&r));
+        let (turns, turns_low, turns_high) = paired(&a, &r);
+        let wall_ms = |mb_per_s: f64| 1e3 * total as f64 / (mb_per_s * 1e6);
+        let (a_cpu, r_cpu) = (median_of(a_cpu), median_of(r_cpu));
+        let (a_wall, r_wall) = (wall_ms(a_median), wall_ms(r_median));
+        println!(
+            "whole {} with each end on a CPU of its own (server on CPU {server_cpu}, client on \
+             CPU {client_cpu}, as on two machines):",
+            d.name
+        );
+        println!(
+            "  medians: Arbor {a_median:.1} MB/s, raw quinn one stream {r_median:.1} MB/s: \
+             {:.2}x; best runs {:.1} against {:.1} MB/s",
+            a_median / r_median,
+            best(&a).1,
+            best(&r).1
+        );
+        println!(
+            "  turn by turn: median {turns:.2}x ({turns_low:.2}–{turns_high:.2}x over {runs} turns)"
+        );
+        println!(
+            "  CPU per fetch, medians: Arbor {a_cpu:.2} ms in {a_wall:.2} ms of wall time ({:.0} % \
+             of 2 CPUs), raw quinn {r_cpu:.2} ms in {r_wall:.2} ms ({:.0} %)",
+            100.0 * a_cpu / (2.0 * a_wall),
+            100.0 * r_cpu / (2.0 * r_wall),
+        );
+        let end = |runs: &[(f64, f64)], pick: fn(&(f64, f64)) -> f64| {
+            median_of(runs.iter().map(pick).collect())
+        };
+        println!(
+            "  each end's worker per fetch with its handshake and close, medians: Arbor server {:.2} \
+             ms, client {:.2} ms; raw quinn server {:.2} ms, client {:.2} ms",
+            end(&a_ends, |e| e.0),
+            end(&a_ends, |e| e.1),
+            end(&r_ends, |e| e.0),
+            end(&r_ends, |e| e.1),
+        );
+    }
+    server_rt
+        .spawn(async move { server.shutdown().await })
+        .await
+        .unwrap();
+    server_rt.shutdown_background();
+    client_rt.shutdown_background();
 }
