@@ -3,7 +3,6 @@
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use arbor_proto::{Cell, Node, TreeletId, codec};
 use arbor_server::octree::BuildOptions;
@@ -337,65 +336,4 @@ pub fn decoded_treelets(scene: &StoredScene) -> Vec<arbor_client_core::slots::De
             .unwrap_or_else(|e| panic!("decoding treelet {id}: {e}"))
         })
         .collect()
-}
-
-/// Builds `arbor-client` for the calling test binary's profile and target directory; returns its
-/// path. Cargo builds a dependency's library but not its binaries for another package's tests
-/// (`CARGO_BIN_EXE_*` exists only inside the package), and `cargo nextest` may run without a
-/// workspace build, so a path guessed under `target/` could be missing or stale; the nested build
-/// is a no-op when the binary is fresh.
-pub fn arbor_client_binary() -> PathBuf {
-    let exe = std::env::current_exe().unwrap();
-    // target/<profile dir>/deps/<test binary>
-    let profile_dir = exe.parent().and_then(Path::parent).unwrap().to_owned();
-    let target_dir = profile_dir.parent().unwrap();
-    let profile = match profile_dir.file_name().unwrap().to_str().unwrap() {
-        "debug" => "dev".to_owned(),
-        other => other.to_owned(),
-    };
-    let manifest = Path::new(env!("CARGO_MANIFEST_DIR")).join("../Cargo.toml");
-    let mut cargo = Command::new(env!("CARGO"));
-    // Cargo sets these for the test process; build scripts (ring's) rerun when they change, so
-    // passing them on would rebuild those crates here and again in the next outer build.
-    for (key, _) in std::env::vars_os() {
-        let key = key.to_string_lossy();
-        if key.starts_with("CARGO_PKG_")
-            || key.starts_with("CARGO_BIN_EXE_")
-            || matches!(
-                &*key,
-                "CARGO_MANIFEST_DIR"
-                    | "CARGO_MANIFEST_PATH"
-                    | "CARGO_MANIFEST_LINKS"
-                    | "CARGO_CRATE_NAME"
-                    | "CARGO_BIN_NAME"
-                    | "CARGO_PRIMARY_PACKAGE"
-                    | "CARGO_TARGET_TMPDIR"
-                    | "CARGO_RUSTC_CURRENT_DIR"
-                    | "OUT_DIR"
-            )
-        {
-            cargo.env_remove(&*key);
-        }
-    }
-    let status = cargo
-        .args([
-            "build",
-            "--quiet",
-            "-p",
-            "arbor-client",
-            "--bin",
-            "arbor-client",
-        ])
-        .arg("--profile")
-        .arg(&profile)
-        .arg("--manifest-path")
-        .arg(&manifest)
-        .arg("--target-dir")
-        .arg(target_dir)
-        .status()
-        .expect("running cargo build for arbor-client");
-    assert!(status.success(), "cargo build of arbor-client failed");
-    let bin = profile_dir.join("arbor-client");
-    assert!(bin.exists(), "{} was not built", bin.display());
-    bin
 }

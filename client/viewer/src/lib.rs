@@ -18,7 +18,7 @@
 //! * **auto** — as for headless runs: gpu on a hardware adapter, cpu when the window's adapter
 //!   is a software one such as Mesa's lavapipe (it runs the passes on the machine's cores, more
 //!   slowly than the twins: on the 2-core build machine a 256×192 frame took 41–99 ms with the
-//!   CPU twins and 84–133 ms on lavapipe in the runs of `tests/tests/viewer_xvfb.rs`).
+//!   CPU twins and 84–133 ms on lavapipe in the runs of `client/tests/viewer_xvfb.rs`).
 //!
 //! `C` prints the camera as a `--camera-path look:…` bookmark, which `view` (its start) and
 //! the headless commands take.

@@ -1,6 +1,6 @@
 //! The winit application of the viewer: window, surface and device, the per-redraw cycle and
 //! the keys. Everything testable without a window lives in the sibling modules; this one is
-//! the glue, exercised end to end under Xvfb (`tests/tests/viewer_xvfb.rs`).
+//! the glue, exercised end to end under Xvfb (`client/tests/viewer_xvfb.rs`).
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;

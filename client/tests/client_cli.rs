@@ -3,14 +3,13 @@
 //! Its closing lines then find no reader: that must end the output, not the command, so the
 //! files it was asked for are written, it exits 0, and it neither panics nor reports an error.
 //! (`server/tests/cli.rs` holds `arbor-server`'s commands to the same; the client's need a
-//! server, hence this file.)
+//! server, hence this file, beside `cli.rs`, whose commands need none.)
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Output, Stdio};
 
 use arbor_client_core::image::Image;
 use arbor_tests::streaming::serve;
-use arbor_tests::support::arbor_client_binary;
 
 /// Runs `bin args` with its stdout a pipe whose reading end is closed before the command
 /// writes anything.
@@ -40,9 +39,7 @@ fn assert_clean_exit(what: &str, o: &Output) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn render_and_reference_write_their_files_when_stdout_is_closed() {
-    let bin = tokio::task::spawn_blocking(arbor_client_binary)
-        .await
-        .unwrap();
+    let bin = PathBuf::from(env!("CARGO_BIN_EXE_arbor-client"));
     let served = serve("points/lion_takanawa.copc.laz", "lion", 1024).await;
     let out = tempfile::tempdir().unwrap();
     let file = |name: &str| out.path().join(name).to_str().unwrap().to_owned();

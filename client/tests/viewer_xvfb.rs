@@ -4,12 +4,8 @@
 //!
 //! * **Launch.** Xvfb (`:N`, the first free display from 90, 1024×768×24) with a fresh 0700
 //!   `XDG_RUNTIME_DIR`; a missing Xvfb or `xwd` fails the test with what to install (never a
-//!   skip). The binary is built by running `cargo build -p arbor-client --bin arbor-client` for
-//!   this test binary's own profile and target directory: Cargo builds a dependency's library
-//!   but not its binaries for another package's tests (`CARGO_BIN_EXE_*` exists only inside the
-//!   package), and `cargo nextest` / `cargo test -p arbor-tests` may run without a workspace
-//!   build, so a path guessed under `target/` could be missing or stale. The nested build is a
-//!   no-op when the binary is fresh.
+//!   skip). The binary is the one Cargo built for this package's tests (`CARGO_BIN_EXE_*`, which
+//!   exists only inside the package: hence this file lives here, not in `tests/`).
 //! * **What is captured.** The viewer runs `--size 256x192 --no-overlay --exit-after-converged
 //!   --hold-until-stdin-eof --screenshot … --report …` and prints its X window id and
 //!   `converged at cycle N`. Then the test grabs the window's content from the X server with
@@ -59,7 +55,6 @@ use arbor_client_viewer::blit::{BACKGROUND, OVERLAY_MARGIN};
 use arbor_client_viewer::controls::Controls;
 use arbor_client_viewer::overlay::Overlay;
 use arbor_tests::streaming::serve;
-use arbor_tests::support::arbor_client_binary;
 
 const SIZE: (u32, u32) = (256, 192);
 const SEED: u64 = 7;
@@ -253,9 +248,7 @@ fn assert_window_is(what: &str, reference: &Image, window: &Xwd) {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     require_tool("xwd", &["-help"], "x11-apps");
-    let bin = tokio::task::spawn_blocking(arbor_client_binary)
-        .await
-        .unwrap();
+    let bin = PathBuf::from(env!("CARGO_BIN_EXE_arbor-client"));
 
     // The scene: lion with 1 KiB treelets, served by the real server in-process.
     let served = serve("points/lion_takanawa.copc.laz", "lion", 1024).await;
