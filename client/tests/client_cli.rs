@@ -5,7 +5,7 @@
 //! (`server/tests/cli.rs` holds `arbor-server`'s commands to the same; the client's need a
 //! server, hence this file, beside `cli.rs`, whose commands need none.)
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Output, Stdio};
 
 use arbor_client_core::image::Image;
@@ -39,7 +39,7 @@ fn assert_clean_exit(what: &str, o: &Output) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn render_and_reference_write_their_files_when_stdout_is_closed() {
-    let bin = PathBuf::from(env!("CARGO_BIN_EXE_arbor-client"));
+    let bin = Path::new(env!("CARGO_BIN_EXE_arbor-client"));
     let served = serve("points/lion_takanawa.copc.laz", "lion", 1024).await;
     let out = tempfile::tempdir().unwrap();
     let file = |name: &str| out.path().join(name).to_str().unwrap().to_owned();
@@ -49,13 +49,9 @@ async fn render_and_reference_write_their_files_when_stdout_is_closed() {
     let mut reference: Vec<String> = vec!["reference".into()];
     reference.extend(connection.iter().cloned());
     reference.extend(["--out".into(), file("reference.png")]);
-    let render_args = reference.clone();
-    let o = tokio::task::spawn_blocking({
-        let bin = bin.clone();
-        move || with_stdout_closed(&bin, &render_args)
-    })
-    .await
-    .unwrap();
+    let o = tokio::task::spawn_blocking(move || with_stdout_closed(bin, &reference))
+        .await
+        .unwrap();
     assert_clean_exit("reference", &o);
     let picture = Image::load_png(Path::new(&file("reference.png"))).unwrap();
     assert!(picture.coverage() > 0, "the reference shows nothing");
@@ -78,7 +74,7 @@ async fn render_and_reference_write_their_files_when_stdout_is_closed() {
         ]
         .map(str::to_owned),
     );
-    let o = tokio::task::spawn_blocking(move || with_stdout_closed(&bin, &render))
+    let o = tokio::task::spawn_blocking(move || with_stdout_closed(bin, &render))
         .await
         .unwrap();
     assert_clean_exit("render", &o);

@@ -304,7 +304,8 @@ fn removal_cut_short(dir: &Path) -> bool {
 /// Whether `dir` is a scratch directory nobody holds at `now`, and if so its lock file, locked
 /// (`Some(None)` when it has none): its lock file exists and the lock is free (a removal in
 /// progress holds it too), or it has none and is a removal cut short (not one just finishing,
-/// see [`removal_finishing`]), half-created while `creators_locked_out` (see [`half_created`]), or stale.
+/// see [`removal_finishing`]), half-created while `creators_locked_out` (see
+/// [`half_created`]), or stale.
 fn abandoned(dir: &Path, now: SystemTime, creators_locked_out: bool) -> Option<Option<File>> {
     let lock = dir.join(OWNER_LOCK);
     // Not followed through a link: a link named like the lock file makes the directory

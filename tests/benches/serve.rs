@@ -172,11 +172,80 @@ struct Timed {
 
 /// CPU time of the whole process so far, every thread (`CLOCK_PROCESS_CPUTIME_ID`).
 fn process_cpu() -> Duration {
-    let t = rustix::time::clock_gettime(rustix::time::ClockId::ProcessCPUTime);
+    cpu_clock(rustix::time::ClockId::ProcessCPUTime)
+}
+
+/// CPU time of the calling thread so far (`CLOCK_THREAD_CPUTIME_ID`).
+fn thread_cpu() -> Duration {
+    cpu_clock(rustix::time::ClockId::ThreadCPUTime)
+}
+
+fn cpu_clock(clock: rustix::time::ClockId) -> Duration {
+    let t = rustix::time::clock_gettime(clock);
     Duration::new(
         t.tv_sec.max(0) as u64,
         t.tv_nsec.clamp(0, 999_999_999) as u32,
     )
+}
+
+/// Whole-scene fetches taken in turns: Arbor's, each followed by raw quinn's one stream of the
+/// same bytes.
+#[derive(Default)]
+struct WholeTurns {
+    /// (treelets/s, MB/s) per fetch.
+    arbor: Vec<(f64, f64)>,
+    /// (fetches/s, MB/s) per fetch.
+    raw: Vec<(f64, f64)>,
+    /// CPU of the whole process in each fetch's timed window, milliseconds.
+    arbor_cpu_ms: Vec<f64>,
+    raw_cpu_ms: Vec<f64>,
+    /// Bytes of one fetch.
+    bytes: u64,
+}
+
+impl WholeTurns {
+    fn add(&mut self, treelets: usize, arbor: &Timed, raw: &Timed) {
+        self.bytes = arbor.bytes;
+        self.arbor.push((
+            treelets as f64 / arbor.secs,
+            arbor.bytes as f64 / arbor.secs / 1e6,
+        ));
+        self.raw
+            .push((1.0 / raw.secs, raw.bytes as f64 / raw.secs / 1e6));
+        self.arbor_cpu_ms.push(arbor.cpu.as_secs_f64() * 1e3);
+        self.raw_cpu_ms.push(raw.cpu.as_secs_f64() * 1e3);
+    }
+
+    /// Prints the medians, the ratios turn by turn, and the CPU per fetch against its wall
+    /// time, as a share of the `cpus` both ends ran on (about one of them busy: the ends take
+    /// turns; all of them: CPU is what a faster fetch has to save).
+    fn print(&self, cpus: usize) {
+        let (a_median, r_median) = (median(&self.arbor), median(&self.raw));
+        let (turns, low, high) = paired(&self.arbor, &self.raw);
+        println!(
+            "  medians: Arbor {a_median:.1} MB/s, raw quinn one stream {r_median:.1} MB/s: {:.2}x",
+            a_median / r_median
+        );
+        println!(
+            "  turn by turn (Arbor's run over raw quinn's right after it): median {turns:.2}x \
+             ({low:.2}–{high:.2}x over {} turns)",
+            self.arbor.len()
+        );
+        let wall_ms = |mb_per_s: f64| 1e3 * self.bytes as f64 / (mb_per_s * 1e6);
+        let (a_cpu, r_cpu) = (
+            median_of(self.arbor_cpu_ms.clone()),
+            median_of(self.raw_cpu_ms.clone()),
+        );
+        let (a_wall, r_wall) = (wall_ms(a_median), wall_ms(r_median));
+        let share = |cpu: f64, wall: f64| 100.0 * cpu / (cpus as f64 * wall);
+        println!(
+            "  CPU of both ends per fetch, medians: Arbor {a_cpu:.2} ms in {a_wall:.2} ms of wall \
+             time ({:.0} % of {cpus} CPUs), raw quinn one stream {r_cpu:.2} ms in {r_wall:.2} ms \
+             ({:.0} %)",
+            share(a_cpu, a_wall),
+            share(r_cpu, r_wall),
+        );
+    }
 }
 
 /// `clients` concurrent clients each fetching the first `per_client` treelets.
@@ -974,29 +1043,20 @@ async fn main() {
     // raw quinn stream of the same bytes.
     let d = &scenes[1];
     let whole = d.treelet_count as usize;
-    let (mut a, mut r) = (Vec::new(), Vec::new());
-    // CPU of the whole process per fetch, milliseconds: Arbor, raw quinn's one stream, the
-    // counting client.
-    let (mut a_cpu, mut r_cpu, mut c_cpu) = (Vec::new(), Vec::new(), Vec::new());
+    let mut turns = WholeTurns::default();
+    // CPU of the whole process per fetch of the counting client, milliseconds.
+    let mut c_cpu = Vec::new();
     // With ARBOR_BENCH_WHOLE, in the same turns: raw quinn on as many streams as Arbor's
     // batches, and Arbor's server sending to a client that only counts bytes.
     let (mut split, mut counted) = (Vec::new(), Vec::new());
     let split_streams =
         whole.div_ceil(arbor_server::service::treelets::MAX_TREELETS_PER_STREAM) as u32;
-    let mut total = 0;
     // A whole scene is a few megabytes, tens of milliseconds: more runs than the rows above.
     for _ in 0..whole_only.unwrap_or(WHOLE_ROUNDS) {
         let run = arbor_run(addr, &fp, d, 1, whole).await;
         let bytes = run.bytes;
-        total = bytes;
-        a.push((whole as f64 / run.secs, bytes as f64 / run.secs / 1e6));
-        a_cpu.push(run.cpu.as_secs_f64() * 1e3);
         let raw_run = raw::run(&raw, 1, 1, bytes as u32, 1).await;
-        r.push((
-            1.0 / raw_run.secs,
-            raw_run.bytes as f64 / raw_run.secs / 1e6,
-        ));
-        r_cpu.push(raw_run.cpu.as_secs_f64() * 1e3);
+        turns.add(whole, &run, &raw_run);
         if whole_only.is_some() {
             let size = (bytes / u64::from(split_streams)) as u32;
             let s = raw::run(&raw, 1, split_streams, size, split_streams).await;
@@ -1006,42 +1066,21 @@ async fn main() {
             c_cpu.push(c.cpu.as_secs_f64() * 1e3);
         }
     }
-    let (a_median, r_median) = (median(&a), median(&r));
-    let (turns, turns_low, turns_high) = paired(&a, &r);
-    let rounds = a.len();
-    let (a_best, r_best) = (best(&a), best(&r));
+    let rounds = turns.arbor.len();
+    let (a_best, r_best) = (best(&turns.arbor), best(&turns.raw));
     println!(
         "whole {} by one client ({} treelets, {:.1} MB): Arbor {:.1} MB/s, raw quinn one stream \
          of the same bytes {:.1} MB/s: {:.2}x; raw quinn's bulk rate above: {:.2}x",
         d.name,
         whole,
-        total as f64 / 1e6,
+        turns.bytes as f64 / 1e6,
         a_best.1,
         r_best.1,
         a_best.1 / r_best.1,
         a_best.1 / bulk
     );
-    println!(
-        "  medians: Arbor {a_median:.1} MB/s, raw quinn one stream {r_median:.1} MB/s: {:.2}x",
-        a_median / r_median
-    );
-    println!(
-        "  turn by turn (Arbor's run over raw quinn's right after it): median {turns:.2}x \
-         ({turns_low:.2}–{turns_high:.2}x over {rounds} turns)"
-    );
-    // The fetch runs server and client on the same cores: when their CPU fills the cores for
-    // the whole fetch, CPU is what a faster fetch has to save.
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as f64;
-    let wall_ms = |mb_per_s: f64| 1e3 * total as f64 / (mb_per_s * 1e6);
-    let (a_cpu, r_cpu) = (median_of(a_cpu), median_of(r_cpu));
-    let (a_wall, r_wall) = (wall_ms(a_median), wall_ms(r_median));
-    println!(
-        "  CPU of both ends per fetch, medians: Arbor {a_cpu:.2} ms in {a_wall:.2} ms of wall \
-         time ({:.0} % of {cores} cores), raw quinn one stream {r_cpu:.2} ms in {r_wall:.2} ms \
-         ({:.0} %)",
-        100.0 * a_cpu / (cores * a_wall),
-        100.0 * r_cpu / (cores * r_wall),
-    );
+    // Server and client share the cores here.
+    turns.print(std::thread::available_parallelism().map_or(1, |n| n.get()));
     if whole_only.is_some() {
         println!(
             "  medians: raw quinn, the same bytes on {split_streams} streams at once: {:.1} MB/s",
@@ -1051,12 +1090,12 @@ async fn main() {
             "  medians: Arbor's server to a client that only counts bytes {:.1} MB/s: {:.2}x of \
              raw quinn's one stream",
             median(&counted),
-            median(&counted) / r_median
+            median(&counted) / median(&turns.raw)
         );
         println!(
             "  turn by turn, the counting client over raw quinn: median {:.2}x; its CPU of both \
              ends per fetch {:.2} ms (medians)",
-            paired(&counted, &r).0,
+            paired(&counted, &turns.raw).0,
             median_of(c_cpu)
         );
         server.shutdown().await;
@@ -1125,15 +1164,6 @@ async fn main() {
     cost_breakdown(pool_dir.path(), "lion-1k");
 }
 
-/// CPU time of the calling thread so far (`CLOCK_THREAD_CPUTIME_ID`).
-fn thread_cpu() -> Duration {
-    let t = rustix::time::clock_gettime(rustix::time::ClockId::ThreadCPUTime);
-    Duration::new(
-        t.tv_sec.max(0) as u64,
-        t.tv_nsec.clamp(0, 999_999_999) as u32,
-    )
-}
-
 /// A runtime of one worker whose threads (the worker and any blocking ones) run on CPU `cpu`
 /// only.
 fn pinned_runtime(cpu: usize, name: &str) -> tokio::runtime::Runtime {
@@ -1200,97 +1230,65 @@ async fn split_ends(
     let raw = Arc::new(server_rt.spawn(async { raw::start() }).await.unwrap());
     let (addr, fp) = (server.quic_addr, server.fingerprint.clone());
     let whole = d.treelet_count as usize;
-    let (mut a, mut r, mut a_cpu, mut r_cpu) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-    // CPU of each end's worker thread per fetch with its connection and close, milliseconds:
-    // (server, client).
-    let (mut a_ends, mut r_ends) = (Vec::new(), Vec::new());
+    let arbor_fetch = || {
+        let (fp, scene) = (fp.clone(), d.clone());
+        client_rt.spawn(async move { arbor_run(addr, &fp, &scene, 1, whole).await })
+    };
+    let raw_fetch = |bytes: u32| {
+        let raw = raw.clone();
+        client_rt.spawn(async move { raw::run(&raw, 1, 1, bytes, 1).await })
+    };
+    // CPU of each end's worker thread so far, read on that thread: (server, client).
     let ends_cpu = async || {
         let server = server_rt.spawn(async { thread_cpu() }).await.unwrap();
         let client = client_rt.spawn(async { thread_cpu() }).await.unwrap();
         (server, client)
     };
-    let ends_ms = |(s0, c0): (Duration, Duration), (s1, c1): (Duration, Duration)| {
-        ((s1 - s0).as_secs_f64() * 1e3, (c1 - c0).as_secs_f64() * 1e3)
-    };
-    let mut total = 0;
+    let mut turns = WholeTurns::default();
+    // Each end's worker CPU per fetch with its connection and close, milliseconds:
+    // [server, client] for Arbor, then for raw quinn.
+    let mut ends_ms: [Vec<f64>; 4] = Default::default();
     for _ in 0..runs {
-        let (fp, scene) = (fp.clone(), d.clone());
         match profile {
             Some(SplitProfile::Arbor) => {
-                let run =
-                    client_rt.spawn(async move { arbor_run(addr, &fp, &scene, 1, whole).await });
-                run.await.unwrap();
-                continue;
+                arbor_fetch().await.unwrap();
             }
             Some(SplitProfile::Raw(bytes)) => {
-                let raw = raw.clone();
-                client_rt
-                    .spawn(async move { raw::run(&raw, 1, 1, bytes, 1).await })
-                    .await
-                    .unwrap();
-                continue;
+                raw_fetch(bytes).await.unwrap();
             }
-            None => {}
+            None => {
+                let t0 = ends_cpu().await;
+                let run = arbor_fetch().await.unwrap();
+                let t1 = ends_cpu().await;
+                let raw_run = raw_fetch(run.bytes as u32).await.unwrap();
+                let t2 = ends_cpu().await;
+                let ms = |a: Duration, b: Duration| (b - a).as_secs_f64() * 1e3;
+                for (v, x) in ends_ms.iter_mut().zip([
+                    ms(t0.0, t1.0),
+                    ms(t0.1, t1.1),
+                    ms(t1.0, t2.0),
+                    ms(t1.1, t2.1),
+                ]) {
+                    v.push(x);
+                }
+                turns.add(whole, &run, &raw_run);
+            }
         }
-        let before = ends_cpu().await;
-        let run = client_rt
-            .spawn(async move { arbor_run(addr, &fp, &scene, 1, whole).await })
-            .await
-            .unwrap();
-        a_ends.push(ends_ms(before, ends_cpu().await));
-        total = run.bytes;
-        a.push((whole as f64 / run.secs, run.bytes as f64 / run.secs / 1e6));
-        a_cpu.push(run.cpu.as_secs_f64() * 1e3);
-        let (raw, bytes) = (raw.clone(), run.bytes as u32);
-        let before = ends_cpu().await;
-        let raw_run = client_rt
-            .spawn(async move { raw::run(&raw, 1, 1, bytes, 1).await })
-            .await
-            .unwrap();
-        r_ends.push(ends_ms(before, ends_cpu().await));
-        r.push((
-            1.0 / raw_run.secs,
-            raw_run.bytes as f64 / raw_run.secs / 1e6,
-        ));
-        r_cpu.push(raw_run.cpu.as_secs_f64() * 1e3);
     }
     if profile.is_none() {
-        let (a_median, r_median) = (median(&a), median(&r));
-        let (turns, turns_low, turns_high) = paired(&a, &r);
-        let wall_ms = |mb_per_s: f64| 1e3 * total as f64 / (mb_per_s * 1e6);
-        let (a_cpu, r_cpu) = (median_of(a_cpu), median_of(r_cpu));
-        let (a_wall, r_wall) = (wall_ms(a_median), wall_ms(r_median));
         println!(
             "whole {} with each end on a CPU of its own (server on CPU {server_cpu}, client on \
-             CPU {client_cpu}, as on two machines):",
-            d.name
+             CPU {client_cpu}, as on two machines): best runs Arbor {:.1}, raw quinn {:.1} MB/s",
+            d.name,
+            best(&turns.arbor).1,
+            best(&turns.raw).1
         );
+        turns.print(2);
+        let [a_server, a_client, r_server, r_client] = ends_ms.map(median_of);
         println!(
-            "  medians: Arbor {a_median:.1} MB/s, raw quinn one stream {r_median:.1} MB/s: \
-             {:.2}x; best runs {:.1} against {:.1} MB/s",
-            a_median / r_median,
-            best(&a).1,
-            best(&r).1
-        );
-        println!(
-            "  turn by turn: median {turns:.2}x ({turns_low:.2}–{turns_high:.2}x over {runs} turns)"
-        );
-        println!(
-            "  CPU per fetch, medians: Arbor {a_cpu:.2} ms in {a_wall:.2} ms of wall time ({:.0} % \
-             of 2 CPUs), raw quinn {r_cpu:.2} ms in {r_wall:.2} ms ({:.0} %)",
-            100.0 * a_cpu / (2.0 * a_wall),
-            100.0 * r_cpu / (2.0 * r_wall),
-        );
-        let end = |runs: &[(f64, f64)], pick: fn(&(f64, f64)) -> f64| {
-            median_of(runs.iter().map(pick).collect())
-        };
-        println!(
-            "  each end's worker per fetch with its handshake and close, medians: Arbor server {:.2} \
-             ms, client {:.2} ms; raw quinn server {:.2} ms, client {:.2} ms",
-            end(&a_ends, |e| e.0),
-            end(&a_ends, |e| e.1),
-            end(&r_ends, |e| e.0),
-            end(&r_ends, |e| e.1),
+            "  each end's worker per fetch with its handshake and close, medians: Arbor server \
+             {a_server:.2} ms, client {a_client:.2} ms; raw quinn server {r_server:.2} ms, client \
+             {r_client:.2} ms"
         );
     }
     server_rt
