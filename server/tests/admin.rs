@@ -101,6 +101,7 @@ fn fill(state: &ServiceState) {
     m.request_items.store(12_345, Ordering::Relaxed);
     m.treelets_sent.store(500, Ordering::Relaxed);
     m.treelet_bytes_sent.store(987_654, Ordering::Relaxed);
+    m.treelet_streams.store(31, Ordering::Relaxed);
     m.treelets_cancelled.store(7, Ordering::Relaxed);
     m.error(ErrorCode::FrameTooLarge);
     m.error(ErrorCode::FrameTooLarge);
@@ -810,6 +811,7 @@ async fn metrics_parse_and_report_the_state_and_the_pool() {
         ("arbor_request_items_total", 12_345.0),
         ("arbor_treelets_sent_total", 500.0),
         ("arbor_treelet_bytes_sent_total", 987_654.0),
+        ("arbor_treelet_streams_total", 31.0),
         ("arbor_treelets_cancelled_total", 7.0),
         ("arbor_queue_depth", 7.0),
         ("arbor_in_flight", 5.0),

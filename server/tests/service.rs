@@ -12,6 +12,7 @@ use arbor_proto::frame::{self, decode_treelet_message};
 use arbor_proto::limits::{MAX_FRAME_BYTES, MAX_REQUEST_ITEMS};
 use arbor_proto::wire::{ErrorCode, Frame, HELLO_SEND_ROOT, HELLO_VIEW, ViewHint};
 use arbor_proto::{Channel, TreeletId, codec};
+use arbor_server::service::schedule::batch_limit;
 use arbor_server::service::treelets::MAX_TREELETS_PER_STREAM;
 use common::*;
 
@@ -114,6 +115,12 @@ async fn a_list_arrives_exactly_and_byte_identical_to_the_pool() {
     let m = &server.state.metrics;
     assert_eq!(m.treelets_sent.load(Ordering::Relaxed), n as u64);
     assert_eq!(m.treelet_bytes_sent.load(Ordering::Relaxed), bytes as u64);
+    // Batched: a few treelets per stream, at most the most a stream carries.
+    let streams = m.treelet_streams.load(Ordering::Relaxed);
+    assert!(
+        streams >= n.div_ceil(MAX_TREELETS_PER_STREAM) as u64 && streams < n as u64,
+        "{n} treelets on {streams} streams"
+    );
     assert_eq!(m.request_lists.load(Ordering::Relaxed), 1);
     assert_eq!(m.request_items.load(Ordering::Relaxed), n as u64 + 1);
     assert_eq!(m.request_to_send.count(), n as u64);
@@ -1054,9 +1061,11 @@ async fn hostile_clients_end_only_their_own_connection() {
     );
 
     // A client that never reads its streams: its own window stalls; it is closed with
-    // SlowReader after the timeout while the good client keeps its rate meanwhile.
+    // SlowReader after the timeout while the good client keeps its rate meanwhile. Two stream
+    // credits and a few KiB of flow-control credit each, so that no batch fits whole.
     let mut transport = quinn::TransportConfig::default();
     transport.max_concurrent_uni_streams(2u32.into());
+    transport.stream_receive_window((4u32 << 10).into());
     let slow = connect_with(
         server.quic_addr,
         &server.fingerprint,
@@ -1232,13 +1241,18 @@ async fn shutdown_says_goodbye_and_returns_within_the_grace() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_replacement_list_cancels_obsolete_treelets_in_flight() {
+    const WINDOW: usize = 32;
+    let batch = batch_limit(WINDOW);
     let tp = TestPool::new();
     // The client does not read for a while on purpose: not a slow reader to be closed.
     let mut config = tp.config();
     config.slow_reader_timeout_ms = 10_000;
+    // A window of a few batches, so that the list is longer than one batch.
+    config.window_min = WINDOW;
+    config.window_max = WINDOW;
     let server = start(config).await;
     let d = server.pool().scene(SCENE).unwrap().description;
-    // One stream credit and not reading yet: the first treelet's stream is opened, the rest of
+    // One stream credit and not reading yet: the first batch's stream is opened, the rest of
     // the window waits in flight for a credit.
     let mut transport = quinn::TransportConfig::default();
     transport.max_concurrent_uni_streams(1u32.into());
@@ -1283,7 +1297,7 @@ async fn a_replacement_list_cancels_obsolete_treelets_in_flight() {
             .metrics
             .treelets_cancelled
             .load(Ordering::Relaxed)
-            < in_flight.saturating_sub(MAX_TREELETS_PER_STREAM as u64)
+            < in_flight.saturating_sub(batch as u64)
     {
         assert!(t0.elapsed() < LONG, "obsolete treelets not cancelled");
         tokio::time::sleep(Duration::from_millis(10)).await;
@@ -1298,7 +1312,7 @@ async fn a_replacement_list_cancels_obsolete_treelets_in_flight() {
     ids.sort_unstable();
     let first: Vec<u32> = ids.iter().copied().filter(|&i| i < 100).collect();
     assert!(
-        !first.is_empty() && first.len() <= MAX_TREELETS_PER_STREAM,
+        !first.is_empty() && first.len() <= batch,
         "the open stream's batch: {first:?}"
     );
     assert_eq!(

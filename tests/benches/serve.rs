@@ -1049,17 +1049,27 @@ async fn main() {
     // With ARBOR_BENCH_WHOLE, in the same turns: raw quinn on as many streams as Arbor's
     // batches, and Arbor's server sending to a client that only counts bytes.
     let (mut split, mut counted) = (Vec::new(), Vec::new());
-    let split_streams =
-        whole.div_ceil(arbor_server::service::treelets::MAX_TREELETS_PER_STREAM) as u32;
+    // Streams Arbor's server wrote per fetch (its batches), for the raw row of as many.
+    let mut arbor_streams = Vec::new();
+    let streams_written = || {
+        server
+            .state
+            .metrics
+            .treelet_streams
+            .load(std::sync::atomic::Ordering::Relaxed)
+    };
     // A whole scene is a few megabytes, tens of milliseconds: more runs than the rows above.
     for _ in 0..whole_only.unwrap_or(WHOLE_ROUNDS) {
+        let before = streams_written();
         let run = arbor_run(addr, &fp, d, 1, whole).await;
+        let streams = (streams_written() - before).max(1) as u32;
         let bytes = run.bytes;
         let raw_run = raw::run(&raw, 1, 1, bytes as u32, 1).await;
         turns.add(whole, &run, &raw_run);
         if whole_only.is_some() {
-            let size = (bytes / u64::from(split_streams)) as u32;
-            let s = raw::run(&raw, 1, split_streams, size, split_streams).await;
+            arbor_streams.push(f64::from(streams));
+            let size = (bytes / u64::from(streams)) as u32;
+            let s = raw::run(&raw, 1, streams, size, streams).await;
             split.push((1.0 / s.secs, s.bytes as f64 / s.secs / 1e6));
             let c = counting::run(addr, &fp, d, whole as u32, bytes).await;
             counted.push((1.0 / c.secs, c.bytes as f64 / c.secs / 1e6));
@@ -1083,7 +1093,9 @@ async fn main() {
     turns.print(std::thread::available_parallelism().map_or(1, |n| n.get()));
     if whole_only.is_some() {
         println!(
-            "  medians: raw quinn, the same bytes on {split_streams} streams at once: {:.1} MB/s",
+            "  medians: raw quinn, the same bytes on as many streams at once as Arbor's server \
+             wrote ({:.0}): {:.1} MB/s",
+            median_of(arbor_streams),
             median(&split)
         );
         println!(

@@ -272,7 +272,7 @@ fn traffic_section(out: &mut String, state: &ServiceState, sessions: &[SessionIn
     out.push_str("<h2>Traffic</h2>\n<table class=\"kv\">");
     let queued: u64 = sessions.iter().map(|s| s.queue_depth).sum();
     let in_flight: u64 = sessions.iter().map(|s| s.in_flight).sum();
-    let rows: [(&str, String); 11] = [
+    let rows: [(&str, String); 12] = [
         ("Connections open", count(load(&m.connections_open))),
         ("Connections accepted", count(load(&m.connections_accepted))),
         ("Connections refused", count(load(&m.connections_rejected))),
@@ -280,6 +280,7 @@ fn traffic_section(out: &mut String, state: &ServiceState, sessions: &[SessionIn
         ("Requested items", count(load(&m.request_items))),
         ("Treelets sent", count(load(&m.treelets_sent))),
         ("Treelet bytes sent", bytes(load(&m.treelet_bytes_sent))),
+        ("Treelet streams", count(load(&m.treelet_streams))),
         ("Treelets cancelled", count(load(&m.treelets_cancelled))),
         ("Queued now", count(queued)),
         ("In flight now", count(in_flight)),

@@ -1530,7 +1530,8 @@ mod tests {
         assert!(batch.is_empty());
         assert_eq!(batch_limit(0), 1);
         assert_eq!(batch_limit(7), 1);
-        assert_eq!(batch_limit(1000), MAX_TREELETS_PER_STREAM);
+        assert_eq!(batch_limit(1000), 250);
+        assert_eq!(batch_limit(4096), MAX_TREELETS_PER_STREAM);
     }
 
     #[test]

@@ -94,6 +94,9 @@ pub struct Metrics {
     pub request_items: AtomicU64,
     pub treelets_sent: AtomicU64,
     pub treelet_bytes_sent: AtomicU64,
+    /// Treelet streams written whole, each a batch of treelets adjacent in rank
+    /// (`treelets_sent / treelet_streams` is the mean batch).
+    pub treelet_streams: AtomicU64,
     pub treelets_cancelled: AtomicU64,
     /// Treelets planned as pushes below deep request lists, summed over lists (a push still
     /// implied by the next list is planned again).
@@ -382,7 +385,7 @@ impl ServiceState {
         let m = &self.metrics;
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
         let resumes = &m.path_resumes;
-        let counters: [(&str, &str, &AtomicU64); 15] = [
+        let counters: [(&str, &str, &AtomicU64); 16] = [
             (
                 "arbor_connections_accepted_total",
                 "QUIC connections accepted.",
@@ -412,6 +415,11 @@ impl ServiceState {
                 "arbor_treelet_bytes_sent_total",
                 "Bytes of treelet messages sent.",
                 &m.treelet_bytes_sent,
+            ),
+            (
+                "arbor_treelet_streams_total",
+                "Treelet streams written whole, each a batch of treelets adjacent in rank.",
+                &m.treelet_streams,
             ),
             (
                 "arbor_treelets_cancelled_total",

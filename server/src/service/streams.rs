@@ -247,6 +247,7 @@ fn record_sent(ctx: &StreamCtx, batch: &[TreeletId], len: u64) {
     let n = batch.len() as u64;
     m.treelets_sent.fetch_add(n, Ordering::Relaxed);
     m.treelet_bytes_sent.fetch_add(len, Ordering::Relaxed);
+    m.treelet_streams.fetch_add(1, Ordering::Relaxed);
     ctx.treelets_sent.fetch_add(n, Ordering::Relaxed);
     ctx.bytes_sent.fetch_add(len, Ordering::Relaxed);
     ctx.shared.state.update_session(ctx.id.0, |s| {

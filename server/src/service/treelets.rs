@@ -54,10 +54,14 @@ pub enum MessageError {
     },
 }
 
-/// Most treelet messages on one stream. Measured (`cargo bench -p arbor-tests --bench serve`):
-/// QUIC's per-stream cost (open, credit, frames, acknowledgement bookkeeping, one task) dominated
-/// a 4 KiB treelet; a few per stream share it.
-pub const MAX_TREELETS_PER_STREAM: usize = 64;
+/// Most treelet messages on one stream (a batch is also at most a quarter of the connection's
+/// window: [`super::schedule::batch_limit`]). Measured (`cargo bench -p arbor-tests --bench
+/// serve`): QUIC's per-stream cost (open, credit, frames, acknowledgement bookkeeping, one task)
+/// dominated a 4 KiB treelet; a few per stream share it. 256 rather than 64: a whole lion-4k
+/// with each end on a CPU of its own went from 0.85× to 0.93× of one raw quinn stream (medians
+/// of five alternating invocations each), with no change over the link emulator
+/// (docs/measurements.md, stop 52).
+pub const MAX_TREELETS_PER_STREAM: usize = 256;
 
 /// Most visible cuts of one scene cast at once; a connection whose view finds them all busy
 /// keeps the frustum plan and asks again with its next resting list.
