@@ -335,8 +335,13 @@ mod raw {
         let endpoint = quinn::Endpoint::server(sc, "127.0.0.1:0".parse().unwrap()).unwrap();
         let addr = endpoint.local_addr().unwrap();
         let ep = endpoint.clone();
+        // Each size's payload made once and kept, as Arbor keeps its built messages: a fetch
+        // sends bytes already in memory, without filling a new buffer in its timed window.
+        let payloads: Arc<std::sync::Mutex<std::collections::HashMap<usize, bytes::Bytes>>> =
+            Arc::default();
         tokio::spawn(async move {
             while let Some(inc) = ep.accept().await {
+                let payloads = payloads.clone();
                 tokio::spawn(async move {
                     let Ok(conn) = inc.await else { return };
                     let Ok((_s, mut r)) = conn.accept_bi().await else {
@@ -349,14 +354,21 @@ mod raw {
                     let count = u32::from_le_bytes(req[0..4].try_into().unwrap());
                     let size = u32::from_le_bytes(req[4..8].try_into().unwrap()) as usize;
                     let window = u32::from_le_bytes(req[8..12].try_into().unwrap()) as usize;
-                    let payload = Arc::new(vec![7u8; size]);
+                    let payload = payloads
+                        .lock()
+                        .unwrap()
+                        .entry(size)
+                        .or_insert_with(|| bytes::Bytes::from(vec![7u8; size]))
+                        .clone();
                     let sem = Arc::new(tokio::sync::Semaphore::new(window));
                     for _ in 0..count {
                         let permit = sem.clone().acquire_owned().await.unwrap();
                         let (conn, payload) = (conn.clone(), payload.clone());
                         tokio::spawn(async move {
                             if let Ok(mut s) = conn.open_uni().await {
-                                let _ = s.write_all(&payload).await;
+                                // Handed over as it is, without a copy (Arbor writes its
+                                // batches the same way).
+                                let _ = s.write_chunk(payload).await;
                                 let _ = s.finish();
                                 let _ = s.stopped().await;
                             }
