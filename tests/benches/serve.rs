@@ -172,16 +172,25 @@ struct Timed {
 
 /// CPU time of the whole process so far, every thread (`CLOCK_PROCESS_CPUTIME_ID`).
 fn process_cpu() -> Duration {
-    cpu_clock(rustix::time::ClockId::ProcessCPUTime)
+    cpu_clock(libc::CLOCK_PROCESS_CPUTIME_ID)
 }
 
 /// CPU time of the calling thread so far (`CLOCK_THREAD_CPUTIME_ID`).
 fn thread_cpu() -> Duration {
-    cpu_clock(rustix::time::ClockId::ThreadCPUTime)
+    cpu_clock(libc::CLOCK_THREAD_CPUTIME_ID)
 }
 
-fn cpu_clock(clock: rustix::time::ClockId) -> Duration {
-    let t = rustix::time::clock_gettime(clock);
+/// Through libc rather than rustix: rustix reads the vDSO itself, which valgrind does not map,
+/// so `scripts/serve-instructions` (callgrind) crashed in the first timed fetch (rustix issue
+/// 1559); glibc's `clock_gettime` works under valgrind.
+fn cpu_clock(clock: libc::clockid_t) -> Duration {
+    let mut t = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `t` is a valid, writable timespec; the clock ids are Linux's CPU-time clocks,
+    // which always exist (on failure `t` stays zero).
+    unsafe { libc::clock_gettime(clock, &mut t) };
     Duration::new(
         t.tv_sec.max(0) as u64,
         t.tv_nsec.clamp(0, 999_999_999) as u32,
