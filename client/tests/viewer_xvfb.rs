@@ -484,12 +484,8 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     let (code, stderr) = tokio::task::spawn_blocking(move || {
         let runtime_dir = tempfile::tempdir().unwrap();
         let mut viewer = Reaped(
-            Command::new(&bin)
+            viewer_command(&bin, &display, runtime_dir.path(), "error")
                 .args(&args)
-                .env("DISPLAY", &display)
-                .env_remove("WAYLAND_DISPLAY")
-                .env("XDG_RUNTIME_DIR", runtime_dir.path())
-                .env("RUST_LOG", "error")
                 .stdin(Stdio::null())
                 .stdout(Stdio::null())
                 .stderr(Stdio::piped())
@@ -518,6 +514,19 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     served.server.shutdown().await;
 }
 
+/// `bin` set up to run in the X server on `display` only (no Wayland), with `runtime_dir` as its
+/// `XDG_RUNTIME_DIR` (made 0700, as the XDG spec asks) and `RUST_LOG=log`.
+fn viewer_command(bin: &Path, display: &str, runtime_dir: &Path, log: &str) -> Command {
+    std::fs::set_permissions(runtime_dir, std::fs::Permissions::from_mode(0o700)).unwrap();
+    let mut command = Command::new(bin);
+    command
+        .env("DISPLAY", display)
+        .env_remove("WAYLAND_DISPLAY")
+        .env("XDG_RUNTIME_DIR", runtime_dir)
+        .env("RUST_LOG", log);
+    command
+}
+
 /// [`run_viewer`] off the async workers.
 async fn view(bin: &Path, display: &str, args: Vec<OsString>) -> (Xwd, String, f64) {
     let (bin, display) = (bin.to_path_buf(), display.to_owned());
@@ -531,15 +540,10 @@ async fn view(bin: &Path, display: &str, args: Vec<OsString>) -> (Xwd, String, f
 /// standard output and how long it ran.
 fn run_viewer(bin: &Path, display: &str, args: &[OsString]) -> (Xwd, String, f64) {
     let runtime_dir = tempfile::tempdir().unwrap();
-    std::fs::set_permissions(runtime_dir.path(), std::fs::Permissions::from_mode(0o700)).unwrap();
     let started = Instant::now();
     let mut viewer = Reaped(
-        Command::new(bin)
+        viewer_command(bin, display, runtime_dir.path(), "warn")
             .args(args)
-            .env("DISPLAY", display)
-            .env_remove("WAYLAND_DISPLAY")
-            .env("XDG_RUNTIME_DIR", runtime_dir.path())
-            .env("RUST_LOG", "warn")
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
