@@ -24,7 +24,10 @@
 //! ARBOR_BENCH_WHOLE=N: only the whole-scene row, N runs in turns, for experiments, followed by
 //! two rows that split the gap: raw quinn sending the same bytes on as many streams as Arbor
 //! uses, and Arbor's server sending to a client that only counts bytes, then the row with each
-//! end on a CPU of its own;
+//! end on a CPU of its own; with ARBOR_BENCH_TREELET_BYTES=B as well (what the builder takes:
+//! 1024..=16384, a multiple of 8), those rows fetch lion built with B-byte treelets instead of
+//! 4 KiB ones: Arbor's share of a fetch is per treelet, so larger treelets, fewer and larger
+//! messages, bring it closer to one raw stream;
 //! ARBOR_BENCH_PROFILE=N / ARBOR_BENCH_PROFILE_RAW=N / ARBOR_BENCH_PROFILE_COUNTING=N: N
 //! whole-scene fetches by Arbor's client / by one raw quinn stream of the same size / by the
 //! counting client, nothing else, for a profiler or `/usr/bin/time`, served with the
@@ -58,7 +61,9 @@ const ROUNDS: usize = 3;
 /// ratios of the runs taken side by side).
 const WHOLE_ROUNDS: usize = 20;
 
-fn build_pool(dir: &std::path::Path) -> Vec<SceneDescription> {
+/// Lion with 1 KiB treelets and with `treelet_bytes`-byte ones (4 KiB but for the experiments of
+/// `ARBOR_BENCH_TREELET_BYTES`).
+fn build_pool(dir: &std::path::Path, treelet_bytes: u32) -> Vec<SceneDescription> {
     let pool = Pool::open(dir).unwrap();
     let scratch = tempfile::tempdir().unwrap();
     let source = import_file(
@@ -67,9 +72,16 @@ fn build_pool(dir: &std::path::Path) -> Vec<SceneDescription> {
         scratch.path(),
     )
     .unwrap();
-    let mut out = Vec::new();
-    for tb in [1024u32, 4096] {
-        let name = format!("lion-{}k", tb / 1024);
+    let mut out: Vec<SceneDescription> = Vec::new();
+    for tb in [1024, treelet_bytes] {
+        if let Some(same) = out.iter().find(|d| d.build.treelet_bytes == tb) {
+            out.push(same.clone());
+            continue;
+        }
+        let name = match tb % 1024 {
+            0 => format!("lion-{}k", tb / 1024),
+            _ => format!("lion-{tb}b"),
+        };
         let opts = BuildOptions {
             treelet_bytes: tb,
             ..BuildOptions::default()
@@ -931,10 +943,21 @@ async fn main() {
         .and_then(|n| n.parse().ok());
     let pool_dir = tempfile::tempdir().unwrap();
     let data_dir = tempfile::tempdir().unwrap();
+    // Only the whole-scene rows take another treelet size: the others compare lion-4k with
+    // nginx serving the same bytes as files.
+    let treelet_bytes = match std::env::var("ARBOR_BENCH_TREELET_BYTES") {
+        Ok(b) if whole_only.is_some() => b
+            .parse()
+            .expect("ARBOR_BENCH_TREELET_BYTES is a number of bytes"),
+        Ok(_) => {
+            panic!("ARBOR_BENCH_TREELET_BYTES is for the whole-scene rows: set ARBOR_BENCH_WHOLE")
+        }
+        Err(_) => 4096,
+    };
     let dir = pool_dir.path().to_owned();
     let (scenes, files) = tokio::task::spawn_blocking(move || {
-        let scenes = build_pool(&dir);
-        let files = messages(&dir, "lion-4k");
+        let scenes = build_pool(&dir, treelet_bytes);
+        let files = messages(&dir, &scenes[1].name);
         (scenes, files)
     })
     .await
