@@ -402,7 +402,7 @@ pub(crate) mod tests {
             let (read, used): (ByteDictionaries, usize) =
                 bincode::serde::decode_from_slice(&plain_enc, config).unwrap();
             assert_eq!((read, used), (bytes, plain_enc.len()));
-            // JSON (the admin API's) writes and reads the same arrays as before.
+            // A self-describing format (JSON) writes and reads the same arrays as before.
             let json = serde_json::to_string(&plain).unwrap();
             let via_bytes: ByteDictionaries = serde_json::from_str(&json).unwrap();
             assert_eq!(serde_json::to_string(&via_bytes).unwrap(), json);
