@@ -243,9 +243,9 @@ struct Batch {
 }
 
 impl Batch {
-    /// Room for a whole batch up front: a queue grown push by push moved its treelets (about
-    /// 170 bytes each) at every doubling, about two growths per batch on a whole-scene fetch of
-    /// lion-4k, whose batches vary in size.
+    /// Room for a whole batch up front: a queue grown push by push moved its treelets (168 bytes
+    /// each) at every doubling, about two growths per batch on a whole-scene fetch of lion-4k,
+    /// whose batches vary in size.
     fn new() -> Self {
         Batch {
             events: VecDeque::with_capacity(MAX_BATCH),
@@ -291,7 +291,13 @@ impl Batch {
         }
         let n = self.events.len();
         let lease = ctx.shared.lease(permit, std::mem::take(&mut self.bytes), n);
-        let events = std::mem::replace(&mut self.events, VecDeque::with_capacity(MAX_BATCH));
+        let mut events = std::mem::replace(&mut self.events, VecDeque::with_capacity(MAX_BATCH));
+        // A queued batch holds what it carries, not a whole batch's room: a caller that falls
+        // behind may hold many small ones (a budget's worth of single treelets would otherwise
+        // hold 64 events' room each, about 15 times their bytes).
+        if events.len() < MAX_BATCH / 2 {
+            events.shrink_to_fit();
+        }
         // An error means the caller dropped the client: nothing left to do.
         let _ = ctx.events.send(Queued {
             events,
