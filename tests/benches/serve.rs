@@ -337,10 +337,7 @@ async fn arbor_run(
 
 /// The earlier of two arrivals, either of which may not have happened.
 fn earliest(a: Option<Instant>, b: Option<Instant>) -> Option<Instant> {
-    match (a, b) {
-        (Some(a), Some(b)) => Some(a.min(b)),
-        (a, b) => a.or(b),
-    }
+    a.into_iter().chain(b).min()
 }
 
 /// Seconds from `t` to `first` (0 if nothing came).

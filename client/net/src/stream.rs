@@ -105,7 +105,7 @@ fn read_failed(e: ReadError) -> StreamEnd {
 
 /// Reads every treelet message of one stream, queueing them for the caller.
 pub(crate) async fn read_stream(mut recv: RecvStream, ctx: Arc<StreamContext>) {
-    let mut batch = Batch::new();
+    let mut batch = Batch::default();
     let end = read_messages(&mut recv, &ctx, &mut batch).await;
     // What was complete before the end (a reset, a violation) is the caller's all the same.
     batch.hand_over(&ctx);
@@ -235,6 +235,7 @@ impl Incoming<'_> {
 /// They are handed over together before the reader waits (for bytes or for budget) and at
 /// most [`MAX_BATCH`] at a time: one latency lookup lock, one counter lock, one channel send
 /// and, when the caller has taken them all, one budget release for the batch.
+#[derive(Default)]
 struct Batch {
     /// The treelets as the caller's events, so that handing them over moves no treelet.
     events: VecDeque<ClientEvent>,
@@ -243,18 +244,13 @@ struct Batch {
 }
 
 impl Batch {
-    /// Room for a whole batch up front: a queue grown push by push moved its treelets (168 bytes
-    /// each) at every doubling, about two growths per batch on a whole-scene fetch of lion-4k,
-    /// whose batches vary in size.
-    fn new() -> Self {
-        Batch {
-            events: VecDeque::with_capacity(MAX_BATCH),
-            permit: None,
-            bytes: 0,
-        }
-    }
-
     fn push(&mut self, treelet: ReceivedTreelet) {
+        // Room for a whole batch at its first treelet: a queue grown push by push moved its
+        // treelets (168 bytes each) at every doubling, about two growths per batch on a
+        // whole-scene fetch of lion-4k, whose batches vary in size.
+        if self.events.capacity() == 0 {
+            self.events.reserve_exact(MAX_BATCH);
+        }
         self.events.push_back(ClientEvent::Treelet(treelet));
     }
 
@@ -291,7 +287,7 @@ impl Batch {
         }
         let n = self.events.len();
         let lease = ctx.shared.lease(permit, std::mem::take(&mut self.bytes), n);
-        let mut events = std::mem::replace(&mut self.events, VecDeque::with_capacity(MAX_BATCH));
+        let mut events = std::mem::take(&mut self.events);
         // A queued batch holds what it carries, not a whole batch's room: a caller that falls
         // behind may hold many small ones (a budget's worth of single treelets would otherwise
         // hold 64 events' room each, about 15 times their bytes).
