@@ -603,9 +603,9 @@ impl Handler {
     }
 
     /// Batch `id`'s stream task ended. Its treelets may already be in a newer batch (the
-    /// scheduler hears of their end before this handler does): only entries of this batch go.
+    /// scheduler hears of their end before this handler does): only this batch's record goes.
     fn on_stream_end(&mut self, id: u64, batch: &[TreeletId], outcome: Outcome) -> Option<End> {
-        self.batches.end(id, batch);
+        self.batches.end(id);
         match outcome {
             Outcome::Failed(reason) => {
                 tracing::error!(treelets = ?batch, "{reason}");

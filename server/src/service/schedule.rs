@@ -30,7 +30,8 @@
 //!
 //! Complexity, for a list of `n` items, `w` in flight, `c` connections: a list costs
 //! O(n log n) (a sort by id to collapse duplicates, a merge with the previous list, a rank sort
-//! of what can be sent) and O(n) memory (24 + 24 bytes per item: the by-id index and the queue,
+//! of what can be sent) plus O(d) for the `d` deliveries within the redelivery guard, and O(n)
+//! memory (24 + 24 bytes per item: the by-id index and the queue,
 //! each item with since when it is wanted); `poll_transmit` is O(1) amortized per treelet
 //! (`poll_batch` likewise) plus O(log r) for `r` retried treelets; `handle_sent`/
 //! `handle_delivered` are O(1) expected (hash maps); `handle_cancelled` is O(log n) (binary
@@ -310,9 +311,11 @@ struct Conn {
     /// it came, each with the end of its guard.
     deferred: Vec<(Instant, TreeletId)>,
     in_flight: FxHashMap<TreeletId, Flight>,
-    /// Deliveries within the redelivery guard, oldest first, and the latest time per id.
+    /// Deliveries within the redelivery guard, oldest first. Only a list (or the tick's
+    /// deferred treelets) asks who is among them, so the by-id view is built then
+    /// ([`Conn::recent_by_id`]), not kept up per delivery: a whole-scene fetch's single list
+    /// comes before any delivery and never pays for one.
     recent: VecDeque<(Instant, TreeletId)>,
-    recent_at: FxHashMap<TreeletId, Instant>,
     /// Every treelet delivered on this connection when it remembers deliveries (forgotten all
     /// at once at [`Conn::delivered_cap`]): pushes planned from a visible cut leave them out.
     delivered_ever: FxHashSet<TreeletId>,
@@ -336,7 +339,6 @@ impl Conn {
             deferred: Vec::new(),
             in_flight: FxHashMap::default(),
             recent: VecDeque::new(),
-            recent_at: FxHashMap::default(),
             delivered_ever: FxHashSet::default(),
             prefetch_below: None,
             prefetch_in_flight: 0,
@@ -460,7 +462,6 @@ impl Conn {
         self.stats.treelets_delivered += 1;
         if !self.config.redelivery_guard.is_zero() {
             self.recent.push_back((now, treelet));
-            self.recent_at.insert(treelet, now);
         }
         if self.config.remember_deliveries {
             if self.delivered_ever.len() >= self.delivered_cap() {
@@ -485,24 +486,22 @@ impl Conn {
             .max_queue
             .max(self.config.window)
             .saturating_mul(4);
-        while let Some(&(t, id)) = self.recent.front() {
+        while let Some(&(t, _)) = self.recent.front() {
             if within_guard(t, start) && self.recent.len() <= cap {
                 break;
             }
             self.recent.pop_front();
-            if let Entry::Occupied(e) = self.recent_at.entry(id)
-                && *e.get() == t
-            {
-                e.remove();
-            }
         }
     }
 
-    /// Whether `id` was delivered within the guard that began at `start` ([`Conn::guard_start`]).
-    fn recently_delivered(&self, id: TreeletId, start: Option<Instant>) -> bool {
-        self.recent_at
-            .get(&id)
-            .is_some_and(|&t| within_guard(t, start))
+    /// The latest delivery of each treelet within the guard that began at `start`
+    /// ([`Conn::guard_start`]); empty, without a map, when there is none.
+    fn recent_by_id(&self, start: Option<Instant>) -> FxHashMap<TreeletId, Instant> {
+        self.recent
+            .iter()
+            .filter(|&&(at, _)| within_guard(at, start))
+            .map(|&(at, id)| (id, at))
+            .collect()
     }
 
     fn snapshot(&self) -> ConnectionStats {
@@ -745,7 +744,7 @@ impl Scheduler {
         obsolete_in_flight.sort_unstable();
 
         conn.prune_recent(now);
-        let start = conn.guard_start(now);
+        let recent = conn.recent_by_id(conn.guard_start(now));
         let guard = conn.config.redelivery_guard;
         let mut deferred = Vec::new();
         let mut queue: Vec<Wanted> = conn
@@ -758,8 +757,8 @@ impl Scheduler {
                     deferred.push((now + guard, w.id));
                     return false;
                 }
-                if conn.recently_delivered(w.id, start) {
-                    deferred.push((conn.recent_at[&w.id] + guard, w.id));
+                if let Some(&at) = recent.get(&w.id) {
+                    deferred.push((at + guard, w.id));
                     return false;
                 }
                 true
@@ -791,16 +790,13 @@ impl Scheduler {
         if conn.deferred.is_empty() {
             return 0;
         }
-        let start = conn.guard_start(now);
+        let recent = conn.recent_by_id(conn.guard_start(now));
         let mut released = 0;
         let mut deferred = std::mem::take(&mut conn.deferred);
         deferred.retain(|&(end, treelet)| {
             // Still on its way, or delivered (again, a push say) within a guard: wait for that
             // guard to pass too.
-            if end > now
-                || conn.in_flight.contains_key(&treelet)
-                || conn.recently_delivered(treelet, start)
-            {
+            if end > now || conn.in_flight.contains_key(&treelet) || recent.contains_key(&treelet) {
                 return true;
             }
             if let Some(w) = conn.wanted(treelet) {
