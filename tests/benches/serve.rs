@@ -148,8 +148,9 @@ async fn wait_connected(c: &mut TreeletClient) {
 }
 
 /// Receives `n` treelets; returns wire bytes and when the first treelet came. One deadline for
-/// the whole run, not a timer per event: the loop stands for a consumer, and its own overhead
-/// should be small.
+/// the whole run, not a timer per event, and the queued events taken as a viewer's session
+/// takes them (`try_next_event` until none is left, waiting only then): the loop stands for a
+/// consumer, and its own overhead should be small.
 async fn receive(c: &mut TreeletClient, n: usize) -> (u64, Option<Instant>) {
     let mut got = 0;
     let mut bytes = 0u64;
@@ -157,10 +158,13 @@ async fn receive(c: &mut TreeletClient, n: usize) -> (u64, Option<Instant>) {
     let deadline = tokio::time::sleep(Duration::from_secs(120));
     tokio::pin!(deadline);
     while got < n {
-        let event = tokio::select! {
-            biased;
-            e = c.next_event() => e,
-            () = &mut deadline => None,
+        let event = match c.try_next_event() {
+            Some(e) => Some(e),
+            None => tokio::select! {
+                biased;
+                e = c.next_event() => e,
+                () = &mut deadline => None,
+            },
         };
         match event {
             Some(ClientEvent::Treelet(t)) => {
