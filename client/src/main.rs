@@ -473,8 +473,12 @@ fn view(mut a: ViewArgs, runtime: &tokio::runtime::Handle) -> Result<()> {
     // Absurd parameters are refused before a window opens.
     config.session.core.validate()?;
     match arbor_client_viewer::run(config, runtime)? {
-        Outcome::TimedOut { after, cycles } => bail!(
-            "the view did not converge within {:.1} s ({cycles} cycles)",
+        Outcome::TimedOut {
+            after,
+            cycles,
+            state,
+        } => bail!(
+            "the view did not converge within {:.1} s ({cycles} cycles); {state}",
             after.as_secs_f64()
         ),
         Outcome::Converged { .. } | Outcome::Closed { .. } => Ok(()),

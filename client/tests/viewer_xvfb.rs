@@ -511,6 +511,14 @@ async fn window_shows_the_headless_render_of_the_same_camera_after_streaming() {
     );
     assert_eq!(code, Some(1), "{stderr}");
     assert!(stderr.contains("did not converge within 1.0 s"), "{stderr}");
+    // And where it stood: what was known, received and asked for.
+    for part in [
+        "% of the pixels known",
+        "treelets received",
+        "treelets requested",
+    ] {
+        assert!(stderr.contains(part), "no {part:?} in: {stderr}");
+    }
     served.server.shutdown().await;
 }
 

@@ -102,14 +102,19 @@ pub struct ViewerConfig {
 pub const SCRIPTED_ZOOM_LINES: f64 = 0.05;
 
 /// How a viewer run ended.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub enum Outcome {
     /// The user closed the window or pressed Escape.
     Closed { converged_at: Option<u32> },
     /// `exit_after_converged` and the view converged at this cycle.
     Converged { cycle: u32 },
     /// The timeout passed before convergence.
-    TimedOut { after: Duration, cycles: u32 },
+    TimedOut {
+        after: Duration,
+        cycles: u32,
+        /// Where the view stood, for people: what is known, what arrives, what is asked for.
+        state: String,
+    },
 }
 
 /// Why the viewer stopped with an error.

@@ -19,7 +19,7 @@ use arbor_client_core::backend::{Backend, BackendError, CpuBackend};
 use arbor_client_core::camera::CameraPath;
 use arbor_client_core::image::Image;
 use arbor_client_gpu::{GpuBackend, GpuContext};
-use arbor_client_report::{RunEvent, RunMeta, RunReport};
+use arbor_client_report::{CycleRecord, RunEvent, RunMeta, RunReport};
 use arbor_client_session::{RenderMode, RunError, Session};
 
 use super::blit::{Blit, FrameTexture, choose_surface_format, read_back};
@@ -572,6 +572,7 @@ impl App {
             self.outcome = Some(Outcome::TimedOut {
                 after: limit,
                 cycles: state.report.records.len() as u32,
+                state: not_converged(&state.report.records),
             });
             event_loop.exit();
         }
@@ -745,6 +746,51 @@ impl Running {
 /// Prints one status line on stdout. A reader that has gone away (`arbor-client view … | head
 /// -1`) only ends the lines it would have read; the viewer goes on (`println!` panics on the
 /// broken pipe).
+/// Where a view that did not converge in time stands, from its cycle records: whether it still
+/// asks for treelets and gets them (the server or the link behind), or has stopped asking with
+/// pixels still unknown or wanting refinement (the client's feedback behind).
+fn not_converged(records: &[CycleRecord]) -> String {
+    let Some(last) = records.last() else {
+        return "not converged: no cycle ran".into();
+    };
+    // The last second's worth of cycles, at least one.
+    let recent_from = records
+        .iter()
+        .rposition(|r| r.time_s < last.time_s - 1.0)
+        .map_or(0, |i| i + 1);
+    let recent = &records[recent_from..];
+    let sum = |f: fn(&CycleRecord) -> u64| -> (u64, u64) {
+        (records.iter().map(f).sum(), recent.iter().map(f).sum())
+    };
+    let (received, received_recently) = sum(|r| u64::from(r.treelets_received));
+    let (requests, requests_recently) = sum(|r| u64::from(r.requests_sent));
+    let (dropped, _) = sum(|r| u64::from(r.dropped));
+    let (twice, _) = sum(|r| u64::from(r.received_twice));
+    let last_arrival = records
+        .iter()
+        .rfind(|r| r.treelets_received > 0)
+        .map_or("none".into(), |r| {
+            format!("cycle {} ({:.1} s)", r.cycle, r.time_s)
+        });
+    format!(
+        "not converged at cycle {} ({:.1} s): {:.1} % of the pixels known, error mean {:.3} / max \
+         {:.3} levels, lod bias {:.3}, {} of {} slots used; treelets received {received} \
+         ({received_recently} in the last {} cycles, the last at {last_arrival}), {dropped} \
+         dropped, {twice} received twice; treelets requested {requests} ({requests_recently} \
+         in the last {} cycles)",
+        last.cycle,
+        last.time_s,
+        last.known_share * 100.0,
+        last.error.mean,
+        last.error.max,
+        last.lod_bias,
+        last.slots_used,
+        last.slots_total,
+        recent.len(),
+        recent.len(),
+    )
+}
+
 fn say(line: std::fmt::Arguments<'_>) {
     say_to(&mut std::io::stdout().lock(), line);
 }
