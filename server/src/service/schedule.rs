@@ -316,16 +316,17 @@ struct Conn {
     /// Deliveries ever pushed to `recent`: the one at `recent[i]` is number
     /// `recent_pushed - recent.len() + i`.
     recent_pushed: u64,
-    /// The latest delivery of each treelet among the first `recent.len() - unindexed` of
-    /// `recent` (and among some already pruned from it), by number and time. Only a list (or
+    /// The number of the latest delivery of each treelet among the first
+    /// `recent.len() - unindexed` of `recent` (and among some already pruned from it; its time
+    /// is in `recent` while it is kept there). Only a list (or
     /// the tick's deferred treelets) asks who was delivered within the guard, so the deliveries
     /// since the last such question are indexed then ([`Conn::index_recent`]), not one by one
     /// as they come: a whole-scene fetch's single list comes before any delivery and never
     /// pays for one, and a list costs the deliveries since the list before, not all those
-    /// within the guard (with 32,000 of them and a list every 16 ms, a list took 613 µs when
-    /// the view was rebuilt from `recent` for each, 266 µs so; `cargo bench -p arbor-server
-    /// --bench schedule`).
-    recent_index: FxHashMap<TreeletId, (u64, Instant)>,
+    /// within the guard (with 32,000 of them and a list every 16 ms, a list took 561–613 µs
+    /// when the view was rebuilt from `recent` for each, 137–150 µs so; `cargo bench -p
+    /// arbor-server --bench schedule`).
+    recent_index: FxHashMap<TreeletId, u64>,
     /// Deliveries at the back of `recent` not in `recent_index` yet.
     unindexed: usize,
     /// Every treelet delivered on this connection when it remembers deliveries (forgotten all
@@ -515,7 +516,8 @@ impl Conn {
     /// Brings [`Conn::recent_index`] up to date with `recent`, for
     /// [`Conn::recently_delivered`]. Entries of deliveries pruned since stay until the index
     /// holds twice as many as `recent` (plus a little); then it is built afresh, so its size
-    /// stays bounded and each delivery is indexed a constant number of times on average.
+    /// stays bounded and each delivery is indexed a constant number of times on average: at
+    /// most about twice the entries, of 16 bytes, the view rebuilt per list had (24 bytes).
     fn index_recent(&mut self) {
         if self.recent_index.len() > 2 * self.recent.len() + 64 {
             self.recent_index.clear();
@@ -523,8 +525,8 @@ impl Conn {
         }
         let first = self.recent_pushed - self.unindexed as u64;
         let new = self.recent.range(self.recent.len() - self.unindexed..);
-        for (number, &(at, id)) in (first..).zip(new) {
-            self.recent_index.insert(id, (number, at));
+        for (number, &(_, id)) in (first..).zip(new) {
+            self.recent_index.insert(id, number);
         }
         self.unindexed = 0;
     }
@@ -534,10 +536,12 @@ impl Conn {
     fn recently_delivered(&self, treelet: TreeletId, start: Option<Instant>) -> Option<Instant> {
         debug_assert_eq!(self.unindexed, 0, "index_recent first");
         let oldest_kept = self.recent_pushed - self.recent.len() as u64;
-        let &(number, at) = self.recent_index.get(&treelet)?;
+        let number = *self.recent_index.get(&treelet)?;
         // A later delivery would have replaced this one: if this one was pruned (by age or by
         // the record's cap) or is past the guard, so is every earlier one.
-        (number >= oldest_kept && within_guard(at, start)).then_some(at)
+        let kept = usize::try_from(number.checked_sub(oldest_kept)?).ok()?;
+        let &(at, _) = self.recent.get(kept)?;
+        within_guard(at, start).then_some(at)
     }
 
     fn snapshot(&self) -> ConnectionStats {
