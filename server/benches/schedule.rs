@@ -133,8 +133,8 @@ fn main() {
     let list_len = env_usize("ARBOR_SCHEDULE_LIST", 4096).max(2);
     let timed = env_usize("ARBOR_SCHEDULE_LISTS", 30).max(1);
     println!(
-        "A list every {} ms of {list_len} items (or the treelets to deliver) against the deliveries within the 100 ms \
-         redelivery guard; one connection; median of {timed} lists",
+        "A list every {} ms of {list_len} items (or the treelets to deliver) against the \
+         deliveries within the 100 ms redelivery guard; one connection; median of {timed} lists",
         FRAME.as_millis()
     );
     println!(

@@ -32,7 +32,8 @@
 //! O(n log n) (a sort by id to collapse duplicates, a merge with the previous list, a rank sort
 //! of what can be sent) plus O(d) for the `d` deliveries since the connection's last list
 //! (indexed by treelet then, for the redelivery guard), and O(n) memory (24 + 24 bytes per
-//! item: the by-id index and the queue, each item with since when it is wanted); `poll_transmit` is O(1) amortized per treelet
+//! item: the by-id index and the queue, each item with since when it is wanted);
+//! `poll_transmit` is O(1) amortized per treelet
 //! (`poll_batch` likewise) plus O(log r) for `r` retried treelets; `handle_sent`/
 //! `handle_delivered` are O(1) expected (hash maps); `handle_cancelled` is O(log n) (binary
 //! search of the list by id); `remove_connection` is O(c) (ring cleanup).
@@ -318,14 +319,13 @@ struct Conn {
     recent_pushed: u64,
     /// The number of the latest delivery of each treelet among the first
     /// `recent.len() - unindexed` of `recent` (and among some already pruned from it; its time
-    /// is in `recent` while it is kept there). Only a list (or
-    /// the tick's deferred treelets) asks who was delivered within the guard, so the deliveries
-    /// since the last such question are indexed then ([`Conn::index_recent`]), not one by one
-    /// as they come: a whole-scene fetch's single list comes before any delivery and never
-    /// pays for one, and a list costs the deliveries since the list before, not all those
-    /// within the guard (with 32,000 of them and a list every 16 ms, a list took 561–613 µs
-    /// when the view was rebuilt from `recent` for each, 137–150 µs so; `cargo bench -p
-    /// arbor-server --bench schedule`).
+    /// is in `recent` while it is kept there). Only a list (or the tick's deferred treelets)
+    /// asks who was delivered within the guard, so the deliveries since the last such question
+    /// are indexed then ([`Conn::index_recent`]), not one by one as they come: a whole-scene
+    /// fetch's single list comes before any delivery and never pays for one, and a list costs
+    /// the deliveries since the list before, not all those within the guard (with 32,000 of
+    /// them and a list every 16 ms, a list took 561–613 µs when the view was rebuilt from
+    /// `recent` for each, 137–150 µs so; `cargo bench -p arbor-server --bench schedule`).
     recent_index: FxHashMap<TreeletId, u64>,
     /// Deliveries at the back of `recent` not in `recent_index` yet.
     unindexed: usize,
