@@ -743,9 +743,6 @@ impl Running {
     }
 }
 
-/// Prints one status line on stdout. A reader that has gone away (`arbor-client view … | head
-/// -1`) only ends the lines it would have read; the viewer goes on (`println!` panics on the
-/// broken pipe).
 /// Where a view that did not converge in time stands, from its cycle records: whether it still
 /// asks for treelets and gets them (the server or the link behind), or has stopped asking with
 /// pixels still unknown or wanting refinement (the client's feedback behind).
@@ -791,6 +788,9 @@ fn not_converged(records: &[CycleRecord]) -> String {
     )
 }
 
+/// Prints one status line on stdout. A reader that has gone away (`arbor-client view … | head
+/// -1`) only ends the lines it would have read; the viewer goes on (`println!` panics on the
+/// broken pipe).
 fn say(line: std::fmt::Arguments<'_>) {
     say_to(&mut std::io::stdout().lock(), line);
 }

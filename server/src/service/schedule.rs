@@ -317,8 +317,8 @@ struct Conn {
     /// Deliveries ever pushed to `recent`: the one at `recent[i]` is number
     /// `recent_pushed - recent.len() + i`.
     recent_pushed: u64,
-    /// The number of the latest delivery of each treelet among the first
-    /// `recent.len() - unindexed` of `recent` (and among some already pruned from it; its time
+    /// The number of the latest delivery of each treelet among those numbered below
+    /// `indexed` (some of them already pruned from `recent`; a delivery's time
     /// is in `recent` while it is kept there). Only a list (or the tick's deferred treelets)
     /// asks who was delivered within the guard, so the deliveries since the last such question
     /// are indexed then ([`Conn::index_recent`]), not one by one as they come: a whole-scene
@@ -327,8 +327,8 @@ struct Conn {
     /// them and a list every 16 ms, a list took 561–613 µs when the view was rebuilt from
     /// `recent` for each, 137–150 µs so; `cargo bench -p arbor-server --bench schedule`).
     recent_index: FxHashMap<TreeletId, u64>,
-    /// Deliveries at the back of `recent` not in `recent_index` yet.
-    unindexed: usize,
+    /// Deliveries numbered from here on are not in `recent_index` yet.
+    indexed: u64,
     /// Every treelet delivered on this connection when it remembers deliveries (forgotten all
     /// at once at [`Conn::delivered_cap`]): pushes planned from a visible cut leave them out.
     delivered_ever: FxHashSet<TreeletId>,
@@ -354,7 +354,7 @@ impl Conn {
             recent: VecDeque::new(),
             recent_pushed: 0,
             recent_index: FxHashMap::default(),
-            unindexed: 0,
+            indexed: 0,
             delivered_ever: FxHashSet::default(),
             prefetch_below: None,
             prefetch_in_flight: 0,
@@ -479,7 +479,6 @@ impl Conn {
         if !self.config.redelivery_guard.is_zero() {
             self.recent.push_back((now, treelet));
             self.recent_pushed += 1;
-            self.unindexed += 1;
         }
         if self.config.remember_deliveries {
             if self.delivered_ever.len() >= self.delivered_cap() {
@@ -510,7 +509,11 @@ impl Conn {
             }
             self.recent.pop_front();
         }
-        self.unindexed = self.unindexed.min(self.recent.len());
+    }
+
+    /// The number of the oldest delivery still in `recent`.
+    fn oldest_kept(&self) -> u64 {
+        self.recent_pushed - self.recent.len() as u64
     }
 
     /// Brings [`Conn::recent_index`] up to date with `recent`, for
@@ -519,27 +522,28 @@ impl Conn {
     /// stays bounded and each delivery is indexed a constant number of times on average: at
     /// most about twice the entries, of 16 bytes, the view rebuilt per list had (24 bytes).
     fn index_recent(&mut self) {
+        let oldest = self.oldest_kept();
         if self.recent_index.len() > 2 * self.recent.len() + 64 {
             self.recent_index.clear();
-            self.unindexed = self.recent.len();
+            self.indexed = oldest;
         }
-        let first = self.recent_pushed - self.unindexed as u64;
-        let new = self.recent.range(self.recent.len() - self.unindexed..);
+        // Deliveries pruned before they were indexed need no entry.
+        let first = self.indexed.max(oldest);
+        let new = self.recent.range((first - oldest) as usize..);
         for (number, &(_, id)) in (first..).zip(new) {
             self.recent_index.insert(id, number);
         }
-        self.unindexed = 0;
+        self.indexed = self.recent_pushed;
     }
 
     /// When `treelet` was last delivered, if it still is in `recent` and within the guard that
     /// began at `start` ([`Conn::guard_start`]). Needs [`Conn::index_recent`] first.
     fn recently_delivered(&self, treelet: TreeletId, start: Option<Instant>) -> Option<Instant> {
-        debug_assert_eq!(self.unindexed, 0, "index_recent first");
-        let oldest_kept = self.recent_pushed - self.recent.len() as u64;
+        debug_assert_eq!(self.indexed, self.recent_pushed, "index_recent first");
         let number = *self.recent_index.get(&treelet)?;
         // A later delivery would have replaced this one: if this one was pruned (by age or by
         // the record's cap) or is past the guard, so is every earlier one.
-        let kept = usize::try_from(number.checked_sub(oldest_kept)?).ok()?;
+        let kept = usize::try_from(number.checked_sub(self.oldest_kept())?).ok()?;
         let &(at, _) = self.recent.get(kept)?;
         within_guard(at, start).then_some(at)
     }
