@@ -5,6 +5,7 @@
 
 mod common;
 
+use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
@@ -13,7 +14,10 @@ use arbor_proto::limits::{MAX_FRAME_BYTES, MAX_REQUEST_ITEMS};
 use arbor_proto::wire::{ErrorCode, Frame, HELLO_SEND_ROOT, HELLO_VIEW, ViewHint};
 use arbor_proto::{Channel, TreeletId, codec};
 use arbor_server::service::schedule::batch_limit;
-use arbor_server::service::treelets::MAX_TREELETS_PER_STREAM;
+use arbor_server::service::shapes::ShapeCache;
+use arbor_server::service::treelets::{
+    MAX_CHUNKS_PER_STREAM, MAX_TREELETS_PER_STREAM, MessageCache,
+};
 use common::*;
 
 const LONG: Duration = Duration::from_secs(10);
@@ -1342,25 +1346,13 @@ async fn a_replacement_list_cancels_obsolete_treelets_in_flight() {
 /// bytes while it keeps turning over.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shapes_through_a_small_shape_cache_are_exact_and_within_its_bytes() {
-    use arbor_server::service::shapes::ShapeCache;
-    use arbor_server::service::state::ServiceCaches;
-    use arbor_server::service::treelets::{MessageCache, ServedScene};
-    use arbor_server::service::visibility::NodeCache;
-    use std::sync::Arc;
     let tp = TestPool::new();
     let server = start(tp.config()).await;
     let stored = server.pool().scene(SCENE).unwrap();
     let count = stored.description.treelet_count;
     let root = stored.description.root_treelet;
-    let serve = |shapes: &Arc<ShapeCache>| {
-        let caches = ServiceCaches {
-            messages: Arc::new(MessageCache::new(0)),
-            shapes: shapes.clone(),
-            cut_nodes: Arc::new(NodeCache::for_nodes(0)),
-            fine_cuts: Arc::default(),
-        };
-        ServedScene::with_caches(stored.clone(), &caches)
-    };
+    let serve =
+        |shapes: &Arc<ShapeCache>| served_with(&stored, MessageCache::new(0), shapes.clone());
     let whole = serve(&Arc::new(ShapeCache::for_shapes(usize::MAX)));
     let all: Vec<_> = (0..count)
         .map(|i| {
@@ -1404,4 +1396,135 @@ async fn shapes_through_a_small_shape_cache_are_exact_and_within_its_bytes() {
     );
     assert!(f.hits >= 3 * u64::from(count), "the root is kept: {f:?}");
     server.shutdown().await;
+}
+
+/// A stream's batches from the message cache over the real bunny pool: however the batches
+/// fall and in whatever order, a batch's buffers carry exactly the messages built afresh from
+/// the pool; the same batch again goes out as the very buffer it was first joined in, a batch
+/// cut differently as slices of those buffers (not copied), never in more than
+/// `MAX_CHUNKS_PER_STREAM` buffers; a cache far smaller than the scene stays within its bytes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn batches_from_the_message_cache_are_the_pool_messages_and_a_repeat_is_not_copied() {
+    let tp = TestPool::new();
+    let server = start(tp.config()).await;
+    let stored = server.pool().scene(SCENE).unwrap();
+    let count = stored.description.treelet_count;
+    let channels = stored.description.layout.channels().to_vec();
+    let serve = |messages: &Arc<MessageCache>| {
+        served_with(
+            &stored,
+            messages.clone(),
+            Arc::new(ShapeCache::for_shapes(0)),
+        )
+    };
+    let fresh = serve(&Arc::new(MessageCache::new(0)));
+    let reference: Vec<Vec<u8>> = (0..count)
+        .map(|i| fresh.message(TreeletId(i), &channels).unwrap().to_vec())
+        .collect();
+    let expect = |ids: &[TreeletId]| -> Vec<u8> {
+        ids.iter()
+            .flat_map(|id| reference[id.0 as usize].iter().copied())
+            .collect()
+    };
+    let joined = |chunks: &[_]| -> Vec<u8> {
+        chunks
+            .iter()
+            .flat_map(|c: &bytes::Bytes| c.iter().copied())
+            .collect()
+    };
+    let ids: Vec<TreeletId> = (0..count).map(TreeletId).collect();
+    // Every seventh treelet's id further along: an order unlike the ids'.
+    let stride = (1..count)
+        .map(|s| 7 * s + 3)
+        .find(|s| gcd(*s, count) == 1)
+        .unwrap();
+    let shuffled: Vec<TreeletId> = (0..count)
+        .map(|i| TreeletId((i * stride) % count))
+        .collect();
+
+    let messages = Arc::new(MessageCache::new(64 << 20));
+    let cached = serve(&messages);
+    let first: Vec<_> = ids
+        .chunks(7)
+        .map(|b| cached.batch(b, &channels).unwrap())
+        .collect();
+    for (b, chunks) in ids.chunks(7).zip(&first) {
+        assert_eq!(chunks.len(), 1, "built afresh and joined once");
+        assert_eq!(joined(chunks), expect(b), "treelets {b:?}");
+    }
+    for (b, chunks) in ids.chunks(7).zip(&first) {
+        let again = cached.batch(b, &channels).unwrap();
+        assert_eq!(again.len(), 1);
+        assert_eq!(
+            (again[0].as_ptr(), again[0].len()),
+            (chunks[0].as_ptr(), chunks[0].len()),
+            "treelets {b:?} again: the same buffer"
+        );
+    }
+    let within_first = |c: &bytes::Bytes| {
+        first.iter().flatten().any(|f| {
+            let (f0, c0) = (f.as_ptr() as usize, c.as_ptr() as usize);
+            c0 >= f0 && c0 + c.len() <= f0 + f.len()
+        })
+    };
+    for b in ids.chunks(10) {
+        let chunks = cached.batch(b, &channels).unwrap();
+        // Ten in a row lie in at most three runs of seven.
+        assert!(
+            chunks.len() <= 3,
+            "treelets {b:?} in {} buffers",
+            chunks.len()
+        );
+        assert!(chunks.iter().all(within_first), "treelets {b:?} copied");
+        assert_eq!(joined(&chunks), expect(b), "treelets {b:?}");
+    }
+    // Every other treelet: in the same runs, not adjacent in them.
+    let every_other: Vec<TreeletId> = ids.iter().copied().step_by(2).collect();
+    for b in shuffled.chunks(9).chain(every_other.chunks(3)) {
+        let chunks = cached.batch(b, &channels).unwrap();
+        assert!(chunks.len() <= MAX_CHUNKS_PER_STREAM);
+        assert_eq!(joined(&chunks), expect(b), "treelets {b:?}");
+    }
+    let (held, hits, misses) = messages.figures();
+    assert_eq!(misses, u64::from(count), "each message built once");
+    assert!(hits >= 3 * u64::from(count) && held > 0);
+
+    // An eighth of the scene's messages: turned over and over, within its bytes, exact.
+    let total: usize = reference.iter().map(Vec::len).sum();
+    let small = Arc::new(MessageCache::new(total / 8));
+    let turning = serve(&small);
+    for round in 0..3 {
+        let order = if round == 1 { &shuffled } else { &ids };
+        for b in order.chunks(5) {
+            let chunks = turning.batch(b, &channels).unwrap();
+            assert_eq!(joined(&chunks), expect(b), "round {round}, treelets {b:?}");
+            let (held, ..) = small.figures();
+            assert!(held <= total / 8, "{held} bytes held of {}", total / 8);
+        }
+    }
+    let (_, hits, misses) = small.figures();
+    assert!(
+        misses > 2 * u64::from(count) && hits > 0,
+        "{hits} hits, {misses} misses"
+    );
+    server.shutdown().await;
+}
+
+/// `stored` served with these message and shape caches and no cut node cache.
+fn served_with(
+    stored: &arbor_server::pool::StoredScene,
+    messages: impl Into<Arc<MessageCache>>,
+    shapes: Arc<ShapeCache>,
+) -> arbor_server::service::treelets::ServedScene {
+    let caches = arbor_server::service::state::ServiceCaches {
+        messages: messages.into(),
+        shapes,
+        cut_nodes: Arc::new(arbor_server::service::visibility::NodeCache::for_nodes(0)),
+        fine_cuts: Arc::default(),
+    };
+    arbor_server::service::treelets::ServedScene::with_caches(stored.clone(), &caches)
+}
+
+fn gcd(a: u32, b: u32) -> u32 {
+    if b == 0 { a } else { gcd(b, a % b) }
 }

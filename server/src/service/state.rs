@@ -315,7 +315,7 @@ impl ServiceState {
         p.single(
             "arbor_message_cache_bytes",
             Kind::Gauge,
-            "Bytes of built treelet messages held (message_cache_bytes bounds it).",
+            "Bytes of built treelet messages held, whole buffers as built (message_cache_bytes bounds it).",
             messages.0,
         )
         .single(

@@ -1,6 +1,6 @@
 //! Treelet streams: one server-opened unidirectional stream per batch of treelets adjacent in
 //! rank (a few per stream, so the per-stream cost of QUIC is shared), opened in rank order by one
-//! opener per connection, written from the cached messages (copied together once per stream,
+//! opener per connection, written from the cached messages (one or a few buffers per stream,
 //! see [`ServedScene::batch`]), reset when the latest list wants none of the batch.
 
 use std::sync::Arc;
@@ -179,11 +179,11 @@ async fn transfer(
     cancel: &mut oneshot::Receiver<ErrorCode>,
 ) -> Outcome {
     // Read (or take from the cache) while the stream is being opened.
-    let mut bytes = match ctx.scene.batch(batch, &ctx.channels) {
+    let mut chunks = match ctx.scene.batch(batch, &ctx.channels) {
         Ok(b) => b,
         Err(e) => return Outcome::Failed(e.to_string()),
     };
-    let len = bytes.len() as u64;
+    let len = chunks.iter().map(|c| c.len() as u64).sum();
     let cancelled = |r: Result<ErrorCode, oneshot::error::RecvError>| r.unwrap_or(CANCEL_CODE);
     let step = tokio::select! {
         biased;
@@ -202,7 +202,7 @@ async fn transfer(
     let step = tokio::select! {
         biased;
         c = &mut *cancel => Step::Cancel(cancelled(c)),
-        r = stream.write_all_chunks(std::slice::from_mut(&mut bytes)) => Step::Done(r),
+        r = stream.write_all_chunks(&mut chunks) => Step::Done(r),
     };
     match step {
         Step::Cancel(code) => {

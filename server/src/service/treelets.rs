@@ -5,8 +5,9 @@
 //! from the node block itself (decompressed with the scene's prepared dictionary, header
 //! decoded) when the message is built. Built messages are kept in a [`MessageCache`] bounded in
 //! bytes (server-wide, `message_cache_bytes`), so a treelet sent again — to another client, or
-//! after an eviction — costs no pool read and no decompression: a stream's batch is one copy of
-//! the cached bytes, copied out under the cache's lock (see [`ServedScene::batch`]), never
+//! after an eviction — costs no pool read and no decompression. A batch's messages are kept
+//! back to back in the buffer they were joined in for their stream, so the same treelets in the
+//! same order go out again as a slice of it, uncopied (see [`ServedScene::batch`]); never
 //! re-framed or recompressed.
 
 use std::collections::{HashMap, VecDeque};
@@ -88,6 +89,12 @@ impl Hash for MessageKey {
 /// Built treelet messages, bounded in bytes, oldest insertion evicted first (a treelet's
 /// popularity follows the views of many clients; FIFO keeps the bookkeeping to one queue and
 /// one map under one short lock).
+///
+/// A message is held as a range of the buffer it was built in, its *run*: the messages of one
+/// stream's batch joined together (`MessageCache::insert_run`). A later batch whose messages
+/// lie back to back in one run (the same treelets in the same order: every fetch of the same
+/// list, most lists of a view that moves little) goes to the wire as a slice of the run, not
+/// copied (`MessageCache::chunks`).
 #[derive(Debug)]
 pub struct MessageCache {
     capacity: usize,
@@ -96,12 +103,60 @@ pub struct MessageCache {
 
 #[derive(Debug, Default)]
 struct CacheInner {
-    map: HashMap<MessageKey, Bytes, BuildHasherDefault<RunHasher>>,
+    map: HashMap<MessageKey, Held, BuildHasherDefault<RunHasher>>,
     order: VecDeque<MessageKey>,
     bytes: usize,
     hits: u64,
     misses: u64,
 }
+
+impl CacheInner {
+    /// Holds `held` as `key`'s, evicting the oldest until it fits in `capacity` (nothing held
+    /// when it alone is larger).
+    fn insert(&mut self, capacity: usize, key: MessageKey, held: Held) {
+        if held.charge > capacity {
+            return;
+        }
+        while self.bytes + held.charge > capacity {
+            let Some(old) = self.order.pop_front() else {
+                break;
+            };
+            if let Some(h) = self.map.remove(&old) {
+                self.bytes -= h.charge;
+            }
+        }
+        self.bytes += held.charge;
+        self.order.push_back(key);
+        self.map.insert(key, held);
+    }
+}
+
+/// A held message: bytes `start..end` of `run`.
+#[derive(Debug)]
+struct Held {
+    run: Bytes,
+    start: usize,
+    end: usize,
+    /// What it counts for against the capacity: the whole run for the last message inserted
+    /// from it, nothing for the others. A run's messages are inserted, and so evicted, one after
+    /// the other: the run's buffer is counted exactly while the cache holds any of it.
+    charge: usize,
+}
+
+impl Held {
+    fn bytes(&self) -> &[u8] {
+        &self.run[self.start..self.end]
+    }
+}
+
+/// Most buffers one stream's batch is written as. Each packet quinn builds finds its bytes by
+/// walking the stream's unacknowledged buffers from the oldest (see [`ServedScene::batch`]), so
+/// a batch spread over more runs than this is copied into one buffer instead.
+pub const MAX_CHUNKS_PER_STREAM: usize = 4;
+
+/// A run is kept whole only while it is at most this share of the cache, so one large batch
+/// cannot flush it; a larger one is kept message by message.
+const RUN_SHARE_OF_CACHE: usize = 8;
 
 impl MessageCache {
     /// A cache holding at most `capacity` bytes of messages (0: nothing is kept).
@@ -119,50 +174,100 @@ impl MessageCache {
     /// Hits for `keys`, in order, under one lock (a stream's batch is looked up at once).
     fn get(&self, keys: &[MessageKey]) -> Vec<Option<Bytes>> {
         let mut inner = self.lock();
-        let found: Vec<Option<Bytes>> = keys.iter().map(|k| inner.map.get(k).cloned()).collect();
+        let found: Vec<Option<Bytes>> = keys
+            .iter()
+            .map(|k| inner.map.get(k).map(|h| h.run.slice(h.start..h.end)))
+            .collect();
         let hits = found.iter().filter(|m| m.is_some()).count() as u64;
         inner.hits += hits;
         inner.misses += found.len() as u64 - hits;
         found
     }
 
-    /// When every one of `keys` is held: their messages back to back, copied out under the one
-    /// lock (hits counted); else `None`, nothing counted (the caller then asks [`Self::get`]).
-    /// Copying under the lock spares each message a reference-count increment and decrement on
-    /// a cache line other threads' batches touch too (`bytes::shared_clone` showed in a
-    /// whole-scene profile), and the `Vec` of clones.
-    fn joined(&self, keys: &[MessageKey]) -> Option<Bytes> {
+    /// When every one of `keys` is held: their messages back to back, as slices of the runs
+    /// they lie in (one per stretch of messages adjacent in one run), or copied into one buffer
+    /// when that would be more than [`MAX_CHUNKS_PER_STREAM`]; hits counted. Else `None`,
+    /// nothing counted (the caller then asks [`Self::get`]).
+    fn chunks(&self, keys: &[MessageKey]) -> Option<Vec<Bytes>> {
         let mut inner = self.lock();
         // One lookup per key (the table is larger than a core's cache): the hits are gathered
-        // first, then measured and copied.
-        let found: Vec<&Bytes> = keys
+        // first, then measured and sliced or copied.
+        let found: Vec<&Held> = keys
             .iter()
             .map(|k| inner.map.get(k))
             .collect::<Option<_>>()?;
-        let out = concat(&found);
+        let mut stretches: Vec<(&Bytes, usize, usize)> = Vec::with_capacity(MAX_CHUNKS_PER_STREAM);
+        let mut spread = false;
+        for h in &found {
+            if let Some((run, _, end)) = stretches.last_mut()
+                && run.as_ptr() == h.run.as_ptr()
+                && *end == h.start
+            {
+                *end = h.end;
+            } else if stretches.len() < MAX_CHUNKS_PER_STREAM {
+                stretches.push((&h.run, h.start, h.end));
+            } else {
+                spread = true;
+                break;
+            }
+        }
+        let out = if spread {
+            vec![concat(&found.iter().map(|h| h.bytes()).collect::<Vec<_>>())]
+        } else {
+            stretches
+                .iter()
+                .map(|&(run, start, end)| run.slice(start..end))
+                .collect()
+        };
         inner.hits += keys.len() as u64;
         Some(out)
     }
 
+    /// Keeps `message` as `key`'s (unless held already).
+    #[cfg(test)]
     fn insert(&self, key: MessageKey, message: Bytes) {
-        if message.len() > self.capacity {
-            return;
-        }
+        let len = message.len();
+        self.insert_run(&message, &[key], &[len]);
+    }
+
+    /// Keeps the messages of `keys`, which lie back to back in `run` with the lengths `lens`,
+    /// each unless held already. The run is kept whole when the messages new to the cache are
+    /// at least half of it and it is at most [`RUN_SHARE_OF_CACHE`] of the cache (so inserting
+    /// it never evicts its own messages); else each new message is kept as a copy of its own, so
+    /// a batch of mostly held messages does not keep a second copy of them alive.
+    fn insert_run(&self, run: &Bytes, keys: &[MessageKey], lens: &[usize]) {
         let mut inner = self.lock();
-        if inner.map.contains_key(&key) {
-            return;
-        }
-        while inner.bytes + message.len() > self.capacity {
-            let Some(old) = inner.order.pop_front() else {
-                break;
-            };
-            if let Some(b) = inner.map.remove(&old) {
-                inner.bytes -= b.len();
+        let mut new = Vec::with_capacity(keys.len());
+        let mut start = 0;
+        for (key, &len) in keys.iter().zip(lens) {
+            if !inner.map.contains_key(key) {
+                new.push((*key, start, start + len));
             }
+            start += len;
         }
-        inner.bytes += message.len();
-        inner.order.push_back(key);
-        inner.map.insert(key, message);
+        let kept: usize = new.iter().map(|&(_, start, end)| end - start).sum();
+        let count = new.len();
+        // A run that is one new message is that message as it is, whatever its size.
+        let whole = (count == 1 && kept == run.len())
+            || (2 * kept >= run.len() && run.len() <= self.capacity / RUN_SHARE_OF_CACHE);
+        for (i, (key, start, end)) in new.into_iter().enumerate() {
+            let held = if whole {
+                Held {
+                    run: run.clone(),
+                    start,
+                    end,
+                    charge: if i + 1 == count { run.len() } else { 0 },
+                }
+            } else {
+                Held {
+                    run: Bytes::copy_from_slice(&run[start..end]),
+                    start: 0,
+                    end: end - start,
+                    charge: end - start,
+                }
+            };
+            inner.insert(self.capacity, key, held);
+        }
     }
 
     /// `(bytes held, hits, misses)`.
@@ -334,30 +439,37 @@ impl ServedScene {
     /// by the scene): header + node block + channel blocks, byte for byte as stored; from the
     /// cache when it was built before.
     pub fn message(&self, id: TreeletId, channels: &[Channel]) -> Result<Bytes, MessageError> {
-        self.batch(std::slice::from_ref(&id), channels)
+        Ok(joined(self.batch(std::slice::from_ref(&id), channels)?))
     }
 
-    /// The messages of `ids` back to back, as one buffer, as a stream's batch carries them: a
-    /// single message as it is (the cached bytes, no copy), several copied together once —
-    /// straight out of the cache when it holds them all.
+    /// The messages of `ids` back to back, as a stream's batch carries them, in one buffer or a
+    /// few (at most [`MAX_CHUNKS_PER_STREAM`]): slices of the runs the cache holds them in when
+    /// it holds them all (`MessageCache::chunks`), else copied together once, that copy then
+    /// kept as their run (`MessageCache::insert_run`).
     ///
-    /// Why copy: quinn finds the bytes of every STREAM frame it builds by walking the stream's
-    /// unacknowledged chunks from the oldest (`SendBuffer::get`), so a stream written as 64
-    /// chunks costs a walk over up to 64 for each packet, and more than one for a packet that
-    /// spans chunks. On a whole-scene fetch of lion-4k that walk was 3.4 M instructions of 73 M;
-    /// copying the batches costs 0.3 M (callgrind, `scripts/serve-instructions`;
-    /// docs/measurements.md, stop 31). By time too: the 64 chunks were about 5 % slower per
-    /// fetch, and still no faster with that walk replaced by a cursor (stop 35). What is in
-    /// flight is then held twice, in the message cache and in the stream's buffer, bounded by
-    /// the send window either way.
-    pub fn batch(&self, ids: &[TreeletId], channels: &[Channel]) -> Result<Bytes, MessageError> {
+    /// Why not a buffer per message: quinn finds the bytes of every STREAM frame it builds by
+    /// walking the stream's unacknowledged buffers from the oldest (`SendBuffer::get`), so a
+    /// stream written as 64 buffers costs a walk over up to 64 for each packet, and more than
+    /// one for a packet that spans buffers. On a whole-scene fetch of lion-4k that walk was 3.4
+    /// M instructions of 73 M (callgrind, `scripts/serve-instructions`; docs/measurements.md,
+    /// stop 31). By time too: the 64 buffers were about 5 % slower per fetch, and still no
+    /// faster with that walk replaced by a cursor (stop 35). Why not a copy per batch, as
+    /// until stop 57: the copy of 2.6 MB per whole-scene fetch of lion-4k from messages spread
+    /// over the heap was 0.5 ms of the server's 4.6 ms (`perf`, each end on a CPU of its own).
+    pub fn batch(
+        &self,
+        ids: &[TreeletId],
+        channels: &[Channel],
+    ) -> Result<Vec<Bytes>, MessageError> {
         let keys = self.keys(ids, channels);
-        if keys.len() > 1
-            && let Some(joined) = self.cache.joined(&keys)
-        {
-            return Ok(joined);
+        if let Some(chunks) = self.cache.chunks(&keys) {
+            return Ok(chunks);
         }
-        Ok(joined(self.messages(&keys, ids, channels)?))
+        let messages = self.messages(&keys, ids, channels)?;
+        let lens: Vec<usize> = messages.iter().map(Bytes::len).collect();
+        let run = joined(messages);
+        self.cache.insert_run(&run, &keys, &lens);
+        Ok(vec![run])
     }
 
     fn keys(&self, ids: &[TreeletId], channels: &[Channel]) -> Vec<MessageKey> {
@@ -374,7 +486,7 @@ impl ServedScene {
     }
 
     /// The message of each of `ids` (with their `keys`), in order: the cache is asked for all of
-    /// them under one lock, and what it lacks is built and cached.
+    /// them under one lock, and what it lacks is built (the caller keeps it).
     fn messages(
         &self,
         keys: &[MessageKey],
@@ -382,25 +494,13 @@ impl ServedScene {
         channels: &[Channel],
     ) -> Result<Vec<Bytes>, MessageError> {
         let found = self.cache.get(keys);
-        keys.iter()
-            .zip(ids)
+        ids.iter()
             .zip(found)
-            .map(|((&key, &id), hit)| match hit {
+            .map(|(&id, hit)| match hit {
                 Some(m) => Ok(m),
-                None => self.build_and_cache(key, id, channels),
+                None => self.build(id, channels).map(Bytes::from),
             })
             .collect()
-    }
-
-    fn build_and_cache(
-        &self,
-        key: MessageKey,
-        id: TreeletId,
-        channels: &[Channel],
-    ) -> Result<Bytes, MessageError> {
-        let message = Bytes::from(self.build(id, channels)?);
-        self.cache.insert(key, message.clone());
-        Ok(message)
     }
 
     fn build(&self, id: TreeletId, channels: &[Channel]) -> Result<Vec<u8>, MessageError> {
@@ -488,10 +588,12 @@ mod tests {
         // joined or counted (the caller then builds what is missing).
         let (_, hits, misses) = cache.figures();
         assert_eq!(
-            cache.joined(&[key(1, 8, 1), key(1, 9, 1)]),
+            cache
+                .chunks(&[key(1, 8, 1), key(1, 9, 1)])
+                .map(|c| concat(&c)),
             Some(Bytes::from([vec![8u8; 30], vec![9u8; 30]].concat()))
         );
-        assert_eq!(cache.joined(&[key(1, 8, 1), key(1, 6, 1)]), None);
+        assert_eq!(cache.chunks(&[key(1, 8, 1), key(1, 6, 1)]), None);
         assert_eq!(cache.figures(), (90, hits + 2, misses));
         // Larger than the whole cache: not kept.
         cache.insert(key(1, 99, 1), Bytes::from(vec![0; 101]));
@@ -517,5 +619,122 @@ mod tests {
         ];
         assert_eq!(joined(parts), Bytes::from_static(b"abcdef"));
         assert!(joined(Vec::new()).is_empty());
+    }
+
+    /// `n` messages of `len` bytes each, the i-th filled with `first + i`, joined as a run.
+    fn run_of(first: u8, n: usize, len: usize) -> (Bytes, Vec<usize>) {
+        let bytes: Vec<u8> = (0..n).flat_map(|i| vec![first + i as u8; len]).collect();
+        (Bytes::from(bytes), vec![len; n])
+    }
+
+    fn keys(treelets: impl IntoIterator<Item = u32>) -> Vec<MessageKey> {
+        treelets.into_iter().map(|t| key(1, t, 1)).collect()
+    }
+
+    /// Where `chunk` lies in `run`, if it is a slice of it.
+    fn offset_in(run: &Bytes, chunk: &Bytes) -> Option<usize> {
+        let (r, c) = (run.as_ptr() as usize, chunk.as_ptr() as usize);
+        (c >= r && c + chunk.len() <= r + run.len()).then(|| c - r)
+    }
+
+    #[test]
+    fn a_batch_held_back_to_back_in_runs_goes_out_as_slices_of_them() {
+        let cache = MessageCache::new(1 << 20);
+        let (a, lens) = run_of(0, 4, 10);
+        cache.insert_run(&a, &keys(0..4), &lens);
+        let (b, lens) = run_of(4, 4, 10);
+        cache.insert_run(&b, &keys(4..8), &lens);
+        assert_eq!(cache.figures().0, 80, "each run counted once, whole");
+
+        let expect = |ts: &[u32]| -> Bytes {
+            concat(&ts.iter().map(|&t| vec![t as u8; 10]).collect::<Vec<_>>())
+        };
+        // The whole first run, a stretch inside it, and across both: no copy.
+        let whole = cache.chunks(&keys(0..4)).unwrap();
+        assert_eq!(whole.len(), 1);
+        assert_eq!(offset_in(&a, &whole[0]), Some(0));
+        assert_eq!(whole[0].len(), 40);
+        let inside = cache.chunks(&keys(1..3)).unwrap();
+        assert_eq!((inside.len(), offset_in(&a, &inside[0])), (1, Some(10)));
+        assert_eq!(concat(&inside), expect(&[1, 2]));
+        let across = cache.chunks(&keys(2..7)).unwrap();
+        assert_eq!(across.len(), 2);
+        assert_eq!(offset_in(&a, &across[0]), Some(20));
+        assert_eq!(offset_in(&b, &across[1]), Some(0));
+        assert_eq!(concat(&across), expect(&[2, 3, 4, 5, 6]));
+        // Out of order: a slice per stretch, up to MAX_CHUNKS_PER_STREAM.
+        let order = [3, 0, 1, 7];
+        let out = cache.chunks(&keys(order)).unwrap();
+        assert_eq!(out.len(), 3);
+        assert_eq!(concat(&out), expect(&order));
+        // More stretches than that: one buffer, copied, with the same bytes.
+        let order = [0, 2, 4, 6, 1, 3];
+        let out = cache.chunks(&keys(order)).unwrap();
+        assert_eq!(out.len(), 1);
+        assert_eq!(offset_in(&a, &out[0]).or(offset_in(&b, &out[0])), None);
+        assert_eq!(out[0], expect(&order));
+        let (_, hits, misses) = cache.figures();
+        assert_eq!((hits, misses), (4 + 2 + 5 + 4 + 6, 0));
+    }
+
+    #[test]
+    fn a_run_counts_whole_while_any_of_it_is_held_and_a_mostly_held_batch_is_copied() {
+        let cache = MessageCache::new(1000);
+        // Messages 0 and 1 held, then a batch of 0..4: half of it new, the run kept whole and
+        // counted whole, the part already held included.
+        let (first, lens) = run_of(0, 2, 10);
+        cache.insert_run(&first, &keys(0..2), &lens);
+        let (run, lens) = run_of(0, 4, 10);
+        cache.insert_run(&run, &keys(0..4), &lens);
+        assert_eq!(cache.figures().0, 20 + 40);
+        let out = cache.chunks(&keys(2..4)).unwrap();
+        assert_eq!((out.len(), offset_in(&run, &out[0])), (1, Some(20)));
+        // Half new again (7..11 of 8): kept whole.
+        let (big, lens) = run_of(0, 8, 10);
+        cache.insert_run(&big, &keys([0, 1, 2, 3, 7, 8, 9, 10]), &lens);
+        let seven = cache.chunks(&keys([7])).unwrap();
+        assert_eq!(
+            offset_in(&big, &seven[0]),
+            Some(40),
+            "4 of 8 new: kept whole"
+        );
+        assert_eq!(cache.figures().0, 60 + 80);
+        let (mostly, lens) = run_of(0, 4, 10);
+        cache.insert_run(&mostly, &keys([0, 1, 2, 11]), &lens);
+        let eleven = cache.chunks(&keys([11])).unwrap();
+        assert_eq!(offset_in(&mostly, &eleven[0]), None, "1 of 4 new: copied");
+        assert_eq!(&eleven[0][..], &[3u8; 10]);
+        assert_eq!(cache.figures().0, 60 + 80 + 10);
+        // Evicted oldest first, a run's messages one after the other: the run's whole length
+        // leaves with its last message, and the count never exceeds the capacity.
+        for t in 100..200u32 {
+            let (r, lens) = run_of(t as u8, 3, 10);
+            cache.insert_run(&r, &keys([3 * t, 3 * t + 1, 3 * t + 2]), &lens);
+            let (bytes, ..) = cache.figures();
+            assert!(bytes <= 1000, "{bytes} bytes held");
+            let inner = cache.lock();
+            let counted: usize = inner.map.values().map(|h| h.charge).sum();
+            assert_eq!(counted, bytes);
+            // Every run the cache holds a message of is counted in full.
+            let mut runs: Vec<(usize, usize)> = inner
+                .map
+                .values()
+                .map(|h| (h.run.as_ptr() as usize, h.run.len()))
+                .collect();
+            runs.sort_unstable();
+            runs.dedup();
+            assert_eq!(runs.iter().map(|r| r.1).sum::<usize>(), bytes);
+        }
+        // A run larger than an eighth of the cache is kept message by message.
+        let (large, lens) = run_of(0, 13, 10);
+        cache.insert_run(&large, &keys(1000..1013), &lens);
+        let out = cache.chunks(&keys(1000..1013)).unwrap();
+        assert_eq!(
+            out.len(),
+            1,
+            "13 messages of their own are more than 4 stretches"
+        );
+        assert_eq!(offset_in(&large, &out[0]), None);
+        assert_eq!(out[0], large);
     }
 }
