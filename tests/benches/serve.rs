@@ -860,7 +860,7 @@ fn cost_breakdown(dir: &std::path::Path, scene: &str) {
                 window: WINDOW,
                 max_queue: 1 << 16,
                 redelivery_guard: Duration::ZERO,
-                remember_deliveries: false,
+                ..ConnectionConfig::default()
             },
         )
         .unwrap();

@@ -65,6 +65,9 @@ pub const DEFAULT_ADMIN_LISTEN: &str = "127.0.0.1:9090";
 /// maximal request list in the scheduler, the deliveries it remembers, and room for receive
 /// and send buffers.
 pub const MIN_CONNECTION_MEMORY: u64 = 8 << 20;
+/// Fewest deliveries a connection's redelivery record keeps, whatever its memory bound
+/// ([`ServeConfig::memory_plan`]).
+const MIN_RECENT_DELIVERIES: usize = 1024;
 
 /// What is wrong with a configuration. Every variant names the key it is about.
 #[derive(Debug, thiserror::Error)]
@@ -270,6 +273,11 @@ pub struct MemoryPlan {
     /// The deliveries a connection remembers once it sends deep lists with visible cuts on
     /// (`schedule::DELIVERIES_REMEMBERED`).
     pub deliveries: u64,
+    /// Most deliveries the scheduler's redelivery record keeps
+    /// (`schedule::ConnectionConfig::recent_deliveries`).
+    pub recent_deliveries: usize,
+    /// That record and its index at most (`schedule::recent_record_bytes`).
+    pub redelivery_record: u64,
     /// QUIC connection- and stream-level receive window (what the client may send unread).
     pub receive_window: u64,
     /// QUIC send window: unacknowledged treelet bytes buffered for this connection.
@@ -824,24 +832,38 @@ impl ServeConfig {
 
     /// Divides `max_connection_memory` among a connection's buffers: the decoder (one maximal
     /// frame) and the scheduler's copy of a maximal request list are fixed by the protocol; the
-    /// receive window gets an eighth of the rest (at most 2 MiB: the client only sends control
-    /// frames), the send window everything else.
+    /// redelivery record keeps up to `schedule::RECENT_DELIVERIES_KEPT` deliveries, fewer when
+    /// that would take more than a quarter of what is left (a small bound); the receive window
+    /// gets an eighth of the rest (at most 2 MiB: the client only sends control frames), the
+    /// send window everything else.
     pub fn memory_plan(&self) -> MemoryPlan {
+        use super::schedule::{RECENT_DELIVERIES_KEPT, recent_record_bytes};
         let decoder = (MAX_FRAME_BYTES + arbor_proto::limits::FRAME_HEADER_BYTES) as u64;
         // Scheduler: by-id index (16 B) + send queue (8 B) + hash/heap overhead per item.
         let request_list = MAX_REQUEST_ITEMS as u64 * 48;
         // Deliveries remembered for visible cuts: a 4-byte id and a control byte per bucket,
         // at most twice as many buckets as ids.
         let deliveries = super::schedule::DELIVERIES_REMEMBERED as u64 * 10;
+        let fixed = decoder + request_list + deliveries;
+        let spare = self.max_connection_memory.saturating_sub(fixed) / 4;
+        let mut recent_deliveries = RECENT_DELIVERIES_KEPT;
+        while recent_deliveries > MIN_RECENT_DELIVERIES
+            && recent_record_bytes(recent_deliveries) > spare
+        {
+            recent_deliveries /= 2;
+        }
+        let redelivery_record = recent_record_bytes(recent_deliveries);
         let rest = self
             .max_connection_memory
-            .saturating_sub(decoder + request_list + deliveries);
+            .saturating_sub(fixed + redelivery_record);
         let receive_window = (rest / 8).clamp(64 << 10, 2 << 20);
         let send_window = rest.saturating_sub(receive_window).max(256 << 10);
         MemoryPlan {
             decoder,
             request_list,
             deliveries,
+            recent_deliveries,
+            redelivery_record,
             receive_window,
             send_window,
         }
@@ -1276,8 +1298,19 @@ access = "public"
             c.max_connection_memory = m;
             let p = c.memory_plan();
             assert!(
-                p.decoder + p.request_list + p.deliveries + p.receive_window + p.send_window <= m,
+                p.decoder
+                    + p.request_list
+                    + p.deliveries
+                    + p.redelivery_record
+                    + p.receive_window
+                    + p.send_window
+                    <= m,
                 "{p:?}"
+            );
+            assert!(p.recent_deliveries >= MIN_RECENT_DELIVERIES, "{p:?}");
+            assert_eq!(
+                p.redelivery_record,
+                crate::service::schedule::recent_record_bytes(p.recent_deliveries)
             );
             assert!(p.receive_window >= 64 << 10 && p.receive_window <= 2 << 20);
             assert!(p.send_window >= 256 << 10);

@@ -166,6 +166,7 @@ impl Handler {
                 // From the first deep list on, with visible cuts (`on_deep_request_list`): a
                 // client of plain lists gets no cut and pays no record per delivery.
                 remember_deliveries: false,
+                recent_deliveries: shared.config.memory_plan().recent_deliveries,
             };
             if let Err(e) = core.sched.add_connection(id, config) {
                 tracing::error!("{e}");

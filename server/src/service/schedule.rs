@@ -166,12 +166,41 @@ pub struct ConnectionConfig {
     /// Remember every delivery ([`Scheduler::was_delivered`], up to [`DELIVERIES_REMEMBERED`]):
     /// only the service's visible cuts ask, so connections without them keep no record.
     pub remember_deliveries: bool,
+    /// Most deliveries the redelivery record keeps (also at most four lists' worth: four
+    /// times the larger of `max_queue` and `window`); older ones within the guard are
+    /// forgotten, and a list naming one gets it again. The memory plan sizes it
+    /// (`MemoryPlan::recent_deliveries`; [`recent_record_bytes`]).
+    pub recent_deliveries: usize,
 }
 
 /// Most deliveries a connection remembers for [`Scheduler::was_delivered`] (about 400 KB);
 /// past it the record starts afresh, and a push may repeat a treelet the client holds (the
 /// client drops the duplicate).
 pub const DELIVERIES_REMEMBERED: usize = 1 << 16;
+
+/// Most deliveries a connection's redelivery record keeps however fast it is served: what a
+/// connection delivering 650,000 treelets/s delivers within a 50 ms guard (the client's cycle
+/// over loopback). About 3.8 MB with the record's index at most ([`recent_record_bytes`]);
+/// until stop 57 it was four lists' worth, up to 262,144 deliveries and about 30 MB, which no
+/// memory plan counted.
+pub const RECENT_DELIVERIES_KEPT: usize = 1 << 15;
+
+/// The most bytes a redelivery record of at most `entries` deliveries and its by-id index
+/// hold: the record's queue (a delivery's time and id, 24 bytes; a batch of up to
+/// [`MAX_TREELETS_PER_STREAM`] is recorded before the record is pruned, and a growing queue
+/// doubles its room) and the index (16 bytes and a control byte per bucket, at least 8 buckets
+/// per 7 entries, a power of two of them; up to three times the record's entries and 64 more
+/// before it is built afresh, see `Conn::index_recent`).
+pub fn recent_record_bytes(entries: usize) -> u64 {
+    if entries == 0 {
+        return 0;
+    }
+    let recorded = (entries + MAX_TREELETS_PER_STREAM) as u64;
+    let queue = 2 * recorded * 24;
+    let indexed = 3 * recorded + 64;
+    let buckets = (indexed * 8).div_ceil(7).next_power_of_two();
+    queue + buckets * 17 + 16
+}
 
 impl Default for ConnectionConfig {
     fn default() -> Self {
@@ -180,6 +209,7 @@ impl Default for ConnectionConfig {
             max_queue: MAX_REQUEST_ITEMS,
             redelivery_guard: Duration::from_millis(100),
             remember_deliveries: false,
+            recent_deliveries: RECENT_DELIVERIES_KEPT,
         }
     }
 }
@@ -502,7 +532,8 @@ impl Conn {
             .config
             .max_queue
             .max(self.config.window)
-            .saturating_mul(4);
+            .saturating_mul(4)
+            .min(self.config.recent_deliveries);
         while let Some(&(t, _)) = self.recent.front() {
             if within_guard(t, start) && self.recent.len() <= cap {
                 break;
@@ -1061,6 +1092,7 @@ mod tests {
             max_queue: MAX_REQUEST_ITEMS,
             redelivery_guard: Duration::ZERO,
             remember_deliveries: false,
+            recent_deliveries: RECENT_DELIVERIES_KEPT,
         }
     }
 
@@ -1160,6 +1192,7 @@ mod tests {
             max_queue: 2,
             redelivery_guard: Duration::ZERO,
             remember_deliveries: true,
+            recent_deliveries: RECENT_DELIVERIES_KEPT,
         };
         s.add_connection(A, config).unwrap();
         assert!(!s.was_delivered(A, t(1)));
@@ -1483,6 +1516,60 @@ mod tests {
             "{out:?}"
         );
         assert_eq!(drain(&mut s, ms(10)), vec![(A, 1)]);
+    }
+
+    #[test]
+    fn the_redelivery_record_stays_within_its_planned_bytes_at_any_rate() {
+        // Long lists and a long guard: only `recent_deliveries` bounds the record. Treelets
+        // delivered in batches under lists that each name new ones and some delivered before.
+        let t0 = Instant::now();
+        let kept = 1024;
+        let mut s = Scheduler::default();
+        s.add_connection(
+            A,
+            ConnectionConfig {
+                redelivery_guard: Duration::from_secs(10),
+                recent_deliveries: kept,
+                ..cfg(MAX_TREELETS_PER_STREAM * 4)
+            },
+        )
+        .unwrap();
+        let planned = recent_record_bytes(kept);
+        let mut most = 0u64;
+        for k in 0..40u32 {
+            let now = t0 + Duration::from_micros(u64::from(k));
+            // 600 new treelets and 50 of the oldest the record may still hold.
+            let fresh = (600 * k..600 * (k + 1)).map(|i| (i, 1.0));
+            let again = (600 * k.saturating_sub(2)..).take(50).map(|i| (i, 0.5));
+            let items: Vec<(u32, f32)> = fresh.chain(again).collect();
+            s.handle_request_list(A, u64::from(k) + 1, list(&items), now)
+                .unwrap();
+            let mut batch = Vec::new();
+            while s.poll_batch(now, &mut batch).is_some() {
+                s.handle_delivered_all(A, &batch, now);
+                let c = &s.conns[&A];
+                assert!(c.recent.len() <= kept, "{} deliveries kept", c.recent.len());
+                let index_buckets = (c.recent_index.capacity() * 8 / 7).next_power_of_two();
+                let bytes = (c.recent.capacity() * 24 + index_buckets * 17) as u64;
+                most = most.max(bytes);
+                assert!(bytes <= planned, "{bytes} bytes against {planned} planned");
+            }
+        }
+        assert!(
+            most > planned / 4,
+            "the flood filled the record: {most} of {planned}"
+        );
+        // The oldest deliveries are forgotten although within the guard: a list naming one
+        // gets it again; one the record still holds is left out.
+        let now = t0 + Duration::from_millis(1);
+        let out = s
+            .handle_request_list(A, 100, list(&[(0, 1.0), (600 * 40 - 1, 0.5)]), now)
+            .unwrap();
+        assert!(
+            matches!(out, ListOutcome::Applied { queued: 1, .. }),
+            "{out:?}"
+        );
+        assert_eq!(drain(&mut s, now), vec![(A, 0)]);
     }
 
     #[test]
@@ -1998,6 +2085,7 @@ mod tests {
                 max_queue: 1000,
                 redelivery_guard: guard,
                 remember_deliveries: false,
+                recent_deliveries: RECENT_DELIVERIES_KEPT,
             };
             for c in 0..2u64 {
                 s.add_connection(ConnectionId(c), conf(2)).unwrap();
