@@ -240,7 +240,9 @@ impl MessageCache {
         let mut new = Vec::with_capacity(keys.len());
         let mut start = 0;
         for (key, &len) in keys.iter().zip(lens) {
-            if !inner.map.contains_key(key) {
+            // A key named twice is kept once (the scheduler never batches one twice).
+            if !inner.map.contains_key(key) && !new.iter().any(|n: &(MessageKey, _, _)| n.0 == *key)
+            {
                 new.push((*key, start, start + len));
             }
             start += len;
@@ -725,6 +727,20 @@ mod tests {
             runs.dedup();
             assert_eq!(runs.iter().map(|r| r.1).sum::<usize>(), bytes);
         }
+        // A key twice in one run: kept once, and still counted exactly once evicted.
+        let (twice, lens) = run_of(0, 2, 10);
+        cache.insert_run(&twice, &keys([5000, 5000]), &lens);
+        assert_eq!(&cache.chunks(&keys([5000])).unwrap()[0][..], &[0u8; 10]);
+        for t in 6000..6100u32 {
+            cache.insert(key(1, t, 1), Bytes::from(vec![0; 30]));
+        }
+        let inner = cache.lock();
+        assert_eq!(
+            inner.map.values().map(|h| h.charge).sum::<usize>(),
+            inner.bytes
+        );
+        assert_eq!(inner.map.len(), inner.order.len());
+        drop(inner);
         // A run larger than an eighth of the cache is kept message by message.
         let (large, lens) = run_of(0, 13, 10);
         cache.insert_run(&large, &keys(1000..1013), &lens);
