@@ -156,6 +156,8 @@ impl Handler {
             shared.config.window_min as u64,
             shared.config.window_max as u64,
         ) as usize;
+        // Worked out before the scheduler's lock, which every connection's scheduling takes.
+        let recent_deliveries = shared.config.memory_plan().recent_deliveries;
         {
             let mut core = shared.core();
             core.routes.insert(id, route);
@@ -166,7 +168,7 @@ impl Handler {
                 // From the first deep list on, with visible cuts (`on_deep_request_list`): a
                 // client of plain lists gets no cut and pays no record per delivery.
                 remember_deliveries: false,
-                recent_deliveries: shared.config.memory_plan().recent_deliveries,
+                recent_deliveries,
             };
             if let Err(e) = core.sched.add_connection(id, config) {
                 tracing::error!("{e}");

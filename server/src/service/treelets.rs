@@ -147,6 +147,11 @@ impl Held {
     fn bytes(&self) -> &[u8] {
         &self.run[self.start..self.end]
     }
+
+    /// The message as a buffer of its own, sharing the run's.
+    fn slice(&self) -> Bytes {
+        self.run.slice(self.start..self.end)
+    }
 }
 
 /// Most buffers one stream's batch is written as. Each packet quinn builds finds its bytes by
@@ -176,7 +181,7 @@ impl MessageCache {
         let mut inner = self.lock();
         let found: Vec<Option<Bytes>> = keys
             .iter()
-            .map(|k| inner.map.get(k).map(|h| h.run.slice(h.start..h.end)))
+            .map(|k| inner.map.get(k).map(Held::slice))
             .collect();
         let hits = found.iter().filter(|m| m.is_some()).count() as u64;
         inner.hits += hits;
@@ -236,6 +241,9 @@ impl MessageCache {
     /// it never evicts its own messages); else each new message is kept as a copy of its own, so
     /// a batch of mostly held messages does not keep a second copy of them alive.
     fn insert_run(&self, run: &Bytes, keys: &[MessageKey], lens: &[usize]) {
+        if self.capacity == 0 {
+            return;
+        }
         let mut inner = self.lock();
         let mut new = Vec::with_capacity(keys.len());
         let mut start = 0;
@@ -260,6 +268,9 @@ impl MessageCache {
                     end,
                     charge: if i + 1 == count { run.len() } else { 0 },
                 }
+            } else if end - start > self.capacity {
+                // Could not be held: not copied for nothing.
+                continue;
             } else {
                 Held {
                     run: Bytes::copy_from_slice(&run[start..end]),
