@@ -18,7 +18,9 @@
 //! * the same with each end on a CPU of its own, as on two machines (their own runtimes,
 //!   pinned; see [`split_ends`]): sharing the cores, the two ends mostly take turns on one;
 //! * over the link emulator (25 ms each way, 100 Mbit/s): time until the top 1,000 of a list
-//!   (random priorities over all treelets of the 4 KiB scene) have arrived.
+//!   (random priorities over all treelets of the 4 KiB scene) have arrived, and all of them,
+//!   against raw quinn sending the same bytes on one stream over the same link (each a first
+//!   connection, slow start included).
 //!
 //! `cargo bench -p arbor-tests --bench serve` (ARBOR_BENCH_QUICK=1: fewer treelets per client;
 //! ARBOR_BENCH_WHOLE=N: only the whole-scene row, N runs in turns, for experiments, followed by
@@ -33,7 +35,9 @@
 //! counting client, nothing else, for a profiler or `/usr/bin/time`, served with the
 //! whole-scene row's adaptive window; `WMIN` / `WMAX` change its bounds;
 //! ARBOR_BENCH_PROFILE_SPLIT=N / ARBOR_BENCH_PROFILE_SPLIT_RAW=N: the same with each end on a
-//! CPU of its own, in threads named `server-end` and `client-end` for `perf report --sort comm`).
+//! CPU of its own, in threads named `server-end` and `client-end` for `perf report --sort comm`;
+//! ARBOR_BENCH_LINK=N: only the link row, N times, the first on a new path, the others returning
+//! on it, which Arbor's server remembers and raw quinn does not).
 //! Never run in CI.
 
 use std::net::SocketAddr;
@@ -510,9 +514,21 @@ mod raw {
     /// `clients` concurrent clients, connected before the clock starts and closed after it
     /// stops (like Arbor's rows).
     pub async fn run(raw: &Raw, clients: usize, count: u32, size: u32, window: u32) -> Timed {
+        run_via(raw, raw.addr, clients, count, size, window).await
+    }
+
+    /// [`run`] with the clients connecting to `addr`, a link emulator in front of the server.
+    pub async fn run_via(
+        raw: &Raw,
+        addr: SocketAddr,
+        clients: usize,
+        count: u32,
+        size: u32,
+        window: u32,
+    ) -> Timed {
         let mut connected = Vec::new();
         for _ in 0..clients {
-            connected.push(connect(raw.addr, raw.client_config.clone()).await);
+            connected.push(connect(addr, raw.client_config.clone()).await);
         }
         let t = Instant::now();
         let cpu = process_cpu();
@@ -994,6 +1010,7 @@ async fn main() {
         "ARBOR_BENCH_PROFILE",
         "ARBOR_BENCH_PROFILE_COUNTING",
         "ARBOR_BENCH_PROFILE_RAW",
+        "ARBOR_BENCH_LINK",
     ]
     .iter()
     .any(|v| std::env::var_os(v).is_some());
@@ -1028,6 +1045,14 @@ async fn main() {
         for _ in 0..runs.parse().unwrap_or(300) {
             let run = raw::run(&raw, 1, 1, 2_600_000, 1).await;
             println!("{:.0} MB/s", run.bytes as f64 / run.secs / 1e6);
+        }
+        return;
+    }
+    if let Ok(turns) = std::env::var("ARBOR_BENCH_LINK") {
+        // The first turn is a new path to the server; the later ones return on it, and
+        // Arbor's server remembers it (careful resume, `path_memory`), raw quinn does not.
+        for _ in 0..turns.parse().unwrap_or(5) {
+            link_row(addr, &fp, &scenes[1], &raw).await;
         }
         return;
     }
@@ -1213,13 +1238,24 @@ async fn main() {
         split_ends(pool_dir.path(), data_dir.path(), d, rounds, None).await;
         return;
     }
+    link_row(addr, &fp, d, &raw).await;
+    server.shutdown().await;
+    split_ends(pool_dir.path(), data_dir.path(), d, rounds, None).await;
+    cost_breakdown(pool_dir.path(), "lion-4k");
+    cost_breakdown(pool_dir.path(), "lion-1k");
+}
+
+/// Over the link emulator (25 ms each way, 100 Mbit/s): one new client's list of every treelet
+/// of `d` (random priorities) until its top 1,000 and all have arrived, then raw quinn's one
+/// stream of the same bytes over an emulator of the same link.
+async fn link_row(addr: SocketAddr, fp: &str, d: &SceneDescription, raw: &raw::Raw) {
     let link = LinkEmulator::start(
         addr,
         LinkConfig::wan(Duration::from_millis(25), 100_000_000 / 8),
     )
     .await
     .unwrap();
-    let mut c = client(link.local_addr(), d, &fp);
+    let mut c = client(link.local_addr(), d, fp);
     let t_connect = Instant::now();
     wait_connected(&mut c).await;
     let connect = t_connect.elapsed();
@@ -1269,10 +1305,24 @@ async fn main() {
     );
     c.close().await;
     link.shutdown().await;
-    server.shutdown().await;
-    split_ends(pool_dir.path(), data_dir.path(), d, rounds, None).await;
-    cost_breakdown(pool_dir.path(), "lion-4k");
-    cost_breakdown(pool_dir.path(), "lion-1k");
+    // The same bytes from raw quinn on one stream over an emulator of the same link, its first
+    // connection too: how far the link, slow start included, lets any QUIC sender go.
+    let raw_link = LinkEmulator::start(
+        raw.addr,
+        LinkConfig::wan(Duration::from_millis(25), 100_000_000 / 8),
+    )
+    .await
+    .unwrap();
+    let r = raw::run_via(raw, raw_link.local_addr(), 1, 1, bytes as u32, 1).await;
+    println!(
+        "  raw quinn, one stream of the same bytes over the same link: first bytes {:.0} ms, all \
+         in {:.0} ms ({:.1} MB/s); Arbor's whole list took {:.2}x its time",
+        r.first * 1e3,
+        r.secs * 1e3,
+        r.bytes as f64 / r.secs / 1e6,
+        all.as_secs_f64() / r.secs
+    );
+    raw_link.shutdown().await;
 }
 
 /// A runtime of one worker whose threads (the worker and any blocking ones) run on CPU `cpu`
