@@ -654,46 +654,14 @@ fn three_slots_with_a_child_in_a_lower_slot() {
     let n = 256;
     let max_depth = 8;
     let mut rng = Rng::new(100);
-    let root_leaves = random_cells(&mut rng, 2, 16);
-    let a_cell = root_leaves[0];
-    let (t0, p0) = synth::build_treelet(
-        0,
-        Cell::ROOT,
-        &root_leaves[1..],
-        &BTreeMap::from([(a_cell, 1u32)]),
-        n,
-        max_depth,
-    );
-    let under = |root: Cell, rel: Cell| Cell {
-        depth: root.depth + rel.depth,
-        x: (root.x << rel.depth) | rel.x,
-        y: (root.y << rel.depth) | rel.y,
-        z: (root.z << rel.depth) | rel.z,
-    };
-    let a_leaves: Vec<Cell> = random_cells(&mut rng, 3, 30)
-        .into_iter()
-        .map(|c| under(a_cell, c))
-        .collect();
-    let b_cell = a_leaves[0];
-    let (ta, pa) = synth::build_treelet(
-        1,
-        a_cell,
-        &a_leaves[1..],
-        &BTreeMap::from([(b_cell, 2u32)]),
-        n,
-        max_depth,
-    );
-    let b_leaves: Vec<Cell> = random_cells(&mut rng, 3, 40)
-        .into_iter()
-        .map(|c| under(b_cell, c))
-        .collect();
-    let (tb, pb) = synth::build_treelet(2, b_cell, &b_leaves, &BTreeMap::new(), n, max_depth);
-    let mut b = Buffer::new(n, 3);
-    b.put(0, &t0, p0);
-    b.put(2, &ta, pa);
-    b.put(1, &tb, pb);
-    b.patch(0, a_cell, 2);
-    b.patch(2, b_cell, 1);
+    let synth::LowerSlotChain {
+        buffer: b,
+        root_leaves,
+        a_leaves,
+        b_cell,
+        b_leaves,
+        ..
+    } = synth::lower_slot_chain(&mut rng, n, max_depth, 0);
     let patched =
         b.nodes[(2 * n) as usize + b.places[2].iter().position(|p| p.cell == b_cell).unwrap()];
     assert!(

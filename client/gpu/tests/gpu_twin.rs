@@ -14,7 +14,6 @@ mod gpu_compare;
 #[path = "../../core/tests/synth/mod.rs"]
 mod synth;
 
-use std::collections::BTreeMap;
 
 use arbor_client_core::analysis::{AnalysisConfig, Feedback};
 use arbor_client_core::camera::Camera;
@@ -382,46 +381,8 @@ fn patched_slots_and_subtreelets_match_the_cpu() {
     let n = 256;
     let max_depth = 8;
     let mut rng = Rng::new(100);
-    let root_leaves = random_cells(&mut rng, 2, 16);
-    let a_cell = root_leaves[0];
-    let refinable: BTreeMap<Cell, u32> = root_leaves[1..6]
-        .iter()
-        .enumerate()
-        .map(|(i, &c)| (c, 10 + i as u32))
-        .chain([(a_cell, 1u32)])
-        .collect();
-    let (t0, p0) = synth::build_treelet(0, Cell::ROOT, &root_leaves[6..], &refinable, n, max_depth);
-    let under = |root: Cell, rel: Cell| Cell {
-        depth: root.depth + rel.depth,
-        x: (root.x << rel.depth) | rel.x,
-        y: (root.y << rel.depth) | rel.y,
-        z: (root.z << rel.depth) | rel.z,
-    };
-    let a_leaves: Vec<Cell> = random_cells(&mut rng, 3, 30)
-        .into_iter()
-        .map(|c| under(a_cell, c))
-        .collect();
-    let b_cell = a_leaves[0];
-    let (ta, pa) = synth::build_treelet(
-        1,
-        a_cell,
-        &a_leaves[1..],
-        &BTreeMap::from([(b_cell, 2u32)]),
-        n,
-        max_depth,
-    );
-    let b_leaves: Vec<Cell> = random_cells(&mut rng, 3, 40)
-        .into_iter()
-        .map(|c| under(b_cell, c))
-        .collect();
-    let (tb, pb) = synth::build_treelet(2, b_cell, &b_leaves, &BTreeMap::new(), n, max_depth);
-    // A in slot 2, its child B in slot 1: B's root sits before its parent's slot.
-    let mut b = Buffer::new(n, 3);
-    b.put(0, &t0, p0);
-    b.put(2, &ta, pa);
-    b.put(1, &tb, pb);
-    b.patch(0, a_cell, 2);
-    b.patch(2, b_cell, 1);
+    // B in slot 1 sits before its parent A's slot 2; five of the root's leaves refinable.
+    let mut b = synth::lower_slot_chain(&mut rng, n, max_depth, 5).buffer;
     paint(&mut b);
     let frame = SceneFrame {
         origin: [2.0, 3.0, -1.0],

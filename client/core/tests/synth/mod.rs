@@ -175,6 +175,84 @@ impl Buffer {
     }
 }
 
+/// Three treelets in three slots: the root in slot 0 with child A in slot 2, and A's child B in
+/// slot 1, *before* its parent's slot, so the offset patched into A wraps (negative).
+#[derive(Clone, Debug)]
+pub struct LowerSlotChain {
+    pub buffer: Buffer,
+    /// The root's leaves: A's cell first, then `refinable` refinable leaves naming treelets 10,
+    /// 11, … (not resident), then plain leaves.
+    pub root_leaves: Vec<Cell>,
+    pub a_cell: Cell,
+    /// A's leaves: B's cell first, then plain leaves.
+    pub a_leaves: Vec<Cell>,
+    pub b_cell: Cell,
+    pub b_leaves: Vec<Cell>,
+}
+
+/// A [`LowerSlotChain`] of `n`-record treelets with random leaves from `rng`: 16 at depth 2
+/// for the root, 30 three levels below A's cell for A, 40 three below B's for B.
+pub fn lower_slot_chain(rng: &mut Rng, n: u32, max_depth: u8, refinable: usize) -> LowerSlotChain {
+    let root_leaves = random_cells(rng, 2, 16);
+    let a_cell = root_leaves[0];
+    let named: BTreeMap<Cell, u32> = root_leaves[1..=refinable]
+        .iter()
+        .enumerate()
+        .map(|(i, &c)| (c, 10 + i as u32))
+        .chain([(a_cell, 1u32)])
+        .collect();
+    let (t0, p0) = build_treelet(
+        0,
+        Cell::ROOT,
+        &root_leaves[1 + refinable..],
+        &named,
+        n,
+        max_depth,
+    );
+    let a_leaves: Vec<Cell> = random_cells(rng, 3, 30)
+        .into_iter()
+        .map(|c| under(a_cell, c))
+        .collect();
+    let b_cell = a_leaves[0];
+    let (ta, pa) = build_treelet(
+        1,
+        a_cell,
+        &a_leaves[1..],
+        &BTreeMap::from([(b_cell, 2u32)]),
+        n,
+        max_depth,
+    );
+    let b_leaves: Vec<Cell> = random_cells(rng, 3, 40)
+        .into_iter()
+        .map(|c| under(b_cell, c))
+        .collect();
+    let (tb, pb) = build_treelet(2, b_cell, &b_leaves, &BTreeMap::new(), n, max_depth);
+    let mut buffer = Buffer::new(n, 3);
+    buffer.put(0, &t0, p0);
+    buffer.put(2, &ta, pa);
+    buffer.put(1, &tb, pb);
+    buffer.patch(0, a_cell, 2);
+    buffer.patch(2, b_cell, 1);
+    LowerSlotChain {
+        buffer,
+        root_leaves,
+        a_cell,
+        a_leaves,
+        b_cell,
+        b_leaves,
+    }
+}
+
+/// The cell `rel` (relative to a unit cube) placed inside `root`.
+pub fn under(root: Cell, rel: Cell) -> Cell {
+    Cell {
+        depth: root.depth + rel.depth,
+        x: (root.x << rel.depth) | rel.x,
+        y: (root.y << rel.depth) | rel.y,
+        z: (root.z << rel.depth) | rel.z,
+    }
+}
+
 /// A one-treelet scene from leaf cells (all inside the root cube).
 pub fn single(leaves: &[Cell], n: u32, max_depth: u8) -> Buffer {
     single_refinable(leaves, &BTreeMap::new(), n, max_depth)
