@@ -675,18 +675,7 @@ mod nginx {
         /// SIGTERM to the master, which stops its workers (SIGKILL would leave them running,
         /// orphaned); SIGKILL only if it has not exited within two seconds.
         fn drop(&mut self) {
-            let _ = Command::new("kill")
-                .args(["-TERM", &self.child.id().to_string()])
-                .status();
-            let deadline = std::time::Instant::now() + std::time::Duration::from_secs(2);
-            while std::time::Instant::now() < deadline {
-                if let Ok(Some(_)) = self.child.try_wait() {
-                    return;
-                }
-                std::thread::sleep(std::time::Duration::from_millis(20));
-            }
-            let _ = self.child.kill();
-            let _ = self.child.wait();
+            arbor_tests::support::terminate(&mut self.child, std::time::Duration::from_secs(2));
         }
     }
 

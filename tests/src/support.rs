@@ -1,5 +1,6 @@
 //! Shared support: building real and synthetic scenes into real sled pools, reading their leaf
-//! voxels back, and brute-force reference answers computed without the octree.
+//! voxels back, brute-force reference answers computed without the octree, and stopping the
+//! helper processes tests start.
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
@@ -336,4 +337,26 @@ pub fn decoded_treelets(scene: &StoredScene) -> Vec<arbor_client_core::slots::De
             .unwrap_or_else(|e| panic!("decoding treelet {id}: {e}"))
         })
         .collect()
+}
+
+/// Stops `child` the way its own shutdown expects: SIGTERM, then SIGKILL if it has not exited
+/// within `grace`; reaped either way. A server killed outright leaves what it cleans up on
+/// SIGTERM behind (Xvfb its display's lock file and socket, nginx its workers). Does nothing to
+/// a child already reaped, whose id may belong to another process by now.
+pub fn terminate(child: &mut std::process::Child, grace: std::time::Duration) {
+    if !matches!(child.try_wait(), Ok(None)) {
+        return;
+    }
+    let _ = std::process::Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
+    let deadline = std::time::Instant::now() + grace;
+    while std::time::Instant::now() < deadline {
+        if !matches!(child.try_wait(), Ok(None)) {
+            return;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
 }

@@ -14,7 +14,6 @@ mod gpu_compare;
 #[path = "../../core/tests/synth/mod.rs"]
 mod synth;
 
-
 use arbor_client_core::analysis::{AnalysisConfig, Feedback};
 use arbor_client_core::camera::Camera;
 use arbor_client_core::incore::SceneFrame;
