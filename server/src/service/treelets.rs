@@ -244,13 +244,16 @@ impl MessageCache {
         if self.capacity == 0 {
             return;
         }
+        // A key named twice is kept once (the scheduler never batches one twice), its first
+        // time; found before the lock, which every stream's batch takes.
+        let mut seen = rustc_hash::FxHashSet::default();
+        seen.reserve(keys.len());
+        let first: Vec<bool> = keys.iter().map(|k| seen.insert(*k)).collect();
         let mut inner = self.lock();
         let mut new = Vec::with_capacity(keys.len());
         let mut start = 0;
-        for (key, &len) in keys.iter().zip(lens) {
-            // A key named twice is kept once (the scheduler never batches one twice).
-            if !inner.map.contains_key(key) && !new.iter().any(|n: &(MessageKey, _, _)| n.0 == *key)
-            {
+        for ((key, &len), first) in keys.iter().zip(lens).zip(first) {
+            if first && !inner.map.contains_key(key) {
                 new.push((*key, start, start + len));
             }
             start += len;
