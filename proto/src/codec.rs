@@ -139,6 +139,26 @@ pub fn decode_header(bytes: &[u8]) -> Result<(TreeletHeader, u32), ProtoError> {
     Ok((header, capacity))
 }
 
+/// The used-node count of a compressed node block, read from its zstd frame header without
+/// decompressing: a treelet's raw encoding is exactly [`HEADER_BYTES`] and `used_nodes` records
+/// of [`NODE_BYTES`] ([`decode_treelet`] accepts no other length), and the compressors here
+/// record the raw length in the frame. `None` when the frame does not record it, or records a
+/// length no treelet encoding has; then only decompressing ([`decode_header`]) tells.
+///
+/// Nothing else is checked: a block stored under another treelet's id, or with damaged records,
+/// is found by whoever decodes it (a client decodes every block it receives).
+pub fn used_nodes_of_block(block: &[u8]) -> Option<u16> {
+    let raw = zstd::zstd_safe::get_frame_content_size(block).ok()??;
+    if raw > MAX_RAW_TREELET as u64 {
+        return None;
+    }
+    let records = raw.checked_sub(HEADER_BYTES as u64)?;
+    if records == 0 || records % u64::from(NODE_BYTES) != 0 {
+        return None;
+    }
+    u16::try_from(records / u64::from(NODE_BYTES)).ok()
+}
+
 /// Decodes and validates an uncompressed treelet. `max_depth` is the scene's target depth.
 pub fn decode_treelet(bytes: &[u8], max_depth: u8) -> Result<Treelet, ProtoError> {
     decode_treelet_with_places(bytes, max_depth).map(|(t, _)| t)
@@ -642,6 +662,55 @@ mod tests {
         );
         let packed = compress(&raw, 3, None).unwrap();
         assert_eq!(decode_compressed_treelet(&packed, 7, None).unwrap(), t);
+    }
+
+    #[test]
+    fn the_used_node_count_is_read_from_the_frame_header_and_only_a_treelet_length_counts() {
+        let t = sample();
+        let raw = encode_treelet(&t);
+        let samples: Vec<Vec<u8>> = (0..64u8).map(|i| vec![i; 300]).collect();
+        let dictionary = zstd::dict::from_samples(&samples, 2048).unwrap();
+        for block in [
+            compress(&raw, 3, None).unwrap(),
+            compress(&raw, 19, Some(&dictionary)).unwrap(),
+            BlockCompressor::new(1, None)
+                .unwrap()
+                .compress(&raw)
+                .unwrap(),
+        ] {
+            assert_eq!(used_nodes_of_block(&block), Some(t.header.used_nodes));
+        }
+        // A frame that does not record its length (a streaming encoder without a pledged
+        // size): only decompressing tells.
+        let mut unsized_frame = zstd::stream::Encoder::new(Vec::new(), 3).unwrap();
+        unsized_frame.include_contentsize(false).unwrap();
+        std::io::Write::write_all(&mut unsized_frame, &raw).unwrap();
+        let unsized_frame = unsized_frame.finish().unwrap();
+        assert_eq!(
+            decompress(&unsized_frame, MAX_RAW_TREELET, None).unwrap(),
+            raw
+        );
+        assert_eq!(used_nodes_of_block(&unsized_frame), None);
+        // Lengths no treelet encoding has: short of a header, a header alone, a partial
+        // record, beyond the largest treelet.
+        for len in [
+            0,
+            HEADER_BYTES - 1,
+            HEADER_BYTES,
+            HEADER_BYTES + 9,
+            MAX_RAW_TREELET + NODE_BYTES as usize,
+        ] {
+            let block = compress(&vec![7u8; len], 3, None).unwrap();
+            assert_eq!(used_nodes_of_block(&block), None, "raw length {len}");
+        }
+        let largest = compress(&vec![7u8; MAX_RAW_TREELET], 3, None).unwrap();
+        assert_eq!(
+            used_nodes_of_block(&largest).map(usize::from),
+            Some(MAX_TREELET_BYTES as usize / NODE_BYTES as usize)
+        );
+        // Not a zstd frame at all.
+        assert_eq!(used_nodes_of_block(b"not a frame"), None);
+        assert_eq!(used_nodes_of_block(&[]), None);
     }
 
     #[test]

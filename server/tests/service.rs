@@ -1511,6 +1511,103 @@ async fn batches_from_the_message_cache_are_the_pool_messages_and_a_repeat_is_no
 }
 
 /// `stored` served with these message and shape caches and no cut node cache.
+/// A message announces the used-node count of its node block as the block's own header says
+/// it. The server reads it from the zstd frame header, which records the raw length, without
+/// decompressing: every block of the real bunny pool records it, and the count agrees with the
+/// decompressed header. A block whose frame does not record its length (written by a streaming
+/// encoder) is decompressed for it instead: a copy of the bunny with every third node block
+/// written so is served with the same counts.
+#[test]
+fn messages_announce_the_used_nodes_their_blocks_hold_with_or_without_a_recorded_length() {
+    let tp = TestPool::new();
+    let pool = arbor_server::pool::Pool::open(&tp.db()).unwrap();
+    let stored = pool.scene(SCENE).unwrap();
+    let d = &stored.description;
+    let dictionaries = codec::PreparedDictionaries::of(d);
+    let channels = d.layout.channels().to_vec();
+    let decoded_used = |block: &[u8]| {
+        let raw =
+            codec::decompress_using(block, codec::MAX_RAW_TREELET, dictionaries.nodes()).unwrap();
+        codec::decode_header(&raw).unwrap().0.used_nodes
+    };
+    let announced = |served: &arbor_server::service::treelets::ServedScene, id| {
+        let m = served.message(id, &channels).unwrap();
+        decode_treelet_message(&m).unwrap().used_nodes
+    };
+
+    let ids: Vec<TreeletId> = (0..d.treelet_count).map(TreeletId).collect();
+    let blocks: Vec<Vec<u8>> = ids
+        .iter()
+        .map(|&id| stored.nodes(id).unwrap().unwrap().to_vec())
+        .collect();
+    let served = served_with(
+        &stored,
+        MessageCache::new(0),
+        ShapeCache::for_shapes(0).into(),
+    );
+    for (&id, block) in ids.iter().zip(&blocks) {
+        let used = decoded_used(block);
+        assert_eq!(codec::used_nodes_of_block(block), Some(used), "{id}");
+        assert_eq!(announced(&served, id), used, "{id}");
+    }
+
+    // The copy: every third node block re-encoded by a streaming encoder that leaves the
+    // length out, with the scene's dictionary.
+    let rewritten = |i: usize, block: &Vec<u8>| -> Vec<u8> {
+        if !i.is_multiple_of(3) {
+            return block.clone();
+        }
+        let raw =
+            codec::decompress_using(block, codec::MAX_RAW_TREELET, dictionaries.nodes()).unwrap();
+        let dictionary = d.node_dictionary.as_deref().unwrap_or(&[]);
+        let mut e = zstd::stream::Encoder::with_dictionary(Vec::new(), 3, dictionary).unwrap();
+        e.include_contentsize(false).unwrap();
+        std::io::Write::write_all(&mut e, &raw).unwrap();
+        let out = e.finish().unwrap();
+        assert_eq!(codec::used_nodes_of_block(&out), None);
+        out
+    };
+    let mut import = pool.begin_import("copy", false).unwrap();
+    import.set_channels(&channels).unwrap();
+    use arbor_server::octree::TreeletSink;
+    import
+        .put_nodes(
+            ids.iter()
+                .zip(&blocks)
+                .enumerate()
+                .map(|(i, (&id, b))| (id, rewritten(i, b)))
+                .collect(),
+        )
+        .unwrap();
+    import
+        .put_channels(
+            ids.iter()
+                .map(|&id| {
+                    let per: Vec<Vec<u8>> = channels
+                        .iter()
+                        .map(|&c| stored.channel(c, id).unwrap().unwrap().to_vec())
+                        .collect();
+                    (id, per)
+                })
+                .collect(),
+        )
+        .unwrap();
+    import.commit(d).unwrap();
+    let copy = pool.scene("copy").unwrap();
+    let served = served_with(
+        &copy,
+        MessageCache::new(0),
+        ShapeCache::for_shapes(0).into(),
+    );
+    for (&id, block) in ids.iter().zip(&blocks) {
+        assert_eq!(
+            announced(&served, id),
+            decoded_used(block),
+            "{id} of the copy"
+        );
+    }
+}
+
 fn served_with(
     stored: &arbor_server::pool::StoredScene,
     messages: impl Into<Arc<MessageCache>>,

@@ -436,8 +436,20 @@ impl ServedScene {
         self.stored.description.treelet_count
     }
 
-    /// `used_nodes` of a treelet, from its node block.
+    /// `used_nodes` of a treelet, from its node block: from the zstd frame header when it
+    /// records a treelet's length within the scene's treelets, else from the decompressed
+    /// header. Decompressing only for this was half to two thirds of building a message that
+    /// missed the cache (3.1 of 6.0 µs per treelet on the 10⁸-point city, 1.7 of 2.8 µs on
+    /// lion-4k: `server/benches/messages.rs`, docs/measurements.md, stop 59), and misses are
+    /// the rule for a scan many times the message cache. What a frame header cannot show (a
+    /// block stored under another id, damaged records) every client finds when it decodes the
+    /// block, and `arbor-server verify` finds in the pool.
     fn used_nodes(&self, id: TreeletId, nodes: &[u8]) -> Result<u16, MessageError> {
+        if let Some(used) = codec::used_nodes_of_block(nodes)
+            && u32::from(used) <= self.stored.description.treelet_nodes
+        {
+            return Ok(used);
+        }
         let corrupt = |source| MessageError::Corrupt { id: id.0, source };
         let raw = codec::decompress_using(nodes, MAX_RAW_TREELET, self.dictionaries.nodes())
             .map_err(corrupt)?;

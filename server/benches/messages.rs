@@ -1,0 +1,164 @@
+//! What building a treelet message costs the server when the message cache does not hold it,
+//! the rule for a scan many times the cache (64 MiB by default; the 10⁸-point city's messages
+//! are about 1.4 GB), and what the used-node count in its header costs, two ways in one run:
+//! * **frame header** (the server since stop 59): `codec::used_nodes_of_block`, the raw length
+//!   the zstd frame records;
+//! * **decompressed** (before): the node block decompressed for its treelet header.
+//!
+//! Per treelet, best of [`ROUNDS`]: the miss path as a stream asks for it
+//! (`ServedScene::batch` of [`BATCH`] treelets adjacent in rank, here consecutive ids, with no
+//! message cache: pool reads, header, one buffer), the two counts on the same node blocks, and
+//! the miss path as it was (the path less the frame-header count plus the decompressed one).
+//!
+//! `cargo bench -p arbor-server --bench messages`: lion (`../shared/data`) imported with 4 KiB
+//! treelets into a temporary pool. `ARBOR_BENCH_POOL=DIR ARBOR_BENCH_SCENE=NAME`: a scene of an
+//! existing pool instead (the city of `--bench scale`); `ARBOR_BENCH_TREELETS=N`: the first N
+//! treelets only (default all, at most 200,000).
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use arbor_proto::{TreeletId, codec};
+use arbor_server::octree::BuildOptions;
+use arbor_server::pipeline::{SceneImport, import_scene};
+use arbor_server::pool::Pool;
+use arbor_server::service::shapes::ShapeCache;
+use arbor_server::service::state::ServiceCaches;
+use arbor_server::service::treelets::{MessageCache, ServedScene};
+use arbor_server::service::visibility::NodeCache;
+
+/// Runs of each measurement; the best counts.
+const ROUNDS: usize = 3;
+/// Treelets per batch, about what one stream of a whole-scene fetch carries.
+const BATCH: usize = 36;
+
+fn lion() -> PathBuf {
+    let p = Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../shared/data/points/lion_takanawa.copc.laz"
+    ))
+    .to_owned();
+    assert!(
+        p.exists(),
+        "the real scans in ../shared/data are required: {p:?}"
+    );
+    p
+}
+
+fn per_treelet(d: Duration, n: usize) -> f64 {
+    d.as_secs_f64() * 1e6 / n as f64
+}
+
+/// The best of [`ROUNDS`] runs of `f`, per treelet of `n`.
+fn best(n: usize, mut f: impl FnMut()) -> f64 {
+    (0..ROUNDS)
+        .map(|_| {
+            let t = Instant::now();
+            f();
+            per_treelet(t.elapsed(), n)
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+fn main() {
+    let own = tempfile::tempdir().unwrap();
+    let (dir, scene) = match std::env::var_os("ARBOR_BENCH_POOL") {
+        Some(dir) => (
+            PathBuf::from(dir),
+            std::env::var("ARBOR_BENCH_SCENE").expect("ARBOR_BENCH_SCENE names the scene"),
+        ),
+        None => {
+            let dir = own.path().join("pool");
+            let pool = Pool::open(&dir).unwrap();
+            let request = SceneImport {
+                name: "lion-4k".into(),
+                input: lion(),
+                build: BuildOptions {
+                    treelet_bytes: 4096,
+                    progress: false,
+                    ..BuildOptions::default()
+                },
+                ..SceneImport::default()
+            };
+            import_scene(&pool, &request).unwrap();
+            pool.flush().unwrap();
+            (dir, "lion-4k".to_owned())
+        }
+    };
+    let pool = Pool::open(&dir).unwrap();
+    let stored = pool.scene(&scene).unwrap();
+    let d = stored.description.clone();
+    let n = std::env::var("ARBOR_BENCH_TREELETS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(usize::MAX)
+        .min(d.treelet_count as usize)
+        .min(200_000);
+    let channels = d.layout.channels().to_vec();
+    let served = ServedScene::with_caches(
+        stored.clone(),
+        &ServiceCaches {
+            messages: Arc::new(MessageCache::new(0)),
+            shapes: Arc::new(ShapeCache::for_shapes(0)),
+            cut_nodes: Arc::new(NodeCache::for_nodes(0)),
+            fine_cuts: Arc::default(),
+        },
+    );
+    let ids: Vec<TreeletId> = (0..n as u32).map(TreeletId).collect();
+    let blocks: Vec<Vec<u8>> = ids
+        .iter()
+        .map(|&id| stored.nodes(id).unwrap().unwrap().to_vec())
+        .collect();
+    let dictionaries = codec::PreparedDictionaries::of(&d);
+    let mut bytes = 0usize;
+    // Once for the pool's pages, so that every round reads them warm.
+    for b in ids.chunks(BATCH) {
+        bytes += served
+            .batch(b, &channels)
+            .unwrap()
+            .iter()
+            .map(|c| c.len())
+            .sum::<usize>();
+    }
+
+    let miss = best(n, || {
+        for b in ids.chunks(BATCH) {
+            std::hint::black_box(served.batch(b, &channels).unwrap());
+        }
+    });
+    let mut from_frames = 0u64;
+    let frame = best(n, || {
+        from_frames = blocks
+            .iter()
+            .map(|b| u64::from(codec::used_nodes_of_block(b).unwrap()))
+            .sum();
+    });
+    let mut from_headers = 0u64;
+    let decompressed = best(n, || {
+        from_headers = blocks
+            .iter()
+            .map(|b| {
+                let raw = codec::decompress_using(b, codec::MAX_RAW_TREELET, dictionaries.nodes())
+                    .unwrap();
+                u64::from(codec::decode_header(&raw).unwrap().0.used_nodes)
+            })
+            .sum();
+    });
+    assert_eq!(from_frames, from_headers, "the two counts disagree");
+
+    println!(
+        "{scene}: {n} of {} treelets, messages of {:.0} bytes on average, {BATCH} per batch, no \
+         message cache (best of {ROUNDS} runs, per treelet)",
+        d.treelet_count,
+        bytes as f64 / n as f64
+    );
+    println!("  miss path as served (frame header):      {miss:7.2} µs");
+    println!("  used-node count from the frame header:   {frame:7.3} µs");
+    println!("  used-node count by decompressing:        {decompressed:7.2} µs");
+    let before = miss - frame + decompressed;
+    println!(
+        "  miss path as it was (decompressing):     {before:7.2} µs: {:.2}x the time now",
+        before / miss
+    );
+}
