@@ -1,19 +1,24 @@
 //! What building a treelet message costs the server when the message cache does not hold it,
 //! the rule for a scan many times the cache (64 MiB by default; the 10⁸-point city's messages
-//! are about 1.4 GB), and what the used-node count in its header costs, two ways in one run:
-//! * **frame header** (the server since stop 59): `codec::used_nodes_of_block`, the raw length
-//!   the zstd frame records;
-//! * **decompressed** (before): the node block decompressed for its treelet header.
+//! are about 1.4 GB), and two of its parts measured both ways in one run:
+//! * **pool reads**: one sled `get` per pack while a batch's consecutive ids stay in it
+//!   (`StoredScene::nodes_of`, `channel_of`; the server since stop 59) against one per block
+//!   (`nodes`, `channel`; before);
+//! * **the used-node count** of the message header: from the raw length the zstd frame records
+//!   (`codec::used_nodes_of_block`; since stop 59) against decompressing the node block for its
+//!   treelet header (before).
 //!
 //! Per treelet, best of [`ROUNDS`]: the miss path as a stream asks for it
 //! (`ServedScene::batch` of [`BATCH`] treelets adjacent in rank, here consecutive ids, with no
-//! message cache: pool reads, header, one buffer), the two counts on the same node blocks, and
-//! the miss path as it was (the path less the frame-header count plus the decompressed one).
+//! message cache: pool reads, header, one buffer), each part both ways on the same treelets, and
+//! the miss path as it was (the path with each part's time now replaced by its time before).
 //!
 //! `cargo bench -p arbor-server --bench messages`: lion (`../shared/data`) imported with 4 KiB
 //! treelets into a temporary pool. `ARBOR_BENCH_POOL=DIR ARBOR_BENCH_SCENE=NAME`: a scene of an
 //! existing pool instead (the city of `--bench scale`); `ARBOR_BENCH_TREELETS=N`: the first N
-//! treelets only (default all, at most 200,000).
+//! treelets only (default all, at most 200,000); `ARBOR_BENCH_POOL_CACHE=B`: sled's page cache
+//! in bytes (the server's `pool_cache_bytes`; default 128 MiB): a pool larger than it reads
+//! pages from the file again.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -86,7 +91,11 @@ fn main() {
             (dir, "lion-4k".to_owned())
         }
     };
-    let pool = Pool::open(&dir).unwrap();
+    let cache = std::env::var("ARBOR_BENCH_POOL_CACHE")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(arbor_server::pool::POOL_CACHE_BYTES);
+    let pool = Pool::open_with_cache(&dir, cache).unwrap();
     let stored = pool.scene(&scene).unwrap();
     let d = stored.description.clone();
     let n = std::env::var("ARBOR_BENCH_TREELETS")
@@ -127,6 +136,22 @@ fn main() {
             std::hint::black_box(served.batch(b, &channels).unwrap());
         }
     });
+    let reads_packed = best(n, || {
+        for b in ids.chunks(BATCH) {
+            std::hint::black_box(stored.nodes_of(b).unwrap());
+            for &c in &channels {
+                std::hint::black_box(stored.channel_of(c, b).unwrap());
+            }
+        }
+    });
+    let reads_each = best(n, || {
+        for &id in &ids {
+            std::hint::black_box(stored.nodes(id).unwrap());
+            for &c in &channels {
+                std::hint::black_box(stored.channel(c, id).unwrap());
+            }
+        }
+    });
     let mut from_frames = 0u64;
     let frame = best(n, || {
         from_frames = blocks
@@ -148,17 +173,22 @@ fn main() {
     assert_eq!(from_frames, from_headers, "the two counts disagree");
 
     println!(
-        "{scene}: {n} of {} treelets, messages of {:.0} bytes on average, {BATCH} per batch, no \
-         message cache (best of {ROUNDS} runs, per treelet)",
+        "{scene}: {n} of {} treelets, messages of {:.0} bytes on average ({} channels), {BATCH} \
+         per batch, no message cache, a pool cache of {} MiB (best of {ROUNDS} runs, per \
+         treelet)",
         d.treelet_count,
-        bytes as f64 / n as f64
+        bytes as f64 / n as f64,
+        channels.len(),
+        cache >> 20
     );
-    println!("  miss path as served (frame header):      {miss:7.2} µs");
-    println!("  used-node count from the frame header:   {frame:7.3} µs");
-    println!("  used-node count by decompressing:        {decompressed:7.2} µs");
-    let before = miss - frame + decompressed;
+    println!("  miss path as served:                        {miss:7.2} µs");
+    println!("  pool reads, one get per pack run (now):     {reads_packed:7.2} µs");
+    println!("  pool reads, one get per block (before):     {reads_each:7.2} µs");
+    println!("  used-node count from the frame (now):       {frame:7.3} µs");
+    println!("  used-node count by decompressing (before):  {decompressed:7.2} µs");
+    let before = miss - reads_packed + reads_each - frame + decompressed;
     println!(
-        "  miss path as it was (decompressing):     {before:7.2} µs: {:.2}x the time now",
+        "  miss path as it was:                        {before:7.2} µs: {:.2}x the time now",
         before / miss
     );
 }

@@ -161,6 +161,60 @@ fn channels_are_stored_apart() {
     assert_eq!(block.len(), usize::from(t.header.used_nodes) * 4);
 }
 
+/// Blocks read for many ids at once, each pack read once while consecutive ids stay in it, are
+/// the blocks read one id at a time: ascending and descending runs, repeats, ids crossing pack
+/// boundaries back and forth, ids past the scene's end, and a channel the scene does not store.
+#[test]
+fn blocks_read_together_are_the_blocks_read_one_by_one() {
+    let scratch = tempfile::tempdir().unwrap();
+    let source = bunny(scratch.path());
+    let dir = tempfile::tempdir().unwrap();
+    let pool = Pool::open(dir.path()).unwrap();
+    import(&pool, &source, scratch.path(), "b", false);
+    let s = pool.scene("b").unwrap();
+    let count = s.description.treelet_count;
+    assert!(
+        count > 2 * pack::PACK_TREELETS,
+        "{count} treelets span a few packs"
+    );
+    let mut ids: Vec<TreeletId> = (0..count).map(TreeletId).collect();
+    ids.extend((0..count).rev().map(TreeletId));
+    ids.extend(
+        [
+            5,
+            5,
+            17,
+            3,
+            40,
+            16,
+            15,
+            16,
+            count,
+            count + 1,
+            2,
+            u32::MAX - 1,
+        ]
+        .map(TreeletId),
+    );
+    let nodes = s.nodes_of(&ids).unwrap();
+    let normals = s.channel_of(Channel::Normal, &ids).unwrap();
+    let colours = s.channel_of(Channel::Color, &ids).unwrap();
+    assert_eq!(
+        (nodes.len(), normals.len(), colours.len()),
+        (ids.len(), ids.len(), ids.len())
+    );
+    for (i, &id) in ids.iter().enumerate() {
+        assert_eq!(nodes[i], s.nodes(id).unwrap(), "nodes of {id}");
+        assert_eq!(
+            normals[i],
+            s.channel(Channel::Normal, id).unwrap(),
+            "normals of {id}"
+        );
+        assert!(colours[i].is_none(), "colour of {id}");
+        assert_eq!(nodes[i].is_some(), id.0 < count, "{id}");
+    }
+}
+
 /// Builds a scene, closes the pool, lets `damage` write into sled directly, reopens and verifies.
 fn damaged(damage: impl FnOnce(&sled::Db, u64, &arbor_proto::SceneDescription)) -> Vec<String> {
     let scratch = tempfile::tempdir().unwrap();

@@ -37,7 +37,9 @@
 //! ARBOR_BENCH_PROFILE_SPLIT=N / ARBOR_BENCH_PROFILE_SPLIT_RAW=N: the same with each end on a
 //! CPU of its own, in threads named `server-end` and `client-end` for `perf report --sort comm`;
 //! ARBOR_BENCH_LINK=N: only the link row, N times, the first on a new path, the others returning
-//! on it, which Arbor's server remembers and raw quinn does not).
+//! on it, which Arbor's server remembers and raw quinn does not; ARBOR_BENCH_MESSAGE_CACHE=B with
+//! any of these: the server's message cache in bytes, 0 for none, so that every treelet is built
+//! from the pool as for a scan many times the cache).
 //! Never run in CI.
 
 use std::net::SocketAddr;
@@ -137,6 +139,12 @@ fn serve_config(
     cfg.admin_token = AdminTokenSource::Inline("bench".into());
     cfg.default_access = arbor_server::service::config::Access::Public;
     (cfg.window_min, cfg.window_max) = window;
+    if let Some(bytes) = std::env::var("ARBOR_BENCH_MESSAGE_CACHE")
+        .ok()
+        .and_then(|v| v.parse().ok())
+    {
+        cfg.message_cache_bytes = bytes;
+    }
     cfg
 }
 

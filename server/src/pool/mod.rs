@@ -62,7 +62,8 @@ const FORMAT_KEY: &[u8] = b"arbor.pool.format";
 /// but with scenes predates it (format 1).
 const FORMAT: u32 = 2;
 
-/// sled page cache size.
+/// sled page cache size of [`Pool::open`]: imports and tools. A server sizes its own
+/// (`pool_cache_bytes`, [`Pool::open_with_cache`]).
 pub const POOL_CACHE_BYTES: u64 = 128 << 20;
 
 fn nodes_tree(generation: u64) -> String {
@@ -111,6 +112,25 @@ impl StoredScene {
         match self.channels.iter().find(|(c, _)| *c == channel) {
             Some((c, t)) => packed_block(t, c.name(), id),
             None => Ok(None),
+        }
+    }
+
+    /// The compressed node blocks of `ids`, in order, as [`StoredScene::nodes`] reads each, but
+    /// with one sled read per pack while consecutive ids stay in it.
+    pub fn nodes_of(&self, ids: &[TreeletId]) -> Result<Vec<Option<sled::IVec>>, PoolError> {
+        packed_blocks(&self.nodes, "nodes", ids)
+    }
+
+    /// The compressed `channel` blocks of `ids`, in order, as [`StoredScene::channel`] reads
+    /// each, but with one sled read per pack while consecutive ids stay in it.
+    pub fn channel_of(
+        &self,
+        channel: Channel,
+        ids: &[TreeletId],
+    ) -> Result<Vec<Option<sled::IVec>>, PoolError> {
+        match self.channels.iter().find(|(c, _)| *c == channel) {
+            Some((c, t)) => packed_blocks(t, c.name(), ids),
+            None => Ok(vec![None; ids.len()]),
         }
     }
 
@@ -184,24 +204,70 @@ fn packed_block(
     stream: &str,
     id: TreeletId,
 ) -> Result<Option<sled::IVec>, PoolError> {
-    let (key, slot) = pack::locate(id);
-    let Some(p) = tree.get(key)? else {
-        return Ok(None);
-    };
-    pack::block(&p, slot).map_err(|source| PoolError::Corrupt {
-        what: format!("{stream} pack of treelet {}", id.0),
-        source,
-    })
+    PackCursor::default().block(tree, stream, id)
+}
+
+/// The blocks of `ids` in order, through one [`PackCursor`].
+fn packed_blocks(
+    tree: &sled::Tree,
+    stream: &str,
+    ids: &[TreeletId],
+) -> Result<Vec<Option<sled::IVec>>, PoolError> {
+    let mut cursor = PackCursor::default();
+    ids.iter()
+        .map(|&id| cursor.block(tree, stream, id))
+        .collect()
+}
+
+/// Reads blocks of one tree holding on to the last pack read, so that consecutive ids in one
+/// pack cost one sled `get` between them. A stream's batch is treelets adjacent in rank, mostly
+/// siblings with consecutive ids: a `get` per block took 1.5–1.7× as long as one per pack (2.6–2.9
+/// against 1.7 µs per treelet on the 10⁸-point city, 0.76 against 0.28 on lion-4k;
+/// `server/benches/messages.rs`, docs/measurements.md, stop 59).
+#[derive(Default)]
+struct PackCursor {
+    /// The key of the pack last read, and the pack (`None`: not stored).
+    held: Option<([u8; 4], Option<sled::IVec>)>,
+}
+
+impl PackCursor {
+    fn block(
+        &mut self,
+        tree: &sled::Tree,
+        stream: &str,
+        id: TreeletId,
+    ) -> Result<Option<sled::IVec>, PoolError> {
+        let (key, slot) = pack::locate(id);
+        let pack = match &self.held {
+            Some((held, pack)) if *held == key => pack,
+            _ => &self.held.insert((key, tree.get(key)?)).1,
+        };
+        let Some(p) = pack else {
+            return Ok(None);
+        };
+        pack::block(p, slot).map_err(|source| PoolError::Corrupt {
+            what: format!("{stream} pack of treelet {}", id.0),
+            source,
+        })
+    }
 }
 
 impl Pool {
-    /// Opens (creating if needed) the pool in `dir` and drops leftovers of killed imports.
+    /// Opens (creating if needed) the pool in `dir` and drops leftovers of killed imports, with
+    /// a page cache of [`POOL_CACHE_BYTES`].
     pub fn open(dir: &Path) -> Result<Pool, PoolError> {
-        // sled's page cache defaults to 1 GiB of anonymous memory; blocks are small and read
-        // once per request, so a modest cache keeps imports and the server lean.
-        let config = sled::Config::new()
-            .path(dir)
-            .cache_capacity(POOL_CACHE_BYTES);
+        // sled's page cache defaults to 1 GiB of anonymous memory; an import writes each block
+        // once, so a modest cache keeps it lean.
+        Self::open_with_cache(dir, POOL_CACHE_BYTES)
+    }
+
+    /// [`Pool::open`] with a page cache of `cache_bytes`: sled keeps that much of the pool's
+    /// pages decoded. A read whose page is not among them decodes the page from the file again;
+    /// on the 10⁸-point city (1.4 GB of pool) the reads for building messages that missed the
+    /// message cache took 1.7–2.4 µs per treelet with 128 MiB and 0.54–0.67 µs with 1 GiB
+    /// (`server/benches/messages.rs`, docs/measurements.md, stop 59).
+    pub fn open_with_cache(dir: &Path, cache_bytes: u64) -> Result<Pool, PoolError> {
+        let config = sled::Config::new().path(dir).cache_capacity(cache_bytes);
         let db = match config.open() {
             Err(sled::Error::Corruption { .. }) if remove_unfinished_snapshots(dir) > 0 => {
                 tracing::warn!(

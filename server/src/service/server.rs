@@ -187,10 +187,10 @@ pub const ACK_DELAY: Duration = Duration::from_millis(1);
 /// notices. A lock held longer belongs to another live process (one server per pool).
 pub const POOL_LOCK_WAIT: Duration = Duration::from_secs(2);
 
-async fn open_pool(db: &Path) -> Result<Pool, ServeError> {
+async fn open_pool(db: &Path, cache_bytes: u64) -> Result<Pool, ServeError> {
     let t0 = std::time::Instant::now();
     loop {
-        match Pool::open(db) {
+        match Pool::open_with_cache(db, cache_bytes) {
             Ok(p) => return Ok(p),
             Err(PoolError::Sled(sled::Error::Io(e)))
                 if e.to_string().contains("could not acquire lock")
@@ -218,7 +218,7 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
             path: config.db.clone(),
         });
     }
-    let pool = open_pool(&config.db).await?;
+    let pool = open_pool(&config.db, config.pool_cache_bytes).await?;
     match pool.scenes() {
         Ok(s) if s.is_empty() => {
             tracing::warn!(db = %config.db.display(), "the pool holds no scenes")

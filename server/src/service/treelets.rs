@@ -522,40 +522,58 @@ impl ServedScene {
         channels: &[Channel],
     ) -> Result<Vec<Bytes>, MessageError> {
         let found = self.cache.get(keys);
-        ids.iter()
-            .zip(found)
-            .map(|(&id, hit)| match hit {
-                Some(m) => Ok(m),
-                None => self.build(id, channels).map(Bytes::from),
-            })
-            .collect()
+        let missing: Vec<TreeletId> = ids
+            .iter()
+            .zip(&found)
+            .filter(|(_, hit)| hit.is_none())
+            .map(|(&id, _)| id)
+            .collect();
+        let mut built = self.build(&missing, channels)?.into_iter();
+        Ok(found
+            .into_iter()
+            .map(|hit| hit.unwrap_or_else(|| Bytes::from(built.next().expect("one per miss"))))
+            .collect())
     }
 
-    fn build(&self, id: TreeletId, channels: &[Channel]) -> Result<Vec<u8>, MessageError> {
-        let nodes = self.stored.nodes(id)?.ok_or(MessageError::Missing {
-            id: id.0,
-            what: "node",
-        })?;
-        let mut blocks = Vec::with_capacity(channels.len());
-        for &c in channels {
-            let b = self.stored.channel(c, id)?.ok_or(MessageError::Missing {
-                id: id.0,
-                what: c.name(),
-            })?;
-            blocks.push((c, b));
+    /// The messages of `ids`, in order, built from the pool: each pack of consecutive ids read
+    /// once per stream of blocks ([`StoredScene::nodes_of`]).
+    fn build(&self, ids: &[TreeletId], channels: &[Channel]) -> Result<Vec<Vec<u8>>, MessageError> {
+        if ids.is_empty() {
+            return Ok(Vec::new());
         }
-        let used = self.used_nodes(id, &nodes)?;
-        let lens: Vec<(Channel, usize)> = blocks.iter().map(|(c, b)| (*c, b.len())).collect();
-        let header = encode_treelet_header(id, used, nodes.len(), &lens)
-            .map_err(|source| MessageError::Frame { id: id.0, source })?;
-        let total = header.len() + nodes.len() + lens.iter().map(|l| l.1).sum::<usize>();
-        let mut out = Vec::with_capacity(total);
-        out.extend_from_slice(&header);
-        out.extend_from_slice(&nodes);
-        for (_, b) in &blocks {
-            out.extend_from_slice(b);
-        }
-        Ok(out)
+        let nodes = self.stored.nodes_of(ids)?;
+        let blocks: Vec<Vec<Option<sled::IVec>>> = channels
+            .iter()
+            .map(|&c| self.stored.channel_of(c, ids))
+            .collect::<Result<_, _>>()?;
+        ids.iter()
+            .enumerate()
+            .map(|(i, &id)| {
+                let nodes = nodes[i].as_ref().ok_or(MessageError::Missing {
+                    id: id.0,
+                    what: "node",
+                })?;
+                let mut lens = Vec::with_capacity(channels.len());
+                for (&c, column) in channels.iter().zip(&blocks) {
+                    let b = column[i].as_ref().ok_or(MessageError::Missing {
+                        id: id.0,
+                        what: c.name(),
+                    })?;
+                    lens.push((c, b.len()));
+                }
+                let used = self.used_nodes(id, nodes)?;
+                let header = encode_treelet_header(id, used, nodes.len(), &lens)
+                    .map_err(|source| MessageError::Frame { id: id.0, source })?;
+                let total = header.len() + nodes.len() + lens.iter().map(|l| l.1).sum::<usize>();
+                let mut out = Vec::with_capacity(total);
+                out.extend_from_slice(&header);
+                out.extend_from_slice(nodes);
+                for column in &blocks {
+                    out.extend_from_slice(column[i].as_ref().expect("checked above"));
+                }
+                Ok(out)
+            })
+            .collect()
     }
 }
 
