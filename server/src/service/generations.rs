@@ -123,17 +123,6 @@ impl<V> GenerationCache<V> {
         Some(value)
     }
 
-    /// Keeps `value` for treelet `id` of `generation` unless one is held: a value another
-    /// cache's decode produced on the way (the same node block decoded once for both). Counted
-    /// neither as a hit nor as a miss.
-    pub fn offer(&self, generation: u64, id: TreeletId, value: V) {
-        let key = (generation, id);
-        let mut g = self.lock();
-        if !g.young.contains_key(&key) && !g.old.contains_key(&key) {
-            self.keep(&mut g, key, Arc::new(value));
-        }
-    }
-
     /// Puts `value` in the young map, turning the generations first when it would pass half
     /// the budget; a value larger than half the budget is not kept.
     fn keep(&self, g: &mut Generations<V>, key: Key, value: Arc<V>) {

@@ -1,9 +1,8 @@
 //! Treelet shapes for deep-request pushes ([`super::push::TreeletShape`]: a treelet's root voxel
 //! and its refinable leaves), decoded from the stored node blocks on first use and kept in one
 //! server-wide [`ShapeCache`] bounded in bytes (`shape_cache_bytes`; two generations, see
-//! [`super::generations`]). A node block decoded for a visible cut gives its shape too, and a
-//! block decoded for a shape gives the cut its node records
-//! (`super::treelets::ServedScene::shape`).
+//! [`super::generations`]); `super::treelets::ServedScene::decode_nodes` decodes the blocks
+//! for it and for the visible cuts' node cache.
 //!
 //! Why bounded in bytes: a shape holds one entry per child treelet, so its size follows the
 //! scene (a few children in a statue's treelet, 64 in a city terrain's, about 1.3 KB). A bound

@@ -216,13 +216,9 @@ impl ServiceCaches {
         ServiceCaches {
             messages: Arc::new(MessageCache::new(bytes(config.message_cache_bytes))),
             shapes: Arc::new(ShapeCache::for_shapes(bytes(config.shape_cache_bytes))),
-            // With cuts off nothing reads it, and shapes offer it what they decode: kept empty,
-            // as the memory bound counts it.
-            cut_nodes: Arc::new(NodeCache::for_nodes(if config.visibility_grid > 0 {
-                bytes(config.visibility_node_cache_bytes)
-            } else {
-                0
-            })),
+            cut_nodes: Arc::new(NodeCache::for_nodes(bytes(
+                config.visibility_node_cache_bytes,
+            ))),
             fine_cuts: Arc::default(),
         }
     }
@@ -614,43 +610,6 @@ mod tests {
             t.contains("arbor_request_to_send_seconds_sum 60.0071\n"),
             "{t}"
         );
-    }
-
-    /// With visible cuts off nothing reads the cut node cache, and the memory bound counts it
-    /// as nothing: what shapes offer it is not kept.
-    #[test]
-    fn the_cut_node_cache_keeps_nothing_with_cuts_off() {
-        use arbor_client_core::slots::DecodedTreelet;
-        use arbor_proto::TreeletId;
-        let offer = |caches: &ServiceCaches| {
-            let treelet = arbor_proto::Treelet {
-                header: arbor_proto::treelet::TreeletHeader {
-                    id: TreeletId(1),
-                    parent_id: TreeletId::ROOT,
-                    parent_leaf_index: 0,
-                    parent_leaf_parent_index: 0,
-                    child_index_in_parent: 0,
-                    root_depth: 1,
-                    root_cell: [0; 3],
-                    used_nodes: 1,
-                },
-                nodes: vec![arbor_proto::Node::default(); 16],
-            };
-            caches.cut_nodes.offer(
-                1,
-                TreeletId(1),
-                DecodedTreelet {
-                    treelet,
-                    attributes: Vec::new(),
-                },
-            );
-            caches.cut_nodes.figures().entries
-        };
-        let mut config = super::super::config::ServeConfig::new("p");
-        assert_eq!(offer(&ServiceCaches::for_config(&config)), 1, "cuts on");
-        config.visibility_grid = 0;
-        assert_eq!(config.memory_bound(1).cut_node_cache, 0);
-        assert_eq!(offer(&ServiceCaches::for_config(&config)), 0, "cuts off");
     }
 
     #[test]

@@ -387,9 +387,7 @@ impl ServedScene {
         let generation = self.stored.generation;
         let fetch = |id: TreeletId| {
             let decoded = self.cut_nodes.get_or_decode(generation, id, || {
-                let (treelet, places) = self.decode_nodes(id)?;
-                self.shapes
-                    .offer(generation, id, shape_of(&treelet, &places));
+                let (treelet, _) = self.decode_nodes(id)?;
                 Some(DecodedTreelet {
                     treelet,
                     attributes: Vec::new(),
@@ -431,26 +429,18 @@ impl ServedScene {
         let generation = self.stored.generation;
         self.shapes.get_or_decode(generation, id, || {
             let (treelet, places) = self.decode_nodes(id)?;
-            let shape = shape_of(&treelet, &places);
-            self.cut_nodes.offer(
-                generation,
-                id,
-                DecodedTreelet {
-                    treelet,
-                    attributes: Vec::new(),
-                },
-            );
-            Some(shape)
+            Some(shape_of(&treelet, &places))
         })
     }
 
     /// Treelet `id`'s node records, decoded and validated against the scene's depth, with every
     /// node's place; `None` if the block is not stored, does not decode, or is not treelet `id`
     /// with the scene's node count. The shape cache and the visible cuts' node cache both take
-    /// their values from it, and each decode offers the other its value: a resting view's push
-    /// plan and its visible cut read mostly the same treelets, and each decoded them on its own
-    /// (on the 10⁸-point city a fresh view decoded 1,933 shapes and 1,587 cut node blocks, the
-    /// two together about two fifths of the server's CPU; docs/measurements.md, stop 59).
+    /// their values from it. Each decodes on its own: a cut's decode offering the shape cache
+    /// its shape, and a shape's the cut node cache its records, saved no decodes that showed
+    /// on the 10⁸-point city (a plan's shapes are decoded before the view's cut is cast, and a
+    /// plan walks far more treelets than a cut reads), and the records a plan's walk offered
+    /// grew the server by the cut node cache's bytes (docs/measurements.md, stop 59).
     fn decode_nodes(&self, id: TreeletId) -> Option<(Treelet, Vec<NodePlace>)> {
         let d = &self.stored.description;
         let block = self.stored.nodes(id).ok()??;
