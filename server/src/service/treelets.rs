@@ -17,7 +17,6 @@ use std::sync::{Arc, Mutex};
 
 use arbor_proto::codec::{self, MAX_RAW_TREELET, PreparedDictionaries};
 use arbor_proto::frame::{FrameError, encode_treelet_header};
-use arbor_proto::treelet::{NodePlace, Treelet};
 use arbor_proto::treelet_map::RunHasher;
 use arbor_proto::{Channel, ProtoError, TreeletId};
 use bytes::{Bytes, BytesMut};
@@ -25,8 +24,7 @@ use bytes::{Bytes, BytesMut};
 use arbor_client_core::slots::DecodedTreelet;
 use arbor_proto::wire::ViewHint;
 
-use super::push::TreeletShape;
-use super::shapes::{ShapeCache, shape_of};
+use super::shapes::ShapeCache;
 use super::state::ServiceCaches;
 use super::visibility::{CutCaster, FineCutGates, NodeCache, VisibleCut};
 use crate::pool::{PoolError, StoredScene};
@@ -384,15 +382,21 @@ impl ServedScene {
             return None;
         }
         let d = &self.stored.description;
-        let generation = self.stored.generation;
         let fetch = |id: TreeletId| {
-            let decoded = self.cut_nodes.get_or_decode(generation, id, || {
-                let (treelet, _) = self.decode_nodes(id)?;
-                Some(DecodedTreelet {
-                    treelet,
-                    attributes: Vec::new(),
-                })
-            })?;
+            let decoded = self
+                .cut_nodes
+                .get_or_decode(self.stored.generation, id, || {
+                    let block = self.stored.nodes(id).ok()??;
+                    DecodedTreelet::from_blocks_prepared(
+                        id,
+                        &block,
+                        &[],
+                        d,
+                        &self.dictionaries,
+                        &[],
+                    )
+                    .ok()
+                })?;
             Some(DecodedTreelet::clone(&decoded))
         };
         let caster = {
@@ -423,35 +427,9 @@ impl ServedScene {
         self.fine_cuts.record(self.stored.generation, used);
     }
 
-    /// The shape of treelet `id` for deep-request pushes, from the server's [`ShapeCache`];
-    /// `None` if it is not stored or does not decode (the push is then simply not made).
-    pub fn shape(&self, id: TreeletId) -> Option<Arc<TreeletShape>> {
-        let generation = self.stored.generation;
-        self.shapes.get_or_decode(generation, id, || {
-            let (treelet, places) = self.decode_nodes(id)?;
-            Some(shape_of(&treelet, &places))
-        })
-    }
-
-    /// Treelet `id`'s node records, decoded and validated against the scene's depth, with every
-    /// node's place; `None` if the block is not stored, does not decode, or is not treelet `id`
-    /// with the scene's node count. The shape cache and the visible cuts' node cache both take
-    /// their values from it. Each decodes on its own: a cut's decode offering the shape cache
-    /// its shape, and a shape's the cut node cache its records, saved no decodes that showed
-    /// on the 10⁸-point city (a plan's shapes are decoded before the view's cut is cast, and a
-    /// plan walks far more treelets than a cut reads), and the records a plan's walk offered
-    /// grew the server by the cut node cache's bytes (docs/measurements.md, stop 59).
-    fn decode_nodes(&self, id: TreeletId) -> Option<(Treelet, Vec<NodePlace>)> {
-        let d = &self.stored.description;
-        let block = self.stored.nodes(id).ok()??;
-        let (treelet, places) = codec::decode_compressed_treelet_with_places_using(
-            &block,
-            d.max_depth,
-            self.dictionaries.nodes(),
-        )
-        .ok()?;
-        (treelet.header.id == id && treelet.capacity() == d.treelet_nodes)
-            .then_some((treelet, places))
+    /// The shape of treelet `id` for deep-request pushes ([`ShapeCache::shape`]).
+    pub fn shape(&self, id: TreeletId) -> Option<Arc<super::push::TreeletShape>> {
+        self.shapes.shape(&self.stored, &self.dictionaries, id)
     }
 
     pub fn treelet_count(&self) -> u32 {
@@ -575,23 +553,25 @@ impl ServedScene {
                     id: id.0,
                     what: "node",
                 })?;
-                let mut lens = Vec::with_capacity(channels.len());
+                let mut parts = Vec::with_capacity(channels.len());
                 for (&c, column) in channels.iter().zip(&blocks) {
                     let b = column[i].as_ref().ok_or(MessageError::Missing {
                         id: id.0,
                         what: c.name(),
                     })?;
-                    lens.push((c, b.len()));
+                    parts.push((c, b));
                 }
                 let used = self.used_nodes(id, nodes)?;
+                let lens: Vec<(Channel, usize)> =
+                    parts.iter().map(|(c, b)| (*c, b.len())).collect();
                 let header = encode_treelet_header(id, used, nodes.len(), &lens)
                     .map_err(|source| MessageError::Frame { id: id.0, source })?;
                 let total = header.len() + nodes.len() + lens.iter().map(|l| l.1).sum::<usize>();
                 let mut out = Vec::with_capacity(total);
                 out.extend_from_slice(&header);
                 out.extend_from_slice(nodes);
-                for column in &blocks {
-                    out.extend_from_slice(column[i].as_ref().expect("checked above"));
+                for (_, b) in &parts {
+                    out.extend_from_slice(b);
                 }
                 Ok(out)
             })
