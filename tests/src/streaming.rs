@@ -19,7 +19,7 @@ use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
 use arbor_client_core::traverse::{Lod, trace};
 use arbor_client_net::{ClientConfig, ServerUrl, Trust};
 use arbor_client_session::headless::{HeadlessConfig, HeadlessRun, run_headless_with};
-use arbor_proto::SceneDescription;
+use arbor_proto::{SceneDescription, TreeletId};
 use arbor_server::daemon::{DaemonOptions, RunningServer, start_with};
 use arbor_server::octree::BuildOptions;
 use arbor_server::service::ServeConfig;
@@ -77,6 +77,19 @@ pub async fn serve_with(
     treelet_bytes: u32,
     options: DaemonOptions,
 ) -> Served {
+    serve_altered(rel, name, treelet_bytes, options, |_| {}).await
+}
+
+/// [`serve_with`], with `alter` run on the built pool before the daemon opens it (a test that
+/// damages what is stored). [`Served::treelets`] and [`Served::wire_bytes`] are the scene as
+/// built, before `alter`.
+pub async fn serve_altered(
+    rel: &str,
+    name: &str,
+    treelet_bytes: u32,
+    options: DaemonOptions,
+    alter: impl FnOnce(&Built) + Send + 'static,
+) -> Served {
     let rel = rel.to_owned();
     let name_owned = name.to_owned();
     let (built, treelets, wire_bytes) = tokio::task::spawn_blocking(move || {
@@ -90,6 +103,7 @@ pub async fn serve_with(
         );
         let treelets = decoded_treelets(&built.scene);
         let wire_bytes = wire_bytes(&built.scene);
+        alter(&built);
         (built, treelets, wire_bytes)
     })
     .await
@@ -236,7 +250,17 @@ pub fn cpu_render_at(slots: &SlotBuffer, frame: &SceneFrame, camera: &Camera, bi
 /// Treelets the view of `path` at `cycle` needs resident: those holding every pixel's hit in
 /// the fully resident tree, and their ancestors.
 pub fn needed_treelets(served: &Served, full: &SlotBuffer, path: &CameraPath, cycle: u32) -> u32 {
-    let frame = SceneFrame::of(&served.scene);
+    needed_treelet_ids(&served.scene, full, path, cycle).len() as u32
+}
+
+/// The treelets [`needed_treelets`] counts, of `scene` with everything resident in `full`.
+pub fn needed_treelet_ids(
+    scene: &SceneDescription,
+    full: &SlotBuffer,
+    path: &CameraPath,
+    cycle: u32,
+) -> HashSet<TreeletId> {
+    let frame = SceneFrame::of(scene);
     let camera = path.camera(cycle, &frame, 7, SIZE.0, SIZE.1);
     let lod = Lod {
         pixel_angle: camera.pixel_angle(),
@@ -248,7 +272,7 @@ pub fn needed_treelets(served: &Served, full: &SlotBuffer, path: &CameraPath, cy
         for x in 0..SIZE.0 {
             let ray = camera.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
             if let Some(h) = trace(&full.view(), &frame, &ray, &lod) {
-                let mut s = Some(h.node / served.scene.treelet_nodes);
+                let mut s = Some(h.node / scene.treelet_nodes);
                 while let Some(slot) = s {
                     if !slots.insert(slot) {
                         break;
@@ -258,7 +282,7 @@ pub fn needed_treelets(served: &Served, full: &SlotBuffer, path: &CameraPath, cy
             }
         }
     }
-    slots.len() as u32
+    slots.iter().filter_map(|&s| full.treelet_in(s)).collect()
 }
 
 /// Bytes of slot buffer the whole scene would take.

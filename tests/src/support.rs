@@ -144,6 +144,36 @@ pub fn copy_dir(from: &Path, to: &Path) {
     }
 }
 
+/// Replaces the scene `built` holds in its pool with a copy whose node block of each treelet is
+/// what `node_block` makes of the stored one (channel blocks and description unchanged): how a
+/// test damages a pool the way a faulty disk or a faulty tool would.
+pub fn rewrite_node_blocks(built: &Built, node_block: impl Fn(TreeletId, &[u8]) -> Vec<u8>) {
+    use arbor_server::octree::TreeletSink;
+    let stored = &built.scene;
+    let d = &stored.description;
+    let channels = d.layout.channels().to_vec();
+    let ids: Vec<TreeletId> = (0..d.treelet_count).map(TreeletId).collect();
+    let nodes: Vec<(TreeletId, Vec<u8>)> = ids
+        .iter()
+        .map(|&id| (id, node_block(id, &stored.nodes(id).unwrap().unwrap())))
+        .collect();
+    let per_channel: Vec<(TreeletId, Vec<Vec<u8>>)> = ids
+        .iter()
+        .map(|&id| {
+            let blocks = channels
+                .iter()
+                .map(|&c| stored.channel(c, id).unwrap().unwrap().to_vec())
+                .collect();
+            (id, blocks)
+        })
+        .collect();
+    let mut import = built.pool.begin_import(&d.name, true).unwrap();
+    import.set_channels(&channels).unwrap();
+    import.put_nodes(nodes).unwrap();
+    import.put_channels(per_channel).unwrap();
+    import.commit(d).unwrap();
+}
+
 /// Asserts that `verify` finds no problem.
 pub fn assert_verifies(scene: &StoredScene) {
     let r = verify_scene(scene).unwrap();

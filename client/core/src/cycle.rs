@@ -27,6 +27,7 @@ use thiserror::Error;
 
 use crate::analysis::{AnalysisConfig, Feedback, grid_pixels};
 use crate::backend::{Backend, BackendError, CpuBackend, PassInput, upload_all};
+use crate::backoff::DecodeBackoff;
 use crate::bias::{LodBiasControl, ViewNeed};
 use crate::camera::Camera;
 use crate::coverage::Coverage;
@@ -120,6 +121,28 @@ struct PresortKey {
     coverage: u64,
     inserted: u64,
     evicted: u64,
+    /// [`DecodeBackoff::generation`].
+    held: u64,
+}
+
+/// What a list must not name: treelets resident, waiting in the backlog, taken off the
+/// connection and not yet handed over, or held off after failing to decode.
+#[derive(Clone, Copy)]
+struct Unlistable<'a> {
+    slots: &'a SlotBuffer,
+    backlog: &'a HashSet<TreeletId>,
+    arriving: &'a HashSet<TreeletId>,
+    undecodable: &'a DecodeBackoff,
+    cycle: u64,
+}
+
+impl Unlistable<'_> {
+    fn contains(&self, id: TreeletId) -> bool {
+        self.backlog.contains(&id)
+            || self.arriving.contains(&id)
+            || self.slots.is_resident(id)
+            || self.undecodable.holds(id, self.cycle)
+    }
 }
 
 /// What a render depends on besides the scene and the light, which a core never changes: equal
@@ -492,6 +515,9 @@ pub struct ClientCore {
     backlog_ids: HashSet<TreeletId>,
     /// Received and not yet handed over ([`ClientCore::note_arriving`]): not to be listed.
     arriving: HashSet<TreeletId>,
+    /// Arrivals that could not be decoded, held off the lists for a while
+    /// ([`ClientCore::handle_undecodable`]).
+    undecodable: DecodeBackoff,
     /// The last prefetch found nothing left in the frustum. Holds until the view or the
     /// resident set changes, so a converged view does not walk the frustum every cycle.
     frustum_exhausted: bool,
@@ -586,6 +612,7 @@ impl ClientCore {
             backlog: VecDeque::new(),
             backlog_ids: HashSet::new(),
             arriving: HashSet::new(),
+            undecodable: DecodeBackoff::default(),
             frustum_exhausted: false,
             backlog_dropped: 0,
             cycle: 0,
@@ -682,6 +709,7 @@ impl ClientCore {
     /// requested again if still needed.
     pub fn handle_treelet(&mut self, treelet: DecodedTreelet) {
         let id = treelet.treelet.header.id;
+        self.undecodable.decoded(id);
         if self.slots.is_resident(id) || !self.backlog_ids.insert(id) {
             self.received_twice += 1;
             return;
@@ -694,6 +722,36 @@ impl ClientCore {
                 self.orphans_since.remove(&old.treelet.header.id);
                 self.backlog_dropped += 1;
             }
+        }
+    }
+
+    /// A treelet arrived that could not be decoded (the caller logs why): it is held off the
+    /// request lists for a while, longer after each failure ([`crate::backoff`]), so the server
+    /// is not asked for the same bad bytes every cycle. A copy that decodes later, handed over
+    /// with [`handle_treelet`](Self::handle_treelet), clears the hold.
+    pub fn handle_undecodable(&mut self, id: TreeletId) {
+        self.undecodable.failed(id, self.cycle);
+    }
+
+    /// Forgets every undecodable arrival: the connection now goes to a server (maybe another
+    /// replica) whose copies may decode.
+    pub fn forget_undecodable(&mut self) {
+        self.undecodable.clear();
+    }
+
+    /// The undecodable arrivals and their holds.
+    pub fn undecodable(&self) -> &DecodeBackoff {
+        &self.undecodable
+    }
+
+    /// What lists must not name now.
+    fn unlistable(&self) -> Unlistable<'_> {
+        Unlistable {
+            slots: &self.slots,
+            backlog: &self.backlog_ids,
+            arriving: &self.arriving,
+            undecodable: &self.undecodable,
+            cycle: self.cycle,
         }
     }
 
@@ -934,10 +992,12 @@ impl ClientCore {
     fn select_from_feedback(&mut self) -> (Vec<u32>, Vec<RequestItem>, usize) {
         // With nothing in the backlog or on its way, the presort reads only the samples and the
         // resident set.
+        let held = self.undecodable.generation(self.cycle);
         let key = (self.backlog_ids.is_empty() && self.arriving.is_empty()).then(|| PresortKey {
             coverage: self.coverage.generation(),
             inserted: self.slots.stats().inserted,
             evicted: self.slots.stats().evicted,
+            held,
         });
         if let (Some(key), Some(memo)) = (key, &self.presort_memo)
             && memo.key == key
@@ -965,8 +1025,13 @@ impl ClientCore {
     /// [`Self::select_from_feedback`] computed afresh.
     fn presort_samples(&mut self) -> (Vec<u32>, Vec<RequestItem>, usize) {
         let slots = &self.slots;
-        let backlog = &self.backlog_ids;
-        let arriving = &self.arriving;
+        let unlistable = Unlistable {
+            slots,
+            backlog: &self.backlog_ids,
+            arriving: &self.arriving,
+            undecodable: &self.undecodable,
+            cycle: self.cycle,
+        };
         let (w, h) = self.coverage.size();
         let centre = self.config.policy == PriorityPolicy::Centre;
         let weighted = self.coverage.known_samples().map(|(i, s)| {
@@ -982,7 +1047,7 @@ impl ClientCore {
             self.scene.treelet_nodes,
             slots.capacity(),
             |s| slots.parent_slot(s),
-            |id| backlog.contains(&id) || arriving.contains(&id) || slots.is_resident(id),
+            |id| unlistable.contains(id),
             |id| slots.slot_of(id),
         );
         (
@@ -1052,16 +1117,11 @@ impl ClientCore {
         let behind = self.look_past_memo.as_ref().map_or(&[][..], |(_, b)| b);
         let lowest = requests.iter().map(|r| r.priority).fold(1.0f32, f32::min);
         let mut seen: HashSet<TreeletId> = requests.iter().map(|r| r.id).collect();
-        let (slots, backlog, arriving) = (&self.slots, &self.backlog_ids, &self.arriving);
+        let unlistable = self.unlistable();
         let items = behind
             .iter()
             .copied()
-            .filter(|&(id, _)| {
-                !backlog.contains(&id)
-                    && !arriving.contains(&id)
-                    && !slots.is_resident(id)
-                    && seen.insert(id)
-            })
+            .filter(|&(id, _)| !unlistable.contains(id) && seen.insert(id))
             .take(free)
             .map(|(id, error)| RequestItem {
                 id,
@@ -1164,12 +1224,9 @@ impl ClientCore {
             return;
         }
         let listed: HashSet<TreeletId> = requests.iter().map(|r| r.id).collect();
-        let (slots, backlog, arriving) = (&self.slots, &self.backlog_ids, &self.arriving);
+        let unlistable = self.unlistable();
         let (_, candidates) = frustum.select(&self.frame, &camera, self.bias.bias(), |id| {
-            listed.contains(&id)
-                || backlog.contains(&id)
-                || arriving.contains(&id)
-                || slots.is_resident(id)
+            listed.contains(&id) || unlistable.contains(id)
         });
         // An open view: the samples name a good share of what the frustum offers (little is
         // hidden), so the rest of the frustum is mostly what refined gaps will reveal. The
@@ -1230,12 +1287,11 @@ impl ClientCore {
         let Some(frustum) = &self.frustum else {
             return (Vec::new(), Vec::new(), 0);
         };
-        let slots = &self.slots;
-        let backlog = &self.backlog_ids;
-        let arriving = &self.arriving;
+        let unlistable = self.unlistable();
         let (visible, requests) = frustum.select(&self.frame, &camera, self.bias.bias(), |id| {
-            backlog.contains(&id) || arriving.contains(&id) || slots.is_resident(id)
+            unlistable.contains(id)
         });
+        let slots = &self.slots;
         let mut visible: Vec<u32> = visible.iter().filter_map(|&id| slots.slot_of(id)).collect();
         visible.sort_unstable();
         let distinct = requests.len();

@@ -6,7 +6,8 @@
 //! pass ([`analysis`], twin of `analysis.wgsl`) and the renderer ([`render`], twin of
 //! `render.wgsl`), presort ([`presort`]), the incore slot buffer ([`slots`], [`incore`]), upload
 //! range planning ([`upload`]) and the cycle that ties them together ([`cycle::ClientCore`]),
-//! running its passes on a [`backend::Backend`] — the CPU twins here, wgpu in
+//! holding undecodable arrivals off the lists for a while ([`backoff`]), running its
+//! passes on a [`backend::Backend`] — the CPU twins here, wgpu in
 //! `arbor-client-gpu`.
 //!
 //! Keeping this crate free of I/O is what makes it testable the quinn-proto way: tests feed it
@@ -19,6 +20,7 @@
 
 pub mod analysis;
 pub mod backend;
+pub mod backoff;
 pub mod bias;
 pub mod camera;
 pub mod coverage;

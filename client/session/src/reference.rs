@@ -219,10 +219,10 @@ pub(crate) fn fetch_ids(
         let mut deadline = Instant::now() + timeout;
         while !missing.is_empty() {
             let drained = drain_events(client, scene, channels, &dictionaries)?;
-            if drained.undecodable > 0 {
+            if !drained.undecodable.is_empty() {
                 return Err(RunError::Refused(format!(
                     "{} treelets from the server did not decode",
-                    drained.undecodable
+                    drained.undecodable.len()
                 )));
             }
             if drained.treelets.is_empty() {

@@ -221,7 +221,7 @@ impl Session {
         // What arrived during the analysis is not to be listed again; it is decoded after the
         // list is on its way.
         let mut received = std::mem::take(&mut self.early);
-        received.extend(take_events(&mut self.client, &self.scene)?);
+        let mut connected = take_events(&mut self.client, &self.scene, &mut received)?;
         self.core.note_arriving(received.iter().map(|t| t.id));
         let t_presort = Instant::now();
         let plan = self.core.presort();
@@ -242,7 +242,7 @@ impl Session {
         }
         let request_time = t_request.elapsed();
         let t_drain = Instant::now();
-        received.extend(take_events(&mut self.client, &self.scene)?);
+        connected |= take_events(&mut self.client, &self.scene, &mut received)?;
         let drained = decode_all(&received, &self.scene, &self.channels, &self.dictionaries);
         // What this cycle took off the connection, counted from the same treelets as its bytes
         // (the connection's own counter runs ahead: it counts what is queued for the session).
@@ -252,6 +252,13 @@ impl Session {
         let bytes_received = drained.bytes + root_bytes.unwrap_or(0);
         for t in drained.treelets {
             self.core.handle_treelet(t);
+        }
+        if connected {
+            // Maybe another replica, whose copies may decode.
+            self.core.forget_undecodable();
+        }
+        for &id in &drained.undecodable {
+            self.core.handle_undecodable(id);
         }
         let integration = self.core.integrate();
         let integrate_time = t_drain.elapsed();
@@ -301,7 +308,7 @@ impl Session {
             slots_used: slots.used_slots(),
             slots_total: slots.capacity(),
             evictions: integration.evicted,
-            dropped: integration.dropped + drained.undecodable,
+            dropped: integration.dropped + drained.undecodable.len() as u32,
             pushed: integration.pushed,
             push_dropped: integration.push_dropped,
             received_twice: integration.received_twice,
@@ -375,7 +382,7 @@ pub(crate) struct Drained {
     pub(crate) treelets: Vec<DecodedTreelet>,
     bytes: u64,
     /// Treelets that failed to decode (logged and dropped: the server is at fault).
-    pub(crate) undecodable: u32,
+    pub(crate) undecodable: Vec<TreeletId>,
 }
 
 /// Takes every queued event without waiting and decodes the treelets among them.
@@ -385,16 +392,19 @@ pub(crate) fn drain_events(
     channels: &[Channel],
     dictionaries: &PreparedDictionaries,
 ) -> Result<Drained, RunError> {
-    let received = take_events(client, scene)?;
+    let mut received = Vec::new();
+    take_events(client, scene, &mut received)?;
     Ok(decode_all(&received, scene, channels, dictionaries))
 }
 
-/// Takes every queued event without waiting: the treelets received, undecoded.
+/// Takes every queued event without waiting: the treelets received, undecoded, go to
+/// `received`. Whether a connection (re)started among them.
 pub(crate) fn take_events(
     client: &mut TreeletClient,
     scene: &SceneDescription,
-) -> Result<Vec<ReceivedTreelet>, RunError> {
-    let mut received = Vec::new();
+    received: &mut Vec<ReceivedTreelet>,
+) -> Result<bool, RunError> {
+    let mut connected = false;
     while let Some(event) = client.try_next_event() {
         match event {
             ClientEvent::Treelet(t) => received.push(t),
@@ -406,6 +416,7 @@ pub(crate) fn take_events(
                         s.name, s.treelet_count
                     )));
                 }
+                connected = true;
             }
             ClientEvent::Disconnected {
                 reason,
@@ -417,7 +428,7 @@ pub(crate) fn take_events(
             }
         }
     }
-    Ok(received)
+    Ok(connected)
 }
 
 /// The median (the upper of the middle two) and the largest of the received treelets'
@@ -447,7 +458,7 @@ pub(crate) fn decode_all(
     let mut out = Drained {
         treelets: Vec::with_capacity(received.len()),
         bytes: received.iter().map(|t| t.wire_bytes as u64).sum(),
-        undecodable: 0,
+        undecodable: Vec::new(),
     };
     // Decompression is most of a cycle's work while a link delivers hundreds of treelets per
     // cycle: spread it over the cores, keeping the arrival order.
@@ -460,7 +471,7 @@ pub(crate) fn decode_all(
             Ok(d) => out.treelets.push(d),
             Err(e) => {
                 tracing::warn!(treelet = %t.id, "dropping undecodable treelet: {e}");
-                out.undecodable += 1;
+                out.undecodable.push(t.id);
             }
         }
     }
