@@ -16,6 +16,7 @@
 //! global index and pointing at the child's node 1; the leaf bit in the leaf's parent is cleared.
 //! The child's own node 0 is never reached by a traversal: its root lives at the patched leaf.
 
+use std::borrow::Borrow;
 use std::fmt;
 
 use arbor_proto::codec::{self, PreparedDictionaries, SceneDictionaries};
@@ -767,8 +768,12 @@ impl SlotBuffer {
     /// # Panics
     /// If the treelet does not fit this buffer (another `N`, a held channel missing or of the
     /// wrong length): [`DecodedTreelet::decode_message`] with the buffer's channels guarantees it.
-    pub fn insert(&mut self, t: DecodedTreelet) -> InsertOutcome {
-        if let Err(e) = self.check_fits(&t) {
+    ///
+    /// The treelet is only read: a caller holding it shared (the server's visible cuts fetch
+    /// from a cache of `Arc`s) passes it without a copy.
+    pub fn insert(&mut self, t: impl Borrow<DecodedTreelet>) -> InsertOutcome {
+        let t: &DecodedTreelet = t.borrow();
+        if let Err(e) = self.check_fits(t) {
             panic!("treelet does not fit the slot buffer: {e}");
         }
         if self.loaded_this_cycle >= self.config.load_limit {
@@ -809,7 +814,7 @@ impl SlotBuffer {
                 }
             },
         };
-        self.fill_slot(slot, &t);
+        self.fill_slot(slot, t);
         let n = self.config.treelet_nodes;
         let root = t.treelet.nodes[0];
         let replaced = self.nodes[site as usize];

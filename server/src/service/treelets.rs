@@ -382,9 +382,9 @@ impl ServedScene {
             return None;
         }
         let d = &self.stored.description;
+        // Shared out of the cache, not copied: the cast only reads what it inserts.
         let fetch = |id: TreeletId| {
-            let decoded = self
-                .cut_nodes
+            self.cut_nodes
                 .get_or_decode(self.stored.generation, id, || {
                     let block = self.stored.nodes(id).ok()??;
                     DecodedTreelet::from_blocks_prepared(
@@ -396,13 +396,13 @@ impl ServedScene {
                         &[],
                     )
                     .ok()
-                })?;
-            Some(DecodedTreelet::clone(&decoded))
+                })
         };
         let caster = {
             let mut caster = self.cut_caster.lock().unwrap_or_else(|p| p.into_inner());
             if caster.is_none() {
-                let root = fetch(d.root_treelet)?;
+                let root: Arc<DecodedTreelet> = fetch(d.root_treelet)?;
+                let root = DecodedTreelet::clone(&root);
                 match CutCaster::new(d, budget_bytes, root) {
                     Ok(c) => *caster = Some(Arc::new(c)),
                     Err(e) => {

@@ -33,6 +33,7 @@ use arbor_proto::wire::ViewHint;
 use arbor_proto::{Node, SceneDescription, TreeletId};
 use glam::DVec3;
 use rayon::prelude::*;
+use std::borrow::Borrow;
 use std::sync::OnceLock;
 
 use super::generations::GenerationCache;
@@ -277,11 +278,11 @@ impl CutCaster {
 
     /// The cut of `view` with `grid` rays along the longer side of its frame
     /// ([`grid_camera`]), at the view's footprint ([`cast`](Self::cast)).
-    pub fn cut(
+    pub fn cut<T: Borrow<DecodedTreelet>>(
         &self,
         view: &ViewHint,
         grid: u32,
-        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet> + Send,
+        fetch: impl FnMut(TreeletId) -> Option<T> + Send,
     ) -> VisibleCut {
         self.cut_from(view, grid, &[], fetch, |_| true)
     }
@@ -300,12 +301,12 @@ impl CutCaster {
     /// rays meet what the frustum plan pushes anyway, and a cut cast to the end only to be
     /// found not worth following cost the server several times what serving the view did
     /// (docs/measurements.md, stop 48).
-    pub fn cut_from(
+    pub fn cut_from<T: Borrow<DecodedTreelet>>(
         &self,
         view: &ViewHint,
         grid: u32,
         seed: &[(u8, TreeletId)],
-        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet> + Send,
+        fetch: impl FnMut(TreeletId) -> Option<T> + Send,
         worthwhile: impl FnMut(usize) -> bool + Send,
     ) -> VisibleCut {
         let start = std::time::Instant::now();
@@ -331,11 +332,11 @@ impl CutCaster {
     /// held would let a ray pass through it unnoticed), loading what a ray stops at while
     /// coarser than a pixel, until every ray stops where the whole tree stops it. Treelets are
     /// read with `fetch` (node block only; `None`: not readable, the cast is then incomplete).
-    pub fn cast(
+    pub fn cast<T: Borrow<DecodedTreelet>>(
         &self,
         camera: &Camera,
         lod: &Lod,
-        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet> + Send,
+        fetch: impl FnMut(TreeletId) -> Option<T> + Send,
     ) -> Cast {
         self.cast_from(camera, lod, &[], fetch, |_| true)
     }
@@ -346,12 +347,12 @@ impl CutCaster {
     ///
     /// The whole cast — reading and decoding what it loads as well as its rays — runs on the
     /// cut threads ([`cut_pool`]), which yield to streaming.
-    fn cast_from(
+    fn cast_from<T: Borrow<DecodedTreelet>>(
         &self,
         camera: &Camera,
         lod: &Lod,
         seed: &[(u8, TreeletId)],
-        fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet> + Send,
+        fetch: impl FnMut(TreeletId) -> Option<T> + Send,
         worthwhile: impl FnMut(usize) -> bool + Send,
     ) -> Cast {
         match cut_pool() {
@@ -362,12 +363,12 @@ impl CutCaster {
 
     /// [`CutCaster::cast_from`] on the calling thread, each round's rays in parallel on the
     /// current rayon pool when `parallel`.
-    fn cast_on(
+    fn cast_on<T: Borrow<DecodedTreelet>>(
         &self,
         camera: &Camera,
         lod: &Lod,
         seed: &[(u8, TreeletId)],
-        mut fetch: impl FnMut(TreeletId) -> Option<DecodedTreelet>,
+        mut fetch: impl FnMut(TreeletId) -> Option<T>,
         mut worthwhile: impl FnMut(usize) -> bool,
         parallel: bool,
     ) -> Cast {

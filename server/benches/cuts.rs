@@ -1,0 +1,243 @@
+//! What a visible cut costs the server (`service::visibility::CutCaster`, cast for a resting
+//! view's pushes), apart from reading and decoding what it loads: the treelets are decoded from
+//! the pool once, before the clock starts, and each cast fetches them from memory as from the
+//! server's cut node cache. The views include the stiff ones: near the surface, and inside the
+//! data (every ray starts in the same chain of nested treelets, so the cast takes a round per
+//! treelet level for a few dozen treelets).
+//!
+//! Per view, best of [`ROUNDS`]: the cast at the server's default grid (128 rays along the
+//! longer side), and at its fine grid (512) seeded with the coarse cut as the server casts it
+//! (`CutCaster::cut_from`), with the treelets each holds and the rays it cast. Each cast runs
+//! both ways in turns: with the treelets shared out of the map (`Arc`, as the server's cut node
+//! cache hands them over since stop 60) and copied out of it (before). The last line is the
+//! part of every cast that does not depend on the view: the cut's buffer of
+//! `visibility_cache_bytes` (32 MiB by default) made and dropped, and its node array alone.
+//!
+//! `cargo bench -p arbor-server --bench cuts`: lion (`../shared/data`) imported with 4 KiB
+//! treelets into a temporary pool. `ARBOR_BENCH_POOL=DIR ARBOR_BENCH_SCENE=NAME`: a scene of an
+//! existing pool instead (the city of `--bench scale`).
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use arbor_client_core::camera::{Camera, CameraPath};
+use arbor_client_core::incore::SceneFrame;
+use arbor_client_core::slots::{DecodedTreelet, SlotBuffer, SlotConfig};
+use arbor_proto::wire::ViewHint;
+use arbor_proto::{Node, TreeletId, codec};
+use arbor_server::octree::BuildOptions;
+use arbor_server::pipeline::{SceneImport, import_scene};
+use arbor_server::pool::Pool;
+use arbor_server::service::config::{
+    DEFAULT_VISIBILITY_CACHE_BYTES, DEFAULT_VISIBILITY_FINE_GRID, DEFAULT_VISIBILITY_GRID,
+};
+use arbor_server::service::visibility::CutCaster;
+use glam::DVec3;
+
+/// The daemon's allocator (`arbor-server`'s `main.rs`): what a freed buffer's pages cost when
+/// the next one is made depends on it.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// Runs of each measurement; the best counts.
+const ROUNDS: usize = 5;
+
+fn lion() -> PathBuf {
+    let p = Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../shared/data/points/lion_takanawa.copc.laz"
+    ))
+    .to_owned();
+    assert!(
+        p.exists(),
+        "the real scans in ../shared/data are required: {p:?}"
+    );
+    p
+}
+
+/// `f`'s result and how long it took.
+fn timed<T>(f: impl FnOnce() -> T) -> (Duration, T) {
+    let t = Instant::now();
+    let out = f();
+    (t.elapsed(), out)
+}
+
+/// The best of [`ROUNDS`] runs of `f`.
+fn best(mut f: impl FnMut()) -> Duration {
+    (0..ROUNDS)
+        .map(|_| timed(&mut f).0)
+        .min()
+        .unwrap_or_default()
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+/// The view a client at `camera` announces.
+fn hint(camera: &Camera) -> ViewHint {
+    let f32s = |v: DVec3| [v.x as f32, v.y as f32, v.z as f32];
+    ViewHint {
+        eye: camera.position.to_array(),
+        forward: f32s(camera.forward),
+        up: f32s(camera.up),
+        tan_half_fov_y: (camera.fov_y * 0.5).tan() as f32,
+        aspect: (f64::from(camera.width) / f64::from(camera.height)) as f32,
+        footprint: camera.pixel_angle() as f32,
+        free_slots: ViewHint::MAX_FREE_SLOTS,
+    }
+}
+
+fn main() {
+    let own = tempfile::tempdir().unwrap();
+    let (dir, scene) = match std::env::var_os("ARBOR_BENCH_POOL") {
+        Some(dir) => (
+            PathBuf::from(dir),
+            std::env::var("ARBOR_BENCH_SCENE").expect("ARBOR_BENCH_SCENE names the scene"),
+        ),
+        None => {
+            let dir = own.path().join("pool");
+            let pool = Pool::open(&dir).unwrap();
+            let request = SceneImport {
+                name: "lion-4k".into(),
+                input: lion(),
+                build: BuildOptions {
+                    treelet_bytes: 4096,
+                    progress: false,
+                    ..BuildOptions::default()
+                },
+                ..SceneImport::default()
+            };
+            import_scene(&pool, &request).unwrap();
+            pool.flush().unwrap();
+            (dir, "lion-4k".to_owned())
+        }
+    };
+    let pool = Pool::open(&dir).unwrap();
+    let stored = pool.scene(&scene).unwrap();
+    let d = stored.description.clone();
+    let dictionaries = codec::PreparedDictionaries::of(&d);
+    let decode = |id: TreeletId| {
+        let block = stored.nodes(id).ok()??;
+        DecodedTreelet::from_blocks_prepared(id, &block, &[], &d, &dictionaries, &[]).ok()
+    };
+    let root = decode(d.root_treelet).expect("the root decodes");
+    let budget = DEFAULT_VISIBILITY_CACHE_BYTES;
+    let caster = CutCaster::new(&d, budget, root.clone()).unwrap();
+    let frame = SceneFrame::of(&d);
+    let c = DVec3::from_array(frame.centre());
+    let e = frame.edge;
+    let (w, h) = (1024, 768);
+    let look = |eye: DVec3, target: DVec3, fov: f64| {
+        Camera::look_at(eye, target, DVec3::Z, fov, w, h).unwrap()
+    };
+    let views: Vec<(&str, Camera)> = vec![
+        ("static", CameraPath::Static.camera(0, &frame, 7, w, h)),
+        (
+            "orbit 90°",
+            CameraPath::Orbit {
+                degrees_per_cycle: 90.0,
+            }
+            .camera(1, &frame, 7, w, h),
+        ),
+        (
+            "fly-in end",
+            CameraPath::FlyIn { cycles: 1 }.camera(5, &frame, 7, w, h),
+        ),
+        ("near", look(c + DVec3::new(0.2, -0.7, 0.1) * e, c, 1.0)),
+        ("inside", look(c, c + DVec3::new(1.0, 0.3, 0.1), 1.2)),
+    ];
+
+    // Everything any cast loads, decoded once.
+    let mut decoded: HashMap<TreeletId, Arc<DecodedTreelet>> = HashMap::new();
+    let mut fetch_all = |id: TreeletId| {
+        if let Some(t) = decoded.get(&id) {
+            return Some(DecodedTreelet::clone(t));
+        }
+        let t = Arc::new(decode(id)?);
+        decoded.insert(id, t.clone());
+        Some(DecodedTreelet::clone(&t))
+    };
+    for (_, camera) in &views {
+        let coarse = caster.cut(&hint(camera), DEFAULT_VISIBILITY_GRID, &mut fetch_all);
+        let seeded = &coarse.treelets;
+        caster.cut_from(
+            &hint(camera),
+            DEFAULT_VISIBILITY_FINE_GRID,
+            seeded,
+            &mut fetch_all,
+            |_| true,
+        );
+    }
+    // Shared out of the map as the server shares them out of its cut node cache; the copies
+    // it made before stop 60, for comparison.
+    let fetch = |id: TreeletId| decoded.get(&id).cloned();
+    let fetch_copied = |id: TreeletId| decoded.get(&id).map(|t| DecodedTreelet::clone(t));
+
+    println!(
+        "visible cuts of {} ({} treelets of {} nodes), a {} MiB cut buffer, best of {ROUNDS}",
+        d.name,
+        d.treelet_count,
+        d.treelet_nodes,
+        budget >> 20
+    );
+    println!(
+        "{:<12} {:>9} {:>9} {:>15} {:>9} {:>9} {:>15}",
+        "", "coarse", "", "cast ms", "fine", "", "cast ms"
+    );
+    println!(
+        "{:<12} {:>9} {:>9} {:>15} {:>9} {:>9} {:>15}",
+        "view", "treelets", "rays", "shared / copied", "treelets", "rays", "shared / copied"
+    );
+    for (what, camera) in &views {
+        let view = hint(camera);
+        let mut row = format!("{what:<12}");
+        let mut coarse = Vec::new();
+        for grid in [DEFAULT_VISIBILITY_GRID, DEFAULT_VISIBILITY_FINE_GRID] {
+            // In turns, so that a slow spell of the machine falls on both.
+            let mut shared = Duration::MAX;
+            let mut copied = Duration::MAX;
+            let mut cut = None;
+            for _ in 0..ROUNDS {
+                let (t, c) = timed(|| caster.cut_from(&view, grid, &coarse, fetch, |_| true));
+                shared = shared.min(t);
+                let (t, _) =
+                    timed(|| caster.cut_from(&view, grid, &coarse, fetch_copied, |_| true));
+                copied = copied.min(t);
+                cut = Some(c);
+            }
+            let cut = cut.expect("at least one round");
+            row += &format!(
+                " {:>9} {:>9} {:>7.2} / {:>5.2}",
+                cut.treelets.len(),
+                cut.rays_cast,
+                ms(shared),
+                ms(copied)
+            );
+            coarse = cut.treelets;
+        }
+        println!("{row}");
+    }
+
+    let config = SlotConfig {
+        budget_bytes: budget,
+        treelet_nodes: d.treelet_nodes,
+        channels: Vec::new(),
+        visibility_max: 1,
+        load_limit: u32::MAX,
+    };
+    let records = SlotBuffer::new(config.clone(), root.clone())
+        .unwrap()
+        .capacity() as usize
+        * d.treelet_nodes as usize;
+    let made = best(|| drop(SlotBuffer::new(config.clone(), root.clone()).unwrap()));
+    let array = best(|| drop(std::hint::black_box(vec![Node::default(); records])));
+    println!(
+        "the cut buffer alone, made and dropped: {:.2} ms, of which its {} MiB node array {:.2} ms",
+        ms(made),
+        (records * std::mem::size_of::<Node>()) >> 20,
+        ms(array)
+    );
+}
