@@ -17,18 +17,18 @@
 //! treelets into a temporary pool. `ARBOR_BENCH_POOL=DIR ARBOR_BENCH_SCENE=NAME`: a scene of an
 //! existing pool instead (the city of `--bench scale`).
 
+mod common;
+
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use arbor_client_core::camera::{Camera, CameraPath};
+use arbor_client_core::cycle::view_hint;
 use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::slots::{DecodedTreelet, SlotBuffer, SlotConfig};
 use arbor_proto::wire::ViewHint;
 use arbor_proto::{Node, TreeletId, codec};
-use arbor_server::octree::BuildOptions;
-use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
 use arbor_server::service::config::{
     DEFAULT_VISIBILITY_CACHE_BYTES, DEFAULT_VISIBILITY_FINE_GRID, DEFAULT_VISIBILITY_GRID,
@@ -43,19 +43,6 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 /// Runs of each measurement; the best counts.
 const ROUNDS: usize = 5;
-
-fn lion() -> PathBuf {
-    let p = Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../shared/data/points/lion_takanawa.copc.laz"
-    ))
-    .to_owned();
-    assert!(
-        p.exists(),
-        "the real scans in ../shared/data are required: {p:?}"
-    );
-    p
-}
 
 /// `f`'s result and how long it took.
 fn timed<T>(f: impl FnOnce() -> T) -> (Duration, T) {
@@ -78,45 +65,14 @@ fn ms(d: Duration) -> f64 {
 
 /// The view a client at `camera` announces.
 fn hint(camera: &Camera) -> ViewHint {
-    let f32s = |v: DVec3| [v.x as f32, v.y as f32, v.z as f32];
-    ViewHint {
-        eye: camera.position.to_array(),
-        forward: f32s(camera.forward),
-        up: f32s(camera.up),
-        tan_half_fov_y: (camera.fov_y * 0.5).tan() as f32,
-        aspect: (f64::from(camera.width) / f64::from(camera.height)) as f32,
-        footprint: camera.pixel_angle() as f32,
-        free_slots: ViewHint::MAX_FREE_SLOTS,
-    }
+    view_hint(camera, 1.0, ViewHint::MAX_FREE_SLOTS).expect("a valid view")
 }
 
 fn main() {
-    let own = tempfile::tempdir().unwrap();
-    let (dir, scene) = match std::env::var_os("ARBOR_BENCH_POOL") {
-        Some(dir) => (
-            PathBuf::from(dir),
-            std::env::var("ARBOR_BENCH_SCENE").expect("ARBOR_BENCH_SCENE names the scene"),
-        ),
-        None => {
-            let dir = own.path().join("pool");
-            let pool = Pool::open(&dir).unwrap();
-            let request = SceneImport {
-                name: "lion-4k".into(),
-                input: lion(),
-                build: BuildOptions {
-                    treelet_bytes: 4096,
-                    progress: false,
-                    ..BuildOptions::default()
-                },
-                ..SceneImport::default()
-            };
-            import_scene(&pool, &request).unwrap();
-            pool.flush().unwrap();
-            (dir, "lion-4k".to_owned())
-        }
-    };
-    let pool = Pool::open(&dir).unwrap();
-    let stored = pool.scene(&scene).unwrap();
+    let bench = common::bench_scene();
+    let (dir, scene) = (&bench.dir, &bench.scene);
+    let pool = Pool::open(dir).unwrap();
+    let stored = pool.scene(scene).unwrap();
     let d = stored.description.clone();
     let dictionaries = codec::PreparedDictionaries::of(&d);
     let decode = |id: TreeletId| {

@@ -20,13 +20,12 @@
 //! in bytes (the server's `pool_cache_bytes`; default 128 MiB): a pool larger than it reads
 //! pages from the file again.
 
-use std::path::{Path, PathBuf};
+mod common;
+
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use arbor_proto::{TreeletId, codec};
-use arbor_server::octree::BuildOptions;
-use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
 use arbor_server::service::shapes::ShapeCache;
 use arbor_server::service::state::ServiceCaches;
@@ -37,19 +36,6 @@ use arbor_server::service::visibility::NodeCache;
 const ROUNDS: usize = 3;
 /// Treelets per batch, about what one stream of a whole-scene fetch carries.
 const BATCH: usize = 36;
-
-fn lion() -> PathBuf {
-    let p = Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../shared/data/points/lion_takanawa.copc.laz"
-    ))
-    .to_owned();
-    assert!(
-        p.exists(),
-        "the real scans in ../shared/data are required: {p:?}"
-    );
-    p
-}
 
 fn per_treelet(d: Duration, n: usize) -> f64 {
     d.as_secs_f64() * 1e6 / n as f64
@@ -67,36 +53,14 @@ fn best(n: usize, mut f: impl FnMut()) -> f64 {
 }
 
 fn main() {
-    let own = tempfile::tempdir().unwrap();
-    let (dir, scene) = match std::env::var_os("ARBOR_BENCH_POOL") {
-        Some(dir) => (
-            PathBuf::from(dir),
-            std::env::var("ARBOR_BENCH_SCENE").expect("ARBOR_BENCH_SCENE names the scene"),
-        ),
-        None => {
-            let dir = own.path().join("pool");
-            let pool = Pool::open(&dir).unwrap();
-            let request = SceneImport {
-                name: "lion-4k".into(),
-                input: lion(),
-                build: BuildOptions {
-                    treelet_bytes: 4096,
-                    progress: false,
-                    ..BuildOptions::default()
-                },
-                ..SceneImport::default()
-            };
-            import_scene(&pool, &request).unwrap();
-            pool.flush().unwrap();
-            (dir, "lion-4k".to_owned())
-        }
-    };
+    let bench = common::bench_scene();
+    let (dir, scene) = (&bench.dir, &bench.scene);
     let cache = std::env::var("ARBOR_BENCH_POOL_CACHE")
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(arbor_server::pool::POOL_CACHE_BYTES);
-    let pool = Pool::open_with_cache(&dir, cache).unwrap();
-    let stored = pool.scene(&scene).unwrap();
+    let pool = Pool::open_with_cache(dir, cache).unwrap();
+    let stored = pool.scene(scene).unwrap();
     let d = stored.description.clone();
     let n = std::env::var("ARBOR_BENCH_TREELETS")
         .ok()

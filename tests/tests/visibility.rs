@@ -9,6 +9,7 @@
 use std::collections::BTreeSet;
 
 use arbor_client_core::camera::{Camera, CameraPath};
+use arbor_client_core::cycle::view_hint;
 use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
 use arbor_client_core::traverse::{Lod, trace};
@@ -24,18 +25,7 @@ const GRID: u32 = 96;
 
 /// The hint a client sends for `camera` at LOD bias 1 (as `cycle.rs` builds it).
 fn hint(camera: &Camera) -> ViewHint {
-    let f32s = |v: DVec3| [v.x as f32, v.y as f32, v.z as f32];
-    let hint = ViewHint {
-        eye: camera.position.to_array(),
-        forward: f32s(camera.forward),
-        up: f32s(camera.up),
-        tan_half_fov_y: (camera.fov_y * 0.5).tan() as f32,
-        aspect: (f64::from(camera.width) / f64::from(camera.height)) as f32,
-        footprint: camera.pixel_angle() as f32,
-        free_slots: 1000,
-    };
-    hint.check().expect("a valid hint");
-    hint
+    view_hint(camera, 1.0, 1000).expect("a valid hint")
 }
 
 fn nodes_only(t: &DecodedTreelet) -> DecodedTreelet {

@@ -293,8 +293,9 @@ impl DirtyTiles {
 }
 
 /// The [`ViewHint`] of `camera` at `bias` with `free_slots` (capped at the protocol's limit);
-/// `None` when it would not pass [`ViewHint::check`].
-fn view_hint(camera: &Camera, bias: f64, free_slots: u32) -> Option<ViewHint> {
+/// `None` when it would not pass [`ViewHint::check`]. What a deep list announces; the server
+/// casts its visible cuts from it.
+pub fn view_hint(camera: &Camera, bias: f64, free_slots: u32) -> Option<ViewHint> {
     let f32s = |v: glam::DVec3| [v.x as f32, v.y as f32, v.z as f32];
     let hint = ViewHint {
         eye: camera.position.to_array(),
