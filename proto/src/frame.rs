@@ -193,6 +193,23 @@ pub enum FrameError {
     /// A treelet message's used-node count is 0 or more than a treelet can hold.
     #[error("used nodes {0} outside 1..={max}", max = MAX_TREELET_BYTES / NODE_BYTES)]
     BadUsedNodes(u16),
+    /// A ranked request list's id delta is not a varint of at most five bytes.
+    #[error("request item {index}: the id delta is not a varint of at most 5 bytes")]
+    BadVarint {
+        /// Position in the list.
+        index: usize,
+    },
+    /// A ranked request list's id delta leads outside the treelet ids (below 0, or to
+    /// [`TreeletId::NONE`] or beyond).
+    #[error("request item {index}: id delta {delta} from {previous} leaves the treelet ids")]
+    BadIdDelta {
+        /// Position in the list.
+        index: usize,
+        /// The previous item's id (0 before the first).
+        previous: u32,
+        /// The delta found.
+        delta: i64,
+    },
 }
 
 impl FrameError {
@@ -222,7 +239,9 @@ impl FrameError {
             | FrameError::BadHelloView(_)
             | FrameError::UnknownFlags(_)
             | FrameError::BadError { .. }
-            | FrameError::BadPrefetchStart { .. } => ErrorCode::ProtocolViolation,
+            | FrameError::BadPrefetchStart { .. }
+            | FrameError::BadVarint { .. }
+            | FrameError::BadIdDelta { .. } => ErrorCode::ProtocolViolation,
         }
     }
 }
@@ -296,6 +315,7 @@ pub fn parse(frame: &[u8]) -> Result<Frame, FrameError> {
         FrameType::Hello => parse_hello(&mut r)?,
         FrameType::RequestList => parse_request_list(&mut r)?,
         FrameType::DeepRequestList => parse_deep_request_list(&mut r)?,
+        FrameType::RankedRequestList => parse_ranked_request_list(&mut r)?,
         FrameType::Error => {
             let code = r.u32("error code")?;
             let code = ErrorCode::from_u32(code).ok_or(FrameError::UnknownErrorCode(code))?;
@@ -319,6 +339,7 @@ fn frame_what(ty: FrameType) -> &'static str {
         FrameType::SceneInfo => "SceneInfo frame",
         FrameType::RequestList => "RequestList frame",
         FrameType::DeepRequestList => "DeepRequestList frame",
+        FrameType::RankedRequestList => "RankedRequestList frame",
         FrameType::Error => "Error frame",
         FrameType::Goodbye => "Goodbye frame",
     }
@@ -487,6 +508,91 @@ fn parse_deep_request_list(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
     })
 }
 
+/// Smallest ranked item: a one-byte id delta and the error.
+const MIN_RANKED_ITEM_BYTES: usize = 3;
+
+/// Most bytes of a ranked item's id delta: a zigzag varint of a difference between two `u32`s
+/// needs 33 bits.
+const MAX_VARINT_BYTES: usize = 5;
+
+fn parse_ranked_request_list(r: &mut Reader<'_>) -> Result<Frame, FrameError> {
+    let seq = r.u64("list seq")?;
+    let view = parse_view(r)?;
+    let prefetch_from = r.u32("prefetch start")?;
+    let count = list_length(r, MIN_RANKED_ITEM_BYTES, "ranked request list items")?;
+    check_prefetch_start(prefetch_from, count)?;
+    let mut items = Vec::with_capacity(count);
+    let mut previous = 0u32;
+    for index in 0..count {
+        let zigzag = read_varint(r, index)?;
+        let delta = (zigzag >> 1) as i64 ^ -((zigzag & 1) as i64);
+        let id = i64::from(previous) + delta;
+        if !(0..i64::from(TreeletId::NONE.0)).contains(&id) {
+            return Err(FrameError::BadIdDelta {
+                index,
+                previous,
+                delta,
+            });
+        }
+        previous = id as u32;
+        let error = r.u16("error")? as i16;
+        items.push((TreeletId(previous), error));
+    }
+    Ok(Frame::RankedRequestList {
+        seq,
+        view,
+        items,
+        prefetch_from,
+    })
+}
+
+/// An unsigned LEB128 varint of at most [`MAX_VARINT_BYTES`] bytes.
+fn read_varint(r: &mut Reader<'_>, index: usize) -> Result<u64, FrameError> {
+    let mut value = 0u64;
+    for i in 0..MAX_VARINT_BYTES {
+        let byte = r.u8("id delta")?;
+        value |= u64::from(byte & 0x7f) << (7 * i);
+        if byte & 0x80 == 0 {
+            return Ok(value);
+        }
+    }
+    Err(FrameError::BadVarint { index })
+}
+
+/// What a list with a view starts with: `u64 seq`, the view, `u32 prefetch_from`, `u32 count`
+/// (checked: at most [`MAX_REQUEST_ITEMS`], the prefetch start within them), with room reserved
+/// for `count` items of about `item_bytes`.
+fn put_view_list_head(
+    out: &mut Vec<u8>,
+    seq: u64,
+    view: &ViewHint,
+    prefetch_from: u32,
+    count: usize,
+    item_bytes: usize,
+) -> Result<(), FrameError> {
+    if count > MAX_REQUEST_ITEMS {
+        return Err(FrameError::ListTooLong {
+            len: count,
+            limit: MAX_REQUEST_ITEMS,
+        });
+    }
+    check_prefetch_start(prefetch_from, count)?;
+    out.reserve(16 + ViewHint::BYTES + item_bytes * count);
+    out.extend_from_slice(&seq.to_le_bytes());
+    put_view(out, view)?;
+    out.extend_from_slice(&prefetch_from.to_le_bytes());
+    out.extend_from_slice(&(count as u32).to_le_bytes());
+    Ok(())
+}
+
+fn put_varint(out: &mut Vec<u8>, mut value: u64) {
+    while value >= 0x80 {
+        out.push((value as u8) | 0x80);
+        value >>= 7;
+    }
+    out.push(value as u8);
+}
+
 fn check_prefetch_start(prefetch_from: u32, count: usize) -> Result<(), FrameError> {
     if prefetch_from as usize > count {
         return Err(FrameError::BadPrefetchStart {
@@ -602,23 +708,30 @@ pub fn encode(frame: &Frame) -> Result<Vec<u8>, FrameError> {
             items,
             prefetch_from,
         } => {
-            if items.len() > MAX_REQUEST_ITEMS {
-                return Err(FrameError::ListTooLong {
-                    len: items.len(),
-                    limit: MAX_REQUEST_ITEMS,
-                });
-            }
-            check_prefetch_start(*prefetch_from, items.len())?;
-            out.reserve(16 + ViewHint::BYTES + 12 * items.len());
-            out.extend_from_slice(&seq.to_le_bytes());
-            put_view(&mut out, view)?;
-            out.extend_from_slice(&prefetch_from.to_le_bytes());
-            out.extend_from_slice(&(items.len() as u32).to_le_bytes());
+            put_view_list_head(&mut out, *seq, view, *prefetch_from, items.len(), 12)?;
             for (index, &(treelet, priority, error)) in items.iter().enumerate() {
                 check_deep_item(index, treelet, priority, error)?;
                 out.extend_from_slice(&treelet.0.to_le_bytes());
                 out.extend_from_slice(&priority.to_bits().to_le_bytes());
                 out.extend_from_slice(&error.to_bits().to_le_bytes());
+            }
+        }
+        Frame::RankedRequestList {
+            seq,
+            view,
+            items,
+            prefetch_from,
+        } => {
+            put_view_list_head(&mut out, *seq, view, *prefetch_from, items.len(), 4)?;
+            let mut previous = 0i64;
+            for (index, &(treelet, error)) in items.iter().enumerate() {
+                if treelet.is_none() {
+                    return Err(FrameError::NoneTreeletId { index });
+                }
+                let delta = i64::from(treelet.0) - previous;
+                previous = i64::from(treelet.0);
+                put_varint(&mut out, ((delta << 1) ^ (delta >> 63)) as u64);
+                out.extend_from_slice(&error.to_le_bytes());
             }
         }
         Frame::Error { code, message } => {
@@ -1310,6 +1423,170 @@ mod tests {
         assert!(matches!(e, FrameError::BadView(_)), "{e}");
     }
 
+    /// A ranked list as its payload would be laid out by hand, for forging.
+    fn ranked_bytes(count: u32, items: &[u8]) -> Vec<u8> {
+        let good = encode(&Frame::RankedRequestList {
+            seq: 4,
+            view: view(),
+            items: vec![],
+            prefetch_from: 0,
+        })
+        .unwrap();
+        let mut out = good[..good.len() - 4].to_vec();
+        out.extend_from_slice(&count.to_le_bytes());
+        out.extend_from_slice(items);
+        let len = (out.len() - FRAME_HEADER_BYTES) as u32;
+        out[..4].copy_from_slice(&len.to_le_bytes());
+        out
+    }
+
+    #[test]
+    fn ranked_request_lists_round_trip_in_a_third_of_a_deep_lists_bytes() {
+        // Ids going up and down, near and far apart, the largest and the smallest.
+        let ids = [5u32, 6, 7, 4, 1_000_000, 999_990, 0, u32::MAX - 1, 3, 3];
+        let items: Vec<(TreeletId, i16)> = ids
+            .iter()
+            .enumerate()
+            .map(|(i, &id)| (TreeletId(id), (i as i16 - 5) * 3001))
+            .collect();
+        let f = Frame::RankedRequestList {
+            seq: 77,
+            view: view(),
+            items: items.clone(),
+            prefetch_from: 6,
+        };
+        let bytes = encode(&f).unwrap();
+        assert_eq!(parse(&bytes).unwrap(), f);
+        let mut d = FrameDecoder::for_server();
+        assert_eq!(d.push(&bytes), bytes.len());
+        assert_eq!(d.next().unwrap(), Some(f));
+
+        // The deep list it stands for: rank as priority, errors in levels.
+        let deep = crate::wire::ranked_as_deep(&items);
+        assert_eq!(deep.len(), items.len());
+        assert!(deep.windows(2).all(|w| w[0].1 > w[1].1 && w[1].1 >= 1.0));
+        assert_eq!((deep[0].0, deep[0].2), (TreeletId(5), -15005.0 / 512.0));
+
+        // A list as a view's: runs of siblings, a few jumps. About 4 bytes an item, against 12.
+        let view_list: Vec<(TreeletId, i16)> = (0..4000u32)
+            .map(|i| (TreeletId(50_000 + (i / 8) * 37 + i % 8), (i % 300) as i16))
+            .collect();
+        let ranked = encode(&Frame::RankedRequestList {
+            seq: 1,
+            view: view(),
+            items: view_list.clone(),
+            prefetch_from: 0,
+        })
+        .unwrap();
+        let deep = encode(&Frame::DeepRequestList {
+            seq: 1,
+            view: view(),
+            items: crate::wire::ranked_as_deep(&view_list),
+            prefetch_from: 0,
+        })
+        .unwrap();
+        assert!(
+            ranked.len() * 3 < deep.len(),
+            "{} against {} bytes",
+            ranked.len(),
+            deep.len()
+        );
+
+        let e = encode(&Frame::RankedRequestList {
+            seq: 1,
+            view: view(),
+            items: vec![(TreeletId::NONE, 0)],
+            prefetch_from: 0,
+        })
+        .unwrap_err();
+        assert_eq!(e, FrameError::NoneTreeletId { index: 0 });
+        let e = encode(&Frame::RankedRequestList {
+            seq: 1,
+            view: view(),
+            items: vec![(TreeletId(1), 0)],
+            prefetch_from: 2,
+        })
+        .unwrap_err();
+        assert!(matches!(e, FrameError::BadPrefetchStart { .. }), "{e}");
+    }
+
+    #[test]
+    fn hostile_ranked_request_lists_are_refused_before_anything_is_allocated() {
+        // A varint of six bytes.
+        let e = parse(&ranked_bytes(
+            1,
+            &[0x80, 0x80, 0x80, 0x80, 0x80, 0x01, 0, 0],
+        ))
+        .unwrap_err();
+        assert_eq!(e, FrameError::BadVarint { index: 0 });
+        assert_eq!(e.code(), ErrorCode::ProtocolViolation);
+        // Below id 0: zigzag 1 is -1.
+        let e = parse(&ranked_bytes(1, &[0x01, 0, 0])).unwrap_err();
+        assert_eq!(
+            e,
+            FrameError::BadIdDelta {
+                index: 0,
+                previous: 0,
+                delta: -1
+            }
+        );
+        // To NONE and beyond: 2 × (2³² − 1) and 2 × 2³² as five-byte varints.
+        for (zigzag, delta) in [(0x1_FFFF_FFFEu64, 0xFFFF_FFFFi64), (0x2_0000_0000, 1 << 32)] {
+            let mut v = Vec::new();
+            put_varint(&mut v, zigzag);
+            assert_eq!(v.len(), 5);
+            v.extend_from_slice(&[0, 0]);
+            let e = parse(&ranked_bytes(1, &v)).unwrap_err();
+            assert_eq!(
+                e,
+                FrameError::BadIdDelta {
+                    index: 0,
+                    previous: 0,
+                    delta
+                }
+            );
+        }
+        // A count the bytes cannot hold, refused before the items are read or allocated.
+        let e = parse(&ranked_bytes(65_536, &[2, 0, 0])).unwrap_err();
+        assert!(
+            matches!(e, FrameError::Truncated { need, .. } if need == 3 * 65_536),
+            "{e}"
+        );
+        let e = parse(&ranked_bytes(65_537, &[])).unwrap_err();
+        assert!(matches!(e, FrameError::ListTooLong { .. }), "{e}");
+        // An item cut in its error, and an item too many.
+        let e = parse(&ranked_bytes(1, &[0x82, 0x01, 0])).unwrap_err();
+        assert!(matches!(e, FrameError::Truncated { .. }), "{e}");
+        let e = parse(&ranked_bytes(1, &[2, 0, 0, 9])).unwrap_err();
+        assert!(matches!(e, FrameError::TrailingBytes { .. }), "{e}");
+        // Every i16 is an error within ±64 levels.
+        assert_eq!(crate::wire::error_levels(i16::MIN), -ViewHint::MAX_ERROR);
+        assert!(crate::wire::error_levels(i16::MAX) < ViewHint::MAX_ERROR);
+    }
+
+    #[test]
+    fn errors_become_steps_to_the_nearest_and_within_the_limit() {
+        use crate::wire::{ERROR_STEPS_PER_LEVEL, error_levels, error_steps};
+        for levels in [0.0f32, 1.0, -2.5, 0.001, 63.99, -63.99, 17.123_456] {
+            let back = error_levels(error_steps(levels));
+            assert!(
+                (back - levels).abs() <= 0.5 / ERROR_STEPS_PER_LEVEL,
+                "{levels} → {back}"
+            );
+        }
+        assert_eq!(error_steps(64.0), i16::MAX);
+        assert_eq!(error_steps(1e30), i16::MAX);
+        assert_eq!(error_steps(-1e30), -i16::MAX);
+        assert_eq!(error_steps(f32::INFINITY), i16::MAX);
+        assert_eq!(error_steps(f32::NAN), 0);
+        assert_eq!(crate::wire::ranked_priority(0, 3), 3.0);
+        assert_eq!(crate::wire::ranked_priority(2, 3), 1.0);
+        assert_eq!(
+            crate::wire::ranked_priority(0, crate::limits::MAX_REQUEST_ITEMS),
+            65_536.0
+        );
+    }
+
     #[test]
     fn deep_request_lists_round_trip_and_hostile_views_are_refused() {
         let f = Frame::DeepRequestList {
@@ -1531,7 +1808,7 @@ mod tests {
 
     #[test]
     fn unknown_type_is_rejected() {
-        for t in [0u8, 7, 0xff] {
+        for t in [0u8, 8, 0xff] {
             let b = raw(t, &[]);
             assert_eq!(check(&b), Err(FrameError::UnknownType(t)));
             assert_eq!(parse(&b), Err(FrameError::UnknownType(t)));

@@ -59,6 +59,9 @@ const _: () = assert!(12 + 8 * MAX_REQUEST_ITEMS <= MAX_FRAME_BYTES);
 // A deep request list: seq, view hint, count, 12 bytes per item.
 const _: () =
     assert!(8 + crate::wire::ViewHint::BYTES + 4 + 12 * MAX_REQUEST_ITEMS <= MAX_FRAME_BYTES);
+// A ranked request list: seq, view hint, prefetch start, count, at most 5 + 2 bytes per item.
+const _: () =
+    assert!(8 + crate::wire::ViewHint::BYTES + 8 + 7 * MAX_REQUEST_ITEMS <= MAX_FRAME_BYTES);
 const _: () =
     assert!(2 + 2 + MAX_SCENE_NAME + 1 + MAX_CHANNELS + 2 + MAX_TOKEN_BYTES <= MAX_FRAME_BYTES);
 const _: () = assert!(MAX_FRAME_BYTES <= MAX_CONTROL_FRAME_BYTES);

@@ -4,8 +4,9 @@
 //! A connection is QUIC with ALPN [`ALPN`]. The client opens one bidirectional **control
 //! stream** and sends [`Frame::Hello`]; the server answers [`Frame::SceneInfo`] or
 //! [`Frame::Error`] (then closes the connection with the same [`ErrorCode`]). From then on the
-//! client sends a [`Frame::RequestList`] (or a [`Frame::DeepRequestList`]) whenever its wishes
-//! change (every cycle); each list **replaces** the previous one. Treelets come back on server-opened unidirectional streams as
+//! client sends a [`Frame::RequestList`] (or a [`Frame::DeepRequestList`], or its compact form
+//! [`Frame::RankedRequestList`]) whenever its wishes change (every cycle); each list
+//! **replaces** the previous one. Treelets come back on server-opened unidirectional streams as
 //! treelet messages ([`crate::frame::encode_treelet_message`]). Either side may end with
 //! [`Frame::Goodbye`] before closing.
 //!
@@ -51,7 +52,7 @@ pub const ALPN: &[u8] = b"arbor/1";
 
 /// Version carried in [`Frame::Hello`]. A server answers any other version with
 /// [`ErrorCode::UnsupportedVersion`].
-pub const PROTOCOL_VERSION: u16 = 2;
+pub const PROTOCOL_VERSION: u16 = 3;
 
 /// Why a connection, a stream or a request ended. Sent in [`Frame::Error`] and
 /// [`Frame::Goodbye`], and used unchanged as the QUIC application close code (and stream reset
@@ -165,6 +166,8 @@ pub enum FrameType {
     Goodbye = 5,
     /// [`Frame::DeepRequestList`].
     DeepRequestList = 6,
+    /// [`Frame::RankedRequestList`].
+    RankedRequestList = 7,
 }
 
 impl FrameType {
@@ -177,6 +180,7 @@ impl FrameType {
             4 => Some(FrameType::Error),
             5 => Some(FrameType::Goodbye),
             6 => Some(FrameType::DeepRequestList),
+            7 => Some(FrameType::RankedRequestList),
             _ => None,
         }
     }
@@ -262,6 +266,25 @@ pub enum Frame {
         /// them on the link. At most `items.len()` (then nothing is prefetch).
         prefetch_from: u32,
     },
+    /// Client → server: a [`Frame::DeepRequestList`] in about a third of its bytes (protocol 3),
+    /// what a client sends every cycle over an uplink that may be a fraction of its downlink.
+    /// Items come in the order they are to be served: the list's rank is its priority
+    /// ([`ranked_priority`]), so no priority travels; the ids are zigzag varints of the
+    /// difference to the previous item's id (the first to 0), and the errors are fixed point
+    /// ([`ERROR_STEPS_PER_LEVEL`]). Layout: `u64 seq`, the [`ViewHint`], `u32 prefetch_from`,
+    /// `u32 count`, `count × (varint id delta, i16 error steps)`.
+    RankedRequestList {
+        /// Increases with every list the client sends.
+        seq: u64,
+        /// The view the errors were measured in.
+        view: ViewHint,
+        /// `(treelet, error in 1/[`ERROR_STEPS_PER_LEVEL`] levels)`, highest priority first,
+        /// at most [`crate::limits::MAX_REQUEST_ITEMS`]; errors within
+        /// ±[`ViewHint::MAX_ERROR`] levels.
+        items: Vec<(TreeletId, i16)>,
+        /// As [`Frame::DeepRequestList`]'s: items from this index on are prefetch.
+        prefetch_from: u32,
+    },
     /// Either direction: orderly end. Layout: `u32 code`.
     Goodbye {
         /// Why the peer is leaving ([`ErrorCode::NoError`] or [`ErrorCode::ShuttingDown`]).
@@ -279,6 +302,7 @@ impl Frame {
             Frame::Error { .. } => FrameType::Error,
             Frame::Goodbye { .. } => FrameType::Goodbye,
             Frame::DeepRequestList { .. } => FrameType::DeepRequestList,
+            Frame::RankedRequestList { .. } => FrameType::RankedRequestList,
         }
     }
 
@@ -295,6 +319,43 @@ impl Frame {
         }
         Frame::Error { code, message }
     }
+}
+
+/// Steps per level of a [`Frame::RankedRequestList`] item's error: 1/512 level, so ±64 levels
+/// fit an `i16`.
+pub const ERROR_STEPS_PER_LEVEL: f32 = 512.0;
+
+/// An error in levels as a [`Frame::RankedRequestList`] carries it: to the nearest step, within
+/// ±[`ViewHint::MAX_ERROR`] levels (what an `i16` holds of them); NaN as 0.
+pub fn error_steps(levels: f32) -> i16 {
+    let limit = f32::from(i16::MAX);
+    let steps = (levels * ERROR_STEPS_PER_LEVEL).round();
+    if steps.is_nan() {
+        0
+    } else {
+        steps.clamp(-limit, limit) as i16
+    }
+}
+
+/// The error in levels of `steps` ([`error_steps`]).
+pub fn error_levels(steps: i16) -> f32 {
+    f32::from(steps) / ERROR_STEPS_PER_LEVEL
+}
+
+/// The priority of item `index` of a ranked list of `count` items: `count - index`, so the
+/// first item is served first and every item ranks above the server's pushes (which go below
+/// a list's lowest priority). Exact in an `f32` for every list length the protocol allows.
+pub fn ranked_priority(index: usize, count: usize) -> f32 {
+    count.saturating_sub(index) as f32
+}
+
+/// A ranked list's items as a deep list's: `(treelet, priority, error in levels)`.
+pub fn ranked_as_deep(items: &[(TreeletId, i16)]) -> Vec<(TreeletId, f32, f32)> {
+    items
+        .iter()
+        .enumerate()
+        .map(|(i, &(id, steps))| (id, ranked_priority(i, items.len()), error_levels(steps)))
+        .collect()
 }
 
 /// The client's view, as a [`Frame::DeepRequestList`] carries it: enough for the server to
@@ -490,11 +551,12 @@ mod tests {
             FrameType::Error,
             FrameType::Goodbye,
             FrameType::DeepRequestList,
+            FrameType::RankedRequestList,
         ] {
             assert_eq!(FrameType::from_u8(t as u8), Some(t));
         }
         assert_eq!(FrameType::from_u8(0), None);
-        assert_eq!(FrameType::from_u8(7), None);
+        assert_eq!(FrameType::from_u8(8), None);
     }
 
     /// An eye at z = 5 looking down −z at the unit cube, a pixel of 0.01 radians.

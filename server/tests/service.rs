@@ -851,6 +851,33 @@ async fn hostile_clients_end_only_their_own_connection() {
     })
     .unwrap();
 
+    // Ranked lists (the client's compact deep lists) forged past the encoder: an id delta in a
+    // varint of six bytes, a delta below id 0, and an id the scene lacks.
+    let ranked_unknown_treelet = frame::encode(&Frame::RankedRequestList {
+        seq: 1,
+        view,
+        items: vec![(TreeletId(0), 0), (TreeletId(d.treelet_count), 512)],
+        prefetch_from: 2,
+    })
+    .unwrap();
+    let ranked_with_items = |items: &[u8]| {
+        let head = frame::encode(&Frame::RankedRequestList {
+            seq: 1,
+            view,
+            items: vec![],
+            prefetch_from: 0,
+        })
+        .unwrap();
+        let mut f = head[..head.len() - 4].to_vec();
+        f.extend_from_slice(&1u32.to_le_bytes());
+        f.extend_from_slice(items);
+        let len = (f.len() - 5) as u32;
+        f[..4].copy_from_slice(&len.to_le_bytes());
+        f
+    };
+    let ranked_long_varint = ranked_with_items(&[0x80, 0x80, 0x80, 0x80, 0x80, 0x01, 0, 0]);
+    let ranked_below_zero = ranked_with_items(&[0x03, 0, 0]);
+
     // A Hello view (root-cube units) forged past the encoder: a NaN eye, and the view flag
     // without the send-root flag.
     let hello_view = frame::encode(&hello_frame_with(
@@ -945,6 +972,24 @@ async fn hostile_clients_end_only_their_own_connection() {
             "deep list naming an unknown treelet",
             true,
             deep_unknown_treelet,
+            ErrorCode::UnknownTreelet,
+        ),
+        (
+            "ranked list with an id delta of six bytes",
+            true,
+            ranked_long_varint,
+            ErrorCode::ProtocolViolation,
+        ),
+        (
+            "ranked list with an id below 0",
+            true,
+            ranked_below_zero,
+            ErrorCode::ProtocolViolation,
+        ),
+        (
+            "ranked list naming an unknown treelet",
+            true,
+            ranked_unknown_treelet,
             ErrorCode::UnknownTreelet,
         ),
         (
@@ -1115,9 +1160,9 @@ async fn hostile_clients_end_only_their_own_connection() {
     assert_eq!(server.state.sessions().len(), 1);
     let m = &server.state.metrics;
     assert_eq!(m.errors(ErrorCode::SlowReader), 1);
-    // Garbage twice, a second Hello, four forged deep lists, two forged Hello views, the
-    // silent client.
-    assert_eq!(m.errors(ErrorCode::ProtocolViolation), 10);
+    // Garbage twice, a second Hello, four forged deep lists, two forged ranked lists, two
+    // forged Hello views, the silent client.
+    assert_eq!(m.errors(ErrorCode::ProtocolViolation), 12);
     server.shutdown().await;
 }
 

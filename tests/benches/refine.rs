@@ -74,6 +74,10 @@
 //! and each case of the main table runs once more first, unmeasured, so every measured run and
 //! its floor follow a session on the same path and resume its congestion window.
 //!
+//! `ARBOR_REFINE_UPLINK_MBIT=N` makes the link asymmetric: the client → server direction at N
+//! Mbit/s (a home line's or a mobile uplink), the other still at 100 Mbit/s. Request lists are
+//! what goes up.
+//!
 //! `ARBOR_REFINE_OUT=DIR` writes the CSVs and the chart there instead of `target/refine/`.
 //!
 //! `ARBOR_REFINE_BACKEND=gpu` runs the client sessions on the GPU instead of the CPU twins (one
@@ -225,6 +229,9 @@ struct Outcome {
     timeline: Option<String>,
     /// With `ARBOR_REFINE_REST_MS`: bytes received while the first view rested before the jump.
     rest_bytes: Option<u64>,
+    /// Over the link: bytes the client sent (request lists, acknowledgements, the handshake)
+    /// over the whole session, both phases of a jump, and the most the uplink queued at once.
+    upstream: Option<(u64, u64)>,
 }
 
 /// Whether the bench measures returning clients (`ARBOR_REFINE_RETURNING=1`, module docs).
@@ -411,6 +418,13 @@ fn main() {
                     }
                     if let Some(t) = &o.timeline {
                         println!("    {t}");
+                    }
+                    if let (Some((sent, queued)), Some(_)) = (o.upstream, uplink_rate()) {
+                        println!(
+                            "    up: {:.3} MB sent over the session, at most {:.1} KB queued",
+                            sent as f64 / 1e6,
+                            queued as f64 / 1e3
+                        );
                     }
                     if let Some(b) = o.rest_bytes {
                         println!(
@@ -659,6 +673,27 @@ fn floor_client(served: &Served, link: &LinkEmulator) -> TreeletClient {
     TreeletClient::start(config).unwrap()
 }
 
+/// A fresh link emulator in front of `served`'s server: [`DELAY`] each way, [`RATE`] down, and
+/// up as well unless `ARBOR_REFINE_UPLINK_MBIT` sets the uplink's rate.
+async fn start_link(served: &Served) -> LinkEmulator {
+    let link = LinkEmulator::start(served.server.quic_addr, LinkConfig::wan(DELAY, RATE))
+        .await
+        .unwrap();
+    if let Some(rate) = uplink_rate() {
+        link.set_upstream_rate(Some(rate)).unwrap();
+    }
+    link
+}
+
+/// `ARBOR_REFINE_UPLINK_MBIT`, in bytes per second.
+fn uplink_rate() -> Option<u64> {
+    let mbit: f64 = std::env::var("ARBOR_REFINE_UPLINK_MBIT")
+        .ok()?
+        .parse()
+        .ok()?;
+    (mbit > 0.0).then(|| (mbit * 1e6 / 8.0) as u64)
+}
+
 /// One floor measurement from connecting: `first` in one list (each set ranked below the one
 /// before, [`fetch_tiers`]) until all arrived, then, if given, `jump` in a second list, timed
 /// from that list.
@@ -668,9 +703,7 @@ async fn floor_once(
     jump: Option<&HashSet<TreeletId>>,
 ) -> f64 {
     first_contact_unless_returning(served);
-    let link = LinkEmulator::start(served.server.quic_addr, LinkConfig::wan(DELAY, RATE))
-        .await
-        .unwrap();
+    let link = start_link(served).await;
     // The list goes out with the connection (the client sends its latest list on connecting),
     // so the static floor counts the handshake as the limit does.
     let start = Instant::now();
@@ -747,14 +780,7 @@ fn run_case(
     transport: Transport,
     size: u32,
 ) -> (Outcome, RunReport) {
-    let link = (transport == Transport::Link).then(|| {
-        runtime
-            .block_on(LinkEmulator::start(
-                served.server.quic_addr,
-                LinkConfig::wan(DELAY, RATE),
-            ))
-            .unwrap()
-    });
+    let link = (transport == Transport::Link).then(|| runtime.block_on(start_link(served)));
     let addr = link
         .as_ref()
         .map_or(served.server.quic_addr, |l| l.local_addr());
@@ -812,6 +838,10 @@ fn run_case(
         handshake = false;
     }
     session.close(runtime.handle());
+    let upstream = link.as_ref().map(|l| {
+        let up = l.stats().upstream;
+        (up.bytes_in, up.peak_queued_bytes)
+    });
     if let Some(l) = link {
         runtime.block_on(l.shutdown());
     }
@@ -836,6 +866,7 @@ fn run_case(
         limit_needs,
     );
     outcome.rest_bytes = rest_bytes;
+    outcome.upstream = upstream;
     if let Some(needed) = still_needed.as_ref().filter(|_| trace) {
         let recording = timeline.take();
         // One connection per case: the session of its events.
@@ -1002,6 +1033,7 @@ fn judge(
         limit,
         timeline: None,
         rest_bytes: None,
+        upstream: None,
     }
 }
 

@@ -408,9 +408,10 @@ impl LinkEmulator {
         self.upstream
     }
 
-    /// The parameters in force.
+    /// The parameters in force (the server → client direction's, when
+    /// [`set_upstream_rate`](Self::set_upstream_rate) made the two differ).
     pub fn config(&self) -> LinkConfig {
-        self.shared.up.lock().config.clone()
+        self.shared.down.lock().config.clone()
     }
 
     /// Changes the parameters of both directions for packets arriving from now on; packets
@@ -420,6 +421,20 @@ impl LinkEmulator {
         config.validate()?;
         self.shared.up.set_config(config.clone());
         self.shared.down.set_config(config);
+        Ok(())
+    }
+
+    /// Changes the rate of the client → server direction only (bytes/s, `None` unlimited), for
+    /// packets arriving from now on: an asymmetric link such as a home line or a mobile one,
+    /// whose uplink is a fraction of its downlink. [`set_config`](Self::set_config) sets both
+    /// directions again.
+    pub fn set_upstream_rate(&self, rate_bytes_per_s: Option<u64>) -> io::Result<()> {
+        let config = LinkConfig {
+            rate_bytes_per_s,
+            ..self.shared.up.lock().config.clone()
+        };
+        config.validate()?;
+        self.shared.up.set_config(config);
         Ok(())
     }
 

@@ -183,6 +183,22 @@ fn seeds() -> Seeds {
                 })
                 .unwrap(),
             );
+            // The compact form, ids in serving order (jumps up and down: varints of 1–5 bytes).
+            frames.push(
+                encode(&Frame::RankedRequestList {
+                    seq: len as u64 + 2,
+                    view,
+                    items: items
+                        .iter()
+                        .rev()
+                        .enumerate()
+                        .map(|(i, &(t, _))| (t, (i as i16 - 3).wrapping_mul(4099)))
+                        .chain([(TreeletId(u32::MAX - 1), 0), (TreeletId(0), -1)])
+                        .collect(),
+                    prefetch_from: items.len() as u32 / 3,
+                })
+                .unwrap(),
+            );
         }
         frames.push(
             encode(&Frame::Error {

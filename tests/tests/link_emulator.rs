@@ -203,6 +203,67 @@ async fn rate_limit_serializes_packets() {
     link.shutdown().await;
 }
 
+/// An asymmetric link: the uplink unlimited, the downlink at 1 MB/s. A burst goes up at once
+/// and its echoes come down at the downlink's rate.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_upstream_rate_can_differ_from_the_downstream_rate() {
+    const RATE: u64 = 1_000_000;
+    const SIZE: usize = 1200;
+    const COUNT: u32 = 417; // 500,400 bytes
+    let echo = Server::start(true).await;
+    let config = LinkConfig::default().with_rate(Some(RATE));
+    let link = LinkEmulator::start(echo.addr, config).await.unwrap();
+    link.set_upstream_rate(None).unwrap();
+    assert_eq!(link.config().rate_bytes_per_s, Some(RATE), "the downlink's");
+    assert!(
+        link.set_upstream_rate(Some(0)).is_err(),
+        "a zero rate is refused"
+    );
+
+    let sock = Arc::new(client().await);
+    let reader = {
+        let sock = Arc::clone(&sock);
+        tokio::spawn(async move {
+            let mut buf = vec![0u8; 65_536];
+            let mut last = None;
+            for _ in 0..COUNT {
+                let Ok(Ok((n, _))) =
+                    tokio::time::timeout(Duration::from_secs(10), sock.recv_from(&mut buf)).await
+                else {
+                    break;
+                };
+                assert_eq!(n, SIZE);
+                last = Some(Instant::now());
+            }
+            last
+        })
+    };
+    let start = Instant::now();
+    send_numbered(&sock, link.local_addr(), COUNT, SIZE).await;
+    wait_until(
+        Duration::from_secs(20),
+        "all packets at the echo server",
+        &link,
+        || async { echo.count() == COUNT as usize },
+    )
+    .await;
+    let up = echo.received().last().unwrap().at - start;
+    let down = reader.await.unwrap().expect("every echo came back") - start;
+    eprintln!("up in {up:?}, echoes down in {down:?}");
+    assert!(
+        up < Duration::from_millis(300),
+        "the uplink is not limited: {up:?}"
+    );
+    assert!(
+        down >= Duration::from_millis(450),
+        "the downlink is: {down:?}"
+    );
+    let s = link.stats();
+    assert_eq!(s.upstream.packets_forwarded, u64::from(COUNT));
+    assert_eq!(s.downstream.packets_forwarded, u64::from(COUNT));
+    link.shutdown().await;
+}
+
 /// Runs 2000 numbered packets through a lossy link to an echo server; returns the indices the
 /// server saw, the indices echoed back, and the stats.
 async fn lossy_run(seed: u64) -> (Vec<u32>, Vec<u32>, LinkStats) {

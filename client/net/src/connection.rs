@@ -475,24 +475,13 @@ async fn send_lists(
                     .collect(),
             },
             Some((view, errors, prefetch_from)) => {
-                // The prefetch start counts the items kept before it.
-                let mut kept_before = 0u32;
-                let items = list
-                    .items
-                    .iter()
-                    .zip(errors)
-                    .enumerate()
-                    .filter(|(_, ((id, _), _))| keep(*id))
-                    .map(|(i, (&(id, p), &e))| {
-                        kept_before += u32::from(i < *prefetch_from);
-                        (id, p, e)
-                    })
-                    .collect();
-                Frame::DeepRequestList {
+                let (items, prefetch_from) =
+                    ranked_items(&list.items, errors, *prefetch_from, keep);
+                Frame::RankedRequestList {
                     seq,
                     view: *view,
                     items,
-                    prefetch_from: kept_before,
+                    prefetch_from,
                 }
             }
         };
@@ -512,6 +501,37 @@ async fn send_lists(
         shared.stats().lists_sent += 1;
         tracing::trace!(seq, "request list sent");
     }
+}
+
+/// A deep list's items as a [`Frame::RankedRequestList`] carries them, and its prefetch start:
+/// those `keep` accepts, in the order the server would serve them (priority, highest first,
+/// ties by lower id; the items before `prefetch_from` ahead of the prefetch), errors in steps.
+/// The rank then says what the priorities said, in a third of a deep list's bytes: lists go up
+/// every cycle, and an uplink may be a tenth of the downlink.
+fn ranked_items(
+    items: &[(TreeletId, f32)],
+    errors: &[f32],
+    prefetch_from: usize,
+    keep: impl Fn(TreeletId) -> bool,
+) -> (Vec<(TreeletId, i16)>, u32) {
+    let mut kept: Vec<(bool, TreeletId, f32, f32)> = items
+        .iter()
+        .zip(errors)
+        .enumerate()
+        .filter(|(_, ((id, _), _))| keep(*id))
+        .map(|(i, (&(id, p), &e))| (i >= prefetch_from, id, p, e))
+        .collect();
+    kept.sort_by(|a, b| {
+        (a.0.cmp(&b.0))
+            .then(b.2.total_cmp(&a.2))
+            .then(a.1.cmp(&b.1))
+    });
+    let prefetch_from = kept.iter().take_while(|k| !k.0).count() as u32;
+    let ranked = kept
+        .into_iter()
+        .map(|(_, id, _, e)| (id, arbor_proto::wire::error_steps(e)))
+        .collect();
+    (ranked, prefetch_from)
 }
 
 /// Reads control frames after `SceneInfo`: `Error` and `Goodbye` are remembered (the close
@@ -684,5 +704,36 @@ fn ending_from(
         reason,
         retry,
         connected,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ranked_items_are_in_serving_order_with_the_prefetch_after() {
+        let items = [
+            (TreeletId(9), 1.0),
+            (TreeletId(4), 3.0),
+            (TreeletId(7), 3.0),
+            (TreeletId(99), 9.0),
+            (TreeletId(2), -5.0),
+            // The prefetch: its priorities may exceed the listed ones; it still comes after.
+            (TreeletId(30), 0.5),
+            (TreeletId(20), 8.0),
+            (TreeletId(25), 8.0),
+        ];
+        let errors = [1.0, 2.0, 3.0, 4.0, -64.0, 0.25, 63.0, 0.0];
+        let keep = |id: TreeletId| id.0 < 50;
+        let (ranked, prefetch_from) = ranked_items(&items, &errors, 5, keep);
+        let ids: Vec<u32> = ranked.iter().map(|(id, _)| id.0).collect();
+        assert_eq!(ids, [4, 7, 9, 2, 20, 25, 30], "99 is not in the scene");
+        assert_eq!(prefetch_from, 4);
+        let steps: Vec<i16> = ranked.iter().map(|&(_, e)| e).collect();
+        assert_eq!(steps, [1024, 1536, 512, -i16::MAX, 32256, 0, 128]);
+        // Nothing prefetched, or everything.
+        assert_eq!(ranked_items(&items, &errors, 8, keep).1, 7);
+        assert_eq!(ranked_items(&items, &errors, 0, keep).1, 0);
     }
 }

@@ -274,8 +274,8 @@ async fn a_list_saying_exactly_what_the_last_said_is_not_sent_again() {
         assert_eq!(log.prefetch_starts, [2, 2, 1, 1]);
         assert_eq!(
             log.lists[5].2,
-            [(TreeletId(1), 1.0), (TreeletId(2), 1.0)],
-            "the unknown id is not sent"
+            [(TreeletId(1), 2.0), (TreeletId(2), 1.0)],
+            "the unknown id is not sent; equal priorities ranked by id"
         );
     }
     client.close().await;

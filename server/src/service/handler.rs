@@ -263,6 +263,17 @@ impl Handler {
                 items,
                 prefetch_from,
             })) => self.on_deep_request_list(seq, &view, &items, prefetch_from as usize),
+            Ok(Some(Frame::RankedRequestList {
+                seq,
+                view,
+                items,
+                prefetch_from,
+            })) => self.on_deep_request_list(
+                seq,
+                &view,
+                &arbor_proto::wire::ranked_as_deep(&items),
+                prefetch_from as usize,
+            ),
             Ok(Some(Frame::Goodbye { code })) => Some(close(
                 ErrorCode::NoError,
                 format!("client said goodbye ({code})"),

@@ -399,8 +399,9 @@ async fn serve(conn: Connection, b: Behaviour, log: Arc<Mutex<Log>>, index: usiz
                     return;
                 }
             }
-            // Logged (as id and priority) but not answered: the fake server pushes nothing.
-            Frame::DeepRequestList {
+            // Logged (as id and the priority its rank stands for) but not answered: the fake
+            // server pushes nothing. The client sends its deep lists in the ranked form.
+            Frame::RankedRequestList {
                 seq,
                 items,
                 prefetch_from,
@@ -410,7 +411,10 @@ async fn serve(conn: Connection, b: Behaviour, log: Arc<Mutex<Log>>, index: usiz
                 log.lists.push((
                     index,
                     seq,
-                    items.iter().map(|&(id, p, _)| (id, p)).collect(),
+                    arbor_proto::wire::ranked_as_deep(&items)
+                        .into_iter()
+                        .map(|(id, p, _)| (id, p))
+                        .collect(),
                 ));
                 log.prefetch_starts.push(prefetch_from);
             }
