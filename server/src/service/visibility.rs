@@ -25,6 +25,10 @@
 //! apart from the `fetch` closure that reads a node block, so the tests compare it with casts
 //! over the fully resident scene.
 
+use std::borrow::Borrow;
+use std::collections::HashSet;
+use std::sync::OnceLock;
+
 use arbor_client_core::camera::Camera;
 use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig, SlotError};
@@ -33,8 +37,6 @@ use arbor_proto::wire::ViewHint;
 use arbor_proto::{Node, SceneDescription, TreeletId};
 use glam::DVec3;
 use rayon::prelude::*;
-use std::borrow::Borrow;
-use std::sync::OnceLock;
 
 use super::generations::GenerationCache;
 
@@ -330,8 +332,11 @@ impl CutCaster {
     /// Casts the ray through every pixel centre of `camera` at `lod`, round after round, from
     /// the root alone (so that what it loads is exactly what its rays need: a treelet already
     /// held would let a ray pass through it unnoticed), loading what a ray stops at while
-    /// coarser than a pixel, until every ray stops where the whole tree stops it. Treelets are
-    /// read with `fetch` (node block only; `None`: not readable, the cast is then incomplete).
+    /// coarser than a pixel, until every ray stops where the whole tree stops it. When a
+    /// round's rays stop at few treelets (64 rays or more each), one
+    /// ray per treelet is followed down its chain before the next round, loading what it
+    /// needs. Treelets are read with `fetch` (node block only; `None`: not readable, the cast
+    /// is then incomplete).
     pub fn cast<T: Borrow<DecodedTreelet>>(
         &self,
         camera: &Camera,
@@ -369,7 +374,7 @@ impl CutCaster {
         lod: &Lod,
         seed: &[(u8, TreeletId)],
         mut fetch: impl FnMut(TreeletId) -> Option<T>,
-        mut worthwhile: impl FnMut(usize) -> bool,
+        worthwhile: impl FnMut(usize) -> bool,
         parallel: bool,
     ) -> Cast {
         let mut cast = Cast {
@@ -389,61 +394,131 @@ impl CutCaster {
                 _ => cast.complete = false,
             }
         }
-        let mut next_check = (2 * cast.treelets.len()).max(FIRST_WORTH_CHECK);
+        let mut loader = Loader {
+            next_check: (2 * cast.treelets.len()).max(FIRST_WORTH_CHECK),
+            fetch,
+            worthwhile,
+        };
         let mut pending: Vec<(u32, u32)> = (0..camera.height)
             .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
             .collect();
         let rays = camera.pixel_rays();
+        let stop_short = |slots: &SlotBuffer, (x, y): (u32, u32)| {
+            let ray = rays.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
+            trace(&slots.view(), &self.frame, &ray, lod)
+                .filter(|hit| hit.leaf && !hit.subtreelet.is_none() && hit.error > 0.0)
+                .map(|hit| hit.subtreelet)
+        };
         while !pending.is_empty() {
             cast.rays_cast += pending.len() as u64;
             // The rays of a round are independent; the buffer is only read until all are cast.
-            let view = slots.view();
-            let stops_short = |&(x, y): &(u32, u32)| {
-                let ray = rays.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
-                trace(&view, &self.frame, &ray, lod)
-                    .filter(|hit| hit.leaf && !hit.subtreelet.is_none() && hit.error > 0.0)
-                    .map(|hit| ((x, y), hit.subtreelet))
-            };
-            let (again, mut missing): (Vec<(u32, u32)>, Vec<TreeletId>) = if parallel {
-                pending.par_iter().filter_map(stops_short).unzip()
+            let stops = |&p: &(u32, u32)| stop_short(&slots, p).map(|id| (p, id));
+            let stopped: Vec<((u32, u32), TreeletId)> = if parallel {
+                pending.par_iter().filter_map(stops).collect()
             } else {
-                pending.iter().filter_map(stops_short).unzip()
+                pending.iter().filter_map(stops).collect()
             };
+            let mut missing: Vec<TreeletId> = stopped.iter().map(|&(_, id)| id).collect();
             missing.sort_unstable();
             missing.dedup();
+            let probe = missing.len() * PROBE_RAYS_PER_TREELET <= stopped.len();
             let mut progress = false;
             for id in missing {
-                if slots.free_slots() == 0 {
-                    cast.complete = false;
-                    break;
+                match loader.load(&mut slots, &mut cast, id) {
+                    Load::Loaded => progress = true,
+                    Load::Skipped => {}
+                    Load::Stop => break,
                 }
-                let Some(t) = fetch(id) else {
-                    cast.complete = false;
-                    continue;
-                };
-                if let InsertOutcome::Inserted { slot, .. } = slots.insert(t) {
-                    cast.treelets.push((level_of(&slots, slot), id));
-                    progress = true;
-                } else {
-                    cast.complete = false;
-                }
-                if cast.treelets.len() >= next_check {
-                    if !worthwhile(cast.treelets.len()) {
-                        cast.abandoned = true;
-                        cast.complete = false;
-                        break;
+            }
+            // Few treelets for many rays (a view from inside the data, a fly-in's end): the rays
+            // stand in one chain of nested treelets, which a round would uncover one level at
+            // a time, every ray cast again each time (inside lion: 12 rounds for 24 treelets).
+            // One ray per treelet follows its chain down first; what it loads is what that ray
+            // needs, so the cut is the same.
+            if probe && progress && !cast.abandoned {
+                let mut seen = HashSet::new();
+                let probes = stopped.iter().filter(|&&(_, id)| seen.insert(id));
+                'probes: for &(p, _) in probes {
+                    for _ in 0..MAX_PROBE_STEPS {
+                        cast.rays_cast += 1;
+                        let Some(id) = stop_short(&slots, p) else {
+                            break;
+                        };
+                        match loader.load(&mut slots, &mut cast, id) {
+                            Load::Loaded => {}
+                            Load::Skipped => break,
+                            Load::Stop => break 'probes,
+                        }
                     }
-                    next_check = 2 * cast.treelets.len();
                 }
             }
             if !progress || cast.abandoned {
                 // Nothing more can be loaded: those rays stop at the hulls they reached.
                 break;
             }
-            pending = again;
+            pending = stopped.into_iter().map(|(p, _)| p).collect();
         }
         cast.treelets.sort_unstable();
         cast
+    }
+}
+
+/// A round's rays per treelet they stop at, at or above which one ray per treelet follows its
+/// chain before the next round ([`CutCaster::cast_from`]).
+const PROBE_RAYS_PER_TREELET: usize = 64;
+
+/// Most treelets one probing ray loads: deeper than any scene's chain of treelets.
+const MAX_PROBE_STEPS: usize = 64;
+
+/// What loading a treelet into a cast did.
+enum Load {
+    /// Inserted.
+    Loaded,
+    /// Not readable or not insertable: the cast is incomplete, and goes on.
+    Skipped,
+    /// The buffer is full or the cast was abandoned: load nothing more.
+    Stop,
+}
+
+/// Loads treelets into a cast's buffer: reads them with `fetch`, and asks `worthwhile` each
+/// time the cut has doubled since `next_check`.
+struct Loader<F, W> {
+    next_check: usize,
+    fetch: F,
+    worthwhile: W,
+}
+
+impl<F, W> Loader<F, W> {
+    fn load<T>(&mut self, slots: &mut SlotBuffer, cast: &mut Cast, id: TreeletId) -> Load
+    where
+        F: FnMut(TreeletId) -> Option<T>,
+        W: FnMut(usize) -> bool,
+        T: Borrow<DecodedTreelet>,
+    {
+        if slots.free_slots() == 0 {
+            cast.complete = false;
+            return Load::Stop;
+        }
+        let Some(t) = (self.fetch)(id) else {
+            cast.complete = false;
+            return Load::Skipped;
+        };
+        let loaded = if let InsertOutcome::Inserted { slot, .. } = slots.insert(t) {
+            cast.treelets.push((level_of(slots, slot), id));
+            Load::Loaded
+        } else {
+            cast.complete = false;
+            Load::Skipped
+        };
+        if cast.treelets.len() >= self.next_check {
+            if !(self.worthwhile)(cast.treelets.len()) {
+                cast.abandoned = true;
+                cast.complete = false;
+                return Load::Stop;
+            }
+            self.next_check = 2 * cast.treelets.len();
+        }
+        loaded
     }
 }
 
