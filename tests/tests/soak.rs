@@ -69,9 +69,19 @@ fn rss_kib(pid: u32) -> u64 {
         .expect("VmRSS in /proc/PID/status")
 }
 
+/// Seconds between RSS samples.
+const SAMPLE_SECS: u64 = 5;
+
+/// Fewest samples a minute needs to have a median: half a minute's. The last sample, taken as
+/// the run ends, starts a minute of its own, and alone it is exactly where one sample happened
+/// to fall (a stop-60 run: every minute's median 169–183 MB, the lone last sample 215 MB, taken
+/// while visible cuts held their buffers).
+const MIN_SAMPLES_PER_MINUTE: usize = (60 / SAMPLE_SECS as usize) / 2;
+
 /// The median of each minute's `(seconds, KiB)` samples, at the minute's middle: a resident
 /// set that swings with buffers taken and given back (a visible cut holds 32 MiB while it is
-/// cast) is judged by its typical level, not by where each sample happened to fall.
+/// cast) is judged by its typical level, not by where each sample happened to fall. Minutes
+/// with fewer than [`MIN_SAMPLES_PER_MINUTE`] samples are left out.
 fn per_minute_medians(samples: &[(f64, f64)]) -> Vec<(f64, f64)> {
     let mut minutes: Vec<Vec<f64>> = Vec::new();
     for &(t, kib) in samples {
@@ -84,7 +94,7 @@ fn per_minute_medians(samples: &[(f64, f64)]) -> Vec<(f64, f64)> {
     minutes
         .into_iter()
         .enumerate()
-        .filter(|(_, v)| !v.is_empty())
+        .filter(|(_, v)| v.len() >= MIN_SAMPLES_PER_MINUTE)
         .map(|(m, mut v)| {
             v.sort_by(f64::total_cmp);
             (m as f64 * 60.0 + 30.0, v[v.len() / 2])
@@ -247,6 +257,28 @@ async fn client(
     c.close().await;
 }
 
+/// The RSS judgement itself, on samples as a run takes them: every full minute has its median,
+/// the lone sample taken as the run ends has none, and a spike in one sample moves nothing.
+#[test]
+fn each_full_minute_has_its_median_and_a_lone_last_sample_none() {
+    let mut samples: Vec<(f64, f64)> = (1..=120)
+        .map(|i| (i as f64 * 5.0 + 0.01, 100_000.0 + i as f64))
+        .collect();
+    samples[30].1 = 900_000.0;
+    samples.push((600.02, 215_000.0));
+    let medians = per_minute_medians(&samples);
+    assert_eq!(medians.len(), 10, "{medians:?}");
+    assert!(
+        medians.iter().all(|&(_, kib)| kib < 100_200.0),
+        "{medians:?}"
+    );
+    let slope = slope_per_minute(&medians[5..]);
+    assert!(
+        (slope - 12.0).abs() < 0.5,
+        "12 samples a minute, 1 KiB each: {slope}"
+    );
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "10 minutes; run with --release -- --ignored --nocapture"]
 async fn sixty_four_clients_for_ten_minutes() {
@@ -369,7 +401,7 @@ async fn soak(resting_views: bool) {
     let started = Instant::now();
     let mut samples = Vec::new();
     while started.elapsed() < Duration::from_secs(secs) {
-        tokio::time::sleep(Duration::from_secs(5)).await;
+        tokio::time::sleep(Duration::from_secs(SAMPLE_SECS)).await;
         let t = started.elapsed().as_secs_f64();
         let rss = rss_kib(pid);
         samples.push((t, rss as f64));
