@@ -30,7 +30,7 @@ use std::collections::HashSet;
 use std::sync::OnceLock;
 
 use arbor_client_core::camera::Camera;
-use arbor_client_core::incore::SceneFrame;
+use arbor_client_core::incore::{IncoreView, SceneFrame};
 use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig, SlotError};
 use arbor_client_core::traverse::{Lod, trace};
 use arbor_proto::wire::ViewHint;
@@ -403,16 +403,17 @@ impl CutCaster {
             .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
             .collect();
         let rays = camera.pixel_rays();
-        let stop_short = |slots: &SlotBuffer, (x, y): (u32, u32)| {
+        let stop_short = |view: &IncoreView<'_>, (x, y): (u32, u32)| {
             let ray = rays.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
-            trace(&slots.view(), &self.frame, &ray, lod)
+            trace(view, &self.frame, &ray, lod)
                 .filter(|hit| hit.leaf && !hit.subtreelet.is_none() && hit.error > 0.0)
                 .map(|hit| hit.subtreelet)
         };
         while !pending.is_empty() {
             cast.rays_cast += pending.len() as u64;
             // The rays of a round are independent; the buffer is only read until all are cast.
-            let stops = |&p: &(u32, u32)| stop_short(&slots, p).map(|id| (p, id));
+            let view = slots.view();
+            let stops = |&p: &(u32, u32)| stop_short(&view, p).map(|id| (p, id));
             let stopped: Vec<((u32, u32), TreeletId)> = if parallel {
                 pending.par_iter().filter_map(stops).collect()
             } else {
@@ -441,7 +442,7 @@ impl CutCaster {
                 'probes: for &(p, _) in probes {
                     for _ in 0..MAX_PROBE_STEPS {
                         cast.rays_cast += 1;
-                        let Some(id) = stop_short(&slots, p) else {
+                        let Some(id) = stop_short(&slots.view(), p) else {
                             break;
                         };
                         match loader.load(&mut slots, &mut cast, id) {
