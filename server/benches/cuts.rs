@@ -11,7 +11,10 @@
 //! both ways in turns: with the treelets shared out of the map (`Arc`, as the server's cut node
 //! cache hands them over since stop 60) and copied out of it (before). The last line is the
 //! part of every cast that does not depend on the view: the cut's buffer of
-//! `visibility_cache_bytes` (32 MiB by default) made and dropped, and its node array alone.
+//! `visibility_cache_bytes` (32 MiB by default) made and dropped, empty and holding the first
+//! view's coarse cut, both ways in turns: with every slot's records written up front
+//! (`SlotBuffer::new`, the casts before stop 61) and written as slots fill
+//! (`SlotBuffer::new_growing`, the casts now).
 //!
 //! `cargo bench -p arbor-server --bench cuts`: lion (`../shared/data`) imported with 4 KiB
 //! treelets into a temporary pool. `ARBOR_BENCH_POOL=DIR ARBOR_BENCH_SCENE=NAME`: a scene of an
@@ -26,7 +29,7 @@ use std::time::{Duration, Instant};
 use arbor_client_core::camera::{Camera, CameraPath};
 use arbor_client_core::cycle::view_hint;
 use arbor_client_core::incore::SceneFrame;
-use arbor_client_core::slots::{DecodedTreelet, SlotBuffer, SlotConfig};
+use arbor_client_core::slots::{DecodedTreelet, InsertOutcome, SlotBuffer, SlotConfig};
 use arbor_proto::wire::ViewHint;
 use arbor_proto::{Node, TreeletId, codec};
 use arbor_server::pool::Pool;
@@ -147,6 +150,8 @@ fn main() {
         "{:<12} {:>9} {:>9} {:>15} {:>9} {:>9} {:>15}",
         "view", "treelets", "rays", "shared / copied", "treelets", "rays", "shared / copied"
     );
+    // The first view's coarse cut, to fill the buffers of the last line with.
+    let mut first_cut: Option<Vec<TreeletId>> = None;
     for (what, camera) in &views {
         let view = hint(camera);
         let mut row = format!("{what:<12}");
@@ -172,6 +177,9 @@ fn main() {
                 ms(shared),
                 ms(copied)
             );
+            if first_cut.is_none() {
+                first_cut = Some(cut.treelets.iter().map(|&(_, id)| id).collect());
+            }
             coarse = cut.treelets;
         }
         println!("{row}");
@@ -188,12 +196,37 @@ fn main() {
         .unwrap()
         .capacity() as usize
         * d.treelet_nodes as usize;
-    let made = best(|| drop(SlotBuffer::new(config.clone(), root.clone()).unwrap()));
     let array = best(|| drop(std::hint::black_box(vec![Node::default(); records])));
     println!(
-        "the cut buffer alone, made and dropped: {:.2} ms, of which its {} MiB node array {:.2} ms",
-        ms(made),
+        "the cut buffer alone, made and dropped (its {} MiB node array written alone: {:.2} ms):",
         (records * std::mem::size_of::<Node>()) >> 20,
         ms(array)
     );
+    // Each way in turns, empty and holding the first view's coarse cut (parents first, as cast).
+    let filled = first_cut.unwrap_or_default();
+    for (what, ids) in [("empty", &[][..]), ("first cut", &filled[..])] {
+        let fill = |mut b: SlotBuffer| {
+            let placed = ids
+                .iter()
+                .filter(|&id| matches!(b.insert(&*decoded[id]), InsertOutcome::Inserted { .. }))
+                .count();
+            assert_eq!(placed, ids.len(), "the cut's treelets fit the buffer");
+            drop(std::hint::black_box(b));
+        };
+        let mut written = Duration::MAX;
+        let mut growing = Duration::MAX;
+        for _ in 0..ROUNDS {
+            written = written
+                .min(timed(|| fill(SlotBuffer::new(config.clone(), root.clone()).unwrap())).0);
+            growing = growing.min(
+                timed(|| fill(SlotBuffer::new_growing(config.clone(), root.clone()).unwrap())).0,
+            );
+        }
+        println!(
+            "  {what:<10} ({:>5} treelets) written up front {:>6.2} ms, growing as filled {:>6.2} ms",
+            ids.len(),
+            ms(written),
+            ms(growing)
+        );
+    }
 }

@@ -227,9 +227,12 @@ fn run(scan_index: usize, capacity: u32, load_limit: u32, visibility: u16, steps
         visibility_max: visibility,
         load_limit,
     };
-    let mut b = SlotBuffer::new(config, s.treelets[0].clone()).unwrap();
+    let mut b = SlotBuffer::new(config.clone(), s.treelets[0].clone()).unwrap();
+    // The same steps on a buffer whose arrays grow as slots fill (the server's visible cuts).
+    let mut g = SlotBuffer::new_growing(config, s.treelets[0].clone()).unwrap();
     assert_eq!(b.capacity(), capacity);
     check(&b, s);
+    same_records(&b, &g);
     let mut loaded = 0;
     for st in steps {
         let resident: Vec<u32> = (0..capacity)
@@ -238,6 +241,7 @@ fn run(scan_index: usize, capacity: u32, load_limit: u32, visibility: u16, steps
         let id = match st {
             Step::Cycle => {
                 b.begin_cycle();
+                g.begin_cycle();
                 loaded = 0;
                 None
             }
@@ -246,6 +250,7 @@ fn run(scan_index: usize, capacity: u32, load_limit: u32, visibility: u16, steps
                     let mut slot = Some(*p.get(&resident));
                     while let Some(x) = slot {
                         b.mark_visible(x);
+                        g.mark_visible(x);
                         slot = b.parent_slot(x);
                     }
                 }
@@ -268,6 +273,7 @@ fn run(scan_index: usize, capacity: u32, load_limit: u32, visibility: u16, steps
             .filter(|p| !p.is_none())
             .collect();
             let outcome = b.insert(s.treelets[id as usize].clone());
+            assert_eq!(g.insert(&s.treelets[id as usize]), outcome);
             match outcome {
                 InsertOutcome::LoadLimit => assert!(loaded >= load_limit),
                 InsertOutcome::AlreadyResident => assert!(loaded < load_limit && was),
@@ -288,6 +294,38 @@ fn run(scan_index: usize, capacity: u32, load_limit: u32, visibility: u16, steps
             }
         }
         check(&b, s);
+        same_records(&b, &g);
+    }
+}
+
+/// A growing buffer `g` driven like the written buffer `b` holds the same records: its arrays
+/// are `b`'s up to the highest slot it filled and cover every resident slot, and `b` has only
+/// default records beyond them.
+fn same_records(b: &SlotBuffer, g: &SlotBuffer) {
+    let (w, v) = (b.view(), g.view());
+    let n = w.treelet_nodes as usize;
+    let len = v.nodes.len();
+    assert!(len % n == 0 && len <= w.nodes.len(), "{len} records");
+    assert!(v.nodes == &w.nodes[..len], "node records differ");
+    assert!(w.nodes[len..].iter().all(|r| *r == Node::default()));
+    for slot in (0..b.capacity()).filter(|&x| b.treelet_in(x).is_some()) {
+        assert_eq!(g.treelet_in(slot), b.treelet_in(slot));
+        assert!(
+            (slot as usize + 1) * n <= len,
+            "slot {slot} beyond the records"
+        );
+    }
+    for (ours, theirs) in [
+        (v.color, w.color),
+        (v.normal, w.normal),
+        (v.density, w.density),
+    ] {
+        assert_eq!(ours.is_some(), theirs.is_some());
+        if let (Some(ours), Some(theirs)) = (ours, theirs) {
+            assert_eq!(ours.len() / len.max(1), theirs.len() / w.nodes.len().max(1));
+            assert!(ours == &theirs[..ours.len()], "attributes differ");
+            assert!(theirs[ours.len()..].iter().all(|&x| x == 0));
+        }
     }
 }
 

@@ -12,7 +12,8 @@ use arbor_proto::{Channel, Node, SceneDescription};
 /// The incore nodes and attributes, borrowed.
 #[derive(Clone, Copy, Debug)]
 pub struct IncoreView<'a> {
-    /// `slots × treelet_nodes` records, slot 0 = the root treelet.
+    /// `slots × treelet_nodes` records, slot 0 = the root treelet (up to the highest slot
+    /// filled so far, for a buffer made by `SlotBuffer::new_growing`).
     pub nodes: &'a [Node],
     /// `N`, the scene's node records per treelet.
     pub treelet_nodes: u32,

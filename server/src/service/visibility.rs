@@ -270,7 +270,7 @@ impl CutCaster {
             visibility_max: 1,
             load_limit: u32::MAX,
         };
-        SlotBuffer::new(config.clone(), root.clone())?;
+        SlotBuffer::new_growing(config.clone(), root.clone())?;
         Ok(CutCaster {
             config,
             frame: SceneFrame::of(scene),
@@ -383,7 +383,7 @@ impl CutCaster {
             abandoned: false,
             rays_cast: 0,
         };
-        let Ok(mut slots) = SlotBuffer::new(self.config.clone(), self.root.clone()) else {
+        let Ok(mut slots) = SlotBuffer::new_growing(self.config.clone(), self.root.clone()) else {
             // `new` built the same buffer once already.
             cast.complete = false;
             return cast;
