@@ -12,11 +12,12 @@ use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use arbor_proto::wire::ErrorCode;
-use arbor_proto::{Channel, SceneDescription};
+use arbor_proto::{Channel, SceneDescription, TreeletId};
 use arbor_server::admin::{AdminContext, router};
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_server::pipeline::{SceneImport, import_scene};
-use arbor_server::pool::Pool;
+use arbor_server::pool::{Pool, PoolReadBuckets, pack};
+use arbor_server::prometheus::Buckets;
 use arbor_server::scratch::ScratchDir;
 use arbor_server::service::state::{LATENCY_BUCKETS, ServiceState, SessionInfo};
 use serde_json::Value;
@@ -794,6 +795,17 @@ async fn metrics_parse_and_report_the_state_and_the_pool() {
     // Recorded at the start with seven scenes; reported for the one the pool holds now.
     let bound = arbor_server::service::config::ServeConfig::new("p").memory_bound(7);
     f.state.set_memory_bound(bound);
+    // Every node block read through the pool handle the admin API was given (a clone of it):
+    // one read per pack of consecutive ids, then one for a lone block.
+    let stored = f.pool.scene("bunny").unwrap();
+    let ids: Vec<TreeletId> = (0..stored.description.treelet_count)
+        .map(TreeletId)
+        .collect();
+    assert!(stored.nodes_of(&ids).unwrap().iter().all(Option::is_some));
+    assert!(stored.nodes(TreeletId(0)).unwrap().is_some());
+    let mut packs: Vec<_> = ids.iter().map(|&id| pack::locate(id).0).collect();
+    packs.dedup();
+    let reads = packs.len() as f64 + 1.0;
     let r = get(f.addr, "/metrics", &[("Authorization", &bearer(TOKEN))]).await;
     assert_eq!(r.status, 200, "{r:?}");
     let ct = r.header("content-type").unwrap();
@@ -856,6 +868,21 @@ async fn metrics_parse_and_report_the_state_and_the_pool() {
         LATENCY_BUCKETS.len() + 1
     );
 
+    // The pool's read times.
+    let h = &fams["arbor_pool_read_seconds"];
+    assert_eq!(h.kind.as_deref(), Some("histogram"));
+    let buckets: Vec<f64> = h
+        .samples
+        .iter()
+        .filter(|s| s.name == "arbor_pool_read_seconds_bucket")
+        .map(|s| s.value)
+        .collect();
+    assert_eq!(buckets.len(), PoolReadBuckets::BOUNDS.len() + 1);
+    assert!(buckets.windows(2).all(|w| w[0] <= w[1]), "{buckets:?}");
+    assert_eq!(buckets.last(), Some(&reads));
+    assert_eq!(v("arbor_pool_read_seconds_count"), reads);
+    assert!(v("arbor_pool_read_seconds_sum") > 0.0);
+
     // The pool's gauges.
     let d = f.description.as_ref().unwrap();
     let scene = [("scene", "bunny")];
@@ -885,7 +912,9 @@ async fn metrics_parse_and_report_the_state_and_the_pool() {
     );
     assert!(v("arbor_pool_disk_bytes") > 0.0);
     for (name, fam) in &fams {
-        if name.starts_with("arbor_scene_") || name.starts_with("arbor_pool_") {
+        if name.starts_with("arbor_scene_")
+            || (name.starts_with("arbor_pool_") && name != "arbor_pool_read_seconds")
+        {
             assert_eq!(fam.kind.as_deref(), Some("gauge"), "{name}");
         }
     }

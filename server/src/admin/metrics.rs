@@ -6,8 +6,8 @@ use std::time::Duration;
 
 use arbor_proto::SceneDescription;
 
-use crate::pool::{Pool, PoolError};
-use crate::prometheus::{Kind, PromText};
+use crate::pool::{Pool, PoolError, PoolReadBuckets};
+use crate::prometheus::{Histogram, Kind, PromText};
 use crate::service::state::ServiceState;
 
 /// Prometheus text exposition format 0.0.4.
@@ -45,7 +45,13 @@ pub(super) fn stream_bytes(d: &SceneDescription) -> Vec<(&'static str, u64)> {
 
 /// The whole `/metrics` body. `pool` is `None` when the pool could not be read: its families are
 /// still declared, without samples, and `arbor_pool_readable` is 0.
-pub(super) fn render(state: &ServiceState, uptime: Duration, pool: Option<&PoolFigures>) -> String {
+/// `reads` are the pool handle's block read times, which need no catalogue read.
+pub(super) fn render(
+    state: &ServiceState,
+    uptime: Duration,
+    reads: &Histogram<PoolReadBuckets>,
+    pool: Option<&PoolFigures>,
+) -> String {
     let mut p = PromText::default();
     state.write_prometheus(&mut p);
     p.family(
@@ -94,6 +100,13 @@ pub(super) fn render(state: &ServiceState, uptime: Duration, pool: Option<&PoolF
     if let Some(pool) = pool {
         p.sample("arbor_pool_disk_bytes", &[], pool.disk_bytes);
     }
+    reads.write(
+        &mut p,
+        "arbor_pool_read_seconds",
+        "Time of each read of a pack of treelet blocks from the pool (building a message, a \
+         shape or a cut's nodes that no cache held). Reads slower than a few microseconds \
+         decoded their page from the file: if many are, raise pool_cache_bytes.",
+    );
     p.family(
         "arbor_memory_bound_bytes",
         Kind::Gauge,
@@ -151,7 +164,7 @@ mod tests {
     #[test]
     fn families_are_declared_once_even_without_a_pool() {
         let s = ServiceState::new("ff".into());
-        let t = render(&s, Duration::from_secs(3), None);
+        let t = render(&s, Duration::from_secs(3), &Histogram::default(), None);
         assert!(t.contains("arbor_pool_readable 0\n"), "{t}");
         assert!(!t.contains("arbor_pool_scenes 0"), "{t}");
         let mut names: Vec<_> = t

@@ -340,7 +340,12 @@ async fn prometheus(State(app): State<Shared>) -> Response {
     if let Err(e) = &pool {
         tracing::warn!("admin /metrics: pool figures unavailable: {}", e.message);
     }
-    let body = metrics::render(&app.state, app.started.elapsed(), pool.ok().as_ref());
+    let body = metrics::render(
+        &app.state,
+        app.started.elapsed(),
+        app.pool.read_times(),
+        pool.ok().as_ref(),
+    );
     (
         StatusCode::OK,
         [(

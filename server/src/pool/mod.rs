@@ -14,11 +14,14 @@
 pub mod pack;
 
 use std::path::Path;
+use std::sync::Arc;
+use std::time::Instant;
 
 use arbor_proto::scene::validate_scene_name;
 use arbor_proto::{AttributeLayout, Channel, ProtoError, SceneDescription, TreeletId};
 
 use crate::octree::{BuildError, TreeletSink};
+use crate::prometheus::{Buckets, Histogram};
 use pack::PackWriter;
 
 /// Errors of the pool.
@@ -80,11 +83,27 @@ fn generation_of(tree_name: &[u8]) -> Option<u64> {
     rest.split(':').next()?.parse().ok()
 }
 
+/// The buckets of [`Pool::read_times`], 1 µs to 1 s: a pack read from sled's page cache takes a
+/// few microseconds (0.3–2 µs on these machines), one whose page is decoded from the file again
+/// tens, one the file must come from the disk for hundreds or more.
+#[derive(Debug)]
+pub struct PoolReadBuckets;
+
+impl Buckets for PoolReadBuckets {
+    const BOUNDS: &'static [f64] = &[
+        0.000_001, 0.000_002, 0.000_005, 0.000_01, 0.000_02, 0.000_05, 0.000_1, 0.000_2, 0.000_5,
+        0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 1.0,
+    ];
+}
+
 /// An open pool.
 #[derive(Debug, Clone)]
 pub struct Pool {
     db: sled::Db,
     catalogue: sled::Tree,
+    /// Times of the treelet-block reads of every scene opened from this pool (its clones
+    /// share it).
+    reads: Arc<Histogram<PoolReadBuckets>>,
 }
 
 /// A stored scene: its description and the trees holding its blocks.
@@ -94,12 +113,13 @@ pub struct StoredScene {
     pub generation: u64,
     nodes: sled::Tree,
     channels: Vec<(Channel, sled::Tree)>,
+    reads: Arc<Histogram<PoolReadBuckets>>,
 }
 
 impl StoredScene {
     /// The compressed node block of a treelet.
     pub fn nodes(&self, id: TreeletId) -> Result<Option<sled::IVec>, PoolError> {
-        packed_block(&self.nodes, "nodes", id)
+        packed_block(&self.nodes, "nodes", id, &self.reads)
     }
 
     /// The compressed attribute block of one channel of a treelet; `None` if the scene lacks the
@@ -110,7 +130,7 @@ impl StoredScene {
         id: TreeletId,
     ) -> Result<Option<sled::IVec>, PoolError> {
         match self.channels.iter().find(|(c, _)| *c == channel) {
-            Some((c, t)) => packed_block(t, c.name(), id),
+            Some((c, t)) => packed_block(t, c.name(), id, &self.reads),
             None => Ok(None),
         }
     }
@@ -118,7 +138,7 @@ impl StoredScene {
     /// The compressed node blocks of `ids`, in order, as [`StoredScene::nodes`] reads each, but
     /// with one sled read per pack while consecutive ids stay in it.
     pub fn nodes_of(&self, ids: &[TreeletId]) -> Result<Vec<Option<sled::IVec>>, PoolError> {
-        packed_blocks(&self.nodes, "nodes", ids)
+        packed_blocks(&self.nodes, "nodes", ids, &self.reads)
     }
 
     /// The compressed `channel` blocks of `ids`, in order, as [`StoredScene::channel`] reads
@@ -129,7 +149,7 @@ impl StoredScene {
         ids: &[TreeletId],
     ) -> Result<Vec<Option<sled::IVec>>, PoolError> {
         match self.channels.iter().find(|(c, _)| *c == channel) {
-            Some((c, t)) => packed_blocks(t, c.name(), ids),
+            Some((c, t)) => packed_blocks(t, c.name(), ids, &self.reads),
             None => Ok(vec![None; ids.len()]),
         }
     }
@@ -203,8 +223,9 @@ fn packed_block(
     tree: &sled::Tree,
     stream: &str,
     id: TreeletId,
+    reads: &Histogram<PoolReadBuckets>,
 ) -> Result<Option<sled::IVec>, PoolError> {
-    PackCursor::default().block(tree, stream, id)
+    PackCursor::default().block(tree, stream, id, reads)
 }
 
 /// The blocks of `ids` in order, through one [`PackCursor`].
@@ -212,10 +233,11 @@ fn packed_blocks(
     tree: &sled::Tree,
     stream: &str,
     ids: &[TreeletId],
+    reads: &Histogram<PoolReadBuckets>,
 ) -> Result<Vec<Option<sled::IVec>>, PoolError> {
     let mut cursor = PackCursor::default();
     ids.iter()
-        .map(|&id| cursor.block(tree, stream, id))
+        .map(|&id| cursor.block(tree, stream, id, reads))
         .collect()
 }
 
@@ -236,11 +258,17 @@ impl PackCursor {
         tree: &sled::Tree,
         stream: &str,
         id: TreeletId,
+        reads: &Histogram<PoolReadBuckets>,
     ) -> Result<Option<sled::IVec>, PoolError> {
         let (key, slot) = pack::locate(id);
         let pack = match &self.held {
             Some((held, pack)) if *held == key => pack,
-            _ => &self.held.insert((key, tree.get(key)?)).1,
+            _ => {
+                let began = Instant::now();
+                let pack = tree.get(key)?;
+                reads.observe(began.elapsed());
+                &self.held.insert((key, pack)).1
+            }
         };
         let Some(p) = pack else {
             return Ok(None);
@@ -280,7 +308,11 @@ impl Pool {
         };
         let catalogue = db.open_tree(CATALOGUE)?;
         check_format(&db, &catalogue)?;
-        let pool = Pool { db, catalogue };
+        let pool = Pool {
+            db,
+            catalogue,
+            reads: Arc::default(),
+        };
         let cleaned = pool.drop_leftovers()?;
         if cleaned > 0 {
             tracing::warn!(
@@ -346,7 +378,15 @@ impl Pool {
             generation,
             nodes,
             channels,
+            reads: Arc::clone(&self.reads),
         })
+    }
+
+    /// How long each read of a pack of treelet blocks took, for every scene opened from this
+    /// pool or its clones (a block read from the pack last read costs no read): what tells an
+    /// operator whether `pool_cache_bytes` holds the pages clients ask for.
+    pub fn read_times(&self) -> &Histogram<PoolReadBuckets> {
+        &self.reads
     }
 
     /// Whether a scene of that name exists.

@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
-use std::time::{Duration, SystemTime};
+use std::time::SystemTime;
 
 use arbor_proto::Channel;
 use arbor_proto::wire::ErrorCode;
@@ -18,70 +18,19 @@ use super::path_memory::{PathMemory, ResumeCounters};
 use super::shapes::ShapeCache;
 use super::treelets::MessageCache;
 use super::visibility::{FineCutGates, NodeCache};
-use crate::prometheus::{Kind, PromText};
+use crate::prometheus::{Buckets, Histogram, Kind, PromText};
 
 /// Upper bounds (seconds) of the request-to-send latency histogram buckets.
 pub const LATENCY_BUCKETS: [f64; 14] = [
     0.000_5, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0,
 ];
 
-/// A Prometheus histogram with fixed buckets.
-///
-/// Each bucket counts the observations that fall in it alone (above the bucket before), and
-/// the cumulative counts Prometheus expects are summed when rendered: an observation is one
-/// atomic add to its bucket, not one to every bucket at or above it (with 14 buckets and one
-/// observation per treelet sent, the cumulative adds had been most of the metrics' cost).
+/// The request-to-send latency's buckets ([`LATENCY_BUCKETS`]).
 #[derive(Debug)]
-pub struct Histogram {
-    buckets: [AtomicU64; LATENCY_BUCKETS.len()],
-    count: AtomicU64,
-    /// Sum in microseconds (atomics hold integers).
-    sum_micros: AtomicU64,
-}
+pub struct LatencyBuckets;
 
-impl Default for Histogram {
-    fn default() -> Self {
-        Self {
-            buckets: std::array::from_fn(|_| AtomicU64::new(0)),
-            count: AtomicU64::new(0),
-            sum_micros: AtomicU64::new(0),
-        }
-    }
-}
-
-impl Histogram {
-    pub fn observe(&self, d: Duration) {
-        self.observe_all([d]);
-    }
-
-    /// Observes every duration of `ds` (a batch of treelets), with one atomic add per bucket
-    /// they fall in, plus the count and the sum.
-    pub fn observe_all(&self, ds: impl IntoIterator<Item = Duration>) {
-        let mut in_bucket = [0u64; LATENCY_BUCKETS.len()];
-        let (mut count, mut sum_micros) = (0u64, 0u64);
-        for d in ds {
-            let s = d.as_secs_f64();
-            // Above the last bound: counted only in `+Inf` (the total).
-            if let Some(i) = LATENCY_BUCKETS.iter().position(|&le| s <= le) {
-                in_bucket[i] += 1;
-            }
-            count += 1;
-            sum_micros = sum_micros.saturating_add(d.as_micros().min(u128::from(u64::MAX)) as u64);
-        }
-        for (b, n) in self.buckets.iter().zip(in_bucket) {
-            if n > 0 {
-                b.fetch_add(n, Ordering::Relaxed);
-            }
-        }
-        if count > 0 {
-            self.count.fetch_add(count, Ordering::Relaxed);
-            self.sum_micros.fetch_add(sum_micros, Ordering::Relaxed);
-        }
-    }
-
-    pub fn count(&self) -> u64 {
-        self.count.load(Ordering::Relaxed)
-    }
+impl Buckets for LatencyBuckets {
+    const BOUNDS: &'static [f64] = &LATENCY_BUCKETS;
 }
 
 /// Service-wide counters.
@@ -113,7 +62,7 @@ pub struct Metrics {
     /// pushes, few in flight: `push::cut_list`), summed over lists.
     pub prefetch_set_apart: AtomicU64,
     /// Request-to-send latency: from the first list naming a treelet to its stream finishing.
-    pub request_to_send: Histogram,
+    pub request_to_send: Histogram<LatencyBuckets>,
     /// What connections resumed from a remembered path did (`service::path_memory`).
     pub path_resumes: Arc<ResumeCounters>,
     errors: [AtomicU64; ErrorCode::ALL.len()],
@@ -513,31 +462,18 @@ impl ServiceState {
                 m.errors(code),
             );
         }
-        let h = &m.request_to_send;
-        let name = "arbor_request_to_send_seconds";
-        p.family(
-            name,
-            Kind::Histogram,
+        m.request_to_send.write(
+            p,
+            "arbor_request_to_send_seconds",
             "From the first request list naming a treelet to its stream finishing.",
         );
-        let bucket = format!("{name}_bucket");
-        let mut cumulative = 0;
-        for (b, le) in h.buckets.iter().zip(LATENCY_BUCKETS) {
-            cumulative += load(b);
-            p.sample(&bucket, &[("le", &le.to_string())], cumulative);
-        }
-        p.sample(&bucket, &[("le", "+Inf")], h.count())
-            .sample(
-                &format!("{name}_sum"),
-                &[],
-                load(&h.sum_micros) as f64 / 1e6,
-            )
-            .sample(&format!("{name}_count"), &[], h.count());
     }
 }
 
 #[cfg(test)]
 mod tests {
+    use std::time::Duration;
+
     use super::*;
 
     #[test]
