@@ -2,14 +2,19 @@
 //! budget holds, raise the LOD bias — stop refining one quarter level earlier — instead of
 //! thrashing, until the needed cut fits; lower it again only when there is clearly room.
 //!
-//! The decision is made only with full knowledge of the view (every pixel sampled under the
-//! current bias, see [`crate::coverage`]), so it is never taken on a partial view:
+//! What the view needs is judged from the pixels known under the current bias (see
+//! [`crate::coverage`]):
 //! * the view wants the distinct treelets its pixels still ask for, and the buffer can give it
 //!   the free slots plus those that eviction may take once everything the view does not hit has
 //!   aged out (a slot outside the view whose parent is outside it too);
-//! * it is **oversubscribed** when it wants more than that room: raise by a quarter level;
+//! * it is **oversubscribed** when it wants more than that room: raise by a quarter level. A
+//!   part of the view is enough for this ([`LodBiasControl::raise_if_oversubscribed`]): a camera
+//!   that moves every cycle never lets a pass slower than the frame know a whole view, and
+//!   waiting for one left the 10⁸-point city's orbit at 16 MiB on the CPU backend with no raise
+//!   in 600 cycles and a wrong picture throughout (docs/measurements.md, stop 61);
 //! * with nothing wanted and the view using less than 1/[`LOWER_HEADROOM`] of the capacity, try
-//!   a quarter level lower (a surface needs about √2× the slots per quarter level finer);
+//!   a quarter level lower (a surface needs about √2× the slots per quarter level finer); only
+//!   on a whole view, since the pixels not yet known may want what would not fit;
 //! * a lower that had to be raised again is not tried again until the view changes
 //!   (hysteresis), so a static view settles on one bias and traffic stops.
 
@@ -93,15 +98,28 @@ impl LodBiasControl {
         self.locked = false;
     }
 
+    /// Raises the bias at `cycle` if `need` is oversubscribed; returns whether it did. This
+    /// alone may be decided from a *part* of the view (the pixels known so far): the treelets
+    /// a part wants are among those the whole view wants, and the slots it hits among those
+    /// the whole view hits, so a part that wants more than its room means a whole view that
+    /// wants more than its own, smaller room. A lower needs the whole view ([`Self::update`]):
+    /// the pixels not yet known may want what would not fit.
+    pub fn raise_if_oversubscribed(&mut self, cycle: u64, need: ViewNeed) -> bool {
+        if need.wanted <= need.room || self.steps >= MAX_STEPS {
+            return false;
+        }
+        if self.last_was_lower {
+            self.locked = true;
+        }
+        self.steps += 1;
+        self.last_was_lower = false;
+        self.first_raised_at.get_or_insert(cycle);
+        true
+    }
+
     /// Decides from a fully known view at `cycle`; returns whether the bias changed.
     pub fn update(&mut self, cycle: u64, need: ViewNeed) -> bool {
-        if need.wanted > need.room && self.steps < MAX_STEPS {
-            if self.last_was_lower {
-                self.locked = true;
-            }
-            self.steps += 1;
-            self.last_was_lower = false;
-            self.first_raised_at.get_or_insert(cycle);
+        if self.raise_if_oversubscribed(cycle, need) {
             return true;
         }
         let roomy = f64::from(need.visible_slots) * LOWER_HEADROOM < f64::from(need.capacity);
@@ -125,6 +143,23 @@ mod tests {
             room: 100 - visible,
             capacity: 100,
         }
+    }
+
+    #[test]
+    fn a_part_of_the_view_only_ever_raises() {
+        let mut c = LodBiasControl::new(1.0);
+        assert!(c.raise_if_oversubscribed(3, need(90, 30)));
+        assert!(c.raise_if_oversubscribed(4, need(90, 30)));
+        assert_eq!(c.steps(), 2);
+        assert!(
+            !c.raise_if_oversubscribed(5, need(10, 0)),
+            "room enough for a lower, but a part of the view cannot say so"
+        );
+        assert!(!c.raise_if_oversubscribed(6, need(60, 40)), "fits: hold");
+        assert_eq!(c.steps(), 2);
+        assert_eq!(c.first_raised_at(), Some(3));
+        assert!(c.update(7, need(10, 0)), "the whole view may lower");
+        assert_eq!(c.steps(), 1);
     }
 
     #[test]

@@ -899,26 +899,40 @@ impl ClientCore {
         let bias_in_effect = self.bias.bias();
         let mut bias_changed = false;
         let mut evicted = 0;
-        if self.coverage.known() == self.coverage.pixels() {
-            if self.config.adjust_bias {
-                let need = ViewNeed {
-                    visible_slots: visible.len() as u32,
-                    wanted: self.predicted_slots(&requests, false),
-                    room: self
-                        .slots
-                        .room_outside(&visible)
-                        .saturating_sub(self.pending() as u32),
-                    capacity: self.slots.capacity(),
-                };
-                bias_changed = self.bias.update(cycle, need);
-                self.bias_unsettled = bias_changed;
-                if bias_changed {
-                    tracing::debug!(cycle, bias = self.bias.bias(), ?need, "LOD bias adjusted");
-                    self.coverage.reset_target(cycle + 1);
-                    self.forget_pins();
-                    requests.clear();
-                }
+        let whole_view = self.coverage.known() == self.coverage.pixels();
+        if self.config.adjust_bias {
+            let need = ViewNeed {
+                visible_slots: visible.len() as u32,
+                wanted: self.predicted_slots(&requests, false),
+                room: self
+                    .slots
+                    .room_outside(&visible)
+                    .saturating_sub(self.pending() as u32),
+                capacity: self.slots.capacity(),
+            };
+            // A part of the view that already wants more than the room is enough to raise (see
+            // `LodBiasControl::raise_if_oversubscribed`): a camera that moves every cycle may
+            // never let a slow pass know the whole view.
+            bias_changed = if whole_view {
+                self.bias.update(cycle, need)
+            } else {
+                self.bias.raise_if_oversubscribed(cycle, need)
+            };
+            self.bias_unsettled = bias_changed;
+            if bias_changed {
+                tracing::debug!(
+                    cycle,
+                    bias = self.bias.bias(),
+                    ?need,
+                    whole_view,
+                    "LOD bias adjusted"
+                );
+                self.coverage.reset_target(cycle + 1);
+                self.forget_pins();
+                requests.clear();
             }
+        }
+        if whole_view {
             // The whole view is known: make room from what no pixel reaches.
             let free = self.slots.room().saturating_sub(self.pending() as u32);
             if !bias_changed && distinct as u32 > free {

@@ -663,7 +663,7 @@ impl fmt::Display for RunSummary {
         )?;
         match self.error_zero {
             Some(r) => writeln!(f, "max first 0 at cycle {} ({:.3} s)", r.cycle, r.time_s)?,
-            None => writeln!(f, "max never 0")?,
+            None => writeln!(f, "max never 0 with the whole view known")?,
         }
         if let Some(r) = self.bias_adjusted {
             writeln!(
