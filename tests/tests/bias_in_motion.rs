@@ -9,13 +9,20 @@
 //! average; docs/measurements.md, stop 61). A part of the view that already wants more than the
 //! room is now enough to raise it (`LodBiasControl::raise_if_oversubscribed`).
 //!
+//! And with a pass that does know each whole view, a moving camera used to unlock after every
+//! cycle the lower a failed lower had locked, so the bias went down and up every few cycles,
+//! evicting for the finer level and fetching it each time; a failed lower now waits ever longer
+//! before the next (`bias::LOWER_RETRY_CYCLES`).
+//!
 //! The core alone, answering each list at once from the decoded scene: lion, 1 KiB treelets, a
 //! budget a third of what a static view of it needs, an orbit of 1° a cycle, a quarter of the
-//! frame sampled per cycle; then the camera stops, and the picture settles exactly on the
-//! reference rendered at the bias it ends with.
+//! frame sampled per cycle (or all of it); then the camera stops, and the picture settles
+//! exactly on the reference rendered at the bias it ends with, which is where a core that saw
+//! only that view settles.
 
 use std::collections::HashMap;
 
+use arbor_client_core::bias::LOWER_RETRY_CYCLES;
 use arbor_client_core::camera::{Camera, CameraPath};
 use arbor_client_core::cycle::{ClientCore, CoreConfig, Plan};
 use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
@@ -115,35 +122,88 @@ fn an_oversubscribed_moving_view_raises_its_bias_without_ever_knowing_a_whole_vi
         "the orbit keeps refining what comes into view"
     );
 
-    // The camera stops where the orbit ended; the whole frame is sampled each cycle.
     let camera = path.camera(359, core.frame(), SEED, SIZE, SIZE);
+    settles_where_a_fresh_core_would(&scene, &treelets, &mut core, &camera, needed / 3);
+}
+
+/// Stops the camera at `camera`, samples the whole frame each cycle until `core` converges, and
+/// checks the picture is exactly the reference at the bias it settled on, and that bias at most
+/// a quarter level above the one a core of `slots` that saw only this view settles on. Returns
+/// the settled bias.
+fn settles_where_a_fresh_core_would(
+    scene: &SceneDescription,
+    treelets: &Treelets,
+    core: &mut ClientCore,
+    camera: &Camera,
+    slots: u32,
+) -> f64 {
     let settled = (0..400)
-        .map(|_| cycle(&mut core, &treelets, &camera, usize::MAX))
+        .map(|_| cycle(core, treelets, camera, usize::MAX))
         .find(|p| p.converged)
-        .expect("the stopped view converges within 400 cycles");
+        .expect("the stopped view converges within 400 cycles")
+        .lod_bias;
     let full =
-        SlotBuffer::fully_resident(&scene, scene.layout.channels(), treelets.values().cloned())
+        SlotBuffer::fully_resident(scene, scene.layout.channels(), treelets.values().cloned())
             .unwrap();
     assert_eq!(
-        core.render(&camera).unwrap(),
-        cpu_render_at(&full, core.frame(), &camera, settled.lod_bias),
-        "the settled picture is the reference at bias {}",
-        settled.lod_bias
+        core.render(camera).unwrap(),
+        cpu_render_at(&full, core.frame(), camera, settled),
+        "the settled picture is the reference at bias {settled}"
     );
-    let mut fresh = self::core(&scene, &treelets, needed / 3);
+    let mut fresh = self::core(scene, treelets, slots);
     let from_scratch = (0..400)
-        .map(|_| cycle(&mut fresh, &treelets, &camera, usize::MAX))
+        .map(|_| cycle(&mut fresh, treelets, camera, usize::MAX))
         .find(|p| p.converged)
-        .map(|p| p.lod_bias);
+        .expect("a core that saw only this view converges")
+        .lod_bias;
     eprintln!(
-        "stopped: converged at bias {}; a core that saw only this view: {from_scratch:?}",
-        settled.lod_bias
+        "stopped: converged at bias {settled}; a core that saw only this view: {from_scratch}"
     );
-    let from_scratch = from_scratch.expect("a core that saw only this view converges");
     assert!(
-        settled.lod_bias <= from_scratch * 2f64.powf(0.25) + 1e-9,
-        "the orbit left the bias at {}, more than a quarter level above the {from_scratch} a \
-         core that saw only this view settles on",
-        settled.lod_bias
+        settled <= from_scratch * 2f64.powf(0.25) + 1e-9,
+        "the orbit left the bias at {settled}, more than a quarter level above the \
+         {from_scratch} a core that saw only this view settles on"
     );
+    settled
+}
+
+/// With the whole frame sampled every cycle, a moving view is known whole each cycle, and a
+/// lower that fits one view used to be tried again right after every failed one: the next
+/// views wanted what it did not, the bias rose again, and each try evicted for the finer level
+/// and fetched it (lion at a third of its need orbiting 1° a cycle: 26 lowers in 360 cycles).
+/// Now a failed lower waits `LOWER_RETRY_CYCLES` before the next, doubling with each failure in
+/// a row; once the camera stops, the bias settles where a core that saw only that view does.
+#[test]
+fn a_moving_view_retries_failed_lowers_ever_more_rarely() {
+    let (scene, treelets) = small_lion_decoded();
+    let needed = needed_slots(&scene, &treelets);
+    let slots = needed / 3;
+    let mut core = core(&scene, &treelets, slots);
+    let path = CameraPath::Orbit {
+        degrees_per_cycle: 1.0,
+    };
+    let mut biases = Vec::new();
+    for c in 0..360u32 {
+        let camera = path.camera(c, core.frame(), SEED, SIZE, SIZE);
+        biases.push(cycle(&mut core, &treelets, &camera, usize::MAX).lod_bias);
+    }
+    let lowers: Vec<usize> = (1..biases.len())
+        .filter(|&c| biases[c] < biases[c - 1])
+        .collect();
+    eprintln!("orbit at {slots} slots of {needed} needed: lowers at cycles {lowers:?}");
+    assert!(
+        lowers.len() <= 6,
+        "{} lowers in 360 cycles of orbit: {lowers:?}",
+        lowers.len()
+    );
+    for pair in lowers.windows(2) {
+        assert!(
+            pair[1] - pair[0] >= LOWER_RETRY_CYCLES as usize,
+            "lowers at cycles {} and {}: {lowers:?}",
+            pair[0],
+            pair[1]
+        );
+    }
+    let camera = path.camera(359, core.frame(), SEED, SIZE, SIZE);
+    settles_where_a_fresh_core_would(&scene, &treelets, &mut core, &camera, slots);
 }

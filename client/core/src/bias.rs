@@ -16,7 +16,9 @@
 //!   a quarter level lower (a surface needs about √2× the slots per quarter level finer); only
 //!   on a whole view, since the pixels not yet known may want what would not fit;
 //! * a lower that had to be raised again is not tried again until the view changes
-//!   (hysteresis), so a static view settles on one bias and traffic stops.
+//!   (hysteresis), so a static view settles on one bias and traffic stops; and when it failed
+//!   soon after it was made, not for [`LOWER_RETRY_CYCLES`] either, doubling with each such
+//!   failure in a row, since a moving camera changes the view every cycle.
 
 /// A quarter octree level: the bias moves by `2^(1/4)` per step.
 pub const STEPS_PER_LEVEL: i32 = 4;
@@ -24,6 +26,11 @@ pub const STEPS_PER_LEVEL: i32 = 4;
 pub const MAX_STEPS: i32 = 16 * STEPS_PER_LEVEL;
 /// The view must fit this many times over before the bias is lowered.
 pub const LOWER_HEADROOM: f64 = 1.6;
+/// A lower raised again within this many cycles failed; after one, no lower is tried for this
+/// many cycles, doubling with each failure in a row (see [`LodBiasControl::update`]).
+pub const LOWER_RETRY_CYCLES: u64 = 32;
+/// The retry wait doubles at most this many times (32 · 2⁵ = 1,024 cycles).
+pub const LOWER_RETRY_MAX_DOUBLINGS: u32 = 5;
 
 /// What one fully known view needs, for [`LodBiasControl::update`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -46,8 +53,12 @@ pub struct LodBiasControl {
     steps: i32,
     /// Lowering is not tried again until [`LodBiasControl::view_changed`].
     locked: bool,
-    /// The last change was a lower.
-    last_was_lower: bool,
+    /// The last change was a lower, at this cycle.
+    lowered_at: Option<u64>,
+    /// Lowers in a row raised again within [`LOWER_RETRY_CYCLES`].
+    failed_lowers: u32,
+    /// No lower is tried before this cycle.
+    retry_at: u64,
     /// Cycle of the first raise, for the run summary.
     first_raised_at: Option<u64>,
 }
@@ -59,7 +70,9 @@ impl LodBiasControl {
             base,
             steps: 0,
             locked: false,
-            last_was_lower: false,
+            lowered_at: None,
+            failed_lowers: 0,
+            retry_at: 0,
             first_raised_at: None,
         }
     }
@@ -108,24 +121,42 @@ impl LodBiasControl {
         if need.wanted <= need.room || self.steps >= MAX_STEPS {
             return false;
         }
-        if self.last_was_lower {
+        if let Some(lowered) = self.lowered_at.take() {
             self.locked = true;
+            if cycle < lowered + LOWER_RETRY_CYCLES {
+                let doublings = self.failed_lowers.min(LOWER_RETRY_MAX_DOUBLINGS);
+                self.retry_at = cycle + (LOWER_RETRY_CYCLES << doublings);
+                self.failed_lowers += 1;
+            }
         }
         self.steps += 1;
-        self.last_was_lower = false;
         self.first_raised_at.get_or_insert(cycle);
         true
     }
 
     /// Decides from a fully known view at `cycle`; returns whether the bias changed.
+    ///
+    /// A lower that had to be raised again is not tried until the view changes, and when it was
+    /// raised within [`LOWER_RETRY_CYCLES`], not for that many cycles either, doubling with each
+    /// such failure in a row. A camera that moves every cycle changes the view every cycle, and
+    /// with a pass fast enough to know each whole view it tried a lower after almost every
+    /// failed one: the next views wanted what the lowered one did not, and each try evicted for
+    /// the finer level, fetched it and dropped it again (lion orbiting 2° a cycle at a half of
+    /// what it needs: 4 lowers, 6,549 treelets fetched in 360 cycles).
     pub fn update(&mut self, cycle: u64, need: ViewNeed) -> bool {
         if self.raise_if_oversubscribed(cycle, need) {
             return true;
         }
+        if self
+            .lowered_at
+            .is_some_and(|l| cycle >= l + LOWER_RETRY_CYCLES)
+        {
+            self.failed_lowers = 0;
+        }
         let roomy = f64::from(need.visible_slots) * LOWER_HEADROOM < f64::from(need.capacity);
-        if need.wanted == 0 && roomy && self.steps > 0 && !self.locked {
+        if need.wanted == 0 && roomy && self.steps > 0 && !self.locked && cycle >= self.retry_at {
             self.steps -= 1;
-            self.last_was_lower = true;
+            self.lowered_at = Some(cycle);
             return true;
         }
         false
@@ -160,6 +191,43 @@ mod tests {
         assert_eq!(c.first_raised_at(), Some(3));
         assert!(c.update(7, need(10, 0)), "the whole view may lower");
         assert_eq!(c.steps(), 1);
+    }
+
+    #[test]
+    fn failed_lowers_wait_ever_longer_even_when_the_view_changes() {
+        let mut c = LodBiasControl::new(1.0);
+        assert!(c.update(0, need(90, 30)));
+        assert!(c.update(1, need(90, 30)));
+        assert!(c.update(10, need(30, 0)), "lower");
+        assert!(
+            c.update(12, need(95, 10)),
+            "failed within the retry span: raise"
+        );
+        c.view_changed();
+        assert!(
+            !c.update(20, need(30, 0)),
+            "waits 32 cycles though the view changed"
+        );
+        assert!(c.update(12 + LOWER_RETRY_CYCLES, need(30, 0)));
+        let raised = 12 + LOWER_RETRY_CYCLES + 2;
+        assert!(c.update(raised, need(95, 10)), "failed again");
+        c.view_changed();
+        assert!(
+            !c.update(raised + 2 * LOWER_RETRY_CYCLES - 1, need(30, 0)),
+            "64 now"
+        );
+        let lowered = raised + 2 * LOWER_RETRY_CYCLES;
+        assert!(c.update(lowered, need(30, 0)));
+        // Held for the retry span: the failures are forgotten, and a raise long after it only
+        // locks until the view changes.
+        assert!(!c.update(lowered + LOWER_RETRY_CYCLES, need(70, 0)));
+        assert!(c.update(lowered + 200, need(95, 10)));
+        assert!(!c.update(lowered + 201, need(30, 0)), "locked");
+        c.view_changed();
+        assert!(
+            c.update(lowered + 202, need(30, 0)),
+            "no wait after a lower that held"
+        );
     }
 
     #[test]
@@ -199,10 +267,15 @@ mod tests {
         assert_eq!(c.steps(), 0);
         assert!(c.update(2, need(95, 10)), "too much after all: raise");
         assert!(!c.update(3, need(30, 0)), "locked");
+        let retry = 2 + LOWER_RETRY_CYCLES;
+        assert!(
+            !c.update(retry, need(30, 0)),
+            "still locked: the view is the same"
+        );
         c.view_changed();
-        assert!(c.update(4, need(30, 0)));
+        assert!(c.update(retry, need(30, 0)));
         assert_eq!(c.steps(), 0);
-        assert!(!c.update(5, need(10, 0)), "never below the base");
+        assert!(!c.update(retry + 1, need(10, 0)), "never below the base");
         assert_eq!(c.bias(), 2.0);
     }
 }
