@@ -901,36 +901,39 @@ impl ClientCore {
         let mut evicted = 0;
         let whole_view = self.coverage.known() == self.coverage.pixels();
         if self.config.adjust_bias {
-            let need = ViewNeed {
-                visible_slots: visible.len() as u32,
-                wanted: self.predicted_slots(&requests, false),
-                room: self
-                    .slots
-                    .room_outside(&visible)
-                    .saturating_sub(self.pending() as u32),
-                capacity: self.slots.capacity(),
-            };
+            let pending = self.pending() as u32;
+            let wanted = self.predicted_slots(&requests, false);
             // A part of the view that already wants more than the room is enough to raise (see
             // `LodBiasControl::raise_if_oversubscribed`): a camera that moves every cycle may
-            // never let a slow pass know the whole view.
-            bias_changed = if whole_view {
-                self.bias.update(cycle, need)
-            } else {
-                self.bias.raise_if_oversubscribed(cycle, need)
-            };
-            self.bias_unsettled = bias_changed;
-            if bias_changed {
-                tracing::debug!(
-                    cycle,
-                    bias = self.bias.bias(),
-                    ?need,
-                    whole_view,
-                    "LOD bias adjusted"
-                );
-                self.coverage.reset_target(cycle + 1);
-                self.forget_pins();
-                requests.clear();
+            // never let a slow pass know the whole view. The room is at least the free slots,
+            // and finding it walks every slot record, so a part whose wants fit the free slots
+            // (most cycles) is not asked about.
+            if whole_view || wanted > self.slots.free_slots().saturating_sub(pending) {
+                let need = ViewNeed {
+                    visible_slots: visible.len() as u32,
+                    wanted,
+                    room: self.slots.room_outside(&visible).saturating_sub(pending),
+                    capacity: self.slots.capacity(),
+                };
+                bias_changed = if whole_view {
+                    self.bias.update(cycle, need)
+                } else {
+                    self.bias.raise_if_oversubscribed(cycle, need)
+                };
+                if bias_changed {
+                    tracing::debug!(
+                        cycle,
+                        bias = self.bias.bias(),
+                        ?need,
+                        whole_view,
+                        "LOD bias adjusted"
+                    );
+                    self.coverage.reset_target(cycle + 1);
+                    self.forget_pins();
+                    requests.clear();
+                }
             }
+            self.bias_unsettled = bias_changed;
         }
         if whole_view {
             // The whole view is known: make room from what no pixel reaches.

@@ -384,7 +384,7 @@ impl CutCaster {
             rays_cast: 0,
         };
         let Ok(mut slots) = SlotBuffer::new_growing(self.config.clone(), self.root.clone()) else {
-            // `new` built the same buffer once already.
+            // `CutCaster::new` built the same buffer once already.
             cast.complete = false;
             return cast;
         };
