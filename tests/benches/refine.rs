@@ -47,6 +47,13 @@
 //! cycles, bytes of the treelets resident at the end, the LOD bias reached and whether the
 //! picture equals the reference rendered at that bias.
 //!
+//! Then a lossy link (40 ms each way, 10 Mbit/s, 1 % loss each way, and again without loss):
+//! lion at 512², static, the default client, the server with and without random-loss tolerance
+//! (`arbor_server::service::random_loss`) and the client with its list window
+//! ([`LIST_SEND_WINDOW`]) and with quinn's default, all four in turns (`ARBOR_REFINE_LOSSY_RUNS`
+//! times, default 3; `ARBOR_REFINE_LOSSY=0` skips it): time to convergence, bytes down,
+//! treelets received twice, list bytes up, packets the link lost or dropped.
+//!
 //! `ARBOR_REFINE_TIMELINE=1` records the server's per-treelet timeline
 //! (`arbor_server::service::timeline`) in every case and prints under its row when the view's
 //! last needed treelet was named, sent and acknowledged, and the bytes acknowledged up to then
@@ -102,6 +109,7 @@ use arbor_client_core::presort::PriorityPolicy;
 use arbor_client_core::slots::{DecodedTreelet, SlotBuffer, SlotConfig};
 use arbor_client_core::traverse::Lod;
 use arbor_client_gpu::{GpuBackend, GpuContext};
+use arbor_client_net::transport::LIST_SEND_WINDOW;
 use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
 use arbor_client_report::{CycleRecord, RunMeta, RunReport};
 use arbor_client_session::session::{RenderMode, Session, SessionConfig};
@@ -109,7 +117,7 @@ use arbor_proto::TreeletId;
 use arbor_server::service::timeline::{Breakdown, Event as TimelineEvent, Progress, progress};
 use arbor_server::service::visibility::CutCaster;
 use arbor_tests::link::{LinkConfig, LinkEmulator};
-use arbor_tests::streaming::{Served, TOKEN, cpu_render_at, full, serve};
+use arbor_tests::streaming::{Served, TOKEN, cpu_render_at, full, serve, serve_tuned};
 
 const SIZE: u32 = 512;
 const BUDGET: u64 = 64 << 20;
@@ -469,6 +477,125 @@ fn main() {
     }
     if std::env::var("ARBOR_REFINE_OVERSUB").as_deref() != Ok("0") {
         oversubscribed(&runtime, &out);
+    }
+    if std::env::var("ARBOR_REFINE_LOSSY").as_deref() != Ok("0") {
+        lossy_link(&runtime);
+    }
+}
+
+/// quinn's default send window (8 × its 1.25 MB stream window): lists unbounded, as before
+/// [`LIST_SEND_WINDOW`].
+const QUINN_SEND_WINDOW: u64 = 10_000_000;
+
+/// A home or mobile link with random loss, the product's default client (error-pixels) on lion
+/// at 512², static camera: the server with and without random-loss tolerance
+/// (`arbor_server::service::random_loss`), the client with its list window and with quinn's
+/// default, all four in turns, `ARBOR_REFINE_LOSSY_RUNS` times (default 3), each turn with its
+/// own loss sequence, shared by the four. Without loss as well, to show what the two cost where
+/// nothing is lost. `ARBOR_REFINE_LOSSY=0` skips it.
+fn lossy_link(runtime: &tokio::runtime::Runtime) {
+    const DELAY: Duration = Duration::from_millis(40);
+    const RATE: u64 = 10_000_000 / 8;
+    let runs: usize = std::env::var("ARBOR_REFINE_LOSSY_RUNS")
+        .ok()
+        .and_then(|r| r.parse().ok())
+        .unwrap_or(3)
+        .max(1);
+    let rel = "points/lion_takanawa.copc.laz";
+    let tolerant = runtime.block_on(serve(rel, "lion", 4096));
+    let plain = runtime.block_on(serve_tuned(rel, "lion", 4096, |c| {
+        c.random_loss_tolerance = false;
+    }));
+    let variant = VARIANTS[2];
+    let core = CoreConfig {
+        policy: variant.policy,
+        sampling: variant.sampling,
+        deep_push: variant.deep_push,
+        adjust_bias: variant.adjust_bias,
+        prefetch_below: variant.prefetch_below,
+        look_past: variant.look_past,
+        budget_bytes: BUDGET,
+        ..CoreConfig::default()
+    };
+    let setups: [(&str, &Served, u64); 4] = [
+        ("Cubic, lists unbounded", &plain, QUINN_SEND_WINDOW),
+        ("Cubic, lists paced", &plain, LIST_SEND_WINDOW),
+        ("tolerant, lists unbounded", &tolerant, QUINN_SEND_WINDOW),
+        ("tolerant, lists paced", &tolerant, LIST_SEND_WINDOW),
+    ];
+    for loss in [0.01, 0.0] {
+        println!(
+            "\n# lossy link: lion 4 KiB, {SIZE}², static, {} ms each way, {} Mbit/s, {} % loss \
+             each way; {runs} runs in turns (median, range)",
+            DELAY.as_millis(),
+            RATE * 8 / 1_000_000,
+            loss * 100.0
+        );
+        println!(
+            "{:<27} {:>16} {:>15} {:>8} {:>9} {:>7} {:>6}",
+            "server, client", "converged s", "range", "MB down", "twice", "MB up", "lost"
+        );
+        let mut rows: Vec<Vec<[f64; 5]>> = vec![Vec::new(); setups.len()];
+        for turn in 0..runs {
+            for (i, (_, served, window)) in setups.iter().enumerate() {
+                let link = runtime.block_on(LinkEmulator::start(
+                    served.server.quic_addr,
+                    LinkConfig::wan(DELAY, RATE)
+                        .with_loss(loss)
+                        .with_seed(turn as u64 + 1),
+                ));
+                let link = link.unwrap();
+                let unit = CameraPath::Static.camera(0, &SceneFrame::UNIT, SEED, SIZE, SIZE);
+                let mut session = connect_with(
+                    runtime,
+                    served,
+                    link.local_addr(),
+                    core.clone(),
+                    unit,
+                    *window,
+                );
+                let frame = *session.core().frame();
+                let camera = CameraPath::Static.camera(0, &frame, SEED, SIZE, SIZE);
+                let phase = run_phase(&mut session, &camera, true);
+                session.close(runtime.handle());
+                let last = phase.records.last().unwrap();
+                let converged = last.known_share == 1.0 && last.error.max == 0.0;
+                let stats = link.stats();
+                rows[i].push([
+                    if converged {
+                        last.time_s
+                    } else {
+                        f64::INFINITY
+                    },
+                    phase.records.iter().map(|r| r.bytes_received).sum::<u64>() as f64 / 1e6,
+                    f64::from(phase.records.iter().map(|r| r.received_twice).sum::<u32>()),
+                    stats.upstream.bytes_forwarded as f64 / 1e6,
+                    (stats.downstream.dropped_loss + stats.downstream.dropped_queue) as f64,
+                ]);
+                runtime.block_on(async { drop(link) });
+            }
+        }
+        for ((name, _, _), runs) in setups.iter().zip(&mut rows) {
+            runs.sort_by(|a, b| a[0].total_cmp(&b[0]));
+            let m = runs[runs.len() / 2];
+            let secs = |t: f64| {
+                if t.is_finite() {
+                    format!("{t:.2}")
+                } else {
+                    format!(">{}", PHASE_LIMIT.as_secs())
+                }
+            };
+            println!(
+                "{:<27} {:>16} {:>15} {:>8.2} {:>9} {:>7.2} {:>6}",
+                name,
+                secs(m[0]),
+                format!("{}–{}", secs(runs[0][0]), secs(runs[runs.len() - 1][0])),
+                m[1],
+                m[2],
+                m[3],
+                m[4]
+            );
+        }
     }
 }
 
@@ -925,13 +1052,27 @@ fn connect(
     core: CoreConfig,
     first_camera: Camera,
 ) -> Session {
+    connect_with(runtime, served, addr, core, first_camera, LIST_SEND_WINDOW)
+}
+
+/// [`connect`] with a client whose request lists may have `list_send_window` bytes
+/// unacknowledged.
+fn connect_with(
+    runtime: &tokio::runtime::Runtime,
+    served: &Served,
+    addr: SocketAddr,
+    core: CoreConfig,
+    first_camera: Camera,
+    list_send_window: u64,
+) -> Session {
     let url = ServerUrl {
         host: addr.ip().to_string(),
         port: addr.port(),
         scene: served.scene.name.clone(),
     };
     let client = ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
-        .with_token(TOKEN);
+        .with_token(TOKEN)
+        .with_list_send_window(list_send_window);
     first_contact_unless_returning(served);
     Session::connect(
         SessionConfig {

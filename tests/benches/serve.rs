@@ -584,9 +584,13 @@ mod counting {
         bytes: u64,
     ) -> Timed {
         let trust = Trust::Fingerprint(fingerprint.into());
-        let config =
-            arbor_client_net::transport::quinn_client_config(&trust, Duration::from_secs(30))
-                .unwrap();
+        // One list, sent whole at once, as the client's list window lets a list of any size out.
+        let config = arbor_client_net::transport::quinn_client_config(
+            &trust,
+            Duration::from_secs(30),
+            16 << 20,
+        )
+        .unwrap();
         let ep =
             arbor_client_net::transport::client_endpoint("127.0.0.1:0".parse().unwrap()).unwrap();
         let conn = ep

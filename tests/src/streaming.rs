@@ -90,6 +90,36 @@ pub async fn serve_altered(
     options: DaemonOptions,
     alter: impl FnOnce(&Built) + Send + 'static,
 ) -> Served {
+    serve_inner(rel, name, treelet_bytes, options, alter, |_| {}).await
+}
+
+/// [`serve`] by a daemon whose configuration `tune` changed last (a benchmark comparing two
+/// server settings in one run).
+pub async fn serve_tuned(
+    rel: &str,
+    name: &str,
+    treelet_bytes: u32,
+    tune: impl FnOnce(&mut ServeConfig),
+) -> Served {
+    serve_inner(
+        rel,
+        name,
+        treelet_bytes,
+        DaemonOptions::default(),
+        |_| {},
+        tune,
+    )
+    .await
+}
+
+async fn serve_inner(
+    rel: &str,
+    name: &str,
+    treelet_bytes: u32,
+    options: DaemonOptions,
+    alter: impl FnOnce(&Built) + Send + 'static,
+    tune: impl FnOnce(&mut ServeConfig),
+) -> Served {
     let rel = rel.to_owned();
     let name_owned = name.to_owned();
     let (built, treelets, wire_bytes) = tokio::task::spawn_blocking(move || {
@@ -142,6 +172,7 @@ pub async fn serve_altered(
     {
         cfg.initial_window = window;
     }
+    tune(&mut cfg);
     let server = start_with(cfg, options).await.unwrap();
     Served {
         server,

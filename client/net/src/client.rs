@@ -54,7 +54,11 @@ impl TreeletClient {
         config.validate()?;
         let runtime = tokio::runtime::Handle::try_current().map_err(|_| ClientError::NoRuntime)?;
         install_crypto_provider();
-        let quinn_config = quinn_client_config(&config.trust, config.idle_timeout())?;
+        let quinn_config = quinn_client_config(
+            &config.trust,
+            config.idle_timeout(),
+            config.list_send_window,
+        )?;
         let hello = |view: Option<ViewHint>| {
             let flags = config.hello_flags | if view.is_some() { HELLO_VIEW } else { 0 };
             encode(&Frame::Hello {

@@ -19,6 +19,9 @@ pub const DEFAULT_FAILOVER_AFTER: Duration = Duration::from_millis(750);
 pub const MIN_FAILOVER_AFTER: Duration = Duration::from_millis(100);
 /// Most replicas besides the URL.
 pub const MAX_REPLICAS: usize = 64;
+/// Smallest [`ClientConfig::list_send_window`]: a list larger than the window still goes out,
+/// a window at a time, but one of a few bytes would take a round trip per item.
+pub const MIN_LIST_SEND_WINDOW: u64 = 1 << 10;
 
 /// Everything a client needs to connect and stay connected.
 #[derive(Clone, Debug)]
@@ -58,6 +61,11 @@ pub struct ClientConfig {
     /// needs [`arbor_proto::wire::HELLO_SEND_ROOT`]): the server then pushes the root's
     /// refinement for it right away. A reconnection (the slot buffer is kept) sends none.
     pub hello_view: Option<ViewHint>,
+    /// Most request-list bytes written and not yet acknowledged
+    /// ([`crate::transport::LIST_SEND_WINDOW`] by default, at least
+    /// [`MIN_LIST_SEND_WINDOW`]): a newer list waits for the window, and only the latest is
+    /// sent then.
+    pub list_send_window: u64,
 }
 
 impl ClientConfig {
@@ -75,6 +83,7 @@ impl ClientConfig {
             max_buffered_bytes: DEFAULT_MAX_BUFFERED_BYTES,
             hello_flags: 0,
             hello_view: None,
+            list_send_window: crate::transport::LIST_SEND_WINDOW,
         }
     }
 
@@ -132,6 +141,12 @@ impl ClientConfig {
         self
     }
 
+    /// Sets [`Self::list_send_window`].
+    pub fn with_list_send_window(mut self, bytes: u64) -> Self {
+        self.list_send_window = bytes;
+        self
+    }
+
     /// Sets the first connection's `Hello` view ([`Self::hello_view`]).
     pub fn with_hello_view(mut self, view: Option<ViewHint>) -> Self {
         self.hello_view = view;
@@ -185,6 +200,12 @@ impl ClientConfig {
             return Err(ClientError::InvalidConfig(
                 "max_buffered_bytes must be positive".into(),
             ));
+        }
+        if self.list_send_window < MIN_LIST_SEND_WINDOW {
+            return Err(ClientError::InvalidConfig(format!(
+                "list_send_window of {} bytes, at least {MIN_LIST_SEND_WINDOW}",
+                self.list_send_window
+            )));
         }
         self.backoff.validate()
     }

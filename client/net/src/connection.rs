@@ -274,7 +274,7 @@ impl Task {
         });
         let mut readers = JoinSet::new();
         let stopped = tokio::select! {
-            why = send_lists(&mut send, &mut self.lists, &self.shared, &scene, next_seq) => Some(why),
+            why = send_lists(&conn, &mut send, &mut self.lists, &self.shared, &scene, next_seq, self.config.list_send_window) => Some(why),
             end = read_control(&mut control, &mut remote) => match end {
                 ControlEnd::Violation(reason) => {
                     close_locally(&conn, &local_close, ErrorCode::ProtocolViolation, reason.clone());
@@ -423,13 +423,19 @@ async fn setup(
     }
 }
 
-/// Sends the latest request list now and whenever it changes. Returns only when writing fails.
+/// Sends the latest request list now and whenever it changes, with at most about one list
+/// unacknowledged (`window` bytes, or the list's own size when larger, so that a large list
+/// still leaves in one flight; see [`crate::transport::LIST_SEND_WINDOW`]). A list waits for
+/// the one before to be acknowledged; the lists the view goes through meanwhile are skipped and
+/// the latest goes next. Returns only when writing fails.
 async fn send_lists(
+    conn: &quinn::Connection,
     send: &mut SendStream,
     lists: &mut watch::Receiver<Option<RequestList>>,
     shared: &Shared,
     scene: &SceneDescription,
     next_seq: &mut u64,
+    window: u64,
 ) -> String {
     // A new connection gets the latest list at once.
     lists.mark_changed();
@@ -495,6 +501,7 @@ async fn send_lists(
         };
         let ids = list.items.iter().map(|i| i.0).filter(|id| keep(*id));
         shared.latency().list_sent(ids, Instant::now());
+        conn.set_send_window(window.max(bytes.len() as u64));
         if let Err(e) = send.write_all(&bytes).await {
             return format!("writing request list {seq}: {e}");
         }

@@ -55,7 +55,7 @@ pub use backoff::{Backoff, Jitter};
 pub use client::TreeletClient;
 pub use config::{
     ClientConfig, DEFAULT_FAILOVER_AFTER, DEFAULT_MAX_BUFFERED_BYTES, MAX_REPLICAS,
-    MIN_FAILOVER_AFTER,
+    MIN_FAILOVER_AFTER, MIN_LIST_SEND_WINDOW,
 };
 pub use connection::is_final_code;
 pub use error::ClientError;

@@ -667,9 +667,16 @@ fn start_outside_a_runtime_is_an_error() {
         TreeletClient::start(cfg.clone()),
         Err(arbor_client_net::ClientError::NoRuntime)
     ));
-    let bad = cfg.with_channels([Channel::Color, Channel::Color]);
+    let bad = cfg.clone().with_channels([Channel::Color, Channel::Color]);
     assert!(matches!(
         TreeletClient::start(bad),
         Err(arbor_client_net::ClientError::InvalidConfig(_))
     ));
+    let no_window = cfg.with_list_send_window(0);
+    match TreeletClient::start(no_window) {
+        Err(arbor_client_net::ClientError::InvalidConfig(m)) => {
+            assert!(m.contains("list_send_window"), "{m}")
+        }
+        other => panic!("a list send window of 0 bytes: {:?}", other.err()),
+    }
 }

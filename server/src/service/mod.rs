@@ -37,6 +37,7 @@ pub mod generations;
 mod handler;
 pub mod path_memory;
 pub mod push;
+pub mod random_loss;
 pub mod reset;
 pub mod schedule;
 pub mod server;

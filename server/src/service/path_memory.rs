@@ -28,7 +28,9 @@
 //!    round trips of a connection that had too little to send to validate it.
 //!
 //! [`ResumeState`] is that decision as plain data, tested without quinn; [`PathCubic`] is the
-//! thin [`Controller`] around Cubic that feeds it.
+//! thin [`Controller`] around Cubic that feeds it, and feeds the random-loss filter
+//! ([`super::random_loss`]) too. With path memory off every connection still gets a
+//! [`PathCubic`], with no resume and no observer, so the filter applies all the same.
 //!
 //! A graceful shutdown writes the records to [`PATHS_FILE`] in the data directory
 //! ([`PathMemory::save`]) and the next start reads them back ([`PathMemory::load`]), ages
@@ -47,6 +49,7 @@ use std::time::{Duration, Instant, SystemTime};
 
 use serde::{Deserialize, Serialize};
 
+use super::random_loss::{LossCounters, RandomLossFilter};
 use quinn::congestion::{Controller, ControllerFactory, ControllerMetrics, Cubic, CubicConfig};
 
 /// Most client addresses remembered; beyond it the oldest record is forgotten.
@@ -511,13 +514,21 @@ pub struct PathFactory {
     /// What the connection may resume; `None`: an ordinary start.
     pub resume: Option<Resume>,
     pub counters: Arc<ResumeCounters>,
-    pub observer: Arc<PathObserver>,
+    /// Where the connection's round trips are noted; `None`: nowhere (path memory is off).
+    pub observer: Option<Arc<PathObserver>>,
+    /// Filter random loss (`super::random_loss`), counting its verdicts here; `None`: every
+    /// loss reaches Cubic.
+    pub losses: Option<Arc<LossCounters>>,
 }
 
 impl ControllerFactory for PathFactory {
     fn build(self: Arc<Self>, now: Instant, current_mtu: u16) -> Box<dyn Controller> {
         Box::new(PathCubic {
             inner: Cubic::new(self.cubic.clone(), now, current_mtu),
+            losses: self
+                .losses
+                .clone()
+                .map(|counters| (RandomLossFilter::default(), counters)),
             state: self.resume.map(ResumeState::new),
             counters: self.counters.clone(),
             observer: self.observer.clone(),
@@ -525,13 +536,15 @@ impl ControllerFactory for PathFactory {
     }
 }
 
-/// Cubic that notes its path's round trips and may resume a remembered window (module docs).
+/// Cubic that notes its path's round trips, may resume a remembered window (module docs) and
+/// may keep its window through random loss ([`super::random_loss`]).
 #[derive(Clone, Debug)]
 pub struct PathCubic {
     inner: Cubic,
+    losses: Option<(RandomLossFilter, Arc<LossCounters>)>,
     state: Option<ResumeState>,
     counters: Arc<ResumeCounters>,
-    observer: Arc<PathObserver>,
+    observer: Option<Arc<PathObserver>>,
 }
 
 impl PathCubic {
@@ -560,7 +573,12 @@ impl Controller for PathCubic {
         // The acknowledged packet's own round trip: the estimator may not have a sample yet
         // (it then reports the configured initial RTT, 333 ms, which would pass for any path).
         let measured = now.saturating_duration_since(sent);
-        self.observer.handle_rtt(measured);
+        if let Some(o) = &self.observer {
+            o.handle_rtt(measured);
+        }
+        if let Some((filter, _)) = &mut self.losses {
+            filter.handle_ack(measured);
+        }
         let inner_window = self.inner.window();
         let event = self
             .state
@@ -578,6 +596,9 @@ impl Controller for PathCubic {
     ) {
         self.inner
             .on_end_acks(now, in_flight, app_limited, largest_packet_num_acked);
+        if let Some((filter, _)) = &mut self.losses {
+            filter.handle_end_acks();
+        }
     }
 
     fn on_congestion_event(
@@ -587,6 +608,14 @@ impl Controller for PathCubic {
         is_persistent_congestion: bool,
         lost_bytes: u64,
     ) {
+        if let Some((filter, counters)) = &mut self.losses {
+            let verdict = filter.handle_congestion(now, sent, is_persistent_congestion, lost_bytes);
+            counters.count(verdict);
+            tracing::trace!(?verdict, queue = ?filter.queue_delay(), "loss event");
+            if !verdict.reaches_controller() {
+                return;
+            }
+        }
         self.inner
             .on_congestion_event(now, sent, is_persistent_congestion, lost_bytes);
         let event = self.state.as_mut().and_then(ResumeState::handle_congestion);

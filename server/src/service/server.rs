@@ -235,7 +235,19 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
         }
     }
     let identity = tls::load_or_create(&config.tls, config.data_dir())?;
-    let transport = transport_config(&config, Arc::new(cubic_config(&config)));
+    let state = Arc::new(ServiceState::new(identity.fingerprint.clone()));
+    // Without path memory every connection shares this config; its controller filters random
+    // loss all the same (`super::random_loss`).
+    let common = super::path_memory::PathFactory {
+        cubic: Arc::new(cubic_config(&config)),
+        resume: None,
+        counters: state.metrics.path_resumes.clone(),
+        observer: None,
+        losses: config
+            .random_loss_tolerance
+            .then(|| state.metrics.loss_events.clone()),
+    };
+    let transport = transport_config(&config, Arc::new(common));
     let server_config = tls::quic_server_config(&identity, transport)?;
     let endpoint_config = super::reset::endpoint_config(&identity);
     let endpoint = std::net::UdpSocket::bind(config.listen)
@@ -265,7 +277,6 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
         );
     }
 
-    let state = Arc::new(ServiceState::new(identity.fingerprint.clone()));
     let (trigger, shutdown) = shutdown::channel(config.shutdown_grace());
     let shared = Arc::new(
         Shared::new(config, pool.clone(), state.clone()).with_server_config(server_config),

@@ -121,7 +121,11 @@ impl Shared {
             cubic: Arc::new(cubic_config(&self.config)),
             resume,
             counters: self.state.metrics.path_resumes.clone(),
-            observer: observer.clone(),
+            observer: Some(observer.clone()),
+            losses: self
+                .config
+                .random_loss_tolerance
+                .then(|| self.state.metrics.loss_events.clone()),
         };
         let mut own = base.clone();
         own.transport_config(Arc::new(transport_config(&self.config, Arc::new(factory))));

@@ -15,6 +15,7 @@ use arbor_proto::wire::ErrorCode;
 use serde::Serialize;
 
 use super::path_memory::{PathMemory, ResumeCounters};
+use super::random_loss::LossCounters;
 use super::shapes::ShapeCache;
 use super::treelets::MessageCache;
 use super::visibility::{FineCutGates, NodeCache};
@@ -65,6 +66,8 @@ pub struct Metrics {
     pub request_to_send: Histogram<LatencyBuckets>,
     /// What connections resumed from a remembered path did (`service::path_memory`).
     pub path_resumes: Arc<ResumeCounters>,
+    /// Loss events as the random-loss filter judged them (`service::random_loss`).
+    pub loss_events: Arc<LossCounters>,
     errors: [AtomicU64; ErrorCode::ALL.len()],
 }
 
@@ -334,7 +337,8 @@ impl ServiceState {
         let m = &self.metrics;
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
         let resumes = &m.path_resumes;
-        let counters: [(&str, &str, &AtomicU64); 16] = [
+        let losses = &m.loss_events;
+        let counters: [(&str, &str, &AtomicU64); 19] = [
             (
                 "arbor_connections_accepted_total",
                 "QUIC connections accepted.",
@@ -417,6 +421,24 @@ impl ServiceState {
                 "arbor_path_resume_retreats_total",
                 "Resumed windows given up at a loss before the path confirmed them.",
                 &resumes.retreated,
+            ),
+            (
+                "arbor_loss_events_congestion_total",
+                "Loss events with a queue behind them (or persistent congestion, or ECN marks): \
+                 the congestion window was cut.",
+                &losses.congestion,
+            ),
+            (
+                "arbor_loss_events_random_passed_total",
+                "Loss events without a queue behind them that still cut the congestion window \
+                 (one in PASS_EVERY).",
+                &losses.random_passed,
+            ),
+            (
+                "arbor_loss_events_random_ignored_total",
+                "Loss events without a queue behind them, taken for random loss: the congestion \
+                 window was kept.",
+                &losses.random_ignored,
             ),
         ];
         for (name, help, value) in counters {
