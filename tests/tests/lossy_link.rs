@@ -6,8 +6,8 @@
 //! * the client's request lists queued in its QUIC send buffer when the uplink carried less than
 //!   they came to, reached the server seconds late, and the server resent what the client
 //!   already held (over 10 Mbit/s both ways, 78 % of the treelets received were duplicates);
-//!   the client now has at most about one list unacknowledged
-//!   (`arbor_client_net::transport::LIST_SEND_WINDOW`), and sends only the latest after it;
+//!   the client now has at most a couple of lists unacknowledged
+//!   (`arbor_client_net::transport::LIST_SEND_WINDOW`), and sends only the latest after them;
 //! * Cubic cut its window at every random loss, which holds a connection near
 //!   `MSS / RTT × 1.22 / √p` whatever the link carries; the server now tells a loss behind a
 //!   queue from one without (`arbor_server::service::random_loss`).

@@ -423,11 +423,11 @@ async fn setup(
     }
 }
 
-/// Sends the latest request list now and whenever it changes, with at most about one list
-/// unacknowledged (`window` bytes, or the list's own size when larger, so that a large list
-/// still leaves in one flight; see [`crate::transport::LIST_SEND_WINDOW`]). A list waits for
-/// the one before to be acknowledged; the lists the view goes through meanwhile are skipped and
-/// the latest goes next. Returns only when writing fails.
+/// Sends the latest request list now and whenever it changes, with at most `window` bytes of
+/// lists unacknowledged (or the list's own size when larger, so that a large list still leaves
+/// in one flight; see [`crate::transport::LIST_SEND_WINDOW`]). A list waits for those before to
+/// be acknowledged; the lists the view goes through meanwhile are skipped and the latest goes
+/// next. Returns only when writing fails.
 async fn send_lists(
     conn: &quinn::Connection,
     send: &mut SendStream,
