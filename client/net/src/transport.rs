@@ -32,16 +32,16 @@ pub const SOCKET_RECEIVE_BUFFER: usize = 4 << 20;
 /// and react late to what it needs. The server's default is the same.
 pub const INITIAL_WINDOW: u64 = 128 << 10;
 /// Most bytes of request lists the client has written and the server not yet acknowledged
-/// (QUIC's send window; lists are all the client sends), or the list's own size when larger:
-/// about two ranked lists of the client's default 4,096 items. A newer list waits until the
-/// ones before are acknowledged, and the lists the view went through meanwhile are skipped:
-/// only the latest is sent. Half of it (one list in flight) made the city's lists wait a round
-/// trip behind the one before on a clean 80 ms link, long enough for the server to resend 5–8 %
-/// of the treelets. With quinn's default (about 10 MB) lists queued in the send buffer whenever the uplink
-/// carried less than they came to. Over a 10 Mbit/s link with 1 % loss, where Cubic holds the
-/// uplink near 1.4 Mbit/s, lists reached the server up to 30 s late and the server resent what
-/// the client already held: 78 % of the treelets received were duplicates
-/// (docs/measurements.md, stop 62).
+/// (QUIC's send window; lists are all the client sends), or the list's own size when larger.
+/// A newer list waits until the ones before are acknowledged, and the lists the view went
+/// through meanwhile are skipped: only the latest is sent. With quinn's default (about 10 MB)
+/// lists queued in the send buffer whenever the uplink carried less than they came to: over a
+/// 10 Mbit/s link with 1 % loss, where Cubic holds the uplink near 1.4 Mbit/s, lists reached
+/// the server up to 30 s late and the server resent what the client already held, 78 % of the
+/// treelets received (docs/measurements.md, stop 62). 32 KiB is about two ranked lists of the
+/// client's default 4,096 items; with 16 KiB (one list in flight) the city's lists waited a
+/// round trip behind each other on a clean 80 ms link, long enough for the server to resend
+/// 5–8 % of the treelets.
 pub const LIST_SEND_WINDOW: u64 = 32 << 10;
 /// A connection with nothing received for this long is lost.
 pub const IDLE_TIMEOUT: Duration = Duration::from_secs(30);
