@@ -17,7 +17,7 @@ use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::render::Light;
 use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
 use arbor_client_core::traverse::{Lod, trace};
-use arbor_client_net::{ClientConfig, ServerUrl, Trust};
+use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
 use arbor_client_session::headless::{HeadlessConfig, HeadlessRun, run_headless_with};
 use arbor_proto::{SceneDescription, TreeletId};
 use arbor_server::daemon::{DaemonOptions, RunningServer, start_with};
@@ -482,4 +482,38 @@ pub async fn admin_request(
         status,
         serde_json::from_str(body).unwrap_or(serde_json::Value::Null),
     )
+}
+
+/// Fetches every treelet of the scene through `addr` and closes; panics on a disconnect or a
+/// stall, and checks each treelet arrived once, with its blocks.
+pub async fn fetch_scene(served: &Served, addr: SocketAddr) {
+    let url = ServerUrl {
+        host: addr.ip().to_string(),
+        port: addr.port(),
+        scene: served.scene.name.clone(),
+    };
+    let config = ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
+        .with_token(TOKEN)
+        .with_channels(served.scene.layout.channels().iter().copied());
+    let mut client = TreeletClient::start(config).unwrap();
+    let mut left: HashSet<TreeletId> = (0..served.treelets.len() as u32).map(TreeletId).collect();
+    client
+        .request(left.iter().map(|&id| (id, -(id.0 as f32))).collect())
+        .unwrap();
+    while !left.is_empty() {
+        match tokio::time::timeout(Duration::from_secs(60), client.next_event()).await {
+            Ok(Some(ClientEvent::Treelet(t))) => {
+                assert!(left.remove(&t.id), "treelet {:?} arrived twice", t.id);
+                assert!(
+                    !t.nodes.is_empty() && t.wire_bytes > t.nodes.len(),
+                    "treelet {:?} arrived with its blocks",
+                    t.id
+                );
+            }
+            Ok(Some(ClientEvent::Disconnected { reason, .. })) => panic!("disconnected: {reason}"),
+            Ok(Some(_)) => {}
+            Ok(None) | Err(_) => panic!("stalled with {} treelets left", left.len()),
+        }
+    }
+    client.close().await;
 }

@@ -3,54 +3,17 @@
 //! path: a real server, real clients, the link emulator at 60 ms each way and 100 Mbit/s, then
 //! plain loopback. What it saves in time is the refine bench's (`ARBOR_REFINE_RETURNING`).
 
-use std::collections::HashSet;
-use std::net::{IpAddr, Ipv4Addr, SocketAddr};
+use std::net::{IpAddr, Ipv4Addr};
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
-use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
-use arbor_proto::TreeletId;
 use arbor_server::prometheus::PromText;
 use arbor_server::service::config::DEFAULT_INITIAL_WINDOW;
 use arbor_server::service::path_memory::PathRecord;
 use arbor_tests::link::{LinkConfig, LinkEmulator};
-use arbor_tests::streaming::{Served, TOKEN, serve};
+use arbor_tests::streaming::{Served, fetch_scene, serve};
 
 const LOOPBACK: IpAddr = IpAddr::V4(Ipv4Addr::LOCALHOST);
-
-/// Fetches every treelet of the scene through `addr` and closes; panics on a disconnect or a
-/// stall, and checks each treelet arrived once, with its blocks.
-async fn fetch_scene(served: &Served, addr: SocketAddr) {
-    let url = ServerUrl {
-        host: addr.ip().to_string(),
-        port: addr.port(),
-        scene: served.scene.name.clone(),
-    };
-    let config = ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
-        .with_token(TOKEN)
-        .with_channels(served.scene.layout.channels().iter().copied());
-    let mut client = TreeletClient::start(config).unwrap();
-    let mut left: HashSet<TreeletId> = (0..served.treelets.len() as u32).map(TreeletId).collect();
-    client
-        .request(left.iter().map(|&id| (id, -(id.0 as f32))).collect())
-        .unwrap();
-    while !left.is_empty() {
-        match tokio::time::timeout(Duration::from_secs(60), client.next_event()).await {
-            Ok(Some(ClientEvent::Treelet(t))) => {
-                assert!(left.remove(&t.id), "treelet {:?} arrived twice", t.id);
-                assert!(
-                    !t.nodes.is_empty() && t.wire_bytes > t.nodes.len(),
-                    "treelet {:?} arrived with its blocks",
-                    t.id
-                );
-            }
-            Ok(Some(ClientEvent::Disconnected { reason, .. })) => panic!("disconnected: {reason}"),
-            Ok(Some(_)) => {}
-            Ok(None) | Err(_) => panic!("stalled with {} treelets left", left.len()),
-        }
-    }
-    client.close().await;
-}
 
 /// The server's record of the loopback address once it differs from `before` (the server
 /// records a path when it has finished with the connection, a moment after the client closed).
