@@ -110,14 +110,14 @@ use arbor_client_core::slots::{DecodedTreelet, SlotBuffer, SlotConfig};
 use arbor_client_core::traverse::Lod;
 use arbor_client_gpu::{GpuBackend, GpuContext};
 use arbor_client_net::transport::LIST_SEND_WINDOW;
-use arbor_client_net::{ClientConfig, ClientEvent, ServerUrl, TreeletClient, Trust};
+use arbor_client_net::{ClientEvent, TreeletClient};
 use arbor_client_report::{CycleRecord, RunMeta, RunReport};
 use arbor_client_session::session::{RenderMode, Session, SessionConfig};
 use arbor_proto::TreeletId;
 use arbor_server::service::timeline::{Breakdown, Event as TimelineEvent, Progress, progress};
 use arbor_server::service::visibility::CutCaster;
 use arbor_tests::link::{LinkConfig, LinkEmulator};
-use arbor_tests::streaming::{Served, TOKEN, cpu_render_at, full, serve, serve_tuned};
+use arbor_tests::streaming::{Served, cpu_render_at, full, serve, serve_tuned};
 
 const SIZE: u32 = 512;
 const BUDGET: u64 = 64 << 20;
@@ -538,13 +538,14 @@ fn lossy_link(runtime: &tokio::runtime::Runtime) {
         let mut rows: Vec<Vec<[f64; 5]>> = vec![Vec::new(); setups.len()];
         for turn in 0..runs {
             for (i, (_, served, window)) in setups.iter().enumerate() {
-                let link = runtime.block_on(LinkEmulator::start(
-                    served.server.quic_addr,
-                    LinkConfig::wan(DELAY, RATE)
-                        .with_loss(loss)
-                        .with_seed(turn as u64 + 1),
-                ));
-                let link = link.unwrap();
+                let link = runtime
+                    .block_on(LinkEmulator::start(
+                        served.server.quic_addr,
+                        LinkConfig::wan(DELAY, RATE)
+                            .with_loss(loss)
+                            .with_seed(turn as u64 + 1),
+                    ))
+                    .unwrap();
                 let unit = CameraPath::Static.camera(0, &SceneFrame::UNIT, SEED, SIZE, SIZE);
                 let mut session = connect_with(
                     runtime,
@@ -789,13 +790,8 @@ fn joint_floor(
 
 /// A raw treelet client of `served` through `link`, every channel.
 fn floor_client(served: &Served, link: &LinkEmulator) -> TreeletClient {
-    let url = ServerUrl {
-        host: link.local_addr().ip().to_string(),
-        port: link.local_addr().port(),
-        scene: served.scene.name.clone(),
-    };
-    let config = ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
-        .with_token(TOKEN)
+    let config = served
+        .client_config(link.local_addr())
         .with_channels(served.scene.layout.channels().iter().copied());
     TreeletClient::start(config).unwrap()
 }
@@ -1065,13 +1061,8 @@ fn connect_with(
     first_camera: Camera,
     list_send_window: u64,
 ) -> Session {
-    let url = ServerUrl {
-        host: addr.ip().to_string(),
-        port: addr.port(),
-        scene: served.scene.name.clone(),
-    };
-    let client = ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
-        .with_token(TOKEN)
+    let client = served
+        .client_config(addr)
         .with_list_send_window(list_send_window);
     first_contact_unless_returning(served);
     Session::connect(

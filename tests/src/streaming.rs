@@ -62,6 +62,19 @@ impl Served {
             TOKEN.into(),
         ]
     }
+
+    /// A client configuration for this server's scene through `addr` (the server's own address
+    /// or a link emulator's in front of it): the certificate's fingerprint and the clients'
+    /// token.
+    pub fn client_config(&self, addr: SocketAddr) -> ClientConfig {
+        let url = ServerUrl {
+            host: addr.ip().to_string(),
+            port: addr.port(),
+            scene: self.scene.name.clone(),
+        };
+        ClientConfig::new(url, Trust::Fingerprint(self.server.fingerprint.clone()))
+            .with_token(TOKEN)
+    }
 }
 
 /// Builds a real scan (`treelet_bytes` treelets) into a fresh pool and serves it.
@@ -210,14 +223,8 @@ pub fn headless(
     path: CameraPath,
     budget_bytes: u64,
 ) -> HeadlessConfig {
-    let url = ServerUrl {
-        host: addr.ip().to_string(),
-        port: addr.port(),
-        scene: served.scene.name.clone(),
-    };
     HeadlessConfig {
-        client: ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
-            .with_token(TOKEN),
+        client: served.client_config(addr),
         core: CoreConfig {
             analysis: AnalysisConfig {
                 ratio: RATIO,
@@ -487,13 +494,8 @@ pub async fn admin_request(
 /// Fetches every treelet of the scene through `addr` and closes; panics on a disconnect or a
 /// stall, and checks each treelet arrived once, with its blocks.
 pub async fn fetch_scene(served: &Served, addr: SocketAddr) {
-    let url = ServerUrl {
-        host: addr.ip().to_string(),
-        port: addr.port(),
-        scene: served.scene.name.clone(),
-    };
-    let config = ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
-        .with_token(TOKEN)
+    let config = served
+        .client_config(addr)
         .with_channels(served.scene.layout.channels().iter().copied());
     let mut client = TreeletClient::start(config).unwrap();
     let mut left: HashSet<TreeletId> = (0..served.treelets.len() as u32).map(TreeletId).collect();

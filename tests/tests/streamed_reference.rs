@@ -10,18 +10,11 @@ use arbor_client_core::backend::CpuBackend;
 use arbor_client_core::camera::CameraPath;
 use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::render::Light;
-use arbor_client_net::{ClientConfig, ServerUrl, Trust};
 use arbor_client_session::reference::{ReferenceView, StreamedReference, streamed_reference};
-use arbor_tests::streaming::{SIZE, Served, TOKEN, full, reference, serve};
+use arbor_tests::streaming::{SIZE, Served, full, reference, serve};
 
 fn streamed(served: &Arc<Served>, path: CameraPath, cycle: u32) -> StreamedReference {
-    let url = ServerUrl {
-        host: "127.0.0.1".into(),
-        port: served.server.quic_addr.port(),
-        scene: served.scene.name.clone(),
-    };
-    let client = ClientConfig::new(url, Trust::Fingerprint(served.server.fingerprint.clone()))
-        .with_token(TOKEN);
+    let client = served.client_config(served.server.quic_addr);
     let camera = move |frame: &SceneFrame| path.camera(cycle, frame, 7, SIZE.0, SIZE.1);
     let light = Light::default();
     let view = ReferenceView {

@@ -172,11 +172,26 @@ pub(crate) fn transport_config(
     t
 }
 
-/// Cubic starting at `initial_window`.
-pub(crate) fn cubic_config(config: &ServeConfig) -> quinn::congestion::CubicConfig {
+/// The controller factory of a connection: Cubic from `initial_window`, the random-loss filter
+/// unless `random_loss_tolerance` is off, and what path memory gives it (`resume`, `observer`;
+/// neither for the common config).
+pub(crate) fn path_factory(
+    config: &ServeConfig,
+    state: &ServiceState,
+    resume: Option<path_memory::Resume>,
+    observer: Option<Arc<path_memory::PathObserver>>,
+) -> path_memory::PathFactory {
     let mut cubic = quinn::congestion::CubicConfig::default();
     cubic.initial_window(config.initial_window);
-    cubic
+    path_memory::PathFactory {
+        cubic: Arc::new(cubic),
+        resume,
+        counters: state.metrics.path_resumes.clone(),
+        observer,
+        losses: config
+            .random_loss_tolerance
+            .then(|| state.metrics.loss_events.clone()),
+    }
 }
 
 /// Longest delay the server asks clients to hold an ACK back (see `transport_config`).
@@ -238,15 +253,7 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
     let state = Arc::new(ServiceState::new(identity.fingerprint.clone()));
     // Without path memory every connection shares this config; its controller filters random
     // loss all the same (`super::random_loss`).
-    let common = super::path_memory::PathFactory {
-        cubic: Arc::new(cubic_config(&config)),
-        resume: None,
-        counters: state.metrics.path_resumes.clone(),
-        observer: None,
-        losses: config
-            .random_loss_tolerance
-            .then(|| state.metrics.loss_events.clone()),
-    };
+    let common = path_factory(&config, &state, None, None);
     let transport = transport_config(&config, Arc::new(common));
     let server_config = tls::quic_server_config(&identity, transport)?;
     let endpoint_config = super::reset::endpoint_config(&identity);

@@ -12,9 +12,9 @@ use rustc_hash::FxHashMap;
 use tokio::sync::{Notify, mpsc};
 
 use super::config::ServeConfig;
-use super::path_memory::{PathFactory, PathObserver};
+use super::path_memory::PathObserver;
 use super::schedule::{ConnectionId, Scheduler, SchedulerConfig};
-use super::server::{cubic_config, transport_config};
+use super::server::{path_factory, transport_config};
 use super::state::{ServiceCaches, ServiceState};
 use super::treelets::ServedScene;
 use crate::pool::{Pool, StoredScene};
@@ -117,16 +117,7 @@ impl Shared {
         }
         let resume = self.state.paths().poll_resume(peer, Instant::now());
         let observer = Arc::new(PathObserver::default());
-        let factory = PathFactory {
-            cubic: Arc::new(cubic_config(&self.config)),
-            resume,
-            counters: self.state.metrics.path_resumes.clone(),
-            observer: Some(observer.clone()),
-            losses: self
-                .config
-                .random_loss_tolerance
-                .then(|| self.state.metrics.loss_events.clone()),
-        };
+        let factory = path_factory(&self.config, &self.state, resume, Some(observer.clone()));
         let mut own = base.clone();
         own.transport_config(Arc::new(transport_config(&self.config, Arc::new(factory))));
         Some((Arc::new(own), observer))

@@ -431,7 +431,7 @@ impl ServiceState {
             (
                 "arbor_loss_events_random_passed_total",
                 "Loss events without a queue behind them that still cut the congestion window \
-                 (one in PASS_EVERY).",
+                 (one in eight in a row).",
                 &losses.random_passed,
             ),
             (
