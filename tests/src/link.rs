@@ -398,6 +398,21 @@ impl LinkEmulator {
         })
     }
 
+    /// Opens another listening socket on the same IP that forwards to `upstream` through the same
+    /// two directions, and returns its address: a second server behind the same bottleneck, so
+    /// flows to different servers compete for one link's rate and buffer.
+    pub async fn add_route(&mut self, upstream: SocketAddr) -> io::Result<SocketAddr> {
+        let front = Arc::new(UdpSocket::bind(SocketAddr::new(self.local_addr.ip(), 0)).await?);
+        let addr = front.local_addr()?;
+        self.tasks.push(tokio::spawn(front_task(
+            front,
+            upstream,
+            Arc::clone(&self.shared),
+        )));
+        tracing::debug!(%addr, %upstream, "link emulator: route added");
+        Ok(addr)
+    }
+
     /// The address clients send to.
     pub fn local_addr(&self) -> SocketAddr {
         self.local_addr

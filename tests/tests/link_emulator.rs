@@ -1,5 +1,5 @@
-//! The loopback link emulator (`arbor_tests::link`): delay, rate, loss, per-client routing and the
-//! drop-tail buffer, checked with plain tokio UDP sockets.
+//! The loopback link emulator (`arbor_tests::link`): delay, rate, loss, per-client routing, a
+//! second route through the same link and the drop-tail buffer, checked with plain tokio UDP sockets.
 //!
 //! Timed assertions are lower bounds ("not faster than the link allows") or very generous upper
 //! bounds: the machine is small and shared with other tests.
@@ -398,6 +398,69 @@ async fn each_client_gets_its_own_upstream_socket() {
         (s.upstream.packets_forwarded, s.downstream.packets_forwarded),
         (6, 6)
     );
+    link.shutdown().await;
+}
+
+/// A second route (`LinkEmulator::add_route`) reaches another server through the same link: each
+/// server gets only its own clients' packets, replies come back from the address the client
+/// sent to, and the two flows share one rate.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_second_route_shares_the_link() {
+    const RATE: u64 = 1_000_000;
+    const SIZE: usize = 1200;
+    const COUNT: u32 = 209; // 250,800 bytes per route
+    let (first, second) = (Server::start(true).await, Server::start(true).await);
+    let config = LinkConfig::default().with_rate(Some(RATE));
+    let mut link = LinkEmulator::start(first.addr, config).await.unwrap();
+    let route = link.add_route(second.addr).await.unwrap();
+    assert_ne!(route, link.local_addr());
+    let (a, b) = (client().await, client().await);
+    let start = Instant::now();
+    tokio::join!(
+        send_numbered(&a, link.local_addr(), COUNT, SIZE),
+        send_numbered(&b, route, COUNT, SIZE)
+    );
+    wait_until(
+        Duration::from_secs(20),
+        "all packets at both servers",
+        &link,
+        || async { first.count() == COUNT as usize && second.count() == COUNT as usize },
+    )
+    .await;
+    let last = first
+        .received()
+        .last()
+        .unwrap()
+        .at
+        .max(second.received().last().unwrap().at);
+    let elapsed = last - start;
+    eprintln!("2 × {COUNT} packets through one {RATE} B/s link in {elapsed:?}");
+    assert!(
+        elapsed >= Duration::from_millis(450),
+        "both routes together were faster than the one link: {elapsed:?}"
+    );
+    for (server, name) in [(&first, "first"), (&second, "second")] {
+        let peers: HashSet<SocketAddr> = server.received().iter().map(|r| r.peer).collect();
+        assert_eq!(peers.len(), 1, "the {name} server saw one peer: {peers:?}");
+        assert!(
+            !peers.contains(&a.local_addr().unwrap()) && !peers.contains(&b.local_addr().unwrap())
+        );
+    }
+    for (sock, from) in [(&a, link.local_addr()), (&b, route)] {
+        let mut buf = [0u8; 2048];
+        let (_, at) = tokio::time::timeout(Duration::from_secs(10), sock.recv_from(&mut buf))
+            .await
+            .expect("echo within 10 s")
+            .unwrap();
+        assert_eq!(
+            at, from,
+            "the echo comes from the address the client sent to"
+        );
+    }
+    let s = link.stats();
+    assert_eq!(s.clients, 2);
+    assert_eq!(s.upstream.packets_forwarded, 2 * u64::from(COUNT));
+    assert_eq!((s.upstream.dropped_loss, s.upstream.dropped_queue), (0, 0));
     link.shutdown().await;
 }
 

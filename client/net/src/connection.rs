@@ -688,8 +688,16 @@ fn ending_from(
         }
         ConnectionError::ConnectionClosed(close) => {
             let crypto = is_crypto(close.error_code.into());
+            // An application close before the handshake completes travels as this transport
+            // code (RFC 9000 §10.2.3): the server gave up on the handshake, which it does when
+            // its hello timeout runs out.
+            let unfinished_handshake =
+                !connected && close.error_code == quinn::TransportErrorCode::APPLICATION_ERROR;
             let what = if crypto {
                 "server refused the TLS handshake"
+            } else if unfinished_handshake {
+                "server closed the connection before the handshake completed (its hello \
+                 timeout ran out: a slow or very lossy link?)"
             } else {
                 "server aborted the connection"
             };
@@ -742,5 +750,30 @@ mod tests {
         // Nothing prefetched, or everything.
         assert_eq!(ranked_items(&items, &errors, 8, keep).1, 7);
         assert_eq!(ranked_items(&items, &errors, 0, keep).1, 0);
+    }
+
+    #[test]
+    fn a_handshake_the_server_gave_up_on_is_named() {
+        let closed = |error_code| {
+            ConnectionError::ConnectionClosed(quinn::ConnectionClose {
+                error_code,
+                frame_type: None,
+                reason: Bytes::new(),
+            })
+        };
+        let app = quinn::TransportErrorCode::APPLICATION_ERROR;
+        let ending = ending_from(closed(app), &LocalClose::default(), None, false);
+        assert!(
+            ending.reason.contains("before the handshake completed") && ending.retry,
+            "{}",
+            ending.reason
+        );
+        let other = quinn::TransportErrorCode::PROTOCOL_VIOLATION;
+        let ending = ending_from(closed(other), &LocalClose::default(), None, false);
+        assert!(
+            ending.reason.starts_with("server aborted the connection"),
+            "{}",
+            ending.reason
+        );
     }
 }

@@ -21,7 +21,9 @@
 //! the next loss counts: the window settles about the path's bandwidth-delay product instead
 //! of a seventh of it. Lion over a 10 Mbit/s, 80 ms link with 1 % loss, with the client's
 //! lists paced too: converged in 2.6 s against 7.2 s with plain Cubic (2.4 s without loss;
-//! the refine bench's lossy-link table, stop 62). Operators turn it off with
+//! the refine bench's lossy-link table, stop 62). Beside a plain Cubic flow on one bottleneck it
+//! takes an even share where the buffer holds half a round trip or more, and three quarters
+//! where it holds an eighth (the share bench, stop 63). Operators turn it off with
 //! `random_loss_tolerance = false`.
 //!
 //! Like Cubic's recovery period, losses of packets sent before the last event counted (passed
