@@ -161,7 +161,11 @@ async fn main() {
                         let mut link = LinkEmulator::start(tolerant.server.quic_addr, config)
                             .await
                             .unwrap();
-                        let to_plain = link.add_route(plain.server.quic_addr).await.unwrap();
+                        let listen = SocketAddr::new(link.local_addr().ip(), 0);
+                        let to_plain = link
+                            .add_route(listen, plain.server.quic_addr)
+                            .await
+                            .unwrap();
                         let addr = |s: Sender| match s {
                             Sender::Tolerant => link.local_addr(),
                             Sender::Plain => to_plain,

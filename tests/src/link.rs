@@ -398,11 +398,15 @@ impl LinkEmulator {
         })
     }
 
-    /// Opens another listening socket on the same IP that forwards to `upstream` through the same
+    /// Opens another listening socket on `listen` that forwards to `upstream` through the same
     /// two directions, and returns its address: a second server behind the same bottleneck, so
     /// flows to different servers compete for one link's rate and buffer.
-    pub async fn add_route(&mut self, upstream: SocketAddr) -> io::Result<SocketAddr> {
-        let front = Arc::new(UdpSocket::bind(SocketAddr::new(self.local_addr.ip(), 0)).await?);
+    pub async fn add_route(
+        &mut self,
+        listen: SocketAddr,
+        upstream: SocketAddr,
+    ) -> io::Result<SocketAddr> {
+        let front = Arc::new(UdpSocket::bind(listen).await?);
         let addr = front.local_addr()?;
         self.tasks.push(tokio::spawn(front_task(
             front,

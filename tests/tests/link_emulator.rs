@@ -11,6 +11,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use arbor_tests::link::{LinkConfig, LinkEmulator, LinkStats};
+use arbor_tests::support;
 use tokio::net::UdpSocket;
 use tokio::task::JoinHandle;
 
@@ -412,7 +413,10 @@ async fn a_second_route_shares_the_link() {
     let (first, second) = (Server::start(true).await, Server::start(true).await);
     let config = LinkConfig::default().with_rate(Some(RATE));
     let mut link = LinkEmulator::start(first.addr, config).await.unwrap();
-    let route = link.add_route(second.addr).await.unwrap();
+    let route = link
+        .add_route("127.0.0.1:0".parse().unwrap(), second.addr)
+        .await
+        .unwrap();
     assert_ne!(route, link.local_addr());
     let (a, b) = (client().await, client().await);
     let start = Instant::now();
@@ -462,6 +466,97 @@ async fn a_second_route_shares_the_link() {
     assert_eq!(s.upstream.packets_forwarded, 2 * u64::from(COUNT));
     assert_eq!((s.upstream.dropped_loss, s.upstream.dropped_queue), (0, 0));
     link.shutdown().await;
+}
+
+/// A free UDP port on loopback for a child process to bind (free when this returns; the child
+/// binds it at once).
+fn free_port() -> SocketAddr {
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+}
+
+/// The `arbor-link` binary: `--route` reaches a second server through the same link and
+/// `--uplink-mbit` limits only the clients' direction; bad values are refused by name.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_binary_routes_a_second_server_and_limits_the_uplink() {
+    const COUNT: u32 = 100; // 120,000 bytes at 1 Mbit/s: 0.96 s
+    const SIZE: usize = 1200;
+    let exe = env!("CARGO_BIN_EXE_arbor-link");
+    for (args, named) in [
+        (vec!["--route", "nonsense"], "LISTEN=UPSTREAM"),
+        (vec!["--uplink-mbit=-3"], "--uplink-mbit"),
+    ] {
+        let out = std::process::Command::new(exe)
+            .args(["--upstream", "127.0.0.1:9"])
+            .args(&args)
+            .env("RUST_BACKTRACE", "0")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains(named),
+            "{args:?}: {err}"
+        );
+    }
+    let (first, second) = (Server::start(true).await, Server::start(true).await);
+    let (listen, route) = (free_port(), free_port());
+    let mut child = std::process::Command::new(exe)
+        .arg("--listen")
+        .arg(listen.to_string())
+        .arg("--upstream")
+        .arg(first.addr.to_string())
+        .arg("--route")
+        .arg(format!("{route}={}", second.addr))
+        .args(["--uplink-mbit", "1", "--stats-every-s", "0"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let (a, b) = (client().await, client().await);
+    // Up once the route answers (the child may still be starting).
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let mut buf = [0u8; 2048];
+    'up: loop {
+        assert!(Instant::now() < deadline, "arbor-link did not come up");
+        b.send_to(b"ping", route).await.unwrap();
+        while let Ok(Ok((n, from))) =
+            tokio::time::timeout(Duration::from_millis(200), b.recv_from(&mut buf)).await
+        {
+            if from == route && &buf[..n] == b"ping" {
+                break 'up;
+            }
+        }
+    }
+    let start = Instant::now();
+    send_numbered(&b, route, COUNT, SIZE).await;
+    while second.count() < COUNT as usize + 1 {
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "{} of {COUNT} packets at the second server",
+            second.count() - 1
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    let elapsed = second.received().last().unwrap().at - start;
+    eprintln!("{COUNT} packets up through a 1 Mbit/s uplink in {elapsed:?}");
+    assert!(
+        elapsed >= Duration::from_millis(850),
+        "faster than the uplink: {elapsed:?}"
+    );
+    assert_eq!(
+        first.count(),
+        0,
+        "the route's packets went to the second server only"
+    );
+    ping(&a, listen, 7).await;
+    assert_eq!(
+        first.count(),
+        1,
+        "the first address reaches the first server"
+    );
+    support::terminate(&mut child, Duration::from_secs(2));
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

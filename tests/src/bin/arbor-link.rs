@@ -1,5 +1,6 @@
 //! `arbor-link`: a userspace UDP link emulator (delay, rate limit, loss) for trying Arbor over a
-//! WAN-like link on one machine without root. See `arbor_tests::link` for the link model.
+//! WAN-like link on one machine without root: asymmetric with `--uplink-mbit`, shared by
+//! several servers with `--route`. See `arbor_tests::link` for the link model.
 
 use std::io::IsTerminal;
 use std::net::SocketAddr;
@@ -21,7 +22,14 @@ Examples:
   # only delay, unlimited rate, a 256 KiB buffer, counters every second
   arbor-link --upstream 127.0.0.1:4433 --delay-ms 100 --queue-bytes 262144 --stats-every-s 1
 
-Every parameter applies to each direction separately. Logs go to stderr (RUST_LOG=debug for more).";
+  # a home line: 50 Mbit/s down, 5 Mbit/s up
+  arbor-link --upstream 127.0.0.1:4433 --delay-ms 15 --rate-mbit 50 --uplink-mbit 5
+
+  # two servers behind one bottleneck: clients of :4433 use :5000, clients of :4434 use :5001
+  arbor-link --upstream 127.0.0.1:4433 --route 127.0.0.1:5001=127.0.0.1:4434 --delay-ms 20 --rate-mbit 4
+
+Every parameter applies to each direction separately (--uplink-mbit only to clients' packets
+towards the servers). Logs go to stderr (RUST_LOG=debug for more).";
 
 /// Forward UDP between clients and one upstream server through an emulated link.
 #[derive(Debug, Parser)]
@@ -39,6 +47,14 @@ struct Args {
     /// Rate limit in Mbit/s (10^6 bits) each direction; 0 means unlimited.
     #[arg(long, default_value_t = 0.0)]
     rate_mbit: f64,
+    /// Rate limit of the client → server direction in Mbit/s; 0 means unlimited [default: the
+    /// same as --rate-mbit].
+    #[arg(long)]
+    uplink_mbit: Option<f64>,
+    /// Another address clients send to, LISTEN=UPSTREAM, forwarded to another server through
+    /// the same link (its rate and buffer shared); may be given several times.
+    #[arg(long, value_parser = parse_route)]
+    route: Vec<(SocketAddr, SocketAddr)>,
     /// Loss probability in 0..=1 (each direction, independently per packet).
     #[arg(long, default_value_t = 0.0)]
     loss: f64,
@@ -54,7 +70,36 @@ struct Args {
     stats_every_s: u64,
 }
 
+/// `LISTEN=UPSTREAM`, two socket addresses.
+fn parse_route(text: &str) -> Result<(SocketAddr, SocketAddr), String> {
+    let (listen, upstream) = text
+        .split_once('=')
+        .ok_or_else(|| format!("expected LISTEN=UPSTREAM, got {text:?}"))?;
+    let addr = |a: &str| {
+        a.trim()
+            .parse::<SocketAddr>()
+            .map_err(|e| format!("{a:?} is not a socket address (host:port): {e}"))
+    };
+    Ok((addr(listen)?, addr(upstream)?))
+}
+
+/// A rate in Mbit/s as bytes per second, `None` for 0 (unlimited).
+fn rate_bytes(flag: &str, mbit: f64) -> Result<Option<u64>> {
+    if !(mbit >= 0.0 && mbit.is_finite()) {
+        bail!("{flag} must be a non-negative number, got {mbit}");
+    }
+    let rate = (mbit * 125_000.0).round() as u64;
+    Ok((rate > 0).then_some(rate))
+}
+
 impl Args {
+    /// The uplink's rate when it differs from the downlink's (`--uplink-mbit`).
+    fn uplink(&self) -> Result<Option<Option<u64>>> {
+        self.uplink_mbit
+            .map(|mbit| rate_bytes("--uplink-mbit", mbit))
+            .transpose()
+    }
+
     fn config(&self) -> Result<LinkConfig> {
         if !(self.delay_ms >= 0.0 && self.delay_ms.is_finite()) {
             bail!(
@@ -62,18 +107,10 @@ impl Args {
                 self.delay_ms
             );
         }
-        if !(self.rate_mbit >= 0.0 && self.rate_mbit.is_finite()) {
-            bail!(
-                "--rate-mbit must be a non-negative number, got {}",
-                self.rate_mbit
-            );
-        }
         let delay = Duration::from_secs_f64(self.delay_ms / 1000.0);
-        let rate = (self.rate_mbit * 125_000.0).round() as u64;
-        let mut config = if rate > 0 {
-            LinkConfig::wan(delay, rate)
-        } else {
-            LinkConfig::default().with_delay(delay)
+        let mut config = match rate_bytes("--rate-mbit", self.rate_mbit)? {
+            Some(rate) => LinkConfig::wan(delay, rate),
+            None => LinkConfig::default().with_delay(delay),
         };
         config.loss = self.loss;
         config.seed = self.seed;
@@ -136,14 +173,26 @@ async fn main() -> Result<()> {
         .init();
     let args = Args::parse();
     let config = args.config()?;
-    let link = LinkEmulator::start_on(args.listen, args.upstream, config.clone())
+    let uplink = args.uplink()?;
+    let mut link = LinkEmulator::start_on(args.listen, args.upstream, config.clone())
         .await
         .with_context(|| format!("starting the link emulator on {}", args.listen))?;
+    if let Some(rate) = uplink {
+        link.set_upstream_rate(rate)?;
+    }
+    for &(listen, upstream) in &args.route {
+        let at = link
+            .add_route(listen, upstream)
+            .await
+            .with_context(|| format!("opening the route {listen}={upstream}"))?;
+        tracing::info!(listen = %at, %upstream, "route through the same link");
+    }
     tracing::info!(
         listen = %link.local_addr(),
         upstream = %link.upstream(),
         delay_ms = config.delay.as_secs_f64() * 1000.0,
         rate_bytes_per_s = ?config.rate_bytes_per_s,
+        uplink_bytes_per_s = ?uplink.unwrap_or(config.rate_bytes_per_s),
         loss = config.loss,
         queue_bytes = config.queue_bytes,
         seed = config.seed,
