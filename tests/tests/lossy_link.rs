@@ -15,13 +15,17 @@
 //! What each saves in time is the refine bench's (`lossy link` tables); here, that the view
 //! converges exactly and that at most 5 % of the treelets arrive twice (with quinn's unbounded
 //! send window: 12 %, converged after 11.6 s against 3.5 s), and that the server takes losses
-//! on such a link for random ones.
+//! on such a link for random ones. And over an uplink too thin for the lists, that they get
+//! shorter (`arbor_client_net::list_cap`).
 
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use arbor_client_core::backend::CpuBackend;
+use arbor_client_net::{ClientEvent, TreeletClient};
+use arbor_proto::TreeletId;
+use arbor_proto::wire::ViewHint;
 use arbor_server::prometheus::PromText;
 use arbor_tests::link::{LinkConfig, LinkEmulator};
 use arbor_tests::streaming::{converge_with, fetch_scene, serve};
@@ -134,4 +138,87 @@ async fn a_lossy_link_s_random_losses_are_taken_for_random_and_counted() {
             "/metrics has `{line}`:\n{text}"
         );
     }
+}
+
+/// Lists that wait for a thin uplink get shorter (`arbor_client_net::list_cap`), so more of
+/// them, and fresher ones, reach the server. A client writes a ranked list of 4,096 items
+/// (about 12 KB) every 20 ms through an uplink of 200 kbit/s, where each whole list takes half a
+/// second: with the cap its lists shrink and the uplink carries more of them; without it every
+/// list goes whole.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lists_that_wait_for_a_thin_uplink_carry_fewer_items() {
+    const ITEMS: u32 = 4096;
+    const RUN: Duration = Duration::from_secs(4);
+    let served = serve("points/lion_takanawa.copc.laz", "lion", 1024).await;
+    assert!(
+        served.treelets.len() > ITEMS as usize,
+        "lion-1k has enough treelets"
+    );
+    let view = ViewHint {
+        eye: [0.0, 0.0, 10.0],
+        forward: [0.0, 0.0, -1.0],
+        up: [0.0, 1.0, 0.0],
+        tan_half_fov_y: 0.5,
+        aspect: 1.0,
+        footprint: 1e-3,
+        free_slots: 0,
+    };
+    let mut sent_and_capped = Vec::new();
+    for adaptive in [true, false] {
+        let link = LinkEmulator::start(
+            served.server.quic_addr,
+            LinkConfig::wan(DELAY, DOWN).with_seed(9),
+        )
+        .await
+        .unwrap();
+        link.set_upstream_rate(Some(200_000 / 8)).unwrap();
+        let config = served
+            .client_config(link.local_addr())
+            .with_adaptive_list_cap(adaptive);
+        let mut client = TreeletClient::start(config).unwrap();
+        let start = tokio::time::Instant::now();
+        let mut round = 0u32;
+        while start.elapsed() < RUN {
+            // A list that changes every time: the same treelets, a rotating order.
+            let items = (0..ITEMS)
+                .map(|i| {
+                    let rank = (i + round) % ITEMS;
+                    (TreeletId(i), -(rank as f32), 1.0)
+                })
+                .collect();
+            client.request_deep(items, view, ITEMS as usize).unwrap();
+            round += 1;
+            let tick = tokio::time::sleep(Duration::from_millis(20));
+            tokio::pin!(tick);
+            loop {
+                tokio::select! {
+                    _ = &mut tick => break,
+                    event = client.next_event() => {
+                        if let Some(ClientEvent::Disconnected { reason, .. }) = event {
+                            panic!("disconnected: {reason}");
+                        }
+                    }
+                }
+            }
+        }
+        let stats = client.stats();
+        eprintln!(
+            "adaptive cap {adaptive}: {round} lists asked for, {} sent, {} of them capped; \
+             {} bytes up",
+            stats.lists_sent,
+            stats.lists_capped,
+            link.stats().upstream.bytes_forwarded
+        );
+        sent_and_capped.push((stats.lists_sent, stats.lists_capped));
+        client.close().await;
+    }
+    let [(sent_capped, capped), (sent_whole, not_capped)] = sent_and_capped[..] else {
+        unreachable!()
+    };
+    assert!(capped > 0, "lists that waited were capped");
+    assert_eq!(not_capped, 0, "with the cap off, every list goes whole");
+    assert!(
+        sent_capped > sent_whole,
+        "shorter lists: more of them through the same uplink ({sent_capped} against {sent_whole})"
+    );
 }

@@ -66,6 +66,9 @@ pub struct ClientConfig {
     /// [`MIN_LIST_SEND_WINDOW`]): a newer list waits for the window, and only the latest is
     /// sent then.
     pub list_send_window: u64,
+    /// Send fewer of a ranked list's items while lists wait for the uplink
+    /// ([`crate::list_cap`]); on by default.
+    pub adaptive_list_cap: bool,
 }
 
 impl ClientConfig {
@@ -84,6 +87,7 @@ impl ClientConfig {
             hello_flags: 0,
             hello_view: None,
             list_send_window: crate::transport::LIST_SEND_WINDOW,
+            adaptive_list_cap: true,
         }
     }
 
@@ -138,6 +142,12 @@ impl ClientConfig {
     /// Sets the `Hello` flags.
     pub fn with_hello_flags(mut self, flags: u8) -> Self {
         self.hello_flags = flags;
+        self
+    }
+
+    /// Sets [`Self::adaptive_list_cap`].
+    pub fn with_adaptive_list_cap(mut self, on: bool) -> Self {
+        self.adaptive_list_cap = on;
         self
     }
 

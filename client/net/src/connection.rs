@@ -18,6 +18,7 @@ use tokio::time::timeout;
 use super::backoff::Jitter;
 use super::config::ClientConfig;
 use super::event::ClientEvent;
+use super::list_cap::ListCap;
 use super::replicas::Replicas;
 use super::shared::{Queued, Shared};
 use super::stream::{LocalClose, StreamContext, close_locally, read_stream};
@@ -274,7 +275,7 @@ impl Task {
         });
         let mut readers = JoinSet::new();
         let stopped = tokio::select! {
-            why = send_lists(&conn, &mut send, &mut self.lists, &self.shared, &scene, next_seq, self.config.list_send_window) => Some(why),
+            why = send_lists(&conn, &mut send, &mut self.lists, &self.shared, &scene, next_seq, &self.config) => Some(why),
             end = read_control(&mut control, &mut remote) => match end {
                 ControlEnd::Violation(reason) => {
                     close_locally(&conn, &local_close, ErrorCode::ProtocolViolation, reason.clone());
@@ -423,11 +424,12 @@ async fn setup(
     }
 }
 
-/// Sends the latest request list now and whenever it changes, with at most `window` bytes of
-/// lists unacknowledged (or the list's own size when larger, so that a large list still leaves
-/// in one flight; see [`crate::transport::LIST_SEND_WINDOW`]). A list waits for those before to
-/// be acknowledged; the lists the view goes through meanwhile are skipped and the latest goes
-/// next. Returns only when writing fails.
+/// Sends the latest request list now and whenever it changes, with at most the config's
+/// `list_send_window` bytes of lists unacknowledged (or the list's own size when larger, so that
+/// a large list still leaves in one flight; see [`crate::transport::LIST_SEND_WINDOW`]). A list
+/// waits for those before to be acknowledged; the lists the view goes through meanwhile are
+/// skipped and the latest goes next. While lists wait long, ranked ones carry only their head
+/// (`adaptive_list_cap`, [`crate::list_cap`]). Returns only when writing fails.
 async fn send_lists(
     conn: &quinn::Connection,
     send: &mut SendStream,
@@ -435,11 +437,12 @@ async fn send_lists(
     shared: &Shared,
     scene: &SceneDescription,
     next_seq: &mut u64,
-    window: u64,
+    config: &ClientConfig,
 ) -> String {
     // A new connection gets the latest list at once.
     lists.mark_changed();
     let mut last: Option<RequestList> = None;
+    let mut cap = config.adaptive_list_cap.then(ListCap::default);
     loop {
         if lists.changed().await.is_err() {
             // The handle is gone; the shutdown signal ends the session.
@@ -470,6 +473,9 @@ async fn send_lists(
         }
         let seq = *next_seq;
         *next_seq += 1;
+        // Plain lists (the thesis's loop) go whole; ranked ones, in serving order, at most the
+        // cap's head (`list_cap`).
+        let mut full = kept;
         let frame = match &list.deep {
             None => Frame::RequestList {
                 seq,
@@ -481,16 +487,19 @@ async fn send_lists(
                     .collect(),
             },
             Some((view, errors, prefetch_from)) => {
-                let (items, prefetch_from) =
+                let (mut items, prefetch_from) =
                     ranked_items(&list.items, errors, *prefetch_from, keep);
+                full = items.len();
+                items.truncate(cap.as_ref().map_or(full, |c| c.apply(full)));
                 Frame::RankedRequestList {
                     seq,
                     view: *view,
+                    prefetch_from: prefetch_from.min(items.len() as u32),
                     items,
-                    prefetch_from,
                 }
             }
         };
+
         let bytes = match encode(&frame) {
             Ok(b) => b,
             Err(e) => {
@@ -499,14 +508,37 @@ async fn send_lists(
                 continue;
             }
         };
-        let ids = list.items.iter().map(|i| i.0).filter(|id| keep(*id));
-        shared.latency().list_sent(ids, Instant::now());
-        conn.set_send_window(window.max(bytes.len() as u64));
+        let now = Instant::now();
+        let sent = match &frame {
+            Frame::RankedRequestList { items, .. } => {
+                shared.latency().list_sent(items.iter().map(|i| i.0), now);
+                items.len()
+            }
+            _ => {
+                let ids = list.items.iter().map(|i| i.0).filter(|id| keep(*id));
+                shared.latency().list_sent(ids, now);
+                full
+            }
+        };
+        conn.set_send_window(config.list_send_window.max(bytes.len() as u64));
         if let Err(e) = send.write_all(&bytes).await {
             return format!("writing request list {seq}: {e}");
         }
-        shared.stats().lists_sent += 1;
-        tracing::trace!(seq, "request list sent");
+        if let Some(cap) = &mut cap {
+            let before = cap.cap();
+            cap.handle_written(Instant::now(), full, sent, now.elapsed(), conn.rtt());
+            if cap.cap() != before {
+                tracing::debug!(cap = ?cap.cap(), full, "request list cap");
+            }
+        }
+        {
+            let mut stats = shared.stats();
+            stats.lists_sent += 1;
+            if sent < full {
+                stats.lists_capped += 1;
+            }
+        }
+        tracing::trace!(seq, sent, full, "request list sent");
     }
 }
 

@@ -158,6 +158,9 @@ pub struct ClientStats {
     /// Request lists not written because they said exactly what the last one sent on this
     /// connection said.
     pub lists_unchanged: u64,
+    /// Request lists written with only the head of their items, while lists waited for the
+    /// uplink ([`crate::list_cap`]).
+    pub lists_capped: u64,
     /// Treelet messages received and validated.
     pub treelets_received: u64,
     /// Their bytes on the wire ([`ReceivedTreelet::wire_bytes`] summed).

@@ -29,6 +29,7 @@
 //! * [`tls`]: trusting the server by pinned certificate fingerprint or by CA ([`Trust`]).
 //! * [`transport`]: QUIC transport parameters and timeouts.
 //! * [`backoff`]: reconnect delays ([`Backoff`]).
+//! * [`list_cap`]: how many items a request list carries while lists wait for the uplink.
 //! * Replicas ([`ClientConfig::with_replicas`]): other servers of the same pool; on a lost
 //!   connection the client moves to the next one at once and re-sends the latest list; a server
 //!   describing the scene differently is refused.
@@ -44,6 +45,7 @@ mod config;
 mod connection;
 mod error;
 mod event;
+pub mod list_cap;
 mod replicas;
 mod shared;
 mod stream;

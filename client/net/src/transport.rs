@@ -41,7 +41,8 @@ pub const INITIAL_WINDOW: u64 = 128 << 10;
 /// treelets received (docs/measurements.md, stop 62). 32 KiB is about two ranked lists of the
 /// client's default 4,096 items; with 16 KiB (one list in flight) the city's lists waited a
 /// round trip behind each other on a clean 80 ms link, long enough for the server to resend
-/// 5–8 % of the treelets.
+/// 5–8 % of the treelets. Where lists still wait here long, they get shorter
+/// ([`crate::list_cap`]).
 pub const LIST_SEND_WINDOW: u64 = 32 << 10;
 /// A connection with nothing received for this long is lost.
 pub const IDLE_TIMEOUT: Duration = Duration::from_secs(30);
