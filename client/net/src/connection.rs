@@ -499,7 +499,6 @@ async fn send_lists(
                 }
             }
         };
-
         let bytes = match encode(&frame) {
             Ok(b) => b,
             Err(e) => {
