@@ -17,8 +17,9 @@
 //! round trip: after each list is written, how long the write waited for the list window says
 //! whether the lists before it had been acknowledged. A wait of at least half a round trip means
 //! the uplink carries the lists more slowly than the view changes them, and the next lists get
-//! at most three quarters of this one's items (never fewer than [`MIN_LIST_ITEMS`]). A write
-//! that waited less than a quarter of a round trip lets the cap grow by an eighth, and the cap
+//! at most three quarters of this one's items (never fewer than [`MIN_LIST_ITEMS`]; a wait under
+//! [`MIN_WAIT`] never counts). A write that waited less than a quarter of a round trip (or half
+//! of [`MIN_WAIT`]) lets the cap grow by an eighth, and the cap
 //! goes once a whole list fits under it. Once a round trip, since the writes right after a long
 //! wait find the window just emptied and wait for nothing, whatever the uplink carries (growing
 //! at every such write held the cap between 1,500 and 3,000 items, where it had to shrink). A
@@ -32,6 +33,10 @@ use std::time::{Duration, Instant};
 /// A cap never goes below this many items: at the link rates Arbor is used over, enough for the
 /// server to stay busy for a round trip on a list alone.
 pub const MIN_LIST_ITEMS: usize = 256;
+/// A write that waited less than this never lowers the cap, however short the round trip: a list
+/// a few milliseconds old is fresh (on loopback or a LAN, half a round trip is a fraction of a
+/// millisecond, and a busy machine delays acknowledgements by more).
+pub const MIN_WAIT: Duration = Duration::from_millis(10);
 
 /// The item cap of one connection's request lists.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
@@ -66,13 +71,13 @@ impl ListCap {
         if self.changed_at.is_some_and(|at| now < at + rtt) {
             return;
         }
-        if waited >= rtt / 2 {
+        if waited >= (rtt / 2).max(MIN_WAIT) {
             let lower = (sent * 3 / 4).max(MIN_LIST_ITEMS);
             if lower < sent {
                 self.cap = Some(self.cap.map_or(lower, |c| c.min(lower)));
                 self.changed_at = Some(now);
             }
-        } else if waited < rtt / 4
+        } else if waited < (rtt / 4).max(MIN_WAIT / 2)
             && let Some(c) = self.cap
         {
             let grown = c + (c / 8).max(1);
@@ -133,6 +138,23 @@ mod tests {
             "an eighth more per round trip until a whole list fits"
         );
         assert_eq!(c.apply(4096), 4096);
+    }
+
+    #[test]
+    fn a_short_wait_on_a_short_path_does_not_cap() {
+        let t0 = Instant::now();
+        let lan = Duration::from_micros(200);
+        let mut c = ListCap::default();
+        c.handle_written(t0, 4096, 4096, 3 * MS, lan);
+        assert_eq!(
+            c.cap(),
+            None,
+            "3 ms is many round trips here, but a fresh list"
+        );
+        c.handle_written(t0 + MS, 4096, 4096, 12 * MS, lan);
+        assert_eq!(c.cap(), Some(3072));
+        c.handle_written(t0 + 2 * MS, 4096, 3072, 4 * MS, lan);
+        assert_eq!(c.cap(), Some(3456), "under half the floor: grows");
     }
 
     #[test]
