@@ -199,8 +199,9 @@ pub struct ServeConfig {
     /// Whether a loss that finds no queue on the path (round trips near the smallest) is taken
     /// for random loss, which cuts the congestion window only one time in
     /// [`super::random_loss::PASS_EVERY`] (`service::random_loss`). On: over a 10 Mbit/s,
-    /// 80 ms link with 1 % loss, Cubic alone held a connection near 1.4 Mbit/s. Off: every loss
-    /// cuts the window, as plain Cubic does.
+    /// 80 ms link with 1 % loss, Cubic alone held a connection near 1.4 Mbit/s. Paths under
+    /// [`super::random_loss::SHORT_PATH`] never take a loss for random. Off: every loss cuts the
+    /// window, as plain Cubic does.
     pub random_loss_tolerance: bool,
     /// Bytes of the pool's pages sled keeps decoded ([`crate::pool::Pool::open_with_cache`];
     /// at least [`MIN_POOL_CACHE_BYTES`]). A treelet whose message is not in the message cache

@@ -15,7 +15,12 @@
 //!   bottleneck whose buffer is too shallow to show a queue still gets a multiplicative
 //!   decrease (a flow cut at an eighth of its loss events holds √8 ≈ 2.8 times the window, as
 //!   about three Cubic flows would together);
-//! * a loss with a queue behind it, persistent congestion and ECN marks always reach Cubic.
+//! * a loss with a queue behind it, persistent congestion and ECN marks always reach Cubic, and
+//!   so does every loss on a path whose smallest round trip is under [`SHORT_PATH`]: there the
+//!   threshold is the floor, and a queue shorter than it (a LAN's or a data centre's switch
+//!   buffer, well under a millisecond) would pass for none, so congestion losses would look
+//!   random. Such paths rarely lose packets at random, and on them Cubic's loss-limited rate is
+//!   high anyway (it grows as the round trip shrinks: at 1 % loss and 3 ms, about 40 Mbit/s).
 //!
 //! Once random loss is ignored the window grows past what the path holds, a queue forms, and
 //! the next loss counts: the window settles about the path's bandwidth-delay product instead
@@ -42,6 +47,9 @@ pub const QUEUE_SHARE: u32 = 4;
 /// The queue threshold is at least this: round trips of a fast path jitter by more than a
 /// quarter of their length (quinn's timer granularity is 1 ms).
 pub const QUEUE_FLOOR: Duration = Duration::from_millis(1);
+/// On a path whose smallest round trip is shorter than this, every loss is congestion: the
+/// queue threshold would be [`QUEUE_FLOOR`], and a shorter queue would pass for none.
+pub const SHORT_PATH: Duration = QUEUE_FLOOR.saturating_mul(QUEUE_SHARE);
 /// One in this many random-looking loss events still reaches Cubic.
 pub const PASS_EVERY: u32 = 8;
 
@@ -131,8 +139,9 @@ impl RandomLossFilter {
         {
             return LossVerdict::SameEvent { reached };
         }
-        let queued = match (self.queue_delay(), self.queue_threshold()) {
-            (Some(delay), Some(threshold)) => delay >= threshold,
+        let queued = match (self.queue_delay(), self.queue_threshold(), self.min_rtt) {
+            (_, _, Some(min)) if min < SHORT_PATH => true,
+            (Some(delay), Some(threshold), _) => delay >= threshold,
             // Nothing acknowledged yet: nothing to tell a queue by.
             _ => true,
         };
@@ -316,6 +325,22 @@ mod tests {
         f.handle_ack(7 * MS);
         f.handle_end_acks();
         assert_eq!(f.queue_delay(), Some(MS));
+    }
+
+    #[test]
+    fn every_loss_on_a_short_path_is_congestion() {
+        let t0 = Instant::now();
+        for (rtt, verdict) in [
+            (3, LossVerdict::Congestion),
+            (4, LossVerdict::RandomIgnored),
+        ] {
+            let mut f = seen(&[rtt]);
+            assert_eq!(
+                f.handle_congestion(t0 + MS * 100, t0 + MS * 99, false, 1200),
+                verdict,
+                "{rtt} ms round trips, no queue"
+            );
+        }
     }
 
     #[test]
