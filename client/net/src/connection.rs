@@ -475,7 +475,7 @@ async fn send_lists(
         *next_seq += 1;
         // Plain lists (the thesis's loop) go whole; ranked ones, in serving order, at most the
         // cap's head (`list_cap`).
-        let mut full = kept;
+        let full = kept;
         let frame = match &list.deep {
             None => Frame::RequestList {
                 seq,
@@ -489,7 +489,6 @@ async fn send_lists(
             Some((view, errors, prefetch_from)) => {
                 let (mut items, prefetch_from) =
                     ranked_items(&list.items, errors, *prefetch_from, keep);
-                full = items.len();
                 items.truncate(cap.as_ref().map_or(full, |c| c.apply(full)));
                 Frame::RankedRequestList {
                     seq,
@@ -508,6 +507,7 @@ async fn send_lists(
             }
         };
         let now = Instant::now();
+        // What the server is asked for: a ranked list's head, or every kept item.
         let sent = match &frame {
             Frame::RankedRequestList { items, .. } => {
                 shared.latency().list_sent(items.iter().map(|i| i.0), now);

@@ -139,12 +139,13 @@ impl RandomLossFilter {
         {
             return LossVerdict::SameEvent { reached };
         }
-        let queued = match (self.queue_delay(), self.queue_threshold(), self.min_rtt) {
-            (_, _, Some(min)) if min < SHORT_PATH => true,
-            (Some(delay), Some(threshold), _) => delay >= threshold,
-            // Nothing acknowledged yet: nothing to tell a queue by.
-            _ => true,
-        };
+        let short_path = self.min_rtt.is_some_and(|m| m < SHORT_PATH);
+        let queued = short_path
+            || match (self.queue_delay(), self.queue_threshold()) {
+                (Some(delay), Some(threshold)) => delay >= threshold,
+                // Nothing acknowledged yet: nothing to tell a queue by.
+                _ => true,
+            };
         if queued {
             return self.counted(now, LossVerdict::Congestion);
         }
