@@ -68,13 +68,30 @@ pub fn small_lion() -> Built {
     build_file(rel, "lion", &opts)
 }
 
-/// [`small_lion`]'s scene and its treelets decoded, by id: what a client core needs to be
-/// driven without a server.
-pub fn small_lion_decoded() -> (
+/// A scene description and its treelets decoded, by id: what a client core needs to be driven
+/// without a server.
+pub type DecodedScene = (
     std::sync::Arc<arbor_proto::SceneDescription>,
     std::collections::HashMap<TreeletId, arbor_client_core::slots::DecodedTreelet>,
-) {
-    let built = small_lion();
+);
+
+/// [`small_lion`], decoded.
+pub fn small_lion_decoded() -> DecodedScene {
+    decoded_scene(small_lion())
+}
+
+/// The whole lion scan in 1 KiB treelets (13,000 of them), decoded: a view of it at 256² needs
+/// thousands of slots.
+pub fn lion_1k_decoded() -> DecodedScene {
+    let rel = SCANS.iter().find(|(n, _)| *n == "lion").unwrap().1;
+    let opts = BuildOptions {
+        treelet_bytes: 1024,
+        ..BuildOptions::default()
+    };
+    decoded_scene(build_file(rel, "lion", &opts))
+}
+
+fn decoded_scene(built: Built) -> DecodedScene {
     let treelets = decoded_treelets(&built.scene)
         .into_iter()
         .map(|t| (t.id(), t))

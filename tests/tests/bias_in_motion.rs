@@ -14,6 +14,12 @@
 //! evicting for the finer level and fetching it each time; a failed lower now waits ever longer
 //! before the next (`bias::LOWER_RETRY_CYCLES`).
 //!
+//! And a link slower than the camera: room for a view's needs used to be made from what no pixel
+//! reaches for the whole request list at once, though the link delivered it over many cycles,
+//! so up to three quarters of the slots stood empty for seconds while what they had held came
+//! back into view; room is now made for a few cycles of arrivals at a time
+//! (`cycle::OUTSIDE_EVICTION_HORIZON`).
+//!
 //! The core alone, answering each list at once from the decoded scene: lion, 1 KiB treelets, a
 //! budget a third of what a static view of it needs, an orbit of 1° a cycle, a quarter of the
 //! frame sampled per cycle (or all of it); then the camera stops, and the picture settles
@@ -25,10 +31,11 @@ use std::collections::HashMap;
 use arbor_client_core::bias::LOWER_RETRY_CYCLES;
 use arbor_client_core::camera::{Camera, CameraPath};
 use arbor_client_core::cycle::{ClientCore, CoreConfig, Plan};
+use arbor_client_core::cycle::{MIN_OUTSIDE_EVICTION, OUTSIDE_EVICTION_HORIZON};
 use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
 use arbor_proto::{SceneDescription, TreeletId};
 use arbor_tests::streaming::cpu_render_at;
-use arbor_tests::support::small_lion_decoded;
+use arbor_tests::support::{lion_1k_decoded, small_lion_decoded};
 
 const SIZE: u32 = 96;
 /// Pixels the analysis pass may sample per cycle: a quarter of the frame.
@@ -64,11 +71,11 @@ fn cycle(core: &mut ClientCore, treelets: &Treelets, camera: &Camera, samples: u
     plan
 }
 
-/// Slots a static view of lion needs at bias 1: what a core with room for everything holds
-/// once it has converged.
-fn needed_slots(scene: &SceneDescription, treelets: &Treelets) -> u32 {
+/// Slots a static view of lion at `size`² needs at bias 1: what a core with room for everything
+/// holds once it has converged.
+fn needed_slots(scene: &SceneDescription, treelets: &Treelets, size: u32) -> u32 {
     let mut core = core(scene, treelets, scene.treelet_count);
-    let camera = CameraPath::Static.camera(0, core.frame(), SEED, SIZE, SIZE);
+    let camera = CameraPath::Static.camera(0, core.frame(), SEED, size, size);
     for _ in 0..500 {
         if cycle(&mut core, treelets, &camera, usize::MAX).converged {
             return core.slots().used_slots();
@@ -80,7 +87,7 @@ fn needed_slots(scene: &SceneDescription, treelets: &Treelets) -> u32 {
 #[test]
 fn an_oversubscribed_moving_view_raises_its_bias_without_ever_knowing_a_whole_view() {
     let (scene, treelets) = small_lion_decoded();
-    let needed = needed_slots(&scene, &treelets);
+    let needed = needed_slots(&scene, &treelets, SIZE);
     let mut core = core(&scene, &treelets, needed / 3);
     let path = CameraPath::Orbit {
         degrees_per_cycle: 1.0,
@@ -176,7 +183,7 @@ fn settles_where_a_fresh_core_would(
 #[test]
 fn a_moving_view_retries_failed_lowers_ever_more_rarely() {
     let (scene, treelets) = small_lion_decoded();
-    let needed = needed_slots(&scene, &treelets);
+    let needed = needed_slots(&scene, &treelets, SIZE);
     let slots = needed / 3;
     let mut core = core(&scene, &treelets, slots);
     let path = CameraPath::Orbit {
@@ -206,4 +213,72 @@ fn a_moving_view_retries_failed_lowers_ever_more_rarely() {
     }
     let camera = path.camera(359, core.frame(), SEED, SIZE, SIZE);
     settles_where_a_fresh_core_would(&scene, &treelets, &mut core, &camera, slots);
+}
+
+/// Treelets the link of [`room_is_made_as_the_link_delivers`] delivers per cycle.
+const LINK_ARRIVALS_PER_CYCLE: usize = 24;
+
+/// The whole lion at 256², a budget of what its static view needs, that view converged, then an
+/// orbit of 1° a cycle for half a turn with the whole frame sampled every cycle, and a link that delivers
+/// [`LINK_ARRIVALS_PER_CYCLE`] of each list: the views' needs lack room for far more than a few
+/// cycles of arrivals, yet no more slots stand empty after an integration than the horizon
+/// frees at that rate (one victim's descendants may go beyond the count asked for). With room
+/// made for the whole list, up to 1,880 did. Then the camera stops, and the picture converges
+/// exactly.
+#[test]
+fn room_is_made_as_the_link_delivers() {
+    const LINK_SIZE: u32 = 256;
+    let (scene, treelets) = lion_1k_decoded();
+    let needed = needed_slots(&scene, &treelets, LINK_SIZE);
+    let mut core = core(&scene, &treelets, needed);
+    let orbit = CameraPath::Orbit {
+        degrees_per_cycle: 1.0,
+    };
+    let start = orbit.camera(0, core.frame(), SEED, LINK_SIZE, LINK_SIZE);
+    assert!(
+        (0..400).any(|_| cycle(&mut core, &treelets, &start, usize::MAX).converged),
+        "the first view converges, filling the buffer"
+    );
+    let frees = OUTSIDE_EVICTION_HORIZON
+        .saturating_mul(LINK_ARRIVALS_PER_CYCLE as u32)
+        .max(MIN_OUTSIDE_EVICTION);
+    let (mut most_empty, mut shortfall, mut converged) = (0, 0, None);
+    for c in 0..2000 {
+        let camera = orbit.camera(c.min(180), core.frame(), SEED, LINK_SIZE, LINK_SIZE);
+        core.analyse(&camera, usize::MAX).unwrap();
+        let free = core.slots().free_slots();
+        let plan = core.presort();
+        shortfall = shortfall.max((plan.distinct_requests as u32).saturating_sub(free));
+        for &(id, _) in plan.requests.iter().take(LINK_ARRIVALS_PER_CYCLE) {
+            core.handle_treelet(treelets[&id].clone());
+        }
+        core.integrate();
+        most_empty = most_empty.max(core.slots().free_slots());
+        if plan.converged && c >= 180 {
+            converged = Some(plan.lod_bias);
+            break;
+        }
+    }
+    eprintln!(
+        "{needed} slots; the views lacked room for up to {shortfall}; at most {most_empty} \
+         empty after an integration (the horizon frees {frees}); converged at {converged:?}"
+    );
+    assert!(
+        shortfall > 4 * frees,
+        "the views must lack far more room than the horizon frees (else this tests nothing)"
+    );
+    assert!(
+        most_empty <= 2 * frees,
+        "{most_empty} slots stood empty, more than room for a few cycles of arrivals ({frees})"
+    );
+    let bias = converged.expect("the stopped view converges");
+    let camera = orbit.camera(180, core.frame(), SEED, LINK_SIZE, LINK_SIZE);
+    let full =
+        SlotBuffer::fully_resident(&scene, scene.layout.channels(), treelets.values().cloned())
+            .unwrap();
+    assert_eq!(
+        core.render(&camera).unwrap(),
+        cpu_render_at(&full, core.frame(), &camera, bias),
+        "the stopped view's picture is the reference at bias {bias}"
+    );
 }

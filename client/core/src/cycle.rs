@@ -53,6 +53,20 @@ pub const ORPHAN_WAIT_INTEGRATIONS: u64 = 16;
 /// Cycles without pushes after an eviction made room: the buffer is full, and a push would only
 /// take a slot the next listed arrival evicts again (and the server would push it again).
 pub const PUSH_PAUSE_CYCLES: u64 = 16;
+/// A presort that knows the whole view frees, from what no pixel reaches, room for at most this
+/// many integrations' worth of arrivals at the recent rate (the most treelets one integration
+/// inserted lately, decaying by a quarter an integration), and never less than
+/// [`MIN_OUTSIDE_EVICTION`]; the next presort frees more. A link delivers a long list over many
+/// cycles, and a camera that moves sees another view by then: room made for the whole list at
+/// once emptied the buffer of what lay outside the view long before the replacements came, and
+/// an orbit brought it back into view to be fetched again (the 10⁸-point city orbiting at 1° a
+/// cycle with 32 MiB over a 25 ms, 50 Mbit/s link: up to three quarters of the slots stood
+/// empty for seconds while the link was full; at 2° a cycle with 16 MiB over 100 Mbit/s, 2.5–3
+/// times the bytes; docs/measurements.md, stop 64).
+pub const OUTSIDE_EVICTION_HORIZON: u32 = 4;
+/// The least room [`OUTSIDE_EVICTION_HORIZON`] allows: a view that starts to refine after a
+/// rest, whose recent rate is nought, still gets a list of some length at once.
+pub const MIN_OUTSIDE_EVICTION: u32 = 256;
 
 /// Why a core could not be built.
 #[derive(Debug, Error)]
@@ -485,6 +499,10 @@ pub struct ClientCore {
     bias_unsettled: bool,
     /// Treelets evicted by [`SlotBuffer::evict_outside`] since the last integration.
     evicted_outside: u32,
+    /// Treelets inserted per integration lately: the most of the last one and three quarters of
+    /// the rate before, so a burst is remembered for a few integrations
+    /// ([`OUTSIDE_EVICTION_HORIZON`]).
+    arrival_rate: u32,
     /// No pushes are announced before this cycle ([`PUSH_PAUSE_CYCLES`] after an eviction).
     pushes_paused_until: u64,
     /// The look-past's last traces and what they depended on ([`LookPastKey`]).
@@ -593,6 +611,7 @@ impl ClientCore {
             frustum,
             bias_unsettled: false,
             evicted_outside: 0,
+            arrival_rate: 0,
             pushes_paused_until: 0,
             look_past_memo: None,
             render_memo: None,
@@ -936,11 +955,19 @@ impl ClientCore {
             self.bias_unsettled = bias_changed;
         }
         if whole_view {
-            // The whole view is known: make room from what no pixel reaches.
+            // The whole view is known: make room from what no pixel reaches, for the arrivals
+            // of the next few integrations.
             let free = self.slots.room().saturating_sub(self.pending() as u32);
             if !bias_changed && distinct as u32 > free {
-                evicted = self.slots.evict_outside(&visible, distinct as u32 - free);
-                self.forget_evicted(cycle + 1);
+                let soon = OUTSIDE_EVICTION_HORIZON
+                    .saturating_mul(self.arrival_rate)
+                    .max(MIN_OUTSIDE_EVICTION)
+                    .saturating_sub(self.slots.free_slots());
+                let count = (distinct as u32 - free).min(soon);
+                if count > 0 {
+                    evicted = self.slots.evict_outside(&visible, count);
+                    self.forget_evicted(cycle + 1);
+                }
             }
         }
         self.note_evictions();
@@ -1492,6 +1519,7 @@ impl ClientCore {
             // New refinable leaves, or old ones uncovered.
             self.frustum_exhausted = false;
         }
+        self.arrival_rate = inserted.max(self.arrival_rate - self.arrival_rate / 4);
         Integration {
             inserted,
             evicted: evicted + std::mem::take(&mut self.evicted_outside),
