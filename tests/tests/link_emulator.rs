@@ -468,15 +468,6 @@ async fn a_second_route_shares_the_link() {
     link.shutdown().await;
 }
 
-/// A free UDP port on loopback for a child process to bind (free when this returns; the child
-/// binds it at once).
-fn free_port() -> SocketAddr {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-}
-
 /// The `arbor-link` binary: `--route` reaches a second server through the same link and
 /// `--uplink-mbit` limits only the clients' direction; bad values are refused by name.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -501,21 +492,38 @@ async fn the_binary_routes_a_second_server_and_limits_the_uplink() {
         );
     }
     let (first, second) = (Server::start(true).await, Server::start(true).await);
-    let (listen, route) = (free_port(), free_port());
+    // Ports of its own choosing, read back from its stdout: none taken from under it.
     let mut child = std::process::Command::new(exe)
-        .arg("--listen")
-        .arg(listen.to_string())
-        .arg("--upstream")
+        .args(["--listen", "127.0.0.1:0", "--upstream"])
         .arg(first.addr.to_string())
         .arg("--route")
-        .arg(format!("{route}={}", second.addr))
+        .arg(format!("127.0.0.1:0={}", second.addr))
         .args(["--uplink-mbit", "1", "--stats-every-s", "0"])
-        .stdout(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::null())
         .spawn()
         .unwrap();
+    let mut lines = std::io::BufRead::lines(std::io::BufReader::new(child.stdout.take().unwrap()));
+    let mut line = |prefix: &str| -> String {
+        let l = lines
+            .next()
+            .unwrap_or_else(|| panic!("arbor-link ended before printing `{prefix}`"))
+            .unwrap();
+        l.strip_prefix(prefix)
+            .unwrap_or_else(|| panic!("expected `{prefix}…`, got {l:?}"))
+            .to_owned()
+    };
+    let listen: SocketAddr = line("listen ").parse().unwrap();
+    let route_line = line("route ");
+    let (route, upstream) = route_line.split_once('=').unwrap();
+    let route: SocketAddr = route.parse().unwrap();
+    assert_eq!(upstream, second.addr.to_string(), "the route's upstream");
+    assert!(
+        listen.port() != 0 && route.port() != 0 && listen != route,
+        "bound ports: {listen}, {route}"
+    );
     let (a, b) = (client().await, client().await);
-    // Up once the route answers (the child may still be starting).
+    // Up once the route answers.
     let deadline = Instant::now() + Duration::from_secs(20);
     let mut buf = [0u8; 2048];
     'up: loop {

@@ -29,13 +29,15 @@ Examples:
   arbor-link --upstream 127.0.0.1:4433 --route 127.0.0.1:5001=127.0.0.1:4434 --delay-ms 20 --rate-mbit 4
 
 Every parameter applies to each direction separately (--uplink-mbit only to clients' packets
-towards the servers). Logs go to stderr (RUST_LOG=debug for more).";
+towards the servers). Once forwarding, it prints the addresses it listens on to stdout, one line
+each (`listen ADDR`, then `route ADDR=UPSTREAM` per route), so port 0 may be given to any of
+them. Logs go to stderr (RUST_LOG=debug for more).";
 
 /// Forward UDP between clients and one upstream server through an emulated link.
 #[derive(Debug, Parser)]
 #[command(name = "arbor-link", version, after_help = EXAMPLES)]
 struct Args {
-    /// Address clients send to.
+    /// Address clients send to (port 0: any free port, printed on stdout).
     #[arg(long, default_value = "127.0.0.1:5000")]
     listen: SocketAddr,
     /// Address of the server everything is forwarded to.
@@ -52,7 +54,8 @@ struct Args {
     #[arg(long)]
     uplink_mbit: Option<f64>,
     /// Another address clients send to, LISTEN=UPSTREAM, forwarded to another server through
-    /// the same link (its rate and buffer shared); may be given several times.
+    /// the same link (its rate and buffer shared); may be given several times (port 0 in LISTEN:
+    /// any free port, printed on stdout).
     #[arg(long, value_parser = parse_route)]
     route: Vec<(SocketAddr, SocketAddr)>,
     /// Loss probability in 0..=1 (each direction, independently per packet).
@@ -180,12 +183,19 @@ async fn main() -> Result<()> {
     if let Some(rate) = uplink {
         link.set_upstream_rate(rate)?;
     }
+    let mut routes = Vec::new();
     for &(listen, upstream) in &args.route {
         let at = link
             .add_route(listen, upstream)
             .await
             .with_context(|| format!("opening the route {listen}={upstream}"))?;
         tracing::info!(listen = %at, %upstream, "route through the same link");
+        routes.push((at, upstream));
+    }
+    // For scripts and tests that let it pick ports.
+    println!("listen {}", link.local_addr());
+    for (at, upstream) in routes {
+        println!("route {at}={upstream}");
     }
     tracing::info!(
         listen = %link.local_addr(),
