@@ -59,9 +59,14 @@ pub enum Scratch {
 /// The lion scan at depth 8 in 1 KiB treelets: a real tree of several treelet levels, quick to
 /// build, for tests of the client core without a server.
 pub fn small_lion() -> Built {
+    lion_1k(arbor_server::octree::DepthChoice::Fixed(8))
+}
+
+/// The lion scan in 1 KiB treelets, to `depth`.
+fn lion_1k(depth: arbor_server::octree::DepthChoice) -> Built {
     let rel = SCANS.iter().find(|(n, _)| *n == "lion").unwrap().1;
     let opts = BuildOptions {
-        depth: arbor_server::octree::DepthChoice::Fixed(8),
+        depth,
         treelet_bytes: 1024,
         ..BuildOptions::default()
     };
@@ -83,12 +88,7 @@ pub fn small_lion_decoded() -> DecodedScene {
 /// The whole lion scan in 1 KiB treelets (13,000 of them), decoded: a view of it at 256² needs
 /// thousands of slots.
 pub fn lion_1k_decoded() -> DecodedScene {
-    let rel = SCANS.iter().find(|(n, _)| *n == "lion").unwrap().1;
-    let opts = BuildOptions {
-        treelet_bytes: 1024,
-        ..BuildOptions::default()
-    };
-    decoded_scene(build_file(rel, "lion", &opts))
+    decoded_scene(lion_1k(arbor_server::octree::DepthChoice::Auto))
 }
 
 fn decoded_scene(built: Built) -> DecodedScene {

@@ -503,18 +503,29 @@ async fn the_binary_routes_a_second_server_and_limits_the_uplink() {
         .stderr(std::process::Stdio::null())
         .spawn()
         .unwrap();
-    let mut lines = std::io::BufRead::lines(std::io::BufReader::new(child.stdout.take().unwrap()));
-    let mut line = |prefix: &str| -> String {
-        let l = lines
-            .next()
-            .unwrap_or_else(|| panic!("arbor-link ended before printing `{prefix}`"))
-            .unwrap();
+    // Its first two lines, read off the runtime and waited for at most 20 s: a child that
+    // neither prints nor exits fails the test instead of hanging it.
+    let stdout = child.stdout.take().unwrap();
+    let first_lines = tokio::task::spawn_blocking(move || {
+        std::io::BufRead::lines(std::io::BufReader::new(stdout))
+            .take(2)
+            .collect::<std::io::Result<Vec<String>>>()
+    });
+    let printed = tokio::time::timeout(Duration::from_secs(20), first_lines)
+        .await
+        .expect("arbor-link printed its addresses within 20 s")
+        .unwrap()
+        .unwrap();
+    let field = |i: usize, prefix: &str| -> String {
+        let l = printed
+            .get(i)
+            .unwrap_or_else(|| panic!("arbor-link ended before printing `{prefix}`: {printed:?}"));
         l.strip_prefix(prefix)
             .unwrap_or_else(|| panic!("expected `{prefix}…`, got {l:?}"))
             .to_owned()
     };
-    let listen: SocketAddr = line("listen ").parse().unwrap();
-    let route_line = line("route ");
+    let listen: SocketAddr = field(0, "listen ").parse().unwrap();
+    let route_line = field(1, "route ");
     let (route, upstream) = route_line.split_once('=').unwrap();
     let route: SocketAddr = route.parse().unwrap();
     assert_eq!(upstream, second.addr.to_string(), "the route's upstream");
