@@ -1,9 +1,10 @@
 //! Soak: 64 clients on loopback against a real `arbor-server` process for 10 minutes
 //! (`ARBOR_SOAK_SECS` to change), each replacing its request list every 100–300 ms with a new
-//! random part of lion (4 KiB treelets): 0 errors (no disconnect, no undecodable or unasked
-//! treelet), the server's RSS flat (the slope of its per-minute medians over the second half,
-//! after warm-up, is printed), and the p50/p99 latency from sending a list to the first
-//! treelet of it arriving.
+//! random part of lion (4 KiB treelets; or of the pool `ARBOR_SOAK_POOL` names): 0 errors (no
+//! disconnect, no undecodable or unasked treelet), the server's RSS flat (the slope of its
+//! per-minute medians over the second half, after warm-up, is printed), and the p50/p99 latency
+//! from sending a list to the first treelet of it arriving. The server's cache figures from
+//! `/metrics` are printed at the end.
 //!
 //! Two soaks: plain request lists, and deep lists whose clients rest on a random view of the
 //! scene for two to four lists before they move on, so the server casts visible cuts for them
@@ -12,6 +13,15 @@
 //!
 //! Ignored (10 minutes each; `.config/nextest.toml` gives each 16 before it is stopped):
 //! `cargo build -p arbor-server && cargo nextest run -p arbor-tests --test soak --run-ignored only --no-capture`
+//!
+//! `ARBOR_SOAK_POOL=DIR` serves an existing pool in place instead of lion (`ARBOR_SOAK_SCENE`
+//! names its scene when it holds several): the scale bench's city (`target/scale/pool`, 1.27 M
+//! treelets) makes nearly every treelet of a list a miss of the server's message cache and a
+//! read of the pool. Its deep soak is a worst case for the push plans: a list's random
+//! treelets have nothing to do with its random view, so each plan looks up the shapes of
+//! treelets spread over the whole scene, most of them misses of the shape cache.
+//! `ARBOR_SOAK_CONFIG=FILE` hands the server a configuration file, to compare its settings
+//! under the same load (both paths absolute or relative to the workspace root).
 
 use std::collections::HashSet;
 use std::io::{BufRead as _, BufReader};
@@ -26,6 +36,7 @@ use arbor_proto::rng::SplitMix64;
 use arbor_proto::wire::ViewHint;
 use arbor_proto::{SceneDescription, TreeletId};
 use arbor_server::octree::BuildOptions;
+use arbor_server::pool::Pool;
 use arbor_tests::support::{build_file, copy_dir};
 use tokio::sync::Mutex;
 
@@ -309,37 +320,99 @@ fn metric(admin: std::net::SocketAddr, token: &str, name: &str) -> f64 {
         .unwrap_or_else(|| panic!("{name} not in /metrics"))
 }
 
+/// The pool and scene of `ARBOR_SOAK_POOL` (a pool directory, absolute or relative to the
+/// workspace root, served in place: the scale bench's city, say, a scan many times the
+/// server's message cache) and `ARBOR_SOAK_SCENE` (default: the pool's only scene), if set.
+fn given_pool() -> Option<(PathBuf, String)> {
+    let pool = workspace_path(std::env::var_os("ARBOR_SOAK_POOL")?);
+    assert!(
+        pool.is_dir(),
+        "ARBOR_SOAK_POOL={} is not a directory",
+        pool.display()
+    );
+    Some((pool, std::env::var("ARBOR_SOAK_SCENE").unwrap_or_default()))
+}
+
+/// `path` as given, or relative to the workspace root, where the command is typed (a test runs
+/// in its crate's directory).
+fn workspace_path(path: impl AsRef<Path>) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(path)
+}
+
+/// The name and treelet count of `scene` in the pool at `dir` (of its only scene when `scene` is
+/// empty), read before the server opens the pool.
+fn given_scene(dir: &Path, scene: &str) -> (String, u32) {
+    let pool = Pool::open(dir).unwrap_or_else(|e| panic!("opening {}: {e}", dir.display()));
+    let scenes = pool.scenes().unwrap();
+    let found = if scene.is_empty() {
+        assert!(
+            scenes.len() == 1,
+            "{} holds {} scenes: name one with ARBOR_SOAK_SCENE",
+            dir.display(),
+            scenes.len()
+        );
+        &scenes[0]
+    } else {
+        scenes
+            .iter()
+            .find(|d| d.name == scene)
+            .unwrap_or_else(|| panic!("{} holds no scene {scene}", dir.display()))
+    };
+    (found.name.clone(), found.treelet_count)
+}
+
+/// Lion with 4 KiB treelets in a pool at `pool`; its treelet count.
+async fn build_lion(pool: PathBuf) -> u32 {
+    tokio::task::spawn_blocking(move || {
+        let built = build_file(
+            "points/lion_takanawa.copc.laz",
+            "lion",
+            &BuildOptions {
+                treelet_bytes: 4096,
+                ..BuildOptions::default()
+            },
+        );
+        let count = built.scene.description.treelet_count;
+        built.pool.flush().unwrap();
+        let from = built.pool_dir.path().to_owned();
+        drop(built.scene);
+        drop(built.pool);
+        copy_dir(&from, &pool);
+        drop(built.pool_dir);
+        count
+    })
+    .await
+    .unwrap()
+}
+
 async fn soak(resting_views: bool) {
     let secs: u64 = std::env::var("ARBOR_SOAK_SECS")
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(600);
     let work = tempfile::tempdir().unwrap();
-    let pool = work.path().join("pool");
-    let treelets = tokio::task::spawn_blocking({
-        let pool = pool.clone();
-        move || {
-            let built = build_file(
-                "points/lion_takanawa.copc.laz",
-                "lion",
-                &BuildOptions {
-                    treelet_bytes: 4096,
-                    ..BuildOptions::default()
-                },
-            );
-            let count = built.scene.description.treelet_count;
-            built.pool.flush().unwrap();
-            let from = built.pool_dir.path().to_owned();
-            drop(built.scene);
-            drop(built.pool);
-            copy_dir(&from, &pool);
-            drop(built.pool_dir);
-            count
+    let (pool, scene, treelets) = match given_pool() {
+        Some((pool, scene)) => {
+            let (scene, treelets) = tokio::task::spawn_blocking({
+                let pool = pool.clone();
+                move || given_scene(&pool, &scene)
+            })
+            .await
+            .unwrap();
+            (pool, scene, treelets)
         }
-    })
-    .await
-    .unwrap();
-    let mut child = Command::new(server_binary())
+        None => (
+            work.path().join("pool"),
+            "lion".to_owned(),
+            build_lion(work.path().join("pool")).await,
+        ),
+    };
+    eprintln!(
+        "soak: {CLIENTS} clients, scene {scene} ({treelets} treelets) in {}",
+        pool.display()
+    );
+    let mut server = Command::new(server_binary());
+    server
         .args([
             "serve",
             "--listen",
@@ -350,7 +423,11 @@ async fn soak(resting_views: bool) {
         ])
         .arg(&pool)
         .arg("--data-dir")
-        .arg(work.path().join("state"))
+        .arg(work.path().join("state"));
+    if let Some(config) = std::env::var_os("ARBOR_SOAK_CONFIG") {
+        server.arg("--config").arg(workspace_path(config));
+    }
+    let mut child = server
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
@@ -378,7 +455,7 @@ async fn soak(resting_views: bool) {
         url: ServerUrl {
             host: addr.ip().to_string(),
             port: addr.port(),
-            scene: "lion".into(),
+            scene,
         },
         fingerprint: fp.unwrap(),
         treelets,
@@ -447,6 +524,16 @@ async fn soak(resting_views: bool) {
         lat.len(),
     );
     let m = |name: &str| metric(admin, &token, name);
+    eprintln!(
+        "server: message cache {} hits / {} misses ({:.1} MB held), shape cache {} hits / {} \
+         misses ({:.1} MB held)",
+        m("arbor_message_cache_hits_total"),
+        m("arbor_message_cache_misses_total"),
+        m("arbor_message_cache_bytes") / 1e6,
+        m("arbor_shape_cache_hits_total"),
+        m("arbor_shape_cache_misses_total"),
+        m("arbor_shape_cache_bytes") / 1e6,
+    );
     let cuts = m("arbor_visible_cuts_total");
     eprintln!(
         "server: {cuts} visible cuts, {} fine cuts skipped, cut node cache {} hits / {} \
