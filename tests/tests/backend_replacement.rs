@@ -1,6 +1,7 @@
 //! A backend whose device was lost is replaced without starting over
 //! ([`ClientCore::replace_backend`]): the new one is given every slot of the buffer at once,
-//! nothing drawn by the old one is handed out again, and the run goes on from what it holds.
+//! nothing drawn by the old one is handed out again, the pixels of the pass that failed with
+//! the old one are the new one's first to sample, and the run goes on from what it holds.
 //! One that cannot hold the buffer is refused and the old one stays. Checked offline on lion
 //! (1 KiB treelets) with a backend that runs the CPU twins and records what it is given; the GPU
 //! backend on a real (destroyed) device is in `gpu_e2e.rs`.
@@ -28,6 +29,10 @@ struct Recording {
     max_slots: u32,
     uploaded: Arc<Mutex<Vec<u32>>>,
     renders: Arc<AtomicU32>,
+    /// The pixels of every analysis pass asked of it, failed or not.
+    analysed: Arc<Mutex<Vec<Vec<u32>>>>,
+    /// The analysis pass (counted from 0) that fails as on a lost device.
+    lose_device_at_pass: Option<usize>,
 }
 
 impl Recording {
@@ -37,6 +42,8 @@ impl Recording {
             max_slots,
             uploaded: Arc::default(),
             renders: Arc::default(),
+            analysed: Arc::default(),
+            lose_device_at_pass: None,
         }
     }
 }
@@ -57,6 +64,14 @@ impl Backend for Recording {
         cycle: u64,
         out: &mut Feedback,
     ) -> Result<(), BackendError> {
+        let pass = {
+            let mut analysed = self.analysed.lock().unwrap();
+            analysed.push(pixels.to_vec());
+            analysed.len() - 1
+        };
+        if self.lose_device_at_pass == Some(pass) {
+            return Err(BackendError::DeviceLost("destroyed by the test".into()));
+        }
         CpuBackend.analyse(input, pixels, cycle, out)
     }
 
@@ -156,4 +171,51 @@ fn a_replacement_gets_every_slot_and_the_run_goes_on_exactly() {
     assert!(converged, "the view did not converge after the replacement");
     assert!(core.slots().used_slots() >= used);
     assert!(core.render(&camera).unwrap() == fresh(&core));
+}
+
+/// A pass that fails with its device is answered by no pass of the replacement: its pixels are
+/// the replacement's first to sample. Before, the plan waited for a later pass to show it was
+/// lost, and here the replacement's first pass had no pixels at all: with nothing else left to
+/// sample no later pass came, and only `LOST_PLAN_CYCLES` brought the pixels back.
+#[test]
+fn the_pixels_of_the_failed_pass_are_the_replacements_first() {
+    let (scene, treelets) = small_lion_decoded();
+    let channels = scene.layout.channels().to_vec();
+    let config = CoreConfig {
+        budget_bytes: 1024 * SlotBuffer::slot_bytes(scene.treelet_nodes, &channels),
+        channels,
+        deep_push: false,
+        ..CoreConfig::default()
+    };
+    let root = treelets[&TreeletId::ROOT].clone();
+    let mut first = Recording::new("first", u32::MAX);
+    first.lose_device_at_pass = Some(2);
+    let lost_with = first.analysed.clone();
+    let mut core = ClientCore::with_backend(scene, config, root, Box::new(first)).unwrap();
+    let camera = CameraPath::Static.camera(0, core.frame(), 3, 256, 256);
+    for _ in 0..2 {
+        core.plan(&camera).unwrap();
+        core.integrate();
+        core.upload().unwrap();
+    }
+    match core.plan(&camera) {
+        Err(BackendError::DeviceLost(_)) => {}
+        other => panic!("the third pass did not fail: {other:?}"),
+    }
+    let failed = lost_with.lock().unwrap()[2].clone();
+    assert!(!failed.is_empty(), "the failed pass sampled nothing");
+
+    let second = Recording::new("second", u32::MAX);
+    let analysed = second.analysed.clone();
+    core.replace_backend(Box::new(second)).unwrap();
+    core.plan(&camera).unwrap();
+    let next = analysed.lock().unwrap()[0].clone();
+    let missing = failed.iter().filter(|p| !next.contains(p)).count();
+    assert_eq!(
+        missing,
+        0,
+        "{missing} of the failed pass's {} pixels not in the replacement's first pass ({} pixels)",
+        failed.len(),
+        next.len()
+    );
 }

@@ -348,6 +348,14 @@ impl Coverage {
         }
     }
 
+    /// Every plan still unanswered is lost (its backend was replaced: no pass of the old one
+    /// will answer): their pixels are sampled first, from the next plan on.
+    pub fn retry_unanswered(&mut self) {
+        while !self.outstanding.is_empty() {
+            self.retry_oldest_plan();
+        }
+    }
+
     /// The oldest plan still unanswered is lost: its pixels are sampled again.
     fn retry_oldest_plan(&mut self) {
         let Some((_, lost)) = self.outstanding.pop_front() else {

@@ -1655,7 +1655,8 @@ impl ClientCore {
 
     /// Runs the passes on `backend` from now on, in place of one that failed (a lost device):
     /// every slot is uploaded to it at once, and nothing drawn by the old one is reused (the
-    /// render memo and the in-place target go). What the core knows of the view, the resident
+    /// render memo and the in-place target go), and the pixels of the passes it had not answered
+    /// are sampled first on the new one. What the core knows of the view, the resident
     /// treelets and the LOD bias stay: they live on the CPU side, so the run goes on from where
     /// it was instead of fetching the scene again.
     ///
@@ -1680,6 +1681,8 @@ impl ClientCore {
         self.backend = backend;
         self.render_memo = None;
         self.in_place = None;
+        // The old backend's passes in flight, or the one that failed with it, will not answer.
+        self.coverage.retry_unanswered();
         Ok(())
     }
 
