@@ -7,6 +7,7 @@
 //! backend on a real (destroyed) device is in `gpu_e2e.rs`.
 
 use std::any::Any;
+use std::collections::{HashMap, HashSet};
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 
@@ -16,7 +17,7 @@ use arbor_client_core::camera::CameraPath;
 use arbor_client_core::cycle::{ClientCore, CoreConfig};
 use arbor_client_core::image::Image;
 use arbor_client_core::render::render;
-use arbor_client_core::slots::SlotBuffer;
+use arbor_client_core::slots::{DecodedTreelet, SlotBuffer};
 use arbor_client_core::upload::UploadPlan;
 use arbor_proto::TreeletId;
 use arbor_tests::support::small_lion_decoded;
@@ -93,21 +94,30 @@ impl Backend for Recording {
     }
 }
 
-#[test]
-fn a_replacement_gets_every_slot_and_the_run_goes_on_exactly() {
+/// Slots of the tests' buffer.
+const CAPACITY: u32 = 1024;
+
+/// A core on lion (1 KiB treelets) with a buffer of [`CAPACITY`] slots, passes on `backend`;
+/// the scene's decoded treelets.
+fn lion_core(backend: Recording) -> (ClientCore, HashMap<TreeletId, DecodedTreelet>) {
     let (scene, treelets) = small_lion_decoded();
     let channels = scene.layout.channels().to_vec();
-    let capacity = 1024;
     let config = CoreConfig {
-        budget_bytes: u64::from(capacity) * SlotBuffer::slot_bytes(scene.treelet_nodes, &channels),
+        budget_bytes: u64::from(CAPACITY) * SlotBuffer::slot_bytes(scene.treelet_nodes, &channels),
         channels,
         deep_push: false,
         ..CoreConfig::default()
     };
     let root = treelets[&TreeletId::ROOT].clone();
-    let first = Recording::new("first", u32::MAX);
-    let mut core = ClientCore::with_backend(scene, config, root, Box::new(first)).unwrap();
-    assert_eq!(core.slots().capacity(), capacity);
+    let core = ClientCore::with_backend(scene, config, root, Box::new(backend)).unwrap();
+    (core, treelets)
+}
+
+#[test]
+fn a_replacement_gets_every_slot_and_the_run_goes_on_exactly() {
+    let (mut core, treelets) = lion_core(Recording::new("first", u32::MAX));
+    let capacity = core.slots().capacity();
+    assert_eq!(capacity, CAPACITY);
     let camera = CameraPath::Static.camera(0, core.frame(), 3, 96, 96);
     let fresh = |core: &ClientCore| {
         render(
@@ -179,19 +189,10 @@ fn a_replacement_gets_every_slot_and_the_run_goes_on_exactly() {
 /// sample no later pass came, and only `LOST_PLAN_CYCLES` brought the pixels back.
 #[test]
 fn the_pixels_of_the_failed_pass_are_the_replacements_first() {
-    let (scene, treelets) = small_lion_decoded();
-    let channels = scene.layout.channels().to_vec();
-    let config = CoreConfig {
-        budget_bytes: 1024 * SlotBuffer::slot_bytes(scene.treelet_nodes, &channels),
-        channels,
-        deep_push: false,
-        ..CoreConfig::default()
-    };
-    let root = treelets[&TreeletId::ROOT].clone();
     let mut first = Recording::new("first", u32::MAX);
     first.lose_device_at_pass = Some(2);
     let lost_with = first.analysed.clone();
-    let mut core = ClientCore::with_backend(scene, config, root, Box::new(first)).unwrap();
+    let (mut core, _) = lion_core(first);
     let camera = CameraPath::Static.camera(0, core.frame(), 3, 256, 256);
     for _ in 0..2 {
         core.plan(&camera).unwrap();
@@ -209,7 +210,7 @@ fn the_pixels_of_the_failed_pass_are_the_replacements_first() {
     let analysed = second.analysed.clone();
     core.replace_backend(Box::new(second)).unwrap();
     core.plan(&camera).unwrap();
-    let next = analysed.lock().unwrap()[0].clone();
+    let next: HashSet<u32> = analysed.lock().unwrap()[0].iter().copied().collect();
     let missing = failed.iter().filter(|p| !next.contains(p)).count();
     assert_eq!(
         missing,
