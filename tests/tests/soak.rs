@@ -22,6 +22,9 @@
 //! treelets spread over the whole scene, most of them misses of the shape cache.
 //! `ARBOR_SOAK_CONFIG=FILE` hands the server a configuration file, to compare its settings
 //! under the same load (both paths absolute or relative to the workspace root).
+//!
+//! The server's log is kept in `target/soak/server-plain.log` or `server-resting.log`: a client
+//! counts a closed connection as an error, and only the server's log says why it closed it.
 
 use std::collections::HashSet;
 use std::io::{BufRead as _, BufReader};
@@ -427,11 +430,15 @@ async fn soak(resting_views: bool) {
     if let Some(config) = std::env::var_os("ARBOR_SOAK_CONFIG") {
         server.arg("--config").arg(workspace_path(config));
     }
-    let mut child = server
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
+    // Kept past the run: an error the clients count is explained only by the server's side.
+    let log_path = workspace_path(format!(
+        "target/soak/server-{}.log",
+        if resting_views { "resting" } else { "plain" }
+    ));
+    std::fs::create_dir_all(log_path.parent().unwrap()).unwrap();
+    let log = std::fs::File::create(&log_path).unwrap();
+    eprintln!("soak: the server logs to {}", log_path.display());
+    let mut child = server.stdout(Stdio::piped()).stderr(log).spawn().unwrap();
     let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
     let (mut addr, mut fp, mut admin, mut token) = (None, None, None, None);
     while addr.is_none() || fp.is_none() || admin.is_none() || token.is_none() {
