@@ -195,6 +195,7 @@ fn cycles(
         events: Vec::new(),
     };
     let mut image = Image::new(config.width, config.height);
+    let mut replacements = 0u32;
     for cycle in 0..config.cycles {
         let cycle_start = Instant::now();
         let camera =
@@ -228,8 +229,9 @@ fn cycles(
         let step = match stepped {
             Ok(step) => step,
             Err(RunError::Backend(BackendError::DeviceLost(reason)))
-                if (report.events.len() as u32) < config.device_replacements =>
+                if replacements < config.device_replacements =>
             {
+                replacements += 1;
                 let lost = Instant::now();
                 let time_s = session.started().elapsed().as_secs_f64();
                 tracing::warn!(cycle, %reason, "the GPU device was lost: replacing the backend");
@@ -261,6 +263,7 @@ fn cycles(
             slots: session.core().slots(),
         });
         report.records.push(step.record);
+        report.events.extend(step.stall);
         if stop {
             break;
         }

@@ -5,7 +5,7 @@
 //! This crate is the shell around the core: it connects (the only place that waits on the
 //! network, bounded by a timeout), decodes arrived treelet messages for the core, times each
 //! phase of a cycle and records it as a report row (`arbor-client-report`), and detects
-//! convergence. It also fetches whole scenes, or just the cut a view needs ([`mod@reference`]), for
+//! convergence, and notes stalls ([`stall`]). It also fetches whole scenes, or just the cut a view needs ([`mod@reference`]), for
 //! reference renders.
 
 #![forbid(unsafe_code)]
@@ -14,6 +14,7 @@ mod error;
 pub mod headless;
 pub mod reference;
 pub mod session;
+pub mod stall;
 
 pub use error::RunError;
 pub use session::{

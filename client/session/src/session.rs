@@ -24,10 +24,11 @@ use arbor_client_core::image::Image;
 use arbor_client_core::incore::SceneFrame;
 use arbor_client_core::render::Light;
 use arbor_client_net::{ClientConfig, ClientEvent, ClientStats, ReceivedTreelet, TreeletClient};
-use arbor_client_report::CycleRecord;
+use arbor_client_report::{CycleRecord, RunEvent};
 
 use crate::RunError;
 use crate::reference::fetch_ids;
+use crate::stall::StallWatch;
 use arbor_client_core::slots::{DecodedTreelet, SlotBuffer, SlotError};
 
 /// How a session connects.
@@ -68,6 +69,9 @@ pub struct Step {
     /// This step's view is converged (every pixel known and final), whether or not an earlier
     /// one was: a viewer whose frame size changes asks this of each full-size frame.
     pub converged: bool,
+    /// A stall found at this step, or progress again after one ([`StallWatch`]), for the
+    /// report's events.
+    pub stall: Option<RunEvent>,
 }
 
 /// A connected session.
@@ -86,6 +90,7 @@ pub struct Session {
     cycle: u32,
     budget: SampleBudget,
     converged_at: Option<u32>,
+    stalls: StallWatch,
     peak_slots: u32,
     /// Treelets that arrived before the root (pushes for `Hello`'s view may overtake it),
     /// handed to the first step.
@@ -152,6 +157,7 @@ impl Session {
             cycle: 0,
             budget: SampleBudget::new(config_budget_s),
             converged_at: None,
+            stalls: StallWatch::default(),
             early,
         })
     }
@@ -332,11 +338,13 @@ impl Session {
             error_max = record.error.max,
             "cycle"
         );
+        let stall = self.stalls.observe(&record, plan.converged);
         Ok(Step {
             record,
             image,
             converged_now,
             converged: plan.converged,
+            stall,
         })
     }
 

@@ -153,6 +153,8 @@ struct Running {
     screenshots: u32,
     /// The fault injection has lost the device.
     device_lost: bool,
+    /// Devices replaced so far.
+    replacements: u32,
     /// The frame size while the camera moves.
     frame_scale: FrameScale,
     /// The clock `frame_scale` is fed with.
@@ -392,6 +394,7 @@ impl App {
             holding: false,
             screenshots: 0,
             device_lost: false,
+            replacements: 0,
             frame_scale: FrameScale::new(self.config.frame_scale),
             clock_start: now,
             last_pose: None,
@@ -419,9 +422,10 @@ impl App {
         let Err(BackendError::DeviceLost(reason)) = state.gpu.check() else {
             return framed;
         };
-        if state.report.events.len() as u32 >= self.config.device_replacements {
+        if state.replacements >= self.config.device_replacements {
             return Err(RunError::Backend(BackendError::DeviceLost(reason)).into());
         }
+        state.replacements += 1;
         let lost = Instant::now();
         let time_s = state.session.started().elapsed().as_secs_f64();
         let new = window_gpu(
@@ -645,6 +649,13 @@ impl Running {
         self.interval.frames += 1;
         self.interval.bytes += step.record.bytes_received;
         self.report.records.push(step.record);
+        if let Some(event) = step.stall {
+            say(format_args!(
+                "event at cycle {}: {}",
+                event.cycle, event.what
+            ));
+            self.report.events.push(event);
+        }
         if self.interval.start.elapsed() >= OVERLAY_INTERVAL || self.report.records.len() == 1 {
             self.refresh_overlay();
         }
