@@ -309,16 +309,25 @@ impl Frame {
     /// An `Error` frame whose message is cut (at a character boundary) to
     /// [`crate::limits::MAX_MESSAGE_BYTES`], so that any error text can be sent.
     pub fn error(code: ErrorCode, message: impl Into<String>) -> Frame {
-        let mut message = message.into();
-        if message.len() > crate::limits::MAX_MESSAGE_BYTES {
-            let mut cut = crate::limits::MAX_MESSAGE_BYTES;
-            while !message.is_char_boundary(cut) {
-                cut -= 1;
-            }
-            message.truncate(cut);
+        Frame::Error {
+            code,
+            message: error_message(message),
         }
-        Frame::Error { code, message }
     }
+}
+
+/// `message` cut (at a character boundary) to [`crate::limits::MAX_MESSAGE_BYTES`]: what an
+/// `Error` frame, or the close frame that follows it, says.
+pub fn error_message(message: impl Into<String>) -> String {
+    let mut message = message.into();
+    if message.len() > crate::limits::MAX_MESSAGE_BYTES {
+        let mut cut = crate::limits::MAX_MESSAGE_BYTES;
+        while !message.is_char_boundary(cut) {
+            cut -= 1;
+        }
+        message.truncate(cut);
+    }
+    message
 }
 
 /// Steps per level of a [`Frame::RankedRequestList`] item's error: 1/512 level, so ±64 levels

@@ -1036,7 +1036,7 @@ async fn hostile_clients_end_only_their_own_connection() {
             hc.send_raw(&bytes).await;
             // Where the server answers with an Error frame, it carries the same code.
             let frame = tokio::time::timeout(Duration::from_secs(5), hc.read()).await;
-            let got = close_code(&h.conn, LONG).await;
+            let got = close_code_and_reason(&h.conn, LONG).await;
             (frame, got)
         };
         // Past the redelivery guard of the previous round, then both at once.
@@ -1044,10 +1044,19 @@ async fn hostile_clients_end_only_their_own_connection() {
         seq += 1;
         let (res, during) = tokio::join!(attack, round(&good, &mut gc, seq, &ids));
         let (frame, got) = res;
+        let (got, reason) = match got {
+            Ok((c, reason)) => (Ok(c), reason),
+            Err(e) => (Err(e), String::new()),
+        };
         assert_eq!(got, code(expected), "{name}");
-        // The server's Error frame, with the same code, arrives before the close.
+        // The server's Error frame, with the same code, arrives before the close, and the
+        // close says the same (for a client that did not read the frame in time).
         match frame {
-            Ok(Some(Frame::Error { code: c, .. })) => assert_eq!(c, expected, "{name}"),
+            Ok(Some(Frame::Error { code: c, message })) => {
+                assert_eq!(c, expected, "{name}");
+                assert!(!message.is_empty(), "{name}");
+                assert_eq!(reason, message, "{name}: the close's reason");
+            }
             other => panic!("{name}: expected an Error frame, got {other:?}"),
         }
         let during = during.unwrap_or_else(|e| panic!("{name}: good client: {e}"));
@@ -1071,10 +1080,11 @@ async fn hostile_clients_end_only_their_own_connection() {
     // No Hello at all: closed when the hello timeout passes.
     let (h, _hc) = hostile(&server, false).await;
     let t0 = Instant::now();
-    assert_eq!(
-        close_code(&h.conn, LONG).await,
-        code(ErrorCode::ProtocolViolation),
-        "silent client"
+    let (got, reason) = close_code_and_reason(&h.conn, LONG).await.unwrap();
+    assert_eq!(Ok(got), code(ErrorCode::ProtocolViolation), "silent client");
+    assert!(
+        reason.starts_with("no Hello within"),
+        "silent client: {reason}"
     );
     assert!(
         t0.elapsed() >= Duration::from_millis(1500),

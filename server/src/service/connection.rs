@@ -39,6 +39,7 @@ use arbor_proto::Channel;
 use arbor_proto::frame::{FrameDecoder, encode};
 use arbor_proto::wire::{
     ErrorCode, Frame, HELLO_GRANT_AVAILABLE, HELLO_SEND_ROOT, PROTOCOL_VERSION, ViewHint,
+    error_message,
 };
 use bytes::Bytes;
 use tracing::Instrument as _;
@@ -203,9 +204,12 @@ pub(crate) async fn run(
                         .await;
                     }
                 }
+                // The reason in the close frame too: a client that has not read the `Error`
+                // frame when the connection closes (a busy one: the flush above is bounded)
+                // still learns why, not just the code. Quinn cuts it to fit a packet.
                 conn.close(
                     quinn::VarInt::from_u32(code.to_u32()),
-                    code.name().as_bytes(),
+                    error_message(reason.as_str()).as_bytes(),
                 );
                 shared.state.metrics.error(code);
                 if matches!(code, ErrorCode::NoError | ErrorCode::ShuttingDown) {

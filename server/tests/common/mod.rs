@@ -280,6 +280,21 @@ pub async fn close_code(conn: &quinn::Connection, within: Duration) -> Result<u6
     }
 }
 
+/// [`close_code`] with the reason the close frame gives.
+pub async fn close_code_and_reason(
+    conn: &quinn::Connection,
+    within: Duration,
+) -> Result<(u64, String), String> {
+    match tokio::time::timeout(within, conn.closed()).await {
+        Err(_) => Err(format!("still open after {within:?}")),
+        Ok(quinn::ConnectionError::ApplicationClosed(c)) => Ok((
+            c.error_code.into_inner(),
+            String::from_utf8_lossy(&c.reason).into_owned(),
+        )),
+        Ok(e) => Err(format!("ended otherwise: {e}")),
+    }
+}
+
 pub fn code(c: ErrorCode) -> Result<u64, String> {
     Ok(u64::from(c.to_u32()))
 }
