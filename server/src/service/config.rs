@@ -19,6 +19,7 @@
 //! path_memory_secs = 600              # a returning client's address resumes its last window for this long; 0: off
 //! random_loss_tolerance = true        # a loss with no queue behind it cuts the window one time in eight; false: every time
 //! pool_cache_bytes = 134217728        # pool pages sled keeps decoded, server-wide
+//! pool_readers = 8                    # threads reading treelets from the pool, so a disk read never holds an async worker
 //! message_cache_bytes = 67108864      # built treelet messages kept for sending again, server-wide
 //! shape_cache_bytes = 33554432        # decoded treelet shapes the push plans walk, server-wide
 //! visibility_grid = 128               # rays along a resting view's longer side for the visible cut its pushes follow; 0: off
@@ -210,6 +211,12 @@ pub struct ServeConfig {
     /// 10⁸-point city (1.4 GB of pool) building a message on a miss took 2.2–3.5 µs per treelet
     /// with the default and 0.95–1.2 µs with 1 GiB (docs/measurements.md, stop 59).
     pub pool_cache_bytes: u64,
+    /// Threads that read treelet messages from the pool for the streams (`service::readers`),
+    /// so that a read waiting for the disk (a pool larger than the page cache) holds one of
+    /// them, not an async worker; as many reads as this are in flight at once. More suits a
+    /// disk with a deep queue (NVMe) and costs each thread's allocator heap; with the pool
+    /// cached they only wait for the CPU.
+    pub pool_readers: usize,
     /// Bytes of built treelet messages kept server-wide, so a treelet sent again costs no pool
     /// read (0: none kept).
     pub message_cache_bytes: u64,
@@ -363,6 +370,12 @@ impl MemoryBound {
 pub const DEFAULT_INITIAL_WINDOW: u64 = 128 << 10;
 /// Smallest accepted [`ServeConfig::pool_cache_bytes`]: 1 MiB, a few dozen of sled's pages.
 pub const MIN_POOL_CACHE_BYTES: u64 = 1 << 20;
+/// Default [`ServeConfig::pool_readers`]: with the city's pool outside the page cache, 8
+/// readers served its soak as fast as a cached pool, 16 no faster for 50 MB more resident
+/// (docs/measurements.md, stop 66).
+pub const DEFAULT_POOL_READERS: usize = 8;
+/// Most [`ServeConfig::pool_readers`].
+pub const MAX_POOL_READERS: usize = 256;
 /// Default [`ServeConfig::message_cache_bytes`]: 64 MiB.
 pub const DEFAULT_MESSAGE_CACHE_BYTES: u64 = 64 << 20;
 /// Default [`ServeConfig::shape_cache_bytes`]: 32 MiB.
@@ -427,6 +440,7 @@ struct FileConfig {
     random_loss_tolerance: Option<bool>,
     transparent_huge_pages: Option<bool>,
     pool_cache_bytes: Option<u64>,
+    pool_readers: Option<usize>,
     message_cache_bytes: Option<u64>,
     shape_cache_bytes: Option<u64>,
     visibility_grid: Option<u32>,
@@ -551,6 +565,7 @@ impl ServeConfig {
             random_loss_tolerance: true,
             transparent_huge_pages: false,
             pool_cache_bytes: crate::pool::POOL_CACHE_BYTES,
+            pool_readers: DEFAULT_POOL_READERS,
             message_cache_bytes: DEFAULT_MESSAGE_CACHE_BYTES,
             shape_cache_bytes: DEFAULT_SHAPE_CACHE_BYTES,
             visibility_grid: DEFAULT_VISIBILITY_GRID,
@@ -655,6 +670,7 @@ impl ServeConfig {
             random_loss_tolerance,
             transparent_huge_pages,
             pool_cache_bytes,
+            pool_readers,
             message_cache_bytes,
             shape_cache_bytes,
             visibility_grid,
@@ -747,6 +763,12 @@ impl ServeConfig {
                     "0 (none) or above visibility_grid ({}) and at most {MAX_VISIBILITY_GRID}",
                     self.visibility_grid
                 ),
+            ));
+        }
+        if !(1..=MAX_POOL_READERS).contains(&self.pool_readers) {
+            return Err(invalid(
+                "pool_readers",
+                format!("1..={MAX_POOL_READERS} threads"),
             ));
         }
         if self.pool_cache_bytes < MIN_POOL_CACHE_BYTES {
@@ -1003,6 +1025,7 @@ idle_timeout_ms = 30000
 hello_timeout_ms = 5000
 max_connection_memory = 67108864
 pool_cache_bytes = 1073741824
+pool_readers = 32
 shape_cache_bytes = 1048576
 window_min = 8
 window_max = 256
@@ -1031,6 +1054,7 @@ access = "public"
         assert!(matches!(c.tls, TlsSource::Files { .. }));
         assert_eq!(c.shape_cache_bytes, 1 << 20);
         assert_eq!(c.pool_cache_bytes, 1 << 30);
+        assert_eq!(c.pool_readers, 32);
         assert!(!c.random_loss_tolerance);
         assert!(ServeConfig::new("p").random_loss_tolerance, "on by default");
         assert_eq!(c.default_access, Access::Token);
@@ -1197,6 +1221,8 @@ access = "public"
             ("visibility_fine_grid = 2000", "visibility_fine_grid"),
             ("visibility_cache_bytes = 1000", "visibility_cache_bytes"),
             ("pool_cache_bytes = 0", "pool_cache_bytes"),
+            ("pool_readers = 0", "pool_readers"),
+            ("pool_readers = 100000", "pool_readers"),
             ("pool_cache_bytes = 65536", "pool_cache_bytes"),
             ("pool_cache_bytes = -1", "pool_cache_bytes"),
             ("visibility_follow_share = 0.0", "visibility_follow_share"),

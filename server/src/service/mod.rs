@@ -38,6 +38,7 @@ mod handler;
 pub mod path_memory;
 pub mod push;
 pub mod random_loss;
+mod readers;
 pub mod reset;
 pub mod schedule;
 pub mod server;

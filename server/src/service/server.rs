@@ -94,6 +94,9 @@ pub enum ServeError {
         #[source]
         source: std::io::Error,
     },
+    /// The threads that read the pool could not be started.
+    #[error("starting the pool's reader threads: {0}")]
+    Readers(#[source] std::io::Error),
 }
 
 /// A started service. Dropping it without [`RunningService::shutdown`] leaves the tasks
@@ -286,7 +289,9 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
 
     let (trigger, shutdown) = shutdown::channel(config.shutdown_grace());
     let shared = Arc::new(
-        Shared::new(config, pool.clone(), state.clone()).with_server_config(server_config),
+        Shared::new(config, pool.clone(), state.clone())
+            .map_err(ServeError::Readers)?
+            .with_server_config(server_config),
     );
 
     load_paths(&shared);

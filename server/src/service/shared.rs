@@ -13,6 +13,7 @@ use tokio::sync::{Notify, mpsc};
 
 use super::config::ServeConfig;
 use super::path_memory::PathObserver;
+use super::readers::PoolReaders;
 use super::schedule::{ConnectionId, Scheduler, SchedulerConfig};
 use super::server::{path_factory, transport_config};
 use super::state::{ServiceCaches, ServiceState};
@@ -42,6 +43,8 @@ pub(crate) struct Shared {
     core: Mutex<Core>,
     /// Wakes the dispatcher: a list arrived, a treelet left the window, a window changed.
     pub wake: Notify,
+    /// The threads that read treelet messages from the pool ([`super::readers`]).
+    pub readers: PoolReaders,
     /// The served form of each scene some connection uses, by name: held by the connections,
     /// so a scene's served state (its prepared dictionaries, a visible cut's node buffer) lives
     /// as long as someone is served it, not for the rest of the process.
@@ -58,8 +61,14 @@ pub(crate) struct Shared {
 
 impl Shared {
     /// The shared state of a service about to start: an empty scheduler whose server-wide
-    /// in-flight cap is the sum of the largest windows every connection can have.
-    pub(crate) fn new(config: ServeConfig, pool: Pool, state: Arc<ServiceState>) -> Self {
+    /// in-flight cap is the sum of the largest windows every connection can have, and the
+    /// pool's reader threads (the one thing that can fail).
+    pub(crate) fn new(
+        config: ServeConfig,
+        pool: Pool,
+        state: Arc<ServiceState>,
+    ) -> std::io::Result<Self> {
+        let readers = PoolReaders::start(config.pool_readers)?;
         let max_in_flight = config.max_connections.saturating_mul(config.window_max);
         let caches = ServiceCaches::for_config(&config);
         state.set_caches(caches.clone());
@@ -81,7 +90,7 @@ impl Shared {
             paths.set_lifetime(config.path_memory());
             paths.set_initial_window(config.initial_window);
         }
-        Self {
+        Ok(Self {
             pool,
             state,
             core: Mutex::new(Core {
@@ -89,12 +98,13 @@ impl Shared {
                 routes: FxHashMap::default(),
             }),
             wake: Notify::new(),
+            readers,
             scenes: Mutex::new(HashMap::new()),
             caches,
             next_id: AtomicU64::new(1),
             config,
             server_config: None,
-        }
+        })
     }
 
     /// The shared state accepting connections with `server_config`.
@@ -203,7 +213,8 @@ mod tests {
             ServeConfig::new(dir.path()),
             pool,
             Arc::new(ServiceState::default()),
-        );
+        )
+        .unwrap();
         let held = |name: &str| {
             let scenes = shared.scenes.lock().unwrap();
             scenes.get(name).map(Weak::strong_count)

@@ -494,10 +494,31 @@ impl ServedScene {
             return Ok(chunks);
         }
         let messages = self.messages(&keys, ids, channels)?;
+        Ok(self.keep_run(&keys, messages))
+    }
+
+    /// [`Self::batch`] when the cache holds every message of it, so that nothing is read from
+    /// the pool; `None` when it lacks one. A caller on an async worker reads the rest with
+    /// [`Self::batch`] on a blocking thread: a pool larger than the page cache reads from disk.
+    pub fn cached_batch(&self, ids: &[TreeletId], channels: &[Channel]) -> Option<Vec<Bytes>> {
+        let keys = self.keys(ids, channels);
+        if let Some(chunks) = self.cache.chunks(&keys) {
+            return Some(chunks);
+        }
+        let messages = self
+            .cache
+            .get(&keys)
+            .into_iter()
+            .collect::<Option<Vec<_>>>()?;
+        Some(self.keep_run(&keys, messages))
+    }
+
+    /// `messages` (of `keys`) copied together into one buffer, kept as their run.
+    fn keep_run(&self, keys: &[MessageKey], messages: Vec<Bytes>) -> Vec<Bytes> {
         let lens: Vec<usize> = messages.iter().map(Bytes::len).collect();
         let run = joined(messages);
-        self.cache.insert_run(&run, &keys, &lens);
-        Ok(vec![run])
+        self.cache.insert_run(&run, keys, &lens);
+        vec![run]
     }
 
     fn keys(&self, ids: &[TreeletId], channels: &[Channel]) -> Vec<MessageKey> {
