@@ -25,6 +25,10 @@
 //!
 //! The server's log is kept in `target/soak/server-plain.log` or `server-resting.log`: a client
 //! counts a closed connection as an error, and only the server's log says why it closed it.
+//!
+//! `ARBOR_SOAK_MEMORY_LIMIT=BYTES` (root, cgroup v1) confines the server's memory, page cache
+//! included, so that a pool larger than the rest is read from disk (see [`confine`]):
+//! `ARBOR_SOAK_POOL=target/scale/pool ARBOR_SOAK_MEMORY_LIMIT=600000000 ARBOR_SOAK_SECS=40 …`.
 
 use std::collections::HashSet;
 use std::io::{BufRead as _, BufReader};
@@ -63,13 +67,60 @@ fn server_binary() -> PathBuf {
     bin
 }
 
-struct Server(Child);
+/// The server process, and the memory cgroup it was moved into, if any (removed once the
+/// server is gone).
+struct Server(Child, Option<PathBuf>);
 
 impl Drop for Server {
     fn drop(&mut self) {
         let _ = self.0.kill();
         let _ = self.0.wait();
+        if let Some(cgroup) = &self.1 {
+            let _ = std::fs::remove_dir(cgroup);
+        }
     }
+}
+
+/// Where cgroup v1 keeps its memory controller (the only layout this has met).
+const MEMORY_CGROUPS: &str = "/sys/fs/cgroup/memory";
+
+/// `ARBOR_SOAK_MEMORY_LIMIT=BYTES`: the server is moved into a memory cgroup of that limit and
+/// the page cache is dropped, so a pool larger than what is left is read from disk (stop 66:
+/// the city's 1.47 GB pool with 600 MB for the plain soak, 900 MB for the resting one, whose
+/// server holds about 550 MB). Needs root and cgroup v1's memory controller; says so loudly
+/// when either is missing.
+fn confine(pid: u32) -> Option<PathBuf> {
+    let limit: u64 = std::env::var("ARBOR_SOAK_MEMORY_LIMIT")
+        .ok()?
+        .parse()
+        .expect("ARBOR_SOAK_MEMORY_LIMIT is a number of bytes");
+    let cgroup = Path::new(MEMORY_CGROUPS).join(format!("arbor-soak-{pid}"));
+    let write = |file: &str, value: String| {
+        std::fs::write(cgroup.join(file), &value).unwrap_or_else(|e| {
+            panic!(
+                "ARBOR_SOAK_MEMORY_LIMIT: writing {value} to {}: {e}",
+                cgroup.join(file).display()
+            )
+        })
+    };
+    std::fs::create_dir(&cgroup).unwrap_or_else(|e| {
+        panic!(
+            "ARBOR_SOAK_MEMORY_LIMIT needs root and cgroup v1's memory controller at \
+             {MEMORY_CGROUPS}: creating {}: {e}",
+            cgroup.display()
+        )
+    });
+    write("memory.limit_in_bytes", limit.to_string());
+    write("cgroup.procs", pid.to_string());
+    // What the server's start read of the pool is cached outside the cgroup: dropped.
+    let synced = Command::new("sync").status().is_ok_and(|s| s.success());
+    assert!(synced, "sync failed");
+    std::fs::write("/proc/sys/vm/drop_caches", "3").expect("dropping the page cache");
+    eprintln!(
+        "soak: the server is confined to {limit} bytes ({}), the page cache dropped",
+        cgroup.display()
+    );
+    Some(cgroup)
 }
 
 /// Resident set of a process, KiB.
@@ -455,8 +506,8 @@ async fn soak(resting_views: bool) {
     }
     let (admin, token) = (admin.unwrap(), token.unwrap());
     std::thread::spawn(move || lines.for_each(drop));
-    let server = Server(child);
-    let pid = server.0.id();
+    let pid = child.id();
+    let _server = Server(child, confine(pid));
     let addr = addr.unwrap();
     let plan = Plan {
         url: ServerUrl {
