@@ -451,11 +451,7 @@ impl App {
         state.refresh_overlay();
         let event =
             RunEvent::device_replaced(frames, time_s, &reason, &state.backend, lost.elapsed());
-        say(format_args!(
-            "event at cycle {}: {}",
-            event.cycle, event.what
-        ));
-        state.report.events.push(event);
+        note_event(&mut state.report, event);
         Ok(())
     }
 
@@ -650,11 +646,7 @@ impl Running {
         self.interval.bytes += step.record.bytes_received;
         self.report.records.push(step.record);
         if let Some(event) = step.stall {
-            say(format_args!(
-                "event at cycle {}: {}",
-                event.cycle, event.what
-            ));
-            self.report.events.push(event);
+            note_event(&mut self.report, event);
         }
         if self.interval.start.elapsed() >= OVERLAY_INTERVAL || self.report.records.len() == 1 {
             self.refresh_overlay();
@@ -797,6 +789,15 @@ fn not_converged(records: &[CycleRecord]) -> String {
         recent.len(),
         recent.len(),
     )
+}
+
+/// An event of the run (a device replaced, a stall): on standard output and in the report.
+fn note_event(report: &mut RunReport, event: RunEvent) {
+    say(format_args!(
+        "event at cycle {}: {}",
+        event.cycle, event.what
+    ));
+    report.events.push(event);
 }
 
 /// Prints one status line on stdout. A reader that has gone away (`arbor-client view … | head

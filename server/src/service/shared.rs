@@ -184,9 +184,10 @@ mod tests {
     use super::*;
     use crate::octree::{BuildOptions, DepthChoice};
     use crate::pipeline::{SceneImport, import_scene};
+    use crate::service::treelets::CachedBatch;
 
-    #[test]
-    fn a_served_scene_lives_as_long_as_a_connection_holds_it() {
+    /// The bunny built into a fresh pool, and the shared state serving it.
+    fn bunny() -> (tempfile::TempDir, Shared, StoredScene) {
         let dir = tempfile::tempdir().unwrap();
         let pool = Pool::open(dir.path()).unwrap();
         let input = std::path::Path::new(concat!(
@@ -215,6 +216,54 @@ mod tests {
             Arc::new(ServiceState::default()),
         )
         .unwrap();
+        (dir, shared, stored)
+    }
+
+    #[test]
+    fn a_batch_the_cache_holds_in_part_is_read_once_and_counted_once() {
+        let (_dir, shared, stored) = bunny();
+        let count = stored.description.treelet_count;
+        assert!(count >= 4, "the bunny has {count} treelets");
+        let scene = shared.served_scene(stored);
+        let channels = scene.stored.description.layout.channels().to_vec();
+        let figures = || shared.caches.messages.figures();
+        let ids = |r: std::ops::Range<u32>| r.map(TreeletId).collect::<Vec<_>>();
+        let whole = |b: CachedBatch| match b {
+            CachedBatch::Whole(chunks) => chunks.concat(),
+            CachedBatch::Partial(_) => panic!("the cache held the whole batch"),
+        };
+        let one_by_one = |r: std::ops::Range<u32>| -> Vec<u8> {
+            r.flat_map(|t| scene.message(TreeletId(t), &channels).unwrap().to_vec())
+                .collect()
+        };
+        // Nothing held: a partial batch, its misses counted; read, it is the messages.
+        let CachedBatch::Partial(first) = scene.cached_batch(&ids(0..3), &channels) else {
+            panic!("an empty cache held a batch");
+        };
+        let (_, hits, misses) = figures();
+        assert_eq!((hits, misses), (0, 3));
+        let read = scene.complete_batch(first, &channels).unwrap().concat();
+        assert_eq!(
+            (figures().1, figures().2),
+            (0, 3),
+            "reading counts nothing more"
+        );
+        // Held now, whole.
+        assert_eq!(whole(scene.cached_batch(&ids(0..3), &channels)), read);
+        assert_eq!((figures().1, figures().2), (3, 3));
+        // Two held, one not: counted once, read once, the same bytes as one by one.
+        let CachedBatch::Partial(part) = scene.cached_batch(&ids(1..4), &channels) else {
+            panic!("treelet 3 was never read");
+        };
+        assert_eq!((figures().1, figures().2), (5, 4));
+        let read = scene.complete_batch(part, &channels).unwrap().concat();
+        assert_eq!((figures().1, figures().2), (5, 4));
+        assert_eq!(read, one_by_one(1..4));
+    }
+
+    #[test]
+    fn a_served_scene_lives_as_long_as_a_connection_holds_it() {
+        let (_dir, shared, stored) = bunny();
         let held = |name: &str| {
             let scenes = shared.scenes.lock().unwrap();
             scenes.get(name).map(Weak::strong_count)

@@ -14,7 +14,7 @@ use tokio::sync::{mpsc, oneshot};
 use super::schedule::ConnectionId;
 use super::shared::Shared;
 use super::timeline::Event;
-use super::treelets::ServedScene;
+use super::treelets::{CachedBatch, ServedScene};
 
 /// Reset code of a treelet stream the client's latest list no longer wants (transport-level
 /// cancel). `NoError`: nothing went wrong, the treelet is simply not coming.
@@ -182,13 +182,13 @@ async fn transfer(
     // read by the pool's readers, not on this worker: a pool larger than the page cache reads
     // from disk (`super::readers`).
     let chunks = match ctx.scene.cached_batch(batch, &ctx.channels) {
-        Some(chunks) => Ok(chunks),
-        None => {
-            let (scene, ids, channels) = (ctx.scene.clone(), batch.to_vec(), ctx.channels.clone());
+        CachedBatch::Whole(chunks) => Ok(chunks),
+        CachedBatch::Partial(partial) => {
+            let (scene, channels) = (ctx.scene.clone(), ctx.channels.clone());
             let read = match ctx
                 .shared
                 .readers
-                .read(move || scene.batch(&ids, &channels))
+                .read(move || scene.complete_batch(partial, &channels))
                 .await
             {
                 Ok(read) => read.map_err(|e| e.to_string()),

@@ -189,18 +189,6 @@ impl MessageCache {
         found
     }
 
-    /// When every one of `keys` is held: their messages, in order, hits counted. Else `None`,
-    /// nothing counted (the caller reads what is missing and then asks [`Self::get`]).
-    fn get_all(&self, keys: &[MessageKey]) -> Option<Vec<Bytes>> {
-        let mut inner = self.lock();
-        let found: Vec<Bytes> = keys
-            .iter()
-            .map(|k| inner.map.get(k).map(Held::slice))
-            .collect::<Option<_>>()?;
-        inner.hits += keys.len() as u64;
-        Some(found)
-    }
-
     /// When every one of `keys` is held: their messages back to back, as slices of the runs
     /// they lie in (one per stretch of messages adjacent in one run), or copied into one buffer
     /// when that would be more than [`MAX_CHUNKS_PER_STREAM`]; hits counted. Else `None`,
@@ -313,6 +301,24 @@ const OWN_SHAPE_CACHE_BYTES: usize = 4 << 20;
 /// Cut node cache of a scene opened on its own: 4 MiB (a server shares one of
 /// `visibility_node_cache_bytes`).
 const OWN_CUT_NODE_CACHE_BYTES: usize = 4 << 20;
+
+/// A stream's batch as the message cache alone gives it ([`ServedScene::cached_batch`]).
+#[derive(Debug)]
+pub enum CachedBatch {
+    /// Every message was held: the batch as it goes out.
+    Whole(Vec<Bytes>),
+    /// Some were not: [`ServedScene::complete_batch`] reads them from the pool.
+    Partial(PartialBatch),
+}
+
+/// A batch whose messages the cache held only in part, looked up (and counted) once.
+#[derive(Debug)]
+pub struct PartialBatch {
+    ids: Vec<TreeletId>,
+    keys: Vec<MessageKey>,
+    /// Per id, the cache's message, if it held it.
+    found: Vec<Option<Bytes>>,
+}
 
 /// A scene opened for serving.
 pub struct ServedScene {
@@ -501,24 +507,54 @@ impl ServedScene {
         ids: &[TreeletId],
         channels: &[Channel],
     ) -> Result<Vec<Bytes>, MessageError> {
-        let keys = self.keys(ids, channels);
-        if let Some(chunks) = self.cache.chunks(&keys) {
-            return Ok(chunks);
+        match self.cached_batch(ids, channels) {
+            CachedBatch::Whole(chunks) => Ok(chunks),
+            CachedBatch::Partial(partial) => self.complete_batch(partial, channels),
         }
-        let messages = self.messages(&keys, ids, channels)?;
-        Ok(self.keep_run(&keys, messages))
     }
 
-    /// [`Self::batch`] when the cache holds every message of it, so that nothing is read from
-    /// the pool; `None` when it lacks one. A caller on an async worker reads the rest with
-    /// [`Self::batch`] on a blocking thread: a pool larger than the page cache reads from disk.
-    pub fn cached_batch(&self, ids: &[TreeletId], channels: &[Channel]) -> Option<Vec<Bytes>> {
+    /// [`Self::batch`] as far as the cache takes it, without reading the pool: whole when the
+    /// cache holds every message, else what it holds and what is left to read (hits and misses
+    /// counted here, once). A caller on an async worker completes it
+    /// ([`Self::complete_batch`]) on a reader thread: a pool larger than the page cache reads
+    /// from disk (`super::readers`).
+    pub fn cached_batch(&self, ids: &[TreeletId], channels: &[Channel]) -> CachedBatch {
         let keys = self.keys(ids, channels);
         if let Some(chunks) = self.cache.chunks(&keys) {
-            return Some(chunks);
+            return CachedBatch::Whole(chunks);
         }
-        let messages = self.cache.get_all(&keys)?;
-        Some(self.keep_run(&keys, messages))
+        let found = self.cache.get(&keys);
+        if found.iter().all(Option::is_some) {
+            let messages = found.into_iter().flatten().collect();
+            return CachedBatch::Whole(self.keep_run(&keys, messages));
+        }
+        CachedBatch::Partial(PartialBatch {
+            ids: ids.to_vec(),
+            keys,
+            found,
+        })
+    }
+
+    /// A [`CachedBatch::Partial`] made whole: the messages the cache lacked built from the pool,
+    /// and the batch kept as a run.
+    pub fn complete_batch(
+        &self,
+        partial: PartialBatch,
+        channels: &[Channel],
+    ) -> Result<Vec<Bytes>, MessageError> {
+        let PartialBatch { ids, keys, found } = partial;
+        let missing: Vec<TreeletId> = ids
+            .iter()
+            .zip(&found)
+            .filter(|(_, hit)| hit.is_none())
+            .map(|(&id, _)| id)
+            .collect();
+        let mut built = self.build(&missing, channels)?.into_iter();
+        let messages = found
+            .into_iter()
+            .map(|hit| hit.unwrap_or_else(|| Bytes::from(built.next().expect("one per miss"))))
+            .collect();
+        Ok(self.keep_run(&keys, messages))
     }
 
     /// `messages` (of `keys`) copied together into one buffer, kept as their run.
@@ -540,28 +576,6 @@ impl ServedScene {
                 channels: mask,
             })
             .collect()
-    }
-
-    /// The message of each of `ids` (with their `keys`), in order: the cache is asked for all of
-    /// them under one lock, and what it lacks is built (the caller keeps it).
-    fn messages(
-        &self,
-        keys: &[MessageKey],
-        ids: &[TreeletId],
-        channels: &[Channel],
-    ) -> Result<Vec<Bytes>, MessageError> {
-        let found = self.cache.get(keys);
-        let missing: Vec<TreeletId> = ids
-            .iter()
-            .zip(&found)
-            .filter(|(_, hit)| hit.is_none())
-            .map(|(&id, _)| id)
-            .collect();
-        let mut built = self.build(&missing, channels)?.into_iter();
-        Ok(found
-            .into_iter()
-            .map(|hit| hit.unwrap_or_else(|| Bytes::from(built.next().expect("one per miss"))))
-            .collect())
     }
 
     /// The messages of `ids`, in order, built from the pool: each pack of consecutive ids read
@@ -672,15 +686,7 @@ mod tests {
         );
         assert_eq!(cache.chunks(&[key(1, 8, 1), key(1, 6, 1)]), None);
         assert_eq!(cache.figures(), (90, hits + 2, misses));
-        // The same for the messages one by one: a stream's batch is first asked of the cache
-        // alone, and asked again by the reader that builds what it lacks, which counts it.
-        let firsts = |m: Vec<Bytes>| m.iter().map(|b| b[0]).collect::<Vec<_>>();
-        assert_eq!(
-            cache.get_all(&[key(1, 9, 1), key(1, 8, 1)]).map(firsts),
-            Some(vec![9, 8])
-        );
-        assert_eq!(cache.get_all(&[key(1, 9, 1), key(1, 6, 1)]), None);
-        assert_eq!(cache.figures(), (90, hits + 4, misses));
+
         // Larger than the whole cache: not kept.
         cache.insert(key(1, 99, 1), Bytes::from(vec![0; 101]));
         assert!(!hit(&cache, key(1, 99, 1)));
