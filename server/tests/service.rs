@@ -191,6 +191,11 @@ async fn a_hello_view_pushes_the_roots_refinement_within_its_free_slots() {
         server.state.metrics.pushes_planned.load(Ordering::Relaxed),
         23
     );
+    // Nothing was cached: the first plan and every batch were read by the pool's readers,
+    // and none is left waiting.
+    let reads = &server.state.metrics.pool_reads;
+    assert!(reads.run.load(Ordering::Relaxed) >= 2);
+    assert_eq!(reads.waiting.load(Ordering::Relaxed), 0);
     server.shutdown().await;
 }
 

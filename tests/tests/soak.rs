@@ -592,6 +592,11 @@ async fn soak(resting_views: bool) {
         m("arbor_shape_cache_misses_total"),
         m("arbor_shape_cache_bytes") / 1e6,
     );
+    eprintln!(
+        "server: the pool's readers ran {} jobs and skipped {} nobody waited for any more",
+        m("arbor_reader_jobs_total"),
+        m("arbor_reader_jobs_skipped_total"),
+    );
     let cuts = m("arbor_visible_cuts_total");
     eprintln!(
         "server: {cuts} visible cuts, {} fine cuts skipped, cut node cache {} hits / {} \

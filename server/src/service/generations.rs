@@ -102,15 +102,8 @@ impl<V> GenerationCache<V> {
         let key = (generation, id);
         {
             let mut g = self.lock();
-            if let Some(v) = g.young.get(&key) {
-                let v = v.clone();
+            if let Some(v) = self.held(&mut g, key) {
                 g.hits += 1;
-                return Some(v);
-            }
-            if let Some(v) = g.old.remove(&key) {
-                g.hits += 1;
-                g.old_bytes -= self.cost(&v);
-                self.keep(&mut g, key, v.clone());
                 return Some(v);
             }
             g.misses += 1;
@@ -121,6 +114,31 @@ impl<V> GenerationCache<V> {
             self.keep(&mut g, key, value.clone());
         }
         Some(value)
+    }
+
+    /// The value of treelet `id` of the scene generation `generation` if the cache holds it;
+    /// never decodes. Counts nothing: a caller that uses what it found counts it with
+    /// [`Self::count_hits`], and one that gives up at a missing value and looks everything up
+    /// again with [`Self::get_or_decode`] (on a thread that may wait for the disk) is counted
+    /// there, once.
+    pub fn get(&self, generation: u64, id: TreeletId) -> Option<Arc<V>> {
+        self.held(&mut self.lock(), (generation, id))
+    }
+
+    /// Counts `n` lookups answered by [`Self::get`] as hits.
+    pub fn count_hits(&self, n: u64) {
+        self.lock().hits += n;
+    }
+
+    /// The value held under `key`, moved into the young map if it was in the old one.
+    fn held(&self, g: &mut Generations<V>, key: Key) -> Option<Arc<V>> {
+        if let Some(v) = g.young.get(&key) {
+            return Some(v.clone());
+        }
+        let v = g.old.remove(&key)?;
+        g.old_bytes -= self.cost(&v);
+        self.keep(g, key, v.clone());
+        Some(v)
     }
 
     /// Puts `value` in the young map, turning the generations first when it would pass half
@@ -187,6 +205,37 @@ mod tests {
         let f = cache.figures();
         assert_eq!((f.entries, f.hits, f.misses), (2, 1, 2));
         assert_eq!(f.bytes, 3 + 5 + 2 * ENTRY_BYTES);
+    }
+
+    #[test]
+    fn get_finds_only_what_is_held_and_counts_only_what_it_is_told() {
+        let cache = cache(4 * (8 + ENTRY_BYTES));
+        assert!(cache.get(1, TreeletId(5)).is_none());
+        assert!(look_up(&cache, 5, 8));
+        assert_eq!(cache.get(1, TreeletId(5)).unwrap().len(), 8);
+        assert!(
+            cache.get(2, TreeletId(5)).is_none(),
+            "another scene's treelet 5"
+        );
+        let f = cache.figures();
+        assert_eq!((f.hits, f.misses), (0, 1), "get counts nothing itself");
+        cache.count_hits(3);
+        assert_eq!(cache.figures().hits, 3);
+        // Two more values turn the generations; a `get` of the old one keeps it young, so it
+        // survives the next turn.
+        look_up(&cache, 6, 8);
+        look_up(&cache, 7, 8);
+        assert!(cache.get(1, TreeletId(5)).is_some());
+        look_up(&cache, 8, 8);
+        look_up(&cache, 9, 8);
+        assert!(
+            cache.get(1, TreeletId(5)).is_some(),
+            "5 was dropped with its generation"
+        );
+        assert!(
+            cache.get(1, TreeletId(6)).is_none(),
+            "6 was not touched and went"
+        );
     }
 
     #[test]

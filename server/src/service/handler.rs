@@ -18,13 +18,15 @@ use tokio::task::JoinSet;
 use super::batches::Batches;
 use super::connection::{ControlReader, End, Greeting, close, hello};
 use super::push::{
-    PlannedList, PushAnchors, WorldCube, cut_has_work, cut_list, cut_saves, deep_list_anchored,
-    push_cap,
+    PlannedList, PushAnchors, ShapeMissing, WorldCube, cut_has_work, cut_list, cut_saves,
+    frustum_list, push_cap,
 };
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
 use super::shared::Shared;
 use super::shutdown::Shutdown;
-use super::streams::{CANCEL_CODE, OpenStream, Outcome, StreamCtx, open_in_order, send_batch};
+use super::streams::{
+    CANCEL_CODE, OpenStream, Outcome, ProgressClock, StreamCtx, open_in_order, send_batch,
+};
 use super::timeline::Event;
 use super::treelets::ServedScene;
 use super::visibility::{VisibleCut, frame_rays, same_view};
@@ -90,7 +92,7 @@ pub(super) async fn serve(
     let first = match (send_root, view) {
         (false, _) => None,
         (true, None) => handler.on_request_list(0, PlannedList::plain(vec![(root, f32::MAX)])),
-        (true, Some(view)) => handler.on_hello_view(root, &view),
+        (true, Some(view)) => handler.on_hello_view(root, &view).await,
     };
     if let Some(end) = first {
         return end;
@@ -191,8 +193,7 @@ impl Handler {
             conn: conn.clone(),
             scene,
             channels,
-            base: Instant::now(),
-            last_progress: AtomicU64::new(0),
+            clock: ProgressClock::new(Instant::now()),
             bytes_sent: AtomicU64::new(0),
             treelets_sent: AtomicU64::new(0),
         });
@@ -228,7 +229,7 @@ impl Handler {
         follow.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             let end = tokio::select! {
-                frame = reader.read_frame(), if self.reading => self.on_frame(frame),
+                frame = reader.read_frame(), if self.reading => self.on_frame(frame).await,
                 Some(batch) = self.jobs.recv() => self.on_batch(batch),
                 Some(joined) = self.streams.join_next(), if !self.streams.is_empty() => {
                     match joined {
@@ -236,7 +237,7 @@ impl Handler {
                         Err(_) => None,
                     }
                 }
-                cut = join_cut(&mut self.cut_job), if self.cut_job.is_some() => self.on_cut(cut),
+                cut = join_cut(&mut self.cut_job), if self.cut_job.is_some() => self.on_cut(cut).await,
                 _ = tick.tick() => self.on_tick(),
                 _ = follow.tick(), if !self.streams.is_empty() => {
                     self.update_window();
@@ -252,7 +253,7 @@ impl Handler {
     }
 
     /// A control frame from the client (or the end of its control stream).
-    fn on_frame(&mut self, frame: Result<Option<Frame>, End>) -> Option<End> {
+    async fn on_frame(&mut self, frame: Result<Option<Frame>, End>) -> Option<End> {
         match frame {
             Ok(Some(Frame::RequestList { seq, items })) => {
                 self.on_request_list(seq, PlannedList::plain(items))
@@ -262,18 +263,24 @@ impl Handler {
                 view,
                 items,
                 prefetch_from,
-            })) => self.on_deep_request_list(seq, &view, &items, prefetch_from as usize),
+            })) => {
+                self.on_deep_request_list(seq, &view, &items, prefetch_from as usize)
+                    .await
+            }
             Ok(Some(Frame::RankedRequestList {
                 seq,
                 view,
                 items,
                 prefetch_from,
-            })) => self.on_deep_request_list(
-                seq,
-                &view,
-                &arbor_proto::wire::ranked_as_deep(&items),
-                prefetch_from as usize,
-            ),
+            })) => {
+                self.on_deep_request_list(
+                    seq,
+                    &view,
+                    &arbor_proto::wire::ranked_as_deep(&items),
+                    prefetch_from as usize,
+                )
+                .await
+            }
             Ok(Some(Frame::Goodbye { code })) => Some(close(
                 ErrorCode::NoError,
                 format!("client said goodbye ({code})"),
@@ -380,7 +387,7 @@ impl Handler {
     /// A request list with the client's view: the listed items, then the descendants the view
     /// would refine below them (`push.rs`), within the free slots the client announced, at
     /// priorities below every listed item.
-    fn on_deep_request_list(
+    async fn on_deep_request_list(
         &mut self,
         seq: u64,
         view: &ViewHint,
@@ -410,7 +417,7 @@ impl Handler {
                 self.start_cut();
             }
         }
-        let list = self.plan(view, items, prefetch_from);
+        let list = self.plan(view, items, prefetch_from).await;
         self.on_request_list(seq, list)
     }
 
@@ -420,7 +427,7 @@ impl Handler {
     /// ([`PushAnchors`]). Without a cut nothing tells a guess from a need, so nothing is set
     /// apart: the frustum plan also pushes below prefetch items, and holding those back would
     /// hold back their pushes too.
-    fn plan(
+    async fn plan(
         &mut self,
         view: &ViewHint,
         items: &[(TreeletId, f32, f32)],
@@ -438,26 +445,46 @@ impl Handler {
         }
         let scene = self.ctx.scene.clone();
         let cube = WorldCube::of(&scene.stored.description);
-        self.anchors.for_view(view);
-        let anchors = &self.anchors;
-        let (list, plan) = deep_list_anchored(
-            cube,
-            view,
-            items,
-            anchors.roots(items),
-            |id| anchors.sent_limit(id),
-            // A few windows of pushes: more would be planned again before they could go out.
-            (items.len() + push_cap(self.window)).min(MAX_REQUEST_ITEMS),
-            |id| scene.shape(id),
-        );
-        self.anchors
-            .record(items, &plan.pushes, |id| scene.shape(id));
-        self.anchors.note_exhausted(&plan.exhausted);
-        PlannedList {
-            items: list,
-            pushed: plan.pushes.len(),
-            prefetch_below: None,
-            set_apart: 0,
+        // A few windows of pushes: more would be planned again before they could go out.
+        let max_items = (items.len() + push_cap(self.window)).min(MAX_REQUEST_ITEMS);
+        let mut hits = 0;
+        let cached = frustum_list(cube, view, items, &mut self.anchors, max_items, |id| {
+            let shape = scene.cached_shape(id).ok_or(ShapeMissing)?;
+            hits += 1;
+            Ok(Some(shape))
+        });
+        if let Ok(list) = cached {
+            scene.count_shape_hits(hits);
+            return list;
+        }
+        // A shape the cache lacks is read from the pool, which may wait for the disk: the whole
+        // plan is made again on a reader, with the anchors lent to it, and this connection waits
+        // without holding an async worker (`super::readers`). Planned on the worker, the city's
+        // resting soak with its pool outside the page cache waited 183 ms for a list's first
+        // treelet (p99; 25 ms for plain lists).
+        let mut anchors = std::mem::take(&mut self.anchors);
+        let (view, listed) = (*view, items.to_vec());
+        let planned = self
+            .shared
+            .readers
+            .read(move || {
+                let list = frustum_list(cube, &view, &listed, &mut anchors, max_items, |id| {
+                    Ok(scene.shape(id))
+                });
+                (list, anchors)
+            })
+            .await;
+        match planned {
+            Ok((Ok(list), anchors)) => {
+                self.anchors = anchors;
+                list
+            }
+            // A plan that panicked took the anchors with it: they start again, empty, and
+            // this list goes without pushes.
+            Ok((Err(ShapeMissing), _)) | Err(_) => {
+                tracing::error!("the push plan of a deep list failed; the list goes as listed");
+                PlannedList::plain(items.iter().map(|&(id, p, _)| (id, p)).collect())
+            }
         }
     }
 
@@ -544,7 +571,7 @@ impl Handler {
     /// A visible cut is ready: kept, and, if it saves enough to be followed, the last deep list
     /// re-planned with it when it answers that list's view (the pushes the frustum plan chose
     /// are replaced).
-    fn on_cut(
+    async fn on_cut(
         &mut self,
         cut: Result<Option<(VisibleCut, bool)>, tokio::task::JoinError>,
     ) -> Option<End> {
@@ -574,14 +601,14 @@ impl Handler {
         if !(followed && cut.complete && cut.answers(&view)) {
             return None;
         }
-        let list = self.plan(&view, &items, prefetch_from);
+        let list = self.plan(&view, &items, prefetch_from).await;
         self.start_cut();
         self.apply_list(seq, list, true)
     }
 
     /// `Hello`'s view ([`arbor_proto::wire::HELLO_VIEW`], eye in root-cube units): the root
     /// and the view's refinement below it, as a deep list of sequence 0.
-    fn on_hello_view(&mut self, root: TreeletId, view: &ViewHint) -> Option<End> {
+    async fn on_hello_view(&mut self, root: TreeletId, view: &ViewHint) -> Option<End> {
         let d = &self.ctx.scene.stored.description;
         let view = ViewHint {
             eye: std::array::from_fn(|i| d.origin[i] + view.eye[i] * d.edge),
@@ -594,6 +621,7 @@ impl Handler {
             ));
         }
         self.on_deep_request_list(0, &view, &[(root, f32::MAX, ViewHint::MAX_ERROR)], 1)
+            .await
     }
 
     /// Resets the streams of batches the latest list wants nothing of any more; a batch with
@@ -660,7 +688,9 @@ impl Handler {
     /// window, the redelivery guard and the treelets it deferred, the session's figures.
     fn on_tick(&mut self) -> Option<End> {
         let config = &self.shared.config;
-        if !self.streams.is_empty() && self.ctx.since_progress() >= config.slow_reader_timeout() {
+        if !self.streams.is_empty()
+            && self.ctx.clock.stalled_for(Instant::now()) >= config.slow_reader_timeout()
+        {
             return Some(close(
                 ErrorCode::SlowReader,
                 format!(

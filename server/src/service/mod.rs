@@ -53,5 +53,6 @@ pub mod treelets;
 pub mod visibility;
 
 pub use config::{ConfigError, ConfigOverrides, ServeConfig};
+pub use readers::ReadFigures;
 pub use server::{RunningService, ServeError, start_service};
 pub use shutdown::ShutdownTrigger;

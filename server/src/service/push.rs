@@ -286,7 +286,7 @@ pub fn deep_list_anchored(
 /// anchors are *full* and none is walked for the rest of the view (a push that could not be
 /// kept could not be told from a new one, and would be pushed again on every list): the plan
 /// below the listed treelets goes on as without anchors.
-#[derive(Debug)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct PushAnchors {
     view: Option<ViewHint>,
     /// Most treelets kept.
@@ -473,6 +473,65 @@ impl PlannedList {
             set_apart: 0,
         }
     }
+}
+
+/// A shape lookup found the shape not at hand: it is not in the cache, and this lookup may not
+/// read the pool (an async worker must not wait for the disk).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ShapeMissing;
+
+/// The list a deep request becomes without a visible cut: [`deep_list_anchored`] below the
+/// listed items and `anchors`' open anchors, with the plan recorded in `anchors` for the next
+/// one. `shape` may answer [`ShapeMissing`]: the plan is then given up before `anchors` learn
+/// anything of it (beyond [`PushAnchors::for_view`]), to be made again where the pool may be
+/// read, with the same result as if every shape had been at hand.
+pub fn frustum_list(
+    cube: WorldCube,
+    view: &ViewHint,
+    items: &[(TreeletId, f32, f32)],
+    anchors: &mut PushAnchors,
+    max_items: usize,
+    mut shape: impl FnMut(TreeletId) -> Result<Option<Arc<TreeletShape>>, ShapeMissing>,
+) -> Result<PlannedList, ShapeMissing> {
+    anchors.for_view(view);
+    let missing = std::cell::Cell::new(false);
+    // After the first missing shape the plan is lost anyway: looking further is skipped.
+    let mut lookup = |id| {
+        if missing.get() {
+            return None;
+        }
+        shape(id).unwrap_or_else(|ShapeMissing| {
+            missing.set(true);
+            None
+        })
+    };
+    // `record` looks every listed item up, also when the plan has no budget to walk below them.
+    for &(id, _, _) in items {
+        lookup(id);
+    }
+    if missing.get() {
+        return Err(ShapeMissing);
+    }
+    let (list, plan) = deep_list_anchored(
+        cube,
+        view,
+        items,
+        anchors.roots(items),
+        |id| anchors.sent_limit(id),
+        max_items,
+        &mut lookup,
+    );
+    if missing.get() {
+        return Err(ShapeMissing);
+    }
+    anchors.record(items, &plan.pushes, &mut lookup);
+    anchors.note_exhausted(&plan.exhausted);
+    Ok(PlannedList {
+        items: list,
+        pushed: plan.pushes.len(),
+        prefetch_below: None,
+        set_apart: 0,
+    })
 }
 
 /// The push generation of the first prefetch item outside a cut: below every level's pushes.
@@ -1113,6 +1172,95 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// What a handler's plan sees: the test tree's shapes, of which a cache holds `held`.
+    fn from_cache<'a>(
+        t: &'a HashMap<TreeletId, Arc<TreeletShape>>,
+        held: &'a HashSet<TreeletId>,
+    ) -> impl FnMut(TreeletId) -> Result<Option<Arc<TreeletShape>>, ShapeMissing> + 'a {
+        move |id| {
+            if held.contains(&id) {
+                Ok(t.get(&id).cloned())
+            } else {
+                Err(ShapeMissing)
+            }
+        }
+    }
+
+    #[test]
+    fn a_frustum_list_missing_a_shape_is_given_up_and_made_again_the_same() {
+        let t = tree(3);
+        let all = |id: TreeletId| Ok(t.get(&id).cloned());
+        let mut view = view_from([0.5, 0.5, 3.0], 0.001);
+        view.free_slots = 1 + 12;
+        let root = [(TreeletId(0), 1.0, 10.0)];
+        // `reference` always has every shape; `cached` only what its cache holds, and makes
+        // a plan it has to give up again with every shape, as the handler does on a reader.
+        let mut reference = PushAnchors::default();
+        let mut cached = PushAnchors::default();
+        let expected = frustum_list(CUBE, &view, &root, &mut reference, 100, all).unwrap();
+        assert_eq!(expected.pushed, 12);
+        let mut held = HashSet::from([TreeletId(0)]);
+        let before = PushAnchors::default();
+        assert_eq!(
+            frustum_list(CUBE, &view, &root, &mut cached, 100, from_cache(&t, &held)),
+            Err(ShapeMissing),
+            "the root's children are not held"
+        );
+        let mut fresh = PushAnchors::default();
+        fresh.for_view(&view);
+        assert_eq!(
+            cached, fresh,
+            "a plan given up leaves the anchors as they were"
+        );
+        assert_ne!(cached, before, "(but moved to the view)");
+        let again = frustum_list(CUBE, &view, &root, &mut cached, 100, all).unwrap();
+        assert_eq!(again, expected);
+        assert_eq!(cached, reference);
+
+        // What went out becomes anchors; the next list names a leaf elsewhere, and the plan
+        // goes on below the anchors, whose shapes the cache must hold as well.
+        let sent: Vec<TreeletId> = std::iter::once(TreeletId(0))
+            .chain(expected.items[1..9].iter().map(|i| i.0))
+            .collect();
+        reference.note_sent(&sent);
+        cached.note_sent(&sent);
+        let other = [(TreeletId(100), 1.0, 0.0)];
+        let expected = frustum_list(CUBE, &view, &other, &mut reference, 100, all).unwrap();
+        assert!(expected.pushed > 0, "the queued grandchildren again");
+        held.insert(TreeletId(100));
+        let before = cached.clone();
+        assert_eq!(
+            frustum_list(CUBE, &view, &other, &mut cached, 100, from_cache(&t, &held)),
+            Err(ShapeMissing),
+            "the anchors' shapes are not held"
+        );
+        assert_eq!(cached, before, "nothing recorded, nothing closed");
+        held.extend(t.keys().copied());
+        assert_eq!(
+            frustum_list(CUBE, &view, &other, &mut cached, 100, from_cache(&t, &held)),
+            Ok(expected),
+            "with every shape held the plan is made at once, the same"
+        );
+        assert_eq!(cached, reference);
+
+        // No room for pushes: no walk, but the listed items are still recorded with the
+        // limits their shapes give, so their shapes must be held too.
+        view.free_slots = 1;
+        let leaf = [(TreeletId(200), 1.0, 3.0)];
+        held.remove(&TreeletId(200));
+        assert_eq!(
+            frustum_list(CUBE, &view, &leaf, &mut cached, 100, from_cache(&t, &held)),
+            Err(ShapeMissing)
+        );
+        let expected = frustum_list(CUBE, &view, &leaf, &mut reference, 100, all).unwrap();
+        assert_eq!((expected.items.len(), expected.pushed), (1, 0));
+        assert_eq!(
+            frustum_list(CUBE, &view, &leaf, &mut cached, 100, all),
+            Ok(expected)
+        );
+        assert_eq!(cached, reference);
     }
 
     #[test]

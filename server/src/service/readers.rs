@@ -16,6 +16,7 @@
 //! disk's queue busy and their memory bounded.
 
 use std::panic::AssertUnwindSafe;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 
@@ -23,11 +24,25 @@ use tokio::sync::oneshot;
 
 type Job = Box<dyn FnOnce() + Send>;
 
+/// What the readers did, for `/metrics`.
+#[derive(Debug, Default)]
+pub struct ReadFigures {
+    /// Reads queued or running now.
+    pub waiting: AtomicU64,
+    /// Reads run: a batch's messages the message cache lacked, or a push plan that needed a
+    /// shape the shape cache lacked.
+    pub run: AtomicU64,
+    /// Reads skipped because nobody waited for them any more when their turn came (a batch
+    /// cancelled by a newer list, a connection gone).
+    pub skipped: AtomicU64,
+}
+
 /// The reader threads and the queue they take jobs from. Dropping it ends them once the jobs
 /// queued so far are done.
 #[derive(Debug)]
 pub(crate) struct PoolReaders {
     jobs: Mutex<mpsc::Sender<Job>>,
+    figures: Arc<ReadFigures>,
 }
 
 /// The read gave no result: it panicked (a bug; the reader goes on with the next read), or the
@@ -37,8 +52,8 @@ pub(crate) struct PoolReaders {
 pub(crate) struct ReadFailed;
 
 impl PoolReaders {
-    /// Starts `threads` readers (at least one).
-    pub(crate) fn start(threads: usize) -> std::io::Result<Self> {
+    /// Starts `threads` readers (at least one), counting what they do in `figures`.
+    pub(crate) fn start(threads: usize, figures: Arc<ReadFigures>) -> std::io::Result<Self> {
         let (tx, rx) = mpsc::channel::<Job>();
         let rx = Arc::new(Mutex::new(rx));
         for i in 0..threads.max(1) {
@@ -66,24 +81,38 @@ impl PoolReaders {
         }
         Ok(Self {
             jobs: Mutex::new(tx),
+            figures,
         })
     }
 
     /// Runs `read` on a reader thread and waits for its result without holding the caller's
-    /// worker.
+    /// worker. A caller that stops waiting (its future dropped: a cancelled batch, a
+    /// connection gone) before its read's turn has the read skipped.
     pub(crate) async fn read<T: Send + 'static>(
         &self,
         read: impl FnOnce() -> T + Send + 'static,
     ) -> Result<T, ReadFailed> {
         let (done, result) = oneshot::channel();
+        let figures = self.figures.clone();
         let job: Job = Box::new(move || {
-            let _ = done.send(read());
+            // Counted before the read, so a read that panics is no longer waiting either.
+            figures.waiting.fetch_sub(1, Ordering::Relaxed);
+            if done.is_closed() {
+                figures.skipped.fetch_add(1, Ordering::Relaxed);
+            } else {
+                figures.run.fetch_add(1, Ordering::Relaxed);
+                let _ = done.send(read());
+            }
         });
-        self.jobs
-            .lock()
-            .map_err(|_| ReadFailed)?
-            .send(job)
-            .map_err(|_| ReadFailed)?;
+        self.figures.waiting.fetch_add(1, Ordering::Relaxed);
+        let queued = match self.jobs.lock() {
+            Ok(jobs) => jobs.send(job).is_ok(),
+            Err(_) => false,
+        };
+        if !queued {
+            self.figures.waiting.fetch_sub(1, Ordering::Relaxed);
+            return Err(ReadFailed);
+        }
         result.await.map_err(|_| ReadFailed)
     }
 }
@@ -96,7 +125,7 @@ mod tests {
 
     #[tokio::test(flavor = "current_thread")]
     async fn reads_run_on_the_readers_at_most_as_many_at_once_as_there_are_readers() {
-        let readers = Arc::new(PoolReaders::start(3).unwrap());
+        let readers = Arc::new(PoolReaders::start(3, Arc::default()).unwrap());
         let running = Arc::new(AtomicUsize::new(0));
         let most = Arc::new(AtomicUsize::new(0));
         let reads: Vec<_> = (0..9)
@@ -133,8 +162,57 @@ mod tests {
     }
 
     #[tokio::test(flavor = "current_thread")]
+    async fn a_read_nobody_waits_for_any_more_is_skipped() {
+        let figures = Arc::new(ReadFigures::default());
+        let readers = Arc::new(PoolReaders::start(1, figures.clone()).unwrap());
+        // The only reader is held by a read that waits for `release`.
+        let (release, wait) = std::sync::mpsc::channel::<()>();
+        let busy = {
+            let readers = readers.clone();
+            tokio::spawn(async move { readers.read(move || wait.recv().is_ok()).await })
+        };
+        let ran = Arc::new(AtomicUsize::new(0));
+        let abandoned = {
+            let (readers, ran) = (readers.clone(), ran.clone());
+            tokio::spawn(async move {
+                readers
+                    .read(move || ran.fetch_add(1, Ordering::SeqCst))
+                    .await
+            })
+        };
+        // Both reads are queued once the tasks have run; then the second one's caller goes.
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        assert_eq!(
+            figures.waiting.load(Ordering::SeqCst),
+            1,
+            "the second waits"
+        );
+        abandoned.abort();
+        assert!(abandoned.await.unwrap_err().is_cancelled());
+        release.send(()).unwrap();
+        assert!(busy.await.unwrap().unwrap());
+        let ran_after = {
+            let ran = ran.clone();
+            readers
+                .read(move || ran.load(Ordering::SeqCst))
+                .await
+                .unwrap()
+        };
+        assert_eq!(ran_after, 0, "the abandoned read ran");
+        let count = |n: &AtomicU64| n.load(Ordering::SeqCst);
+        assert_eq!(
+            (
+                count(&figures.waiting),
+                count(&figures.run),
+                count(&figures.skipped)
+            ),
+            (0, 2, 1)
+        );
+    }
+
+    #[tokio::test(flavor = "current_thread")]
     async fn a_read_that_panics_is_an_error_and_its_reader_reads_on() {
-        let readers = PoolReaders::start(1).unwrap();
+        let readers = PoolReaders::start(1, Arc::default()).unwrap();
         let failed = readers.read(|| -> u32 { panic!("a read failed") }).await;
         assert!(failed.is_err());
         assert_eq!(

@@ -51,6 +51,12 @@ impl ShapeCache {
             decode_shape(scene, dictionaries, id)
         })
     }
+
+    /// The shape of treelet `id` of `scene` if the cache holds it, never read from the pool
+    /// (counts nothing: [`GenerationCache::get`]).
+    pub fn cached(&self, scene: &StoredScene, id: TreeletId) -> Option<Arc<TreeletShape>> {
+        self.get(scene.generation, id)
+    }
 }
 
 /// The shape of treelet `id`, decoded from its stored node block.

@@ -68,7 +68,7 @@ impl Shared {
         pool: Pool,
         state: Arc<ServiceState>,
     ) -> std::io::Result<Self> {
-        let readers = PoolReaders::start(config.pool_readers)?;
+        let readers = PoolReaders::start(config.pool_readers, state.metrics.pool_reads.clone())?;
         let max_in_flight = config.max_connections.saturating_mul(config.window_max);
         let caches = ServiceCaches::for_config(&config);
         state.set_caches(caches.clone());

@@ -48,6 +48,8 @@ pub struct Metrics {
     /// (`treelets_sent / treelet_streams` is the mean batch).
     pub treelet_streams: AtomicU64,
     pub treelets_cancelled: AtomicU64,
+    /// What the pool's reader threads did.
+    pub pool_reads: Arc<super::ReadFigures>,
     /// Treelets planned as pushes below deep request lists, summed over lists (a push still
     /// implied by the next list is planned again).
     pub pushes_planned: AtomicU64,
@@ -338,7 +340,8 @@ impl ServiceState {
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
         let resumes = &m.path_resumes;
         let losses = &m.loss_events;
-        let counters: [(&str, &str, &AtomicU64); 19] = [
+        let reads = &m.pool_reads;
+        let counters: [(&str, &str, &AtomicU64); 21] = [
             (
                 "arbor_connections_accepted_total",
                 "QUIC connections accepted.",
@@ -378,6 +381,18 @@ impl ServiceState {
                 "arbor_treelets_cancelled_total",
                 "Treelet streams reset because the client no longer wanted them.",
                 &m.treelets_cancelled,
+            ),
+            (
+                "arbor_reader_jobs_total",
+                "Reads run by the pool's readers: batches of treelet messages the message cache \
+                 lacked, push plans that needed a shape the shape cache lacked.",
+                &reads.run,
+            ),
+            (
+                "arbor_reader_jobs_skipped_total",
+                "Reads the pool's readers skipped because nobody waited for them any more \
+                 (a batch cancelled by a newer list, a connection gone).",
+                &reads.skipped,
             ),
             (
                 "arbor_pushes_planned_total",
@@ -459,6 +474,12 @@ impl ServiceState {
             Kind::Gauge,
             "Connections open now.",
             load(&m.connections_open),
+        )
+        .single(
+            "arbor_reader_jobs_waiting",
+            Kind::Gauge,
+            "Reads queued for or running on the pool's readers now.",
+            load(&reads.waiting),
         )
         .single(
             "arbor_queue_depth",

@@ -4,7 +4,7 @@
 //! see [`ServedScene::batch`]), reset when the latest list wants none of the batch.
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use arbor_proto::wire::ErrorCode;
@@ -31,23 +31,16 @@ pub(super) struct StreamCtx {
     pub(super) scene: Arc<ServedScene>,
     /// Requested channels, ascending by id.
     pub(super) channels: Vec<Channel>,
-    pub(super) base: Instant,
-    /// Microseconds since `base` of the last progress of any stream.
-    pub(super) last_progress: AtomicU64,
+    /// The slow-reader watchdog's clock.
+    pub(super) clock: ProgressClock,
     pub(super) bytes_sent: AtomicU64,
     pub(super) treelets_sent: AtomicU64,
 }
 
 impl StreamCtx {
+    /// A stream of the connection made progress (opened, written, acknowledged).
     pub(super) fn progress(&self) {
-        let us = self.base.elapsed().as_micros().min(u128::from(u64::MAX)) as u64;
-        self.last_progress.fetch_max(us, Ordering::Relaxed);
-    }
-
-    pub(super) fn since_progress(&self) -> Duration {
-        self.base.elapsed().saturating_sub(Duration::from_micros(
-            self.last_progress.load(Ordering::Relaxed),
-        ))
+        self.clock.progress_at(Instant::now());
     }
 
     pub(super) fn mean_treelet_bytes(&self) -> u64 {
@@ -56,6 +49,68 @@ impl StreamCtx {
             .load(Ordering::Relaxed)
             .checked_div(n)
             .map_or(DEFAULT_TREELET_BYTES, |b| b.max(1))
+    }
+}
+
+/// When a connection's streams last made progress, for the slow-reader watchdog, and whether
+/// the server itself is what they wait for.
+///
+/// Why the server's waits do not count: a stream whose batch waits for the pool's readers is
+/// held up by the server's disk, not by the client. Counted, a pool read from a slow disk
+/// closed readers as slow: the city's resting soak with its pool outside the page cache closed
+/// 7 of 64 in 40 s before the readers (stop 66), and one confined run after them, its reads
+/// queued behind 63 other connections', 32 (docs/measurements.md).
+#[derive(Debug)]
+pub(super) struct ProgressClock {
+    base: Instant,
+    /// Microseconds since `base` of the last progress.
+    last_us: AtomicU64,
+    /// Reads of this connection's batches queued for or running on the readers.
+    reads_waited_for: AtomicUsize,
+}
+
+/// One read a stream waits for ([`ProgressClock::wait_for_read`]); its end, by result or by
+/// cancel, is progress.
+pub(super) struct ReadWait<'a>(&'a ProgressClock);
+
+impl Drop for ReadWait<'_> {
+    fn drop(&mut self) {
+        self.0.reads_waited_for.fetch_sub(1, Ordering::Relaxed);
+        self.0.progress_at(Instant::now());
+    }
+}
+
+impl ProgressClock {
+    /// A clock that counts from `base` as the last progress.
+    pub(super) fn new(base: Instant) -> ProgressClock {
+        ProgressClock {
+            base,
+            last_us: AtomicU64::new(0),
+            reads_waited_for: AtomicUsize::new(0),
+        }
+    }
+
+    /// Progress at `now` (a moment before the last one changes nothing).
+    pub(super) fn progress_at(&self, now: Instant) {
+        let us = now.saturating_duration_since(self.base).as_micros();
+        self.last_us
+            .fetch_max(us.min(u128::from(u64::MAX)) as u64, Ordering::Relaxed);
+    }
+
+    /// A stream starts waiting for a read of the pool; the clock stands still until it ends.
+    pub(super) fn wait_for_read(&self) -> ReadWait<'_> {
+        self.reads_waited_for.fetch_add(1, Ordering::Relaxed);
+        ReadWait(self)
+    }
+
+    /// How long the connection has gone without progress at `now`, not counting the server's
+    /// own waits: zero while a read is waited for.
+    pub(super) fn stalled_for(&self, now: Instant) -> Duration {
+        if self.reads_waited_for.load(Ordering::Relaxed) > 0 {
+            return Duration::ZERO;
+        }
+        now.saturating_duration_since(self.base)
+            .saturating_sub(Duration::from_micros(self.last_us.load(Ordering::Relaxed)))
     }
 }
 
@@ -185,20 +240,25 @@ async fn transfer(
         CachedBatch::Whole(chunks) => Ok(chunks),
         CachedBatch::Partial(partial) => {
             let (scene, channels) = (ctx.scene.clone(), ctx.channels.clone());
-            let read = match ctx
+            // The time waited is the server's, not the client's ([`ProgressClock`]).
+            let _waiting = ctx.clock.wait_for_read();
+            let read = ctx
                 .shared
                 .readers
-                .read(move || scene.complete_batch(partial, &channels))
-                .await
-            {
-                Ok(read) => read.map_err(|e| e.to_string()),
-                Err(e) => Err(e.to_string()),
+                .read(move || scene.complete_batch(partial, &channels));
+            // A batch cancelled while its read is queued is not read: its job is skipped
+            // when its turn comes (`PoolReaders::read`), so a disk-bound server spends its
+            // reads on what the lists still want.
+            let step = tokio::select! {
+                biased;
+                _ = &mut *cancel => Step::Cancel(CANCEL_CODE),
+                r = read => Step::Done(r),
             };
-            // The server's own progress: time its streams waited for the disk is not the
-            // client's. Without this a pool read from a slow disk closed readers as slow (the
-            // city's resting soak with its pool outside the page cache: 7 of 64 in 40 s).
-            ctx.progress();
-            read
+            match step {
+                Step::Cancel(_) => return Outcome::Cancelled,
+                Step::Done(Ok(read)) => read.map_err(|e| e.to_string()),
+                Step::Done(Err(e)) => Err(e.to_string()),
+            }
         }
     };
     let mut chunks = match chunks {
@@ -276,4 +336,44 @@ fn record_sent(ctx: &StreamCtx, batch: &[TreeletId], len: u64) {
         s.treelets_sent += n;
         s.bytes_sent += len;
     });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_watchdog_s_clock_stands_still_while_the_server_reads() {
+        let base = Instant::now();
+        let at = |ms| base + Duration::from_millis(ms);
+        let clock = ProgressClock::new(base);
+        assert_eq!(clock.stalled_for(at(300)), Duration::from_millis(300));
+        {
+            let first = clock.wait_for_read();
+            let second = clock.wait_for_read();
+            assert_eq!(clock.stalled_for(at(60_000)), Duration::ZERO);
+            drop(first);
+            assert_eq!(
+                clock.stalled_for(at(60_000)),
+                Duration::ZERO,
+                "one read is still waited for"
+            );
+            drop(second);
+        }
+        // The last read's end was progress, at the real now: the client's time counts from
+        // there.
+        let stalled = clock.stalled_for(Instant::now() + Duration::from_secs(10));
+        assert!(
+            (Duration::from_secs(10)..Duration::from_secs(11)).contains(&stalled),
+            "{stalled:?}"
+        );
+        clock.progress_at(at(1_000));
+        clock.progress_at(at(400));
+        assert_eq!(
+            clock.stalled_for(at(1_500)),
+            Duration::from_millis(500),
+            "an earlier moment changes nothing"
+        );
+        assert_eq!(clock.stalled_for(base), Duration::ZERO, "never negative");
+    }
 }

@@ -450,6 +450,18 @@ impl ServedScene {
         self.shapes.shape(&self.stored, &self.dictionaries, id)
     }
 
+    /// The shape of treelet `id` if the shape cache holds it; never reads the pool, so it may
+    /// be asked on an async worker ([`ShapeCache::cached`]). Counts nothing: see
+    /// [`Self::count_shape_hits`].
+    pub fn cached_shape(&self, id: TreeletId) -> Option<Arc<super::push::TreeletShape>> {
+        self.shapes.cached(&self.stored, id)
+    }
+
+    /// Counts `n` shapes found by [`Self::cached_shape`] and used as the shape cache's hits.
+    pub fn count_shape_hits(&self, n: u64) {
+        self.shapes.count_hits(n);
+    }
+
     pub fn treelet_count(&self) -> u32 {
         self.stored.description.treelet_count
     }
