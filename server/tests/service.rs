@@ -330,9 +330,22 @@ async fn the_timeline_records_what_was_listed_pushed_sent_and_acknowledged() {
             _ => None,
         })
         .collect();
-    assert_eq!(lists.len(), 1, "one list: the Hello's");
-    assert_eq!(lists[0].0, &vec![d.root_treelet]);
-    assert_eq!(lists[0].1.len(), 23);
+    // The shape cache was empty: the Hello's list went as listed while a reader planned its
+    // pushes, and then again with them.
+    assert_eq!(lists.len(), 2, "the Hello's list, then with its pushes");
+    assert_eq!(
+        server
+            .state
+            .metrics
+            .plans_on_readers
+            .load(Ordering::Relaxed),
+        1
+    );
+    for (listed, _) in &lists {
+        assert_eq!(*listed, &vec![d.root_treelet]);
+    }
+    assert!(lists[0].1.is_empty());
+    assert_eq!(lists[1].1.len(), 23);
     let dispatched: HashSet<TreeletId> = recording
         .events
         .iter()
@@ -373,6 +386,18 @@ async fn a_resting_view_gets_its_visible_cut_pushed_in_place_of_the_frustum_plan
         "the view needs several treelets below the root"
     );
 
+    // A first client fills the shape cache, so that the Hello's frustum plan below is made at
+    // once, not on a reader (which would deliver the whole view before the cut came).
+    {
+        let (warm, _control) = hello_with_root_and_view(&server, view).await;
+        let m = &server.state.metrics;
+        wait_for("the first client's plan and cut", || {
+            m.pushes_planned.load(Ordering::Relaxed) > 0
+                && m.visible_cuts.load(Ordering::Relaxed) > 0
+        })
+        .await;
+        warm.conn.close(0u32.into(), b"done");
+    }
     let timeline = &server.state.timeline;
     timeline.start();
     let (c, _control) = hello_with_root_and_view(&server, view).await;
@@ -386,7 +411,7 @@ async fn a_resting_view_gets_its_visible_cut_pushed_in_place_of_the_frustum_plan
         tokio::time::sleep(Duration::from_millis(5)).await;
     };
     assert!(
-        server.state.metrics.visible_cuts.load(Ordering::Relaxed) >= 1,
+        server.state.metrics.visible_cuts.load(Ordering::Relaxed) >= 2,
         "a cut was counted"
     );
     let pushed: HashSet<TreeletId> = replanned.iter().copied().collect();
@@ -605,9 +630,12 @@ async fn a_cut_that_saves_too_little_leaves_the_frustum_plan_in_place() {
     let lists = pushes_per_list(timeline);
     assert_eq!(
         lists.len(),
-        1,
-        "only Hello's list: the cut was not followed"
+        2,
+        "only Hello's list, then with the pushes a reader planned (the shape cache was empty): \
+         the cut was not followed"
     );
+    assert!(lists[0].is_empty());
+    let lists = &lists[1..];
     assert!(lists[0].len() > 4, "Hello's frustum plan pushes the view");
     assert_eq!(
         cuts.load(Ordering::Relaxed),

@@ -593,9 +593,11 @@ async fn soak(resting_views: bool) {
         m("arbor_shape_cache_bytes") / 1e6,
     );
     eprintln!(
-        "server: the pool's readers ran {} jobs and skipped {} nobody waited for any more",
+        "server: the pool's readers ran {} jobs and skipped {} nobody waited for any more; {} \
+         push plans made on them",
         m("arbor_reader_jobs_total"),
         m("arbor_reader_jobs_skipped_total"),
+        m("arbor_plans_on_readers_total"),
     );
     let cuts = m("arbor_visible_cuts_total");
     eprintln!(

@@ -18,8 +18,8 @@ use tokio::task::JoinSet;
 use super::batches::Batches;
 use super::connection::{ControlReader, End, Greeting, close, hello};
 use super::push::{
-    PlannedList, PushAnchors, ShapeMissing, WorldCube, cut_has_work, cut_list, cut_saves,
-    frustum_list, push_cap,
+    LentAnchors, PlannedList, PushAnchors, ShapeMissing, WorldCube, cut_has_work, cut_list,
+    cut_saves, frustum_list, push_cap,
 };
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
 use super::shared::Shared;
@@ -92,7 +92,7 @@ pub(super) async fn serve(
     let first = match (send_root, view) {
         (false, _) => None,
         (true, None) => handler.on_request_list(0, PlannedList::plain(vec![(root, f32::MAX)])),
-        (true, Some(view)) => handler.on_hello_view(root, &view).await,
+        (true, Some(view)) => handler.on_hello_view(root, &view),
     };
     if let Some(end) = first {
         return end;
@@ -115,7 +115,7 @@ struct Handler {
     jobs: mpsc::UnboundedReceiver<Vec<TreeletId>>,
     /// Asks the opener for the next stream, in rank order.
     opens: mpsc::UnboundedSender<oneshot::Sender<OpenStream>>,
-    opener: AbortOnDrop,
+    opener: AbortOnDrop<()>,
     /// One task per batch in flight, with its batch number.
     streams: JoinSet<(u64, Vec<TreeletId>, Outcome)>,
     /// The batches in flight, each with how to cancel it.
@@ -138,7 +138,29 @@ struct Handler {
     /// view's cut arrives.
     last_deep: Option<DeepList>,
     /// What was sent for the view the connection rests on: the frustum plan goes on below it.
-    anchors: PushAnchors,
+    /// Lent to the plan being made on a reader, if any.
+    anchors: LentAnchors,
+    /// The frustum plan being made on a reader thread, if any ([`Self::start_plan`]).
+    plan_job: Option<PlanJob>,
+    /// The latest deep list applied without its pushes because its plan needs the pool, and
+    /// the list generation it was applied as; planned once no plan is being made.
+    awaiting_pushes: Option<(DeepList, u64)>,
+    /// Counts the lists applied to the scheduler (new or re-planned): a plan made on a reader
+    /// replaces the list it was made for only if none was applied since.
+    list_generation: u64,
+}
+
+/// What a plan made on a reader gives back: its list (`None`: it failed) and the anchors.
+type PlannedOnReader = (Option<PlannedList>, PushAnchors);
+
+/// A deep list's frustum plan being made on a reader thread.
+struct PlanJob {
+    /// The list's sequence number.
+    seq: u64,
+    /// The list generation the list was applied as, without its pushes.
+    generation: u64,
+    /// `None` when the plan panicked (the anchors went with it).
+    task: AbortOnDrop<Option<PlannedOnReader>>,
 }
 
 impl Handler {
@@ -217,7 +239,10 @@ impl Handler {
             cut_job: None,
             fine_skipped: None,
             last_deep: None,
-            anchors: PushAnchors::default(),
+            anchors: LentAnchors::from(PushAnchors::default()),
+            plan_job: None,
+            awaiting_pushes: None,
+            list_generation: 0,
         })
     }
 
@@ -229,7 +254,7 @@ impl Handler {
         follow.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             let end = tokio::select! {
-                frame = reader.read_frame(), if self.reading => self.on_frame(frame).await,
+                frame = reader.read_frame(), if self.reading => self.on_frame(frame),
                 Some(batch) = self.jobs.recv() => self.on_batch(batch),
                 Some(joined) = self.streams.join_next(), if !self.streams.is_empty() => {
                     match joined {
@@ -237,7 +262,10 @@ impl Handler {
                         Err(_) => None,
                     }
                 }
-                cut = join_cut(&mut self.cut_job), if self.cut_job.is_some() => self.on_cut(cut).await,
+                cut = join_cut(&mut self.cut_job), if self.cut_job.is_some() => self.on_cut(cut),
+                (job, planned) = join_plan(&mut self.plan_job), if self.plan_job.is_some() => {
+                    self.on_planned(job, planned)
+                }
                 _ = tick.tick() => self.on_tick(),
                 _ = follow.tick(), if !self.streams.is_empty() => {
                     self.update_window();
@@ -253,7 +281,7 @@ impl Handler {
     }
 
     /// A control frame from the client (or the end of its control stream).
-    async fn on_frame(&mut self, frame: Result<Option<Frame>, End>) -> Option<End> {
+    fn on_frame(&mut self, frame: Result<Option<Frame>, End>) -> Option<End> {
         match frame {
             Ok(Some(Frame::RequestList { seq, items })) => {
                 self.on_request_list(seq, PlannedList::plain(items))
@@ -263,24 +291,18 @@ impl Handler {
                 view,
                 items,
                 prefetch_from,
-            })) => {
-                self.on_deep_request_list(seq, &view, &items, prefetch_from as usize)
-                    .await
-            }
+            })) => self.on_deep_request_list(seq, &view, &items, prefetch_from as usize),
             Ok(Some(Frame::RankedRequestList {
                 seq,
                 view,
                 items,
                 prefetch_from,
-            })) => {
-                self.on_deep_request_list(
-                    seq,
-                    &view,
-                    &arbor_proto::wire::ranked_as_deep(&items),
-                    prefetch_from as usize,
-                )
-                .await
-            }
+            })) => self.on_deep_request_list(
+                seq,
+                &view,
+                &arbor_proto::wire::ranked_as_deep(&items),
+                prefetch_from as usize,
+            ),
             Ok(Some(Frame::Goodbye { code })) => Some(close(
                 ErrorCode::NoError,
                 format!("client said goodbye ({code})"),
@@ -354,6 +376,7 @@ impl Handler {
             Ok(ListOutcome::Applied {
                 obsolete_in_flight, ..
             }) => {
+                self.list_generation += 1;
                 self.rank = 0;
                 self.cancel_obsolete(&obsolete_in_flight);
                 if let Some(mut listed) = named {
@@ -387,7 +410,7 @@ impl Handler {
     /// A request list with the client's view: the listed items, then the descendants the view
     /// would refine below them (`push.rs`), within the free slots the client announced, at
     /// priorities below every listed item.
-    async fn on_deep_request_list(
+    fn on_deep_request_list(
         &mut self,
         seq: u64,
         view: &ViewHint,
@@ -417,73 +440,145 @@ impl Handler {
                 self.start_cut();
             }
         }
-        let list = self.plan(view, items, prefetch_from).await;
-        self.on_request_list(seq, list)
+        if let Some(list) = self.plan_now(view, items, prefetch_from) {
+            self.awaiting_pushes = None;
+            return self.on_request_list(seq, list);
+        }
+        // A shape the cache lacks must be read from the pool, which may wait for the disk: the
+        // listed items go now, as listed, and their pushes once a reader has planned them
+        // (`start_plan`). Planned on the worker, the city's resting soak with its pool outside
+        // the page cache waited 196–209 ms for a list's first treelet (p99), and one run left
+        // hellos unanswered for 10 s (docs/measurements.md, stop 67).
+        let listed = items.iter().map(|&(id, p, _)| (id, p)).collect();
+        if let Some(end) = self.on_request_list(seq, PlannedList::plain(listed)) {
+            return Some(end);
+        }
+        self.awaiting_pushes = Some((
+            (seq, *view, items.to_vec(), prefetch_from),
+            self.list_generation,
+        ));
+        self.start_plan();
+        None
     }
 
-    /// The list for a deep request: pushes from the view's visible cut when one answers it,
-    /// with the prefetch it does not hold set apart ([`cut_list`]), else from the frustum plan
-    /// below the listed treelets and what was already sent for the same view
-    /// ([`PushAnchors`]). Without a cut nothing tells a guess from a need, so nothing is set
+    /// The list for a deep request, if it can be made now on this worker: pushes from the
+    /// view's visible cut when one answers it, with the prefetch it does not hold set apart
+    /// ([`cut_list`]), else from the frustum plan below the listed treelets and what was
+    /// already sent for the same view ([`PushAnchors`]) when every shape that plan looks up is
+    /// in the shape cache. Without a cut nothing tells a guess from a need, so nothing is set
     /// apart: the frustum plan also pushes below prefetch items, and holding those back would
-    /// hold back their pushes too.
-    async fn plan(
+    /// hold back their pushes too. `None`: the plan needs the pool, or the anchors are lent to
+    /// a plan that does ([`Self::start_plan`]).
+    fn plan_now(
         &mut self,
         view: &ViewHint,
         items: &[(TreeletId, f32, f32)],
         prefetch_from: usize,
-    ) -> PlannedList {
+    ) -> Option<PlannedList> {
         if let Some((cut, _)) = self
             .cut
             .as_ref()
             .filter(|(c, followed)| *followed && c.complete && c.answers(view))
         {
             let core = self.shared.core();
-            return cut_list(cut, view, items, prefetch_from, MAX_REQUEST_ITEMS, |t| {
-                core.sched.was_delivered(self.id, t)
-            });
+            return Some(cut_list(
+                cut,
+                view,
+                items,
+                prefetch_from,
+                MAX_REQUEST_ITEMS,
+                |t| core.sched.was_delivered(self.id, t),
+            ));
         }
         let scene = self.ctx.scene.clone();
         let cube = WorldCube::of(&scene.stored.description);
-        // A few windows of pushes: more would be planned again before they could go out.
-        let max_items = (items.len() + push_cap(self.window)).min(MAX_REQUEST_ITEMS);
+        let max_items = self.max_planned_items(items.len());
+        let anchors = self.anchors.get_mut()?;
         let mut hits = 0;
-        let cached = frustum_list(cube, view, items, &mut self.anchors, max_items, |id| {
+        let list = frustum_list(cube, view, items, anchors, max_items, |id| {
             let shape = scene.cached_shape(id).ok_or(ShapeMissing)?;
             hits += 1;
             Ok(Some(shape))
-        });
-        if let Ok(list) = cached {
-            scene.count_shape_hits(hits);
-            return list;
+        })
+        .ok()?;
+        scene.count_shape_hits(hits);
+        Some(list)
+    }
+
+    /// Most items of a planned list of `listed` items: a few windows of pushes beyond them
+    /// (more would be planned again before they could go out).
+    fn max_planned_items(&self, listed: usize) -> usize {
+        (listed + push_cap(self.window)).min(MAX_REQUEST_ITEMS)
+    }
+
+    /// Starts planning the pushes of the deep list awaiting them on a reader thread, with the
+    /// anchors lent to it, unless a plan is being made already (its end starts the next).
+    fn start_plan(&mut self) {
+        if self.plan_job.is_some() {
+            return;
         }
-        // A shape the cache lacks is read from the pool, which may wait for the disk: the whole
-        // plan is made again on a reader, with the anchors lent to it, and this connection waits
-        // without holding an async worker (`super::readers`). Planned on the worker, the city's
-        // resting soak with its pool outside the page cache waited 183 ms for a list's first
-        // treelet (p99; 25 ms for plain lists).
-        let mut anchors = std::mem::take(&mut self.anchors);
-        let (view, listed) = (*view, items.to_vec());
-        let planned = self
-            .shared
-            .readers
-            .read(move || {
-                let list = frustum_list(cube, &view, &listed, &mut anchors, max_items, |id| {
-                    Ok(scene.shape(id))
-                });
-                (list, anchors)
-            })
-            .await;
-        match planned {
-            Ok((Ok(list), anchors)) => {
-                self.anchors = anchors;
-                list
+        let Some(((seq, view, items, _), generation)) = self.awaiting_pushes.take() else {
+            return;
+        };
+        let Some(mut anchors) = self.anchors.lend() else {
+            return;
+        };
+        let scene = self.ctx.scene.clone();
+        let cube = WorldCube::of(&scene.stored.description);
+        let max_items = self.max_planned_items(items.len());
+        let shared = self.shared.clone();
+        shared
+            .state
+            .metrics
+            .plans_on_readers
+            .fetch_add(1, Ordering::Relaxed);
+        let task = tokio::spawn(async move {
+            shared
+                .readers
+                .read(move || {
+                    let list = frustum_list(cube, &view, &items, &mut anchors, max_items, |id| {
+                        Ok(scene.shape(id))
+                    });
+                    (list.ok(), anchors)
+                })
+                .await
+                .ok()
+        });
+        self.plan_job = Some(PlanJob {
+            seq,
+            generation,
+            task: AbortOnDrop(task),
+        });
+    }
+
+    /// A plan made on a reader is back: the anchors come home, and its list replaces the one
+    /// applied without pushes, unless another list was applied since. Then the deep list
+    /// awaiting pushes now, if it is the one applied last, is planned.
+    fn on_planned(&mut self, job: PlanJob, planned: Option<PlannedOnReader>) -> Option<End> {
+        let (list, anchors) = match planned {
+            Some((list, anchors)) => (list, Some(anchors)),
+            None => {
+                tracing::error!("a push plan failed on its reader; its list went as listed");
+                (None, None)
             }
-            // A plan that panicked took the anchors with it: they start again, empty, and
-            // this list goes without pushes.
-            Ok((Err(ShapeMissing), _)) | Err(_) => {
-                tracing::error!("the push plan of a deep list failed; the list goes as listed");
-                PlannedList::plain(items.iter().map(|&(id, p, _)| (id, p)).collect())
+        };
+        self.anchors.give_back(anchors);
+        if let Some(list) = list.filter(|_| job.generation == self.list_generation)
+            && let Some(end) = self.apply_list(job.seq, list, true)
+        {
+            return Some(end);
+        }
+        let ((seq, view, items, prefetch_from), generation) = self.awaiting_pushes.take()?;
+        if generation != self.list_generation {
+            // Replaced since (a plain list, a visible cut's list): nothing awaits pushes.
+            return None;
+        }
+        match self.plan_now(&view, &items, prefetch_from) {
+            Some(list) => self.apply_list(seq, list, true),
+            None => {
+                self.awaiting_pushes = Some(((seq, view, items, prefetch_from), generation));
+                self.start_plan();
+                None
             }
         }
     }
@@ -571,7 +666,7 @@ impl Handler {
     /// A visible cut is ready: kept, and, if it saves enough to be followed, the last deep list
     /// re-planned with it when it answers that list's view (the pushes the frustum plan chose
     /// are replaced).
-    async fn on_cut(
+    fn on_cut(
         &mut self,
         cut: Result<Option<(VisibleCut, bool)>, tokio::task::JoinError>,
     ) -> Option<End> {
@@ -601,14 +696,15 @@ impl Handler {
         if !(followed && cut.complete && cut.answers(&view)) {
             return None;
         }
-        let list = self.plan(&view, &items, prefetch_from).await;
+        // A cut that answers the view is planned from at once.
+        let list = self.plan_now(&view, &items, prefetch_from)?;
         self.start_cut();
         self.apply_list(seq, list, true)
     }
 
     /// `Hello`'s view ([`arbor_proto::wire::HELLO_VIEW`], eye in root-cube units): the root
     /// and the view's refinement below it, as a deep list of sequence 0.
-    async fn on_hello_view(&mut self, root: TreeletId, view: &ViewHint) -> Option<End> {
+    fn on_hello_view(&mut self, root: TreeletId, view: &ViewHint) -> Option<End> {
         let d = &self.ctx.scene.stored.description;
         let view = ViewHint {
             eye: std::array::from_fn(|i| d.origin[i] + view.eye[i] * d.edge),
@@ -621,7 +717,6 @@ impl Handler {
             ));
         }
         self.on_deep_request_list(0, &view, &[(root, f32::MAX, ViewHint::MAX_ERROR)], 1)
-            .await
     }
 
     /// Resets the streams of batches the latest list wants nothing of any more; a batch with
@@ -801,12 +896,23 @@ impl Handler {
 }
 
 /// Aborts a task when dropped.
-struct AbortOnDrop(tokio::task::JoinHandle<()>);
+struct AbortOnDrop<T>(tokio::task::JoinHandle<T>);
 
-impl Drop for AbortOnDrop {
+impl<T> Drop for AbortOnDrop<T> {
     fn drop(&mut self) {
         self.0.abort();
     }
+}
+
+/// Waits for the plan being made on a reader (`None` never completes: the `select!` branch is
+/// disabled then), and clears the job.
+async fn join_plan(job: &mut Option<PlanJob>) -> (PlanJob, Option<PlannedOnReader>) {
+    let Some(running) = job.as_mut() else {
+        return std::future::pending().await;
+    };
+    let planned = (&mut running.task.0).await.ok().flatten();
+    let job = job.take().expect("the job just awaited");
+    (job, planned)
 }
 
 /// Waits for the visible cut being computed (`None` never completes: the `select!` branch is

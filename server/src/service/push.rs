@@ -447,6 +447,78 @@ impl PushAnchors {
     }
 }
 
+/// A connection's [`PushAnchors`], which a plan made on a reader thread borrows
+/// ([`frustum_list`] run where the pool may be read): what the connection's streams report
+/// while they are away is kept, and replayed in order when they come back, so the anchors
+/// end as if they had stayed.
+#[derive(Debug, Default)]
+pub struct LentAnchors {
+    /// `None` while lent.
+    home: Option<PushAnchors>,
+    /// Batches sent (`true`) or reset (`false`) while lent, in order.
+    missed: Vec<(bool, Vec<TreeletId>)>,
+}
+
+impl LentAnchors {
+    /// The anchors, unless they are lent.
+    pub fn get_mut(&mut self) -> Option<&mut PushAnchors> {
+        self.home.as_mut()
+    }
+
+    /// Whether the anchors are lent.
+    pub fn is_lent(&self) -> bool {
+        self.home.is_none()
+    }
+
+    /// Lends the anchors out; `None` if they are lent already.
+    pub fn lend(&mut self) -> Option<PushAnchors> {
+        self.home.take()
+    }
+
+    /// The anchors come back (`None`: lost with the plan that had them; they start again,
+    /// empty, and what was kept for them is dropped).
+    pub fn give_back(&mut self, anchors: Option<PushAnchors>) {
+        let missed = std::mem::take(&mut self.missed);
+        let Some(mut anchors) = anchors else {
+            self.home = Some(PushAnchors::default());
+            return;
+        };
+        for (sent, batch) in missed {
+            if sent {
+                anchors.note_sent(&batch);
+            } else {
+                anchors.note_unsent(&batch);
+            }
+        }
+        self.home = Some(anchors);
+    }
+
+    /// [`PushAnchors::note_sent`], now or when they come back.
+    pub fn note_sent(&mut self, batch: &[TreeletId]) {
+        match &mut self.home {
+            Some(a) => a.note_sent(batch),
+            None => self.missed.push((true, batch.to_vec())),
+        }
+    }
+
+    /// [`PushAnchors::note_unsent`], now or when they come back.
+    pub fn note_unsent(&mut self, batch: &[TreeletId]) {
+        match &mut self.home {
+            Some(a) => a.note_unsent(batch),
+            None => self.missed.push((false, batch.to_vec())),
+        }
+    }
+}
+
+impl From<PushAnchors> for LentAnchors {
+    fn from(anchors: PushAnchors) -> Self {
+        LentAnchors {
+            home: Some(anchors),
+            missed: Vec::new(),
+        }
+    }
+}
+
 /// A request list as the service hands it to the scheduler: what the client listed, planned
 /// with the server's pushes ([`cut_list`], [`deep_list_anchored`]) or as it came.
 #[derive(Clone, Debug, PartialEq)]
@@ -1261,6 +1333,56 @@ mod tests {
             Ok(expected)
         );
         assert_eq!(cached, reference);
+    }
+
+    #[test]
+    fn lent_anchors_come_back_as_if_they_had_stayed() {
+        let t = tree(3);
+        let shape = |id: TreeletId| t.get(&id).cloned();
+        let mut view = view_from([0.5, 0.5, 3.0], 0.001);
+        view.free_slots = 1 + 12;
+        let root = [(TreeletId(0), 1.0, 10.0)];
+        let mut stayed = PushAnchors::default();
+        stayed.for_view(&view);
+        let plan = plan_with_anchors(&t, &stayed, &view, &root, 12);
+        stayed.record(&root, &plan.pushes, shape);
+        let mut lent = LentAnchors::from(stayed.clone());
+        let ids: Vec<TreeletId> = plan.pushes.iter().map(|p| p.0).collect();
+        let away = lent.lend().unwrap();
+        assert!(lent.is_lent() && lent.get_mut().is_none() && lent.lend().is_none());
+        // Streams report while the anchors are away; the same reports reach `stayed` at once.
+        let reports: [(bool, &[TreeletId]); 4] = [
+            (true, &[TreeletId(0)]),
+            (true, &ids[..8]),
+            (false, &ids[2..3]),
+            (true, &ids[8..]),
+        ];
+        for (sent, batch) in reports {
+            if sent {
+                lent.note_sent(batch);
+                stayed.note_sent(batch);
+            } else {
+                lent.note_unsent(batch);
+                stayed.note_unsent(batch);
+            }
+        }
+        lent.give_back(Some(away));
+        assert!(!lent.is_lent());
+        assert_eq!(lent.get_mut(), Some(&mut stayed));
+        assert_eq!(
+            open_roots(&stayed, &[]).len(),
+            12,
+            "{:?}",
+            open_roots(&stayed, &[])
+        );
+        // Reports while home go straight in; anchors lost with their plan start again.
+        lent.note_unsent(&ids[..1]);
+        stayed.note_unsent(&ids[..1]);
+        assert_eq!(lent.get_mut(), Some(&mut stayed));
+        let _lost = lent.lend();
+        lent.note_sent(&ids);
+        lent.give_back(None);
+        assert_eq!(lent.get_mut(), Some(&mut PushAnchors::default()));
     }
 
     #[test]

@@ -822,6 +822,15 @@ impl Scheduler {
         conn.index_recent();
         let start = conn.guard_start(now);
         let guard = conn.config.redelivery_guard;
+        // A replan is the same list ranked anew, not the client naming its items again: what
+        // was sent for the list since it came is not sent again when its guard passes. Only
+        // what the list found in flight or just delivered when it came (deferred then) stays
+        // deferred.
+        let deferred_by_the_list: FxHashSet<TreeletId> = if replan {
+            conn.deferred.iter().map(|&(_, t)| t).collect()
+        } else {
+            FxHashSet::default()
+        };
         let mut deferred = Vec::new();
         let mut queue: Vec<Wanted> = conn
             .by_id
@@ -829,15 +838,18 @@ impl Scheduler {
             .filter(|w| {
                 // In flight, the client may already hold it (and have evicted it): wanted
                 // again once delivered and its guard has passed.
-                if conn.in_flight.contains_key(&w.id) {
-                    deferred.push((now + guard, w.id));
-                    return false;
+                let guard_end = if conn.in_flight.contains_key(&w.id) {
+                    Some(now + guard)
+                } else {
+                    conn.recently_delivered(w.id, start).map(|at| at + guard)
+                };
+                let Some(end) = guard_end else {
+                    return true;
+                };
+                if !replan || deferred_by_the_list.contains(&w.id) {
+                    deferred.push((end, w.id));
                 }
-                if let Some(at) = conn.recently_delivered(w.id, start) {
-                    deferred.push((at + guard, w.id));
-                    return false;
-                }
-                true
+                false
             })
             .copied()
             .collect();
@@ -1181,6 +1193,47 @@ mod tests {
         // Replans are not lists the client sent.
         let stats = s.stats(A).unwrap();
         assert_eq!((stats.lists_received, stats.lists_stale), (2, 0));
+    }
+
+    #[test]
+    fn a_replanned_list_does_not_send_again_what_was_sent_for_it() {
+        let now = Instant::now();
+        let later = now + Duration::from_secs(10);
+        // 1 is sent and delivered under list 1; list 2 names it again (the client may have
+        // evicted it) along with 2, which is sent and delivered under list 2.
+        let sent_for_list_2 = || {
+            let mut s = one(A, 4);
+            s.set_redelivery_guard(A, Duration::from_millis(100))
+                .unwrap();
+            s.handle_request_list(A, 1, list(&[(1, 1.0)]), now).unwrap();
+            assert_eq!(drain(&mut s, now), [(A, 1)]);
+            s.handle_delivered(A, t(1), now);
+            s.handle_request_list(A, 2, list(&[(1, 2.0), (2, 1.0)]), now)
+                .unwrap();
+            assert_eq!(
+                drain(&mut s, now),
+                [(A, 2)],
+                "1 is deferred: just delivered"
+            );
+            s.handle_delivered(A, t(2), now);
+            s
+        };
+        let planned = list(&[(1, 2.0), (2, 1.0), (3, 0.5)]);
+        // List 2 replanned with a push: 2, sent for the list, is not sent again; 1, which the
+        // list itself named while it was just delivered, still is once its guard passes.
+        let mut s = sent_for_list_2();
+        s.handle_replanned_list(A, 2, planned.clone(), now).unwrap();
+        assert_eq!(drain(&mut s, now), [(A, 3)]);
+        assert_eq!(s.release_deferred(A, later), 1);
+        assert_eq!(drain(&mut s, later), [(A, 1)]);
+        // The same items as a new list: the client named 2 again, so it is sent again too.
+        let mut s = sent_for_list_2();
+        s.handle_request_list(A, 3, planned, now).unwrap();
+        assert_eq!(drain(&mut s, now), [(A, 3)]);
+        assert_eq!(s.release_deferred(A, later), 2);
+        let mut again = drain(&mut s, later);
+        again.sort_unstable();
+        assert_eq!(again, [(A, 1), (A, 2)]);
     }
 
     #[test]

@@ -48,6 +48,9 @@ pub struct Metrics {
     /// (`treelets_sent / treelet_streams` is the mean batch).
     pub treelet_streams: AtomicU64,
     pub treelets_cancelled: AtomicU64,
+    /// Deep lists whose push plan needed the pool and was made on a reader, the list applied
+    /// without its pushes meanwhile.
+    pub plans_on_readers: AtomicU64,
     /// What the pool's reader threads did.
     pub pool_reads: Arc<super::ReadFigures>,
     /// Treelets planned as pushes below deep request lists, summed over lists (a push still
@@ -341,7 +344,7 @@ impl ServiceState {
         let resumes = &m.path_resumes;
         let losses = &m.loss_events;
         let reads = &m.pool_reads;
-        let counters: [(&str, &str, &AtomicU64); 21] = [
+        let counters: [(&str, &str, &AtomicU64); 22] = [
             (
                 "arbor_connections_accepted_total",
                 "QUIC connections accepted.",
@@ -393,6 +396,12 @@ impl ServiceState {
                 "Reads the pool's readers skipped because nobody waited for them any more \
                  (a batch cancelled by a newer list, a connection gone).",
                 &reads.skipped,
+            ),
+            (
+                "arbor_plans_on_readers_total",
+                "Deep lists whose push plan needed a shape the shape cache lacked, made on a \
+                 reader while the list went without its pushes.",
+                &m.plans_on_readers,
             ),
             (
                 "arbor_pushes_planned_total",
