@@ -21,6 +21,7 @@ use super::push::{
     LentAnchors, PlannedList, PushAnchors, ShapeMissing, WorldCube, cut_has_work, cut_list,
     cut_saves, frustum_list, push_cap,
 };
+use super::readers::ReadFor;
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
 use super::shared::Shared;
 use super::shutdown::Shutdown;
@@ -535,7 +536,7 @@ impl Handler {
         let task = tokio::spawn(async move {
             shared
                 .readers
-                .read(move || {
+                .read(ReadFor::Plan, move || {
                     let list = frustum_list(cube, &view, &items, &mut anchors, max_items, |id| {
                         Ok(scene.shape(id))
                     });

@@ -15,10 +15,10 @@
 //! `pool_readers` threads (8 by default, [`super::config::ServeConfig::pool_readers`]) keep a
 //! disk's queue busy and their memory bounded.
 
+use std::collections::VecDeque;
 use std::panic::AssertUnwindSafe;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::mpsc;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 
 use tokio::sync::oneshot;
 
@@ -37,12 +37,77 @@ pub struct ReadFigures {
     pub skipped: AtomicU64,
 }
 
-/// The reader threads and the queue they take jobs from. Dropping it ends them once the jobs
+/// What a read is for, which decides its turn: the readers take every queued batch before any
+/// plan.
+///
+/// Why: a batch was handed to a stream and the link waits for it (a list's first treelet, in
+/// the resting city soak from a cold pool, came only after the plans queued before it), while a
+/// plan only adds pushes, which rank below every listed treelet anyway.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum ReadFor {
+    /// The messages of a batch of treelets handed to a stream.
+    Batch,
+    /// A deep list's push plan.
+    Plan,
+}
+
+/// The queued jobs, batches before plans.
+#[derive(Default)]
+struct Queues {
+    batches: VecDeque<Job>,
+    plans: VecDeque<Job>,
+    /// No more jobs come: readers end once the queues are empty.
+    closed: bool,
+}
+
+#[derive(Default)]
+struct Shared {
+    queues: Mutex<Queues>,
+    /// Signalled when a job is queued or the queues are closed.
+    queued: Condvar,
+}
+
+impl Shared {
+    fn queues(&self) -> MutexGuard<'_, Queues> {
+        // Jobs run outside the lock, and every critical section leaves the queues whole.
+        self.queues.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The next job, batches first; `None` once the queues are closed and empty.
+    fn next(&self) -> Option<Job> {
+        let mut q = self.queues();
+        loop {
+            if let Some(job) = q.batches.pop_front().or_else(|| q.plans.pop_front()) {
+                return Some(job);
+            }
+            if q.closed {
+                return None;
+            }
+            q = self.queued.wait(q).unwrap_or_else(|p| p.into_inner());
+        }
+    }
+}
+
+/// The reader threads and the queues they take jobs from. Dropping it ends them once the jobs
 /// queued so far are done.
-#[derive(Debug)]
 pub(crate) struct PoolReaders {
-    jobs: Mutex<mpsc::Sender<Job>>,
+    shared: Arc<Shared>,
     figures: Arc<ReadFigures>,
+}
+
+impl std::fmt::Debug for PoolReaders {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PoolReaders")
+            .field("figures", &self.figures)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Drop for PoolReaders {
+    fn drop(&mut self) {
+        self.shared.queues().closed = true;
+        self.shared.queued.notify_all();
+    }
 }
 
 /// The read gave no result: it panicked (a bug; the reader goes on with the next read), or the
@@ -54,42 +119,34 @@ pub(crate) struct ReadFailed;
 impl PoolReaders {
     /// Starts `threads` readers (at least one), counting what they do in `figures`.
     pub(crate) fn start(threads: usize, figures: Arc<ReadFigures>) -> std::io::Result<Self> {
-        let (tx, rx) = mpsc::channel::<Job>();
-        let rx = Arc::new(Mutex::new(rx));
+        let shared = Arc::new(Shared::default());
         for i in 0..threads.max(1) {
-            let rx = rx.clone();
-            std::thread::Builder::new()
+            let queues = shared.clone();
+            let started = std::thread::Builder::new()
                 .name(format!("arbor-read-{i}"))
                 .spawn(move || {
-                    loop {
-                        // One reader waits for the next job while the others wait for the lock:
-                        // the lock is let go before the job runs.
-                        let job = match rx.lock() {
-                            Ok(rx) => rx.recv(),
-                            Err(_) => return,
-                        };
-                        match job {
-                            // A panicking read drops its result's sender, which tells its
-                            // caller; the reader stays for the next one.
-                            Ok(job) => {
-                                let _ = std::panic::catch_unwind(AssertUnwindSafe(job));
-                            }
-                            Err(_) => return,
-                        }
+                    while let Some(job) = queues.next() {
+                        // A panicking read drops its result's sender, which tells its caller;
+                        // the reader stays for the next one.
+                        let _ = std::panic::catch_unwind(AssertUnwindSafe(job));
                     }
-                })?;
+                });
+            if let Err(e) = started {
+                // The readers started so far end with the queues closed.
+                shared.queues().closed = true;
+                shared.queued.notify_all();
+                return Err(e);
+            }
         }
-        Ok(Self {
-            jobs: Mutex::new(tx),
-            figures,
-        })
+        Ok(Self { shared, figures })
     }
 
-    /// Runs `read` on a reader thread and waits for its result without holding the caller's
-    /// worker. A caller that stops waiting (its future dropped: a cancelled batch, a
-    /// connection gone) before its read's turn has the read skipped.
+    /// Runs `read` on a reader thread, in its turn ([`ReadFor`]), and waits for its result
+    /// without holding the caller's worker. A caller that stops waiting (its future dropped: a
+    /// cancelled batch, a connection gone) before its read's turn has the read skipped.
     pub(crate) async fn read<T: Send + 'static>(
         &self,
+        purpose: ReadFor,
         read: impl FnOnce() -> T + Send + 'static,
     ) -> Result<T, ReadFailed> {
         let (done, result) = oneshot::channel();
@@ -104,15 +161,18 @@ impl PoolReaders {
                 let _ = done.send(read());
             }
         });
-        self.figures.waiting.fetch_add(1, Ordering::Relaxed);
-        let queued = match self.jobs.lock() {
-            Ok(jobs) => jobs.send(job).is_ok(),
-            Err(_) => false,
-        };
-        if !queued {
-            self.figures.waiting.fetch_sub(1, Ordering::Relaxed);
-            return Err(ReadFailed);
+        {
+            let mut q = self.shared.queues();
+            if q.closed {
+                return Err(ReadFailed);
+            }
+            self.figures.waiting.fetch_add(1, Ordering::Relaxed);
+            match purpose {
+                ReadFor::Batch => q.batches.push_back(job),
+                ReadFor::Plan => q.plans.push_back(job),
+            }
         }
+        self.shared.queued.notify_one();
         result.await.map_err(|_| ReadFailed)
     }
 }
@@ -133,7 +193,7 @@ mod tests {
                 let (readers, running, most) = (readers.clone(), running.clone(), most.clone());
                 tokio::spawn(async move {
                     readers
-                        .read(move || {
+                        .read(ReadFor::Batch, move || {
                             let now = running.fetch_add(1, Ordering::SeqCst) + 1;
                             most.fetch_max(now, Ordering::SeqCst);
                             // A slow disk, on a reader: the runtime's only thread stays free.
@@ -161,22 +221,35 @@ mod tests {
         );
     }
 
+    /// Holds the one reader of `readers` with a read that waits for the returned sender; the
+    /// task ends `Ok(true)` once released.
+    fn hold_the_only_reader(
+        readers: &Arc<PoolReaders>,
+    ) -> (
+        std::sync::mpsc::Sender<()>,
+        tokio::task::JoinHandle<Result<bool, ReadFailed>>,
+    ) {
+        let (release, wait) = std::sync::mpsc::channel::<()>();
+        let readers = readers.clone();
+        let busy = tokio::spawn(async move {
+            readers
+                .read(ReadFor::Batch, move || wait.recv().is_ok())
+                .await
+        });
+        (release, busy)
+    }
+
     #[tokio::test(flavor = "current_thread")]
     async fn a_read_nobody_waits_for_any_more_is_skipped() {
         let figures = Arc::new(ReadFigures::default());
         let readers = Arc::new(PoolReaders::start(1, figures.clone()).unwrap());
-        // The only reader is held by a read that waits for `release`.
-        let (release, wait) = std::sync::mpsc::channel::<()>();
-        let busy = {
-            let readers = readers.clone();
-            tokio::spawn(async move { readers.read(move || wait.recv().is_ok()).await })
-        };
+        let (release, busy) = hold_the_only_reader(&readers);
         let ran = Arc::new(AtomicUsize::new(0));
         let abandoned = {
             let (readers, ran) = (readers.clone(), ran.clone());
             tokio::spawn(async move {
                 readers
-                    .read(move || ran.fetch_add(1, Ordering::SeqCst))
+                    .read(ReadFor::Batch, move || ran.fetch_add(1, Ordering::SeqCst))
                     .await
             })
         };
@@ -194,7 +267,7 @@ mod tests {
         let ran_after = {
             let ran = ran.clone();
             readers
-                .read(move || ran.load(Ordering::SeqCst))
+                .read(ReadFor::Batch, move || ran.load(Ordering::SeqCst))
                 .await
                 .unwrap()
         };
@@ -211,12 +284,50 @@ mod tests {
     }
 
     #[tokio::test(flavor = "current_thread")]
+    async fn queued_batches_are_read_before_queued_plans() {
+        let readers = Arc::new(PoolReaders::start(1, Arc::default()).unwrap());
+        let (release, busy) = hold_the_only_reader(&readers);
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        let order = Arc::new(Mutex::new(Vec::new()));
+        let queued: Vec<_> = [
+            (ReadFor::Plan, "plan 1"),
+            (ReadFor::Batch, "batch 1"),
+            (ReadFor::Plan, "plan 2"),
+            (ReadFor::Batch, "batch 2"),
+        ]
+        .into_iter()
+        .map(|(purpose, name)| {
+            let (readers, order) = (readers.clone(), order.clone());
+            // This runtime's one thread runs the tasks in the order they were spawned, so
+            // they queue their reads in it.
+            tokio::spawn(async move {
+                readers
+                    .read(purpose, move || order.lock().unwrap().push(name))
+                    .await
+            })
+        })
+        .collect();
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        release.send(()).unwrap();
+        assert!(busy.await.unwrap().unwrap());
+        for read in queued {
+            read.await.unwrap().unwrap();
+        }
+        assert_eq!(
+            *order.lock().unwrap(),
+            ["batch 1", "batch 2", "plan 1", "plan 2"]
+        );
+    }
+
+    #[tokio::test(flavor = "current_thread")]
     async fn a_read_that_panics_is_an_error_and_its_reader_reads_on() {
         let readers = PoolReaders::start(1, Arc::default()).unwrap();
-        let failed = readers.read(|| -> u32 { panic!("a read failed") }).await;
+        let failed = readers
+            .read(ReadFor::Batch, || -> u32 { panic!("a read failed") })
+            .await;
         assert!(failed.is_err());
         assert_eq!(
-            readers.read(|| 7).await.unwrap(),
+            readers.read(ReadFor::Batch, || 7).await.unwrap(),
             7,
             "the only reader is still there"
         );

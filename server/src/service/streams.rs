@@ -11,6 +11,7 @@ use arbor_proto::wire::ErrorCode;
 use arbor_proto::{Channel, TreeletId};
 use tokio::sync::{mpsc, oneshot};
 
+use super::readers::ReadFor;
 use super::schedule::ConnectionId;
 use super::shared::Shared;
 use super::timeline::Event;
@@ -242,10 +243,9 @@ async fn transfer(
             let (scene, channels) = (ctx.scene.clone(), ctx.channels.clone());
             // The time waited is the server's, not the client's ([`ProgressClock`]).
             let _waiting = ctx.clock.wait_for_read();
-            let read = ctx
-                .shared
-                .readers
-                .read(move || scene.complete_batch(partial, &channels));
+            let read = ctx.shared.readers.read(ReadFor::Batch, move || {
+                scene.complete_batch(partial, &channels)
+            });
             // A batch cancelled while its read is queued is not read: its job is skipped
             // when its turn comes (`PoolReaders::read`), so a disk-bound server spends its
             // reads on what the lists still want.
