@@ -18,8 +18,8 @@ use tokio::task::JoinSet;
 use super::batches::Batches;
 use super::connection::{ControlReader, End, Greeting, close, hello};
 use super::push::{
-    LentAnchors, PlannedList, PushAnchors, ShapeMissing, WorldCube, cut_has_work, cut_list,
-    cut_saves, frustum_list, push_cap,
+    DeferredPlans, LentAnchors, PlannedList, PushAnchors, ShapeMissing, WorldCube, cut_has_work,
+    cut_list, cut_saves, frustum_list, push_cap,
 };
 use super::readers::ReadFor;
 use super::schedule::{ConnectionConfig, ConnectionId, ListOutcome, window_for};
@@ -141,28 +141,16 @@ struct Handler {
     /// What was sent for the view the connection rests on: the frustum plan goes on below it.
     /// Lent to the plan being made on a reader, if any.
     anchors: LentAnchors,
-    /// The frustum plan being made on a reader thread, if any ([`Self::start_plan`]).
-    plan_job: Option<PlanJob>,
-    /// The latest deep list applied without its pushes because its plan needs the pool, and
-    /// the list generation it was applied as; planned once no plan is being made.
-    awaiting_pushes: Option<(DeepList, u64)>,
-    /// Counts the lists applied to the scheduler (new or re-planned): a plan made on a reader
-    /// replaces the list it was made for only if none was applied since.
-    list_generation: u64,
+    /// The frustum plan being made on a reader thread, if any ([`Self::start_plan`]); its
+    /// output is `None` when it panicked (the anchors went with it).
+    plan_job: Option<AbortOnDrop<Option<PlannedOnReader>>>,
+    /// Which deep list that plan is for, which waits for pushes, and whether a plan that comes
+    /// back is still wanted.
+    plans: DeferredPlans<DeepList>,
 }
 
 /// What a plan made on a reader gives back: its list (`None`: it failed) and the anchors.
 type PlannedOnReader = (Option<PlannedList>, PushAnchors);
-
-/// A deep list's frustum plan being made on a reader thread.
-struct PlanJob {
-    /// The list's sequence number.
-    seq: u64,
-    /// The list generation the list was applied as, without its pushes.
-    generation: u64,
-    /// `None` when the plan panicked (the anchors went with it).
-    task: AbortOnDrop<Option<PlannedOnReader>>,
-}
 
 impl Handler {
     /// Registers the accepted connection with the scheduler and starts its stream opener.
@@ -242,8 +230,7 @@ impl Handler {
             last_deep: None,
             anchors: LentAnchors::from(PushAnchors::default()),
             plan_job: None,
-            awaiting_pushes: None,
-            list_generation: 0,
+            plans: DeferredPlans::default(),
         })
     }
 
@@ -264,8 +251,8 @@ impl Handler {
                     }
                 }
                 cut = join_cut(&mut self.cut_job), if self.cut_job.is_some() => self.on_cut(cut),
-                (job, planned) = join_plan(&mut self.plan_job), if self.plan_job.is_some() => {
-                    self.on_planned(job, planned)
+                planned = join_plan(&mut self.plan_job), if self.plan_job.is_some() => {
+                    self.on_planned(planned)
                 }
                 _ = tick.tick() => self.on_tick(),
                 _ = follow.tick(), if !self.streams.is_empty() => {
@@ -377,7 +364,7 @@ impl Handler {
             Ok(ListOutcome::Applied {
                 obsolete_in_flight, ..
             }) => {
-                self.list_generation += 1;
+                self.plans.applied();
                 self.rank = 0;
                 self.cancel_obsolete(&obsolete_in_flight);
                 if let Some(mut listed) = named {
@@ -442,7 +429,7 @@ impl Handler {
             }
         }
         if let Some(list) = self.plan_now(view, items, prefetch_from) {
-            self.awaiting_pushes = None;
+            self.plans.planned_at_once();
             return self.on_request_list(seq, list);
         }
         // A shape the cache lacks must be read from the pool, which may wait for the disk: the
@@ -454,10 +441,8 @@ impl Handler {
         if let Some(end) = self.on_request_list(seq, PlannedList::plain(listed)) {
             return Some(end);
         }
-        self.awaiting_pushes = Some((
-            (seq, *view, items.to_vec(), prefetch_from),
-            self.list_generation,
-        ));
+        self.plans
+            .defer((seq, *view, items.to_vec(), prefetch_from));
         self.start_plan();
         None
     }
@@ -515,10 +500,10 @@ impl Handler {
     /// Starts planning the pushes of the deep list awaiting them on a reader thread, with the
     /// anchors lent to it, unless a plan is being made already (its end starts the next).
     fn start_plan(&mut self) {
-        if self.plan_job.is_some() {
+        if self.anchors.is_lent() {
             return;
         }
-        let Some(((seq, view, items, _), generation)) = self.awaiting_pushes.take() else {
+        let Some((_, view, items, _)) = self.plans.start(|list| list.0) else {
             return;
         };
         let Some(mut anchors) = self.anchors.lend() else {
@@ -545,17 +530,13 @@ impl Handler {
                 .await
                 .ok()
         });
-        self.plan_job = Some(PlanJob {
-            seq,
-            generation,
-            task: AbortOnDrop(task),
-        });
+        self.plan_job = Some(AbortOnDrop(task));
     }
 
     /// A plan made on a reader is back: the anchors come home, and its list replaces the one
     /// applied without pushes, unless another list was applied since. Then the deep list
     /// awaiting pushes now, if it is the one applied last, is planned.
-    fn on_planned(&mut self, job: PlanJob, planned: Option<PlannedOnReader>) -> Option<End> {
+    fn on_planned(&mut self, planned: Option<PlannedOnReader>) -> Option<End> {
         let (list, anchors) = match planned {
             Some((list, anchors)) => (list, Some(anchors)),
             None => {
@@ -564,20 +545,16 @@ impl Handler {
             }
         };
         self.anchors.give_back(anchors);
-        if let Some(list) = list.filter(|_| job.generation == self.list_generation)
-            && let Some(end) = self.apply_list(job.seq, list, true)
+        if let (Some(seq), Some(list)) = (self.plans.finish(), list)
+            && let Some(end) = self.apply_list(seq, list, true)
         {
             return Some(end);
         }
-        let ((seq, view, items, prefetch_from), generation) = self.awaiting_pushes.take()?;
-        if generation != self.list_generation {
-            // Replaced since (a plain list, a visible cut's list): nothing awaits pushes.
-            return None;
-        }
+        let (seq, view, items, prefetch_from) = self.plans.take_waiting()?;
         match self.plan_now(&view, &items, prefetch_from) {
             Some(list) => self.apply_list(seq, list, true),
             None => {
-                self.awaiting_pushes = Some(((seq, view, items, prefetch_from), generation));
+                self.plans.defer((seq, view, items, prefetch_from));
                 self.start_plan();
                 None
             }
@@ -907,13 +884,15 @@ impl<T> Drop for AbortOnDrop<T> {
 
 /// Waits for the plan being made on a reader (`None` never completes: the `select!` branch is
 /// disabled then), and clears the job.
-async fn join_plan(job: &mut Option<PlanJob>) -> (PlanJob, Option<PlannedOnReader>) {
+async fn join_plan(
+    job: &mut Option<AbortOnDrop<Option<PlannedOnReader>>>,
+) -> Option<PlannedOnReader> {
     let Some(running) = job.as_mut() else {
         return std::future::pending().await;
     };
-    let planned = (&mut running.task.0).await.ok().flatten();
-    let job = job.take().expect("the job just awaited");
-    (job, planned)
+    let planned = (&mut running.0).await.ok().flatten();
+    *job = None;
+    planned
 }
 
 /// Waits for the visible cut being computed (`None` never completes: the `select!` branch is

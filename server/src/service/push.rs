@@ -510,6 +510,82 @@ impl LentAnchors {
     }
 }
 
+/// Which deep list's frustum plan is being made on a reader, and which deep list waits for
+/// its pushes, against the lists applied to the scheduler meanwhile: the handler's rules for a
+/// plan that comes back after other lists, as plain data. `L` is the deep list as the handler
+/// keeps it, with its sequence number.
+///
+/// The rules: one plan at a time; a plan's list replaces the one applied without its pushes
+/// only if no list was applied since (a newer list, a visible cut's re-plan, another plan's);
+/// only the latest deep list waits for pushes, and only while it is the last list applied.
+#[derive(Debug)]
+pub struct DeferredPlans<L> {
+    /// Lists applied to the scheduler so far, new or re-planned.
+    generation: u64,
+    /// The plan being made: its list's sequence number and the generation the list was
+    /// applied as.
+    running: Option<(u64, u64)>,
+    /// The latest deep list applied without its pushes, and its generation.
+    waiting: Option<(L, u64)>,
+}
+
+impl<L> Default for DeferredPlans<L> {
+    fn default() -> Self {
+        DeferredPlans {
+            generation: 0,
+            running: None,
+            waiting: None,
+        }
+    }
+}
+
+impl<L> DeferredPlans<L> {
+    /// A list was applied to the scheduler.
+    pub fn applied(&mut self) {
+        self.generation += 1;
+    }
+
+    /// The deep list just applied went without its pushes: it waits for a plan.
+    pub fn defer(&mut self, list: L) {
+        self.waiting = Some((list, self.generation));
+    }
+
+    /// A deep list was applied with its pushes: none waits.
+    pub fn planned_at_once(&mut self) {
+        self.waiting = None;
+    }
+
+    /// Whether a plan is being made.
+    pub fn is_running(&self) -> bool {
+        self.running.is_some()
+    }
+
+    /// The waiting list to plan now, unless a plan is being made (its end decides). `seq` gives
+    /// a list's sequence number.
+    pub fn start(&mut self, seq: impl Fn(&L) -> u64) -> Option<L> {
+        if self.running.is_some() {
+            return None;
+        }
+        let (list, generation) = self.waiting.take()?;
+        self.running = Some((seq(&list), generation));
+        Some(list)
+    }
+
+    /// The plan being made ended: the sequence number its list is applied under, if it is to
+    /// be (no list was applied since its own).
+    pub fn finish(&mut self) -> Option<u64> {
+        let (seq, generation) = self.running.take()?;
+        (generation == self.generation).then_some(seq)
+    }
+
+    /// The list waiting for pushes, if it is still the last one applied (else it is dropped:
+    /// a later list replaced it).
+    pub fn take_waiting(&mut self) -> Option<L> {
+        let (list, generation) = self.waiting.take()?;
+        (generation == self.generation).then_some(list)
+    }
+}
+
 impl From<PushAnchors> for LentAnchors {
     fn from(anchors: PushAnchors) -> Self {
         LentAnchors {
@@ -1383,6 +1459,56 @@ mod tests {
         lent.note_sent(&ids);
         lent.give_back(None);
         assert_eq!(lent.get_mut(), Some(&mut PushAnchors::default()));
+    }
+
+    #[test]
+    fn a_deferred_plan_replaces_its_list_only_if_none_came_since() {
+        let seq = |l: &(u64, &str)| l.0;
+        let mut plans = DeferredPlans::default();
+        // List 1 goes without its pushes; its plan starts and comes back with nothing applied
+        // since: applied under 1.
+        plans.applied();
+        plans.defer((1, "one"));
+        assert_eq!(plans.start(seq), Some((1, "one")));
+        assert!(plans.is_running());
+        assert_eq!(plans.finish(), Some(1));
+        assert_eq!(plans.take_waiting(), None);
+        plans.applied();
+
+        // List 2 is deferred and planning; list 3 is deferred meanwhile and waits for the plan
+        // being made, whose list is then stale.
+        plans.applied();
+        plans.defer((2, "two"));
+        assert_eq!(plans.start(seq), Some((2, "two")));
+        plans.applied();
+        plans.defer((3, "three"));
+        assert_eq!(plans.start(seq), None, "one plan at a time");
+        assert_eq!(plans.finish(), None, "list 3 came since");
+        assert_eq!(plans.take_waiting(), Some((3, "three")));
+        // Planned at once now (the shapes came with list 2's plan) and applied.
+        plans.applied();
+
+        // List 4 is deferred; before its plan ends list 5 is planned at once: list 4's plan
+        // is stale and nothing waits.
+        plans.applied();
+        plans.defer((4, "four"));
+        assert_eq!(plans.start(seq), Some((4, "four")));
+        plans.applied();
+        plans.planned_at_once();
+        assert_eq!(plans.finish(), None);
+        assert_eq!(plans.take_waiting(), None);
+
+        // List 6 is deferred and planning; list 7 is deferred meanwhile, and then a visible
+        // cut's re-plan of list 7 is applied: list 6's plan is stale, and list 7 waits no more.
+        plans.applied();
+        plans.defer((6, "six"));
+        assert_eq!(plans.start(seq), Some((6, "six")));
+        plans.applied();
+        plans.defer((7, "seven"));
+        plans.applied();
+        assert_eq!(plans.finish(), None);
+        assert_eq!(plans.take_waiting(), None, "the cut's list replaced list 7");
+        assert!(!plans.is_running());
     }
 
     #[test]
