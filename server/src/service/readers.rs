@@ -19,6 +19,7 @@ use std::collections::VecDeque;
 use std::panic::AssertUnwindSafe;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
 
 use tokio::sync::oneshot;
 
@@ -38,7 +39,7 @@ pub struct ReadFigures {
 }
 
 /// What a read is for, which decides its turn: the readers take every queued batch before any
-/// plan.
+/// plan, unless the plan has waited [`PLAN_MAX_WAIT`].
 ///
 /// Why: a batch was handed to a stream and the link waits for it (a list's first treelet, in
 /// the resting city soak from a cold pool, came only after the plans queued before it), while a
@@ -51,17 +52,23 @@ pub(crate) enum ReadFor {
     Plan,
 }
 
-/// The queued jobs, batches before plans.
+/// How long a queued plan may wait behind batches: past this it goes first. Without a bound,
+/// a disk too slow for the batches alone would never plan, and pushes would stop.
+pub(crate) const PLAN_MAX_WAIT: Duration = Duration::from_millis(250);
+
+/// The queued jobs, batches before plans younger than [`PLAN_MAX_WAIT`].
 #[derive(Default)]
 struct Queues {
     batches: VecDeque<Job>,
-    plans: VecDeque<Job>,
+    /// Each with when it was queued.
+    plans: VecDeque<(Instant, Job)>,
     /// No more jobs come: readers end once the queues are empty.
     closed: bool,
 }
 
-#[derive(Default)]
 struct Shared {
+    /// [`PLAN_MAX_WAIT`] (tests set their own).
+    plan_max_wait: Duration,
     queues: Mutex<Queues>,
     /// Signalled when a job is queued or the queues are closed.
     queued: Condvar,
@@ -73,11 +80,23 @@ impl Shared {
         self.queues.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// The next job, batches first; `None` once the queues are closed and empty.
+    /// The next job: a plan that has waited [`PLAN_MAX_WAIT`], else a batch, else a plan;
+    /// `None` once the queues are closed and empty.
     fn next(&self) -> Option<Job> {
         let mut q = self.queues();
         loop {
-            if let Some(job) = q.batches.pop_front().or_else(|| q.plans.pop_front()) {
+            let overdue = q
+                .plans
+                .front()
+                .is_some_and(|(queued, _)| queued.elapsed() >= self.plan_max_wait);
+            let job = if overdue {
+                q.plans.pop_front().map(|(_, job)| job)
+            } else {
+                q.batches
+                    .pop_front()
+                    .or_else(|| q.plans.pop_front().map(|(_, job)| job))
+            };
+            if let Some(job) = job {
                 return Some(job);
             }
             if q.closed {
@@ -119,7 +138,20 @@ pub(crate) struct ReadFailed;
 impl PoolReaders {
     /// Starts `threads` readers (at least one), counting what they do in `figures`.
     pub(crate) fn start(threads: usize, figures: Arc<ReadFigures>) -> std::io::Result<Self> {
-        let shared = Arc::new(Shared::default());
+        Self::start_with(threads, figures, PLAN_MAX_WAIT)
+    }
+
+    /// [`Self::start`] with plans waiting at most `plan_max_wait` behind batches.
+    fn start_with(
+        threads: usize,
+        figures: Arc<ReadFigures>,
+        plan_max_wait: Duration,
+    ) -> std::io::Result<Self> {
+        let shared = Arc::new(Shared {
+            plan_max_wait,
+            queues: Mutex::default(),
+            queued: Condvar::new(),
+        });
         for i in 0..threads.max(1) {
             let queues = shared.clone();
             let started = std::thread::Builder::new()
@@ -169,7 +201,7 @@ impl PoolReaders {
             self.figures.waiting.fetch_add(1, Ordering::Relaxed);
             match purpose {
                 ReadFor::Batch => q.batches.push_back(job),
-                ReadFor::Plan => q.plans.push_back(job),
+                ReadFor::Plan => q.plans.push_back((Instant::now(), job)),
             }
         }
         self.shared.queued.notify_one();
@@ -285,7 +317,9 @@ mod tests {
 
     #[tokio::test(flavor = "current_thread")]
     async fn queued_batches_are_read_before_queued_plans() {
-        let readers = Arc::new(PoolReaders::start(1, Arc::default()).unwrap());
+        // Plans never overdue here, however slow the machine.
+        let hour = Duration::from_secs(3_600);
+        let readers = Arc::new(PoolReaders::start_with(1, Arc::default(), hour).unwrap());
         let (release, busy) = hold_the_only_reader(&readers);
         tokio::time::sleep(Duration::from_millis(20)).await;
         let order = Arc::new(Mutex::new(Vec::new()));
@@ -317,6 +351,32 @@ mod tests {
             *order.lock().unwrap(),
             ["batch 1", "batch 2", "plan 1", "plan 2"]
         );
+    }
+
+    #[tokio::test(flavor = "current_thread")]
+    async fn a_plan_that_waited_too_long_goes_before_the_batches() {
+        let max_wait = Duration::from_millis(50);
+        let readers = Arc::new(PoolReaders::start_with(1, Arc::default(), max_wait).unwrap());
+        let (release, busy) = hold_the_only_reader(&readers);
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        let order = Arc::new(Mutex::new(Vec::new()));
+        let read = |purpose, name| {
+            let (readers, order) = (readers.clone(), order.clone());
+            tokio::spawn(async move {
+                readers
+                    .read(purpose, move || order.lock().unwrap().push(name))
+                    .await
+            })
+        };
+        let plan = read(ReadFor::Plan, "plan");
+        tokio::time::sleep(max_wait + Duration::from_millis(20)).await;
+        let batch = read(ReadFor::Batch, "batch");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        release.send(()).unwrap();
+        assert!(busy.await.unwrap().unwrap());
+        plan.await.unwrap().unwrap();
+        batch.await.unwrap().unwrap();
+        assert_eq!(*order.lock().unwrap(), ["plan", "batch"]);
     }
 
     #[tokio::test(flavor = "current_thread")]
