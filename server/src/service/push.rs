@@ -555,11 +555,6 @@ impl<L> DeferredPlans<L> {
         self.waiting = None;
     }
 
-    /// Whether a plan is being made.
-    pub fn is_running(&self) -> bool {
-        self.running.is_some()
-    }
-
     /// The waiting list to plan now, unless a plan is being made (its end decides). `seq` gives
     /// a list's sequence number.
     pub fn start(&mut self, seq: impl Fn(&L) -> u64) -> Option<L> {
@@ -1470,8 +1465,10 @@ mod tests {
         plans.applied();
         plans.defer((1, "one"));
         assert_eq!(plans.start(seq), Some((1, "one")));
-        assert!(plans.is_running());
+        plans.defer((1, "one again"));
+        assert_eq!(plans.start(seq), None, "a plan is being made");
         assert_eq!(plans.finish(), Some(1));
+        plans.planned_at_once();
         assert_eq!(plans.take_waiting(), None);
         plans.applied();
 
@@ -1508,7 +1505,12 @@ mod tests {
         plans.applied();
         assert_eq!(plans.finish(), None);
         assert_eq!(plans.take_waiting(), None, "the cut's list replaced list 7");
-        assert!(!plans.is_running());
+        plans.defer((8, "eight"));
+        assert_eq!(
+            plans.start(seq),
+            Some((8, "eight")),
+            "no plan is being made"
+        );
     }
 
     #[test]

@@ -66,7 +66,7 @@ struct Queues {
     closed: bool,
 }
 
-struct Shared {
+struct Jobs {
     /// [`PLAN_MAX_WAIT`] (tests set their own).
     plan_max_wait: Duration,
     queues: Mutex<Queues>,
@@ -74,7 +74,7 @@ struct Shared {
     queued: Condvar,
 }
 
-impl Shared {
+impl Jobs {
     fn queues(&self) -> MutexGuard<'_, Queues> {
         // Jobs run outside the lock, and every critical section leaves the queues whole.
         self.queues.lock().unwrap_or_else(|p| p.into_inner())
@@ -110,7 +110,7 @@ impl Shared {
 /// The reader threads and the queues they take jobs from. Dropping it ends them once the jobs
 /// queued so far are done.
 pub(crate) struct PoolReaders {
-    shared: Arc<Shared>,
+    jobs: Arc<Jobs>,
     figures: Arc<ReadFigures>,
 }
 
@@ -124,8 +124,8 @@ impl std::fmt::Debug for PoolReaders {
 
 impl Drop for PoolReaders {
     fn drop(&mut self) {
-        self.shared.queues().closed = true;
-        self.shared.queued.notify_all();
+        self.jobs.queues().closed = true;
+        self.jobs.queued.notify_all();
     }
 }
 
@@ -147,13 +147,13 @@ impl PoolReaders {
         figures: Arc<ReadFigures>,
         plan_max_wait: Duration,
     ) -> std::io::Result<Self> {
-        let shared = Arc::new(Shared {
+        let jobs = Arc::new(Jobs {
             plan_max_wait,
             queues: Mutex::default(),
             queued: Condvar::new(),
         });
         for i in 0..threads.max(1) {
-            let queues = shared.clone();
+            let queues = jobs.clone();
             let started = std::thread::Builder::new()
                 .name(format!("arbor-read-{i}"))
                 .spawn(move || {
@@ -165,12 +165,12 @@ impl PoolReaders {
                 });
             if let Err(e) = started {
                 // The readers started so far end with the queues closed.
-                shared.queues().closed = true;
-                shared.queued.notify_all();
+                jobs.queues().closed = true;
+                jobs.queued.notify_all();
                 return Err(e);
             }
         }
-        Ok(Self { shared, figures })
+        Ok(Self { jobs, figures })
     }
 
     /// Runs `read` on a reader thread, in its turn ([`ReadFor`]), and waits for its result
@@ -194,7 +194,7 @@ impl PoolReaders {
             }
         });
         {
-            let mut q = self.shared.queues();
+            let mut q = self.jobs.queues();
             if q.closed {
                 return Err(ReadFailed);
             }
@@ -204,7 +204,7 @@ impl PoolReaders {
                 ReadFor::Plan => q.plans.push_back((Instant::now(), job)),
             }
         }
-        self.shared.queued.notify_one();
+        self.jobs.queued.notify_one();
         result.await.map_err(|_| ReadFailed)
     }
 }
@@ -271,6 +271,21 @@ mod tests {
         (release, busy)
     }
 
+    /// Spawns a read for `purpose` that adds `name` to `order` when it runs.
+    fn read_in_turn(
+        readers: &Arc<PoolReaders>,
+        order: &Arc<Mutex<Vec<&'static str>>>,
+        purpose: ReadFor,
+        name: &'static str,
+    ) -> tokio::task::JoinHandle<Result<(), ReadFailed>> {
+        let (readers, order) = (readers.clone(), order.clone());
+        tokio::spawn(async move {
+            readers
+                .read(purpose, move || order.lock().unwrap().push(name))
+                .await
+        })
+    }
+
     #[tokio::test(flavor = "current_thread")]
     async fn a_read_nobody_waits_for_any_more_is_skipped() {
         let figures = Arc::new(ReadFigures::default());
@@ -323,6 +338,8 @@ mod tests {
         let (release, busy) = hold_the_only_reader(&readers);
         tokio::time::sleep(Duration::from_millis(20)).await;
         let order = Arc::new(Mutex::new(Vec::new()));
+        // This runtime's one thread runs the tasks in the order they were spawned, so they
+        // queue their reads in it.
         let queued: Vec<_> = [
             (ReadFor::Plan, "plan 1"),
             (ReadFor::Batch, "batch 1"),
@@ -330,16 +347,7 @@ mod tests {
             (ReadFor::Batch, "batch 2"),
         ]
         .into_iter()
-        .map(|(purpose, name)| {
-            let (readers, order) = (readers.clone(), order.clone());
-            // This runtime's one thread runs the tasks in the order they were spawned, so
-            // they queue their reads in it.
-            tokio::spawn(async move {
-                readers
-                    .read(purpose, move || order.lock().unwrap().push(name))
-                    .await
-            })
-        })
+        .map(|(purpose, name)| read_in_turn(&readers, &order, purpose, name))
         .collect();
         tokio::time::sleep(Duration::from_millis(20)).await;
         release.send(()).unwrap();
@@ -360,14 +368,7 @@ mod tests {
         let (release, busy) = hold_the_only_reader(&readers);
         tokio::time::sleep(Duration::from_millis(20)).await;
         let order = Arc::new(Mutex::new(Vec::new()));
-        let read = |purpose, name| {
-            let (readers, order) = (readers.clone(), order.clone());
-            tokio::spawn(async move {
-                readers
-                    .read(purpose, move || order.lock().unwrap().push(name))
-                    .await
-            })
-        };
+        let read = |purpose, name| read_in_turn(&readers, &order, purpose, name);
         let plan = read(ReadFor::Plan, "plan");
         tokio::time::sleep(max_wait + Duration::from_millis(20)).await;
         let batch = read(ReadFor::Batch, "batch");
