@@ -18,6 +18,8 @@
 //!   `ARBOR_SCALE_DIR` (no tiles, import or verify);
 //! * `ARBOR_SCALE_SERVER_BIN=PATH` — the stream step serves from this `arbor-server` instead of
 //!   the one built with the bench (another build's, to compare two in turns);
+//! * `ARBOR_SCALE_FIRST_VIEW_AFTER_MS=N` — the stream step's first view waits N ms after its
+//!   server started (a client that comes a while after a restart; default 0);
 //! * `ARBOR_SCALE_SERVER_LOG=FILE` — append the stream step's servers' logs (stderr, with
 //!   `RUST_LOG` as set) to FILE instead of dropping them.
 //!

@@ -18,7 +18,7 @@ use arbor_server::logging::LogFormat;
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
-use arbor_server::service::config::AdminTls;
+use arbor_server::service::config::{AdminTls, PoolPrewarm};
 use arbor_server::service::{ConfigOverrides, ServeConfig};
 use arbor_server::verify;
 use clap::{Args, Parser, Subcommand};
@@ -206,6 +206,11 @@ enum Command {
         /// `low` (nice 10: an import always progresses, streaming slows while it runs).
         #[arg(long, value_enum, default_value_t = ImportPriority::Idle)]
         import_priority: ImportPriority,
+        /// Read the pool's files into the page cache at start, so a fresh server's reads need
+        /// not wait for the disk: `auto` (when they fit in half of the memory left), `always`,
+        /// or `off` (overrides `pool_prewarm`) [default: auto].
+        #[arg(long, value_enum)]
+        pool_prewarm: Option<PoolPrewarm>,
     },
 }
 
@@ -388,6 +393,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             import_root,
             import_scratch,
             import_priority,
+            pool_prewarm,
         } => {
             let overrides = ConfigOverrides {
                 db,
@@ -395,6 +401,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 admin_listen: admin.map(|a| a.0),
                 admin_tls,
                 data_dir,
+                pool_prewarm,
             };
             let config = ServeConfig::load(config.as_deref(), &overrides)?;
             let rt = tokio::runtime::Builder::new_multi_thread()

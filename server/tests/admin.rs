@@ -104,6 +104,8 @@ fn fill(state: &ServiceState) {
     m.treelet_bytes_sent.store(987_654, Ordering::Relaxed);
     m.treelet_streams.store(31, Ordering::Relaxed);
     m.treelets_cancelled.store(7, Ordering::Relaxed);
+    m.pool_prewarm.total.store(3 << 20, Ordering::Relaxed);
+    m.pool_prewarm.read.store(1 << 20, Ordering::Relaxed);
     m.error(ErrorCode::FrameTooLarge);
     m.error(ErrorCode::FrameTooLarge);
     m.error(ErrorCode::Unauthorized);
@@ -825,6 +827,9 @@ async fn metrics_parse_and_report_the_state_and_the_pool() {
         ("arbor_treelet_bytes_sent_total", 987_654.0),
         ("arbor_treelet_streams_total", 31.0),
         ("arbor_treelets_cancelled_total", 7.0),
+        ("arbor_pool_prewarm_total_bytes", 3_145_728.0),
+        ("arbor_pool_prewarm_read_bytes", 1_048_576.0),
+        ("arbor_pool_prewarm_done", 0.0),
         ("arbor_queue_depth", 7.0),
         ("arbor_in_flight", 5.0),
         ("arbor_ready", 1.0),

@@ -38,8 +38,15 @@ fn serve(dir: &Path, config: &Path) -> Serving {
 }
 
 fn serve_on(dir: &Path, config: &Path, listen: &str) -> Serving {
+    serve_with(dir, config, listen, &[])
+}
+
+/// [`serve_on`] with more flags.
+fn serve_with(dir: &Path, config: &Path, listen: &str, flags: &[&str]) -> Serving {
     let mut child = Command::new(BIN)
-        .args(["serve", "--db"])
+        .arg("serve")
+        .args(flags)
+        .arg("--db")
         .arg(dir.join("pool"))
         .args(["--listen", listen, "--admin", "127.0.0.1:0", "--config"])
         .arg(config)
@@ -343,6 +350,58 @@ async fn receive(
         }
     }
     ids
+}
+
+/// `pool_prewarm`: with "always" in the config the server reads the whole pool into the page
+/// cache at start and `/metrics` says how much and that it is done; `--pool-prewarm off`
+/// overrides the file and nothing is read.
+#[test]
+fn the_pool_is_prewarmed_at_start_unless_turned_off() {
+    let (dir, config) = bunny_pool_and_config();
+    let text = std::fs::read_to_string(&config).unwrap();
+    std::fs::write(&config, format!("pool_prewarm = \"always\"\n{text}")).unwrap();
+    let db_bytes = std::fs::metadata(dir.path().join("pool").join("db"))
+        .unwrap()
+        .len();
+    assert!(db_bytes > 0);
+    let done = |server: &Serving| {
+        let token = std::fs::read_to_string(&server.token_file).unwrap();
+        let t0 = std::time::Instant::now();
+        loop {
+            let metrics = http_get(&server.admin, "/metrics", token.trim());
+            if sample(&metrics, "arbor_pool_prewarm_done") == 1.0 {
+                return metrics;
+            }
+            assert!(
+                t0.elapsed() < Duration::from_secs(30),
+                "the prewarm did not end in 30 s: {metrics}"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    };
+    let mut warmed = serve(dir.path(), &config);
+    let metrics = done(&warmed);
+    let total = sample(&metrics, "arbor_pool_prewarm_total_bytes");
+    assert!(
+        total >= db_bytes as f64,
+        "{total} < the db file's {db_bytes}"
+    );
+    assert_eq!(sample(&metrics, "arbor_pool_prewarm_read_bytes"), total);
+    signal(&warmed.child, "-TERM");
+    assert_eq!(
+        wait_exit(&mut warmed.child, Duration::from_secs(5)).code(),
+        Some(0)
+    );
+
+    let off = serve_with(
+        dir.path(),
+        &config,
+        "127.0.0.1:0",
+        &["--pool-prewarm", "off"],
+    );
+    let metrics = done(&off);
+    assert_eq!(sample(&metrics, "arbor_pool_prewarm_total_bytes"), 0.0);
+    assert_eq!(sample(&metrics, "arbor_pool_prewarm_read_bytes"), 0.0);
 }
 
 /// Serves on a free loopback port and starts a client library connection to it: the listen

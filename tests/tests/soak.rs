@@ -481,6 +481,11 @@ async fn soak(resting_views: bool) {
     if let Some(config) = std::env::var_os("ARBOR_SOAK_CONFIG") {
         server.arg("--config").arg(workspace_path(config));
     }
+    if std::env::var_os("ARBOR_SOAK_MEMORY_LIMIT").is_some() {
+        // The server decides on its prewarm before it is confined, by the machine's memory;
+        // a cold pool is what a confined soak measures.
+        server.args(["--pool-prewarm", "off"]);
+    }
     // Kept past the run: an error the clients count is explained only by the server's side.
     let log_path = workspace_path(format!(
         "target/soak/server-{}.log",

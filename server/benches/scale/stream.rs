@@ -167,10 +167,17 @@ pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
         .enable_all()
         .build()
         .unwrap();
+    let first_view_after = Duration::from_millis(
+        std::env::var("ARBOR_SCALE_FIRST_VIEW_AFTER_MS")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0),
+    );
     println!();
     println!(
-        "stream 1024x768, budget {} MiB, loopback; {VIEWS} views per server, the first from a fresh one:",
-        BUDGET >> 20
+        "stream 1024x768, budget {} MiB, loopback; {VIEWS} views per server, the first from a fresh one {} ms after it started:",
+        BUDGET >> 20,
+        first_view_after.as_millis()
     );
     for (servers, config) in [
         ("visible cuts on (the default)", None),
@@ -181,6 +188,9 @@ pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
     ] {
         println!(" {servers}");
         let server = Server::start(server_bin, pool, scene, config);
+        if !first_view_after.is_zero() {
+            std::thread::sleep(first_view_after);
+        }
         for view in 0..VIEWS {
             let what = if view == 0 { "first view" } else { "again" };
             stream_view(&server, what, &runtime);

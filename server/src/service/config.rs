@@ -20,6 +20,7 @@
 //! random_loss_tolerance = true        # a loss with no queue behind it cuts the window one time in eight; false: every time
 //! pool_cache_bytes = 134217728        # pool pages sled keeps decoded, server-wide
 //! pool_readers = 8                    # threads reading treelets from the pool, so a disk read never holds an async worker
+//! pool_prewarm = "auto"              # read the pool's files into the page cache at start: "auto" (if they fit in half the memory left), "always", "off" (CLI --pool-prewarm)
 //! message_cache_bytes = 67108864      # built treelet messages kept for sending again, server-wide
 //! shape_cache_bytes = 33554432        # decoded treelet shapes the push plans walk, server-wide
 //! visibility_grid = 128               # rays along a resting view's longer side for the visible cut its pushes follow; 0: off
@@ -59,6 +60,8 @@ use arbor_proto::limits::{MAX_FRAME_BYTES, MAX_REQUEST_ITEMS, MAX_TOKEN_BYTES};
 use arbor_proto::scene::validate_scene_name;
 use arbor_proto::wire::ErrorCode;
 use serde::Deserialize;
+
+pub use super::prewarm::PoolPrewarm;
 
 /// Default QUIC listen address.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:4433";
@@ -217,6 +220,11 @@ pub struct ServeConfig {
     /// disk with a deep queue (NVMe) and costs each thread's allocator heap; with the pool
     /// cached they only wait for the CPU.
     pub pool_readers: usize,
+    /// Whether the pool's files are read into the page cache at start, front to back in large
+    /// reads, so that a fresh server's treelet reads need not wait for a disk that limits its
+    /// reads per second (`service::prewarm`). `auto` reads them when they fit in half of the
+    /// memory the process may still use.
+    pub pool_prewarm: PoolPrewarm,
     /// Bytes of built treelet messages kept server-wide, so a treelet sent again costs no pool
     /// read (0: none kept).
     pub message_cache_bytes: u64,
@@ -284,6 +292,7 @@ pub struct ConfigOverrides {
     pub admin_listen: Option<Option<SocketAddr>>,
     pub admin_tls: Option<AdminTls>,
     pub data_dir: Option<PathBuf>,
+    pub pool_prewarm: Option<PoolPrewarm>,
 }
 
 /// How [`ServeConfig::max_connection_memory`] is divided (bytes).
@@ -441,6 +450,7 @@ struct FileConfig {
     transparent_huge_pages: Option<bool>,
     pool_cache_bytes: Option<u64>,
     pool_readers: Option<usize>,
+    pool_prewarm: Option<PoolPrewarm>,
     message_cache_bytes: Option<u64>,
     shape_cache_bytes: Option<u64>,
     visibility_grid: Option<u32>,
@@ -566,6 +576,7 @@ impl ServeConfig {
             transparent_huge_pages: false,
             pool_cache_bytes: crate::pool::POOL_CACHE_BYTES,
             pool_readers: DEFAULT_POOL_READERS,
+            pool_prewarm: PoolPrewarm::Auto,
             message_cache_bytes: DEFAULT_MESSAGE_CACHE_BYTES,
             shape_cache_bytes: DEFAULT_SHAPE_CACHE_BYTES,
             visibility_grid: DEFAULT_VISIBILITY_GRID,
@@ -656,6 +667,10 @@ impl ServeConfig {
         c.probe_token = f.probe_token;
         c.tls = tls_source(f.cert, f.key, ("cert", "key"))?;
         c.admin_tls = overrides.admin_tls.or(f.admin_tls).unwrap_or_default();
+        c.pool_prewarm = overrides
+            .pool_prewarm
+            .or(f.pool_prewarm)
+            .unwrap_or_default();
         c.admin_identity = tls_source(f.admin_cert, f.admin_key, ("admin_cert", "admin_key"))?;
         macro_rules! take {
             ($($field:ident),*) => { $( if let Some(v) = f.$field { c.$field = v; } )* };
@@ -1026,6 +1041,7 @@ hello_timeout_ms = 5000
 max_connection_memory = 67108864
 pool_cache_bytes = 1073741824
 pool_readers = 32
+pool_prewarm = "off"
 shape_cache_bytes = 1048576
 window_min = 8
 window_max = 256
@@ -1055,6 +1071,7 @@ access = "public"
         assert_eq!(c.shape_cache_bytes, 1 << 20);
         assert_eq!(c.pool_cache_bytes, 1 << 30);
         assert_eq!(c.pool_readers, 32);
+        assert_eq!(c.pool_prewarm, PoolPrewarm::Off);
         assert!(!c.random_loss_tolerance);
         assert!(ServeConfig::new("p").random_loss_tolerance, "on by default");
         assert_eq!(c.default_access, Access::Token);
@@ -1153,10 +1170,11 @@ access = "public"
             listen: Some("127.0.0.1:1".parse().unwrap()),
             admin_listen: Some(None),
             data_dir: Some("cli-data".into()),
+            pool_prewarm: Some(PoolPrewarm::Always),
             ..ConfigOverrides::default()
         };
         let c = ServeConfig::from_toml(
-            "db = \"file-db\"\nlisten = \"0.0.0.0:5\"\nadmin_listen = \"127.0.0.1:6\"\ndata_dir = \"d\"",
+            "db = \"file-db\"\nlisten = \"0.0.0.0:5\"\nadmin_listen = \"127.0.0.1:6\"\ndata_dir = \"d\"\npool_prewarm = \"off\"",
             Path::new("x"),
             &o,
         )
@@ -1165,6 +1183,11 @@ access = "public"
         assert_eq!(c.listen, "127.0.0.1:1".parse().unwrap());
         assert_eq!(c.admin_listen, None);
         assert_eq!(c.data_dir(), Path::new("cli-data"));
+        assert_eq!(
+            c.pool_prewarm,
+            PoolPrewarm::Always,
+            "the flag over the file"
+        );
         assert_eq!(
             parse("db = \"p\"\nadmin_listen = \"off\"")
                 .unwrap()
@@ -1189,6 +1212,8 @@ access = "public"
         assert!(e.contains("key `scenes.bunny.access`"), "{e}");
         let e = err("db = \"p\"\ndefault_access = \"maybe\"\n");
         assert!(e.contains("default_access"), "{e}");
+        let e = err("db = \"p\"\npool_prewarm = \"sometimes\"\n");
+        assert!(e.contains("key `pool_prewarm`"), "{e}");
         // Syntax errors still say where.
         let e = err("db = \"p\"\nmax_connections = \n");
         assert!(e.contains("max_connections"), "{e}");

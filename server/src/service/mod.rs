@@ -27,6 +27,8 @@
 //!   shapes those plans walk, decoded once and kept server-wide within `shape_cache_bytes`;
 //!   [`generations`]: the byte-bounded cache of two generations that holds those shapes and
 //!   the node records the cuts read (`visibility_node_cache_bytes`).
+//! * [`prewarm`]: the pool's files read into the page cache once at start (`pool_prewarm`), so a
+//!   fresh server does not wait on a disk that limits its reads per second.
 //! * [`path_memory`]: each client address's last congestion window and RTT, so a returning
 //!   client's connection resumes near the rate its path carried instead of slow-starting
 //!   (careful resume; `path_memory_secs`).
@@ -36,6 +38,7 @@ pub mod connection;
 pub mod generations;
 mod handler;
 pub mod path_memory;
+pub mod prewarm;
 pub mod push;
 pub mod random_loss;
 mod readers;

@@ -13,6 +13,7 @@ use tokio::sync::{Notify, mpsc};
 
 use super::config::ServeConfig;
 use super::path_memory::PathObserver;
+use super::prewarm::Prewarm;
 use super::readers::PoolReaders;
 use super::schedule::{ConnectionId, Scheduler, SchedulerConfig};
 use super::server::{path_factory, transport_config};
@@ -45,6 +46,9 @@ pub(crate) struct Shared {
     pub wake: Notify,
     /// The threads that read treelet messages from the pool ([`super::readers`]).
     pub readers: PoolReaders,
+    /// The start's read of the pool into the page cache, stopped when the service ends
+    /// ([`super::prewarm`]).
+    _prewarm: Option<Prewarm>,
     /// The served form of each scene some connection uses, by name: held by the connections,
     /// so a scene's served state (its prepared dictionaries, a visible cut's node buffer) lives
     /// as long as someone is served it, not for the rest of the process.
@@ -69,6 +73,12 @@ impl Shared {
         state: Arc<ServiceState>,
     ) -> std::io::Result<Self> {
         let readers = PoolReaders::start(config.pool_readers, state.metrics.pool_reads.clone())?;
+        let prewarm = super::prewarm::start(
+            &config.db,
+            config.pool_prewarm,
+            state.metrics.pool_reads.clone(),
+            state.metrics.pool_prewarm.clone(),
+        );
         let max_in_flight = config.max_connections.saturating_mul(config.window_max);
         let caches = ServiceCaches::for_config(&config);
         state.set_caches(caches.clone());
@@ -99,6 +109,7 @@ impl Shared {
             }),
             wake: Notify::new(),
             readers,
+            _prewarm: prewarm,
             scenes: Mutex::new(HashMap::new()),
             caches,
             next_id: AtomicU64::new(1),

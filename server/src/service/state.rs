@@ -53,6 +53,8 @@ pub struct Metrics {
     pub plans_on_readers: AtomicU64,
     /// What the pool's reader threads did.
     pub pool_reads: Arc<super::ReadFigures>,
+    /// How far the start's read of the pool into the page cache went (`service::prewarm`).
+    pub pool_prewarm: Arc<super::prewarm::PrewarmFigures>,
     /// Treelets planned as pushes below deep request lists, summed over lists (a push still
     /// implied by the next list is planned again).
     pub pushes_planned: AtomicU64,
@@ -489,6 +491,25 @@ impl ServiceState {
             Kind::Gauge,
             "Reads queued for or running on the pool's readers now.",
             load(&reads.waiting),
+        )
+        .single(
+            "arbor_pool_prewarm_total_bytes",
+            Kind::Gauge,
+            "Bytes of the pool's files the start's prewarm set out to read into the page cache \
+             (0: it did not run; see pool_prewarm).",
+            load(&m.pool_prewarm.total),
+        )
+        .single(
+            "arbor_pool_prewarm_read_bytes",
+            Kind::Gauge,
+            "Bytes of the pool's files the prewarm has read so far.",
+            load(&m.pool_prewarm.read),
+        )
+        .single(
+            "arbor_pool_prewarm_done",
+            Kind::Gauge,
+            "1 once the prewarm ended (read all, stopped, skipped or failed).",
+            load(&m.pool_prewarm.done),
         )
         .single(
             "arbor_queue_depth",

@@ -1,0 +1,646 @@
+//! Reading the pool's files into the page cache once at start (`pool_prewarm`), front to back
+//! in large reads, so that a fresh server's treelet reads find their pages in memory instead of
+//! waiting for the disk one page at a time.
+//!
+//! Why: a treelet read is a page or two somewhere in the pool's file. A disk that limits
+//! operations per second (cloud block storage: a burst, then a baseline of a few hundred)
+//! serves those one at a time: with the server held to 500 reads/s, a fresh server's first
+//! view of the 10⁸-point city (some 10,000 such reads; about 1 s otherwise) did not converge in
+//! 3.1–3.9 s. The city's 1.47 GB pool read front to back is a few hundred reads of about a MiB
+//! (6–7 s at that limit, under 1 s without it); a client that came 12 s after the start then
+//! converged in 0.89–0.98 s (docs/measurements.md, stop 68).
+//!
+//! It runs on a thread of its own beside the service, which serves from the start, and reads a
+//! chunk only once the pool's readers have been quiet for a while ([`QuietReaders`]), so a
+//! client's reads never wait behind it. What it costs: page cache, not the server's own memory.
+//! So by default (`auto`) it runs only when the pool's files fit in half of the memory the
+//! process may still use (`MemAvailable`, and the room below its cgroup's limit): a pool larger
+//! than that would evict its own pages before clients asked for them, and the server reads at
+//! random as before. `/metrics` shows its progress (`arbor_pool_prewarm_*`).
+
+use std::fs::File;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use serde::Deserialize;
+
+use super::readers::ReadFigures;
+
+/// Whether the pool's files are read into the page cache at start (`pool_prewarm`, CLI
+/// `--pool-prewarm`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum PoolPrewarm {
+    /// When the files fit in half of the memory the process may still use.
+    #[default]
+    Auto,
+    /// Always, however large (a pool larger than memory evicts its own pages as it goes).
+    Always,
+    /// Never: every page is read from the disk when a treelet first needs it.
+    Off,
+}
+
+/// How many bytes one read takes: large enough that a disk limited in operations per second
+/// reads the pool at its bandwidth.
+pub const PREWARM_READ_BYTES: usize = 4 << 20;
+
+/// What the prewarm did, for `/metrics`.
+#[derive(Debug, Default)]
+pub struct PrewarmFigures {
+    /// Bytes it set out to read (0: it did not run).
+    pub total: AtomicU64,
+    /// Bytes read so far.
+    pub read: AtomicU64,
+    /// 1 once it ended (all read, stopped, or failed), else 0.
+    pub done: AtomicU64,
+}
+
+/// Whether to prewarm, and why not.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Decision {
+    /// Read the files.
+    Warm,
+    /// Do not; the reason, for the log.
+    Skip(String),
+}
+
+/// Whether a pool of `pool_bytes` is prewarmed under `mode`, with `room` bytes of memory the
+/// process may still use (`None`: unknown).
+pub fn decide(mode: PoolPrewarm, pool_bytes: u64, room: Option<u64>) -> Decision {
+    match (mode, room) {
+        (PoolPrewarm::Off, _) => Decision::Skip("pool_prewarm is off".into()),
+        (PoolPrewarm::Always, _) => Decision::Warm,
+        (PoolPrewarm::Auto, None) => Decision::Skip(
+            "the memory the process may use is unknown (set pool_prewarm = \"always\" to read it anyway)"
+                .into(),
+        ),
+        (PoolPrewarm::Auto, Some(room)) if pool_bytes > room / 2 => Decision::Skip(format!(
+            "the pool's {} MiB exceed half of the {} MiB of memory left (set pool_prewarm = \"always\" to read it anyway)",
+            pool_bytes >> 20,
+            room >> 20
+        )),
+        (PoolPrewarm::Auto, Some(_)) => Decision::Warm,
+    }
+}
+
+/// `MemAvailable` of a `/proc/meminfo` text, bytes.
+pub fn mem_available(meminfo: &str) -> Option<u64> {
+    let kib: u64 = meminfo
+        .lines()
+        .find_map(|l| l.strip_prefix("MemAvailable:"))?
+        .trim()
+        .strip_suffix("kB")?
+        .trim()
+        .parse()
+        .ok()?;
+    kib.checked_mul(1024)
+}
+
+/// The room below the memory limit of the process's cgroup, bytes: `proc_cgroup` is the text of
+/// `/proc/self/cgroup`, `read` reads a file of the cgroup hierarchy by its path. Cgroup v1's
+/// memory controller (`memory.limit_in_bytes`, `memory.usage_in_bytes` under
+/// `/sys/fs/cgroup/memory`) or v2's (`memory.max`, `memory.current` under `/sys/fs/cgroup`).
+/// `None`: no limit, or none could be read.
+pub fn cgroup_room(proc_cgroup: &str, read: impl Fn(&Path) -> Option<String>) -> Option<u64> {
+    let number = |path: PathBuf| -> Option<u64> { read(&path)?.trim().parse().ok() };
+    for line in proc_cgroup.lines() {
+        let mut fields = line.splitn(3, ':');
+        let (_, controllers, path) = (fields.next()?, fields.next()?, fields.next()?);
+        let relative = path.trim_start_matches('/');
+        let (dir, limit, usage) = if controllers.split(',').any(|c| c == "memory") {
+            (
+                Path::new("/sys/fs/cgroup/memory").join(relative),
+                "memory.limit_in_bytes",
+                "memory.usage_in_bytes",
+            )
+        } else if controllers.is_empty() {
+            (
+                Path::new("/sys/fs/cgroup").join(relative),
+                "memory.max",
+                "memory.current",
+            )
+        } else {
+            continue;
+        };
+        // "max" (v2) or a number near 2⁶³ (v1) is no limit.
+        if let Some(limit) = number(dir.join(limit)).filter(|&l| l < 1 << 62) {
+            return Some(limit.saturating_sub(number(dir.join(usage)).unwrap_or(0)));
+        }
+    }
+    None
+}
+
+/// The memory this process may still use: `MemAvailable`, less where its cgroup's limit is
+/// nearer. `None` where neither can be read (not Linux).
+pub fn memory_room() -> Option<u64> {
+    let read = |p: &Path| std::fs::read_to_string(p).ok();
+    let available = read(Path::new("/proc/meminfo")).and_then(|m| mem_available(&m));
+    let cgroup = read(Path::new("/proc/self/cgroup")).and_then(|c| cgroup_room(&c, read));
+    match (available, cgroup) {
+        (Some(a), Some(c)) => Some(a.min(c)),
+        (a, c) => a.or(c),
+    }
+}
+
+/// The regular files under `dir` (the pool: sled's `db`, its snapshots and blobs), each with
+/// its length, in a stable order.
+pub fn pool_files(dir: &Path) -> std::io::Result<Vec<(PathBuf, u64)>> {
+    let mut files = Vec::new();
+    let mut dirs = vec![dir.to_owned()];
+    while let Some(d) = dirs.pop() {
+        for entry in std::fs::read_dir(&d)? {
+            let entry = entry?;
+            let kind = entry.file_type()?;
+            if kind.is_dir() {
+                dirs.push(entry.path());
+            } else if kind.is_file() {
+                files.push((entry.path(), entry.metadata()?.len()));
+            }
+        }
+    }
+    files.sort();
+    Ok(files)
+}
+
+/// Where the warming reads go: `/dev/null` by `sendfile` (Linux), so the kernel reads each
+/// chunk into the page cache without copying it to the process (1.47 GB: 0.1 s of CPU instead
+/// of 1.1–2.6 s through a buffer on this machine); else a buffer of [`PREWARM_READ_BYTES`].
+enum Sink {
+    #[cfg(target_os = "linux")]
+    Null(File),
+    Buffer(Vec<u8>),
+}
+
+impl Sink {
+    fn new() -> Sink {
+        #[cfg(target_os = "linux")]
+        if let Ok(null) = File::options().write(true).open("/dev/null") {
+            return Sink::Null(null);
+        }
+        Sink::Buffer(vec![0u8; PREWARM_READ_BYTES])
+    }
+
+    /// The next chunk of `file` from `offset` into the page cache; its length (0 at the end).
+    fn warm(&mut self, file: &mut File, offset: &mut u64) -> std::io::Result<usize> {
+        match self {
+            #[cfg(target_os = "linux")]
+            Sink::Null(null) => {
+                match rustix::fs::sendfile(&*null, &*file, Some(offset), PREWARM_READ_BYTES) {
+                    Ok(n) => Ok(n),
+                    // A file system that cannot splice: read through a buffer from here on.
+                    Err(rustix::io::Errno::INVAL | rustix::io::Errno::NOSYS) => {
+                        *self = Sink::Buffer(vec![0u8; PREWARM_READ_BYTES]);
+                        self.warm(file, offset)
+                    }
+                    Err(e) => Err(e.into()),
+                }
+            }
+            Sink::Buffer(buffer) => {
+                use std::io::{Seek, SeekFrom};
+                file.seek(SeekFrom::Start(*offset))?;
+                let n = file.read(buffer)?;
+                *offset += n as u64;
+                Ok(n)
+            }
+        }
+    }
+}
+
+/// How long the prewarm waits before it looks again whether the readers are idle.
+pub const PREWARM_YIELD: Duration = Duration::from_millis(10);
+
+/// Least time the pool's readers must have read nothing before the prewarm reads a chunk.
+pub const PREWARM_QUIET: Duration = Duration::from_millis(50);
+
+/// How long they must have read nothing before the first chunk: a client that comes right
+/// after the start finds the disk to itself.
+pub const PREWARM_START_QUIET: Duration = Duration::from_secs(1);
+
+/// How many times its own duration the readers must be quiet after a chunk before the next:
+/// a slow disk (a chunk that took long) is left alone longer.
+pub const PREWARM_QUIET_PER_CHUNK: u32 = 4;
+
+/// Whether the pool's readers have been quiet long enough for the prewarm's next chunk:
+/// nothing queued or running, and no read ended since, for [`PREWARM_START_QUIET`] before the
+/// first chunk and then [`PREWARM_QUIET_PER_CHUNK`] times the last chunk's duration, at least
+/// [`PREWARM_QUIET`]; told the readers' figures and the time.
+///
+/// Why not only "nothing queued now": a view's reads come in bursts, a batch at a time, and
+/// between two of them the readers are idle for moments; a chunk read then held the disk when
+/// the next batch came. A fresh server's first view of the 10⁸-point city, its client there at
+/// once, took 1.31–1.42 s with the prewarm reading in those moments, 0.91–0.98 s without
+/// (docs/measurements.md, stop 68).
+#[derive(Debug)]
+pub struct QuietReaders {
+    runs: u64,
+    since: Instant,
+    quiet_for: Duration,
+}
+
+impl QuietReaders {
+    /// Readers seen with `runs` reads run so far, at `now`, before the first chunk.
+    pub fn new(runs: u64, now: Instant) -> QuietReaders {
+        QuietReaders {
+            runs,
+            since: now,
+            quiet_for: PREWARM_START_QUIET,
+        }
+    }
+
+    /// The last chunk took `took`.
+    pub fn chunk_took(&mut self, took: Duration) {
+        self.quiet_for = took
+            .saturating_mul(PREWARM_QUIET_PER_CHUNK)
+            .max(PREWARM_QUIET);
+    }
+
+    /// Whether the readers, with `waiting` reads queued or running and `runs` run so far at
+    /// `now`, have been quiet long enough.
+    pub fn quiet(&mut self, waiting: u64, runs: u64, now: Instant) -> bool {
+        if waiting > 0 || runs != self.runs {
+            self.runs = runs;
+            self.since = now;
+            return false;
+        }
+        now.saturating_duration_since(self.since) >= self.quiet_for
+    }
+}
+
+/// Reads `files` front to back in chunks of [`PREWARM_READ_BYTES`] into the page cache, each
+/// chunk only once `idle` says the treelet reads leave the disk alone (told how long the last
+/// chunk took, zero before the first; it is asked again every [`PREWARM_YIELD`]),
+/// adding each chunk's bytes to `figures.read`, until all are read or `stop` is set; returns
+/// the bytes read. A file that cannot be opened or read (removed since) is left, the rest are
+/// read.
+///
+/// Why wait: a client's reads want the disk now, and the prewarm's only later. A fresh
+/// server's first view of the 10⁸-point city, its client there at once, took 1.23–1.34 s with
+/// the prewarm reading beside it and 0.96–1.12 s without (docs/measurements.md, stop 68).
+pub fn read_files(
+    files: &[(PathBuf, u64)],
+    stop: &AtomicBool,
+    mut idle: impl FnMut(Duration) -> bool,
+    figures: &PrewarmFigures,
+) -> u64 {
+    let mut sink = Sink::new();
+    let (mut total, mut last) = (0, Duration::ZERO);
+    for (path, _) in files {
+        let Ok(mut file) = File::open(path) else {
+            continue;
+        };
+        let mut offset = 0u64;
+        loop {
+            while !idle(last) && !stop.load(Ordering::Relaxed) {
+                std::thread::sleep(PREWARM_YIELD);
+            }
+            if stop.load(Ordering::Relaxed) {
+                return total;
+            }
+            let t0 = Instant::now();
+            let warmed = sink.warm(&mut file, &mut offset);
+            last = t0.elapsed();
+            match warmed {
+                Ok(0) => break,
+                Ok(n) => {
+                    total += n as u64;
+                    figures.read.fetch_add(n as u64, Ordering::Relaxed);
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => {
+                    tracing::warn!(file = %path.display(), "prewarming the pool: {e}");
+                    break;
+                }
+            }
+        }
+    }
+    total
+}
+
+/// The prewarm's thread; dropping it stops the reads at the next one (the service ended).
+#[derive(Debug)]
+pub struct Prewarm {
+    stop: Arc<AtomicBool>,
+}
+
+impl Drop for Prewarm {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
+
+/// Decides by `mode` (with [`memory_room`]) whether to read the pool in `dir` into the page
+/// cache, logs why not or starts a thread that does, reporting in `figures`; it reads while
+/// the pool's `readers` are quiet ([`QuietReaders`]).
+pub fn start(
+    dir: &Path,
+    mode: PoolPrewarm,
+    readers: Arc<ReadFigures>,
+    figures: Arc<PrewarmFigures>,
+) -> Option<Prewarm> {
+    let finish = |figures: &PrewarmFigures| figures.done.store(1, Ordering::Relaxed);
+    let files = match pool_files(dir) {
+        Ok(f) => f,
+        Err(e) => {
+            tracing::warn!(db = %dir.display(), "not prewarming the pool: listing its files: {e}");
+            finish(&figures);
+            return None;
+        }
+    };
+    let bytes: u64 = files.iter().map(|f| f.1).sum();
+    let room = if mode == PoolPrewarm::Auto {
+        memory_room()
+    } else {
+        None
+    };
+    if let Decision::Skip(why) = decide(mode, bytes, room) {
+        tracing::info!(db = %dir.display(), "not prewarming the pool: {why}");
+        finish(&figures);
+        return None;
+    }
+    figures.total.store(bytes, Ordering::Relaxed);
+    let stop = Arc::new(AtomicBool::new(false));
+    let stopped = stop.clone();
+    let db = dir.to_owned();
+    let spawned = std::thread::Builder::new()
+        .name("arbor-prewarm".into())
+        .spawn(move || {
+            let t0 = Instant::now();
+            tracing::info!(db = %db.display(), mib = bytes >> 20, "prewarming the pool's page cache");
+            let runs = || readers.run.load(Ordering::Relaxed);
+            let mut quiet = QuietReaders::new(runs(), Instant::now());
+            let idle = |last: Duration| {
+                if !last.is_zero() {
+                    quiet.chunk_took(last);
+                }
+                let waiting = readers.waiting.load(Ordering::Relaxed);
+                quiet.quiet(waiting, runs(), Instant::now())
+            };
+            let read = read_files(&files, &stopped, idle, &figures);
+            finish(&figures);
+            tracing::info!(
+                db = %db.display(),
+                mib = read >> 20,
+                secs = format!("{:.2}", t0.elapsed().as_secs_f64()),
+                stopped = stopped.load(Ordering::Relaxed),
+                "pool prewarmed"
+            );
+        });
+    match spawned {
+        Ok(_) => Some(Prewarm { stop }),
+        Err(e) => {
+            tracing::warn!("not prewarming the pool: starting its thread: {e}");
+            None
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MIB: u64 = 1 << 20;
+
+    #[test]
+    fn auto_warms_a_pool_within_half_the_room_only() {
+        use Decision::Warm;
+        let auto = PoolPrewarm::Auto;
+        assert_eq!(decide(auto, 100 * MIB, Some(200 * MIB)), Warm);
+        assert_eq!(decide(auto, 100 * MIB, Some(1000 * MIB)), Warm);
+        assert_eq!(decide(auto, 0, Some(0)), Warm);
+        let Decision::Skip(why) = decide(auto, 101 * MIB, Some(200 * MIB)) else {
+            panic!("a pool over half the room is not warmed");
+        };
+        assert!(why.contains("101 MiB") && why.contains("200 MiB"), "{why}");
+        assert!(matches!(decide(auto, MIB, None), Decision::Skip(_)));
+        assert_eq!(decide(PoolPrewarm::Always, u64::MAX, Some(0)), Warm);
+        assert_eq!(decide(PoolPrewarm::Always, MIB, None), Warm);
+        assert!(matches!(
+            decide(PoolPrewarm::Off, 0, Some(u64::MAX)),
+            Decision::Skip(_)
+        ));
+    }
+
+    #[test]
+    fn meminfo_gives_the_available_bytes() {
+        let text = "MemTotal:       24595860 kB\nMemFree:        20000000 kB\nMemAvailable:   22719384 kB\nBuffers: 1 kB\n";
+        assert_eq!(mem_available(text), Some(22_719_384 * 1024));
+        assert_eq!(mem_available("MemTotal: 1 kB\n"), None);
+        assert_eq!(mem_available("MemAvailable: lots kB\n"), None);
+        assert_eq!(
+            mem_available("MemAvailable: 18446744073709551615 kB\n"),
+            None
+        );
+    }
+
+    /// A cgroup hierarchy of `files` (path → text).
+    fn hierarchy(files: &[(&str, &str)]) -> impl Fn(&Path) -> Option<String> {
+        let files: Vec<(PathBuf, String)> = files
+            .iter()
+            .map(|(p, t)| (PathBuf::from(p), t.to_string()))
+            .collect();
+        move |p| files.iter().find(|f| f.0 == p).map(|f| f.1.clone())
+    }
+
+    #[test]
+    fn the_cgroup_limit_less_its_usage_is_the_room() {
+        let v1 = "12:pids:/x\n4:memory:/arbor-soak-7\n1:name=systemd:/x\n";
+        let read = hierarchy(&[
+            (
+                "/sys/fs/cgroup/memory/arbor-soak-7/memory.limit_in_bytes",
+                "943718400\n",
+            ),
+            (
+                "/sys/fs/cgroup/memory/arbor-soak-7/memory.usage_in_bytes",
+                "143718400\n",
+            ),
+        ]);
+        assert_eq!(cgroup_room(v1, &read), Some(800_000_000));
+        let unlimited = hierarchy(&[(
+            "/sys/fs/cgroup/memory/arbor-soak-7/memory.limit_in_bytes",
+            "9223372036854771712\n",
+        )]);
+        assert_eq!(cgroup_room(v1, unlimited), None);
+
+        let v2 = "0::/system.slice/arbor.service\n";
+        let read = hierarchy(&[
+            (
+                "/sys/fs/cgroup/system.slice/arbor.service/memory.max",
+                "2147483648\n",
+            ),
+            (
+                "/sys/fs/cgroup/system.slice/arbor.service/memory.current",
+                "1073741824\n",
+            ),
+        ]);
+        assert_eq!(cgroup_room(v2, &read), Some(1 << 30));
+        let max = hierarchy(&[(
+            "/sys/fs/cgroup/system.slice/arbor.service/memory.max",
+            "max\n",
+        )]);
+        assert_eq!(cgroup_room(v2, max), None);
+        // Usage above the limit (possible briefly in v1) leaves no room, not a wrapped number.
+        let over = hierarchy(&[
+            ("/sys/fs/cgroup/memory.max", "100\n"),
+            ("/sys/fs/cgroup/memory.current", "200\n"),
+        ]);
+        assert_eq!(cgroup_room("0::/\n", over), Some(0));
+        assert_eq!(cgroup_room("", hierarchy(&[])), None);
+        assert_eq!(cgroup_room("garbage", hierarchy(&[])), None);
+    }
+
+    #[test]
+    fn every_file_is_read_whole_unless_stopped() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir(dir.path().join("blobs")).unwrap();
+        let sizes = [
+            ("db", PREWARM_READ_BYTES * 2 + 5),
+            ("conf", 62),
+            ("blobs/1", 1000),
+        ];
+        for (name, len) in sizes {
+            std::fs::write(dir.path().join(name), vec![7u8; len]).unwrap();
+        }
+        let files = pool_files(dir.path()).unwrap();
+        assert_eq!(files.len(), 3);
+        let whole: u64 = sizes.iter().map(|s| s.1 as u64).sum();
+        assert_eq!(files.iter().map(|f| f.1).sum::<u64>(), whole);
+
+        let figures = PrewarmFigures::default();
+        assert_eq!(
+            read_files(&files, &AtomicBool::new(false), |_| true, &figures),
+            whole
+        );
+        assert_eq!(figures.read.load(Ordering::Relaxed), whole);
+
+        let figures = PrewarmFigures::default();
+        assert_eq!(
+            read_files(&files, &AtomicBool::new(true), |_| true, &figures),
+            0
+        );
+        assert_eq!(figures.read.load(Ordering::Relaxed), 0);
+
+        // Both sinks read a file whole, chunk by chunk.
+        for mut sink in [Sink::new(), Sink::Buffer(vec![0u8; PREWARM_READ_BYTES])] {
+            let mut file = File::open(dir.path().join("db")).unwrap();
+            let (mut offset, mut chunks) = (0u64, Vec::new());
+            loop {
+                match sink.warm(&mut file, &mut offset).unwrap() {
+                    0 => break,
+                    n => chunks.push(n),
+                }
+            }
+            assert_eq!(chunks, [PREWARM_READ_BYTES, PREWARM_READ_BYTES, 5]);
+            assert_eq!(offset, (PREWARM_READ_BYTES * 2 + 5) as u64);
+        }
+
+        // A file gone since it was listed is left; the others are read.
+        std::fs::remove_file(dir.path().join("conf")).unwrap();
+        let figures = PrewarmFigures::default();
+        assert_eq!(
+            read_files(&files, &AtomicBool::new(false), |_| true, &figures),
+            whole - 62
+        );
+    }
+
+    /// Waits until `figures` says the prewarm ended.
+    fn wait_done(figures: &PrewarmFigures) {
+        let t0 = Instant::now();
+        while figures.done.load(Ordering::Relaxed) == 0 {
+            assert!(
+                t0.elapsed() < Duration::from_secs(30),
+                "the prewarm did not end in 30 s"
+            );
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    #[test]
+    fn readers_are_quiet_once_nothing_ran_for_a_while() {
+        let t0 = Instant::now();
+        let at = |ms: u64| t0 + Duration::from_millis(ms);
+        let start_ms = PREWARM_START_QUIET.as_millis() as u64;
+        let quiet_ms = PREWARM_QUIET.as_millis() as u64;
+        let mut q = QuietReaders::new(5, t0);
+        assert!(
+            !q.quiet(0, 5, at(start_ms - 1)),
+            "the first chunk waits longer"
+        );
+        assert!(q.quiet(0, 5, at(start_ms)));
+        // After a quick chunk: the least quiet.
+        q.chunk_took(Duration::from_millis(1));
+        let base = start_ms + 1;
+        assert!(!q.quiet(1, 5, at(base)), "a read queued");
+        assert!(!q.quiet(0, 5, at(base + quiet_ms - 1)));
+        assert!(q.quiet(0, 5, at(base + quiet_ms)));
+        // A read that came and went between two looks counts too.
+        let base = base + quiet_ms + 1;
+        assert!(!q.quiet(0, 6, at(base)));
+        assert!(!q.quiet(0, 6, at(base + quiet_ms - 1)));
+        assert!(q.quiet(0, 6, at(base + quiet_ms)));
+        // After a slow chunk: four times its time.
+        q.chunk_took(Duration::from_millis(40));
+        let base = base + quiet_ms + 1;
+        assert!(!q.quiet(0, 7, at(base)));
+        assert!(!q.quiet(0, 7, at(base + 159)));
+        assert!(q.quiet(0, 7, at(base + 160)));
+        // A clock that went back (another thread's instant) is not quiet, and not a panic.
+        assert!(!q.quiet(0, 7, t0));
+    }
+
+    #[test]
+    fn the_prewarm_reads_nothing_while_a_treelet_read_waits() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("db"), vec![1u8; 1 << 20]).unwrap();
+        let readers = Arc::new(ReadFigures::default());
+        readers.waiting.store(1, Ordering::Relaxed);
+        let figures = Arc::new(PrewarmFigures::default());
+        let handle = start(
+            dir.path(),
+            PoolPrewarm::Always,
+            readers.clone(),
+            figures.clone(),
+        );
+        std::thread::sleep(PREWARM_START_QUIET + Duration::from_millis(300));
+        assert_eq!(figures.read.load(Ordering::Relaxed), 0);
+        assert_eq!(figures.done.load(Ordering::Relaxed), 0);
+        readers.waiting.store(0, Ordering::Relaxed);
+        wait_done(&figures);
+        assert_eq!(figures.read.load(Ordering::Relaxed), 1 << 20);
+        drop(handle);
+
+        // Stopped (the service ended) while it waits: it ends without reading.
+        readers.waiting.store(1, Ordering::Relaxed);
+        let figures = Arc::new(PrewarmFigures::default());
+        let handle = start(dir.path(), PoolPrewarm::Always, readers, figures.clone());
+        drop(handle);
+        wait_done(&figures);
+        assert_eq!(figures.read.load(Ordering::Relaxed), 0);
+    }
+
+    #[test]
+    fn a_started_prewarm_reads_the_pool_and_says_it_is_done() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("db"), vec![1u8; 3 * 1024 * 1024]).unwrap();
+        let figures = Arc::new(PrewarmFigures::default());
+        let readers = Arc::new(ReadFigures::default());
+        let handle = start(
+            dir.path(),
+            PoolPrewarm::Always,
+            readers.clone(),
+            figures.clone(),
+        );
+        assert!(handle.is_some());
+        wait_done(&figures);
+        assert_eq!(figures.total.load(Ordering::Relaxed), 3 << 20);
+        assert_eq!(figures.read.load(Ordering::Relaxed), 3 << 20);
+
+        let off = Arc::new(PrewarmFigures::default());
+        assert!(start(dir.path(), PoolPrewarm::Off, readers, off.clone()).is_none());
+        assert_eq!(off.total.load(Ordering::Relaxed), 0);
+        assert_eq!(off.read.load(Ordering::Relaxed), 0);
+        assert_eq!(off.done.load(Ordering::Relaxed), 1);
+    }
+}
