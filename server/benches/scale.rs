@@ -20,6 +20,9 @@
 //!   the one built with the bench (another build's, to compare two in turns);
 //! * `ARBOR_SCALE_FIRST_VIEW_AFTER_MS=N` — the stream step's first view waits N ms after its
 //!   server started (a client that comes a while after a restart; default 0);
+//! * `ARBOR_SCALE_READ_IOPS=N` — the stream step's servers read the pool's disk at most N times
+//!   a second (a cgroup v1 blkio limit; root), with the page cache dropped as each starts: a
+//!   cloud disk past its burst (docs/measurements.md, stop 68);
 //! * `ARBOR_SCALE_SERVER_LOG=FILE` — append the stream step's servers' logs (stderr, with
 //!   `RUST_LOG` as set) to FILE instead of dropping them.
 //!

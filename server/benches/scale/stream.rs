@@ -33,9 +33,69 @@ fn status_mib(field: &str) -> f64 {
         .map_or(0.0, |kib| kib / 1024.0)
 }
 
+/// Where cgroup v1 keeps its block I/O controller.
+const BLKIO_CGROUPS: &str = "/sys/fs/cgroup/blkio";
+
+/// The whole disk holding `path`, as `MAJOR:MINOR` (the parent of a partition: the block I/O
+/// limits apply to disks).
+fn disk_of(path: &Path) -> String {
+    use std::os::unix::fs::MetadataExt;
+    let dev = std::fs::metadata(path).unwrap().dev();
+    let major = ((dev >> 32) & !0xfff) | ((dev >> 8) & 0xfff);
+    let minor = ((dev >> 12) & !0xff) | (dev & 0xff);
+    let sys = Path::new("/sys/dev/block").join(format!("{major}:{minor}"));
+    let disk = if sys.join("partition").exists() {
+        sys.join("../dev")
+    } else {
+        sys.join("dev")
+    };
+    std::fs::read_to_string(&disk)
+        .unwrap_or_else(|e| panic!("ARBOR_SCALE_READ_IOPS: reading {}: {e}", disk.display()))
+        .trim()
+        .to_owned()
+}
+
+/// `ARBOR_SCALE_READ_IOPS=N`: the server process `pid` is moved into a block I/O cgroup that
+/// holds its reads of the pool's disk to N a second (cloud block storage past its burst), and
+/// the page cache is dropped, so the pool is read from that disk. Needs root and cgroup v1's
+/// blkio controller; says so loudly when either is missing. Returns the cgroup to remove.
+fn throttle_reads(pid: u32, pool: &Path) -> Option<std::path::PathBuf> {
+    let iops: u64 = std::env::var("ARBOR_SCALE_READ_IOPS")
+        .ok()?
+        .parse()
+        .expect("ARBOR_SCALE_READ_IOPS is a number of reads a second");
+    let cgroup = Path::new(BLKIO_CGROUPS).join(format!("arbor-scale-{pid}"));
+    std::fs::create_dir(&cgroup).unwrap_or_else(|e| {
+        panic!(
+            "ARBOR_SCALE_READ_IOPS needs root and cgroup v1's blkio controller at \
+             {BLKIO_CGROUPS}: creating {}: {e}",
+            cgroup.display()
+        )
+    });
+    let write = |file: &str, value: String| {
+        std::fs::write(cgroup.join(file), &value).unwrap_or_else(|e| {
+            panic!(
+                "ARBOR_SCALE_READ_IOPS: writing {value} to {}: {e}",
+                cgroup.join(file).display()
+            )
+        })
+    };
+    write(
+        "blkio.throttle.read_iops_device",
+        format!("{} {iops}", disk_of(pool)),
+    );
+    write("cgroup.procs", pid.to_string());
+    let synced = Command::new("sync").status().is_ok_and(|s| s.success());
+    assert!(synced, "sync failed");
+    std::fs::write("/proc/sys/vm/drop_caches", "3").expect("dropping the page cache");
+    Some(cgroup)
+}
+
 /// A running `arbor-server serve` on loopback.
 struct Server {
     child: Child,
+    /// The block I/O cgroup it was moved into (`ARBOR_SCALE_READ_IOPS`), removed once it ended.
+    throttled: Option<std::path::PathBuf>,
     url: ServerUrl,
     fingerprint: String,
     /// Kept open: a server (before stop 49) whose stdout closed before its last serving line
@@ -73,6 +133,7 @@ impl Server {
             .stderr(stderr)
             .spawn()
             .expect("starting arbor-server serve");
+        let throttled = throttle_reads(child.id(), pool);
         let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
         let (mut addr, mut fingerprint) = (None, None);
         while addr.is_none() || fingerprint.is_none() {
@@ -87,6 +148,7 @@ impl Server {
         let addr = addr.unwrap();
         Server {
             child,
+            throttled,
             url: ServerUrl {
                 host: addr.ip().to_string(),
                 port: addr.port(),
@@ -110,6 +172,9 @@ impl Drop for Server {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+        if let Some(cgroup) = &self.throttled {
+            let _ = std::fs::remove_dir(cgroup);
+        }
     }
 }
 
@@ -130,7 +195,9 @@ fn stream_view(server: &Server, what: &str, runtime: &tokio::runtime::Runtime) {
         width: 1024,
         height: 768,
         cycles: 3000,
-        min_cycle: Duration::ZERO,
+        // Never reached by a cycle that renders (25–40 ms here); a client waiting for the disk
+        // would otherwise spin through its 3,000 cycles in 3 s.
+        min_cycle: Duration::from_millis(5),
         connect_timeout: Duration::from_secs(30),
         reference: None,
         until_converged: true,
