@@ -14,7 +14,7 @@
 //! chunk only once the pool's readers have been quiet for a while ([`QuietReaders`]), so a
 //! client's reads never wait behind it. What it costs: page cache, not the server's own memory.
 //! So by default (`auto`) it runs only when the pool's files fit in half of the memory the
-//! process may still use (`MemAvailable`, and the room below its cgroup's limit): a pool larger
+//! process may still use (`MemAvailable`, and the room below its cgroups' limits): a pool larger
 //! than that would evict its own pages before clients asked for them, and the server reads at
 //! random as before. `/metrics` shows its progress (`arbor_pool_prewarm_*`).
 
@@ -99,42 +99,48 @@ pub fn mem_available(meminfo: &str) -> Option<u64> {
     kib.checked_mul(1024)
 }
 
-/// The room below the memory limit of the process's cgroup, bytes: `proc_cgroup` is the text of
-/// `/proc/self/cgroup`, `read` reads a file of the cgroup hierarchy by its path. Cgroup v1's
-/// memory controller (`memory.limit_in_bytes`, `memory.usage_in_bytes` under
-/// `/sys/fs/cgroup/memory`) or v2's (`memory.max`, `memory.current` under `/sys/fs/cgroup`).
-/// `None`: no limit, or none could be read.
+/// The room below the memory limits of the process's cgroup and its ancestors, bytes (the
+/// least of them): `proc_cgroup` is the text of `/proc/self/cgroup`, `read` reads a file of the
+/// cgroup hierarchy by its path. Cgroup v1's memory controller (`memory.limit_in_bytes`,
+/// `memory.usage_in_bytes` under `/sys/fs/cgroup/memory`) or v2's (`memory.max`,
+/// `memory.current` under `/sys/fs/cgroup`). `None`: no limit, or none could be read.
 pub fn cgroup_room(proc_cgroup: &str, read: impl Fn(&Path) -> Option<String>) -> Option<u64> {
     let number = |path: PathBuf| -> Option<u64> { read(&path)?.trim().parse().ok() };
     for line in proc_cgroup.lines() {
         let mut fields = line.splitn(3, ':');
         let (_, controllers, path) = (fields.next()?, fields.next()?, fields.next()?);
-        let relative = path.trim_start_matches('/');
-        let (dir, limit, usage) = if controllers.split(',').any(|c| c == "memory") {
+        let (root, limit, usage) = if controllers.split(',').any(|c| c == "memory") {
             (
-                Path::new("/sys/fs/cgroup/memory").join(relative),
+                "/sys/fs/cgroup/memory",
                 "memory.limit_in_bytes",
                 "memory.usage_in_bytes",
             )
         } else if controllers.is_empty() {
-            (
-                Path::new("/sys/fs/cgroup").join(relative),
-                "memory.max",
-                "memory.current",
-            )
+            ("/sys/fs/cgroup", "memory.max", "memory.current")
         } else {
             continue;
         };
-        // "max" (v2) or a number near 2⁶³ (v1) is no limit.
-        if let Some(limit) = number(dir.join(limit)).filter(|&l| l < 1 << 62) {
-            return Some(limit.saturating_sub(number(dir.join(usage)).unwrap_or(0)));
+        // The cgroup, then each parent up to the root: a limit set on a parent (a systemd
+        // slice, a Kubernetes pod) binds its children too.
+        let own = Path::new(root).join(path.trim_start_matches('/'));
+        let room = own
+            .ancestors()
+            .take_while(|dir| dir.starts_with(root))
+            .filter_map(|dir| {
+                // "max" (v2) or a number near 2⁶³ (v1) is no limit.
+                let limit = number(dir.join(limit)).filter(|&l| l < 1 << 62)?;
+                Some(limit.saturating_sub(number(dir.join(usage)).unwrap_or(0)))
+            })
+            .min();
+        if room.is_some() {
+            return room;
         }
     }
     None
 }
 
-/// The memory this process may still use: `MemAvailable`, less where its cgroup's limit is
-/// nearer. `None` where neither can be read (not Linux).
+/// The memory this process may still use: `MemAvailable`, less where a cgroup's limit
+/// ([`cgroup_room`]) is nearer. `None` where neither can be read (not Linux).
 pub fn memory_room() -> Option<u64> {
     let read = |p: &Path| std::fs::read_to_string(p).ok();
     let available = read(Path::new("/proc/meminfo")).and_then(|m| mem_available(&m));
@@ -487,6 +493,24 @@ mod tests {
             ("/sys/fs/cgroup/memory.current", "200\n"),
         ]);
         assert_eq!(cgroup_room("0::/\n", over), Some(0));
+        // A limit on a parent (a slice, a pod) binds the child: the least room counts.
+        let nested = hierarchy(&[
+            ("/sys/fs/cgroup/kubepods/pod1/memory.max", "1000\n"),
+            ("/sys/fs/cgroup/kubepods/pod1/memory.current", "400\n"),
+            ("/sys/fs/cgroup/kubepods/pod1/app/memory.max", "max\n"),
+            ("/sys/fs/cgroup/kubepods/pod1/app/memory.current", "300\n"),
+            ("/sys/fs/cgroup/kubepods/memory.max", "5000\n"),
+            ("/sys/fs/cgroup/kubepods/memory.current", "4700\n"),
+        ]);
+        assert_eq!(cgroup_room("0::/kubepods/pod1/app\n", &nested), Some(300));
+        let v1_parent = hierarchy(&[(
+            "/sys/fs/cgroup/memory/system.slice/memory.limit_in_bytes",
+            "2048\n",
+        )]);
+        assert_eq!(
+            cgroup_room("9:memory:/system.slice/arbor.service\n", v1_parent),
+            Some(2048)
+        );
         assert_eq!(cgroup_room("", hierarchy(&[])), None);
         assert_eq!(cgroup_room("garbage", hierarchy(&[])), None);
     }
