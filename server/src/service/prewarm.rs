@@ -230,7 +230,7 @@ pub const PREWARM_START_QUIET: Duration = Duration::from_secs(1);
 pub const PREWARM_QUIET_PER_CHUNK: u32 = 4;
 
 /// Whether the pool's readers have been quiet long enough for the prewarm's next chunk:
-/// nothing queued or running, and no read ended since, for [`PREWARM_START_QUIET`] before the
+/// nothing queued or running, and no read started since, for [`PREWARM_START_QUIET`] before the
 /// first chunk and then [`PREWARM_QUIET_PER_CHUNK`] times the last chunk's duration, at least
 /// [`PREWARM_QUIET`]; told the readers' figures and the time.
 ///

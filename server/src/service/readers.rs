@@ -129,6 +129,23 @@ impl Drop for PoolReaders {
     }
 }
 
+/// One read counted in [`ReadFigures::waiting`] from when it is queued until it has run, was
+/// skipped, panicked (the unwinding drops it) or was dropped unrun.
+struct Waiting(Arc<ReadFigures>);
+
+impl Waiting {
+    fn count(figures: &Arc<ReadFigures>) -> Waiting {
+        figures.waiting.fetch_add(1, Ordering::Relaxed);
+        Waiting(figures.clone())
+    }
+}
+
+impl Drop for Waiting {
+    fn drop(&mut self) {
+        self.0.waiting.fetch_sub(1, Ordering::Relaxed);
+    }
+}
+
 /// The read gave no result: it panicked (a bug; the reader goes on with the next read), or the
 /// readers are gone (the process is ending).
 #[derive(Debug, thiserror::Error)]
@@ -182,23 +199,24 @@ impl PoolReaders {
         read: impl FnOnce() -> T + Send + 'static,
     ) -> Result<T, ReadFailed> {
         let (done, result) = oneshot::channel();
-        let figures = self.figures.clone();
-        let job: Job = Box::new(move || {
-            // Counted before the read, so a read that panics is no longer waiting either.
-            figures.waiting.fetch_sub(1, Ordering::Relaxed);
-            if done.is_closed() {
-                figures.skipped.fetch_add(1, Ordering::Relaxed);
-            } else {
-                figures.run.fetch_add(1, Ordering::Relaxed);
-                let _ = done.send(read());
-            }
-        });
         {
             let mut q = self.jobs.queues();
             if q.closed {
                 return Err(ReadFailed);
             }
-            self.figures.waiting.fetch_add(1, Ordering::Relaxed);
+            let counted = Waiting::count(&self.figures);
+            let job: Job = Box::new(move || {
+                let figures = &counted.0;
+                if done.is_closed() {
+                    figures.skipped.fetch_add(1, Ordering::Relaxed);
+                    return;
+                }
+                figures.run.fetch_add(1, Ordering::Relaxed);
+                let value = read();
+                // No longer waiting once its caller can have the result.
+                drop(counted);
+                let _ = done.send(value);
+            });
             match purpose {
                 ReadFor::Batch => q.batches.push_back(job),
                 ReadFor::Plan => q.plans.push_back((Instant::now(), job)),
@@ -304,8 +322,8 @@ mod tests {
         tokio::time::sleep(Duration::from_millis(20)).await;
         assert_eq!(
             figures.waiting.load(Ordering::SeqCst),
-            1,
-            "the second waits"
+            2,
+            "the held read runs, the second waits"
         );
         abandoned.abort();
         assert!(abandoned.await.unwrap_err().is_cancelled());

@@ -59,8 +59,9 @@ impl StreamCtx {
 /// Why the server's waits do not count: a stream whose batch waits for the pool's readers is
 /// held up by the server's disk, not by the client. Counted, a pool read from a slow disk
 /// closed readers as slow: the city's resting soak with its pool outside the page cache closed
-/// 7 of 64 in 40 s before the readers (stop 66). One confined run after them closed 32, cause
-/// unknown; a disk that stalled past the timeout would do it (docs/measurements.md).
+/// 7 of 64 in 40 s before the readers (stop 66). One confined run after them closed 32, right
+/// after builds, when this machine's disk drops from thousands of reads a second to a few
+/// hundred (stop 68) (docs/measurements.md).
 #[derive(Debug)]
 pub(super) struct ProgressClock {
     base: Instant,
