@@ -207,8 +207,9 @@ enum Command {
         #[arg(long, value_enum, default_value_t = ImportPriority::Idle)]
         import_priority: ImportPriority,
         /// Read the pool's files into the page cache at start, so a fresh server's reads need
-        /// not wait for the disk: `auto` (when they fit in half of the memory left), `always`,
-        /// or `off` (overrides `pool_prewarm`) [default: auto].
+        /// not wait for the disk, the pages the last run had cached first: `auto` (the whole
+        /// pool when it fits in half of the memory left, else only those pages), `always`, or
+        /// `off` (overrides `pool_prewarm`) [default: auto].
         #[arg(long, value_enum)]
         pool_prewarm: Option<PoolPrewarm>,
     },

@@ -106,6 +106,7 @@ fn fill(state: &ServiceState) {
     m.treelets_cancelled.store(7, Ordering::Relaxed);
     m.pool_prewarm.total.store(3 << 20, Ordering::Relaxed);
     m.pool_prewarm.read.store(1 << 20, Ordering::Relaxed);
+    m.pool_prewarm.hot.store(2 << 20, Ordering::Relaxed);
     m.error(ErrorCode::FrameTooLarge);
     m.error(ErrorCode::FrameTooLarge);
     m.error(ErrorCode::Unauthorized);
@@ -829,6 +830,7 @@ async fn metrics_parse_and_report_the_state_and_the_pool() {
         ("arbor_treelets_cancelled_total", 7.0),
         ("arbor_pool_prewarm_total_bytes", 3_145_728.0),
         ("arbor_pool_prewarm_read_bytes", 1_048_576.0),
+        ("arbor_pool_prewarm_hot_bytes", 2_097_152.0),
         ("arbor_pool_prewarm_done", 0.0),
         ("arbor_queue_depth", 7.0),
         ("arbor_in_flight", 5.0),

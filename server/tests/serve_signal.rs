@@ -353,8 +353,9 @@ async fn receive(
 }
 
 /// `pool_prewarm`: with "always" in the config the server reads the whole pool into the page
-/// cache at start and `/metrics` says how much and that it is done; `--pool-prewarm off`
-/// overrides the file and nothing is read.
+/// cache at start and `/metrics` says how much and that it is done; stopped, it leaves the list
+/// of the pool's pages in the page cache in its data directory, and the next start reads those
+/// first; `--pool-prewarm off` overrides the file and nothing is read.
 #[test]
 fn the_pool_is_prewarmed_at_start_unless_turned_off() {
     let (dir, config) = bunny_pool_and_config();
@@ -387,9 +388,44 @@ fn the_pool_is_prewarmed_at_start_unless_turned_off() {
         "{total} < the db file's {db_bytes}"
     );
     assert_eq!(sample(&metrics, "arbor_pool_prewarm_read_bytes"), total);
+    assert_eq!(
+        sample(&metrics, "arbor_pool_prewarm_hot_bytes"),
+        0.0,
+        "no earlier run, no hot pages"
+    );
     signal(&warmed.child, "-TERM");
     assert_eq!(
         wait_exit(&mut warmed.child, Duration::from_secs(5)).code(),
+        Some(0)
+    );
+
+    // Stopping, it saved which of the pool's pages were in the page cache (all of them, just
+    // read): the next start reads those first, and says how many bytes.
+    use arbor_server::service::hot_pages;
+    let pool = dir.path().join("pool");
+    let list = dir.path().join("state").join(hot_pages::HOT_PAGES_FILE);
+    let hot = hot_pages::load(&list, &pool).unwrap();
+    let db = hot.iter().find(|f| f.name == "db").expect("db in the list");
+    assert!(db.bytes() > 0, "{hot:?}");
+    let files = arbor_server::service::prewarm::pool_files(&pool).unwrap();
+    let hot_bytes: u64 = hot_pages::reads(&hot, &pool, &files)
+        .iter()
+        .map(|r| r.len)
+        .sum();
+    let mut again = serve(dir.path(), &config);
+    let metrics = done(&again);
+    assert_eq!(
+        sample(&metrics, "arbor_pool_prewarm_hot_bytes"),
+        hot_bytes as f64
+    );
+    assert_eq!(
+        sample(&metrics, "arbor_pool_prewarm_total_bytes"),
+        files.iter().map(|f| f.1).sum::<u64>() as f64,
+        "the hot pages, then the rest: every file once"
+    );
+    signal(&again.child, "-TERM");
+    assert_eq!(
+        wait_exit(&mut again.child, Duration::from_secs(5)).code(),
         Some(0)
     );
 

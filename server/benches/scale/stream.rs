@@ -5,6 +5,11 @@
 //! each from a fresh server. Figures per view: time to converge, cycles, treelets and bytes
 //! received, and the server's CPU time for it (user + system of its process, `/proc/PID/stat`);
 //! then the client's peak RSS (this process's `VmHWM`, against its RSS before the runs).
+//!
+//! With `ARBOR_SCALE_RESTART=N`, then N rounds of a restart, the server confined to a memory
+//! cgroup smaller than the pool: a server serves one view and is stopped (SIGTERM), the page
+//! cache is dropped, and the first view from its successor (the same data directory, so the
+//! hot-page list the first left) is timed, in turns with the list removed before the restart.
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -101,20 +106,47 @@ struct Server {
     /// Kept open: a server (before stop 49) whose stdout closed before its last serving line
     /// stopped serving.
     _stdout: std::io::Lines<BufReader<std::process::ChildStdout>>,
-    _state: tempfile::TempDir,
+    /// Its data directory when it made its own (not a restart's).
+    _state: Option<tempfile::TempDir>,
+    /// The memory cgroup it runs in, removed once it ended.
+    confined: Option<std::path::PathBuf>,
 }
 
 impl Server {
     /// Starts serving `pool`, with `config` (TOML) when given; scenes are public either way.
     fn start(server_bin: &str, pool: &Path, scene: &str, config: Option<&str>) -> Server {
         let state = tempfile::tempdir().unwrap();
-        let mut cmd = Command::new(server_bin);
+        let mut server = Server::start_in(server_bin, pool, scene, config, state.path(), None);
+        server._state = Some(state);
+        server
+    }
+
+    /// [`Server::start`] with the data directory `state`, in the memory cgroup (v1) `confined`
+    /// from its first instruction when given (a shell enters it, then runs the server).
+    fn start_in(
+        server_bin: &str,
+        pool: &Path,
+        scene: &str,
+        config: Option<&str>,
+        state: &Path,
+        confined: Option<&Path>,
+    ) -> Server {
+        let mut cmd = match confined {
+            Some(cgroup) => {
+                let mut sh = Command::new("sh");
+                sh.args(["-c", "echo $$ > \"$0/cgroup.procs\" && exec \"$@\""])
+                    .arg(cgroup)
+                    .arg(server_bin);
+                sh
+            }
+            None => Command::new(server_bin),
+        };
         cmd.args(["serve", "--listen", "127.0.0.1:0", "--admin", "off", "--db"])
             .arg(pool)
             .arg("--data-dir")
-            .arg(state.path());
+            .arg(state);
         if let Some(config) = config {
-            let file = state.path().join("serve.toml");
+            let file = state.join("serve.toml");
             std::fs::write(&file, format!("default_access = \"public\"\n{config}\n")).unwrap();
             cmd.arg("--config").arg(file);
         }
@@ -156,8 +188,21 @@ impl Server {
             },
             fingerprint: fingerprint.unwrap(),
             _stdout: lines,
-            _state: state,
+            _state: None,
+            confined: confined.map(Path::to_owned),
         }
+    }
+
+    /// Stops the server as its operator would (SIGTERM), waiting until it exited: it saves its
+    /// state (the hot-page list) on the way out.
+    fn stop(mut self) {
+        let sent = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status()
+            .is_ok_and(|s| s.success());
+        assert!(sent, "kill -TERM {} failed", self.child.id());
+        let status = self.child.wait().expect("waiting for the server");
+        assert!(status.success(), "the server ended with {status}");
     }
 
     /// The server process's user + system CPU time so far, seconds (clock ticks of 1/100 s).
@@ -172,14 +217,15 @@ impl Drop for Server {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
-        if let Some(cgroup) = &self.throttled {
+        for cgroup in [&self.throttled, &self.confined].into_iter().flatten() {
             let _ = std::fs::remove_dir(cgroup);
         }
     }
 }
 
-/// Streams the view from `server` until it converges; prints one line of figures.
-fn stream_view(server: &Server, what: &str, runtime: &tokio::runtime::Runtime) {
+/// Streams the view from `server` until it converges; prints one line of figures and returns
+/// the seconds to exact convergence (`None`: not within the client's cycles).
+fn stream_view(server: &Server, what: &str, runtime: &tokio::runtime::Runtime) -> Option<f64> {
     let config = HeadlessConfig {
         client: ClientConfig::new(
             server.url.clone(),
@@ -225,6 +271,7 @@ fn stream_view(server: &Server, what: &str, runtime: &tokio::runtime::Runtime) {
         run.peak_slots,
         run.capacity
     );
+    converged
 }
 
 pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
@@ -263,10 +310,114 @@ pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
             stream_view(&server, what, &runtime);
         }
     }
+    let rounds = std::env::var("ARBOR_SCALE_RESTART").ok().map_or(0, |v| {
+        v.parse::<u32>()
+            .expect("ARBOR_SCALE_RESTART is a number of rounds")
+    });
+    if rounds > 0 {
+        restart_and_stream(server_bin, pool, scene, rounds, first_view_after, &runtime);
+    }
     println!(
         "client RSS: peak {:.1} MiB (before the runs {:.1} MiB; slot buffer {:.1} MiB)",
         status_mib("VmHWM:"),
         rss_before,
         BUDGET as f64 / f64::from(1 << 20)
+    );
+}
+
+/// Where cgroup v1 keeps its memory controller.
+const MEMORY_CGROUPS: &str = "/sys/fs/cgroup/memory";
+
+/// A fresh memory cgroup (v1) limited to `mib` MiB; needs root, says so loudly otherwise.
+fn memory_cgroup(mib: u64, tag: &str) -> std::path::PathBuf {
+    let cgroup =
+        Path::new(MEMORY_CGROUPS).join(format!("arbor-scale-{}-{tag}", std::process::id()));
+    std::fs::create_dir(&cgroup).unwrap_or_else(|e| {
+        panic!(
+            "ARBOR_SCALE_RESTART needs root and cgroup v1's memory controller at \
+             {MEMORY_CGROUPS}: creating {}: {e}",
+            cgroup.display()
+        )
+    });
+    let limit = cgroup.join("memory.limit_in_bytes");
+    std::fs::write(&limit, (mib << 20).to_string())
+        .unwrap_or_else(|e| panic!("ARBOR_SCALE_RESTART: writing {}: {e}", limit.display()));
+    cgroup
+}
+
+fn drop_page_cache() {
+    let synced = Command::new("sync").status().is_ok_and(|s| s.success());
+    assert!(synced, "sync failed");
+    std::fs::write("/proc/sys/vm/drop_caches", "3")
+        .expect("ARBOR_SCALE_RESTART: dropping the page cache (root)");
+}
+
+/// `ARBOR_SCALE_RESTART=N`: N rounds of a restarted server, with and without the hot-page list
+/// its predecessor left, in turns. The servers run in a memory cgroup of
+/// `ARBOR_SCALE_RESTART_MEMORY_MIB` (default 1024, below the city's 1.47 GB pool, so the whole
+/// pool is never read at start); the first view comes `first_view_after` (at least 10 s) after
+/// the restart.
+fn restart_and_stream(
+    server_bin: &str,
+    pool: &Path,
+    scene: &str,
+    rounds: u32,
+    first_view_after: Duration,
+    runtime: &tokio::runtime::Runtime,
+) {
+    let mib: u64 = std::env::var("ARBOR_SCALE_RESTART_MEMORY_MIB")
+        .ok()
+        .map_or(1024, |v| {
+            v.parse().expect("ARBOR_SCALE_RESTART_MEMORY_MIB is MiB")
+        });
+    let after = first_view_after.max(Duration::from_secs(10));
+    println!();
+    println!(
+        "restart: the server in a {mib} MiB memory cgroup, one view, SIGTERM, page cache dropped, \
+         restarted on the same data directory; its first view {} ms after the restart:",
+        after.as_millis()
+    );
+    let mut times: [Vec<Option<f64>>; 2] = [Vec::new(), Vec::new()];
+    for round in 0..rounds {
+        for (i, keep) in [true, false].into_iter().enumerate() {
+            let state = tempfile::tempdir().unwrap();
+            let cgroup = memory_cgroup(mib, &format!("{round}-{i}"));
+            let before =
+                Server::start_in(server_bin, pool, scene, None, state.path(), Some(&cgroup));
+            stream_view(&before, "  before the restart", runtime);
+            before.stop();
+            let list = state.path().join("pool-hot-pages.json");
+            let saved = std::fs::metadata(&list).map_or(0, |m| m.len());
+            assert!(
+                saved > 0,
+                "the stopped server left no hot-page list at {}",
+                list.display()
+            );
+            if !keep {
+                std::fs::remove_file(&list).unwrap();
+            }
+            drop_page_cache();
+            let cgroup = memory_cgroup(mib, &format!("{round}-{i}-after"));
+            let after_server =
+                Server::start_in(server_bin, pool, scene, None, state.path(), Some(&cgroup));
+            std::thread::sleep(after);
+            let what = if keep {
+                "  restarted with the hot-page list"
+            } else {
+                "  restarted without it (removed)"
+            };
+            times[i].push(stream_view(&after_server, what, runtime));
+        }
+    }
+    let show = |t: &[Option<f64>]| {
+        t.iter()
+            .map(|t| t.map_or("NOT".to_string(), |t| format!("{t:.2}")))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    println!(
+        "restart, first view seconds: with the list {} | without {}",
+        show(&times[0]),
+        show(&times[1])
     );
 }

@@ -20,7 +20,7 @@
 //! random_loss_tolerance = true        # a loss with no queue behind it cuts the window one time in eight; false: every time
 //! pool_cache_bytes = 134217728        # pool pages sled keeps decoded, server-wide
 //! pool_readers = 8                    # threads reading treelets from the pool, so a disk read never holds an async worker
-//! pool_prewarm = "auto"              # read the pool's files into the page cache at start: "auto" (if they fit in half the memory left), "always", "off" (CLI --pool-prewarm)
+//! pool_prewarm = "auto"              # read the pool's files into the page cache at start, the last run's cached pages first: "auto" (all if they fit in half the memory left, else only those pages), "always", "off" (CLI --pool-prewarm)
 //! message_cache_bytes = 67108864      # built treelet messages kept for sending again, server-wide
 //! shape_cache_bytes = 33554432        # decoded treelet shapes the push plans walk, server-wide
 //! visibility_grid = 128               # rays along a resting view's longer side for the visible cut its pushes follow; 0: off
@@ -222,8 +222,9 @@ pub struct ServeConfig {
     pub pool_readers: usize,
     /// Whether the pool's files are read into the page cache at start, front to back in large
     /// reads, so that a fresh server's treelet reads need not wait for a disk that limits its
-    /// reads per second (`service::prewarm`). `auto` reads them when they fit in half of the
-    /// memory the process may still use.
+    /// reads per second (`service::prewarm`); the pages the last run had cached
+    /// (`service::hot_pages`, saved in the data directory) first. `auto` reads the whole pool
+    /// when it fits in half of the memory the process may still use, else only those pages.
     pub pool_prewarm: PoolPrewarm,
     /// Bytes of built treelet messages kept server-wide, so a treelet sent again costs no pool
     /// read (0: none kept).

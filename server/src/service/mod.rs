@@ -28,15 +28,19 @@
 //!   [`generations`]: the byte-bounded cache of two generations that holds those shapes and
 //!   the node records the cuts read (`visibility_node_cache_bytes`).
 //! * [`prewarm`]: the pool's files read into the page cache once at start (`pool_prewarm`), so a
-//!   fresh server does not wait on a disk that limits its reads per second.
+//!   fresh server does not wait on a disk that limits its reads per second; [`hot_pages`]: which
+//!   pages of them were cached while the last run served, saved in the data directory and read
+//!   first (only they, when the pool is larger than memory).
 //! * [`path_memory`]: each client address's last congestion window and RTT, so a returning
 //!   client's connection resumes near the rate its path carried instead of slow-starting
-//!   (careful resume; `path_memory_secs`).
+//!   (careful resume; `path_memory_secs`); [`state_file`]: the JSON files it and the hot-page
+//!   list keep in the data directory between runs, written whole or not at all.
 mod batches;
 pub mod config;
 pub mod connection;
 pub mod generations;
 mod handler;
+pub mod hot_pages;
 pub mod path_memory;
 pub mod prewarm;
 pub mod push;
@@ -49,6 +53,7 @@ pub mod shapes;
 mod shared;
 pub mod shutdown;
 pub mod state;
+pub mod state_file;
 mod streams;
 pub mod timeline;
 pub mod tls;

@@ -40,7 +40,6 @@
 
 use std::any::Any;
 use std::collections::HashMap;
-use std::io::Write as _;
 use std::net::IpAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -50,6 +49,7 @@ use std::time::{Duration, Instant, SystemTime};
 use serde::{Deserialize, Serialize};
 
 use super::random_loss::{LossCounters, RandomLossFilter};
+use super::state_file::{ReadState, read_json, write_json};
 use quinn::congestion::{Controller, ControllerFactory, ControllerMetrics, Cubic, CubicConfig};
 
 /// Most client addresses remembered; beyond it the oldest record is forgotten.
@@ -294,13 +294,7 @@ impl PathMemory {
                 })
                 .collect(),
         };
-        let text = serde_json::to_vec(&saved).map_err(|e| io(std::io::Error::other(e)))?;
-        let tmp = path.with_extension("json.tmp");
-        let mut f = std::fs::File::create(&tmp).map_err(io)?;
-        f.write_all(&text).map_err(io)?;
-        f.sync_all().map_err(io)?;
-        drop(f);
-        std::fs::rename(&tmp, path).map_err(io)?;
+        write_json(path, &saved).map_err(io)?;
         Ok(saved.records.len())
     }
 
@@ -317,19 +311,17 @@ impl PathMemory {
             path: path.to_owned(),
             source,
         };
-        let bytes = match std::fs::metadata(path) {
-            Ok(m) => m.len(),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(0),
-            Err(e) => return Err(io(e)),
+        let saved: SavedPaths = match read_json(path, MAX_PATHS_FILE_BYTES).map_err(io)? {
+            ReadState::Missing => return Ok(0),
+            ReadState::TooLarge(bytes) => {
+                return Err(PathFileError::TooLarge {
+                    path: path.to_owned(),
+                    bytes,
+                });
+            }
+            ReadState::Malformed(reason) => return Err(format(reason)),
+            ReadState::Read(saved) => saved,
         };
-        if bytes > MAX_PATHS_FILE_BYTES {
-            return Err(PathFileError::TooLarge {
-                path: path.to_owned(),
-                bytes,
-            });
-        }
-        let text = std::fs::read(path).map_err(io)?;
-        let saved: SavedPaths = serde_json::from_slice(&text).map_err(|e| format(e.to_string()))?;
         if saved.version != PATHS_FILE_VERSION {
             return Err(format(format!(
                 "version {} (this server reads {PATHS_FILE_VERSION})",

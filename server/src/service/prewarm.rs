@@ -17,16 +17,22 @@
 //! process may still use (`MemAvailable`, and the room below its cgroups' limits): a pool larger
 //! than that would evict its own pages before clients asked for them, and the server reads at
 //! random as before. `/metrics` shows its progress (`arbor_pool_prewarm_*`).
+//!
+//! What the last run's clients had in the page cache comes first ([`super::hot_pages`], saved
+//! in the data directory while the server runs and when it stops): the whole pool after it when
+//! it fits, and only those pages, up to half the room, when it does not.
 
 use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use serde::Deserialize;
 
+use super::hot_pages;
 use super::readers::ReadFigures;
 
 /// Whether the pool's files are read into the page cache at start (`pool_prewarm`, CLI
@@ -34,10 +40,12 @@ use super::readers::ReadFigures;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum PoolPrewarm {
-    /// When the files fit in half of the memory the process may still use.
+    /// The last run's hot pages, then the rest of the files when they fit in half of the memory
+    /// the process may still use; only the hot pages, up to that half, when they do not.
     #[default]
     Auto,
-    /// Always, however large (a pool larger than memory evicts its own pages as it goes).
+    /// The last run's hot pages, then every file, however large (a pool larger than memory
+    /// evicts its own pages as it goes).
     Always,
     /// Never: every page is read from the disk when a treelet first needs it.
     Off,
@@ -52,38 +60,119 @@ pub const PREWARM_READ_BYTES: usize = 4 << 20;
 pub struct PrewarmFigures {
     /// Bytes it set out to read (0: it did not run).
     pub total: AtomicU64,
+    /// Of those, the bytes of the last run's hot pages, read first.
+    pub hot: AtomicU64,
     /// Bytes read so far.
     pub read: AtomicU64,
     /// 1 once it ended (all read, stopped, or failed), else 0.
     pub done: AtomicU64,
 }
 
-/// Whether to prewarm, and why not.
+/// One read of the prewarm: `len` bytes of the file at `path` from `offset`.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub enum Decision {
-    /// Read the files.
-    Warm,
-    /// Do not; the reason, for the log.
-    Skip(String),
+pub struct WarmRead {
+    pub path: PathBuf,
+    pub offset: u64,
+    pub len: u64,
 }
 
-/// Whether a pool of `pool_bytes` is prewarmed under `mode`, with `room` bytes of memory the
-/// process may still use (`None`: unknown).
-pub fn decide(mode: PoolPrewarm, pool_bytes: u64, room: Option<u64>) -> Decision {
+/// What the prewarm reads, in order.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Plan {
+    pub reads: Vec<WarmRead>,
+    /// Bytes of the last run's hot pages among them (the first reads).
+    pub hot_bytes: u64,
+    /// Whether every file is read whole after them.
+    pub whole: bool,
+}
+
+/// What the prewarm of the pool's `files` reads under `mode`, with the last run's `hot` pages
+/// and `room` bytes of memory the process may still use (`None`: unknown); `Err` says why it
+/// reads nothing, for the log.
+pub fn plan(
+    mode: PoolPrewarm,
+    files: &[(PathBuf, u64)],
+    hot: Vec<WarmRead>,
+    room: Option<u64>,
+) -> Result<Plan, String> {
+    let pool_bytes: u64 = files.iter().map(|f| f.1).sum();
+    let hot_bytes: u64 = hot.iter().map(|r| r.len).sum();
+    let whole = |hot: Vec<WarmRead>| {
+        let rest = the_rest(files, &hot);
+        Plan {
+            reads: [hot, rest].concat(),
+            hot_bytes,
+            whole: true,
+        }
+    };
     match (mode, room) {
-        (PoolPrewarm::Off, _) => Decision::Skip("pool_prewarm is off".into()),
-        (PoolPrewarm::Always, _) => Decision::Warm,
-        (PoolPrewarm::Auto, None) => Decision::Skip(
+        (PoolPrewarm::Off, _) => Err("pool_prewarm is off".into()),
+        (PoolPrewarm::Always, _) => Ok(whole(hot)),
+        (PoolPrewarm::Auto, None) => Err(
             "the memory the process may use is unknown (set pool_prewarm = \"always\" to read it anyway)"
                 .into(),
         ),
-        (PoolPrewarm::Auto, Some(room)) if pool_bytes > room / 2 => Decision::Skip(format!(
-            "the pool's {} MiB exceed half of the {} MiB of memory left (set pool_prewarm = \"always\" to read it anyway)",
-            pool_bytes >> 20,
-            room >> 20
-        )),
-        (PoolPrewarm::Auto, Some(_)) => Decision::Warm,
+        (PoolPrewarm::Auto, Some(room)) if pool_bytes <= room / 2 => Ok(whole(hot)),
+        (PoolPrewarm::Auto, Some(room)) => {
+            let too_large = format!(
+                "the pool's {} MiB exceed half of the {} MiB of memory left",
+                pool_bytes >> 20,
+                room >> 20
+            );
+            let mut budget = room / 2;
+            let mut reads = Vec::new();
+            for mut r in hot {
+                if budget == 0 {
+                    break;
+                }
+                r.len = r.len.min(budget);
+                budget -= r.len;
+                reads.push(r);
+            }
+            if reads.is_empty() {
+                let why = if hot_bytes == 0 {
+                    "no earlier run left a list of its hot pages"
+                } else {
+                    "there is no room for its hot pages either"
+                };
+                return Err(format!(
+                    "{too_large}, and {why} (set pool_prewarm = \"always\" to read it anyway)"
+                ));
+            }
+            Ok(Plan {
+                hot_bytes: reads.iter().map(|r| r.len).sum(),
+                reads,
+                whole: false,
+            })
+        }
     }
+}
+
+/// What is left of the `files` once the `hot` reads are done: each file's parts they do not
+/// cover, front to back, so the pool is read once in all.
+fn the_rest(files: &[(PathBuf, u64)], hot: &[WarmRead]) -> Vec<WarmRead> {
+    let mut rest = Vec::new();
+    for (path, len) in files {
+        let mut covered: Vec<(u64, u64)> = hot
+            .iter()
+            .filter(|r| r.path == *path)
+            .map(|r| (r.offset, r.offset.saturating_add(r.len)))
+            .collect();
+        covered.sort_unstable();
+        let mut at = 0;
+        for (start, end) in covered.into_iter().chain([(*len, *len)]) {
+            let start = start.min(*len);
+            if start > at {
+                rest.push(WarmRead {
+                    path: path.clone(),
+                    offset: at,
+                    len: start - at,
+                });
+            }
+            at = at.max(end);
+        }
+    }
+    rest
 }
 
 /// `MemAvailable` of a `/proc/meminfo` text, bytes.
@@ -189,25 +278,25 @@ impl Sink {
         Sink::Buffer(vec![0u8; PREWARM_READ_BYTES])
     }
 
-    /// The next chunk of `file` from `offset` into the page cache; its length (0 at the end).
-    fn warm(&mut self, file: &mut File, offset: &mut u64) -> std::io::Result<usize> {
+    /// The next chunk of `file` from `offset`, at most `max` bytes and
+    /// [`PREWARM_READ_BYTES`], into the page cache; its length (0 at the end).
+    fn warm(&mut self, file: &mut File, offset: &mut u64, max: u64) -> std::io::Result<usize> {
+        let want = usize::try_from(max).map_or(PREWARM_READ_BYTES, |m| m.min(PREWARM_READ_BYTES));
         match self {
             #[cfg(target_os = "linux")]
-            Sink::Null(null) => {
-                match rustix::fs::sendfile(&*null, &*file, Some(offset), PREWARM_READ_BYTES) {
-                    Ok(n) => Ok(n),
-                    // A file system that cannot splice: read through a buffer from here on.
-                    Err(rustix::io::Errno::INVAL | rustix::io::Errno::NOSYS) => {
-                        *self = Sink::Buffer(vec![0u8; PREWARM_READ_BYTES]);
-                        self.warm(file, offset)
-                    }
-                    Err(e) => Err(e.into()),
+            Sink::Null(null) => match rustix::fs::sendfile(&*null, &*file, Some(offset), want) {
+                Ok(n) => Ok(n),
+                // A file system that cannot splice: read through a buffer from here on.
+                Err(rustix::io::Errno::INVAL | rustix::io::Errno::NOSYS) => {
+                    *self = Sink::Buffer(vec![0u8; PREWARM_READ_BYTES]);
+                    self.warm(file, offset, max)
                 }
-            }
+                Err(e) => Err(e.into()),
+            },
             Sink::Buffer(buffer) => {
                 use std::io::{Seek, SeekFrom};
                 file.seek(SeekFrom::Start(*offset))?;
-                let n = file.read(buffer)?;
+                let n = file.read(&mut buffer[..want])?;
                 *offset += n as u64;
                 Ok(n)
             }
@@ -275,30 +364,34 @@ impl QuietReaders {
     }
 }
 
-/// Reads `files` front to back in chunks of [`PREWARM_READ_BYTES`] into the page cache, each
-/// chunk only once `idle` says the treelet reads leave the disk alone (told how long the last
-/// chunk took, zero before the first; it is asked again every [`PREWARM_YIELD`]),
-/// adding each chunk's bytes to `figures.read`, until all are read or `stop` is set; returns
-/// the bytes read. A file that cannot be opened or read (removed since) is left, the rest are
-/// read.
+/// Does `reads` in order, each in chunks of at most [`PREWARM_READ_BYTES`], into the page
+/// cache, each chunk only once `idle` says the treelet reads leave the disk alone (told how
+/// long the last chunk took, zero before the first; it is asked again every
+/// [`PREWARM_YIELD`]), adding each chunk's bytes to `figures.read`, until all are done or
+/// `stop` is set; returns the bytes read. A file that cannot be opened or read (removed since)
+/// is left, the rest are read.
 ///
 /// Why wait: a client's reads want the disk now, and the prewarm's only later. A fresh
 /// server's first view of the 10⁸-point city, its client there at once, took 1.23–1.34 s with
 /// the prewarm reading beside it and 0.96–1.12 s without (docs/measurements.md, stop 68).
 pub fn read_files(
-    files: &[(PathBuf, u64)],
+    reads: &[WarmRead],
     stop: &AtomicBool,
     mut idle: impl FnMut(Duration) -> bool,
     figures: &PrewarmFigures,
 ) -> u64 {
     let mut sink = Sink::new();
     let (mut total, mut last) = (0, Duration::ZERO);
-    for (path, _) in files {
-        let Ok(mut file) = File::open(path) else {
+    let mut open: Option<(&Path, File)> = None;
+    for r in reads {
+        if open.as_ref().is_none_or(|(path, _)| *path != r.path) {
+            open = File::open(&r.path).ok().map(|f| (r.path.as_path(), f));
+        }
+        let Some((_, file)) = open.as_mut() else {
             continue;
         };
-        let mut offset = 0u64;
-        loop {
+        let (mut offset, end) = (r.offset, r.offset.saturating_add(r.len));
+        while offset < end {
             while !idle(last) && !stop.load(Ordering::Relaxed) {
                 std::thread::sleep(PREWARM_YIELD);
             }
@@ -306,7 +399,8 @@ pub fn read_files(
                 return total;
             }
             let t0 = Instant::now();
-            let warmed = sink.warm(&mut file, &mut offset);
+            let left = end - offset;
+            let warmed = sink.warm(file, &mut offset, left);
             last = t0.elapsed();
             match warmed {
                 Ok(0) => break,
@@ -316,7 +410,7 @@ pub fn read_files(
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
                 Err(e) => {
-                    tracing::warn!(file = %path.display(), "prewarming the pool: {e}");
+                    tracing::warn!(file = %r.path.display(), "prewarming the pool: {e}");
                     break;
                 }
             }
@@ -325,10 +419,23 @@ pub fn read_files(
     total
 }
 
-/// The prewarm's thread; dropping it stops the reads at the next one (the service ended).
+/// The prewarm's threads: the reads, and the saving of the hot-page list. Dropping it stops
+/// the reads at the next one and the saving (the service ended).
 #[derive(Debug)]
 pub struct Prewarm {
     stop: Arc<AtomicBool>,
+    /// Dropped with it: the saving thread ends.
+    _saver: Option<mpsc::Sender<()>>,
+    pool: PathBuf,
+    list: PathBuf,
+}
+
+impl Prewarm {
+    /// Saves the list of the pool's pages now in the page cache for the next start (when the
+    /// service stops); a failure is logged.
+    pub fn save_hot_pages(&self) {
+        save_hot_pages(&self.pool, &self.list);
+    }
 }
 
 impl Drop for Prewarm {
@@ -337,44 +444,115 @@ impl Drop for Prewarm {
     }
 }
 
-/// Decides by `mode` (with [`memory_room`]) whether to read the pool in `dir` into the page
-/// cache, logs why not or starts a thread that does, reporting in `figures`; it reads while
-/// the pool's `readers` are quiet ([`QuietReaders`]).
+/// Saves the hot-page list of the pool in `pool` to `list`, logging what it did.
+fn save_hot_pages(pool: &Path, list: &Path) {
+    let t0 = Instant::now();
+    match hot_pages::snapshot(pool).and_then(|hot| hot_pages::save(list, pool, &hot)) {
+        Ok(bytes) => tracing::debug!(
+            list = %list.display(),
+            mib = bytes >> 20,
+            ms = t0.elapsed().as_millis() as u64,
+            "saved the pool's hot pages"
+        ),
+        Err(e) => tracing::warn!("the pool's hot pages not saved: {e}"),
+    }
+}
+
+/// The last run's hot pages of the pool in `dir` (its `files`), as reads; a list that cannot
+/// be read is logged and left.
+fn last_hot_pages(dir: &Path, list: &Path, files: &[(PathBuf, u64)]) -> Vec<WarmRead> {
+    match hot_pages::load(list, dir) {
+        Ok(hot) => hot_pages::reads(&hot, dir, files),
+        Err(e) => {
+            tracing::warn!("the last run's hot pages not used: {e}");
+            Vec::new()
+        }
+    }
+}
+
+/// Plans by `mode` (with [`memory_room`] and the hot-page list in `data_dir`) what to read of
+/// the pool in `dir` into the page cache, logs why nothing or starts a thread that reads it,
+/// reporting in `figures`; it reads while the pool's `readers` are quiet ([`QuietReaders`]).
+/// Unless `mode` is off, a second thread saves the hot-page list every
+/// [`hot_pages::HOT_PAGES_SAVE_INTERVAL`], and the handle saves it once more when told.
 pub fn start(
     dir: &Path,
+    data_dir: &Path,
     mode: PoolPrewarm,
     readers: Arc<ReadFigures>,
     figures: Arc<PrewarmFigures>,
 ) -> Option<Prewarm> {
     let finish = |figures: &PrewarmFigures| figures.done.store(1, Ordering::Relaxed);
+    if mode == PoolPrewarm::Off {
+        tracing::info!(db = %dir.display(), "not prewarming the pool: pool_prewarm is off");
+        finish(&figures);
+        return None;
+    }
+    let list = data_dir.join(hot_pages::HOT_PAGES_FILE);
+    let stop = Arc::new(AtomicBool::new(false));
+    let (saver, saves) = mpsc::channel::<()>();
+    let (pool, saved) = (dir.to_owned(), list.clone());
+    let saving = std::thread::Builder::new()
+        .name("arbor-hot-pages".into())
+        .spawn(move || {
+            while let Err(mpsc::RecvTimeoutError::Timeout) =
+                saves.recv_timeout(hot_pages::HOT_PAGES_SAVE_INTERVAL)
+            {
+                save_hot_pages(&pool, &saved);
+            }
+        });
+    if let Err(e) = saving {
+        tracing::warn!("the pool's hot pages will not be saved: starting its thread: {e}");
+    }
+    let handle = Prewarm {
+        stop: stop.clone(),
+        _saver: Some(saver),
+        pool: dir.to_owned(),
+        list: list.clone(),
+    };
     let files = match pool_files(dir) {
         Ok(f) => f,
         Err(e) => {
             tracing::warn!(db = %dir.display(), "not prewarming the pool: listing its files: {e}");
             finish(&figures);
-            return None;
+            return Some(handle);
         }
     };
-    let bytes: u64 = files.iter().map(|f| f.1).sum();
+    let hot = last_hot_pages(dir, &list, &files);
     let room = if mode == PoolPrewarm::Auto {
         memory_room()
     } else {
         None
     };
-    if let Decision::Skip(why) = decide(mode, bytes, room) {
-        tracing::info!(db = %dir.display(), "not prewarming the pool: {why}");
-        finish(&figures);
-        return None;
-    }
+    let plan = match plan(mode, &files, hot, room) {
+        Ok(p) => p,
+        Err(why) => {
+            tracing::info!(db = %dir.display(), "not prewarming the pool: {why}");
+            finish(&figures);
+            return Some(handle);
+        }
+    };
+    let bytes: u64 = plan.reads.iter().map(|r| r.len).sum();
     figures.total.store(bytes, Ordering::Relaxed);
-    let stop = Arc::new(AtomicBool::new(false));
-    let stopped = stop.clone();
+    figures.hot.store(plan.hot_bytes, Ordering::Relaxed);
     let db = dir.to_owned();
+    let reported = figures.clone();
     let spawned = std::thread::Builder::new()
         .name("arbor-prewarm".into())
         .spawn(move || {
             let t0 = Instant::now();
-            tracing::info!(db = %db.display(), mib = bytes >> 20, "prewarming the pool's page cache");
+            tracing::info!(
+                db = %db.display(),
+                mib = bytes >> 20,
+                hot_mib = plan.hot_bytes >> 20,
+                whole = plan.whole,
+                "prewarming the pool's page cache ({})",
+                match (plan.hot_bytes, plan.whole) {
+                    (0, _) => "every file",
+                    (_, true) => "the last run's hot pages first, then the rest",
+                    (_, false) => "only the last run's hot pages: the pool does not fit",
+                }
+            );
             let runs = || readers.run.load(Ordering::Relaxed);
             let mut quiet = QuietReaders::new(runs(), Instant::now());
             let idle = |last: Duration| {
@@ -384,23 +562,21 @@ pub fn start(
                 let waiting = readers.waiting.load(Ordering::Relaxed);
                 quiet.quiet(waiting, runs(), Instant::now())
             };
-            let read = read_files(&files, &stopped, idle, &figures);
+            let read = read_files(&plan.reads, &stop, idle, &figures);
             finish(&figures);
             tracing::info!(
                 db = %db.display(),
                 mib = read >> 20,
                 secs = format!("{:.2}", t0.elapsed().as_secs_f64()),
-                stopped = stopped.load(Ordering::Relaxed),
+                stopped = stop.load(Ordering::Relaxed),
                 "pool prewarmed"
             );
         });
-    match spawned {
-        Ok(_) => Some(Prewarm { stop }),
-        Err(e) => {
-            tracing::warn!("not prewarming the pool: starting its thread: {e}");
-            None
-        }
+    if let Err(e) = spawned {
+        tracing::warn!("not prewarming the pool: starting its thread: {e}");
+        finish(&reported);
     }
+    Some(handle)
 }
 
 #[cfg(test)]
@@ -409,24 +585,86 @@ mod tests {
 
     const MIB: u64 = 1 << 20;
 
+    /// A read of `len` bytes of `name` from `offset`.
+    fn read(name: &str, offset: u64, len: u64) -> WarmRead {
+        WarmRead {
+            path: PathBuf::from(name),
+            offset,
+            len,
+        }
+    }
+
     #[test]
-    fn auto_warms_a_pool_within_half_the_room_only() {
-        use Decision::Warm;
+    fn auto_warms_a_pool_within_half_the_room_or_only_its_hot_pages() {
         let auto = PoolPrewarm::Auto;
-        assert_eq!(decide(auto, 100 * MIB, Some(200 * MIB)), Warm);
-        assert_eq!(decide(auto, 100 * MIB, Some(1000 * MIB)), Warm);
-        assert_eq!(decide(auto, 0, Some(0)), Warm);
-        let Decision::Skip(why) = decide(auto, 101 * MIB, Some(200 * MIB)) else {
-            panic!("a pool over half the room is not warmed");
-        };
-        assert!(why.contains("101 MiB") && why.contains("200 MiB"), "{why}");
-        assert!(matches!(decide(auto, MIB, None), Decision::Skip(_)));
-        assert_eq!(decide(PoolPrewarm::Always, u64::MAX, Some(0)), Warm);
-        assert_eq!(decide(PoolPrewarm::Always, MIB, None), Warm);
-        assert!(matches!(
-            decide(PoolPrewarm::Off, 0, Some(u64::MAX)),
-            Decision::Skip(_)
-        ));
+        let files = vec![
+            (PathBuf::from("db"), 90 * MIB),
+            (PathBuf::from("conf"), 10 * MIB),
+        ];
+        let hot = vec![read("db", 0, 30 * MIB), read("db", 50 * MIB, 40 * MIB)];
+        let whole = [read("db", 0, 90 * MIB), read("conf", 0, 10 * MIB)];
+        let hot_then_rest = [
+            hot.clone(),
+            vec![read("db", 30 * MIB, 20 * MIB), read("conf", 0, 10 * MIB)],
+        ]
+        .concat();
+
+        // It fits: the hot pages first, then the rest of every file.
+        let p = plan(auto, &files, hot.clone(), Some(200 * MIB)).unwrap();
+        assert_eq!(p.reads, hot_then_rest);
+        assert_eq!((p.hot_bytes, p.whole), (70 * MIB, true));
+        let p = plan(auto, &files, Vec::new(), Some(1000 * MIB)).unwrap();
+        assert_eq!((p.reads.as_slice(), p.hot_bytes), (whole.as_slice(), 0));
+        assert_eq!(plan(auto, &[], Vec::new(), Some(0)).unwrap().reads, []);
+
+        // It does not: the hot pages only, up to half the room, the last one cut.
+        let p = plan(auto, &files, hot.clone(), Some(199 * MIB)).unwrap();
+        assert_eq!(p.reads, hot);
+        assert!(!p.whole);
+        let p = plan(auto, &files, hot.clone(), Some(100 * MIB)).unwrap();
+        assert_eq!(
+            p.reads,
+            [read("db", 0, 30 * MIB), read("db", 50 * MIB, 20 * MIB)]
+        );
+        assert_eq!(p.hot_bytes, 50 * MIB);
+        let p = plan(auto, &files, hot.clone(), Some(60 * MIB)).unwrap();
+        assert_eq!(p.reads, [read("db", 0, 30 * MIB)]);
+        // Without hot pages, or no room for any: nothing, and the log says why.
+        let why = plan(auto, &files, Vec::new(), Some(199 * MIB)).unwrap_err();
+        assert!(why.contains("100 MiB") && why.contains("199 MiB"), "{why}");
+        assert!(why.contains("hot pages"), "{why}");
+        assert!(plan(auto, &files, hot.clone(), Some(1)).is_err());
+        assert!(plan(auto, &files, hot.clone(), None).is_err());
+
+        // Always: everything, however large; off: nothing.
+        let p = plan(PoolPrewarm::Always, &files, hot.clone(), Some(0)).unwrap();
+        assert_eq!(p.reads, hot_then_rest);
+        let p = plan(PoolPrewarm::Always, &files, Vec::new(), None).unwrap();
+        assert_eq!(p.reads, whole);
+        assert!(plan(PoolPrewarm::Off, &files, hot, Some(u64::MAX)).is_err());
+    }
+
+    #[test]
+    fn the_rest_is_what_the_hot_reads_leave_of_each_file() {
+        let files = vec![(PathBuf::from("db"), 100), (PathBuf::from("conf"), 10)];
+        assert_eq!(
+            the_rest(&files, &[]),
+            [read("db", 0, 100), read("conf", 0, 10)]
+        );
+        // Out of order, overlapping, touching, past the end: each byte once.
+        let hot = [
+            read("db", 50, 10),
+            read("db", 0, 5),
+            read("db", 55, 10),
+            read("db", 65, 5),
+            read("db", 90, 50),
+            read("gone", 0, 5),
+        ];
+        assert_eq!(
+            the_rest(&files, &hot),
+            [read("db", 5, 45), read("db", 70, 20), read("conf", 0, 10)]
+        );
+        assert_eq!(the_rest(&files[..1], &[read("db", 0, 100)]), []);
     }
 
     #[test]
@@ -531,6 +769,14 @@ mod tests {
         assert_eq!(files.len(), 3);
         let whole: u64 = sizes.iter().map(|s| s.1 as u64).sum();
         assert_eq!(files.iter().map(|f| f.1).sum::<u64>(), whole);
+        let files: Vec<WarmRead> = files
+            .into_iter()
+            .map(|(path, len)| WarmRead {
+                path,
+                offset: 0,
+                len,
+            })
+            .collect();
 
         let figures = PrewarmFigures::default();
         assert_eq!(
@@ -551,14 +797,41 @@ mod tests {
             let mut file = File::open(dir.path().join("db")).unwrap();
             let (mut offset, mut chunks) = (0u64, Vec::new());
             loop {
-                match sink.warm(&mut file, &mut offset).unwrap() {
+                match sink.warm(&mut file, &mut offset, u64::MAX).unwrap() {
                     0 => break,
                     n => chunks.push(n),
                 }
             }
             assert_eq!(chunks, [PREWARM_READ_BYTES, PREWARM_READ_BYTES, 5]);
             assert_eq!(offset, (PREWARM_READ_BYTES * 2 + 5) as u64);
+            // A part of a file: no more than asked, nothing past the end.
+            let mut offset = 10;
+            assert_eq!(sink.warm(&mut file, &mut offset, 300).unwrap(), 300);
+            assert_eq!(offset, 310);
+            let mut offset = (PREWARM_READ_BYTES * 2) as u64;
+            assert_eq!(sink.warm(&mut file, &mut offset, 300).unwrap(), 5);
         }
+
+        // Ranges of files: each read to its length, in order.
+        let parts = [
+            read_part(&dir, "db", 1, 99),
+            read_part(&dir, "db", PREWARM_READ_BYTES as u64, 5000),
+            read_part(&dir, "conf", 60, 10),
+        ];
+        let figures = PrewarmFigures::default();
+        let mut chunks = 0;
+        let idle = |_| {
+            chunks += 1;
+            true
+        };
+        assert_eq!(
+            read_files(&parts, &AtomicBool::new(false), idle, &figures),
+            99 + 5000 + 2
+        );
+        assert_eq!(
+            chunks, 4,
+            "one chunk each, and one more that finds conf's end"
+        );
 
         // A file gone since it was listed is left; the others are read.
         std::fs::remove_file(dir.path().join("conf")).unwrap();
@@ -567,6 +840,15 @@ mod tests {
             read_files(&files, &AtomicBool::new(false), |_| true, &figures),
             whole - 62
         );
+    }
+
+    /// A read of `len` bytes of the file `name` in `dir` from `offset`.
+    fn read_part(dir: &tempfile::TempDir, name: &str, offset: u64, len: u64) -> WarmRead {
+        WarmRead {
+            path: dir.path().join(name),
+            offset,
+            len,
+        }
     }
 
     /// Waits until `figures` says the prewarm ended.
@@ -623,6 +905,7 @@ mod tests {
         let figures = Arc::new(PrewarmFigures::default());
         let handle = start(
             dir.path(),
+            dir.path(),
             PoolPrewarm::Always,
             readers.clone(),
             figures.clone(),
@@ -638,7 +921,13 @@ mod tests {
         // Stopped (the service ended) while it waits: it ends without reading.
         readers.waiting.store(1, Ordering::Relaxed);
         let figures = Arc::new(PrewarmFigures::default());
-        let handle = start(dir.path(), PoolPrewarm::Always, readers, figures.clone());
+        let handle = start(
+            dir.path(),
+            dir.path(),
+            PoolPrewarm::Always,
+            readers,
+            figures.clone(),
+        );
         drop(handle);
         wait_done(&figures);
         assert_eq!(figures.read.load(Ordering::Relaxed), 0);
@@ -652,6 +941,7 @@ mod tests {
         let readers = Arc::new(ReadFigures::default());
         let handle = start(
             dir.path(),
+            dir.path(),
             PoolPrewarm::Always,
             readers.clone(),
             figures.clone(),
@@ -662,7 +952,16 @@ mod tests {
         assert_eq!(figures.read.load(Ordering::Relaxed), 3 << 20);
 
         let off = Arc::new(PrewarmFigures::default());
-        assert!(start(dir.path(), PoolPrewarm::Off, readers, off.clone()).is_none());
+        assert!(
+            start(
+                dir.path(),
+                dir.path(),
+                PoolPrewarm::Off,
+                readers,
+                off.clone()
+            )
+            .is_none()
+        );
         assert_eq!(off.total.load(Ordering::Relaxed), 0);
         assert_eq!(off.read.load(Ordering::Relaxed), 0);
         assert_eq!(off.done.load(Ordering::Relaxed), 1);

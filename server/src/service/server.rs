@@ -461,6 +461,9 @@ async fn supervise(
     }
     dispatcher.abort();
     save_paths(&shared);
+    if let Some(prewarm) = &shared.prewarm {
+        prewarm.save_hot_pages();
+    }
     tracing::info!("stopped");
 }
 

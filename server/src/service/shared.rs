@@ -46,9 +46,9 @@ pub(crate) struct Shared {
     pub wake: Notify,
     /// The threads that read treelet messages from the pool ([`super::readers`]).
     pub readers: PoolReaders,
-    /// The start's read of the pool into the page cache, stopped when the service ends
-    /// ([`super::prewarm`]).
-    _prewarm: Option<Prewarm>,
+    /// The start's read of the pool into the page cache, stopped when the service ends, and
+    /// the saving of its hot-page list ([`super::prewarm`]).
+    pub prewarm: Option<Prewarm>,
     /// The served form of each scene some connection uses, by name: held by the connections,
     /// so a scene's served state (its prepared dictionaries, a visible cut's node buffer) lives
     /// as long as someone is served it, not for the rest of the process.
@@ -75,6 +75,7 @@ impl Shared {
         let readers = PoolReaders::start(config.pool_readers, state.metrics.pool_reads.clone())?;
         let prewarm = super::prewarm::start(
             &config.db,
+            config.data_dir(),
             config.pool_prewarm,
             state.metrics.pool_reads.clone(),
             state.metrics.pool_prewarm.clone(),
@@ -109,7 +110,7 @@ impl Shared {
             }),
             wake: Notify::new(),
             readers,
-            _prewarm: prewarm,
+            prewarm,
             scenes: Mutex::new(HashMap::new()),
             caches,
             next_id: AtomicU64::new(1),

@@ -500,6 +500,13 @@ impl ServiceState {
             load(&m.pool_prewarm.total),
         )
         .single(
+            "arbor_pool_prewarm_hot_bytes",
+            Kind::Gauge,
+            "Of those, the bytes of the pages the last run had in the page cache, read first \
+             (its saved list of hot pages).",
+            load(&m.pool_prewarm.hot),
+        )
+        .single(
             "arbor_pool_prewarm_read_bytes",
             Kind::Gauge,
             "Bytes of the pool's files the prewarm has read so far.",
