@@ -425,7 +425,7 @@ pub fn read_files(
 pub struct Prewarm {
     stop: Arc<AtomicBool>,
     /// Dropped with it: the saving thread ends.
-    _saver: Option<mpsc::Sender<()>>,
+    _saver: mpsc::Sender<()>,
     pool: PathBuf,
     list: PathBuf,
 }
@@ -506,7 +506,7 @@ pub fn start(
     }
     let handle = Prewarm {
         stop: stop.clone(),
-        _saver: Some(saver),
+        _saver: saver,
         pool: dir.to_owned(),
         list: list.clone(),
     };
