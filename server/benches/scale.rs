@@ -35,8 +35,9 @@
 //! Figures: points/s of each tool, Arbor's time per phase of each run (from its log's phase
 //! lines), peak anonymous RSS (sampled `RssAnon` of the child), peak scratch bytes on disk, pool
 //! bytes (compressed blocks), sled's size on disk, `verify` time; then a 1024×768 view streamed
-//! at a 64 MiB budget from a server with visible cuts on and one with them off: time to
-//! converge, the server's CPU time per view, client peak RSS.
+//! at a 64 MiB budget from a server with visible cuts on and one with them off: time from its
+//! start until it serves (sled's open), time to converge, the server's CPU time per view,
+//! client peak RSS.
 
 #[path = "scale/city.rs"]
 mod city;

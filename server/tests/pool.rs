@@ -238,11 +238,15 @@ fn damaged(damage: impl FnOnce(&sled::Db, u64, &arbor_proto::SceneDescription)) 
     r.problems
 }
 
-/// The pool's database opened directly, once the pool that had it has let go of its lock.
+/// The pool's database opened directly (in the segment size this build makes pools with), once
+/// the pool that had it has let go of its lock.
 fn raw_sled(dir: &Path) -> sled::Db {
     (0..100)
         .find_map(|_| {
-            sled::open(dir)
+            sled::Config::new()
+                .path(dir)
+                .segment_size(arbor_server::pool::POOL_SEGMENT_BYTES)
+                .open()
                 .map_err(|_| std::thread::sleep(std::time::Duration::from_millis(50)))
                 .ok()
         })
@@ -280,6 +284,56 @@ fn a_pool_of_another_format_is_refused_naming_both() {
     let fresh = tempfile::tempdir().unwrap();
     drop(Pool::open(fresh.path()).unwrap());
     assert!(open_when_unlocked(fresh.path()).is_ok());
+}
+
+/// sled's record of the segment size the database in `dir` was made with.
+fn segment_size_in_conf(dir: &Path) -> Option<usize> {
+    let conf = std::fs::read(dir.join("conf")).unwrap();
+    String::from_utf8_lossy(&conf)
+        .lines()
+        .find_map(|l| l.strip_prefix("segment_size:"))?
+        .trim()
+        .parse()
+        .ok()
+}
+
+/// A new pool is made with `POOL_SEGMENT_BYTES` segments (sled reads one header per segment
+/// when it opens); a pool made with sled's default 512 KiB ones, as every pool before, still
+/// opens, takes an import, reads back and verifies, and keeps its segment size.
+#[test]
+fn a_new_pool_has_large_segments_and_an_older_one_keeps_its_own() {
+    let scratch = tempfile::tempdir().unwrap();
+    let source = bunny(scratch.path());
+
+    let fresh = tempfile::tempdir().unwrap();
+    drop(Pool::open(fresh.path()).unwrap());
+    assert_eq!(
+        segment_size_in_conf(fresh.path()),
+        Some(arbor_server::pool::POOL_SEGMENT_BYTES)
+    );
+
+    let older = tempfile::tempdir().unwrap();
+    drop(sled::open(older.path()).unwrap());
+    assert_eq!(segment_size_in_conf(older.path()), Some(512 << 10));
+    {
+        let pool = open_when_unlocked(older.path()).unwrap();
+        import(&pool, &source, scratch.path(), "old", false);
+    }
+    let pool = reopen(older.path());
+    let scene = pool.scene("old").unwrap();
+    assert!(scene.nodes(arbor_proto::TreeletId(0)).unwrap().is_some());
+    assert!(verify_scene(&scene).unwrap().is_ok());
+    drop((scene, pool));
+    assert_eq!(segment_size_in_conf(older.path()), Some(512 << 10));
+
+    // A conf this build cannot read is left to sled, which refuses it (its checksum).
+    let odd = tempfile::tempdir().unwrap();
+    drop(sled::open(odd.path()).unwrap());
+    let conf = std::fs::read(odd.path().join("conf")).unwrap();
+    let text = String::from_utf8_lossy(&conf).replace("524288", "524287");
+    std::fs::write(odd.path().join("conf"), text.as_bytes()).unwrap();
+    let e = Pool::open(odd.path()).unwrap_err().to_string();
+    assert!(e.contains("pool database"), "{e}");
 }
 
 fn nodes_tree(db: &sled::Db, g: u64) -> sled::Tree {

@@ -60,16 +60,19 @@ fn disk_of(path: &Path) -> String {
         .to_owned()
 }
 
-/// `ARBOR_SCALE_READ_IOPS=N`: the server process `pid` is moved into a block I/O cgroup that
-/// holds its reads of the pool's disk to N a second (cloud block storage past its burst), and
-/// the page cache is dropped, so the pool is read from that disk. Needs root and cgroup v1's
-/// blkio controller; says so loudly when either is missing. Returns the cgroup to remove.
-fn throttle_reads(pid: u32, pool: &Path) -> Option<std::path::PathBuf> {
+/// `ARBOR_SCALE_READ_IOPS=N`: a fresh block I/O cgroup that holds reads of the pool's disk to N
+/// a second (cloud block storage past its burst), for the next server to start in, and the page
+/// cache dropped, so the pool (and sled's open) is read from that disk. Needs root and cgroup
+/// v1's blkio controller; says so loudly when either is missing. Returns the cgroup (removed
+/// with the server).
+fn throttled_reads(pool: &Path) -> Option<std::path::PathBuf> {
+    static NEXT: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
     let iops: u64 = std::env::var("ARBOR_SCALE_READ_IOPS")
         .ok()?
         .parse()
         .expect("ARBOR_SCALE_READ_IOPS is a number of reads a second");
-    let cgroup = Path::new(BLKIO_CGROUPS).join(format!("arbor-scale-{pid}"));
+    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let cgroup = Path::new(BLKIO_CGROUPS).join(format!("arbor-scale-{}-{n}", std::process::id()));
     std::fs::create_dir(&cgroup).unwrap_or_else(|e| {
         panic!(
             "ARBOR_SCALE_READ_IOPS needs root and cgroup v1's blkio controller at \
@@ -77,19 +80,14 @@ fn throttle_reads(pid: u32, pool: &Path) -> Option<std::path::PathBuf> {
             cgroup.display()
         )
     });
-    let write = |file: &str, value: String| {
-        std::fs::write(cgroup.join(file), &value).unwrap_or_else(|e| {
-            panic!(
-                "ARBOR_SCALE_READ_IOPS: writing {value} to {}: {e}",
-                cgroup.join(file).display()
-            )
-        })
-    };
-    write(
-        "blkio.throttle.read_iops_device",
-        format!("{} {iops}", disk_of(pool)),
-    );
-    write("cgroup.procs", pid.to_string());
+    let limit = cgroup.join("blkio.throttle.read_iops_device");
+    let value = format!("{} {iops}", disk_of(pool));
+    std::fs::write(&limit, &value).unwrap_or_else(|e| {
+        panic!(
+            "ARBOR_SCALE_READ_IOPS: writing {value} to {}: {e}",
+            limit.display()
+        )
+    });
     let synced = Command::new("sync").status().is_ok_and(|s| s.success());
     assert!(synced, "sync failed");
     std::fs::write("/proc/sys/vm/drop_caches", "3").expect("dropping the page cache");
@@ -99,7 +97,9 @@ fn throttle_reads(pid: u32, pool: &Path) -> Option<std::path::PathBuf> {
 /// A running `arbor-server serve` on loopback.
 struct Server {
     child: Child,
-    /// The block I/O cgroup it was moved into (`ARBOR_SCALE_READ_IOPS`), removed once it ended.
+    /// From its start to its first line saying where it serves (the pool opened).
+    serving_after: Duration,
+    /// The block I/O cgroup it runs in (`ARBOR_SCALE_READ_IOPS`), removed once it ended.
     throttled: Option<std::path::PathBuf>,
     url: ServerUrl,
     fingerprint: String,
@@ -131,16 +131,32 @@ impl Server {
         state: &Path,
         confined: Option<&Path>,
     ) -> Server {
-        let mut cmd = match confined {
-            Some(cgroup) => {
-                let mut sh = Command::new("sh");
-                sh.args(["-c", "echo $$ > \"$0/cgroup.procs\" && exec \"$@\""])
-                    .arg(cgroup)
-                    .arg(server_bin);
-                sh
-            }
-            None => Command::new(server_bin),
+        let throttled = throttled_reads(pool);
+        // The server enters its cgroups before its first instruction (a shell enters them,
+        // then runs it): sled's open is read under the same limits as its treelets.
+        let cgroups: Vec<&Path> = [throttled.as_deref(), confined]
+            .into_iter()
+            .flatten()
+            .collect();
+        let mut cmd = if cgroups.is_empty() {
+            Command::new(server_bin)
+        } else {
+            let mut sh = Command::new("sh");
+            sh.args([
+                "-c",
+                "IFS=:; for g in $0; do echo $$ > \"$g/cgroup.procs\" || exit 1; done; exec \"$@\"",
+            ])
+            .arg(
+                cgroups
+                    .iter()
+                    .map(|g| g.display().to_string())
+                    .collect::<Vec<_>>()
+                    .join(":"),
+            )
+            .arg(server_bin);
+            sh
         };
+        let spawned = std::time::Instant::now();
         cmd.args(["serve", "--listen", "127.0.0.1:0", "--admin", "off", "--db"])
             .arg(pool)
             .arg("--data-dir")
@@ -165,13 +181,14 @@ impl Server {
             .stderr(stderr)
             .spawn()
             .expect("starting arbor-server serve");
-        let throttled = throttle_reads(child.id(), pool);
         let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
         let (mut addr, mut fingerprint) = (None, None);
+        let mut serving_after = Duration::ZERO;
         while addr.is_none() || fingerprint.is_none() {
             let line = lines.next().expect("serve output").unwrap();
             if let Some(a) = line.strip_prefix("quic ") {
                 addr = Some(a.parse::<std::net::SocketAddr>().unwrap());
+                serving_after = spawned.elapsed();
             }
             if let Some(f) = line.strip_prefix("fingerprint ") {
                 fingerprint = Some(f.to_owned());
@@ -180,6 +197,7 @@ impl Server {
         let addr = addr.unwrap();
         Server {
             child,
+            serving_after,
             throttled,
             url: ServerUrl {
                 host: addr.ip().to_string(),
@@ -300,8 +318,11 @@ pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
             Some("visibility_grid = 0"),
         ),
     ] {
-        println!(" {servers}");
         let server = Server::start(server_bin, pool, scene, config);
+        println!(
+            " {servers}: serving {:.2} s after its start",
+            server.serving_after.as_secs_f64()
+        );
         if !first_view_after.is_zero() {
             std::thread::sleep(first_view_after);
         }
@@ -400,6 +421,10 @@ fn restart_and_stream(
             let cgroup = memory_cgroup(mib, &format!("{round}-{i}-after"));
             let after_server =
                 Server::start_in(server_bin, pool, scene, None, state.path(), Some(&cgroup));
+            println!(
+                "  restarted: serving {:.2} s after its start",
+                after_server.serving_after.as_secs_f64()
+            );
             std::thread::sleep(after);
             let what = if keep {
                 "  restarted with the hot-page list"

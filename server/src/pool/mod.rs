@@ -65,6 +65,32 @@ const FORMAT_KEY: &[u8] = b"arbor.pool.format";
 /// but with scenes predates it (format 1).
 const FORMAT: u32 = 2;
 
+/// Bytes of one segment of the log of a pool made by this build (sled's `segment_size`; its
+/// default is 512 KiB).
+///
+/// Why larger: sled's open reads the 20-byte header of every segment of its file, one read
+/// each, before anything else. The 10⁸-point city's 1.47 GB pool in 512 KiB segments took 2,862
+/// reads and 6.0 s to open on a disk held to 500 reads a second (cloud block storage past its
+/// burst), during which the server served nobody; a 100 GB pool would take minutes. 8 MiB
+/// segments make sixteen times fewer, and a leaf page of up to a quarter of a segment (2 MiB)
+/// stays in the log instead of a blob file of its own. Each full segment is written from one
+/// buffer of this size. A pool keeps the segment size it was made with (sled's `conf` file).
+pub const POOL_SEGMENT_BYTES: usize = 8 << 20;
+
+/// The segment size sled recorded in the pool directory `dir` (its `conf` file), if it has one
+/// that sled would accept.
+fn stored_segment_bytes(dir: &Path) -> Option<usize> {
+    let conf = std::fs::read(dir.join("conf")).ok()?;
+    let text = String::from_utf8_lossy(&conf);
+    let bytes: usize = text
+        .lines()
+        .find_map(|l| l.strip_prefix("segment_size:"))?
+        .trim()
+        .parse()
+        .ok()?;
+    (bytes.is_power_of_two() && (256..=1 << 24).contains(&bytes)).then_some(bytes)
+}
+
 /// sled page cache size of [`Pool::open`]: imports and tools. A server sizes its own
 /// (`pool_cache_bytes`, [`Pool::open_with_cache`]).
 pub const POOL_CACHE_BYTES: u64 = 128 << 20;
@@ -347,7 +373,13 @@ impl Pool {
     /// message cache took 1.7–2.4 µs per treelet with 128 MiB and 0.54–0.67 µs with 1 GiB
     /// (`server/benches/messages.rs`, docs/measurements.md, stop 59).
     pub fn open_with_cache(dir: &Path, cache_bytes: u64) -> Result<Pool, PoolError> {
-        let config = sled::Config::new().path(dir).cache_capacity(cache_bytes);
+        // sled refuses a segment size other than the one its directory was made with; a new
+        // pool gets POOL_SEGMENT_BYTES, one made before (512 KiB, sled's default) keeps its own.
+        let segment_bytes = stored_segment_bytes(dir).unwrap_or(POOL_SEGMENT_BYTES);
+        let config = sled::Config::new()
+            .path(dir)
+            .cache_capacity(cache_bytes)
+            .segment_size(segment_bytes);
         let db = match config.open() {
             Err(sled::Error::Corruption { .. }) if remove_unfinished_snapshots(dir) > 0 => {
                 tracing::warn!(
