@@ -27,7 +27,7 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::mpsc;
+use std::sync::{Mutex, mpsc};
 use std::time::{Duration, Instant};
 
 use serde::Deserialize;
@@ -428,13 +428,16 @@ pub struct Prewarm {
     _saver: mpsc::Sender<()>,
     pool: PathBuf,
     list: PathBuf,
+    /// Held while the list is saved: the saving thread's tick and the shutdown's save never
+    /// write the same temporary file at once.
+    saving: Arc<Mutex<()>>,
 }
 
 impl Prewarm {
     /// Saves the list of the pool's pages now in the page cache for the next start (when the
     /// service stops); a failure is logged.
     pub fn save_hot_pages(&self) {
-        save_hot_pages(&self.pool, &self.list);
+        save_hot_pages(&self.pool, &self.list, &self.saving);
     }
 }
 
@@ -444,8 +447,9 @@ impl Drop for Prewarm {
     }
 }
 
-/// Saves the hot-page list of the pool in `pool` to `list`, logging what it did.
-fn save_hot_pages(pool: &Path, list: &Path) {
+/// Saves the hot-page list of the pool in `pool` to `list` under `saving`, logging what it did.
+fn save_hot_pages(pool: &Path, list: &Path, saving: &Mutex<()>) {
+    let _one_at_a_time = saving.lock().unwrap_or_else(|e| e.into_inner());
     let t0 = Instant::now();
     match hot_pages::snapshot(pool).and_then(|hot| hot_pages::save(list, pool, &hot)) {
         Ok(bytes) => tracing::debug!(
@@ -482,6 +486,25 @@ pub fn start(
     readers: Arc<ReadFigures>,
     figures: Arc<PrewarmFigures>,
 ) -> Option<Prewarm> {
+    start_saving_every(
+        dir,
+        data_dir,
+        mode,
+        readers,
+        figures,
+        hot_pages::HOT_PAGES_SAVE_INTERVAL,
+    )
+}
+
+/// [`start`], the list saved every `save_every`.
+fn start_saving_every(
+    dir: &Path,
+    data_dir: &Path,
+    mode: PoolPrewarm,
+    readers: Arc<ReadFigures>,
+    figures: Arc<PrewarmFigures>,
+    save_every: Duration,
+) -> Option<Prewarm> {
     let finish = |figures: &PrewarmFigures| figures.done.store(1, Ordering::Relaxed);
     if mode == PoolPrewarm::Off {
         tracing::info!(db = %dir.display(), "not prewarming the pool: pool_prewarm is off");
@@ -491,17 +514,16 @@ pub fn start(
     let list = data_dir.join(hot_pages::HOT_PAGES_FILE);
     let stop = Arc::new(AtomicBool::new(false));
     let (saver, saves) = mpsc::channel::<()>();
-    let (pool, saved) = (dir.to_owned(), list.clone());
-    let saving = std::thread::Builder::new()
+    let saving = Arc::new(Mutex::new(()));
+    let (pool, saved, lock) = (dir.to_owned(), list.clone(), saving.clone());
+    let saver_thread = std::thread::Builder::new()
         .name("arbor-hot-pages".into())
         .spawn(move || {
-            while let Err(mpsc::RecvTimeoutError::Timeout) =
-                saves.recv_timeout(hot_pages::HOT_PAGES_SAVE_INTERVAL)
-            {
-                save_hot_pages(&pool, &saved);
+            while let Err(mpsc::RecvTimeoutError::Timeout) = saves.recv_timeout(save_every) {
+                save_hot_pages(&pool, &saved, &lock);
             }
         });
-    if let Err(e) = saving {
+    if let Err(e) = saver_thread {
         tracing::warn!("the pool's hot pages will not be saved: starting its thread: {e}");
     }
     let handle = Prewarm {
@@ -509,6 +531,7 @@ pub fn start(
         _saver: saver,
         pool: dir.to_owned(),
         list: list.clone(),
+        saving,
     };
     let files = match pool_files(dir) {
         Ok(f) => f,
@@ -931,6 +954,36 @@ mod tests {
         drop(handle);
         wait_done(&figures);
         assert_eq!(figures.read.load(Ordering::Relaxed), 0);
+    }
+
+    #[test]
+    fn a_running_prewarm_saves_the_hot_pages_on_its_own_until_dropped() {
+        let pool = tempfile::tempdir().unwrap();
+        let data = tempfile::tempdir().unwrap();
+        std::fs::write(pool.path().join("db"), vec![1u8; 1 << 20]).unwrap();
+        let list = data.path().join(hot_pages::HOT_PAGES_FILE);
+        let handle = start_saving_every(
+            pool.path(),
+            data.path(),
+            PoolPrewarm::Always,
+            Arc::new(ReadFigures::default()),
+            Arc::new(PrewarmFigures::default()),
+            Duration::from_millis(20),
+        );
+        let t0 = Instant::now();
+        while !list.exists() {
+            assert!(
+                t0.elapsed() < Duration::from_secs(10),
+                "no list saved in 10 s"
+            );
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        drop(handle);
+        // The saving thread has ended by its next tick: the list, removed, stays away.
+        std::thread::sleep(Duration::from_millis(100));
+        std::fs::remove_file(&list).unwrap();
+        std::thread::sleep(Duration::from_millis(100));
+        assert!(!list.exists(), "saved after the prewarm was dropped");
     }
 
     #[test]
