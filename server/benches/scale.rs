@@ -26,9 +26,9 @@
 //! * `ARBOR_SCALE_RESTART=N` — after the stream step's views, N rounds of a restart: a server in
 //!   a memory cgroup of `ARBOR_SCALE_RESTART_MEMORY_MIB` (default 1024, less than the city's
 //!   pool) serves one view and is stopped with SIGTERM, the page cache is dropped, and its
-//!   successor on the same data directory serves the timed first view (at least 10 s after its
-//!   start, `ARBOR_SCALE_FIRST_VIEW_AFTER_MS` if longer), in turns with and without the
-//!   hot-page list the first left (root, cgroup v1);
+//!   successor on the same data directory serves the timed first view
+//!   (`ARBOR_SCALE_RESTART_VIEW_AFTER_MS` after it serves, default 10000), in turns with and
+//!   without the hot-page list the first left (root, cgroup v1);
 //! * `ARBOR_SCALE_SERVER_LOG=FILE` — append the stream step's servers' logs (stderr, with
 //!   `RUST_LOG` as set) to FILE instead of dropping them.
 //!

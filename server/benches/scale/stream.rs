@@ -336,7 +336,7 @@ pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
             .expect("ARBOR_SCALE_RESTART is a number of rounds")
     });
     if rounds > 0 {
-        restart_and_stream(server_bin, pool, scene, rounds, first_view_after, &runtime);
+        restart_and_stream(server_bin, pool, scene, rounds, &runtime);
     }
     println!(
         "client RSS: peak {:.1} MiB (before the runs {:.1} MiB; slot buffer {:.1} MiB)",
@@ -376,14 +376,13 @@ fn drop_page_cache() {
 /// `ARBOR_SCALE_RESTART=N`: N rounds of a restarted server, with and without the hot-page list
 /// its predecessor left, in turns. The servers run in a memory cgroup of
 /// `ARBOR_SCALE_RESTART_MEMORY_MIB` (default 1024, below the city's 1.47 GB pool, so the whole
-/// pool is never read at start); the first view comes `first_view_after` (at least 10 s) after
-/// the restart.
+/// pool is never read at start); the first view comes `ARBOR_SCALE_RESTART_VIEW_AFTER_MS`
+/// (default 10,000) after the restart.
 fn restart_and_stream(
     server_bin: &str,
     pool: &Path,
     scene: &str,
     rounds: u32,
-    first_view_after: Duration,
     runtime: &tokio::runtime::Runtime,
 ) {
     let mib: u64 = std::env::var("ARBOR_SCALE_RESTART_MEMORY_MIB")
@@ -391,11 +390,17 @@ fn restart_and_stream(
         .map_or(1024, |v| {
             v.parse().expect("ARBOR_SCALE_RESTART_MEMORY_MIB is MiB")
         });
-    let after = first_view_after.max(Duration::from_secs(10));
+    let after = Duration::from_millis(
+        std::env::var("ARBOR_SCALE_RESTART_VIEW_AFTER_MS")
+            .ok()
+            .map_or(10_000, |v| {
+                v.parse().expect("ARBOR_SCALE_RESTART_VIEW_AFTER_MS is ms")
+            }),
+    );
     println!();
     println!(
         "restart: the server in a {mib} MiB memory cgroup, one view, SIGTERM, page cache dropped, \
-         restarted on the same data directory; its first view {} ms after the restart:",
+         restarted on the same data directory; its first view {} ms after it serves again:",
         after.as_millis()
     );
     let mut times: [Vec<Option<f64>>; 2] = [Vec::new(), Vec::new()];
