@@ -323,7 +323,8 @@ pub struct MemoryPlan {
 /// `arbor_memory_bound_bytes` for the scenes the pool holds at the scrape.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct MemoryBound {
-    /// sled's page cache (`pool_cache_bytes`).
+    /// sled's page cache (`pool_cache_bytes`) and the buffer its log is written from (one
+    /// segment, [`crate::pool::POOL_SEGMENT_BYTES`]).
     pub pool_cache: u64,
     /// `max_connections` × `max_connection_memory`.
     pub connections: u64,
@@ -942,7 +943,9 @@ impl ServeConfig {
     pub fn memory_bound(&self, scenes: usize) -> MemoryBound {
         let cuts = self.visibility_grid > 0;
         MemoryBound {
-            pool_cache: self.pool_cache_bytes,
+            pool_cache: self
+                .pool_cache_bytes
+                .saturating_add(crate::pool::POOL_SEGMENT_BYTES as u64),
             connections: (self.max_connections as u64).saturating_mul(self.max_connection_memory),
             message_cache: self.message_cache_bytes,
             shape_cache: self.shape_cache_bytes,
@@ -1367,16 +1370,16 @@ access = "public"
                 mib(b.cut_node_cache),
                 mib(b.cut_buffers())
             ),
-            (128, 1024, 64, 32, 64, 2 * 2 * 32),
-            "the defaults with cuts on, two scenes"
+            (128 + 8, 1024, 64, 32, 64, 2 * 2 * 32),
+            "the defaults with cuts on, two scenes (sled's cache and its 8 MiB write buffer)"
         );
-        assert_eq!(mib(b.total()), 128 + 1024 + 64 + 32 + 64 + 128);
+        assert_eq!(mib(b.total()), 136 + 1024 + 64 + 32 + 64 + 128);
         assert_eq!(b.parts().iter().map(|p| p.1).sum::<u64>(), b.total());
         assert_eq!(b.with_scenes(5).cut_buffers(), 5 * 2 * (32 << 20));
         c.pool_cache_bytes = 1 << 30;
         assert_eq!(
             mib(c.memory_bound(2).pool_cache),
-            1024,
+            1024 + 8,
             "the pool cache as configured"
         );
         c.visibility_grid = 0;
