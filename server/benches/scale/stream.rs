@@ -72,26 +72,47 @@ fn throttled_reads(pool: &Path) -> Option<std::path::PathBuf> {
         .parse()
         .expect("ARBOR_SCALE_READ_IOPS is a number of reads a second");
     let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let cgroup = Path::new(BLKIO_CGROUPS).join(format!("arbor-scale-{}-{n}", std::process::id()));
+    let cgroup = fresh_cgroup(
+        "ARBOR_SCALE_READ_IOPS",
+        BLKIO_CGROUPS,
+        &n.to_string(),
+        "blkio.throttle.read_iops_device",
+        format!("{} {iops}", disk_of(pool)),
+    );
+    drop_page_cache("ARBOR_SCALE_READ_IOPS");
+    Some(cgroup)
+}
+
+/// A fresh cgroup (v1) under the controller at `root`, named for this process and `tag`, with
+/// `value` written to its `limit` file; `knob` (the setting that asked for it) names it in the
+/// loud failure when root or the controller is missing.
+fn fresh_cgroup(
+    knob: &str,
+    root: &str,
+    tag: &str,
+    limit: &str,
+    value: String,
+) -> std::path::PathBuf {
+    let cgroup = Path::new(root).join(format!("arbor-scale-{}-{tag}", std::process::id()));
     std::fs::create_dir(&cgroup).unwrap_or_else(|e| {
         panic!(
-            "ARBOR_SCALE_READ_IOPS needs root and cgroup v1's blkio controller at \
-             {BLKIO_CGROUPS}: creating {}: {e}",
+            "{knob} needs root and cgroup v1's controller at {root}: creating {}: {e}",
             cgroup.display()
         )
     });
-    let limit = cgroup.join("blkio.throttle.read_iops_device");
-    let value = format!("{} {iops}", disk_of(pool));
-    std::fs::write(&limit, &value).unwrap_or_else(|e| {
-        panic!(
-            "ARBOR_SCALE_READ_IOPS: writing {value} to {}: {e}",
-            limit.display()
-        )
-    });
+    let file = cgroup.join(limit);
+    std::fs::write(&file, &value)
+        .unwrap_or_else(|e| panic!("{knob}: writing {value} to {}: {e}", file.display()));
+    cgroup
+}
+
+/// Syncs and drops the page cache (root), so what follows is read from the disk; `why` names
+/// the setting that asked for it in the failure.
+fn drop_page_cache(why: &str) {
     let synced = Command::new("sync").status().is_ok_and(|s| s.success());
     assert!(synced, "sync failed");
-    std::fs::write("/proc/sys/vm/drop_caches", "3").expect("dropping the page cache");
-    Some(cgroup)
+    std::fs::write("/proc/sys/vm/drop_caches", "3")
+        .unwrap_or_else(|e| panic!("{why}: dropping the page cache (root): {e}"));
 }
 
 /// A running `arbor-server serve` on loopback.
@@ -351,26 +372,13 @@ const MEMORY_CGROUPS: &str = "/sys/fs/cgroup/memory";
 
 /// A fresh memory cgroup (v1) limited to `mib` MiB; needs root, says so loudly otherwise.
 fn memory_cgroup(mib: u64, tag: &str) -> std::path::PathBuf {
-    let cgroup =
-        Path::new(MEMORY_CGROUPS).join(format!("arbor-scale-{}-{tag}", std::process::id()));
-    std::fs::create_dir(&cgroup).unwrap_or_else(|e| {
-        panic!(
-            "ARBOR_SCALE_RESTART needs root and cgroup v1's memory controller at \
-             {MEMORY_CGROUPS}: creating {}: {e}",
-            cgroup.display()
-        )
-    });
-    let limit = cgroup.join("memory.limit_in_bytes");
-    std::fs::write(&limit, (mib << 20).to_string())
-        .unwrap_or_else(|e| panic!("ARBOR_SCALE_RESTART: writing {}: {e}", limit.display()));
-    cgroup
-}
-
-fn drop_page_cache() {
-    let synced = Command::new("sync").status().is_ok_and(|s| s.success());
-    assert!(synced, "sync failed");
-    std::fs::write("/proc/sys/vm/drop_caches", "3")
-        .expect("ARBOR_SCALE_RESTART: dropping the page cache (root)");
+    fresh_cgroup(
+        "ARBOR_SCALE_RESTART",
+        MEMORY_CGROUPS,
+        tag,
+        "memory.limit_in_bytes",
+        (mib << 20).to_string(),
+    )
 }
 
 /// `ARBOR_SCALE_RESTART=N`: N rounds of a restarted server, with and without the hot-page list
@@ -422,7 +430,7 @@ fn restart_and_stream(
             if !keep {
                 std::fs::remove_file(&list).unwrap();
             }
-            drop_page_cache();
+            drop_page_cache("ARBOR_SCALE_RESTART");
             let cgroup = memory_cgroup(mib, &format!("{round}-{i}-after"));
             let after_server =
                 Server::start_in(server_bin, pool, scene, None, state.path(), Some(&cgroup));

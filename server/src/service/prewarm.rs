@@ -874,6 +874,21 @@ mod tests {
         }
     }
 
+    /// [`start`] with `always` on the pool in `dir`, its data directory the same.
+    fn start_always(
+        dir: &tempfile::TempDir,
+        readers: &Arc<ReadFigures>,
+        figures: &Arc<PrewarmFigures>,
+    ) -> Option<Prewarm> {
+        start(
+            dir.path(),
+            dir.path(),
+            PoolPrewarm::Always,
+            readers.clone(),
+            figures.clone(),
+        )
+    }
+
     /// Waits until `figures` says the prewarm ended.
     fn wait_done(figures: &PrewarmFigures) {
         let t0 = Instant::now();
@@ -926,13 +941,7 @@ mod tests {
         let readers = Arc::new(ReadFigures::default());
         readers.waiting.store(1, Ordering::Relaxed);
         let figures = Arc::new(PrewarmFigures::default());
-        let handle = start(
-            dir.path(),
-            dir.path(),
-            PoolPrewarm::Always,
-            readers.clone(),
-            figures.clone(),
-        );
+        let handle = start_always(&dir, &readers, &figures);
         std::thread::sleep(PREWARM_START_QUIET + Duration::from_millis(300));
         assert_eq!(figures.read.load(Ordering::Relaxed), 0);
         assert_eq!(figures.done.load(Ordering::Relaxed), 0);
@@ -944,13 +953,7 @@ mod tests {
         // Stopped (the service ended) while it waits: it ends without reading.
         readers.waiting.store(1, Ordering::Relaxed);
         let figures = Arc::new(PrewarmFigures::default());
-        let handle = start(
-            dir.path(),
-            dir.path(),
-            PoolPrewarm::Always,
-            readers,
-            figures.clone(),
-        );
+        let handle = start_always(&dir, &readers, &figures);
         drop(handle);
         wait_done(&figures);
         assert_eq!(figures.read.load(Ordering::Relaxed), 0);
@@ -992,13 +995,7 @@ mod tests {
         std::fs::write(dir.path().join("db"), vec![1u8; 3 * 1024 * 1024]).unwrap();
         let figures = Arc::new(PrewarmFigures::default());
         let readers = Arc::new(ReadFigures::default());
-        let handle = start(
-            dir.path(),
-            dir.path(),
-            PoolPrewarm::Always,
-            readers.clone(),
-            figures.clone(),
-        );
+        let handle = start_always(&dir, &readers, &figures);
         assert!(handle.is_some());
         wait_done(&figures);
         assert_eq!(figures.total.load(Ordering::Relaxed), 3 << 20);
