@@ -248,6 +248,83 @@ fn bad_inputs_fail_cleanly_and_leave_the_pool_untouched() {
     );
 }
 
+/// `copy`: a new pool with the same scenes, the server's state files carried but not its list
+/// of hot pages (it names the old file's pages); an existing destination and a pool in use by
+/// another process are refused by name.
+#[test]
+fn copy_makes_a_new_pool_and_refuses_what_it_must_not_touch() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("pool");
+    let (db_s, to) = (db_arg(&db), dir.path().join("copy"));
+    let to_s = db_arg(&to);
+    let bunny = data("meshes/stanford-bunny.obj");
+    let bunny = bunny.to_str().unwrap();
+    ok(&[
+        "import", "--db", &db_s, "--scene", "bunny", "--quiet", "--depth", "5", bunny,
+    ]);
+    for f in [
+        "cert.pem",
+        "key.pem",
+        "admin-token",
+        "path-memory.json",
+        "pool-hot-pages.json",
+    ] {
+        std::fs::write(db.join(f), f).unwrap();
+    }
+    let out = ok(&["copy", "--db", &db_s, "--to", &to_s, "--quiet"]);
+    assert!(out.contains("copied bunny: "), "{out}");
+    assert!(
+        out.contains("carried cert.pem, key.pem, admin-token, path-memory.json"),
+        "{out}"
+    );
+    assert!(out.contains("checked against the source"), "{out}");
+    assert!(!to.join("pool-hot-pages.json").exists());
+    assert_eq!(
+        std::fs::read_to_string(to.join("key.pem")).unwrap(),
+        "key.pem"
+    );
+    let v = ok(&["verify", "--db", &to_s, "--scene", "bunny"]);
+    assert!(v.contains("ok: every invariant holds"), "{v}");
+    assert_eq!(
+        ok(&["info", "--db", &to_s, "--scene", "bunny"])
+            .lines()
+            .nth(3),
+        ok(&["info", "--db", &db_s, "--scene", "bunny"])
+            .lines()
+            .nth(3),
+        "the same scene"
+    );
+
+    let o = run(&["copy", "--db", &db_s, "--to", &to_s]);
+    assert!(!o.status.success());
+    assert!(text(&o).1.contains("already exists"), "{}", text(&o).1);
+    // A source that is no pool is named, and not created.
+    let missing = dir.path().join("no-pool");
+    let o = run(&[
+        "copy",
+        "--db",
+        &db_arg(&missing),
+        "--to",
+        &db_arg(&dir.path().join("c2")),
+    ]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).1.contains("is not a pool directory"),
+        "{}",
+        text(&o).1
+    );
+    assert!(!missing.exists() && !dir.path().join("c2").exists());
+
+    let held = Pool::open(&db).unwrap();
+    let elsewhere = db_arg(&dir.path().join("elsewhere"));
+    let o = run(&["copy", "--db", &db_s, "--to", &elsewhere]);
+    let err = text(&o).1;
+    assert!(!o.status.success());
+    assert!(err.contains("in use by another process"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    drop(held);
+}
+
 #[test]
 fn sigkill_mid_import_leaves_no_half_scene() {
     let dir = tempfile::tempdir().unwrap();

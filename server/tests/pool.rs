@@ -10,16 +10,21 @@ use arbor_server::pool::{Pool, PoolError, pack};
 use arbor_server::source::Source;
 use arbor_server::verify::verify_scene;
 
-fn bunny(scratch: &Path) -> Source {
-    let path = Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../shared/data/meshes/stanford-bunny.obj"
-    ));
+/// A real scan of `../shared/data`, read for an import (its columns in `scratch`).
+fn real_scan(relative: &str, scratch: &Path) -> Source {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/data")
+        .join(relative);
     assert!(
         path.exists(),
-        "the real scans in ../shared/data are required"
+        "the real scans in ../shared/data are required ({} is missing)",
+        path.display()
     );
-    import_file(path, &ImportOptions::default(), scratch).unwrap()
+    import_file(&path, &ImportOptions::default(), scratch).unwrap()
+}
+
+fn bunny(scratch: &Path) -> Source {
+    real_scan("meshes/stanford-bunny.obj", scratch)
 }
 
 fn opts() -> BuildOptions {
@@ -35,7 +40,7 @@ fn opts() -> BuildOptions {
 fn open_when_unlocked(dir: &Path) -> Result<Pool, PoolError> {
     for _ in 0..100 {
         match Pool::open(dir) {
-            Err(PoolError::Sled(_)) => std::thread::sleep(std::time::Duration::from_millis(50)),
+            Err(PoolError::InUse(_)) => std::thread::sleep(std::time::Duration::from_millis(50)),
             opened => return opened,
         }
     }
@@ -439,4 +444,216 @@ fn an_unfinished_snapshot_left_by_a_killed_process_does_not_lock_the_pool_out() 
     let names: Vec<String> = pool.scenes().unwrap().into_iter().map(|d| d.name).collect();
     assert_eq!(names, ["kept"]);
     assert!(verify_scene(&pool.scene("kept").unwrap()).unwrap().is_ok());
+}
+
+/// Every treelet's node and channel blocks of a scene, read one by one.
+fn all_blocks(s: &arbor_server::pool::StoredScene) -> Vec<Vec<Option<Vec<u8>>>> {
+    let channels = s.description.layout.channels().to_vec();
+    (0..s.description.treelet_count)
+        .map(|id| {
+            let id = TreeletId(id);
+            let mut blocks = vec![s.nodes(id).unwrap().map(|b| b.to_vec())];
+            for &c in &channels {
+                blocks.push(s.channel(c, id).unwrap().map(|b| b.to_vec()));
+            }
+            blocks
+        })
+        .collect()
+}
+
+/// `arbor-server copy`'s core: an older pool (sled's 512 KiB segments, a replaced scene's
+/// space in its log, server state files beside it) is copied into a new directory with this
+/// build's segments; every scene comes back block for block and verifies, the progress adds up
+/// to the scenes' stored bytes, the files asked for go with it, and the source is left as it
+/// was.
+#[test]
+fn an_older_pool_is_copied_whole_into_this_builds_layout() {
+    use arbor_server::pool::copy::{CopyOptions, copy_pool, partial_dir};
+    use std::sync::atomic::{AtomicU64, Ordering};
+    let scratch = tempfile::tempdir().unwrap();
+    let bunny = bunny(scratch.path());
+    // Each source's columns in a scratch directory of its own (they have the same names).
+    let lion_scratch = tempfile::tempdir().unwrap();
+    let lion = real_scan("points/lion_takanawa.copc.laz", lion_scratch.path());
+    let root = tempfile::tempdir().unwrap();
+    let older = root.path().join("older");
+    drop(sled::open(&older).unwrap());
+    {
+        let pool = open_when_unlocked(&older).unwrap();
+        import(&pool, &bunny, scratch.path(), "bunny", false);
+        import(&pool, &bunny, scratch.path(), "bunny", true);
+        let mut txn = pool.begin_import("lion", false).unwrap();
+        let desc = build_scene(
+            &lion,
+            "lion",
+            "lion",
+            &opts(),
+            lion_scratch.path(),
+            &mut txn,
+        );
+        txn.commit(&desc.unwrap()).unwrap();
+    }
+    std::fs::write(older.join("admin-token"), "secret\n").unwrap();
+    let carry = ["cert.pem", "admin-token"];
+
+    let copy = root.path().join("copy");
+    // A partial directory of a copy killed before is removed first.
+    let partial = partial_dir(&copy).unwrap();
+    std::fs::create_dir(&partial).unwrap();
+    std::fs::write(partial.join("db"), "left by a killed copy").unwrap();
+
+    let progress = AtomicU64::new(0);
+    // Both pools opened again every 4 KiB: within every tree, so each resumes after its last
+    // pack many times.
+    let options = CopyOptions {
+        scenes: &[],
+        carry_files: &carry,
+        reopen_after_bytes: 4096,
+    };
+    let report = copy_pool(&older, &copy, &options, &|n| {
+        progress.fetch_add(n, Ordering::Relaxed);
+    })
+    .unwrap();
+    let packs: u64 = report.scenes.iter().map(|s| s.packs).sum();
+    assert!(
+        u64::from(report.reopens) > packs / 4,
+        "{} reopenings for {packs} packs",
+        report.reopens
+    );
+    let names: Vec<&str> = report.scenes.iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(names, ["bunny", "lion"]);
+    assert_eq!(report.carried, ["admin-token"]);
+    assert!(!partial.exists(), "the partial directory is renamed");
+    assert_eq!(
+        segment_size_in_conf(&copy),
+        Some(arbor_server::pool::POOL_SEGMENT_BYTES)
+    );
+    assert_eq!(segment_size_in_conf(&older), Some(512 << 10));
+    assert_eq!(
+        std::fs::read_to_string(copy.join("admin-token")).unwrap(),
+        "secret\n"
+    );
+
+    let source = reopen(&older);
+    let copied = reopen(&copy);
+    let mut stored = 0;
+    for name in ["bunny", "lion"] {
+        let (a, b) = (source.scene(name).unwrap(), copied.scene(name).unwrap());
+        assert_eq!(a.description, b.description, "{name}");
+        assert_ne!(a.generation, 0);
+        let blocks = all_blocks(&b);
+        assert_eq!(all_blocks(&a), blocks, "{name}");
+        assert!(
+            blocks.iter().all(|t| t.iter().all(Option::is_some)),
+            "{name}: every treelet has every block"
+        );
+        assert!(verify_scene(&b).unwrap().is_ok(), "{name}");
+        let st = &b.description.stats;
+        stored += st.node_bytes + st.channel_bytes.iter().sum::<u64>();
+    }
+    let lion_channels = copied
+        .scene("lion")
+        .unwrap()
+        .description
+        .layout
+        .channels()
+        .len();
+    assert_eq!(lion_channels, 2, "colour and normal, each its own tree");
+    assert_eq!(progress.into_inner(), stored);
+    assert_eq!(copied.stored_generations().len(), 2, "no leftovers copied");
+    drop((copied, source));
+
+    // The destination exists now: refused, and left alone.
+    let e = copy_pool(&older, &copy, &options, &|_| {}).unwrap_err();
+    assert!(e.to_string().contains("already exists"), "{e}");
+    assert_eq!(
+        std::fs::read_to_string(copy.join("admin-token")).unwrap(),
+        "secret\n"
+    );
+
+    // Some scenes only; one that is not there fails before anything is written.
+    let only_lion = root.path().join("lion-only");
+    let options = CopyOptions {
+        scenes: &["lion".to_owned()],
+        ..CopyOptions::default()
+    };
+    copy_pool(&older, &only_lion, &options, &|_| {}).unwrap();
+    let names: Vec<String> = reopen(&only_lion)
+        .scenes()
+        .unwrap()
+        .into_iter()
+        .map(|d| d.name)
+        .collect();
+    assert_eq!(names, ["lion"]);
+    let nowhere = root.path().join("nowhere");
+    let options = CopyOptions {
+        scenes: &["lion".to_owned(), "puma".to_owned()],
+        ..CopyOptions::default()
+    };
+    let e = copy_pool(&older, &nowhere, &options, &|_| {}).unwrap_err();
+    assert!(e.to_string().contains("\"puma\""), "{e}");
+    assert!(!nowhere.exists() && !partial_dir(&nowhere).unwrap().exists());
+    let scenes = reopen(&older).scenes().unwrap();
+    assert_eq!(scenes.len(), 2, "the source keeps its scenes");
+}
+
+/// A damaged source pack fails the copy naming it, leaving no pool at the destination; a copy
+/// that differs from its source is named by the comparison the copy ends with.
+#[test]
+fn a_copy_never_carries_damage_or_differences_unnamed() {
+    use arbor_server::pool::copy::{CopyOptions, compare_scene, copy_pool, partial_dir};
+    let scratch = tempfile::tempdir().unwrap();
+    let source = bunny(scratch.path());
+    let root = tempfile::tempdir().unwrap();
+    let (src, copy) = (root.path().join("src"), root.path().join("copy"));
+    let generation = {
+        let pool = Pool::open(&src).unwrap();
+        import(&pool, &source, scratch.path(), "b", false);
+        pool.scene("b").unwrap().generation
+    };
+    let options = CopyOptions::default();
+    let no_pool = root.path().join("no-pool");
+    let e = copy_pool(&no_pool, &copy, &options, &|_| {}).unwrap_err();
+    assert!(e.to_string().contains("is not a pool directory"), "{e}");
+    assert!(!no_pool.exists() && !copy.exists());
+    copy_pool(&src, &copy, &options, &|_| {}).unwrap();
+
+    // The copy altered behind the pool's back: one pack's bytes, then one pack gone.
+    let copied_generation = reopen(&copy).scene("b").unwrap().generation;
+    for (damage, expected) in [
+        (0u32, "nodes: pack [0, 0, 0, 2] differs"),
+        (1, "nodes: pack [0, 0, 0, 1] missing in the copy"),
+        (2, "nodes: pack [0, 0, 0, 0] missing in the copy"),
+    ] {
+        {
+            let db = raw_sled(&copy);
+            let t = nodes_tree(&db, copied_generation);
+            match damage {
+                0 => store_block(&t, 32, vec![1, 2, 3]),
+                n => drop(t.remove((2 - n).to_be_bytes()).unwrap()),
+            }
+            db.flush().unwrap();
+        }
+        let (a, b) = (reopen(&src), reopen(&copy));
+        let e = compare_scene(&a.scene("b").unwrap(), &b.scene("b").unwrap()).unwrap_err();
+        assert!(e.to_string().contains(expected), "{e}");
+        assert!(e.to_string().contains("scene \"b\""), "{e}");
+    }
+
+    // A source pack whose table does not match its length.
+    {
+        let db = raw_sled(&src);
+        nodes_tree(&db, generation)
+            .insert(1u32.to_be_bytes(), vec![3, 0, 9])
+            .unwrap();
+        db.flush().unwrap();
+    }
+    let again = root.path().join("again");
+    let e = copy_pool(&src, &again, &options, &|_| {}).unwrap_err();
+    let text = format!("{:#}", anyhow::Error::from(e));
+    assert!(
+        text.contains("nodes pack [0, 0, 0, 1] of scene \"b\""),
+        "{text}"
+    );
+    assert!(!again.exists() && !partial_dir(&again).unwrap().exists());
 }

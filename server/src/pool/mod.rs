@@ -11,6 +11,7 @@
 //! dropped when the pool is opened. sled holds an exclusive lock on the directory, so no live
 //! import can be mistaken for a leftover.
 
+pub mod copy;
 pub mod pack;
 
 use std::path::Path;
@@ -27,9 +28,16 @@ use pack::PackWriter;
 /// Errors of the pool.
 #[derive(Debug, thiserror::Error)]
 pub enum PoolError {
-    /// sled failed (I/O, corruption, or the directory is locked by another process).
+    /// sled failed (I/O or corruption).
     #[error("pool database: {0}")]
     Sled(#[from] sled::Error),
+    /// Another process has the pool open: sled holds an exclusive lock on its file while a
+    /// server serves it or an import writes it.
+    #[error(
+        "the pool {} is in use by another process (a server serving it, or an import): stop it first",
+        .0.display()
+    )]
+    InUse(std::path::PathBuf),
     /// A stored value does not decode.
     #[error("pool entry {what}: {source}")]
     Corrupt {
@@ -373,6 +381,15 @@ impl Pool {
     /// message cache took 1.7–2.4 µs per treelet with 128 MiB and 0.54–0.67 µs with 1 GiB
     /// (`server/benches/messages.rs`, docs/measurements.md, stop 59).
     pub fn open_with_cache(dir: &Path, cache_bytes: u64) -> Result<Pool, PoolError> {
+        Self::open_inner(dir, cache_bytes, false)
+    }
+
+    /// [`Pool::open_with_cache`], or a pool copy's opening (`for_copy`) of either pool: the
+    /// trees no catalogue entry names are kept (the copy's scenes are unpublished while it
+    /// writes them), and the file is not advised for random reads (a copy reads each tree in
+    /// key order, which the kernel's read-ahead serves: the city's cold copy took 68 s with the
+    /// advice).
+    fn open_inner(dir: &Path, cache_bytes: u64, for_copy: bool) -> Result<Pool, PoolError> {
         // sled refuses a segment size other than the one its directory was made with; a new
         // pool gets POOL_SEGMENT_BYTES, one made before (512 KiB, sled's default) keeps its own.
         let segment_bytes = stored_segment_bytes(dir).unwrap_or(POOL_SEGMENT_BYTES);
@@ -380,18 +397,26 @@ impl Pool {
             .path(dir)
             .cache_capacity(cache_bytes)
             .segment_size(segment_bytes);
+        let in_use = |e: sled::Error| match e {
+            sled::Error::Io(e) if e.to_string().contains("could not acquire lock") => {
+                PoolError::InUse(dir.to_owned())
+            }
+            e => PoolError::Sled(e),
+        };
         let db = match config.open() {
             Err(sled::Error::Corruption { .. }) if remove_unfinished_snapshots(dir) > 0 => {
                 tracing::warn!(
                     "removed an unfinished sled snapshot left by a killed process; the pool \
                      recovers from its log"
                 );
-                config.open()?
+                config.open().map_err(in_use)?
             }
-            opened => opened?,
+            opened => opened.map_err(in_use)?,
         };
-        let advised = advise_random_reads(dir);
-        tracing::debug!(descriptors = advised, "pool file advised for random reads");
+        if !for_copy {
+            let advised = advise_random_reads(dir);
+            tracing::debug!(descriptors = advised, "pool file advised for random reads");
+        }
         let catalogue = db.open_tree(CATALOGUE)?;
         check_format(&db, &catalogue)?;
         let pool = Pool {
@@ -399,7 +424,7 @@ impl Pool {
             catalogue,
             reads: Arc::default(),
         };
-        let cleaned = pool.drop_leftovers()?;
+        let cleaned = if for_copy { 0 } else { pool.drop_leftovers()? };
         if cleaned > 0 {
             tracing::warn!(
                 trees = cleaned,

@@ -156,6 +156,12 @@ pub fn present(pack: &[u8]) -> Result<Vec<usize>, ProtoError> {
         .collect())
 }
 
+/// The bytes of `pack`'s blocks together (its length less its slot table), once the table is
+/// checked against the length.
+pub fn block_bytes(pack: &[u8]) -> Result<usize, ProtoError> {
+    Ok(pack.len() - Table::read(pack)?.data_start)
+}
+
 /// Every slot's block of `pack` (empty = absent), for tools that rewrite a pack.
 pub fn blocks(pack: &[u8]) -> Result<Vec<Vec<u8>>, ProtoError> {
     let table = Table::read(pack)?;
@@ -185,6 +191,11 @@ impl PackWriter {
             tree,
             open: BTreeMap::new(),
         }
+    }
+
+    /// The tree the packs go to (a pool copy writes whole packs into it unchanged).
+    pub fn tree(&self) -> &sled::Tree {
+        &self.tree
     }
 
     /// Adds the block of `id`; a block given twice replaces the first.

@@ -210,10 +210,7 @@ async fn open_pool(db: &Path, cache_bytes: u64) -> Result<Pool, ServeError> {
     loop {
         match Pool::open_with_cache(db, cache_bytes) {
             Ok(p) => return Ok(p),
-            Err(PoolError::Sled(sled::Error::Io(e)))
-                if e.to_string().contains("could not acquire lock")
-                    && t0.elapsed() < POOL_LOCK_WAIT =>
-            {
+            Err(PoolError::InUse(_)) if t0.elapsed() < POOL_LOCK_WAIT => {
                 tokio::time::sleep(Duration::from_millis(50)).await;
             }
             Err(source) => {
