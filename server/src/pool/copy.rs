@@ -15,11 +15,11 @@
 //! directory synced). A copy that fails or is killed leaves no pool at the destination; the next
 //! copy to the same destination removes the partial directory first.
 //!
-//! Memory: sled keeps part of every page it has read or written since it was opened, whatever its
-//! cache size (reading all of the city's 857 MB of packs left 480–600 MB resident with caches of
-//! 16–512 MiB; writing them, about 300 MB more). So both pools are closed and opened again after
-//! every [`REOPEN_AFTER_BYTES`] copied or compared, which bounds a copy's memory whatever the
-//! pool's size. A process that opens the source meanwhile (a server started on it) makes the
+//! Memory: iterating whole trees, sled keeps part of every page it has read or written since it
+//! was opened, whatever its cache size (reading all of the city's 857 MB of packs left 480–600 MB
+//! resident with caches of 16–512 MiB; writing them, about 300 MB more). So both pools are closed
+//! and opened again after every [`REOPEN_AFTER_BYTES`] copied or compared, which bounds a copy's
+//! memory whatever the pool's size. A process that opens the source meanwhile (a server started on it) makes the
 //! copy fail naming the pool in use; nothing is renamed then.
 
 use std::path::{Path, PathBuf};
