@@ -381,7 +381,18 @@ fn run(cli: Cli) -> Result<ExitCode> {
         Command::Info { db, scene } => {
             let pool = open(&db)?;
             let s = pool.scene(&scene)?;
-            emit(&info_text(&s.description, Some(pool.disk_bytes()?)))?;
+            let mut text = info_text(&s.description, Some(pool.disk_bytes()?));
+            line!(
+                text,
+                "log segments     {} KiB{}",
+                pool.segment_bytes() >> 10,
+                if pool.segment_bytes() < arbor_server::pool::POOL_SEGMENT_BYTES {
+                    " (an older pool: `arbor-server copy` makes a copy that opens faster)"
+                } else {
+                    ""
+                }
+            );
+            emit(&text)?;
             Ok(ExitCode::SUCCESS)
         }
         Command::Verify { db, scene } => {

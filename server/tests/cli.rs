@@ -54,6 +54,27 @@ fn with_stdout_closed(args: &[&str]) -> Output {
     child.wait_with_output().unwrap()
 }
 
+/// What a server serving `db` logs at warning level until it serves; then it is stopped.
+fn serve_log(db: &Path, data_dir: &Path) -> String {
+    use std::io::BufRead as _;
+    let mut child = bin()
+        .args(["serve", "--listen", "127.0.0.1:0", "--admin", "off", "--db"])
+        .arg(db)
+        .arg("--data-dir")
+        .arg(data_dir)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("running arbor-server serve");
+    let mut lines = std::io::BufReader::new(child.stdout.take().unwrap()).lines();
+    let serving = lines.any(|l| l.is_ok_and(|l| l.starts_with("quic ")));
+    child.kill().unwrap();
+    let out = child.wait_with_output().unwrap();
+    let log = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(serving, "the server did not serve: {log}");
+    log
+}
+
 fn db_arg(dir: &Path) -> String {
     dir.to_str().unwrap().to_owned()
 }
@@ -259,6 +280,8 @@ fn copy_makes_a_new_pool_and_refuses_what_it_must_not_touch() {
     let to_s = db_arg(&to);
     let bunny = data("meshes/stanford-bunny.obj");
     let bunny = bunny.to_str().unwrap();
+    // A pool as made before 8 MiB segments: sled's defaults.
+    drop(sled::open(&db).unwrap());
     ok(&[
         "import", "--db", &db_s, "--scene", "bunny", "--quiet", "--depth", "5", bunny,
     ]);
@@ -285,6 +308,21 @@ fn copy_makes_a_new_pool_and_refuses_what_it_must_not_touch() {
     );
     let v = ok(&["verify", "--db", &to_s, "--scene", "bunny"]);
     assert!(v.contains("ok: every invariant holds"), "{v}");
+    // `info` and a server's log tell an older pool from its copy.
+    let older = ok(&["info", "--db", &db_s, "--scene", "bunny"]);
+    assert!(
+        older.contains("log segments     512 KiB (an older pool: `arbor-server copy`"),
+        "{older}"
+    );
+    let copied = ok(&["info", "--db", &to_s, "--scene", "bunny"]);
+    assert!(copied.contains("log segments     8192 KiB\n"), "{copied}");
+    let log = serve_log(&db, &dir.path().join("state-old"));
+    assert!(
+        log.contains("small log segments") && log.contains("arbor-server copy --db POOL --to NEW"),
+        "{log}"
+    );
+    let log = serve_log(&to, &dir.path().join("state-new"));
+    assert!(!log.contains("small log segments"), "{log}");
     assert_eq!(
         ok(&["info", "--db", &to_s, "--scene", "bunny"])
             .lines()

@@ -311,7 +311,9 @@ fn a_new_pool_has_large_segments_and_an_older_one_keeps_its_own() {
     let source = bunny(scratch.path());
 
     let fresh = tempfile::tempdir().unwrap();
-    drop(Pool::open(fresh.path()).unwrap());
+    let pool = Pool::open(fresh.path()).unwrap();
+    assert_eq!(pool.segment_bytes(), arbor_server::pool::POOL_SEGMENT_BYTES);
+    drop(pool);
     assert_eq!(
         segment_size_in_conf(fresh.path()),
         Some(arbor_server::pool::POOL_SEGMENT_BYTES)
@@ -325,6 +327,7 @@ fn a_new_pool_has_large_segments_and_an_older_one_keeps_its_own() {
         import(&pool, &source, scratch.path(), "old", false);
     }
     let pool = reopen(older.path());
+    assert_eq!(pool.segment_bytes(), 512 << 10);
     let scene = pool.scene("old").unwrap();
     assert!(scene.nodes(arbor_proto::TreeletId(0)).unwrap().is_some());
     assert!(verify_scene(&scene).unwrap().is_ok());

@@ -138,6 +138,8 @@ pub struct Pool {
     /// Times of the treelet-block reads of every scene opened from this pool (its clones
     /// share it).
     reads: Arc<Histogram<PoolReadBuckets>>,
+    /// The size of the log segments the pool was made with.
+    segment_bytes: usize,
 }
 
 /// A stored scene: its description and the trees holding its blocks.
@@ -423,6 +425,7 @@ impl Pool {
             db,
             catalogue,
             reads: Arc::default(),
+            segment_bytes,
         };
         let cleaned = if for_copy { 0 } else { pool.drop_leftovers()? };
         if cleaned > 0 {
@@ -573,6 +576,13 @@ impl Pool {
         g.sort_unstable();
         g.dedup();
         g
+    }
+
+    /// The size of the log segments this pool was made with: [`POOL_SEGMENT_BYTES`] for a pool
+    /// made by this build, 512 KiB for one made before (sled reads one header per segment
+    /// whenever the pool opens; `arbor-server copy` makes a copy with this build's).
+    pub fn segment_bytes(&self) -> usize {
+        self.segment_bytes
     }
 
     /// Bytes the database occupies on disk.

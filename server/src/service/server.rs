@@ -56,7 +56,7 @@ use super::shared::{CLOSE_FLUSH, Core, Shared};
 use super::shutdown::{self, Shutdown, ShutdownTrigger};
 use super::state::ServiceState;
 use super::tls::{self, IdentityOrigin, TlsError};
-use crate::pool::{Pool, PoolError};
+use crate::pool::{POOL_SEGMENT_BYTES, Pool, PoolError};
 
 /// Most handshakes completed at once only to refuse the connection with an application code.
 pub const MAX_REFUSALS: usize = 32;
@@ -234,6 +234,21 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
         });
     }
     let pool = open_pool(&config.db, config.pool_cache_bytes).await?;
+    if pool.segment_bytes() < POOL_SEGMENT_BYTES {
+        let segments = pool
+            .disk_bytes()
+            .map_or(0, |b| b.div_ceil(pool.segment_bytes() as u64));
+        tracing::warn!(
+            db = %config.db.display(),
+            segment_kib = pool.segment_bytes() >> 10,
+            segments,
+            "this pool was made with small log segments, and opening it reads every segment's \
+             header (on a disk held to a few hundred reads a second, seconds to minutes before \
+             the server serves): with the server stopped, `arbor-server copy --db POOL --to NEW` \
+             makes a copy with {} MiB segments",
+            POOL_SEGMENT_BYTES >> 20
+        );
+    }
     match pool.scenes() {
         Ok(s) if s.is_empty() => {
             tracing::warn!(db = %config.db.display(), "the pool holds no scenes")
