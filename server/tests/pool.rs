@@ -577,7 +577,7 @@ fn an_older_pool_is_copied_whole_into_this_builds_layout() {
     // Some scenes only; one that is not there fails before anything is written.
     let only_lion = root.path().join("lion-only");
     let options = CopyOptions {
-        scenes: &["lion".to_owned()],
+        scenes: &["lion".to_owned(), "lion".to_owned()],
         ..CopyOptions::default()
     };
     copy_pool(&older, &only_lion, &options, &|_| {}).unwrap();

@@ -50,9 +50,11 @@ pub enum CopyError {
     /// A scene asked for is not in the source pool (nothing was copied).
     #[error("no scene named {0:?} in the source pool")]
     NoSuchScene(String),
-    /// The destination's file system has less room than the scenes' stored bytes.
+    /// The destination's file system has less room than the copy is expected to take: the
+    /// source's file in the proportion of the scenes' stored bytes (sled's log holds about 1.75
+    /// bytes of file per byte of packs, and a copy about as much as its source).
     #[error(
-        "{dir} has {free} bytes free, the scenes to copy hold {need} bytes: free space or copy fewer scenes"
+        "{dir} has {free} bytes free, a copy of these scenes takes about {need} bytes: free space or copy fewer scenes"
     )]
     NoRoom { dir: PathBuf, free: u64, need: u64 },
     /// Reading the source or writing the copy failed.
@@ -180,8 +182,9 @@ pub fn copy_pool(
         return Err(CopyError::DestinationExists(dest.to_owned()));
     }
     let partial = partial_dir(dest)?;
-    let planned = {
+    let (planned, need) = {
         let source = open_when_unlocked(source_dir)?;
+        let disk = source.disk_bytes()?;
         let mut all = Vec::new();
         for entry in source.catalogue.iter() {
             let (k, v) = entry.map_err(PoolError::from)?;
@@ -191,11 +194,15 @@ pub fn copy_pool(
                 generation,
             });
         }
-        if options.scenes.is_empty() {
+        let all_bytes: u64 = all.iter().map(Planned::stored_bytes).sum();
+        let chosen = if options.scenes.is_empty() {
             all
         } else {
-            let mut chosen = Vec::new();
+            let mut chosen: Vec<Planned> = Vec::new();
             for name in options.scenes {
+                if chosen.iter().any(|p| p.description.name == *name) {
+                    continue;
+                }
                 let i = all
                     .iter()
                     .position(|p| p.description.name == *name)
@@ -203,13 +210,19 @@ pub fn copy_pool(
                 chosen.push(all.swap_remove(i));
             }
             chosen
-        }
+        };
+        let chosen_bytes: u64 = chosen.iter().map(Planned::stored_bytes).sum();
+        let need = if all_bytes == 0 {
+            0
+        } else {
+            (u128::from(disk) * u128::from(chosen_bytes) / u128::from(all_bytes)) as u64
+        };
+        (chosen, need)
     };
     let parent = match partial.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_owned(),
         _ => PathBuf::from("."),
     };
-    let need = planned.iter().map(Planned::stored_bytes).sum();
     let free = free_bytes(&parent)?;
     if free < need {
         return Err(CopyError::NoRoom {
