@@ -66,7 +66,7 @@ pub enum HotPagesError {
 }
 
 /// The hot ranges of one file of the pool.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct HotFile {
     /// The file's path below the pool directory, `/`-separated (`db`, `blobs/123`).

@@ -429,9 +429,14 @@ pub struct Prewarm {
     pool: PathBuf,
     list: PathBuf,
     /// Held while the list is saved: the saving thread's tick and the shutdown's save never
-    /// write the same temporary file at once.
-    saving: Arc<Mutex<()>>,
+    /// write the same temporary file at once. It holds what the last save wrote.
+    saving: Arc<Mutex<LastSave>>,
 }
+
+/// A hash of the hot pages the list was last written with: a save whose snapshot hashes the
+/// same, while the list is still there, writes nothing (a server whose clients keep to the
+/// same pages would otherwise rewrite and sync an unchanged file every minute).
+type LastSave = Option<u64>;
 
 impl Prewarm {
     /// Saves the list of the pool's pages now in the page cache for the next start (when the
@@ -447,17 +452,36 @@ impl Drop for Prewarm {
     }
 }
 
-/// Saves the hot-page list of the pool in `pool` to `list` under `saving`, logging what it did.
-fn save_hot_pages(pool: &Path, list: &Path, saving: &Mutex<()>) {
-    let _one_at_a_time = saving.lock().unwrap_or_else(|e| e.into_inner());
+/// Saves the hot-page list of the pool in `pool` to `list` under `saving` unless it would be
+/// written as it was last time ([`LastSave`]), logging what it did.
+fn save_hot_pages(pool: &Path, list: &Path, saving: &Mutex<LastSave>) {
+    use std::hash::{Hash, Hasher};
+    let mut last = saving.lock().unwrap_or_else(|e| e.into_inner());
     let t0 = Instant::now();
-    match hot_pages::snapshot(pool).and_then(|hot| hot_pages::save(list, pool, &hot)) {
-        Ok(bytes) => tracing::debug!(
-            list = %list.display(),
-            mib = bytes >> 20,
-            ms = t0.elapsed().as_millis() as u64,
-            "saved the pool's hot pages"
-        ),
+    let hot = match hot_pages::snapshot(pool) {
+        Ok(hot) => hot,
+        Err(e) => {
+            tracing::warn!("the pool's hot pages not saved: {e}");
+            return;
+        }
+    };
+    let mut hasher = std::hash::DefaultHasher::new();
+    hot.hash(&mut hasher);
+    let hash = hasher.finish();
+    if *last == Some(hash) && list.exists() {
+        tracing::debug!(list = %list.display(), "the pool's hot pages unchanged: not saved");
+        return;
+    }
+    match hot_pages::save(list, pool, &hot) {
+        Ok(bytes) => {
+            *last = Some(hash);
+            tracing::debug!(
+                list = %list.display(),
+                mib = bytes >> 20,
+                ms = t0.elapsed().as_millis() as u64,
+                "saved the pool's hot pages"
+            );
+        }
         Err(e) => tracing::warn!("the pool's hot pages not saved: {e}"),
     }
 }
@@ -514,7 +538,7 @@ fn start_saving_every(
     let list = data_dir.join(hot_pages::HOT_PAGES_FILE);
     let stop = Arc::new(AtomicBool::new(false));
     let (saver, saves) = mpsc::channel::<()>();
-    let saving = Arc::new(Mutex::new(()));
+    let saving = Arc::new(Mutex::new(LastSave::None));
     let (pool, saved, lock) = (dir.to_owned(), list.clone(), saving.clone());
     let saver_thread = std::thread::Builder::new()
         .name("arbor-hot-pages".into())
@@ -987,6 +1011,34 @@ mod tests {
         std::fs::remove_file(&list).unwrap();
         std::thread::sleep(Duration::from_millis(100));
         assert!(!list.exists(), "saved after the prewarm was dropped");
+    }
+
+    /// A save whose pages are those of the last one writes nothing; a list removed meanwhile, or
+    /// pages that changed, are written again.
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn an_unchanged_list_is_not_written_again() {
+        use std::os::unix::fs::MetadataExt as _;
+        let pool = tempfile::tempdir().unwrap();
+        let data = tempfile::tempdir().unwrap();
+        std::fs::write(pool.path().join("db"), vec![1u8; 1 << 20]).unwrap();
+        let list = data.path().join(hot_pages::HOT_PAGES_FILE);
+        let inode = || std::fs::metadata(&list).unwrap().ino();
+        let saving = Mutex::new(LastSave::None);
+        save_hot_pages(pool.path(), &list, &saving);
+        let first = inode();
+        save_hot_pages(pool.path(), &list, &saving);
+        assert_eq!(inode(), first, "an unchanged list was written again");
+        std::fs::remove_file(&list).unwrap();
+        save_hot_pages(pool.path(), &list, &saving);
+        assert!(list.exists(), "a removed list was not written again");
+        let second = inode();
+        // A new file of the pool, its pages in the page cache as written.
+        std::fs::write(pool.path().join("blob"), vec![2u8; 1 << 16]).unwrap();
+        save_hot_pages(pool.path(), &list, &saving);
+        assert_ne!(inode(), second, "changed pages were not saved");
+        let saved = hot_pages::load(&list, pool.path()).unwrap();
+        assert!(saved.iter().any(|f| f.name == "blob"), "{saved:?}");
     }
 
     #[test]
