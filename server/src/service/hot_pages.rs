@@ -13,7 +13,8 @@
 //! What is saved: for each file of the pool, the byte ranges of its pages in the page cache
 //! (`mincore` on a read-only mapping: nothing is read, nothing faulted in), runs of pages closer
 //! than [`HOT_GAP_BYTES`] joined so that reading them back takes one read per run rather than
-//! one per page. Saved every [`HOT_PAGES_SAVE_INTERVAL`] and when the service stops; a list of
+//! one per page. Saved every [`HOT_PAGES_SAVE_INTERVAL`] and when the service stops (unless the
+//! pages are those of the last save and its list is still there); a list of
 //! another pool, of another format, or naming a file the pool no longer has is ignored (the
 //! log says why), and the pool is never written.
 
