@@ -543,28 +543,12 @@ fn import(args: ImportArgs) -> Result<ExitCode> {
 /// `arbor-server copy`: copy the scenes, with a progress bar over their stored bytes, then
 /// print what was copied.
 fn copy(db: &Path, to: &Path, scenes: &[String], quiet: bool) -> Result<ExitCode> {
-    use arbor_server::pool::copy::{CopyOptions, copy_pool};
+    use arbor_server::pool::copy::{CopyOptions, CopyProgress, copy_pool};
     use indicatif::{ProgressBar, ProgressStyle};
-    if !db.join("db").is_file() {
-        bail!(
-            "{} is not a pool directory (no sled database `db` in it)",
-            db.display()
-        );
-    }
-    let (source_disk, total) = {
-        let source = open(db)?;
-        let total: u64 = source
-            .scenes()?
-            .iter()
-            .filter(|d| scenes.is_empty() || scenes.contains(&d.name))
-            .map(|d| d.stats.node_bytes + d.stats.channel_bytes.iter().sum::<u64>())
-            .sum();
-        (source.disk_bytes()?, total)
-    };
     let bar = if quiet {
         ProgressBar::hidden()
     } else {
-        let bar = ProgressBar::new(total);
+        let bar = ProgressBar::no_length();
         bar.set_style(
             ProgressStyle::with_template(
                 "copying [{bar:40}] {bytes}/{total_bytes} [{elapsed_precise}, eta {eta}]",
@@ -584,7 +568,10 @@ fn copy(db: &Path, to: &Path, scenes: &[String], quiet: bool) -> Result<ExitCode
         carry_files: &carry_files,
         ..CopyOptions::default()
     };
-    let report = copy_pool(db, to, &options, &|n| bar.inc(n));
+    let report = copy_pool(db, to, &options, &|p| match p {
+        CopyProgress::Planned { bytes } => bar.set_length(bytes),
+        CopyProgress::Copied(n) => bar.inc(n),
+    });
     bar.finish_and_clear();
     let report = report.with_context(|| format!("copying {} to {}", db.display(), to.display()))?;
     let mut out = String::new();
@@ -606,7 +593,7 @@ fn copy(db: &Path, to: &Path, scenes: &[String], quiet: bool) -> Result<ExitCode
          (both pools opened again {} times, to bound sled's memory)",
         to.display(),
         report.disk_bytes,
-        source_disk,
+        report.source_disk_bytes,
         db.display(),
         report.copy_time.as_secs_f64(),
         report.check_time.as_secs_f64(),

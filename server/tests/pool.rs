@@ -471,7 +471,7 @@ fn all_blocks(s: &arbor_server::pool::StoredScene) -> Vec<Vec<Option<Vec<u8>>>> 
 /// was.
 #[test]
 fn an_older_pool_is_copied_whole_into_this_builds_layout() {
-    use arbor_server::pool::copy::{CopyOptions, copy_pool, partial_dir};
+    use arbor_server::pool::copy::{CopyOptions, CopyProgress, copy_pool, partial_dir};
     use std::sync::atomic::{AtomicU64, Ordering};
     let scratch = tempfile::tempdir().unwrap();
     let bunny = bunny(scratch.path());
@@ -513,8 +513,13 @@ fn an_older_pool_is_copied_whole_into_this_builds_layout() {
         carry_files: &carry,
         reopen_after_bytes: 4096,
     };
-    let report = copy_pool(&older, &copy, &options, &|n| {
-        progress.fetch_add(n, Ordering::Relaxed);
+    let planned = AtomicU64::new(0);
+    let report = copy_pool(&older, &copy, &options, &|p| match p {
+        CopyProgress::Planned { bytes } => planned.store(bytes, Ordering::Relaxed),
+        CopyProgress::Copied(n) => {
+            assert_ne!(planned.load(Ordering::Relaxed), 0, "planned before copied");
+            progress.fetch_add(n, Ordering::Relaxed);
+        }
     })
     .unwrap();
     let packs: u64 = report.scenes.iter().map(|s| s.packs).sum();
@@ -526,6 +531,7 @@ fn an_older_pool_is_copied_whole_into_this_builds_layout() {
     let names: Vec<&str> = report.scenes.iter().map(|s| s.name.as_str()).collect();
     assert_eq!(names, ["bunny", "lion"]);
     assert_eq!(report.carried, ["admin-token"]);
+    assert!(report.source_disk_bytes > 0 && report.disk_bytes > 0);
     assert!(!partial.exists(), "the partial directory is renamed");
     assert_eq!(
         segment_size_in_conf(&copy),
@@ -563,6 +569,7 @@ fn an_older_pool_is_copied_whole_into_this_builds_layout() {
         .len();
     assert_eq!(lion_channels, 2, "colour and normal, each its own tree");
     assert_eq!(progress.into_inner(), stored);
+    assert_eq!(planned.into_inner(), stored);
     assert_eq!(copied.stored_generations().len(), 2, "no leftovers copied");
     drop((copied, source));
 

@@ -102,6 +102,16 @@ impl Default for CopyOptions<'_> {
     }
 }
 
+/// What a copy reports while it runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CopyProgress {
+    /// Once, before anything is written: the scenes' stored bytes (the descriptions' node and
+    /// channel bytes), which the [`CopyProgress::Copied`] reports add up to.
+    Planned { bytes: u64 },
+    /// A pack copied: its blocks' bytes.
+    Copied(u64),
+}
+
 /// One scene copied.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct CopiedScene {
@@ -120,6 +130,8 @@ pub struct CopyReport {
     pub carried: Vec<String>,
     /// The copy's database on disk.
     pub disk_bytes: u64,
+    /// The source's database on disk, when the copy began.
+    pub source_disk_bytes: u64,
     /// Writing (until flushed) and checking against the source.
     pub copy_time: Duration,
     pub check_time: Duration,
@@ -166,14 +178,13 @@ impl Planned {
 }
 
 /// Copies the scenes of the pool in `source_dir` into the new pool directory `dest`; see the
-/// module docs. The source must not be open in this process. `progress` is called with the
-/// block bytes of every pack copied (they add up to the scenes' stored bytes, the descriptions'
-/// node and channel bytes).
+/// module docs. The source must not be open in this process. `progress` hears how many bytes
+/// the scenes hold, then every pack copied.
 pub fn copy_pool(
     source_dir: &Path,
     dest: &Path,
     options: &CopyOptions<'_>,
-    progress: &dyn Fn(u64),
+    progress: &dyn Fn(CopyProgress),
 ) -> Result<CopyReport, CopyError> {
     if !source_dir.join("db").is_file() {
         return Err(CopyError::NoSource(source_dir.to_owned()));
@@ -182,7 +193,7 @@ pub fn copy_pool(
         return Err(CopyError::DestinationExists(dest.to_owned()));
     }
     let partial = partial_dir(dest)?;
-    let (planned, need) = {
+    let (planned, need, source_disk_bytes) = {
         let source = open_when_unlocked(source_dir)?;
         let disk = source.disk_bytes()?;
         let mut all = Vec::new();
@@ -217,7 +228,7 @@ pub fn copy_pool(
         } else {
             (u128::from(disk) * u128::from(chosen_bytes) / u128::from(all_bytes)) as u64
         };
-        (chosen, need)
+        (chosen, need, disk)
     };
     let parent = match partial.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_owned(),
@@ -238,8 +249,12 @@ pub fn copy_pool(
         );
         std::fs::remove_dir_all(&partial).map_err(io("removing", &partial))?;
     }
+    progress(CopyProgress::Planned {
+        bytes: planned.iter().map(Planned::stored_bytes).sum(),
+    });
     let mut copy = Copy {
         source_dir,
+        source_disk_bytes,
         partial: &partial,
         pools: None,
         reopen_after: options.reopen_after_bytes.max(1),
@@ -266,6 +281,8 @@ pub fn copy_pool(
 /// Both pools of a copy in progress, opened again every `reopen_after` bytes.
 struct Copy<'a> {
     source_dir: &'a Path,
+    /// The source's database on disk when the copy began (for the report).
+    source_disk_bytes: u64,
     partial: &'a Path,
     /// The source and the copy, while open.
     pools: Option<(Pool, Pool)>,
@@ -311,7 +328,7 @@ impl Copy<'_> {
         &mut self,
         planned: &[Planned],
         options: &CopyOptions<'_>,
-        progress: &dyn Fn(u64),
+        progress: &dyn Fn(CopyProgress),
     ) -> Result<CopyReport, CopyError> {
         let started = Instant::now();
         let mut copied = Vec::with_capacity(planned.len());
@@ -355,6 +372,7 @@ impl Copy<'_> {
             scenes: copied,
             carried,
             disk_bytes,
+            source_disk_bytes: self.source_disk_bytes,
             copy_time,
             check_time,
             reopens: self.reopens,
@@ -366,7 +384,7 @@ impl Copy<'_> {
     fn copy_scene(
         &mut self,
         scene: &Planned,
-        progress: &dyn Fn(u64),
+        progress: &dyn Fn(CopyProgress),
     ) -> Result<(CopiedScene, u64), CopyError> {
         let name = &scene.description.name;
         let generation = self.pools()?.1.db.generate_id().map_err(PoolError::from)?;
@@ -401,7 +419,7 @@ impl Copy<'_> {
                     done.packs += 1;
                     done.bytes += n;
                     stretch += n;
-                    progress(blocks as u64);
+                    progress(CopyProgress::Copied(blocks as u64));
                     after = Some(key);
                     if self.since_reopen + stretch >= self.reopen_after {
                         finished = false;
@@ -556,7 +574,7 @@ pub fn compare_scene(source: &StoredScene, copy: &StoredScene) -> Result<(), Cop
 /// advice) once a handle this process just dropped has let go of sled's lock (its flusher
 /// thread ends shortly after).
 fn open_when_unlocked(dir: &Path) -> Result<Pool, PoolError> {
-    let deadline = Instant::now() + Duration::from_secs(10);
+    let deadline = Instant::now() + super::POOL_LOCK_WAIT;
     loop {
         match Pool::open_inner(dir, COPY_CACHE_BYTES, true) {
             Err(PoolError::InUse(_)) if Instant::now() < deadline => {

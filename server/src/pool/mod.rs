@@ -99,6 +99,12 @@ fn stored_segment_bytes(dir: &Path) -> Option<usize> {
     (bytes.is_power_of_two() && (256..=1 << 24).contains(&bytes)).then_some(bytes)
 }
 
+/// How long an opening waits for the pool's lock (a server's start, a copy's openings): a pool
+/// handle dropped just before in the same process (an import, a test, the copy's own last
+/// opening) lets go of sled's directory lock only when sled's flusher thread notices. A lock held
+/// longer belongs to another live process (one process per pool).
+pub const POOL_LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(2);
+
 /// sled page cache size of [`Pool::open`]: imports and tools. A server sizes its own
 /// (`pool_cache_bytes`, [`Pool::open_with_cache`]).
 pub const POOL_CACHE_BYTES: u64 = 128 << 20;

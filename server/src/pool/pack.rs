@@ -193,11 +193,6 @@ impl PackWriter {
         }
     }
 
-    /// The tree the packs go to (a pool copy writes whole packs into it unchanged).
-    pub fn tree(&self) -> &sled::Tree {
-        &self.tree
-    }
-
     /// Adds the block of `id`; a block given twice replaces the first.
     pub fn put(&mut self, id: TreeletId, block: Vec<u8>) -> Result<(), sled::Error> {
         let (pack, slot) = split(id);

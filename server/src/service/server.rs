@@ -56,7 +56,7 @@ use super::shared::{CLOSE_FLUSH, Core, Shared};
 use super::shutdown::{self, Shutdown, ShutdownTrigger};
 use super::state::ServiceState;
 use super::tls::{self, IdentityOrigin, TlsError};
-use crate::pool::{POOL_SEGMENT_BYTES, Pool, PoolError};
+use crate::pool::{POOL_LOCK_WAIT, POOL_SEGMENT_BYTES, Pool, PoolError};
 
 /// Most handshakes completed at once only to refuse the connection with an application code.
 pub const MAX_REFUSALS: usize = 32;
@@ -199,11 +199,6 @@ pub(crate) fn path_factory(
 
 /// Longest delay the server asks clients to hold an ACK back (see `transport_config`).
 pub const ACK_DELAY: Duration = Duration::from_millis(1);
-
-/// How long `start` waits for the pool's lock: a pool handle dropped just before in the same
-/// process (an import, a test) lets go of sled's directory lock only when sled's flusher thread
-/// notices. A lock held longer belongs to another live process (one server per pool).
-pub const POOL_LOCK_WAIT: Duration = Duration::from_secs(2);
 
 async fn open_pool(db: &Path, cache_bytes: u64) -> Result<Pool, ServeError> {
     let t0 = std::time::Instant::now();
