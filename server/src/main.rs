@@ -145,12 +145,16 @@ enum Command {
         #[arg(long)]
         scene: String,
     },
-    /// Check every invariant of a scene; exit status 0 only if all hold.
+    /// Check every invariant of a scene; exit status 0 only if all hold. Reads the pool
+    /// without changing it, on every core, its memory bounded whatever the scene's size.
     Verify {
         #[arg(long)]
         db: PathBuf,
         #[arg(long)]
         scene: String,
+        /// No progress bar.
+        #[arg(long)]
+        quiet: bool,
     },
     /// Remove a scene.
     Remove {
@@ -331,8 +335,9 @@ fn main() -> ExitCode {
     }
 }
 
+/// Opens an existing pool for `list`, `info` and `remove` (none is made at a mistyped path).
 fn open(db: &Path) -> Result<Pool> {
-    Pool::open(db).with_context(|| format!("opening pool {}", db.display()))
+    Pool::open_existing(db).with_context(|| format!("opening pool {}", db.display()))
 }
 
 fn run(cli: Cli) -> Result<ExitCode> {
@@ -395,10 +400,17 @@ fn run(cli: Cli) -> Result<ExitCode> {
             emit(&text)?;
             Ok(ExitCode::SUCCESS)
         }
-        Command::Verify { db, scene } => {
-            let pool = open(&db)?;
-            let s = pool.scene(&scene)?;
-            let r = verify::verify_scene(&s)?;
+        Command::Verify { db, scene, quiet } => {
+            let bar = progress_bar(quiet, "verifying [{bar:40}] {pos}/{len} treelets");
+            let r =
+                verify::verify_pool_scene(&db, &scene, &verify::VerifyOptions::default(), &|p| {
+                    match p {
+                        verify::VerifyProgress::Planned { treelets } => bar.set_length(treelets),
+                        verify::VerifyProgress::Checked(n) => bar.inc(n),
+                    }
+                });
+            bar.finish_and_clear();
+            let r = r.with_context(|| format!("verifying {scene} in {}", db.display()))?;
             let mut out = String::new();
             line!(
                 out,
@@ -508,7 +520,7 @@ fn import(args: ImportArgs) -> Result<ExitCode> {
         bail!("--iso {i} is not a finite number");
     }
     let db = db.context("--db is required without --server")?;
-    let pool = open(&db)?;
+    let pool = Pool::open(&db).with_context(|| format!("opening pool {}", db.display()))?;
     let request = SceneImport {
         name: scene,
         input: file,
@@ -542,21 +554,24 @@ fn import(args: ImportArgs) -> Result<ExitCode> {
 
 /// `arbor-server copy`: copy the scenes, with a progress bar over their stored bytes, then
 /// print what was copied.
+/// A progress bar for a long command (hidden with `--quiet`); its length comes later.
+/// `template` is the bar's start; elapsed time and the estimate follow.
+fn progress_bar(quiet: bool, template: &str) -> indicatif::ProgressBar {
+    use indicatif::{ProgressBar, ProgressStyle};
+    if quiet {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::no_length();
+    bar.set_style(
+        ProgressStyle::with_template(&format!("{template} [{{elapsed_precise}}, eta {{eta}}]"))
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar
+}
+
 fn copy(db: &Path, to: &Path, scenes: &[String], quiet: bool) -> Result<ExitCode> {
     use arbor_server::pool::copy::{CopyOptions, CopyProgress, copy_pool};
-    use indicatif::{ProgressBar, ProgressStyle};
-    let bar = if quiet {
-        ProgressBar::hidden()
-    } else {
-        let bar = ProgressBar::no_length();
-        bar.set_style(
-            ProgressStyle::with_template(
-                "copying [{bar:40}] {bytes}/{total_bytes} [{elapsed_precise}, eta {eta}]",
-            )
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-        );
-        bar
-    };
+    let bar = progress_bar(quiet, "copying [{bar:40}] {bytes}/{total_bytes}");
     let carry_files = [
         arbor_server::service::tls::CERT_FILE,
         arbor_server::service::tls::KEY_FILE,

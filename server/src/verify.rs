@@ -1,6 +1,18 @@
 //! `verify`: checks every invariant of a stored scene, treelet by treelet in id order, keeping
 //! only the links still to be matched in memory (bounded by the width of the treelet tree).
 //!
+//! How: the treelets are read in batches of [`BATCH_TREELETS`] consecutive ids (one sled read
+//! per pack and tree); each treelet's own checks — decoding, nodes, attribute means — run on
+//! every core (rayon), each returning only its findings, the links it promises and its root's
+//! attributes; then the links are matched in id order (a subtreelet's id is above its
+//! parent's), so the report is the same whatever the cores. On the 10⁸-point city the checks,
+//! not the reads, are the time (decoding, means, normals' encoding).
+//!
+//! Memory: sled keeps part of every page a pass over whole trees reads, whatever its cache
+//! (docs/measurements.md, stop 70: 435 MB verifying the city in one opening). So
+//! [`verify_pool_scene`] closes the pool and opens it again after every [`REOPEN_AFTER_BYTES`]
+//! of blocks read, resuming after the last treelet checked, and names a scene replaced in between.
+//!
 //! Checked: the description; every node well formed (masks consistent, offsets in range,
 //! children contiguous in child-index and breadth-first order — [`Treelet::validate`]); every
 //! voxel inside its parent and no deeper than the target depth; treelet links both ways (parent
@@ -11,12 +23,20 @@
 //! leaf's attributes equal its subtreelet root's; stored counts match the description.
 
 use std::collections::HashMap;
+use std::path::Path;
 
 use arbor_proto::codec::{self, PreparedDictionaries};
-use arbor_proto::treelet::NodePlace;
-use arbor_proto::{Cell, Channel, Node, Treelet, TreeletId};
+use arbor_proto::treelet::{NodePlace, TreeletHeader};
+use arbor_proto::{Cell, Channel, Node, SceneDescription, Treelet, TreeletId};
+use rayon::prelude::*;
 
-use crate::pool::{PoolError, StoredScene};
+use crate::pool::{Pool, PoolError, StoredScene};
+
+pub use crate::pool::copy::REOPEN_AFTER_BYTES;
+
+/// Consecutive treelets read, then checked on every core, at a time: enough for a pack of
+/// every tree and work for every thread, little memory (only compressed blocks are held).
+pub const BATCH_TREELETS: usize = 1024;
 
 /// Result of a verification.
 #[derive(Debug, Default)]
@@ -28,6 +48,10 @@ pub struct VerifyReport {
     /// Every broken invariant found (at most [`MAX_PROBLEMS`] are kept, `problem_count` counts all).
     pub problems: Vec<String>,
     pub problem_count: u64,
+    /// Bytes of blocks read.
+    pub bytes_read: u64,
+    /// Times the pool was closed and opened again ([`verify_pool_scene`]).
+    pub reopens: u32,
 }
 
 /// Problems kept verbatim in a report.
@@ -46,218 +70,293 @@ impl VerifyReport {
     }
 }
 
-/// What a refinable leaf promises its subtreelet.
+/// Bytes of one record of every channel side by side (a layout names a channel at most once).
+const RECORDS_BYTES: usize = {
+    let mut n = 0;
+    let mut i = 0;
+    while i < Channel::ALL.len() {
+        n += Channel::ALL[i].size();
+        i += 1;
+    }
+    n
+};
+
+/// One node's records of the scene's channels, in layout order, side by side.
+type Records = [u8; RECORDS_BYTES];
+
+/// What a refinable leaf promises its subtreelet. Kept small: a breadth-first pass holds one
+/// for every treelet of the next level (1.1 million at once on the 10⁸-point city, where links
+/// holding a `Vec` per channel took most of verify's 390 MB).
 struct Link {
     parent: TreeletId,
+    cell: Cell,
     leaf: u16,
     leaf_parent: u16,
     child_index: u8,
-    cell: Cell,
-    attributes: Vec<Vec<u8>>,
+    /// The leaf's records, if its attribute blocks decoded.
+    attributes: Option<Records>,
+}
+
+/// Node `i`'s records of every channel (`attrs` in layout order) side by side.
+fn records(channels: &[Channel], attrs: &[Vec<u8>], i: usize) -> Records {
+    let mut out = [0u8; RECORDS_BYTES];
+    let mut at = 0;
+    for (&c, block) in channels.iter().zip(attrs) {
+        out[at..at + c.size()].copy_from_slice(record(block, c, i));
+        at += c.size();
+    }
+    out
 }
 
 /// Verifies a stored scene. `Err` only for pool I/O failures; broken invariants are in the report.
 pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
-    let d = &scene.description;
-    let mut v = Verifier {
-        scene,
-        channels: d.layout.channels().to_vec(),
-        dictionaries: PreparedDictionaries::of(d),
-        links: HashMap::new(),
-        r: VerifyReport::default(),
-    };
-    if let Err(e) = d.validate() {
-        v.r.problem(format!("description: {e}"));
+    let mut v = Verifier::new(&scene.description, BATCH_TREELETS);
+    if !v.r.is_ok() {
         return Ok(v.r);
     }
-    let mut expected_next = 0u32;
-    for id in scene.stored_ids() {
-        let id = id?;
-        if id.0 != expected_next {
-            v.r.problem(format!(
-                "treelet ids not contiguous: expected {expected_next}, found {id}"
-            ));
-        }
-        expected_next = id.0.wrapping_add(1);
-        v.r.treelets += 1;
-        v.treelet(id)?;
-    }
-    v.totals();
-    Ok(v.r)
+    v.check_from(scene, TreeletId(0), u64::MAX)?;
+    Ok(v.finish())
 }
 
-/// The state of one verification: the report so far and the links refinable leaves promised.
-struct Verifier<'a> {
-    scene: &'a StoredScene,
+/// What [`verify_pool_scene`] reports while it runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum VerifyProgress {
+    /// Once, before any treelet is checked: the treelets the description counts.
+    Planned { treelets: u64 },
+    /// Treelets checked since the last report.
+    Checked(u64),
+}
+
+/// How [`verify_pool_scene`] reads.
+#[derive(Clone, Copy, Debug)]
+pub struct VerifyOptions {
+    /// Bytes of blocks read between two openings of the pool ([`REOPEN_AFTER_BYTES`]).
+    pub reopen_after_bytes: u64,
+    /// Treelets read and checked at a time ([`BATCH_TREELETS`]; tests take fewer to cross
+    /// batches and openings within a small scene).
+    pub batch_treelets: usize,
+}
+
+impl Default for VerifyOptions {
+    fn default() -> Self {
+        VerifyOptions {
+            reopen_after_bytes: REOPEN_AFTER_BYTES,
+            batch_treelets: BATCH_TREELETS,
+        }
+    }
+}
+
+/// Verifies the scene `name` of the pool in `dir` ([`Pool::open_for_scan`]: nothing is
+/// changed), closing the pool and opening it again after every `reopen_after_bytes` of blocks
+/// read so that sled's memory stays bounded whatever the scene's size (module docs). The report
+/// is [`verify_scene`]'s, whatever the options. A directory without a pool is
+/// [`PoolError::NoPool`] (none is made); a scene replaced or removed between two openings is
+/// [`PoolError::ChangedWhileRead`]. `progress` is told after the pool is closed.
+pub fn verify_pool_scene(
+    dir: &Path,
+    name: &str,
+    options: &VerifyOptions,
+    progress: &dyn Fn(VerifyProgress),
+) -> Result<VerifyReport, PoolError> {
+    if !crate::pool::is_pool(dir) {
+        return Err(PoolError::NoPool(dir.to_owned()));
+    }
+    let scene = Pool::open_for_scan(dir)?.scene(name)?;
+    let generation = scene.generation;
+    progress(VerifyProgress::Planned {
+        treelets: u64::from(scene.description.treelet_count),
+    });
+    let mut v = Verifier::new(&scene.description, options.batch_treelets);
+    if !v.r.is_ok() {
+        return Ok(v.r);
+    }
+    let mut scene = Some(scene);
+    let mut next = TreeletId(0);
+    loop {
+        let current = match scene.take() {
+            Some(s) => s,
+            None => {
+                v.r.reopens += 1;
+                match Pool::open_for_scan(dir)?.scene(name) {
+                    Ok(s) if s.generation == generation => s,
+                    Ok(_) | Err(PoolError::NoSuchScene(_)) => {
+                        return Err(PoolError::ChangedWhileRead(name.to_owned()));
+                    }
+                    Err(e) => return Err(e),
+                }
+            }
+        };
+        let before = v.r.treelets;
+        let resume = v.check_from(&current, next, options.reopen_after_bytes)?;
+        // Dropping the scene's trees and the pool closes the database: its memory goes.
+        drop(current);
+        progress(VerifyProgress::Checked(v.r.treelets - before));
+        match resume {
+            Some(id) => next = id,
+            None => return Ok(v.finish()),
+        }
+    }
+}
+
+/// A scene's settings every treelet's checks share (read-only, so that they run in parallel).
+struct Context {
+    description: SceneDescription,
     channels: Vec<Channel>,
     /// The scene's dictionaries, loaded once for its many blocks.
     dictionaries: PreparedDictionaries,
+}
+
+/// What one treelet's own checks found, for the in-order pass that matches links.
+#[derive(Default)]
+struct Checked {
+    /// The header, if the node block decoded.
+    header: Option<TreeletHeader>,
+    /// The root node's records, if every attribute block decoded.
+    root_attributes: Option<Records>,
+    node_records: u64,
+    leaf_voxels: u64,
+    /// Subtreelet id → what its leaf promises, in node order.
+    links: Vec<(u32, Link)>,
+    /// Findings before the link check (header, blocks) and after it (nodes), in the order a
+    /// one-by-one pass reports them.
+    problems: Vec<String>,
+    node_problems: Vec<String>,
+}
+
+/// The state of one verification: the report so far and the links refinable leaves promised.
+struct Verifier {
+    context: Context,
     /// Subtreelet id → what its leaf promised, until the subtreelet is checked.
     links: HashMap<u32, Link>,
+    /// The id the next stored treelet should have (ids are contiguous).
+    expected_next: u32,
+    batch_treelets: usize,
     r: VerifyReport,
 }
 
-impl Verifier<'_> {
-    /// One stored treelet: decodes, checks the header, its attribute blocks, its link to the
-    /// parent, and every node.
-    fn treelet(&mut self, id: TreeletId) -> Result<(), PoolError> {
-        let d = &self.scene.description;
-        let Some(bytes) = self.scene.nodes(id)? else {
-            return Ok(());
-        };
-        let (t, places) = match codec::decode_compressed_treelet_with_places_using(
-            &bytes,
-            d.max_depth,
-            self.dictionaries.nodes(),
-        ) {
-            Ok(decoded) => decoded,
-            Err(e) => {
-                self.r.problem(format!("treelet {id}: {e}"));
-                return Ok(());
-            }
-        };
-        if t.header.id != id {
-            self.r.problem(format!(
-                "treelet stored under {id} says it is {}",
-                t.header.id
-            ));
-        }
-        if t.capacity() != d.treelet_nodes {
-            self.r.problem(format!(
-                "treelet {id}: capacity {} != scene's {}",
-                t.capacity(),
-                d.treelet_nodes
-            ));
-        }
-        self.r.node_records += t.used().len() as u64;
-        let attrs = self.attributes(id, &t)?;
-        let attrs = (attrs.len() == self.channels.len()).then_some(attrs);
-        check_link(
-            &mut self.r,
-            &mut self.links,
-            &t,
-            attrs.as_deref().unwrap_or(&[]),
-            &self.channels,
-        );
-        for (i, place) in places.iter().enumerate() {
-            self.node(id, &t, &places, i, place, attrs.as_deref());
-        }
-        Ok(())
-    }
-
-    /// The treelet's attribute blocks, decoded, one per channel; a missing or bad block is a
-    /// problem and is left out.
-    fn attributes(&mut self, id: TreeletId, t: &Treelet) -> Result<Vec<Vec<u8>>, PoolError> {
-        let mut attrs = Vec::new();
-        for &c in &self.channels {
-            let Some(b) = self.scene.channel(c, id)? else {
-                self.r
-                    .problem(format!("treelet {id}: {} block missing", c.name()));
-                continue;
-            };
-            match codec::decode_compressed_attributes_using(
-                &b,
-                c,
-                t.header.used_nodes,
-                self.dictionaries.channel(c),
-            ) {
-                Ok(b) => attrs.push(b),
-                Err(e) => self
-                    .r
-                    .problem(format!("treelet {id}: {} block: {e}", c.name())),
-            }
-        }
-        Ok(attrs)
-    }
-
-    /// One node: inside its parent; a leaf is final (counted) or names a later subtreelet
-    /// (remembered as a link); an inner node's attributes are its children's mean.
-    fn node(
-        &mut self,
-        id: TreeletId,
-        t: &Treelet,
-        places: &[NodePlace],
-        i: usize,
-        place: &NodePlace,
-        attrs: Option<&[Vec<u8>]>,
-    ) {
-        let d = &self.scene.description;
-        let n = t.nodes[i];
-        if place.parent != u32::MAX {
-            let pc = places[place.parent as usize].cell;
-            if !pc.contains(&place.cell) || place.cell.depth != pc.depth + 1 {
-                self.r.problem(format!(
-                    "treelet {id} node {i}: voxel {:?} not inside parent {pc:?}",
-                    place.cell
-                ));
-            }
-        }
-        if !place.is_leaf {
-            if let Some(attrs) = attrs {
-                self.inner_means(id, i, n, attrs);
-            }
-            return;
-        }
-        if n.first_child == Node::NONE {
-            if place.cell.depth == d.max_depth {
-                self.r.leaf_voxels += 1;
-            }
-            return;
-        }
-        let child = n.first_child;
-        if child <= id.0 || child >= d.treelet_count {
-            self.r.problem(format!(
-                "treelet {id} leaf {i}: subtreelet {child} out of range"
-            ));
-        }
-        let link = Link {
-            parent: id,
-            leaf: i as u16,
-            leaf_parent: if place.parent == u32::MAX {
-                0
-            } else {
-                place.parent as u16
+impl Verifier {
+    /// A verifier of a scene with this description; an invalid description is the report's
+    /// only problem.
+    fn new(d: &SceneDescription, batch_treelets: usize) -> Verifier {
+        let mut v = Verifier {
+            context: Context {
+                description: d.clone(),
+                channels: d.layout.channels().to_vec(),
+                dictionaries: PreparedDictionaries::of(d),
             },
-            child_index: place.child_index,
-            cell: place.cell,
-            attributes: attrs.map_or_else(Vec::new, |attrs| {
-                self.channels
-                    .iter()
-                    .enumerate()
-                    .map(|(k, c)| record(&attrs[k], *c, i).to_vec())
-                    .collect()
-            }),
+            links: HashMap::new(),
+            expected_next: 0,
+            batch_treelets: batch_treelets.max(1),
+            r: VerifyReport::default(),
         };
-        if self.links.insert(child, link).is_some() {
-            self.r
-                .problem(format!("subtreelet {child} is claimed by two leaves"));
+        if let Err(e) = d.validate() {
+            v.r.problem(format!("description: {e}"));
+        } else if v.context.channels.iter().map(|c| c.size()).sum::<usize>() > RECORDS_BYTES {
+            v.r.problem("description: a channel is named twice in the layout".into());
+        }
+        v
+    }
+
+    /// Checks the stored treelets from `start` on, batch by batch, until the scene ends
+    /// (`None`) or at least `byte_budget` bytes of blocks were read (the id to resume at).
+    fn check_from(
+        &mut self,
+        scene: &StoredScene,
+        start: TreeletId,
+        byte_budget: u64,
+    ) -> Result<Option<TreeletId>, PoolError> {
+        let mut ids = scene.stored_ids_from(start);
+        let mut batch = Vec::with_capacity(self.batch_treelets);
+        let mut read = 0u64;
+        loop {
+            batch.clear();
+            for id in ids.by_ref().take(self.batch_treelets) {
+                batch.push(id?);
+            }
+            let Some(&last) = batch.last() else {
+                return Ok(None);
+            };
+            read += self.check_batch(scene, &batch)?;
+            if read >= byte_budget {
+                return Ok(Some(TreeletId(last.0.saturating_add(1))).filter(|_| last.0 < u32::MAX));
+            }
         }
     }
 
-    /// An inner node's attributes must be the mean of its children's (within one step).
-    fn inner_means(&mut self, id: TreeletId, i: usize, n: Node, attrs: &[Vec<u8>]) {
-        let first = i + n.first_child as usize;
-        let kids = n.child_count() as usize;
-        for (k, &c) in self.channels.iter().enumerate() {
-            let mut mean = vec![0u8; c.size()];
-            c.mean(
-                (first..first + kids).map(|j| record(&attrs[k], c, j)),
-                &mut mean,
-            );
-            if !c.within_one_step(&mean, record(&attrs[k], c, i)) {
+    /// Reads a batch's blocks, checks each treelet on its own in parallel, then matches links
+    /// and counts in id order. Returns the bytes read.
+    fn check_batch(&mut self, scene: &StoredScene, ids: &[TreeletId]) -> Result<u64, PoolError> {
+        let nodes = scene.nodes_of(ids)?;
+        let channels = self
+            .context
+            .channels
+            .iter()
+            .map(|&c| scene.channel_of(c, ids))
+            .collect::<Result<Vec<_>, _>>()?;
+        let bytes = nodes
+            .iter()
+            .chain(channels.iter().flatten())
+            .flatten()
+            .map(|b| b.len() as u64)
+            .sum::<u64>();
+        let context = &self.context;
+        let checked: Vec<Option<Checked>> = ids
+            .par_iter()
+            .enumerate()
+            .map(|(k, &id)| {
+                let blocks: Vec<Option<&[u8]>> = channels.iter().map(|c| c[k].as_deref()).collect();
+                nodes[k]
+                    .as_deref()
+                    .map(|bytes| context.check_treelet(id, bytes, &blocks))
+            })
+            .collect();
+        for (&id, checked) in ids.iter().zip(checked) {
+            if id.0 != self.expected_next {
                 self.r.problem(format!(
-                    "treelet {id} node {i}: {} {:?} is not the mean {:?} of its children",
-                    c.name(),
-                    record(&attrs[k], c, i),
-                    mean
+                    "treelet ids not contiguous: expected {}, found {id}",
+                    self.expected_next
                 ));
+            }
+            self.expected_next = id.0.wrapping_add(1);
+            self.r.treelets += 1;
+            if let Some(c) = checked {
+                self.merge(c);
+            }
+        }
+        self.r.bytes_read += bytes;
+        Ok(bytes)
+    }
+
+    /// One treelet's findings, in id order: its link to the parent, then the links it promises.
+    fn merge(&mut self, c: Checked) {
+        for p in c.problems {
+            self.r.problem(p);
+        }
+        self.r.node_records += c.node_records;
+        self.r.leaf_voxels += c.leaf_voxels;
+        if let Some(header) = &c.header {
+            check_link(
+                &mut self.r,
+                &mut self.links,
+                header,
+                c.root_attributes.as_ref(),
+                &self.context.channels,
+            );
+        }
+        for p in c.node_problems {
+            self.r.problem(p);
+        }
+        for (child, link) in c.links {
+            if self.links.insert(child, link).is_some() {
+                self.r
+                    .problem(format!("subtreelet {child} is claimed by two leaves"));
             }
         }
     }
 
     /// Whole-scene checks: counts against the description, links left unresolved.
-    fn totals(&mut self) {
-        let d = &self.scene.description;
+    fn finish(mut self) -> VerifyReport {
+        let d = &self.context.description;
         let r = &mut self.r;
         r.voxels = r.node_records.saturating_sub(r.treelets.saturating_sub(1));
         if r.treelets != u64::from(d.treelet_count) {
@@ -266,7 +365,9 @@ impl Verifier<'_> {
                 r.treelets, d.treelet_count
             ));
         }
-        for (child, link) in std::mem::take(&mut self.links) {
+        let mut unresolved: Vec<_> = std::mem::take(&mut self.links).into_iter().collect();
+        unresolved.sort_by_key(|(child, _)| *child);
+        for (child, link) in unresolved {
             r.problem(format!(
                 "treelet {} leaf {}: subtreelet {child} does not exist",
                 link.parent, link.leaf
@@ -284,6 +385,164 @@ impl Verifier<'_> {
                 r.leaf_voxels, d.stats.leaf_voxels
             ));
         }
+        self.r
+    }
+}
+
+impl Context {
+    /// One stored treelet's own checks: decodes it, checks the header, its attribute blocks
+    /// and every node; collects the links it promises.
+    fn check_treelet(&self, id: TreeletId, bytes: &[u8], blocks: &[Option<&[u8]>]) -> Checked {
+        let d = &self.description;
+        let mut c = Checked::default();
+        let (t, places) = match codec::decode_compressed_treelet_with_places_using(
+            bytes,
+            d.max_depth,
+            self.dictionaries.nodes(),
+        ) {
+            Ok(decoded) => decoded,
+            Err(e) => {
+                c.problems.push(format!("treelet {id}: {e}"));
+                return c;
+            }
+        };
+        if t.header.id != id {
+            c.problems.push(format!(
+                "treelet stored under {id} says it is {}",
+                t.header.id
+            ));
+        }
+        if t.capacity() != d.treelet_nodes {
+            c.problems.push(format!(
+                "treelet {id}: capacity {} != scene's {}",
+                t.capacity(),
+                d.treelet_nodes
+            ));
+        }
+        c.node_records = t.used().len() as u64;
+        let attrs = self.attributes(id, &t, blocks, &mut c.problems);
+        let attrs = (attrs.len() == self.channels.len()).then_some(attrs);
+        c.root_attributes = attrs
+            .as_ref()
+            .map(|attrs| records(&self.channels, attrs, 0));
+        c.header = Some(t.header);
+        for (i, place) in places.iter().enumerate() {
+            self.node(id, &t, &places, i, place, attrs.as_deref(), &mut c);
+        }
+        c
+    }
+
+    /// The treelet's attribute blocks, decoded, one per channel; a missing or bad block is a
+    /// problem and is left out.
+    fn attributes(
+        &self,
+        id: TreeletId,
+        t: &Treelet,
+        blocks: &[Option<&[u8]>],
+        problems: &mut Vec<String>,
+    ) -> Vec<Vec<u8>> {
+        let mut attrs = Vec::new();
+        for (&c, block) in self.channels.iter().zip(blocks) {
+            let Some(b) = block else {
+                problems.push(format!("treelet {id}: {} block missing", c.name()));
+                continue;
+            };
+            match codec::decode_compressed_attributes_using(
+                b,
+                c,
+                t.header.used_nodes,
+                self.dictionaries.channel(c),
+            ) {
+                Ok(b) => attrs.push(b),
+                Err(e) => problems.push(format!("treelet {id}: {} block: {e}", c.name())),
+            }
+        }
+        attrs
+    }
+
+    /// One node: inside its parent; a leaf is final (counted) or names a later subtreelet
+    /// (a link); an inner node's attributes are its children's mean.
+    #[allow(clippy::too_many_arguments)]
+    fn node(
+        &self,
+        id: TreeletId,
+        t: &Treelet,
+        places: &[NodePlace],
+        i: usize,
+        place: &NodePlace,
+        attrs: Option<&[Vec<u8>]>,
+        c: &mut Checked,
+    ) {
+        let d = &self.description;
+        let n = t.nodes[i];
+        if place.parent != u32::MAX {
+            let pc = places[place.parent as usize].cell;
+            if !pc.contains(&place.cell) || place.cell.depth != pc.depth + 1 {
+                c.node_problems.push(format!(
+                    "treelet {id} node {i}: voxel {:?} not inside parent {pc:?}",
+                    place.cell
+                ));
+            }
+        }
+        if !place.is_leaf {
+            if let Some(attrs) = attrs {
+                self.inner_means(id, i, n, attrs, &mut c.node_problems);
+            }
+            return;
+        }
+        if n.first_child == Node::NONE {
+            if place.cell.depth == d.max_depth {
+                c.leaf_voxels += 1;
+            }
+            return;
+        }
+        let child = n.first_child;
+        if child <= id.0 || child >= d.treelet_count {
+            c.node_problems.push(format!(
+                "treelet {id} leaf {i}: subtreelet {child} out of range"
+            ));
+        }
+        let link = Link {
+            parent: id,
+            leaf: i as u16,
+            leaf_parent: if place.parent == u32::MAX {
+                0
+            } else {
+                place.parent as u16
+            },
+            child_index: place.child_index,
+            cell: place.cell,
+            attributes: attrs.map(|attrs| records(&self.channels, attrs, i)),
+        };
+        c.links.push((child, link));
+    }
+
+    /// An inner node's attributes must be the mean of its children's (within one step).
+    fn inner_means(
+        &self,
+        id: TreeletId,
+        i: usize,
+        n: Node,
+        attrs: &[Vec<u8>],
+        problems: &mut Vec<String>,
+    ) {
+        let first = i + n.first_child as usize;
+        let kids = n.child_count() as usize;
+        for (k, &c) in self.channels.iter().enumerate() {
+            let mut mean = vec![0u8; c.size()];
+            c.mean(
+                (first..first + kids).map(|j| record(&attrs[k], c, j)),
+                &mut mean,
+            );
+            if !c.within_one_step(&mean, record(&attrs[k], c, i)) {
+                problems.push(format!(
+                    "treelet {id} node {i}: {} {:?} is not the mean {:?} of its children",
+                    c.name(),
+                    record(&attrs[k], c, i),
+                    mean
+                ));
+            }
+        }
     }
 }
 
@@ -291,15 +550,15 @@ fn record(block: &[u8], c: Channel, i: usize) -> &[u8] {
     &block[i * c.size()..(i + 1) * c.size()]
 }
 
-/// Checks a treelet against the leaf that refers to it (or, for 0, that it is a proper root).
+/// Checks a treelet against the leaf that refers to it (or, for 0, that it is a proper root);
+/// `root_attributes`: the root node's records, when they all decoded.
 fn check_link(
     r: &mut VerifyReport,
     links: &mut HashMap<u32, Link>,
-    t: &Treelet,
-    attrs: &[Vec<u8>],
+    h: &TreeletHeader,
+    root_attributes: Option<&Records>,
     channels: &[Channel],
 ) {
-    let h = &t.header;
     let id = h.id;
     if id == TreeletId::ROOT {
         if !h.parent_id.is_none() || h.root_cell() != Cell::ROOT {
@@ -335,14 +594,17 @@ fn check_link(
             link.cell
         ));
     }
-    if attrs.len() == channels.len() && link.attributes.len() == channels.len() {
-        for (k, &c) in channels.iter().enumerate() {
-            if record(&attrs[k], c, 0) != link.attributes[k].as_slice() {
+    if let (Some(root), Some(leaf)) = (root_attributes, &link.attributes) {
+        let mut at = 0;
+        for &c in channels {
+            let range = at..at + c.size();
+            if root[range.clone()] != leaf[range] {
                 r.problem(format!(
                     "treelet {id}: root {} differs from the refined leaf's",
                     c.name()
                 ));
             }
+            at += c.size();
         }
     }
 }

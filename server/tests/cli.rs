@@ -145,6 +145,23 @@ fn import_list_info_verify_remove() {
         "{}",
         text(&o).1
     );
+    // A mistyped pool path is named, and nothing is made there: only import and serve make
+    // pools.
+    let missing = dir.path().join("mistyped");
+    let missing_arg = db_arg(&missing);
+    for args in [
+        &["list", "--db", &missing_arg][..],
+        &["info", "--db", &missing_arg, "--scene", "bunny"],
+        &["verify", "--db", &missing_arg, "--scene", "bunny"],
+        &["remove", "--db", &missing_arg, "--scene", "bunny"],
+    ] {
+        let o = run(args);
+        let err = text(&o).1;
+        assert!(!o.status.success(), "{args:?} accepted");
+        assert!(err.contains("is not a pool directory"), "{args:?}: {err}");
+        assert!(!err.contains("panicked"), "{err}");
+        assert!(!missing.exists(), "{args:?} made a pool at a mistyped path");
+    }
 }
 
 #[test]

@@ -8,7 +8,9 @@ use arbor_server::import::{ImportOptions, import_file};
 use arbor_server::octree::{BuildOptions, DepthChoice, build_scene};
 use arbor_server::pool::{Pool, PoolError, pack};
 use arbor_server::source::Source;
-use arbor_server::verify::verify_scene;
+use arbor_server::verify::{
+    VerifyOptions, VerifyProgress, VerifyReport, verify_pool_scene, verify_scene,
+};
 
 /// A real scan of `../shared/data`, read for an import (its columns in `scratch`).
 fn real_scan(relative: &str, scratch: &Path) -> Source {
@@ -240,7 +242,162 @@ fn damaged(damage: impl FnOnce(&sled::Db, u64, &arbor_proto::SceneDescription)) 
     let pool = reopen(dir.path());
     let r = verify_scene(&pool.scene("d").unwrap()).unwrap();
     assert!(!r.is_ok(), "verify missed the damage");
+    drop(pool);
+    let stretches = verify_in_stretches(dir.path(), "d", 7);
+    assert_same_report(&stretches, &r);
+    assert!(stretches.reopens > 0);
     r.problems
+}
+
+/// `verify_pool_scene` in batches of `batch` treelets, the pool closed and opened again after
+/// every batch; checks that the progress adds up.
+fn verify_in_stretches(dir: &Path, name: &str, batch: usize) -> VerifyReport {
+    let planned = std::cell::Cell::new(None);
+    let checked = std::cell::Cell::new(0u64);
+    let options = VerifyOptions {
+        reopen_after_bytes: 1,
+        batch_treelets: batch,
+    };
+    let r = verify_pool_scene(dir, name, &options, &|p| match p {
+        VerifyProgress::Planned { treelets } => planned.set(Some(treelets)),
+        VerifyProgress::Checked(n) => {
+            assert!(planned.get().is_some(), "planned before checked");
+            checked.set(checked.get() + n);
+        }
+    })
+    .unwrap();
+    assert_eq!(
+        checked.get(),
+        r.treelets,
+        "progress adds up to the treelets"
+    );
+    r
+}
+
+/// Two verifications of one scene found the same, problem by problem.
+fn assert_same_report(a: &VerifyReport, b: &VerifyReport) {
+    assert_eq!(a.problems, b.problems);
+    assert_eq!(
+        (
+            a.problem_count,
+            a.treelets,
+            a.node_records,
+            a.voxels,
+            a.leaf_voxels,
+            a.bytes_read
+        ),
+        (
+            b.problem_count,
+            b.treelets,
+            b.node_records,
+            b.voxels,
+            b.leaf_voxels,
+            b.bytes_read
+        )
+    );
+}
+
+/// A real scan verified in batches of 5 treelets with the pool closed and opened again after
+/// each (links from a leaf to its subtreelet cross batches and openings) finds exactly what one
+/// pass finds, every invariant holding, and matches the description's counts; the pool is
+/// only read.
+#[test]
+fn verify_in_stretches_with_the_pool_reopened_matches_one_pass() {
+    let scratch = tempfile::tempdir().unwrap();
+    let lion = real_scan("points/lion_takanawa.copc.laz", scratch.path());
+    let dir = tempfile::tempdir().unwrap();
+    let one_pass = {
+        let pool = Pool::open(dir.path()).unwrap();
+        let mut txn = pool.begin_import("lion", false).unwrap();
+        let desc = build_scene(&lion, "lion", "lion", &opts(), scratch.path(), &mut txn);
+        txn.commit(&desc.unwrap()).unwrap();
+        // A killed import's leftovers: verify changes nothing, so they stay for the next
+        // server or import to drop.
+        let mut left = pool.begin_import("killed", false).unwrap();
+        left.set_channels(&[Channel::Color]).unwrap();
+        left.abandon_as_if_crashed().unwrap();
+        verify_scene(&pool.scene("lion").unwrap()).unwrap()
+    };
+    assert!(one_pass.is_ok(), "{:?}", one_pass.problems);
+    let trees = || {
+        let mut names: Vec<_> = raw_sled(dir.path()).tree_names();
+        names.sort();
+        names
+    };
+    let trees_before = trees();
+    let r = verify_in_stretches(dir.path(), "lion", 5);
+    assert_eq!(trees(), trees_before, "the leftovers are still there");
+    assert!(
+        trees_before
+            .iter()
+            .any(|t| t.as_ref().ends_with(b":ch:color"))
+    );
+    assert!(r.is_ok(), "{:?}", r.problems);
+    assert_same_report(&r, &one_pass);
+    let pool = reopen(dir.path());
+    let d = pool.scene("lion").unwrap().description;
+    assert_eq!(r.treelets, u64::from(d.treelet_count));
+    assert_eq!(r.voxels, d.stats.voxels);
+    assert!(
+        r.treelets > 100,
+        "{} treelets: too few to cross batches",
+        r.treelets
+    );
+    assert_eq!(
+        u64::from(r.reopens),
+        r.treelets.div_ceil(5),
+        "one reopening per batch (the last finds the scene's end)"
+    );
+}
+
+/// A scene removed, or replaced, between two of the verification's openings is named, not
+/// reported against the other scene's blocks; a directory without a pool is refused, and none
+/// is made there.
+#[test]
+fn verify_names_a_scene_changed_between_openings_and_a_missing_pool() {
+    let scratch = tempfile::tempdir().unwrap();
+    let source = bunny(scratch.path());
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let pool = Pool::open(dir.path()).unwrap();
+        import(&pool, &source, scratch.path(), "d", false);
+    }
+    let options = VerifyOptions {
+        reopen_after_bytes: 1,
+        batch_treelets: 3,
+    };
+    for replace in [false, true] {
+        let changed = std::cell::Cell::new(false);
+        let e = verify_pool_scene(dir.path(), "d", &options, &|p| {
+            if matches!(p, VerifyProgress::Checked(_)) && !changed.get() {
+                let pool = reopen(dir.path());
+                if replace {
+                    import(&pool, &source, scratch.path(), "d", true);
+                } else {
+                    pool.remove("d").unwrap();
+                }
+                changed.set(true);
+            }
+        })
+        .unwrap_err();
+        assert!(changed.get());
+        assert!(
+            matches!(e, PoolError::ChangedWhileRead(ref n) if n == "d"),
+            "{e}"
+        );
+        assert!(e.to_string().contains("while it was being read"), "{e}");
+        if !replace {
+            import(&reopen(dir.path()), &source, scratch.path(), "d", false);
+        }
+    }
+    let missing = dir.path().join("no-pool-here");
+    let e = verify_pool_scene(&missing, "d", &options, &|_| {}).unwrap_err();
+    assert!(matches!(e, PoolError::NoPool(_)), "{e}");
+    assert!(e.to_string().contains("not a pool directory"), "{e}");
+    assert!(!missing.exists(), "no pool is made at a missing path");
+    let e = Pool::open_existing(&missing).unwrap_err();
+    assert!(matches!(e, PoolError::NoPool(_)), "{e}");
+    assert!(!missing.exists());
 }
 
 /// The pool's database opened directly (in the segment size this build makes pools with), once

@@ -32,9 +32,6 @@ use super::{Pool, PoolError, StoredScene, channel_tree, decode_entry, nodes_tree
 /// Bytes of packs copied or compared between two openings of both pools (module docs).
 pub const REOPEN_AFTER_BYTES: u64 = 64 << 20;
 
-/// sled's page cache for either pool while copying: each page is read once.
-const COPY_CACHE_BYTES: u64 = 16 << 20;
-
 /// Errors of a pool copy.
 #[derive(Debug, thiserror::Error)]
 pub enum CopyError {
@@ -186,7 +183,7 @@ pub fn copy_pool(
     options: &CopyOptions<'_>,
     progress: &dyn Fn(CopyProgress),
 ) -> Result<CopyReport, CopyError> {
-    if !source_dir.join("db").is_file() {
+    if !super::is_pool(source_dir) {
         return Err(CopyError::NoSource(source_dir.to_owned()));
     }
     if dest.symlink_metadata().is_ok() {
@@ -194,7 +191,7 @@ pub fn copy_pool(
     }
     let partial = partial_dir(dest)?;
     let (planned, need, source_disk_bytes) = {
-        let source = open_when_unlocked(source_dir)?;
+        let source = Pool::open_for_scan(source_dir)?;
         let disk = source.disk_bytes()?;
         let mut all = Vec::new();
         for entry in source.catalogue.iter() {
@@ -295,9 +292,9 @@ impl Copy<'_> {
     /// The two pools, opened if they are not.
     fn pools(&mut self) -> Result<&(Pool, Pool), CopyError> {
         if self.pools.is_none() {
-            let source = open_when_unlocked(self.source_dir)?;
+            let source = Pool::open_for_scan(self.source_dir)?;
             // Unpublished trees are the copy's own, written before the last reopening.
-            let copy = open_when_unlocked(self.partial)?;
+            let copy = Pool::open_for_scan(self.partial)?;
             self.pools = Some((source, copy));
         }
         Ok(self.pools.as_ref().expect("opened above"))
@@ -568,21 +565,6 @@ pub fn compare_scene(source: &StoredScene, copy: &StoredScene) -> Result<(), Cop
         compare_trees(name, tree, a, b, None, u64::MAX)?;
     }
     Ok(())
-}
-
-/// Opens the pool in `dir` for the copy (a small cache, unpublished trees kept, no random-read
-/// advice) once a handle this process just dropped has let go of sled's lock (its flusher
-/// thread ends shortly after).
-fn open_when_unlocked(dir: &Path) -> Result<Pool, PoolError> {
-    let deadline = Instant::now() + super::POOL_LOCK_WAIT;
-    loop {
-        match Pool::open_inner(dir, COPY_CACHE_BYTES, true) {
-            Err(PoolError::InUse(_)) if Instant::now() < deadline => {
-                std::thread::sleep(Duration::from_millis(20));
-            }
-            opened => return opened,
-        }
-    }
 }
 
 fn free_bytes(dir: &Path) -> Result<u64, CopyError> {

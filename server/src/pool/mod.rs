@@ -45,6 +45,10 @@ pub enum PoolError {
         #[source]
         source: ProtoError,
     },
+    /// The directory holds no pool (no sled database `db` in it): only an import or a server
+    /// makes one.
+    #[error("{} is not a pool directory (no sled database `db` in it)", .0.display())]
+    NoPool(std::path::PathBuf),
     /// No scene of that name.
     #[error("no scene named {0:?} in the pool")]
     NoSuchScene(String),
@@ -57,6 +61,12 @@ pub enum PoolError {
     /// A generation still named by the catalogue cannot be dropped as retired.
     #[error("generation {0} is still published")]
     GenerationLive(u64),
+    /// A scene read in stretches, the pool closed in between (`verify`, `copy`), was replaced
+    /// or removed meanwhile: another process opened the pool between two stretches.
+    #[error(
+        "scene {0:?} was replaced or removed while it was being read (another process opened the pool meanwhile): run it again"
+    )]
+    ChangedWhileRead(String),
     /// The pool was written in a format this build does not read (format 1 kept one value per
     /// block; format 2 packs them).
     #[error(
@@ -104,6 +114,9 @@ fn stored_segment_bytes(dir: &Path) -> Option<usize> {
 /// opening) lets go of sled's directory lock only when sled's flusher thread notices. A lock held
 /// longer belongs to another live process (one process per pool).
 pub const POOL_LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(2);
+
+/// sled's page cache of a pool opened for a pass over whole trees ([`Pool::open_for_scan`]).
+const SCAN_CACHE_BYTES: u64 = 16 << 20;
 
 /// sled page cache size of [`Pool::open`]: imports and tools. A server sizes its own
 /// (`pool_cache_bytes`, [`Pool::open_with_cache`]).
@@ -203,7 +216,17 @@ impl StoredScene {
 
     /// Ids of the stored node blocks, ascending.
     pub fn stored_ids(&self) -> impl Iterator<Item = Result<TreeletId, PoolError>> + '_ {
-        self.nodes.iter().flat_map(|entry| {
+        self.stored_ids_from(TreeletId(0))
+    }
+
+    /// Ids of the stored node blocks from `start` on, ascending (a pass over the scene that
+    /// was interrupted resumes there).
+    pub fn stored_ids_from(
+        &self,
+        start: TreeletId,
+    ) -> impl Iterator<Item = Result<TreeletId, PoolError>> + '_ {
+        let (first_key, _) = pack::locate(start);
+        let ids = self.nodes.range(first_key..).flat_map(|entry| {
             let ids = entry.map_err(PoolError::from).and_then(|(k, v)| {
                 let corrupt = |source| PoolError::Corrupt {
                     what: format!("nodes pack key {:?}", k.as_ref()),
@@ -225,8 +248,14 @@ impl StoredScene {
                 Ok(ids) => ids,
                 Err(e) => vec![Err(e)],
             }
-        })
+        });
+        ids.filter(move |id| id.as_ref().map_or(true, |id| id.0 >= start.0))
     }
+}
+
+/// Whether `dir` holds a pool (sled's database file).
+pub fn is_pool(dir: &Path) -> bool {
+    dir.join("db").is_file()
 }
 
 /// Removes the `snap.*.generating` files in the sled directory `dir`, if no process holds the
@@ -383,6 +412,15 @@ impl Pool {
         Self::open_with_cache(dir, POOL_CACHE_BYTES)
     }
 
+    /// [`Pool::open`] of a pool that exists: a command that only reads or removes (`list`,
+    /// `info`, `remove`) must not leave an empty pool at a mistyped path.
+    pub fn open_existing(dir: &Path) -> Result<Pool, PoolError> {
+        if !is_pool(dir) {
+            return Err(PoolError::NoPool(dir.to_owned()));
+        }
+        Self::open(dir)
+    }
+
     /// [`Pool::open`] with a page cache of `cache_bytes`: sled keeps that much of the pool's
     /// pages decoded. A read whose page is not among them decodes the page from the file again;
     /// on the 10⁸-point city (1.4 GB of pool) the reads for building messages that missed the
@@ -392,12 +430,8 @@ impl Pool {
         Self::open_inner(dir, cache_bytes, false)
     }
 
-    /// [`Pool::open_with_cache`], or a pool copy's opening (`for_copy`) of either pool: the
-    /// trees no catalogue entry names are kept (the copy's scenes are unpublished while it
-    /// writes them), and the file is not advised for random reads (a copy reads each tree in
-    /// key order, which the kernel's read-ahead serves: the city's cold copy took 68 s with the
-    /// advice).
-    fn open_inner(dir: &Path, cache_bytes: u64, for_copy: bool) -> Result<Pool, PoolError> {
+    /// [`Pool::open_with_cache`], or, `for_scan`, [`Pool::open_for_scan`]'s opening.
+    fn open_inner(dir: &Path, cache_bytes: u64, for_scan: bool) -> Result<Pool, PoolError> {
         // sled refuses a segment size other than the one its directory was made with; a new
         // pool gets POOL_SEGMENT_BYTES, one made before (512 KiB, sled's default) keeps its own.
         let segment_bytes = stored_segment_bytes(dir).unwrap_or(POOL_SEGMENT_BYTES);
@@ -421,7 +455,7 @@ impl Pool {
             }
             opened => opened.map_err(in_use)?,
         };
-        if !for_copy {
+        if !for_scan {
             let advised = advise_random_reads(dir);
             tracing::debug!(descriptors = advised, "pool file advised for random reads");
         }
@@ -433,7 +467,7 @@ impl Pool {
             reads: Arc::default(),
             segment_bytes,
         };
-        let cleaned = if for_copy { 0 } else { pool.drop_leftovers()? };
+        let cleaned = if for_scan { 0 } else { pool.drop_leftovers()? };
         if cleaned > 0 {
             tracing::warn!(
                 trees = cleaned,
@@ -441,6 +475,25 @@ impl Pool {
             );
         }
         Ok(pool)
+    }
+
+    /// Opens the pool in `dir` for a command that reads or writes whole trees in key order
+    /// (`copy`, `verify`): a small page cache (each page is read once), the trees no catalogue
+    /// entry names kept (a copy's own, unpublished while it writes them; such a command changes
+    /// nothing it does not own), and no random-read advice (the kernel's read-ahead serves a
+    /// pass in key order: the city's cold copy took 68 s with the advice). A handle this
+    /// process just dropped lets go of sled's lock when its flusher thread ends, shortly after:
+    /// the opening waits for it up to [`POOL_LOCK_WAIT`].
+    pub fn open_for_scan(dir: &Path) -> Result<Pool, PoolError> {
+        let deadline = std::time::Instant::now() + POOL_LOCK_WAIT;
+        loop {
+            match Pool::open_inner(dir, SCAN_CACHE_BYTES, true) {
+                Err(PoolError::InUse(_)) if std::time::Instant::now() < deadline => {
+                    std::thread::sleep(std::time::Duration::from_millis(20));
+                }
+                opened => return opened,
+            }
+        }
     }
 
     fn live_generations(&self) -> Result<Vec<u64>, PoolError> {
