@@ -1,12 +1,18 @@
-//! `verify`: checks every invariant of a stored scene, treelet by treelet in id order, keeping
-//! only the links still to be matched in memory (bounded by the width of the treelet tree).
+//! `verify`: checks every invariant of a stored scene, in batches of consecutive ids, holding
+//! nothing that grows with the scene.
 //!
 //! How: the treelets are read in batches of [`BATCH_TREELETS`] consecutive ids (one sled read
 //! per pack and tree); each treelet's own checks — decoding, nodes, attribute means — run on
-//! every core (rayon), each returning only its findings, the links it promises and its root's
-//! attributes; then the links are matched in id order (a subtreelet's id is above its
-//! parent's), so the report is the same whatever the cores. On the 10⁸-point city the checks,
-//! not the reads, are the time (decoding, means, normals' encoding).
+//! every core (rayon), each returning only its findings, its header and its root's records.
+//! Then the parents the batch's headers name are read and decoded again, once each and in
+//! parallel, and each treelet is matched, in id order, with the leaf its header names: that
+//! leaf must name it back, with its cell, place and records. Counting the matched pairs against
+//! the refinable leaves makes the matching a bijection without remembering any leaf from one
+//! batch to the next (a breadth-first pass would otherwise hold one link for every treelet of
+//! the next level: 1.1 million on the 10⁸-point city, gigabytes on a scan a hundred times
+//! larger). The report is the same whatever the cores and the batch size. On the city the
+//! checks, not the reads, are the time (decoding, means, normals' encoding); reading the
+//! parents again costs about a tenth more CPU.
 //!
 //! Memory: sled keeps part of every page a pass over whole trees reads, whatever its cache
 //! (docs/measurements.md, stop 70: 435 MB verifying the city in one opening). So
@@ -18,7 +24,7 @@
 //! voxel inside its parent and no deeper than the target depth; treelet links both ways (parent
 //! id, parent leaf, leaf's parent, child index; a refinable leaf's subtreelet exists, has a higher
 //! id, and its root cell equals the leaf's cell); each refinable leaf has exactly one subtreelet
-//! and every treelet but the root is reached; attribute blocks decode to the right length; inner
+//! naming it back and every treelet but the root is reached; attribute blocks decode to the right length; inner
 //! attributes equal the mean of their children within one quantization step and a refinable
 //! leaf's attributes equal its subtreelet root's; stored counts match the description.
 
@@ -84,16 +90,15 @@ const RECORDS_BYTES: usize = {
 /// One node's records of the scene's channels, in layout order, side by side.
 type Records = [u8; RECORDS_BYTES];
 
-/// What a refinable leaf promises its subtreelet. Kept small: a breadth-first pass holds one
-/// for every treelet of the next level (1.1 million at once on the 10⁸-point city, where links
-/// holding a `Vec` per channel took most of verify's 390 MB).
+/// What a refinable leaf promises its subtreelet: read from the parent when the subtreelet is
+/// checked (module docs: nothing is held from one batch to the next).
 struct Link {
-    parent: TreeletId,
+    /// The subtreelet the leaf names.
+    child: u32,
     cell: Cell,
-    leaf: u16,
     leaf_parent: u16,
     child_index: u8,
-    /// The leaf's records, if its attribute blocks decoded.
+    /// The leaf's records, if its parent's attribute blocks decoded.
     attributes: Option<Records>,
 }
 
@@ -206,7 +211,7 @@ struct Context {
     dictionaries: PreparedDictionaries,
 }
 
-/// What one treelet's own checks found, for the in-order pass that matches links.
+/// What one treelet's own checks found, for the in-order pass that matches it with its parent.
 #[derive(Default)]
 struct Checked {
     /// The header, if the node block decoded.
@@ -215,19 +220,33 @@ struct Checked {
     root_attributes: Option<Records>,
     node_records: u64,
     leaf_voxels: u64,
-    /// Subtreelet id → what its leaf promises, in node order.
-    links: Vec<(u32, Link)>,
+    /// Leaves naming a subtreelet.
+    refinable_leaves: u64,
     /// Findings before the link check (header, blocks) and after it (nodes), in the order a
     /// one-by-one pass reports them.
     problems: Vec<String>,
     node_problems: Vec<String>,
 }
 
-/// The state of one verification: the report so far and the links refinable leaves promised.
+/// A parent treelet as its subtreelets in one batch need it: the refinable leaves they name.
+enum Parent {
+    /// Leaf index → what it promises (only the leaves the batch's subtreelets name).
+    Read(HashMap<u16, Option<Link>>),
+    /// Its node block is missing or does not decode (reported when it was checked itself).
+    Unreadable,
+}
+
+/// The state of one verification: the report so far and two counts. Nothing grows with the
+/// scene: a subtreelet is matched with the leaf its header names by reading the parent again
+/// (its batch's parents, once each), and the counts make the matching a bijection — every
+/// matched pair is a leaf naming the subtreelet and the subtreelet naming that leaf back, a
+/// leaf names one subtreelet, so as many pairs as refinable leaves means none is left over.
 struct Verifier {
     context: Context,
-    /// Subtreelet id → what its leaf promised, until the subtreelet is checked.
-    links: HashMap<u32, Link>,
+    /// Leaves naming a subtreelet, over the treelets checked.
+    refinable_leaves: u64,
+    /// Subtreelets whose header names a leaf that names them.
+    matched: u64,
     /// The id the next stored treelet should have (ids are contiguous).
     expected_next: u32,
     batch_treelets: usize,
@@ -244,7 +263,8 @@ impl Verifier {
                 channels: d.layout.channels().to_vec(),
                 dictionaries: PreparedDictionaries::of(d),
             },
-            links: HashMap::new(),
+            refinable_leaves: 0,
+            matched: 0,
             expected_next: 0,
             batch_treelets: batch_treelets.max(1),
             r: VerifyReport::default(),
@@ -310,6 +330,7 @@ impl Verifier {
                     .map(|bytes| context.check_treelet(id, bytes, &blocks))
             })
             .collect();
+        let parents = self.parents(scene, &checked)?;
         for (&id, checked) in ids.iter().zip(checked) {
             if id.0 != self.expected_next {
                 self.r.problem(format!(
@@ -320,37 +341,75 @@ impl Verifier {
             self.expected_next = id.0.wrapping_add(1);
             self.r.treelets += 1;
             if let Some(c) = checked {
-                self.merge(c);
+                self.merge(id, c, &parents);
             }
         }
         self.r.bytes_read += bytes;
         Ok(bytes)
     }
 
-    /// One treelet's findings, in id order: its link to the parent, then the links it promises.
-    fn merge(&mut self, c: Checked) {
+    /// The parents the batch's treelets name (each read and decoded once, in parallel), with
+    /// the leaves they name.
+    fn parents(
+        &self,
+        scene: &StoredScene,
+        checked: &[Option<Checked>],
+    ) -> Result<HashMap<u32, Parent>, PoolError> {
+        let mut wanted: std::collections::BTreeMap<u32, Vec<u16>> = Default::default();
+        for h in checked.iter().flatten().filter_map(|c| c.header.as_ref()) {
+            if !h.parent_id.is_none() && h.parent_id.0 < h.id.0 {
+                wanted
+                    .entry(h.parent_id.0)
+                    .or_default()
+                    .push(h.parent_leaf_index);
+            }
+        }
+        let ids: Vec<TreeletId> = wanted.keys().map(|&p| TreeletId(p)).collect();
+        let nodes = scene.nodes_of(&ids)?;
+        let channels = self
+            .context
+            .channels
+            .iter()
+            .map(|&c| scene.channel_of(c, &ids))
+            .collect::<Result<Vec<_>, _>>()?;
+        let context = &self.context;
+        let wanted: Vec<Vec<u16>> = wanted.into_values().collect();
+        Ok(ids
+            .par_iter()
+            .enumerate()
+            .map(|(k, id)| {
+                let blocks: Vec<Option<&[u8]>> = channels.iter().map(|c| c[k].as_deref()).collect();
+                let parent = match nodes[k].as_deref() {
+                    Some(bytes) => context.parent(bytes, &blocks, &wanted[k]),
+                    None => Parent::Unreadable,
+                };
+                (id.0, parent)
+            })
+            .collect())
+    }
+
+    /// One treelet's findings, in id order: its own, then its match with its parent's leaf.
+    fn merge(&mut self, id: TreeletId, c: Checked, parents: &HashMap<u32, Parent>) {
         for p in c.problems {
             self.r.problem(p);
         }
         self.r.node_records += c.node_records;
         self.r.leaf_voxels += c.leaf_voxels;
-        if let Some(header) = &c.header {
-            check_link(
+        self.refinable_leaves += c.refinable_leaves;
+        // A treelet stored under another id than its own is reported as such, not matched.
+        if let Some(header) = c.header.as_ref().filter(|h| h.id == id)
+            && check_link(
                 &mut self.r,
-                &mut self.links,
+                parents,
                 header,
                 c.root_attributes.as_ref(),
                 &self.context.channels,
-            );
+            )
+        {
+            self.matched += 1;
         }
         for p in c.node_problems {
             self.r.problem(p);
-        }
-        for (child, link) in c.links {
-            if self.links.insert(child, link).is_some() {
-                self.r
-                    .problem(format!("subtreelet {child} is claimed by two leaves"));
-            }
         }
     }
 
@@ -365,12 +424,14 @@ impl Verifier {
                 r.treelets, d.treelet_count
             ));
         }
-        let mut unresolved: Vec<_> = std::mem::take(&mut self.links).into_iter().collect();
-        unresolved.sort_by_key(|(child, _)| *child);
-        for (child, link) in unresolved {
+        // A treelet is matched only under the id it is stored at, and only with a leaf naming
+        // it: never more pairs than leaves.
+        if self.matched < self.refinable_leaves {
             r.problem(format!(
-                "treelet {} leaf {}: subtreelet {child} does not exist",
-                link.parent, link.leaf
+                "{} of {} refinable leaves name a subtreelet that does not exist or does not name \
+                 them back",
+                self.refinable_leaves - self.matched,
+                self.refinable_leaves
             ));
         }
         if d.stats.voxels != 0 && d.stats.voxels != r.voxels {
@@ -502,19 +563,41 @@ impl Context {
                 "treelet {id} leaf {i}: subtreelet {child} out of range"
             ));
         }
-        let link = Link {
-            parent: id,
-            leaf: i as u16,
-            leaf_parent: if place.parent == u32::MAX {
-                0
-            } else {
-                place.parent as u16
-            },
-            child_index: place.child_index,
-            cell: place.cell,
-            attributes: attrs.map(|attrs| records(&self.channels, attrs, i)),
+        c.refinable_leaves += 1;
+    }
+
+    /// A parent treelet, decoded again for the subtreelets of a batch that name it: what each
+    /// of the `leaves` they name promises (`None`: no such refinable leaf).
+    fn parent(&self, bytes: &[u8], blocks: &[Option<&[u8]>], leaves: &[u16]) -> Parent {
+        let Ok((t, places)) = codec::decode_compressed_treelet_with_places_using(
+            bytes,
+            self.description.max_depth,
+            self.dictionaries.nodes(),
+        ) else {
+            return Parent::Unreadable;
         };
-        c.links.push((child, link));
+        // Its problems were reported when it was checked itself.
+        let attrs = self.attributes(t.header.id, &t, blocks, &mut Vec::new());
+        let attrs = (attrs.len() == self.channels.len()).then_some(attrs);
+        let link = |leaf: u16| {
+            let i = usize::from(leaf);
+            let place = places.get(i)?;
+            let child = t.nodes[i].first_child;
+            (place.is_leaf && child != Node::NONE).then(|| Link {
+                child,
+                cell: place.cell,
+                leaf_parent: if place.parent == u32::MAX {
+                    0
+                } else {
+                    place.parent as u16
+                },
+                child_index: place.child_index,
+                attributes: attrs
+                    .as_ref()
+                    .map(|attrs| records(&self.channels, attrs, i)),
+            })
+        };
+        Parent::Read(leaves.iter().map(|&leaf| (leaf, link(leaf))).collect())
     }
 
     /// An inner node's attributes must be the mean of its children's (within one step).
@@ -550,15 +633,16 @@ fn record(block: &[u8], c: Channel, i: usize) -> &[u8] {
     &block[i * c.size()..(i + 1) * c.size()]
 }
 
-/// Checks a treelet against the leaf that refers to it (or, for 0, that it is a proper root);
-/// `root_attributes`: the root node's records, when they all decoded.
+/// Matches a treelet with the leaf its header names (or, for 0, checks that it is a proper
+/// root); `root_attributes`: the root node's records, when they all decoded. True when that leaf
+/// names this treelet: a matched pair, whatever else differs.
 fn check_link(
     r: &mut VerifyReport,
-    links: &mut HashMap<u32, Link>,
+    parents: &HashMap<u32, Parent>,
     h: &TreeletHeader,
     root_attributes: Option<&Records>,
     channels: &[Channel],
-) {
+) -> bool {
     let id = h.id;
     if id == TreeletId::ROOT {
         if !h.parent_id.is_none() || h.root_cell() != Cell::ROOT {
@@ -568,23 +652,33 @@ fn check_link(
                 h.root_cell()
             ));
         }
-        return;
+        return false;
     }
-    let Some(link) = links.remove(&id.0) else {
+    let (parent, leaf) = (h.parent_id, h.parent_leaf_index);
+    if parent.is_none() || parent.0 >= id.0 {
         r.problem(format!(
-            "treelet {id} is not reachable: no leaf refers to it"
+            "treelet {id} is not reachable: its header names parent {parent}, not an earlier treelet"
         ));
-        return;
+        return false;
+    }
+    let link = match parents.get(&parent.0) {
+        Some(Parent::Read(leaves)) => leaves.get(&leaf).and_then(Option::as_ref),
+        Some(Parent::Unreadable) | None => {
+            r.problem(format!("treelet {id}: its parent {parent} cannot be read"));
+            return false;
+        }
     };
-    if h.parent_id != link.parent
-        || h.parent_leaf_index != link.leaf
-        || h.parent_leaf_parent_index != link.leaf_parent
-        || h.child_index_in_parent != link.child_index
+    let Some(link) = link.filter(|l| l.child == id.0) else {
+        r.problem(format!(
+            "treelet {id}: header says parent {parent} leaf {leaf}, but that leaf does not refer to it"
+        ));
+        return false;
+    };
+    if h.parent_leaf_parent_index != link.leaf_parent || h.child_index_in_parent != link.child_index
     {
         r.problem(format!(
-            "treelet {id}: header says parent {} leaf {} leaf parent {} child {}, but leaf {} of treelet {} (parent node {}, child {}) refers to it",
-            h.parent_id, h.parent_leaf_index, h.parent_leaf_parent_index, h.child_index_in_parent,
-            link.leaf, link.parent, link.leaf_parent, link.child_index
+            "treelet {id}: header says parent {parent} leaf {leaf} leaf parent {} child {}, but that leaf's parent node is {} and it is child {}",
+            h.parent_leaf_parent_index, h.child_index_in_parent, link.leaf_parent, link.child_index
         ));
     }
     if h.root_cell() != link.cell {
@@ -607,4 +701,5 @@ fn check_link(
             at += c.size();
         }
     }
+    true
 }

@@ -586,6 +586,41 @@ fn verify_catches_wrong_links_and_attributes() {
     assert!(p.iter().any(|p| p.contains("is not the mean")), "{p:?}");
 }
 
+/// A refinable leaf made to name its neighbour's subtreelet: two leaves claim one subtreelet
+/// and the neighbour's own is orphaned. Matching each subtreelet with the leaf its header names,
+/// batch by batch, names the orphan, and the count of matched pairs names the leaf left over.
+#[test]
+fn verify_catches_a_subtreelet_claimed_by_two_leaves() {
+    let orphan = std::cell::Cell::new(0);
+    let p = damaged(|db, g, d| {
+        let t = nodes_tree(db, g);
+        let dict = d.node_dictionary.as_deref();
+        let stored = stored_block(&t, 0);
+        let (mut tr, places) =
+            codec::decode_compressed_treelet_with_places(&stored, d.max_depth, dict).unwrap();
+        let refinable: Vec<usize> = (0..places.len())
+            .filter(|&i| places[i].is_leaf && tr.nodes[i].first_child != arbor_proto::Node::NONE)
+            .collect();
+        assert!(refinable.len() >= 2, "the root treelet refines two leaves");
+        let (first, second) = (refinable[0], refinable[1]);
+        orphan.set(tr.nodes[second].first_child);
+        tr.nodes[second].first_child = tr.nodes[first].first_child;
+        let packed = codec::compress(&codec::encode_treelet(&tr), 3, dict).unwrap();
+        store_block(&t, 0, packed);
+    });
+    let orphan = format!("treelet {}:", orphan.get());
+    assert!(
+        p.iter()
+            .any(|p| p.starts_with(&orphan) && p.contains("that leaf does not refer to it")),
+        "the orphan is named: {p:?}"
+    );
+    assert!(
+        p.iter()
+            .any(|p| p.starts_with("1 of ") && p.contains("does not name them back")),
+        "the leaf left over is counted: {p:?}"
+    );
+}
+
 #[test]
 fn an_unfinished_snapshot_left_by_a_killed_process_does_not_lock_the_pool_out() {
     let scratch = tempfile::tempdir().unwrap();
