@@ -413,7 +413,7 @@ impl Verifier {
         }
     }
 
-    /// Whole-scene checks: counts against the description, links left unresolved.
+    /// Whole-scene checks: counts against the description, refinable leaves left unmatched.
     fn finish(mut self) -> VerifyReport {
         let d = &self.context.description;
         let r = &mut self.r;

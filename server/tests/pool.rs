@@ -801,6 +801,68 @@ fn an_older_pool_is_copied_whole_into_this_builds_layout() {
 
 /// A damaged source pack fails the copy naming it, leaving no pool at the destination; a copy
 /// that differs from its source is named by the comparison the copy ends with.
+/// A scene replaced or removed in the source between the copy's plan and its opening (another
+/// process opened the pool meanwhile) fails the copy naming the scene; the copy makes no pool,
+/// and leaves no tree in the source (before, the dropped trees were opened by name — made again,
+/// empty — and the copy published the scene with no treelets, comparing equal to them).
+#[test]
+fn a_copy_names_a_scene_changed_between_its_openings() {
+    use arbor_server::pool::copy::{CopyError, CopyOptions, CopyProgress, copy_pool, partial_dir};
+    let scratch = tempfile::tempdir().unwrap();
+    let source = bunny(scratch.path());
+    let root = tempfile::tempdir().unwrap();
+    let (src, copy) = (root.path().join("src"), root.path().join("copy"));
+    import(
+        &Pool::open(&src).unwrap(),
+        &source,
+        scratch.path(),
+        "b",
+        false,
+    );
+    for replace in [true, false] {
+        let e = copy_pool(&src, &copy, &CopyOptions::default(), &|p| {
+            if let CopyProgress::Planned { .. } = p {
+                let pool = reopen(&src);
+                if replace {
+                    import(&pool, &source, scratch.path(), "b", true);
+                } else {
+                    pool.remove("b").unwrap();
+                }
+            }
+        })
+        .unwrap_err();
+        assert!(
+            matches!(e, CopyError::Pool(PoolError::ChangedWhileRead(ref n)) if n == "b"),
+            "{e}"
+        );
+        assert!(!copy.exists() && !partial_dir(&copy).unwrap().exists());
+        // The source's trees as they are on disk (a pool's opening would drop strays).
+        let mut generations: Vec<String> = raw_sled(&src)
+            .tree_names()
+            .iter()
+            .filter_map(|n| {
+                let n = String::from_utf8_lossy(n);
+                n.strip_prefix('g')?
+                    .split_once(':')
+                    .map(|(g, _)| g.to_owned())
+            })
+            .collect();
+        generations.dedup();
+        let pool = reopen(&src);
+        if replace {
+            let g = pool.scene("b").unwrap().generation;
+            assert_eq!(generations, [g.to_string()], "no tree made again");
+            assert!(verify_scene(&pool.scene("b").unwrap()).unwrap().is_ok());
+        } else {
+            assert!(
+                generations.is_empty(),
+                "no tree made again: {generations:?}"
+            );
+            import(&pool, &source, scratch.path(), "b", false);
+        }
+    }
+}
+
 #[test]
 fn a_copy_never_carries_damage_or_differences_unnamed() {
     use arbor_server::pool::copy::{CopyOptions, compare_scene, copy_pool, partial_dir};

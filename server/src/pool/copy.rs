@@ -20,7 +20,9 @@
 //! resident with caches of 16–512 MiB; writing them, about 300 MB more). So both pools are closed
 //! and opened again after every [`REOPEN_AFTER_BYTES`] copied or compared, which bounds a copy's
 //! memory whatever the pool's size. A process that opens the source meanwhile (a server started on it) makes the
-//! copy fail naming the pool in use; nothing is renamed then.
+//! copy fail naming the pool in use; a scene that process replaced or removed between two
+//! openings fails it naming the scene ([`PoolError::ChangedWhileRead`]: its trees are gone);
+//! nothing is renamed then.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -251,6 +253,10 @@ pub fn copy_pool(
     });
     let mut copy = Copy {
         source_dir,
+        planned_generations: planned
+            .iter()
+            .map(|p| (p.description.name.clone(), p.generation))
+            .collect(),
         source_disk_bytes,
         partial: &partial,
         pools: None,
@@ -278,6 +284,8 @@ pub fn copy_pool(
 /// Both pools of a copy in progress, opened again every `reopen_after` bytes.
 struct Copy<'a> {
     source_dir: &'a Path,
+    /// The planned scenes' names and generations in the source: checked at every opening.
+    planned_generations: Vec<(String, u64)>,
     /// The source's database on disk when the copy began (for the report).
     source_disk_bytes: u64,
     partial: &'a Path,
@@ -293,6 +301,22 @@ impl Copy<'_> {
     fn pools(&mut self) -> Result<&(Pool, Pool), CopyError> {
         if self.pools.is_none() {
             let source = Pool::open_for_scan(self.source_dir)?;
+            // Another process may have opened the source since the plan or the last opening.
+            // A scene replaced or removed meanwhile has had its trees dropped: opening them by
+            // name would make empty ones in the source and copy nothing, unnoticed.
+            for (name, generation) in &self.planned_generations {
+                let now = source
+                    .catalogue
+                    .get(name.as_bytes())
+                    .map_err(PoolError::from)?;
+                let unchanged = match now {
+                    Some(v) => decode_entry(name.as_bytes(), &v)?.0 == *generation,
+                    None => false,
+                };
+                if !unchanged {
+                    return Err(PoolError::ChangedWhileRead(name.clone()).into());
+                }
+            }
             // Unpublished trees are the copy's own, written before the last reopening.
             let copy = Pool::open_for_scan(self.partial)?;
             self.pools = Some((source, copy));

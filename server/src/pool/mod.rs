@@ -61,8 +61,8 @@ pub enum PoolError {
     /// A generation still named by the catalogue cannot be dropped as retired.
     #[error("generation {0} is still published")]
     GenerationLive(u64),
-    /// A scene read in stretches, the pool closed in between (`verify`, `copy`), was replaced
-    /// or removed meanwhile: another process opened the pool between two stretches.
+    /// A scene read in stretches with the pool closed in between (`verify`, `copy`) was
+    /// replaced or removed meanwhile: another process opened the pool between two stretches.
     #[error(
         "scene {0:?} was replaced or removed while it was being read (another process opened the pool meanwhile): run it again"
     )]
