@@ -182,13 +182,7 @@ pub fn verify_pool_scene(
             Some(s) => s,
             None => {
                 v.r.reopens += 1;
-                match Pool::open_for_scan(dir)?.scene(name) {
-                    Ok(s) if s.generation == generation => s,
-                    Ok(_) | Err(PoolError::NoSuchScene(_)) => {
-                        return Err(PoolError::ChangedWhileRead(name.to_owned()));
-                    }
-                    Err(e) => return Err(e),
-                }
+                Pool::open_for_scan(dir)?.scene_of_generation(name, generation)?
             }
         };
         let before = v.r.treelets;

@@ -192,7 +192,7 @@ pub fn copy_pool(
         return Err(CopyError::DestinationExists(dest.to_owned()));
     }
     let partial = partial_dir(dest)?;
-    let (planned, need, source_disk_bytes) = {
+    let (planned, planned_bytes, need, source_disk_bytes) = {
         let source = Pool::open_for_scan(source_dir)?;
         let disk = source.disk_bytes()?;
         let mut all = Vec::new();
@@ -227,7 +227,7 @@ pub fn copy_pool(
         } else {
             (u128::from(disk) * u128::from(chosen_bytes) / u128::from(all_bytes)) as u64
         };
-        (chosen, need, disk)
+        (chosen, chosen_bytes, need, disk)
     };
     let parent = match partial.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_owned(),
@@ -249,7 +249,7 @@ pub fn copy_pool(
         std::fs::remove_dir_all(&partial).map_err(io("removing", &partial))?;
     }
     progress(CopyProgress::Planned {
-        bytes: planned.iter().map(Planned::stored_bytes).sum(),
+        bytes: planned_bytes,
     });
     let mut copy = Copy {
         source_dir,
@@ -305,17 +305,7 @@ impl Copy<'_> {
             // A scene replaced or removed meanwhile has had its trees dropped: opening them by
             // name would make empty ones in the source and copy nothing, unnoticed.
             for (name, generation) in &self.planned_generations {
-                let now = source
-                    .catalogue
-                    .get(name.as_bytes())
-                    .map_err(PoolError::from)?;
-                let unchanged = match now {
-                    Some(v) => decode_entry(name.as_bytes(), &v)?.0 == *generation,
-                    None => false,
-                };
-                if !unchanged {
-                    return Err(PoolError::ChangedWhileRead(name.clone()).into());
-                }
+                source.scene_of_generation(name, *generation)?;
             }
             // Unpublished trees are the copy's own, written before the last reopening.
             let copy = Pool::open_for_scan(self.partial)?;

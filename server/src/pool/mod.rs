@@ -555,6 +555,23 @@ impl Pool {
         })
     }
 
+    /// The scene `name` if it is still generation `generation`: a command that reads a scene in
+    /// stretches with the pool closed in between (`verify`, `copy`) checks at every opening that
+    /// no other process replaced or removed it meanwhile ([`PoolError::ChangedWhileRead`]).
+    pub fn scene_of_generation(
+        &self,
+        name: &str,
+        generation: u64,
+    ) -> Result<StoredScene, PoolError> {
+        match self.scene(name) {
+            Ok(s) if s.generation == generation => Ok(s),
+            Ok(_) | Err(PoolError::NoSuchScene(_)) => {
+                Err(PoolError::ChangedWhileRead(name.to_owned()))
+            }
+            Err(e) => Err(e),
+        }
+    }
+
     /// How long each read of a pack of treelet blocks took, for every scene opened from this
     /// pool or its clones (a block read from the pack last read costs no read): what tells an
     /// operator whether `pool_cache_bytes` holds the pages clients ask for.
