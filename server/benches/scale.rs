@@ -29,6 +29,8 @@
 //!   successor on the same data directory serves the timed first view
 //!   (`ARBOR_SCALE_RESTART_VIEW_AFTER_MS` after it serves, default 10000), in turns with and
 //!   without the hot-page list the first left (root, cgroup v1);
+//! * `ARBOR_SCALE_CHECK=0` — skip the view streamed while the server checks the scene
+//!   (`verify --server`);
 //! * `ARBOR_SCALE_SERVER_LOG=FILE` — append the stream step's servers' logs (stderr, with
 //!   `RUST_LOG` as set) to FILE instead of dropping them.
 //!

@@ -17,7 +17,8 @@
 //! * [`admin`] is the axum admin API (health, readiness, metrics, scenes, sessions, status page),
 //!   its text metrics written through [`prometheus`];
 //! * [`daemon`] starts the service and mounts the admin API beside it — what `arbor-server
-//!   serve` runs.
+//!   serve` runs; [`live_import`] imports and removes scenes in it, and [`live_verify`] checks
+//!   them, while it serves.
 //!
 //! [`logging`] sets up the binaries' log lines (text, coloured only on a terminal, or JSON).
 //!
@@ -29,6 +30,7 @@ pub mod admin;
 pub mod daemon;
 pub mod import;
 pub mod live_import;
+pub mod live_verify;
 pub mod logging;
 pub mod memory;
 pub mod octree;

@@ -16,6 +16,8 @@
 //!   sessions of that scene (or not yet greeted) live at the commit. Removal is the same:
 //!   unpublished at once, dropped when its last session ends. What is left at a crash is dropped
 //!   by the next `Pool::open`.
+//! * **Checks** of published scenes run beside imports, one at a time ([`crate::live_verify`]);
+//!   a retired generation a check reads is kept until the check ends.
 
 use std::collections::BTreeMap;
 use std::path::{Component, Path, PathBuf};
@@ -27,6 +29,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::import::tiles::{TileOptions, expand_inputs};
 use crate::import::{Format, ImportOptions};
+use crate::live_verify::Verifications;
 use crate::octree::{BuildOptions, DepthChoice};
 use crate::pipeline::{SceneImport, Superseded, import_scene_observed};
 use crate::pool::{Pool, PoolError};
@@ -162,6 +165,7 @@ struct Inner {
     next: AtomicU64,
     queue: Mutex<mpsc::Sender<Arc<Job>>>,
     retired: Mutex<Vec<Retired>>,
+    verifications: Verifications,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -189,6 +193,7 @@ impl LiveImports {
             None => None,
         };
         let (tx, rx) = mpsc::channel::<Arc<Job>>();
+        let verifications = Verifications::new(pool.clone(), priority)?;
         let inner = Arc::new(Inner {
             pool,
             root,
@@ -198,6 +203,7 @@ impl LiveImports {
             next: AtomicU64::new(1),
             queue: Mutex::new(tx),
             retired: Mutex::new(Vec::new()),
+            verifications,
         });
         let weak = Arc::downgrade(&inner);
         std::thread::Builder::new()
@@ -286,7 +292,12 @@ impl LiveImports {
         Ok(())
     }
 
-    /// Generations retired but still read by live sessions.
+    /// Checks of published scenes ([`crate::live_verify`]).
+    pub fn verifications(&self) -> &Verifications {
+        &self.inner.verifications
+    }
+
+    /// Generations retired but still read by live sessions or checks.
     pub fn retired_generations(&self) -> Vec<u64> {
         lock(&self.inner.retired)
             .iter()
@@ -312,13 +323,13 @@ impl Inner {
         self.reap();
     }
 
-    /// Drops every retired generation none of whose sessions is still live.
+    /// Drops every retired generation none of whose sessions is still live and no check reads.
     fn reap(&self) {
         let live: Vec<u64> = self.state.sessions().iter().map(|s| s.id).collect();
         let mut retired = lock(&self.retired);
         retired.retain_mut(|r| {
             r.sessions.retain(|s| live.contains(s));
-            if !r.sessions.is_empty() {
+            if !r.sessions.is_empty() || self.verifications.holds(r.generation) {
                 return true;
             }
             match self.pool.drop_retired(r.generation) {
@@ -405,20 +416,27 @@ fn set_nice(idle_error: Option<std::io::Error>) {
     }
 }
 
-fn run_worker(rx: mpsc::Receiver<Arc<Job>>, inner: Weak<Inner>, priority: ImportPriority) {
+/// Lowers the calling worker thread to `priority` and makes the rayon pool its work runs on:
+/// a thread per core, each at `priority` too, named `{name}-N`. `None` (logged) when the
+/// threads cannot be started.
+pub(crate) fn background_threads(
+    name: &'static str,
+    priority: ImportPriority,
+) -> Option<rayon::ThreadPool> {
     lower_priority(priority);
     let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
-    let pool = rayon::ThreadPoolBuilder::new()
+    rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
-        .thread_name(|i| format!("arbor-import-{i}"))
+        .thread_name(move |i| format!("{name}-{i}"))
         .start_handler(move |_| lower_priority(priority))
-        .build();
-    let pool = match pool {
-        Ok(p) => p,
-        Err(e) => {
-            tracing::error!("no import thread pool: {e}");
-            return;
-        }
+        .build()
+        .inspect_err(|e| tracing::error!("no {name} thread pool: {e}"))
+        .ok()
+}
+
+fn run_worker(rx: mpsc::Receiver<Arc<Job>>, inner: Weak<Inner>, priority: ImportPriority) {
+    let Some(pool) = background_threads("arbor-import", priority) else {
+        return;
     };
     while let Ok(job) = rx.recv() {
         let Some(inner) = inner.upgrade() else { return };

@@ -2,12 +2,14 @@
 
 #![forbid(unsafe_code)]
 
-mod remote_import;
+mod admin_client;
 
 use std::io::Write as _;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{Context, Result, bail};
 use arbor_server::daemon::{AdminTokenOrigin, DaemonOptions};
@@ -62,7 +64,7 @@ struct ImportArgs {
     /// Import into a running daemon instead: its admin API (`http://127.0.0.1:9090`). The
     /// inputs are then paths under the daemon's `--import-root`, resolved by the daemon.
     #[arg(long, conflicts_with_all = ["db", "scratch", "format", "raw_dims"])]
-    server: Option<remote_import::AdminUrl>,
+    server: Option<admin_client::AdminUrl>,
     /// The admin token, for `--server` (default: $ARBOR_ADMIN_TOKEN).
     #[arg(long, requires = "server")]
     token_file: Option<PathBuf>,
@@ -145,11 +147,24 @@ enum Command {
         #[arg(long)]
         scene: String,
     },
-    /// Check every invariant of a scene; exit status 0 only if all hold. Reads the pool
-    /// without changing it, on every core, its memory bounded whatever the scene's size.
+    /// Check every invariant of a scene; exit status 0 only if all hold, 2 if one is broken.
+    /// Reads the pool without changing it, on every core, its memory bounded whatever the
+    /// scene's size. sled locks a pool per process: for a pool a daemon serves, ask the daemon
+    /// instead (`--server`), which checks the published scene while it keeps serving.
+    #[command(after_help = "Examples:\n  \
+        arbor-server verify --db pool --scene lion\n  \
+        arbor-server verify --server http://127.0.0.1:9090 --token-file pool/admin-token --scene lion")]
     Verify {
-        #[arg(long)]
-        db: PathBuf,
+        /// Pool directory (no process may hold it).
+        #[arg(long, required_unless_present = "server")]
+        db: Option<PathBuf>,
+        /// Ask a running daemon to check the scene instead: its admin API
+        /// (`http://127.0.0.1:9090`). Ctrl-C cancels the check there.
+        #[arg(long, conflicts_with = "db")]
+        server: Option<admin_client::AdminUrl>,
+        /// The admin token, for `--server` (default: $ARBOR_ADMIN_TOKEN).
+        #[arg(long, requires = "server")]
+        token_file: Option<PathBuf>,
         #[arg(long)]
         scene: String,
         /// No progress bar.
@@ -400,17 +415,30 @@ fn run(cli: Cli) -> Result<ExitCode> {
             emit(&text)?;
             Ok(ExitCode::SUCCESS)
         }
-        Command::Verify { db, scene, quiet } => {
+        Command::Verify {
+            db,
+            server,
+            token_file,
+            scene,
+            quiet,
+        } => {
             let bar = progress_bar(quiet, "verifying [{bar:40}] {pos}/{len} treelets");
-            let r =
-                verify::verify_pool_scene(&db, &scene, &verify::VerifyOptions::default(), &|p| {
-                    match p {
+            let r = match (db, server) {
+                (_, Some(url)) => verify_remote(&url, token_file.as_deref(), &scene, &bar),
+                (Some(db), None) => verify::verify_pool_scene(
+                    &db,
+                    &scene,
+                    &verify::VerifyOptions::default(),
+                    &|p| match p {
                         verify::VerifyProgress::Planned { treelets } => bar.set_length(treelets),
                         verify::VerifyProgress::Checked(n) => bar.inc(n),
-                    }
-                });
+                    },
+                )
+                .with_context(|| format!("verifying {scene} in {}", db.display())),
+                (None, None) => unreachable!("clap requires --db or --server"),
+            };
             bar.finish_and_clear();
-            let r = r.with_context(|| format!("verifying {scene} in {}", db.display()))?;
+            let r = r?;
             let mut out = String::new();
             line!(
                 out,
@@ -618,14 +646,39 @@ fn copy(db: &Path, to: &Path, scenes: &[String], quiet: bool) -> Result<ExitCode
     Ok(ExitCode::SUCCESS)
 }
 
+/// `verify --server`: the check, run by the daemon on the scene it publishes; the report it
+/// answers.
+fn verify_remote(
+    url: &admin_client::AdminUrl,
+    token_file: Option<&Path>,
+    scene: &str,
+    bar: &indicatif::ProgressBar,
+) -> Result<verify::VerifyReport> {
+    let token = admin_client::token(token_file)?;
+    let interrupted = Arc::new(AtomicBool::new(false));
+    let flag = interrupted.clone();
+    let signals = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the Ctrl-C watcher")?;
+    std::thread::spawn(move || {
+        signals.block_on(async {
+            if tokio::signal::ctrl_c().await.is_ok() {
+                flag.store(true, Ordering::Relaxed);
+            }
+        })
+    });
+    let done = admin_client::verify(url, &token, scene, &interrupted, &|planned, checked| {
+        bar.set_length(planned);
+        bar.set_position(checked);
+    })?;
+    serde_json::from_value(done["report"].clone())
+        .context("the daemon's answer has no readable report")
+}
+
 /// `import --server`: the same import, run by a daemon on files under its import root.
-fn import_remote(url: &remote_import::AdminUrl, args: &ImportArgs) -> Result<ExitCode> {
-    let token = match &args.token_file {
-        Some(p) => std::fs::read_to_string(p)
-            .with_context(|| format!("reading the admin token from {}", p.display()))?,
-        None => std::env::var("ARBOR_ADMIN_TOKEN")
-            .context("no admin token: pass --token-file or set ARBOR_ADMIN_TOKEN")?,
-    };
+fn import_remote(url: &admin_client::AdminUrl, args: &ImportArgs) -> Result<ExitCode> {
+    let token = admin_client::token(args.token_file.as_deref())?;
     let depth = match args.depth {
         DepthChoice::Auto => serde_json::json!("auto"),
         DepthChoice::Fixed(d) => serde_json::json!(d),
@@ -641,7 +694,7 @@ fn import_remote(url: &remote_import::AdminUrl, args: &ImportArgs) -> Result<Exi
         "memory_budget_mib": args.memory_budget_mib,
         "allow_mixed_crs": args.allow_mixed_crs,
     });
-    let done = remote_import::run(url, token.trim(), &job)?;
+    let done = admin_client::import(url, &token, &job)?;
     let mut out = String::new();
     line!(
         out,

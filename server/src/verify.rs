@@ -29,6 +29,7 @@
 //! leaf's attributes equal its subtreelet root's; stored counts match the description.
 
 use std::collections::HashMap;
+use std::ops::ControlFlow;
 use std::path::Path;
 
 use arbor_proto::codec::{self, PreparedDictionaries};
@@ -45,7 +46,7 @@ pub use crate::pool::copy::REOPEN_AFTER_BYTES;
 pub const BATCH_TREELETS: usize = 1024;
 
 /// Result of a verification.
-#[derive(Debug, Default)]
+#[derive(Clone, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct VerifyReport {
     pub treelets: u64,
     pub node_records: u64,
@@ -121,6 +122,41 @@ pub fn verify_scene(scene: &StoredScene) -> Result<VerifyReport, PoolError> {
     }
     v.check_from(scene, TreeletId(0), u64::MAX)?;
     Ok(v.finish())
+}
+
+/// [`verify_scene`] on a scene of a pool that stays open (the daemon's: `POST
+/// /v1/scenes/{name}/verify`), `batch_treelets` at a time, telling `progress` before the first
+/// batch and after each. The pass stops, `Ok(None)`, as soon as `progress` answers
+/// [`ControlFlow::Break`]: that is how a running check is cancelled. The report is
+/// [`verify_scene`]'s, whatever the batch size.
+pub fn verify_scene_observed(
+    scene: &StoredScene,
+    batch_treelets: usize,
+    progress: &mut dyn FnMut(VerifyProgress) -> ControlFlow<()>,
+) -> Result<Option<VerifyReport>, PoolError> {
+    let mut v = Verifier::new(&scene.description, batch_treelets);
+    let planned = VerifyProgress::Planned {
+        treelets: u64::from(scene.description.treelet_count),
+    };
+    if progress(planned).is_break() {
+        return Ok(None);
+    }
+    if !v.r.is_ok() {
+        return Ok(Some(v.r));
+    }
+    let mut next = TreeletId(0);
+    loop {
+        let before = v.r.treelets;
+        // A budget of one byte: one batch (or more, where a batch read nothing) per call.
+        let resume = v.check_from(scene, next, 1)?;
+        if progress(VerifyProgress::Checked(v.r.treelets - before)).is_break() {
+            return Ok(None);
+        }
+        match resume {
+            Some(id) => next = id,
+            None => return Ok(Some(v.finish())),
+        }
+    }
 }
 
 /// What [`verify_pool_scene`] reports while it runs.

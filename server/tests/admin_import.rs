@@ -2,7 +2,9 @@
 //! a real port. Imports with and without the token, paths outside the import root, a bad file
 //! (clear error, pool untouched, serving goes on), a replacement while a session reads the old
 //! generation (it finishes on it; newcomers get the new one; the old trees go when it ends),
-//! removal, and the `arbor-server import --server` CLI.
+//! removal, and the `arbor-server import --server` CLI. Checks of scenes while the daemon serves
+//! (`POST /v1/scenes/{name}/verify`): a sound scene, a damaged one, an unreadable one, by the
+//! API and by `arbor-server verify --server`.
 
 mod common;
 
@@ -52,6 +54,23 @@ async fn http(addr: SocketAddr, method: &str, path: &str, token: &str, body: &st
     (status, serde_json::from_str(body).unwrap_or(Value::Null))
 }
 
+/// A `GET` of a text route, with the admin token: the whole answer, head and body.
+async fn text(addr: SocketAddr, path: &str) -> String {
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(
+        format!(
+            "GET {path} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {ADMIN}\r\n\
+             Connection: close\r\n\r\n"
+        )
+        .as_bytes(),
+    )
+    .await
+    .unwrap();
+    let mut page = String::new();
+    s.read_to_string(&mut page).await.unwrap();
+    page
+}
+
 struct Daemon {
     server: RunningServer,
     admin: SocketAddr,
@@ -61,7 +80,10 @@ struct Daemon {
 
 impl Daemon {
     async fn start(with_root: bool) -> Daemon {
-        let pool = TestPool::new();
+        Self::start_on(TestPool::new(), with_root).await
+    }
+
+    async fn start_on(pool: TestPool, with_root: bool) -> Daemon {
         let root = tempfile::tempdir().unwrap();
         let mut config: ServeConfig = pool.config();
         config.admin_token = arbor_server::service::config::AdminTokenSource::Inline(ADMIN.into());
@@ -226,15 +248,7 @@ async fn a_bad_file_fails_cleanly_and_serving_goes_on() {
     assert_eq!(d.server.pool().stored_generations(), generations);
     bunny_streams(&d).await;
     // The status page shows the import and its error.
-    let mut s = tokio::net::TcpStream::connect(d.admin).await.unwrap();
-    s.write_all(
-        format!("GET / HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {ADMIN}\r\nConnection: close\r\n\r\n")
-            .as_bytes(),
-    )
-    .await
-    .unwrap();
-    let mut page = String::new();
-    s.read_to_string(&mut page).await.unwrap();
+    let page = text(d.admin, "/").await;
     assert!(page.contains("<h2>Imports</h2>"), "{page}");
     assert!(page.contains("truncated LAS point data"), "{page}");
     d.server.shutdown().await;
@@ -376,4 +390,233 @@ async fn the_cli_drives_a_daemon_import() {
     );
     d.server.shutdown().await;
     drop(d.pool);
+}
+
+/// The bunny's pool with two more copies, damaged before the daemon opens it: `holes` lost a
+/// pack of attribute blocks (broken invariants), `garbage` has a node pack that does not decode
+/// (the pool cannot be read).
+fn damaged_pool() -> TestPool {
+    let pool = TestPool::with_copies(&["holes", "garbage"]);
+    // Opened as soon as the import's handle has let go of sled's lock.
+    fn when_unlocked<T, E>(open: impl Fn() -> Result<T, E>) -> T {
+        (0..100)
+            .find_map(|_| {
+                open()
+                    .map_err(|_| std::thread::sleep(Duration::from_millis(50)))
+                    .ok()
+            })
+            .expect("sled lock released")
+    }
+    let (holes, garbage, channel) = {
+        let p = when_unlocked(|| arbor_server::pool::Pool::open(&pool.db()));
+        let holes = p.scene("holes").unwrap();
+        let garbage = p.scene("garbage").unwrap();
+        let channel = holes.description.layout.channels()[0];
+        (holes.generation, garbage.generation, channel)
+    };
+    let db = when_unlocked(|| {
+        sled::Config::new()
+            .path(pool.db())
+            .segment_size(arbor_server::pool::POOL_SEGMENT_BYTES)
+            .open()
+    });
+    let attributes = db
+        .open_tree(format!("g{holes}:ch:{}", channel.name()))
+        .unwrap();
+    let (key, _) = attributes.first().unwrap().expect("an attribute pack");
+    attributes.remove(key).unwrap();
+    let nodes = db.open_tree(format!("g{garbage}:nodes")).unwrap();
+    let (key, _) = nodes.first().unwrap().expect("a node pack");
+    nodes.insert(key, vec![0xAB; 40]).unwrap();
+    db.flush().unwrap();
+    pool
+}
+
+/// Asks for a check of `scene` and polls it until it ends.
+async fn check(d: &Daemon, scene: &str) -> Value {
+    let (status, answer) = http(
+        d.admin,
+        "POST",
+        &format!("/v1/scenes/{scene}/verify"),
+        ADMIN,
+        "",
+    )
+    .await;
+    assert_eq!(status, 202, "{answer}");
+    let path = answer["status"].as_str().unwrap().to_owned();
+    let t0 = Instant::now();
+    loop {
+        let (status, s) = http(d.admin, "GET", &path, ADMIN, "").await;
+        assert_eq!(status, 200, "{s}");
+        if !["queued", "running"].contains(&s["phase"].as_str().unwrap()) {
+            return s;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(60), "check stuck: {s}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// The count of pool reads the serving histogram holds.
+async fn serving_reads(d: &Daemon) -> u64 {
+    let page = text(d.admin, "/metrics").await;
+    page.lines()
+        .find_map(|l| l.strip_prefix("arbor_pool_read_seconds_count "))
+        .unwrap_or_else(|| panic!("no read count in {page}"))
+        .trim()
+        .parse()
+        .unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn scenes_are_checked_while_the_daemon_serves() {
+    let d = Daemon::start_on(damaged_pool(), false).await;
+    let verify = |scene: &str| format!("/v1/scenes/{scene}/verify");
+    assert_eq!(http(d.admin, "POST", &verify("bunny"), "", "").await.0, 401);
+    for scene in ["nope", "..", "a%20b"] {
+        let (s, e) = http(d.admin, "POST", &verify(scene), ADMIN, "").await;
+        assert_eq!(s, 404, "{scene}: {e}");
+    }
+    let reads = serving_reads(&d).await;
+
+    // A sound scene: the report the stand-alone check gives, and serving goes on.
+    let sound = check(&d, "bunny").await;
+    assert_eq!(sound["phase"], "ok", "{sound}");
+    assert_eq!(
+        serving_reads(&d).await,
+        reads,
+        "the check's reads were counted as serving"
+    );
+    let stored = d.server.pool().scene("bunny").unwrap();
+    let expected = arbor_server::verify::verify_scene(&stored).unwrap();
+    assert_eq!(sound["report"], serde_json::to_value(&expected).unwrap());
+    assert_eq!(sound["generation"], stored.generation);
+    assert_eq!(sound["treelets_checked"], expected.treelets);
+    assert_eq!(
+        sound["treelets_planned"],
+        u64::from(stored.description.treelet_count)
+    );
+    bunny_streams(&d).await;
+
+    // A damaged scene: its problems, as the stand-alone check finds them.
+    let damaged = check(&d, "holes").await;
+    assert_eq!(damaged["phase"], "problems", "{damaged}");
+    let expected =
+        arbor_server::verify::verify_scene(&d.server.pool().scene("holes").unwrap()).unwrap();
+    assert!(!expected.is_ok());
+    assert_eq!(damaged["report"], serde_json::to_value(&expected).unwrap());
+
+    // An unreadable one: failed, naming the entry; the daemon serves on.
+    let unreadable = check(&d, "garbage").await;
+    assert_eq!(unreadable["phase"], "failed", "{unreadable}");
+    let e = unreadable["error"].as_str().unwrap();
+    assert!(e.contains("pool entry nodes pack"), "{e}");
+    bunny_streams(&d).await;
+
+    let (s, all) = http(d.admin, "GET", "/v1/verifications", ADMIN, "").await;
+    assert_eq!(s, 200);
+    let phases: Vec<&str> = all
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["phase"].as_str().unwrap())
+        .collect();
+    assert_eq!(phases, ["ok", "problems", "failed"]);
+    let page = text(d.admin, "/").await;
+    assert!(page.contains("<h2>Checks</h2>"), "{page}");
+    assert!(
+        page.contains("every invariant holds") && page.contains("problems</span>"),
+        "{page}"
+    );
+    // Cancelling a finished check leaves it as it ended; unknown ids are 404.
+    let id = sound["id"].as_u64().unwrap();
+    let (s, after) = http(
+        d.admin,
+        "DELETE",
+        &format!("/v1/verifications/{id}"),
+        ADMIN,
+        "",
+    )
+    .await;
+    assert_eq!((s, after["phase"].as_str()), (200, Some("ok")), "{after}");
+    for path in ["/v1/verifications/999", "/v1/verifications/x"] {
+        assert_eq!(http(d.admin, "GET", path, ADMIN, "").await.0, 404, "{path}");
+        assert_eq!(
+            http(d.admin, "DELETE", path, ADMIN, "").await.0,
+            404,
+            "{path}"
+        );
+    }
+    d.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_cli_asks_a_serving_daemon_to_check_a_scene() {
+    let d = Daemon::start_on(damaged_pool(), false).await;
+    let token_file = d.root.path().join("token");
+    std::fs::write(&token_file, ADMIN).unwrap();
+    let run = |args: Vec<String>| {
+        tokio::task::spawn_blocking(move || {
+            std::process::Command::new(env!("CARGO_BIN_EXE_arbor-server"))
+                .args(args)
+                .output()
+                .unwrap()
+        })
+    };
+    let remote = |scene: &str| {
+        vec![
+            "verify".into(),
+            "--server".into(),
+            format!("http://{}", d.admin),
+            "--token-file".into(),
+            token_file.display().to_string(),
+            "--scene".into(),
+            scene.into(),
+            "--quiet".into(),
+        ]
+    };
+    let text = |o: &std::process::Output| {
+        format!(
+            "{}{}",
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr)
+        )
+    };
+    let out = run(remote("bunny")).await.unwrap();
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out));
+    assert!(
+        text(&out).contains("ok: every invariant holds"),
+        "{}",
+        text(&out)
+    );
+    let out = run(remote("holes")).await.unwrap();
+    assert_eq!(out.status.code(), Some(2), "{}", text(&out));
+    assert!(text(&out).contains("problem: "), "{}", text(&out));
+    let out = run(remote("garbage")).await.unwrap();
+    assert_eq!(out.status.code(), Some(1), "{}", text(&out));
+    assert!(
+        text(&out).contains("failed on the server"),
+        "{}",
+        text(&out)
+    );
+    let out = run(remote("nope")).await.unwrap();
+    assert_eq!(out.status.code(), Some(1), "{}", text(&out));
+    assert!(
+        text(&out).contains("refused to check nope (404)"),
+        "{}",
+        text(&out)
+    );
+    // The stand-alone check cannot open the served pool, and says what to do instead.
+    let out = run(vec![
+        "verify".into(),
+        "--db".into(),
+        d.pool.db().display().to_string(),
+        "--scene".into(),
+        "bunny".into(),
+        "--quiet".into(),
+    ])
+    .await
+    .unwrap();
+    assert_eq!(out.status.code(), Some(1), "{}", text(&out));
+    assert!(text(&out).contains("verify --server"), "{}", text(&out));
+    d.server.shutdown().await;
 }

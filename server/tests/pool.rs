@@ -10,7 +10,9 @@ use arbor_server::pool::{Pool, PoolError, pack};
 use arbor_server::source::Source;
 use arbor_server::verify::{
     VerifyOptions, VerifyProgress, VerifyReport, verify_pool_scene, verify_scene,
+    verify_scene_observed,
 };
+use std::ops::ControlFlow;
 
 /// A real scan of `../shared/data`, read for an import (its columns in `scratch`).
 fn real_scan(relative: &str, scratch: &Path) -> Source {
@@ -242,6 +244,12 @@ fn damaged(damage: impl FnOnce(&sled::Db, u64, &arbor_proto::SceneDescription)) 
     let pool = reopen(dir.path());
     let r = verify_scene(&pool.scene("d").unwrap()).unwrap();
     assert!(!r.is_ok(), "verify missed the damage");
+    let observed = verify_scene_observed(&pool.scene("d").unwrap(), 7, &mut |_| {
+        ControlFlow::Continue(())
+    })
+    .unwrap()
+    .unwrap();
+    assert_same_report(&observed, &r);
     drop(pool);
     let stretches = verify_in_stretches(dir.path(), "d", 7);
     assert_same_report(&stretches, &r);
@@ -348,6 +356,49 @@ fn verify_in_stretches_with_the_pool_reopened_matches_one_pass() {
         r.treelets.div_ceil(5),
         "one reopening per batch (the last finds the scene's end)"
     );
+
+    // On a pool that stays open (the daemon's check), batch by batch: the same report, the
+    // progress adding up, and a stop when asked, before the first batch or after the third.
+    let scene = pool.scene("lion").unwrap();
+    let mut told = Vec::new();
+    let observed = verify_scene_observed(&scene, 5, &mut |p| {
+        told.push(p);
+        ControlFlow::Continue(())
+    })
+    .unwrap()
+    .expect("not stopped");
+    assert_same_report(&observed, &one_pass);
+    assert_eq!(
+        told[0],
+        VerifyProgress::Planned {
+            treelets: r.treelets
+        }
+    );
+    let checked: Vec<u64> = told[1..]
+        .iter()
+        .map(|p| match p {
+            VerifyProgress::Checked(n) => *n,
+            p => panic!("{p:?} after the start"),
+        })
+        .collect();
+    assert_eq!(checked.iter().sum::<u64>(), r.treelets);
+    assert!(checked.iter().all(|&n| n <= 5), "{checked:?}");
+    let stopped = verify_scene_observed(&scene, 5, &mut |_| ControlFlow::Break(())).unwrap();
+    assert!(stopped.is_none());
+    let mut batches = 0;
+    let stopped = verify_scene_observed(&scene, 5, &mut |p| {
+        if matches!(p, VerifyProgress::Checked(_)) {
+            batches += 1;
+        }
+        if batches == 3 {
+            ControlFlow::Break(())
+        } else {
+            ControlFlow::Continue(())
+        }
+    })
+    .unwrap();
+    assert!(stopped.is_none());
+    assert_eq!(batches, 3, "went on after being told to stop");
 }
 
 /// A scene removed, or replaced, between two of the verification's openings is named, not

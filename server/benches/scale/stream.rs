@@ -10,6 +10,10 @@
 //! cgroup smaller than the pool: a server serves one view and is stopped (SIGTERM), the page
 //! cache is dropped, and the first view from its successor (the same data directory, so the
 //! hot-page list the first left) is timed, in turns with the list removed before the restart.
+//!
+//! Unless `ARBOR_SCALE_CHECK=0`, then a view streamed while the same server checks the scene
+//! (`arbor-server verify --server`, the daemon's live check), between a view before and one
+//! after: the check's time, and the server's RSS before, after and at its peak.
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -28,7 +32,12 @@ const VIEWS: usize = 3;
 const BUDGET: u64 = 64 << 20;
 
 fn status_mib(field: &str) -> f64 {
-    std::fs::read_to_string("/proc/self/status")
+    process_status_mib("self", field)
+}
+
+/// A field of `/proc/{process}/status` in MiB (0 when missing).
+fn process_status_mib(process: &str, field: &str) -> f64 {
+    std::fs::read_to_string(format!("/proc/{process}/status"))
         .ok()
         .and_then(|s| {
             s.lines()
@@ -124,6 +133,9 @@ struct Server {
     throttled: Option<std::path::PathBuf>,
     url: ServerUrl,
     fingerprint: String,
+    /// Its admin API (`http://127.0.0.1:PORT`, loopback) and the file holding its token.
+    admin: String,
+    admin_token_file: String,
     /// Kept open: a server (before stop 49) whose stdout closed before its last serving line
     /// stopped serving.
     _stdout: std::io::Lines<BufReader<std::process::ChildStdout>>,
@@ -178,10 +190,17 @@ impl Server {
             sh
         };
         let spawned = std::time::Instant::now();
-        cmd.args(["serve", "--listen", "127.0.0.1:0", "--admin", "off", "--db"])
-            .arg(pool)
-            .arg("--data-dir")
-            .arg(state);
+        cmd.args([
+            "serve",
+            "--listen",
+            "127.0.0.1:0",
+            "--admin",
+            "127.0.0.1:0",
+            "--db",
+        ])
+        .arg(pool)
+        .arg("--data-dir")
+        .arg(state);
         if let Some(config) = config {
             let file = state.join("serve.toml");
             std::fs::write(&file, format!("default_access = \"public\"\n{config}\n")).unwrap();
@@ -203,9 +222,9 @@ impl Server {
             .spawn()
             .expect("starting arbor-server serve");
         let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
-        let (mut addr, mut fingerprint) = (None, None);
+        let (mut addr, mut fingerprint, mut admin, mut admin_token_file) = (None, None, None, None);
         let mut serving_after = Duration::ZERO;
-        while addr.is_none() || fingerprint.is_none() {
+        while addr.is_none() || fingerprint.is_none() || admin_token_file.is_none() {
             let line = lines.next().expect("serve output").unwrap();
             if let Some(a) = line.strip_prefix("quic ") {
                 addr = Some(a.parse::<std::net::SocketAddr>().unwrap());
@@ -213,6 +232,12 @@ impl Server {
             }
             if let Some(f) = line.strip_prefix("fingerprint ") {
                 fingerprint = Some(f.to_owned());
+            }
+            if let Some(a) = line.strip_prefix("admin ") {
+                admin = Some(format!("http://{a}"));
+            }
+            if let Some(f) = line.strip_prefix("admin-token-file ") {
+                admin_token_file = Some(f.to_owned());
             }
         }
         let addr = addr.unwrap();
@@ -226,6 +251,8 @@ impl Server {
                 scene: scene.to_owned(),
             },
             fingerprint: fingerprint.unwrap(),
+            admin: admin.expect("the server printed its admin address"),
+            admin_token_file: admin_token_file.unwrap(),
             _stdout: lines,
             _state: None,
             confined: confined.map(Path::to_owned),
@@ -352,6 +379,9 @@ pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
             stream_view(&server, what, &runtime);
         }
     }
+    if std::env::var("ARBOR_SCALE_CHECK").as_deref() != Ok("0") {
+        check_while_streaming(server_bin, pool, scene, &runtime);
+    }
     let rounds = std::env::var("ARBOR_SCALE_RESTART").ok().map_or(0, |v| {
         v.parse::<u32>()
             .expect("ARBOR_SCALE_RESTART is a number of rounds")
@@ -364,6 +394,75 @@ pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
         status_mib("VmHWM:"),
         rss_before,
         BUDGET as f64 / f64::from(1 << 20)
+    );
+}
+
+/// A view before, during and after the server's live check of the scene
+/// (`arbor-server verify --server`, run as its operator would), from one server: the check's
+/// time and the server's memory around it.
+fn check_while_streaming(
+    server_bin: &str,
+    pool: &Path,
+    scene: &str,
+    runtime: &tokio::runtime::Runtime,
+) {
+    let server = Server::start(server_bin, pool, scene, None);
+    let pid = server.child.id().to_string();
+    println!(" a live check of {scene} (verify --server) on a fresh server with visible cuts on:");
+    stream_view(&server, "first view", runtime);
+    let before = stream_view(&server, "before the check", runtime);
+    let rss_before = process_status_mib(&pid, "VmRSS:");
+    let started = std::time::Instant::now();
+    let check = Command::new(server_bin)
+        .args([
+            "verify",
+            "--quiet",
+            "--server",
+            &server.admin,
+            "--token-file",
+        ])
+        .arg(&server.admin_token_file)
+        .args(["--scene", scene])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("starting arbor-server verify --server");
+    // Let the check get going, then stream views while it runs (at least one).
+    std::thread::sleep(Duration::from_millis(500));
+    let mut check = check;
+    let mut during = Vec::new();
+    loop {
+        during.extend(stream_view(&server, "during the check", runtime));
+        if check.try_wait().expect("the check's status").is_some() {
+            break;
+        }
+    }
+    let out = check.wait_with_output().expect("waiting for the check");
+    let check_s = started.elapsed().as_secs_f64();
+    assert!(
+        out.status.success(),
+        "the live check failed: {}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    println!(
+        "  the check: {check_s:.1} s, {}; server RSS {rss_before:.0} MiB before, {:.0} MiB after, peak {:.0} MiB",
+        String::from_utf8_lossy(&out.stdout)
+            .trim()
+            .replace('\n', "; "),
+        process_status_mib(&pid, "VmRSS:"),
+        process_status_mib(&pid, "VmHWM:")
+    );
+    let after = stream_view(&server, "after the check", runtime);
+    during.sort_by(f64::total_cmp);
+    let seconds =
+        |t: Option<f64>| t.map_or_else(|| "NOT converged".into(), |t| format!("{t:.2} s"));
+    println!(
+        "  views converged in {} before the check, {} after; while it ran: median {} of {} views (the check's threads count in the server CPU above)",
+        seconds(before),
+        seconds(after),
+        seconds(during.get(during.len() / 2).copied()),
+        during.len()
     );
 }
 

@@ -4,12 +4,11 @@
 
 use axum::extract::rejection::{JsonRejection, PathRejection};
 use axum::extract::{Json, Path, State};
-use axum::http::{StatusCode, header};
+use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 
-use super::{ApiError, Shared};
+use super::{ApiError, Shared, accepted, scene_name};
 use crate::live_import::{ImportRequest, LiveImportError, LiveImports};
-use crate::pool::PoolError;
 
 impl From<LiveImportError> for ApiError {
     fn from(e: LiveImportError) -> Self {
@@ -44,13 +43,7 @@ pub(super) async fn submit(
     let id = tokio::task::spawn_blocking(move || imports.submit(request))
         .await
         .map_err(|e| ApiError::internal(format!("import submit task: {e}")))??;
-    let location = format!("/v1/imports/{id}");
-    Ok((
-        StatusCode::ACCEPTED,
-        [(header::LOCATION, location.clone())],
-        Json(serde_json::json!({ "id": id, "status": location })),
-    )
-        .into_response())
+    Ok(accepted(id, format!("/v1/imports/{id}")))
 }
 
 /// `GET /v1/imports`: every kept import.
@@ -78,10 +71,7 @@ pub(super) async fn remove(
     State(app): State<Shared>,
     name: Result<Path<String>, PathRejection>,
 ) -> Result<Response, ApiError> {
-    let Path(name) = name.map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, e.body_text()))?;
-    if arbor_proto::scene::validate_scene_name(&name).is_err() {
-        return Err(PoolError::NoSuchScene(name).into());
-    }
+    let name = scene_name(name)?;
     let imports = manager(&app)?.clone();
     let removed = name.clone();
     tokio::task::spawn_blocking(move || imports.remove_scene(&removed))

@@ -17,6 +17,10 @@
 //! | `DELETE /v1/scenes/{name}` | token | removes a scene; its sessions finish on it            |
 //! | `GET /v1/imports`       | token  | JSON array of imports (queued, running, last finished)   |
 //! | `GET /v1/imports/{id}`  | token  | one import: phase, done/total, error or figures          |
+//! | `POST /v1/scenes/{name}/verify` | token | checks the scene while serving: `202` + check id |
+//! | `GET /v1/verifications` | token  | JSON array of checks (queued, running, last finished)    |
+//! | `GET /v1/verifications/{id}` | token | one check: phase, treelets checked, error or report |
+//! | `DELETE /v1/verifications/{id}` | token | cancels a check (after the batch in hand)        |
 //! | `GET /`                 | token  | HTML status page; without credentials, `303` to `/login` |
 //! | `GET /login`            | none   | HTML form asking for the token                           |
 //! | `POST /login`           | none   | form field `token`: sets the `arbor_admin` cookie, `303` |
@@ -33,12 +37,19 @@
 //! "treelet_bytes", "iso", "format", "memory_budget_mib", "allow_mixed_crs"}`; `403` when imports
 //! are disabled or a path leaves the import root (`..`, symlinks), `400` for a missing file or a
 //! bad parameter, `409` for a taken name. Parse errors come later, in the import's status.
+//!
+//! Scene checks (`verifications.rs`, [`crate::live_verify`]): `POST /v1/scenes/{name}/verify`
+//! checks the generation published now with `arbor-server verify`'s invariants, `404` for an
+//! unknown scene; asking again while that generation's check is queued or running answers the
+//! same id. A check's `phase` is `queued`, `running`, `ok`, `problems` (the `report` lists them),
+//! `failed` (the pool could not be read: `error`) or `cancelled`.
 
 mod auth;
 pub mod https;
 mod imports;
 mod metrics;
 mod page;
+mod verifications;
 mod views;
 
 use std::fmt;
@@ -132,6 +143,12 @@ pub fn router_with_imports(ctx: AdminContext, imports: Option<LiveImports>) -> R
         .route("/v1/scenes/{name}", get(scene).delete(imports::remove))
         .route("/v1/imports", get(imports::list))
         .route("/v1/imports/{id}", get(imports::status))
+        .route("/v1/scenes/{name}/verify", post(verifications::submit))
+        .route("/v1/verifications", get(verifications::list))
+        .route(
+            "/v1/verifications/{id}",
+            get(verifications::status).delete(verifications::cancel),
+        )
         .route("/v1/sessions", get(sessions))
         .route("/v1/paths", get(paths).delete(forget_paths))
         .route("/v1/server", get(server))
@@ -182,6 +199,26 @@ impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         json_error(self.status, &self.message)
     }
+}
+
+/// A scene name from the route's path; a name no scene can have is `404`, like an unknown one.
+fn scene_name(name: Result<Path<String>, PathRejection>) -> Result<String, ApiError> {
+    let Path(name) = name.map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, e.body_text()))?;
+    if arbor_proto::scene::validate_scene_name(&name).is_err() {
+        return Err(PoolError::NoSuchScene(name).into());
+    }
+    Ok(name)
+}
+
+/// `202 Accepted` for background work: `Location` and `{"id", "status"}` name where its status
+/// is read.
+fn accepted(id: u64, location: String) -> Response {
+    (
+        StatusCode::ACCEPTED,
+        [(header::LOCATION, location.clone())],
+        axum::Json(serde_json::json!({ "id": id, "status": location })),
+    )
+        .into_response()
 }
 
 fn json_error(status: StatusCode, message: &str) -> Response {
@@ -404,7 +441,12 @@ async fn index(State(app): State<Shared>) -> Result<Response, ApiError> {
         .as_ref()
         .map(LiveImports::list)
         .unwrap_or_default();
-    let body = page::status_page(&app.state, app.started.elapsed(), &pool, &imports);
+    let checks = app
+        .imports
+        .as_ref()
+        .map(|i| i.verifications().list())
+        .unwrap_or_default();
+    let body = page::status_page(&app.state, app.started.elapsed(), &pool, &imports, &checks);
     Ok(html(&app, StatusCode::OK, body))
 }
 

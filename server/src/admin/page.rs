@@ -14,6 +14,7 @@ use ring::digest;
 use super::metrics::{PoolFigures, stream_bytes};
 use super::views::kind_name;
 use crate::live_import::ImportStatus;
+use crate::live_verify::{VerifyPhase, VerifyStatus};
 use crate::service::state::{ServiceState, SessionInfo};
 
 const STYLE: &str = r#"
@@ -174,6 +175,7 @@ pub(super) fn status_page(
     uptime: Duration,
     pool: &PoolFigures,
     imports: &[ImportStatus],
+    checks: &[VerifyStatus],
 ) -> String {
     let sessions = state.sessions();
     let mut out = head("Arbor server");
@@ -189,6 +191,7 @@ pub(super) fn status_page(
     traffic_section(&mut out, state, &sessions);
     scenes_section(&mut out, pool);
     imports_section(&mut out, imports);
+    checks_section(&mut out, checks);
     sessions_section(&mut out, &sessions);
     out.push_str("</main>\n");
     let _ = write!(
@@ -237,6 +240,51 @@ fn imports_section(out: &mut String, imports: &[ImportStatus]) {
             escape(&phase),
             progress,
             i.seconds,
+            result
+        );
+    }
+    out.push_str("</table>\n");
+}
+
+/// Scene checks running, queued and finished (nothing when there were none).
+fn checks_section(out: &mut String, checks: &[VerifyStatus]) {
+    if checks.is_empty() {
+        return;
+    }
+    out.push_str(
+        "<h2>Checks</h2>\n<table><tr><th class=\"n\">id</th><th>scene</th><th>phase</th>\
+         <th class=\"n\">treelets</th><th class=\"n\">time</th><th>result</th></tr>\n",
+    );
+    for c in checks.iter().rev() {
+        let result = match (c.phase, &c.report, &c.error) {
+            (VerifyPhase::Ok, _, _) => {
+                "<span class=\"badge ok\">every invariant holds</span>".into()
+            }
+            (VerifyPhase::Problems, Some(r), _) => format!(
+                "<span class=\"badge bad\">{} problems</span> {}",
+                r.problem_count,
+                escape(r.problems.first().map_or("", String::as_str))
+            ),
+            (VerifyPhase::Failed, _, Some(e)) => {
+                format!("<span class=\"badge bad\">failed</span> {}", escape(e))
+            }
+            _ => String::new(),
+        };
+        let phase = serde_json::to_value(c.phase)
+            .ok()
+            .and_then(|v| v.as_str().map(str::to_owned))
+            .unwrap_or_default();
+        let _ = writeln!(
+            out,
+            "<tr><td class=\"n\">{}</td><td>{} <small>g{}</small></td><td>{}</td>\
+             <td class=\"n\">{} / {}</td><td class=\"n\">{:.1} s</td><td>{}</td></tr>",
+            c.id,
+            escape(&c.scene),
+            c.generation,
+            escape(&phase),
+            c.treelets_checked,
+            c.treelets_planned,
+            c.seconds,
             result
         );
     }

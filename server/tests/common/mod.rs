@@ -33,11 +33,20 @@ pub fn bunny_path() -> PathBuf {
     p
 }
 
-/// Imports the bunny (depth 6, 1 KiB treelets) as scene [`SCENE`] into a new pool in `dir`.
-pub fn build_pool(dir: &Path) {
+/// Imports the bunny (depth 6, 1 KiB treelets) as scene [`SCENE`], and as each of `copies`,
+/// into a new pool in `dir`.
+pub fn build_pool(dir: &Path, copies: &[&str]) {
     let pool = Pool::open(dir).unwrap();
+    for name in std::iter::once(&SCENE).chain(copies) {
+        import_bunny(&pool, name);
+    }
+    pool.flush().unwrap();
+}
+
+/// Imports the bunny (depth 6, 1 KiB treelets) as scene `name`.
+pub fn import_bunny(pool: &Pool, name: &str) {
     let request = SceneImport {
-        name: SCENE.into(),
+        name: name.into(),
         input: bunny_path(),
         build: BuildOptions {
             depth: DepthChoice::Fixed(6),
@@ -47,8 +56,7 @@ pub fn build_pool(dir: &Path) {
         },
         ..SceneImport::default()
     };
-    import_scene(&pool, &request).unwrap();
-    pool.flush().unwrap();
+    import_scene(pool, &request).unwrap();
 }
 
 /// A pool with the bunny and a data dir, both removed on drop.
@@ -58,8 +66,13 @@ pub struct TestPool {
 
 impl TestPool {
     pub fn new() -> TestPool {
+        Self::with_copies(&[])
+    }
+
+    /// A pool with the bunny as [`SCENE`] and as each of `copies`.
+    pub fn with_copies(copies: &[&str]) -> TestPool {
         let dir = tempfile::tempdir().unwrap();
-        build_pool(&dir.path().join("pool"));
+        build_pool(&dir.path().join("pool"), copies);
         TestPool { dir }
     }
 

@@ -1,0 +1,416 @@
+//! Checks of published scenes in a running daemon (`POST /v1/scenes/{name}/verify`): the
+//! invariants `arbor-server verify` checks, without stopping the server (sled locks the pool
+//! per process, so the stand-alone command needs the daemon stopped).
+//!
+//! * **What is checked**: the generation published when the check was asked for, whatever
+//!   replaces it meanwhile. The scene's trees are opened at submission; a generation retired
+//!   while a check holds it is kept until the check ends ([`Verifications::holds`], asked by the
+//!   scene manager's reaper).
+//! * **Memory**: the pass reads through the daemon's open pool by `get`, a batch of
+//!   [`BATCH_TREELETS`] at a time, and holds nothing that grows with the scene
+//!   ([`crate::verify`]); sled's page cache is the daemon's own, so a check pushes serving pages
+//!   out of it while it runs. Its reads are counted apart from the serving read histogram.
+//! * **CPU**: one check at a time, queued, on a worker thread whose rayon pool runs at the
+//!   import priority ([`ImportPriority`]: `SCHED_IDLE` by default), so streaming keeps its rate.
+//! * **Cancellation**: `DELETE /v1/verifications/{id}` ([`Verifications::cancel`]), and every
+//!   check queued or running when the daemon's scene manager is dropped, stops after the batch
+//!   in hand.
+//! * Asking again for a scene whose same generation is queued or running answers that check.
+
+use std::collections::BTreeMap;
+use std::ops::ControlFlow;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, mpsc};
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
+
+use serde::Serialize;
+
+use crate::live_import::{ImportPriority, background_threads};
+use crate::pool::{Pool, PoolError, StoredScene};
+use crate::verify::{BATCH_TREELETS, VerifyProgress, VerifyReport, verify_scene_observed};
+
+/// Finished checks kept for `GET /v1/verifications`.
+const KEEP_FINISHED: usize = 64;
+
+/// Where a check stands.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VerifyPhase {
+    /// Waiting for the check before it.
+    Queued,
+    Running,
+    /// Done: every invariant holds.
+    Ok,
+    /// Done: some invariant is broken (the report lists them).
+    Problems,
+    /// The pool could not be read (the error says why).
+    Failed,
+    /// Cancelled before it ended.
+    Cancelled,
+}
+
+/// What `GET /v1/verifications/{id}` answers.
+#[derive(Clone, Debug, Serialize)]
+pub struct VerifyStatus {
+    pub id: u64,
+    pub scene: String,
+    /// The generation checked: the one published at submission.
+    pub generation: u64,
+    pub phase: VerifyPhase,
+    /// Treelets the scene's description counts.
+    pub treelets_planned: u64,
+    /// Treelets checked so far.
+    pub treelets_checked: u64,
+    /// Seconds since submission (until it ended, when it did).
+    pub seconds: f64,
+    /// Submission time, seconds since the Unix epoch.
+    pub submitted_unix: f64,
+    /// Why it failed.
+    pub error: Option<String>,
+    /// The report, when done.
+    pub report: Option<VerifyReport>,
+}
+
+#[derive(Debug)]
+struct Job {
+    id: u64,
+    scene: String,
+    generation: u64,
+    /// The scene's trees, until the worker takes them.
+    stored: Mutex<Option<StoredScene>>,
+    started: AtomicBool,
+    cancelled: AtomicBool,
+    planned: AtomicU64,
+    checked: AtomicU64,
+    submitted: SystemTime,
+    clock: Instant,
+    outcome: Mutex<Option<Outcome>>,
+}
+
+#[derive(Clone, Debug)]
+struct Outcome {
+    seconds: f64,
+    /// `Ok(None)`: cancelled.
+    result: Result<Option<VerifyReport>, String>,
+}
+
+impl Job {
+    fn finished(&self) -> bool {
+        lock(&self.outcome).is_some()
+    }
+
+    fn status(&self) -> VerifyStatus {
+        let outcome = lock(&self.outcome).clone();
+        let phase = match &outcome {
+            None if self.started.load(Ordering::Acquire) => VerifyPhase::Running,
+            None => VerifyPhase::Queued,
+            Some(o) => match &o.result {
+                Ok(Some(r)) if r.is_ok() => VerifyPhase::Ok,
+                Ok(Some(_)) => VerifyPhase::Problems,
+                Ok(None) => VerifyPhase::Cancelled,
+                Err(_) => VerifyPhase::Failed,
+            },
+        };
+        let seconds = outcome
+            .as_ref()
+            .map_or_else(|| self.clock.elapsed().as_secs_f64(), |o| o.seconds);
+        let (error, report) = match outcome.map(|o| o.result) {
+            Some(Err(e)) => (Some(e), None),
+            Some(Ok(report)) => (None, report),
+            None => (None, None),
+        };
+        VerifyStatus {
+            id: self.id,
+            scene: self.scene.clone(),
+            generation: self.generation,
+            phase,
+            treelets_planned: self.planned.load(Ordering::Relaxed),
+            treelets_checked: self.checked.load(Ordering::Relaxed),
+            seconds,
+            submitted_unix: self
+                .submitted
+                .duration_since(UNIX_EPOCH)
+                .map_or(0.0, |d| d.as_secs_f64()),
+            error,
+            report,
+        }
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// The daemon's scene checks: a queue, its worker, and the checks kept for status. Held by the
+/// scene manager ([`crate::live_import::LiveImports`]), whose routes reach it.
+#[derive(Debug)]
+pub struct Verifications {
+    pool: Pool,
+    jobs: Mutex<BTreeMap<u64, Arc<Job>>>,
+    next: AtomicU64,
+    queue: Mutex<mpsc::Sender<Arc<Job>>>,
+}
+
+impl Verifications {
+    /// Checks of `pool`'s scenes, run one at a time on a worker thread at `priority`.
+    pub fn new(pool: Pool, priority: ImportPriority) -> std::io::Result<Verifications> {
+        let (tx, rx) = mpsc::channel::<Arc<Job>>();
+        std::thread::Builder::new()
+            .name("arbor-verify".into())
+            .spawn(move || run_worker(rx, priority))?;
+        Ok(Verifications {
+            pool,
+            jobs: Mutex::new(BTreeMap::new()),
+            next: AtomicU64::new(1),
+            queue: Mutex::new(tx),
+        })
+    }
+
+    /// Queues a check of the generation of `scene` published now; returns its id (the id of
+    /// the check of that generation already queued or running, if there is one).
+    pub fn submit(&self, scene: &str) -> Result<u64, PoolError> {
+        // The scene is opened under the jobs' lock: the reaper asks `holds` under it too, so a
+        // generation it finds unheld cannot be opened here afterwards (it was unpublished before
+        // it was retired).
+        let mut jobs = lock(&self.jobs);
+        let stored = self.pool.scene(scene)?.with_reads_apart();
+        if let Some(j) = jobs
+            .values()
+            .find(|j| j.scene == scene && j.generation == stored.generation && !j.finished())
+        {
+            return Ok(j.id);
+        }
+        let id = self.next.fetch_add(1, Ordering::Relaxed);
+        let job = Arc::new(Job {
+            id,
+            scene: scene.to_owned(),
+            generation: stored.generation,
+            planned: AtomicU64::new(u64::from(stored.description.treelet_count)),
+            stored: Mutex::new(Some(stored)),
+            started: AtomicBool::new(false),
+            cancelled: AtomicBool::new(false),
+            checked: AtomicU64::new(0),
+            submitted: SystemTime::now(),
+            clock: Instant::now(),
+            outcome: Mutex::new(None),
+        });
+        jobs.insert(id, job.clone());
+        let finished: Vec<u64> = jobs
+            .values()
+            .filter(|j| j.finished())
+            .map(|j| j.id)
+            .collect();
+        for old in finished
+            .iter()
+            .take(finished.len().saturating_sub(KEEP_FINISHED))
+        {
+            jobs.remove(old);
+        }
+        drop(jobs);
+        tracing::info!(
+            id,
+            scene,
+            generation = job.generation,
+            "verification queued"
+        );
+        if lock(&self.queue).send(job.clone()).is_err() {
+            *lock(&job.outcome) = Some(Outcome {
+                seconds: 0.0,
+                result: Err("the verification worker has stopped".into()),
+            });
+        }
+        Ok(id)
+    }
+
+    /// One check's status.
+    pub fn status(&self, id: u64) -> Option<VerifyStatus> {
+        lock(&self.jobs).get(&id).map(|j| j.status())
+    }
+
+    /// Every check kept (queued, running, and the last finished ones), by id.
+    pub fn list(&self) -> Vec<VerifyStatus> {
+        lock(&self.jobs).values().map(|j| j.status()).collect()
+    }
+
+    /// Asks a queued or running check to stop (after the batch in hand); its status then says
+    /// `cancelled`. `None`: no such check. A finished check is left as it is.
+    pub fn cancel(&self, id: u64) -> Option<VerifyStatus> {
+        let jobs = lock(&self.jobs);
+        let job = jobs.get(&id)?;
+        if !job.finished() {
+            job.cancelled.store(true, Ordering::Release);
+            tracing::info!(id, scene = %job.scene, "verification cancelled");
+        }
+        Some(job.status())
+    }
+
+    /// Whether a check that has not ended reads `generation` (the reaper keeps it meanwhile).
+    pub fn holds(&self, generation: u64) -> bool {
+        lock(&self.jobs)
+            .values()
+            .any(|j| j.generation == generation && !j.finished())
+    }
+}
+
+impl Drop for Verifications {
+    fn drop(&mut self) {
+        for job in lock(&self.jobs).values() {
+            job.cancelled.store(true, Ordering::Release);
+        }
+    }
+}
+
+fn run_worker(rx: mpsc::Receiver<Arc<Job>>, priority: ImportPriority) {
+    let Some(pool) = background_threads("arbor-verify", priority) else {
+        return;
+    };
+    while let Ok(job) = rx.recv() {
+        run_job(&pool, &job);
+    }
+}
+
+/// Runs one check on `threads` (or records it cancelled, if it was before it started).
+fn run_job(threads: &rayon::ThreadPool, job: &Job) {
+    let stored = lock(&job.stored).take();
+    let result = match stored {
+        Some(_) if job.cancelled.load(Ordering::Acquire) => Ok(None),
+        None => Err("the scene's trees were already taken".to_owned()),
+        Some(scene) => {
+            job.started.store(true, Ordering::Release);
+            tracing::info!(id = job.id, scene = %job.scene, "verification started");
+            let mut progress = |p: VerifyProgress| {
+                if let VerifyProgress::Checked(n) = p {
+                    job.checked.fetch_add(n, Ordering::Relaxed);
+                }
+                if job.cancelled.load(Ordering::Acquire) {
+                    ControlFlow::Break(())
+                } else {
+                    ControlFlow::Continue(())
+                }
+            };
+            let result =
+                threads.install(|| verify_scene_observed(&scene, BATCH_TREELETS, &mut progress));
+            result.map_err(|e| e.to_string())
+        }
+    };
+    let seconds = job.clock.elapsed().as_secs_f64();
+    match &result {
+        Ok(Some(r)) => tracing::info!(
+            id = job.id,
+            scene = %job.scene,
+            treelets = r.treelets,
+            problems = r.problem_count,
+            seconds,
+            "verification done"
+        ),
+        Ok(None) => tracing::info!(id = job.id, scene = %job.scene, "verification stopped"),
+        Err(e) => tracing::warn!(id = job.id, scene = %job.scene, "verification failed: {e}"),
+    }
+    *lock(&job.outcome) = Some(Outcome { seconds, result });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::octree::{BuildOptions, DepthChoice};
+    use crate::pipeline::{SceneImport, import_scene};
+    use crate::verify::verify_scene;
+
+    /// A pool holding the bunny as `bunny`, and checks of it whose queue this test drains
+    /// itself (no worker: every step is the test's).
+    fn unstarted() -> (
+        tempfile::TempDir,
+        Verifications,
+        mpsc::Receiver<Arc<Job>>,
+        rayon::ThreadPool,
+    ) {
+        let dir = tempfile::tempdir().unwrap();
+        let pool = Pool::open(dir.path()).unwrap();
+        let request = SceneImport {
+            name: "bunny".into(),
+            input: std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../../shared/data/meshes/stanford-bunny.obj"),
+            build: BuildOptions {
+                depth: DepthChoice::Fixed(6),
+                treelet_bytes: 1024,
+                progress: false,
+                ..BuildOptions::default()
+            },
+            ..SceneImport::default()
+        };
+        assert!(
+            request.input.exists(),
+            "the real scans in ../shared/data are required"
+        );
+        import_scene(&pool, &request).unwrap();
+        let (tx, rx) = mpsc::channel();
+        let checks = Verifications {
+            pool,
+            jobs: Mutex::new(BTreeMap::new()),
+            next: AtomicU64::new(1),
+            queue: Mutex::new(tx),
+        };
+        let threads = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .unwrap();
+        (dir, checks, rx, threads)
+    }
+
+    #[test]
+    fn checks_are_queued_once_cancelled_and_hold_their_generation() {
+        let (_dir, checks, rx, threads) = unstarted();
+        let generation = checks.pool.scene("bunny").unwrap().generation;
+        assert!(matches!(
+            checks.submit("nope"),
+            Err(PoolError::NoSuchScene(_))
+        ));
+        let first = checks.submit("bunny").unwrap();
+        assert_eq!(
+            checks.submit("bunny").unwrap(),
+            first,
+            "a second check queued"
+        );
+        assert_eq!(checks.status(first).unwrap().phase, VerifyPhase::Queued);
+        assert!(checks.holds(generation));
+        assert!(!checks.holds(generation + 1));
+
+        // Cancelled while queued: it never reads.
+        assert_eq!(checks.cancel(first).unwrap().phase, VerifyPhase::Queued);
+        let job = rx.try_recv().unwrap();
+        assert!(rx.try_recv().is_err(), "queued twice");
+        run_job(&threads, &job);
+        let s = checks.status(first).unwrap();
+        assert_eq!(
+            (s.phase, s.treelets_checked, s.report),
+            (VerifyPhase::Cancelled, 0, None)
+        );
+        assert!(!checks.holds(generation));
+
+        // Asked again: a new check, which runs to the report `verify_scene` gives.
+        let second = checks.submit("bunny").unwrap();
+        assert_ne!(second, first);
+        run_job(&threads, &rx.try_recv().unwrap());
+        let s = checks.status(second).unwrap();
+        assert_eq!(s.phase, VerifyPhase::Ok, "{s:?}");
+        let expected = verify_scene(&checks.pool.scene("bunny").unwrap()).unwrap();
+        assert_eq!(s.report.as_ref(), Some(&expected));
+        assert_eq!(s.treelets_planned, expected.treelets);
+        assert_eq!(s.treelets_checked, expected.treelets);
+        // Cancelling a finished check changes nothing; an unknown id is `None`.
+        assert_eq!(checks.cancel(second).unwrap().phase, VerifyPhase::Ok);
+        assert!(checks.cancel(99).is_none());
+        assert_eq!(
+            checks.list().iter().map(|s| s.id).collect::<Vec<_>>(),
+            [first, second]
+        );
+
+        // Dropping the manager (the daemon stopping) cancels what is queued.
+        let third = checks.submit("bunny").unwrap();
+        assert_ne!(third, second);
+        let job = rx.try_recv().unwrap();
+        drop(checks);
+        run_job(&threads, &job);
+        assert_eq!(job.status().phase, VerifyPhase::Cancelled);
+    }
+}
