@@ -105,6 +105,9 @@ pub struct DaemonOptions {
     pub import_scratch: Option<PathBuf>,
     /// How imports share the CPU with the service.
     pub import_priority: ImportPriority,
+    /// Check every published scene this often (`None`: only the checks asked for through the
+    /// admin API).
+    pub check_every: Option<std::time::Duration>,
 }
 
 /// Starts the daemon: the admin token, the treelet service, and (unless off) the admin listener
@@ -146,6 +149,7 @@ pub async fn start_with(
         options.import_root.as_deref(),
         options.import_scratch.clone(),
         options.import_priority,
+        options.check_every,
     ) {
         Ok(i) => i,
         Err(source) => {

@@ -180,13 +180,16 @@ pub struct LiveImports {
 
 impl LiveImports {
     /// A manager for `pool`. `root`: the import root (`None`: imports disabled, removal still
-    /// works); `scratch`: where import scratch directories go (default: the system's).
+    /// works); `scratch`: where import scratch directories go (default: the system's);
+    /// `check_every`: the period of checks of every published scene (`None`: only checks asked
+    /// for).
     pub fn new(
         pool: Pool,
         state: Arc<ServiceState>,
         root: Option<&Path>,
         scratch: Option<PathBuf>,
         priority: ImportPriority,
+        check_every: Option<Duration>,
     ) -> std::io::Result<LiveImports> {
         let root = match root {
             Some(r) => Some(std::fs::canonicalize(r)?),
@@ -213,6 +216,12 @@ impl LiveImports {
         std::thread::Builder::new()
             .name("arbor-reaper".into())
             .spawn(move || run_reaper(weak))?;
+        if let Some(period) = check_every {
+            let weak = Arc::downgrade(&inner);
+            std::thread::Builder::new()
+                .name("arbor-scrub".into())
+                .spawn(move || run_scrub(weak, period))?;
+        }
         Ok(LiveImports { inner })
     }
 
@@ -466,6 +475,24 @@ fn run_worker(rx: mpsc::Receiver<Arc<Job>>, inner: Weak<Inner>, priority: Import
         *lock(&job.outcome) = Some(Outcome { seconds, result });
         // Last: a watcher that sees the final phase also sees the outcome and the retirement.
         job.progress.enter(phase, 0);
+    }
+}
+
+/// Queues a check of every published scene each `period` (the first one period after the
+/// start), until the scene manager is dropped.
+fn run_scrub(inner: Weak<Inner>, period: Duration) {
+    let mut next = Instant::now() + period;
+    loop {
+        std::thread::sleep(REAP_EVERY.min(next.saturating_duration_since(Instant::now())));
+        let Some(inner) = inner.upgrade() else { return };
+        if Instant::now() < next {
+            continue;
+        }
+        next += period;
+        match inner.verifications.check_all() {
+            Ok(n) => tracing::info!(scenes = n, "periodic check of every scene queued"),
+            Err(e) => tracing::warn!("periodic check: reading the catalogue: {e}"),
+        }
     }
 }
 

@@ -16,6 +16,12 @@
 //!   check queued or running when the daemon's scene manager is dropped, stops after the batch
 //!   in hand.
 //! * Asking again for a scene whose same generation is queued or running answers that check.
+//! * **Scrubbing**: with `serve --check-every`, every published scene is checked again each
+//!   period ([`Verifications::check_all`], from the scene manager's timer), so damage that
+//!   appears on disk is found without anyone asking.
+//! * **Metrics**: checks ended, by outcome, and each published scene's last check
+//!   ([`Verifications::figures`], written to `/metrics`): what an alert on a damaged or
+//!   unchecked scene reads.
 
 use std::collections::BTreeMap;
 use std::ops::ControlFlow;
@@ -47,6 +53,20 @@ pub enum VerifyPhase {
     Failed,
     /// Cancelled before it ended.
     Cancelled,
+}
+
+impl VerifyPhase {
+    /// The phase as the API and `/metrics` name it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            VerifyPhase::Queued => "queued",
+            VerifyPhase::Running => "running",
+            VerifyPhase::Ok => "ok",
+            VerifyPhase::Problems => "problems",
+            VerifyPhase::Failed => "failed",
+            VerifyPhase::Cancelled => "cancelled",
+        }
+    }
 }
 
 /// What `GET /v1/verifications/{id}` answers.
@@ -149,21 +169,114 @@ pub struct Verifications {
     jobs: Mutex<BTreeMap<u64, Arc<Job>>>,
     next: AtomicU64,
     queue: Mutex<mpsc::Sender<Arc<Job>>>,
+    tally: Arc<Tally>,
+}
+
+/// The outcomes a check can end with, as `/metrics` labels them.
+pub const OUTCOMES: [VerifyPhase; 4] = [
+    VerifyPhase::Ok,
+    VerifyPhase::Problems,
+    VerifyPhase::Failed,
+    VerifyPhase::Cancelled,
+];
+
+/// The last check of a scene that ran to its end (or failed reading).
+#[derive(Clone, Debug, PartialEq)]
+pub struct LastCheck {
+    pub generation: u64,
+    /// [`VerifyPhase::Ok`], [`VerifyPhase::Problems`] or [`VerifyPhase::Failed`].
+    pub outcome: VerifyPhase,
+    pub problems: u64,
+    /// When it ended, seconds since the Unix epoch.
+    pub ended_unix: f64,
+}
+
+/// What `/metrics` reports of the checks.
+#[derive(Clone, Debug, Default)]
+pub struct CheckFigures {
+    /// Checks ended since the daemon started, in [`OUTCOMES`] order.
+    pub ended: [u64; 4],
+    /// Each scene's last check, while the generation it checked is published.
+    pub last: BTreeMap<String, LastCheck>,
+}
+
+/// Counts kept over every check, whatever the list of kept checks forgets.
+#[derive(Debug, Default)]
+struct Tally {
+    figures: Mutex<CheckFigures>,
+}
+
+impl Tally {
+    fn record(&self, job: &Job, result: &Result<Option<VerifyReport>, String>) {
+        let (outcome, problems) = match result {
+            Ok(Some(r)) if r.is_ok() => (VerifyPhase::Ok, 0),
+            Ok(Some(r)) => (VerifyPhase::Problems, r.problem_count),
+            Ok(None) => (VerifyPhase::Cancelled, 0),
+            Err(_) => (VerifyPhase::Failed, 0),
+        };
+        let mut f = lock(&self.figures);
+        if let Some(i) = OUTCOMES.iter().position(|&o| o == outcome) {
+            f.ended[i] += 1;
+        }
+        if outcome != VerifyPhase::Cancelled {
+            let ended_unix = SystemTime::now()
+                .duration_since(UNIX_EPOCH)
+                .map_or(0.0, |d| d.as_secs_f64());
+            f.last.insert(
+                job.scene.clone(),
+                LastCheck {
+                    generation: job.generation,
+                    outcome,
+                    problems,
+                    ended_unix,
+                },
+            );
+        }
+    }
 }
 
 impl Verifications {
     /// Checks of `pool`'s scenes, run one at a time on a worker thread at `priority`.
     pub fn new(pool: Pool, priority: ImportPriority) -> std::io::Result<Verifications> {
         let (tx, rx) = mpsc::channel::<Arc<Job>>();
+        let tally = Arc::new(Tally::default());
+        let worker_tally = tally.clone();
         std::thread::Builder::new()
             .name("arbor-verify".into())
-            .spawn(move || run_worker(rx, priority))?;
+            .spawn(move || run_worker(rx, priority, &worker_tally))?;
         Ok(Verifications {
             pool,
             jobs: Mutex::new(BTreeMap::new()),
             next: AtomicU64::new(1),
             queue: Mutex::new(tx),
+            tally,
         })
+    }
+
+    /// Queues a check of every published scene (one already queued or running is not queued
+    /// twice); returns how many were asked for.
+    pub fn check_all(&self) -> Result<usize, PoolError> {
+        let scenes = self.pool.scenes()?;
+        for d in &scenes {
+            match self.submit(&d.name) {
+                // Removed since the catalogue was read.
+                Err(PoolError::NoSuchScene(_)) => {}
+                other => {
+                    other?;
+                }
+            }
+        }
+        Ok(scenes.len())
+    }
+
+    /// Checks ended by outcome, and each published scene's last check of the generation
+    /// published now (a replaced or removed scene's checks say nothing of what is served).
+    pub fn figures(&self) -> Result<CheckFigures, PoolError> {
+        let published = self.pool.generations()?;
+        let mut f = lock(&self.tally.figures).clone();
+        f.last
+            .retain(|scene, last| published.contains(&(scene.clone(), last.generation)));
+        Ok(f)
     }
 
     /// Queues a check of the generation of `scene` published now; returns its id (the id of
@@ -260,17 +373,18 @@ impl Drop for Verifications {
     }
 }
 
-fn run_worker(rx: mpsc::Receiver<Arc<Job>>, priority: ImportPriority) {
+fn run_worker(rx: mpsc::Receiver<Arc<Job>>, priority: ImportPriority, tally: &Tally) {
     let Some(pool) = background_threads("arbor-verify", priority) else {
         return;
     };
     while let Ok(job) = rx.recv() {
-        run_job(&pool, &job);
+        run_job(&pool, &job, tally);
     }
 }
 
-/// Runs one check on `threads` (or records it cancelled, if it was before it started).
-fn run_job(threads: &rayon::ThreadPool, job: &Job) {
+/// Runs one check on `threads` (or records it cancelled, if it was before it started), and
+/// counts its outcome in `tally`.
+fn run_job(threads: &rayon::ThreadPool, job: &Job, tally: &Tally) {
     let stored = lock(&job.stored).take();
     let result = match stored {
         Some(_) if job.cancelled.load(Ordering::Acquire) => Ok(None),
@@ -306,6 +420,19 @@ fn run_job(threads: &rayon::ThreadPool, job: &Job) {
         Ok(None) => tracing::info!(id = job.id, scene = %job.scene, "verification stopped"),
         Err(e) => tracing::warn!(id = job.id, scene = %job.scene, "verification failed: {e}"),
     }
+    if let Ok(Some(r)) = &result
+        && !r.is_ok()
+    {
+        tracing::error!(
+            id = job.id,
+            scene = %job.scene,
+            generation = job.generation,
+            problems = r.problem_count,
+            first = r.problems.first().map_or("", String::as_str),
+            "a published scene breaks its invariants"
+        );
+    }
+    tally.record(job, &result);
     *lock(&job.outcome) = Some(Outcome { seconds, result });
 }
 
@@ -349,12 +476,23 @@ mod tests {
             jobs: Mutex::new(BTreeMap::new()),
             next: AtomicU64::new(1),
             queue: Mutex::new(tx),
+            tally: Arc::default(),
         };
         let threads = rayon::ThreadPoolBuilder::new()
             .num_threads(2)
             .build()
             .unwrap();
         (dir, checks, rx, threads)
+    }
+
+    #[test]
+    fn phases_are_named_as_serde_names_them() {
+        for phase in [VerifyPhase::Queued, VerifyPhase::Running]
+            .into_iter()
+            .chain(OUTCOMES)
+        {
+            assert_eq!(serde_json::to_value(phase).unwrap(), phase.as_str());
+        }
     }
 
     #[test]
@@ -379,7 +517,7 @@ mod tests {
         assert_eq!(checks.cancel(first).unwrap().phase, VerifyPhase::Queued);
         let job = rx.try_recv().unwrap();
         assert!(rx.try_recv().is_err(), "queued twice");
-        run_job(&threads, &job);
+        run_job(&threads, &job, &checks.tally);
         let s = checks.status(first).unwrap();
         assert_eq!(
             (s.phase, s.treelets_checked, s.report),
@@ -390,13 +528,21 @@ mod tests {
         // Asked again: a new check, which runs to the report `verify_scene` gives.
         let second = checks.submit("bunny").unwrap();
         assert_ne!(second, first);
-        run_job(&threads, &rx.try_recv().unwrap());
+        run_job(&threads, &rx.try_recv().unwrap(), &checks.tally);
         let s = checks.status(second).unwrap();
         assert_eq!(s.phase, VerifyPhase::Ok, "{s:?}");
         let expected = verify_scene(&checks.pool.scene("bunny").unwrap()).unwrap();
         assert_eq!(s.report.as_ref(), Some(&expected));
         assert_eq!(s.treelets_planned, expected.treelets);
         assert_eq!(s.treelets_checked, expected.treelets);
+        // Counted: one cancelled, one ok; the scene's last check is the one that ran.
+        let f = checks.figures().unwrap();
+        assert_eq!(f.ended, [1, 0, 0, 1]);
+        let last = &f.last["bunny"];
+        assert_eq!(
+            (last.generation, last.outcome, last.problems),
+            (generation, VerifyPhase::Ok, 0)
+        );
         // Cancelling a finished check changes nothing; an unknown id is `None`.
         assert_eq!(checks.cancel(second).unwrap().phase, VerifyPhase::Ok);
         assert!(checks.cancel(99).is_none());
@@ -406,11 +552,22 @@ mod tests {
         );
 
         // Dropping the manager (the daemon stopping) cancels what is queued.
-        let third = checks.submit("bunny").unwrap();
-        assert_ne!(third, second);
+        assert_eq!(checks.check_all().unwrap(), 1, "every published scene");
+        assert_eq!(checks.check_all().unwrap(), 1);
         let job = rx.try_recv().unwrap();
+        assert!(rx.try_recv().is_err(), "a scene queued twice by check_all");
+        let tally = checks.tally.clone();
+        let pool = checks.pool.clone();
         drop(checks);
-        run_job(&threads, &job);
+        run_job(&threads, &job, &tally);
         assert_eq!(job.status().phase, VerifyPhase::Cancelled);
+
+        // A scene no longer published has no last check to report.
+        let checks = Verifications::new(pool.clone(), ImportPriority::Idle).unwrap();
+        *lock(&checks.tally.figures) = lock(&tally.figures).clone();
+        assert!(checks.figures().unwrap().last.contains_key("bunny"));
+        pool.remove("bunny").unwrap();
+        assert!(checks.figures().unwrap().last.is_empty());
+        assert_eq!(checks.figures().unwrap().ended, [1, 0, 0, 2]);
     }
 }

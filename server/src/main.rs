@@ -220,6 +220,7 @@ enum Command {
         arbor-server serve --db pool --listen 0.0.0.0:4433 --admin 127.0.0.1:9090\n  \
         arbor-server serve --db pool --listen 127.0.0.1:0 --admin off --data-dir state\n  \
         arbor-server serve --db pool --import-root /srv/scans   (admin API may import files under it)\n  \
+        arbor-server serve --db pool --check-every 24h          (checks every scene once a day)\n  \
         arbor-server serve --config /etc/arbor/serve.toml\n\n\
         Without --config every scene is public (development). The config file's keys are \
         documented in deploy/ and docs/config-schema.md; command-line flags override them.")]
@@ -256,6 +257,11 @@ enum Command {
         /// `low` (nice 10: an import always progresses, streaming slows while it runs).
         #[arg(long, value_enum, default_value_t = ImportPriority::Idle)]
         import_priority: ImportPriority,
+        /// Check every published scene this often (`90s`, `30m`, `24h`, `7d`), as `verify
+        /// --server` would, at the import priority: damage that appears on disk is found
+        /// without anyone asking (`arbor_scene_check_ok` in /metrics) [default: never].
+        #[arg(long, value_parser = parse_period)]
+        check_every: Option<std::time::Duration>,
         /// Read the pool's files into the page cache at start, so a fresh server's reads need
         /// not wait for the disk, the pages the last run had cached first: `auto` (the whole
         /// pool when it fits in half of the memory left, else only those pages), `always`, or
@@ -271,6 +277,25 @@ struct AdminArg(Option<SocketAddr>);
 
 fn parse_admin(s: &str) -> Result<AdminArg, String> {
     arbor_server::service::config::parse_admin_listen(s).map(AdminArg)
+}
+
+/// A period: a whole number with `s`, `m`, `h` or `d`, at least a second.
+fn parse_period(s: &str) -> Result<std::time::Duration, String> {
+    let bad = || format!("'{s}': expected a whole number of s, m, h or d (24h)");
+    let unit = s.chars().last().ok_or_else(bad)?;
+    let seconds = match unit {
+        's' => 1,
+        'm' => 60,
+        'h' => 3_600,
+        'd' => 86_400,
+        _ => return Err(bad()),
+    };
+    let n: u64 = s[..s.len() - 1].parse().map_err(|_| bad())?;
+    let total = n
+        .checked_mul(seconds)
+        .filter(|&t| (1..=100 * 365 * 86_400).contains(&t))
+        .ok_or_else(|| format!("'{s}': a period from 1 s to 100 years"))?;
+    Ok(std::time::Duration::from_secs(total))
 }
 
 fn parse_depth(s: &str) -> Result<DepthChoice, String> {
@@ -482,6 +507,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             import_root,
             import_scratch,
             import_priority,
+            check_every,
             pool_prewarm,
         } => {
             let overrides = ConfigOverrides {
@@ -502,6 +528,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 import_root,
                 import_scratch,
                 import_priority,
+                check_every,
             };
             let result = rt.block_on(serve(config, options));
             rt.shutdown_timeout(std::time::Duration::from_secs(1));

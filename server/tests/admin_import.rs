@@ -80,10 +80,10 @@ struct Daemon {
 
 impl Daemon {
     async fn start(with_root: bool) -> Daemon {
-        Self::start_on(TestPool::new(), with_root).await
+        Self::start_on(TestPool::new(), with_root, None).await
     }
 
-    async fn start_on(pool: TestPool, with_root: bool) -> Daemon {
+    async fn start_on(pool: TestPool, with_root: bool, check_every: Option<Duration>) -> Daemon {
         let root = tempfile::tempdir().unwrap();
         let mut config: ServeConfig = pool.config();
         config.admin_token = arbor_server::service::config::AdminTokenSource::Inline(ADMIN.into());
@@ -94,6 +94,7 @@ impl Daemon {
         }
         let options = DaemonOptions {
             import_root: with_root.then(|| root.path().to_owned()),
+            check_every,
             ..DaemonOptions::default()
         };
         let t0 = Instant::now();
@@ -469,7 +470,7 @@ async fn serving_reads(d: &Daemon) -> u64 {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn scenes_are_checked_while_the_daemon_serves() {
-    let d = Daemon::start_on(damaged_pool(), false).await;
+    let d = Daemon::start_on(damaged_pool(), false, None).await;
     let verify = |scene: &str| format!("/v1/scenes/{scene}/verify");
     assert_eq!(http(d.admin, "POST", &verify("bunny"), "", "").await.0, 401);
     for scene in ["nope", "..", "a%20b"] {
@@ -551,7 +552,7 @@ async fn scenes_are_checked_while_the_daemon_serves() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_cli_asks_a_serving_daemon_to_check_a_scene() {
-    let d = Daemon::start_on(damaged_pool(), false).await;
+    let d = Daemon::start_on(damaged_pool(), false, None).await;
     let token_file = d.root.path().join("token");
     std::fs::write(&token_file, ADMIN).unwrap();
     let run = |args: Vec<String>| {
@@ -618,5 +619,91 @@ async fn the_cli_asks_a_serving_daemon_to_check_a_scene() {
     .unwrap();
     assert_eq!(out.status.code(), Some(1), "{}", text(&out));
     assert!(text(&out).contains("verify --server"), "{}", text(&out));
+    d.server.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_scene_is_checked_each_period_and_metrics_say_how_it_went() {
+    let d = Daemon::start_on(damaged_pool(), false, Some(Duration::from_millis(300))).await;
+    let metrics = text(d.admin, "/metrics").await;
+    assert!(
+        !metrics.contains("arbor_scene_check_ok{"),
+        "a scene reported checked before any check: {metrics}"
+    );
+    // Nobody asks: each scene is checked within a few periods, and again after.
+    let t0 = Instant::now();
+    let checks = loop {
+        let (s, all) = http(d.admin, "GET", "/v1/verifications", ADMIN, "").await;
+        assert_eq!(s, 200);
+        let ended: Vec<(String, String)> = all
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|c| !["queued", "running"].contains(&c["phase"].as_str().unwrap()))
+            .map(|c| {
+                (
+                    c["scene"].as_str().unwrap().to_owned(),
+                    c["phase"].as_str().unwrap().to_owned(),
+                )
+            })
+            .collect();
+        if ended.len() >= 6 {
+            break ended;
+        }
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "periodic checks missing: {all}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    for (scene, phase) in [
+        ("bunny", "ok"),
+        ("holes", "problems"),
+        ("garbage", "failed"),
+    ] {
+        let n = checks.iter().filter(|c| c.0 == scene).count();
+        assert!(n >= 2, "{scene} checked {n} times: {checks:?}");
+        assert!(
+            checks.iter().filter(|c| c.0 == scene).all(|c| c.1 == phase),
+            "{scene}: {checks:?}"
+        );
+    }
+    let metrics = text(d.admin, "/metrics").await;
+    for line in [
+        "arbor_scene_check_ok{scene=\"bunny\"} 1\n",
+        "arbor_scene_check_ok{scene=\"holes\"} 0\n",
+        "arbor_scene_check_ok{scene=\"garbage\"} 0\n",
+        "arbor_scene_check_problems{scene=\"bunny\"} 0\n",
+    ] {
+        assert!(metrics.contains(line), "no {line} in {metrics}");
+    }
+    let sample = |name: &str| -> f64 {
+        metrics
+            .lines()
+            .find_map(|l| l.strip_prefix(name))
+            .unwrap_or_else(|| panic!("no {name} in {metrics}"))
+            .trim()
+            .parse()
+            .unwrap()
+    };
+    assert!(sample("arbor_scene_check_problems{scene=\"holes\"}") > 0.0);
+    assert!(sample("arbor_scene_checks_total{outcome=\"failed\"}") >= 2.0);
+    assert!(sample("arbor_scene_checks_total{outcome=\"ok\"}") >= 2.0);
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs_f64();
+    let ended = sample("arbor_scene_check_end_seconds{scene=\"bunny\"}");
+    assert!(
+        (now - 60.0..=now + 1.0).contains(&ended),
+        "{ended} against {now}"
+    );
+
+    // A removed scene's checks no longer report on it.
+    let (s, _) = http(d.admin, "DELETE", "/v1/scenes/holes", ADMIN, "").await;
+    assert_eq!(s, 200);
+    let metrics = text(d.admin, "/metrics").await;
+    assert!(!metrics.contains("scene=\"holes\""), "{metrics}");
+    bunny_streams(&d).await;
     d.server.shutdown().await;
 }

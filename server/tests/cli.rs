@@ -202,6 +202,19 @@ fn help_has_examples_and_bad_parameters_are_named() {
     ]);
     assert!(!o.status.success());
     assert!(text(&o).1.contains("scene name"), "{}", text(&o).1);
+    let h = ok(&["serve", "--help"]);
+    assert!(h.contains("--check-every 24h"), "{h}");
+    for (period, needle) in [
+        ("24", "expected a whole number of s, m, h or d"),
+        ("1.5h", "expected a whole number"),
+        ("0s", "from 1 s to 100 years"),
+        ("999999999999d", "from 1 s to 100 years"),
+    ] {
+        let o = run(&["serve", "--db", &db, "--check-every", period]);
+        let (_, err) = text(&o);
+        assert!(!o.status.success(), "--check-every {period} accepted");
+        assert!(err.contains(needle), "{period}: {err}");
+    }
 }
 
 #[test]

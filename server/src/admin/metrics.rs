@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use arbor_proto::SceneDescription;
 
+use crate::live_verify::{CheckFigures, OUTCOMES};
 use crate::pool::{Pool, PoolError, PoolReadBuckets};
 use crate::prometheus::{Histogram, Kind, PromText};
 use crate::service::state::ServiceState;
@@ -45,12 +46,14 @@ pub(super) fn stream_bytes(d: &SceneDescription) -> Vec<(&'static str, u64)> {
 
 /// The whole `/metrics` body. `pool` is `None` when the pool could not be read: its families are
 /// still declared, without samples, and `arbor_pool_readable` is 0.
-/// `reads` are the pool handle's block read times, which need no catalogue read.
+/// `reads` are the pool handle's block read times, which need no catalogue read; `checks` the
+/// scene checks' figures (`None`: no scene manager, or the catalogue could not be read).
 pub(super) fn render(
     state: &ServiceState,
     uptime: Duration,
     reads: &Histogram<PoolReadBuckets>,
     pool: Option<&PoolFigures>,
+    checks: Option<&CheckFigures>,
 ) -> String {
     let mut p = PromText::default();
     state.write_prometheus(&mut p);
@@ -120,7 +123,58 @@ pub(super) fn render(
         }
     }
     scene_families(&mut p, pool.map_or(&[][..], |p| &p.scenes[..]));
+    check_families(&mut p, checks);
     p.finish()
+}
+
+/// The scene checks' counters and each published scene's last check.
+fn check_families(p: &mut PromText, checks: Option<&CheckFigures>) {
+    p.family(
+        "arbor_scene_checks_total",
+        Kind::Counter,
+        "Checks of published scenes (POST /v1/scenes/{name}/verify, serve --check-every) ended \
+         since the start, by outcome: ok, problems (an invariant broken), failed (the pool could \
+         not be read), cancelled.",
+    );
+    if let Some(c) = checks {
+        for (outcome, n) in OUTCOMES.iter().zip(c.ended) {
+            p.sample(
+                "arbor_scene_checks_total",
+                &[("outcome", outcome.as_str())],
+                n,
+            );
+        }
+    }
+    let last = checks.map(|c| &c.last);
+    let each =
+        |p: &mut PromText, name: &str, value: &dyn Fn(&crate::live_verify::LastCheck) -> f64| {
+            for (scene, l) in last.into_iter().flatten() {
+                p.sample(name, &[("scene", scene)], value(l));
+            }
+        };
+    p.family(
+        "arbor_scene_check_ok",
+        Kind::Gauge,
+        "1 when the last check of the scene as published now found every invariant holding, 0 \
+         when it found a broken one or could not read the scene; no sample before its first \
+         check.",
+    );
+    each(p, "arbor_scene_check_ok", &|l| {
+        f64::from(u8::from(l.outcome == crate::live_verify::VerifyPhase::Ok))
+    });
+    p.family(
+        "arbor_scene_check_problems",
+        Kind::Gauge,
+        "Broken invariants the last check of the scene as published now found.",
+    );
+    each(p, "arbor_scene_check_problems", &|l| l.problems as f64);
+    p.family(
+        "arbor_scene_check_end_seconds",
+        Kind::Gauge,
+        "When the last check of the scene as published now ended, seconds since the Unix epoch \
+         (alert when it is older than the check period).",
+    );
+    each(p, "arbor_scene_check_end_seconds", &|l| l.ended_unix);
 }
 
 /// Per-scene gauges.
@@ -164,8 +218,18 @@ mod tests {
     #[test]
     fn families_are_declared_once_even_without_a_pool() {
         let s = ServiceState::new("ff".into());
-        let t = render(&s, Duration::from_secs(3), &Histogram::default(), None);
+        let t = render(
+            &s,
+            Duration::from_secs(3),
+            &Histogram::default(),
+            None,
+            None,
+        );
         assert!(t.contains("arbor_pool_readable 0\n"), "{t}");
+        assert!(
+            t.contains("# TYPE arbor_scene_checks_total counter\n"),
+            "{t}"
+        );
         assert!(!t.contains("arbor_pool_scenes 0"), "{t}");
         let mut names: Vec<_> = t
             .lines()

@@ -377,11 +377,19 @@ async fn prometheus(State(app): State<Shared>) -> Response {
     if let Err(e) = &pool {
         tracing::warn!("admin /metrics: pool figures unavailable: {}", e.message);
     }
+    let checks = match app.imports.clone() {
+        Some(imports) => tokio::task::spawn_blocking(move || imports.verifications().figures())
+            .await
+            .ok()
+            .and_then(Result::ok),
+        None => None,
+    };
     let body = metrics::render(
         &app.state,
         app.started.elapsed(),
         app.pool.read_times(),
         pool.ok().as_ref(),
+        checks.as_ref(),
     );
     (
         StatusCode::OK,

@@ -270,10 +270,6 @@ fn checks_section(out: &mut String, checks: &[VerifyStatus]) {
             }
             _ => String::new(),
         };
-        let phase = serde_json::to_value(c.phase)
-            .ok()
-            .and_then(|v| v.as_str().map(str::to_owned))
-            .unwrap_or_default();
         let _ = writeln!(
             out,
             "<tr><td class=\"n\">{}</td><td>{} <small>g{}</small></td><td>{}</td>\
@@ -281,7 +277,7 @@ fn checks_section(out: &mut String, checks: &[VerifyStatus]) {
             c.id,
             escape(&c.scene),
             c.generation,
-            escape(&phase),
+            c.phase.as_str(),
             c.treelets_checked,
             c.treelets_planned,
             c.seconds,

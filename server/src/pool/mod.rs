@@ -541,6 +541,30 @@ impl Pool {
         Ok(out)
     }
 
+    /// Each published scene's name and generation, by name (the catalogue's descriptions left
+    /// undecoded).
+    pub fn generations(&self) -> Result<Vec<(String, u64)>, PoolError> {
+        let mut out = Vec::new();
+        for entry in self.catalogue.iter() {
+            let (k, v) = entry?;
+            let corrupt = |detail: &str| PoolError::Corrupt {
+                what: format!("catalogue entry {:?}", String::from_utf8_lossy(&k)),
+                source: ProtoError::OutOfRange {
+                    what: "catalogue entry",
+                    detail: detail.into(),
+                },
+            };
+            let name = String::from_utf8(k.to_vec()).map_err(|_| corrupt("name not UTF-8"))?;
+            let generation = v
+                .get(..8)
+                .and_then(|g| g.try_into().ok())
+                .map(u64::from_be_bytes)
+                .ok_or_else(|| corrupt("shorter than its generation"))?;
+            out.push((name, generation));
+        }
+        Ok(out)
+    }
+
     /// One scene.
     pub fn scene(&self, name: &str) -> Result<StoredScene, PoolError> {
         let v = self
