@@ -488,7 +488,9 @@ fn run_scrub(inner: Weak<Inner>, period: Duration) {
         if Instant::now() < next {
             continue;
         }
-        next += period;
+        // From now, not from when it was due: a process that was stopped for a while (or a
+        // clock that jumped) asks once, not once for every period it missed.
+        next = Instant::now() + period;
         match inner.verifications.check_all() {
             Ok(n) => tracing::info!(scenes = n, "periodic check of every scene queued"),
             Err(e) => tracing::warn!("periodic check: reading the catalogue: {e}"),
