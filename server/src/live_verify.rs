@@ -287,10 +287,12 @@ impl Verifications {
         // it was retired).
         let mut jobs = lock(&self.jobs);
         let stored = self.pool.scene(scene)?.with_reads_apart();
-        if let Some(j) = jobs
-            .values()
-            .find(|j| j.scene == scene && j.generation == stored.generation && !j.finished())
-        {
+        if let Some(j) = jobs.values().find(|j| {
+            j.scene == scene
+                && j.generation == stored.generation
+                && !j.finished()
+                && !j.cancelled.load(Ordering::Acquire)
+        }) {
             return Ok(j.id);
         }
         let id = self.next.fetch_add(1, Ordering::Relaxed);
@@ -513,22 +515,22 @@ mod tests {
         assert!(checks.holds(generation));
         assert!(!checks.holds(generation + 1));
 
-        // Cancelled while queued: it never reads.
+        // Cancelled while queued: it never reads, and asking again queues a new check.
         assert_eq!(checks.cancel(first).unwrap().phase, VerifyPhase::Queued);
-        let job = rx.try_recv().unwrap();
-        assert!(rx.try_recv().is_err(), "queued twice");
-        run_job(&threads, &job, &checks.tally);
+        let second = checks.submit("bunny").unwrap();
+        assert_ne!(second, first, "answered with the cancelled check");
+        run_job(&threads, &rx.try_recv().unwrap(), &checks.tally);
         let s = checks.status(first).unwrap();
         assert_eq!(
             (s.phase, s.treelets_checked, s.report),
             (VerifyPhase::Cancelled, 0, None)
         );
-        assert!(!checks.holds(generation));
+        assert!(checks.holds(generation), "the second check reads it");
 
-        // Asked again: a new check, which runs to the report `verify_scene` gives.
-        let second = checks.submit("bunny").unwrap();
-        assert_ne!(second, first);
+        // The new check runs to the report `verify_scene` gives.
         run_job(&threads, &rx.try_recv().unwrap(), &checks.tally);
+        assert!(rx.try_recv().is_err(), "a check queued twice");
+        assert!(!checks.holds(generation));
         let s = checks.status(second).unwrap();
         assert_eq!(s.phase, VerifyPhase::Ok, "{s:?}");
         let expected = verify_scene(&checks.pool.scene("bunny").unwrap()).unwrap();
