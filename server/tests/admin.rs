@@ -922,7 +922,12 @@ async fn metrics_parse_and_report_the_state_and_the_pool() {
         if name.starts_with("arbor_scene_")
             || (name.starts_with("arbor_pool_") && name != "arbor_pool_read_seconds")
         {
-            assert_eq!(fam.kind.as_deref(), Some("gauge"), "{name}");
+            let kind = if name.ends_with("_total") {
+                "counter"
+            } else {
+                "gauge"
+            };
+            assert_eq!(fam.kind.as_deref(), Some(kind), "{name}");
         }
     }
 }
