@@ -9,7 +9,6 @@
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::Path;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
@@ -147,9 +146,11 @@ pub fn verify(
     url: &AdminUrl,
     token: &str,
     scene: &str,
-    interrupted: &Arc<AtomicBool>,
+    interrupted: &AtomicBool,
     progress: &dyn Fn(u64, u64),
 ) -> Result<serde_json::Value> {
+    // Checked here: a name with spaces or slashes would not even make a request line.
+    arbor_proto::scene::validate_scene_name(scene).with_context(|| format!("--scene {scene:?}"))?;
     let path = format!("/v1/scenes/{scene}/verify");
     let id = submit(url, token, &path, None, &format!("to check {scene}"))?;
     let status_path = format!("/v1/verifications/{id}");

@@ -168,8 +168,27 @@ struct Inner {
     verifications: Verifications,
 }
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+/// The guarded value, whether or not a thread panicked holding it (the jobs' state stays
+/// readable).
+pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// Of the background jobs kept for status (by id, so oldest first), removes the oldest finished
+/// ones beyond `keep`.
+pub(crate) fn forget_oldest_finished<J>(
+    jobs: &mut BTreeMap<u64, Arc<J>>,
+    keep: usize,
+    finished: impl Fn(&J) -> bool,
+) {
+    let done: Vec<u64> = jobs
+        .iter()
+        .filter(|(_, j)| finished(j))
+        .map(|(&id, _)| id)
+        .collect();
+    for id in &done[..done.len().saturating_sub(keep)] {
+        jobs.remove(id);
+    }
 }
 
 /// The daemon's scene manager (cheap to clone).
@@ -261,17 +280,7 @@ impl LiveImports {
         {
             let mut jobs = lock(&self.inner.jobs);
             jobs.insert(id, job.clone());
-            let finished: Vec<u64> = jobs
-                .values()
-                .filter(|j| lock(&j.outcome).is_some())
-                .map(|j| j.id)
-                .collect();
-            for old in finished
-                .iter()
-                .take(finished.len().saturating_sub(KEEP_FINISHED))
-            {
-                jobs.remove(old);
-            }
+            forget_oldest_finished(&mut jobs, KEEP_FINISHED, |j| lock(&j.outcome).is_some());
         }
         tracing::info!(id, scene = %job.request.name, files = job.inputs.len(), "import queued");
         lock(&self.inner.queue)

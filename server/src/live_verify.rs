@@ -26,12 +26,12 @@
 use std::collections::BTreeMap;
 use std::ops::ControlFlow;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard, mpsc};
+use std::sync::{Arc, Mutex, mpsc};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use serde::Serialize;
 
-use crate::live_import::{ImportPriority, background_threads};
+use crate::live_import::{ImportPriority, background_threads, forget_oldest_finished, lock};
 use crate::pool::{Pool, PoolError, StoredScene};
 use crate::verify::{BATCH_TREELETS, VerifyProgress, VerifyReport, verify_scene_observed};
 
@@ -100,7 +100,8 @@ struct Job {
     stored: Mutex<Option<StoredScene>>,
     started: AtomicBool,
     cancelled: AtomicBool,
-    planned: AtomicU64,
+    /// Treelets the scene's description counts.
+    planned: u64,
     checked: AtomicU64,
     submitted: SystemTime,
     clock: Instant,
@@ -124,12 +125,7 @@ impl Job {
         let phase = match &outcome {
             None if self.started.load(Ordering::Acquire) => VerifyPhase::Running,
             None => VerifyPhase::Queued,
-            Some(o) => match &o.result {
-                Ok(Some(r)) if r.is_ok() => VerifyPhase::Ok,
-                Ok(Some(_)) => VerifyPhase::Problems,
-                Ok(None) => VerifyPhase::Cancelled,
-                Err(_) => VerifyPhase::Failed,
-            },
+            Some(o) => outcome_of(&o.result),
         };
         let seconds = outcome
             .as_ref()
@@ -144,7 +140,7 @@ impl Job {
             scene: self.scene.clone(),
             generation: self.generation,
             phase,
-            treelets_planned: self.planned.load(Ordering::Relaxed),
+            treelets_planned: self.planned,
             treelets_checked: self.checked.load(Ordering::Relaxed),
             seconds,
             submitted_unix: self
@@ -155,10 +151,6 @@ impl Job {
             report,
         }
     }
-}
-
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 /// The daemon's scene checks: a queue, its worker, and the checks kept for status. Held by the
@@ -200,6 +192,16 @@ pub struct CheckFigures {
     pub last: BTreeMap<String, LastCheck>,
 }
 
+/// How a check that ended ended: `Ok(None)` is cancelled.
+fn outcome_of(result: &Result<Option<VerifyReport>, String>) -> VerifyPhase {
+    match result {
+        Ok(Some(r)) if r.is_ok() => VerifyPhase::Ok,
+        Ok(Some(_)) => VerifyPhase::Problems,
+        Ok(None) => VerifyPhase::Cancelled,
+        Err(_) => VerifyPhase::Failed,
+    }
+}
+
 /// Counts kept over every check, whatever the list of kept checks forgets.
 #[derive(Debug, Default)]
 struct Tally {
@@ -208,11 +210,10 @@ struct Tally {
 
 impl Tally {
     fn record(&self, job: &Job, result: &Result<Option<VerifyReport>, String>) {
-        let (outcome, problems) = match result {
-            Ok(Some(r)) if r.is_ok() => (VerifyPhase::Ok, 0),
-            Ok(Some(r)) => (VerifyPhase::Problems, r.problem_count),
-            Ok(None) => (VerifyPhase::Cancelled, 0),
-            Err(_) => (VerifyPhase::Failed, 0),
+        let outcome = outcome_of(result);
+        let problems = match result {
+            Ok(Some(r)) => r.problem_count,
+            _ => 0,
         };
         let mut f = lock(&self.figures);
         if let Some(i) = OUTCOMES.iter().position(|&o| o == outcome) {
@@ -256,9 +257,9 @@ impl Verifications {
     /// Queues a check of every published scene (one already queued or running is not queued
     /// twice); returns how many were asked for.
     pub fn check_all(&self) -> Result<usize, PoolError> {
-        let scenes = self.pool.scenes()?;
-        for d in &scenes {
-            match self.submit(&d.name) {
+        let scenes = self.pool.generations()?;
+        for (name, _) in &scenes {
+            match self.submit(name) {
                 // Removed since the catalogue was read.
                 Err(PoolError::NoSuchScene(_)) => {}
                 other => {
@@ -300,7 +301,7 @@ impl Verifications {
             id,
             scene: scene.to_owned(),
             generation: stored.generation,
-            planned: AtomicU64::new(u64::from(stored.description.treelet_count)),
+            planned: u64::from(stored.description.treelet_count),
             stored: Mutex::new(Some(stored)),
             started: AtomicBool::new(false),
             cancelled: AtomicBool::new(false),
@@ -310,17 +311,7 @@ impl Verifications {
             outcome: Mutex::new(None),
         });
         jobs.insert(id, job.clone());
-        let finished: Vec<u64> = jobs
-            .values()
-            .filter(|j| j.finished())
-            .map(|j| j.id)
-            .collect();
-        for old in finished
-            .iter()
-            .take(finished.len().saturating_sub(KEEP_FINISHED))
-        {
-            jobs.remove(old);
-        }
+        forget_oldest_finished(&mut jobs, KEEP_FINISHED, Job::finished);
         drop(jobs);
         tracing::info!(
             id,
@@ -411,28 +402,24 @@ fn run_job(threads: &rayon::ThreadPool, job: &Job, tally: &Tally) {
     };
     let seconds = job.clock.elapsed().as_secs_f64();
     match &result {
-        Ok(Some(r)) => tracing::info!(
+        Ok(Some(r)) if r.is_ok() => tracing::info!(
             id = job.id,
             scene = %job.scene,
             treelets = r.treelets,
-            problems = r.problem_count,
             seconds,
-            "verification done"
+            "verification done: every invariant holds"
         ),
-        Ok(None) => tracing::info!(id = job.id, scene = %job.scene, "verification stopped"),
-        Err(e) => tracing::warn!(id = job.id, scene = %job.scene, "verification failed: {e}"),
-    }
-    if let Ok(Some(r)) = &result
-        && !r.is_ok()
-    {
-        tracing::error!(
+        Ok(Some(r)) => tracing::error!(
             id = job.id,
             scene = %job.scene,
             generation = job.generation,
             problems = r.problem_count,
             first = r.problems.first().map_or("", String::as_str),
+            seconds,
             "a published scene breaks its invariants"
-        );
+        ),
+        Ok(None) => tracing::info!(id = job.id, scene = %job.scene, "verification stopped"),
+        Err(e) => tracing::warn!(id = job.id, scene = %job.scene, "verification failed: {e}"),
     }
     tally.record(job, &result);
     *lock(&job.outcome) = Some(Outcome { seconds, result });

@@ -254,7 +254,8 @@ struct Batch {
 }
 
 impl Batch {
-    /// The blocks of `ids` (consecutive, ascending): one sled read per pack and tree.
+    /// The blocks of `ids` (ascending): one sled read per pack and tree while consecutive ids
+    /// stay in a pack.
     fn read(
         scene: &StoredScene,
         channels: &[Channel],
@@ -453,13 +454,12 @@ impl Verifier {
             }
         }
         let ids: Vec<TreeletId> = wanted.keys().map(|&p| TreeletId(p)).collect();
-        let nodes = scene.nodes_of(&ids)?;
-        let channels = self
-            .context
-            .channels
-            .iter()
-            .map(|&c| scene.channel_of(c, &ids))
-            .collect::<Result<Vec<_>, _>>()?;
+        let Batch {
+            ids,
+            nodes,
+            channels,
+            ..
+        } = Batch::read(scene, &self.context.channels, ids)?;
         let context = &self.context;
         let wanted: Vec<Vec<u16>> = wanted.into_values().collect();
         Ok(ids

@@ -606,6 +606,14 @@ async fn the_cli_asks_a_serving_daemon_to_check_a_scene() {
         "{}",
         text(&out)
     );
+    // A name no scene can have is refused before any request is made.
+    let out = run(remote("a b/../c")).await.unwrap();
+    assert_eq!(out.status.code(), Some(1), "{}", text(&out));
+    assert!(
+        text(&out).contains("scene name") && !text(&out).contains("refused"),
+        "{}",
+        text(&out)
+    );
     // The stand-alone check cannot open the served pool, and says what to do instead.
     let out = run(vec![
         "verify".into(),

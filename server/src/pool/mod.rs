@@ -547,19 +547,14 @@ impl Pool {
         let mut out = Vec::new();
         for entry in self.catalogue.iter() {
             let (k, v) = entry?;
-            let corrupt = |detail: &str| PoolError::Corrupt {
-                what: format!("catalogue entry {:?}", String::from_utf8_lossy(&k)),
+            let generation = entry_generation(&k, &v)?;
+            let name = String::from_utf8(k.to_vec()).map_err(|_| PoolError::Corrupt {
+                what: format!("catalogue {:?}", String::from_utf8_lossy(&k)),
                 source: ProtoError::OutOfRange {
                     what: "catalogue entry",
-                    detail: detail.into(),
+                    detail: "its name is not UTF-8".into(),
                 },
-            };
-            let name = String::from_utf8(k.to_vec()).map_err(|_| corrupt("name not UTF-8"))?;
-            let generation = v
-                .get(..8)
-                .and_then(|g| g.try_into().ok())
-                .map(u64::from_be_bytes)
-                .ok_or_else(|| corrupt("shorter than its generation"))?;
+            })?;
             out.push((name, generation));
         }
         Ok(out)
@@ -739,23 +734,25 @@ fn check_format(db: &sled::Db, catalogue: &sled::Tree) -> Result<(), PoolError> 
 }
 
 fn decode_entry(key: &[u8], v: &[u8]) -> Result<(u64, SceneDescription), PoolError> {
-    let what = || format!("catalogue {:?}", String::from_utf8_lossy(key));
-    if v.len() < 8 {
-        return Err(PoolError::Corrupt {
-            what: what(),
-            source: ProtoError::Truncated {
-                what: "catalogue entry",
-                need: 8,
-                have: v.len(),
-            },
-        });
-    }
-    let generation = u64::from_be_bytes(v[..8].try_into().expect("8 bytes"));
+    let generation = entry_generation(key, v)?;
     let d = SceneDescription::decode(&v[8..]).map_err(|source| PoolError::Corrupt {
-        what: what(),
+        what: format!("catalogue {:?}", String::from_utf8_lossy(key)),
         source,
     })?;
     Ok((generation, d))
+}
+
+/// The generation of a catalogue entry (its first 8 bytes), the description left undecoded.
+fn entry_generation(key: &[u8], v: &[u8]) -> Result<u64, PoolError> {
+    let g = v.get(..8).ok_or_else(|| PoolError::Corrupt {
+        what: format!("catalogue {:?}", String::from_utf8_lossy(key)),
+        source: ProtoError::Truncated {
+            what: "catalogue entry",
+            need: 8,
+            have: v.len(),
+        },
+    })?;
+    Ok(u64::from_be_bytes(g.try_into().expect("8 bytes")))
 }
 
 /// An import in progress. Receives treelets as a [`TreeletSink`]; [`PoolImport::commit`] makes
