@@ -61,6 +61,13 @@ pub struct SceneStats {
     pub peak_anon_bytes: u64,
 }
 
+impl SceneStats {
+    /// Compressed bytes of every treelet block stored: nodes and every channel.
+    pub fn stored_bytes(&self) -> u64 {
+        self.node_bytes + self.channel_bytes.iter().sum::<u64>()
+    }
+}
+
 /// A scene as stored in the pool and announced to clients.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SceneDescription {

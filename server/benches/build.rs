@@ -251,8 +251,8 @@ fn bench_file(
                              (treelets {} vs {}, bytes {} vs {})",
                             d.treelet_count,
                             desc.treelet_count,
-                            d.stats.node_bytes + d.stats.channel_bytes.iter().sum::<u64>(),
-                            desc.stats.node_bytes + desc.stats.channel_bytes.iter().sum::<u64>()
+                            d.stats.stored_bytes(),
+                            desc.stats.stored_bytes()
                         ));
                     }
                 }

@@ -153,29 +153,91 @@ pub fn verify(
     arbor_proto::scene::validate_scene_name(scene).with_context(|| format!("--scene {scene:?}"))?;
     let path = format!("/v1/scenes/{scene}/verify");
     let id = submit(url, token, &path, None, &format!("to check {scene}"))?;
-    let status_path = format!("/v1/verifications/{id}");
+    follow(
+        url,
+        token,
+        &format!("checking {scene} (verification {id})"),
+        &format!("/v1/verifications/{id}"),
+        &["ok", "problems"],
+        interrupted,
+        &|s| {
+            progress(
+                s["treelets_planned"].as_u64().unwrap_or(0),
+                s["treelets_checked"].as_u64().unwrap_or(0),
+            )
+        },
+    )
+}
+
+/// Asks the daemon to copy its pool (`scenes`, or every scene when empty) into the new
+/// directory `to` under its copy root, and follows the copy, telling `progress` the bytes
+/// planned and copied; returns the final status JSON (phase `done`), or an error naming why
+/// the copy failed. Once `interrupted` is set (Ctrl-C), the copy is cancelled on the daemon
+/// (which removes what it wrote) and this returns an error saying so.
+pub fn copy(
+    url: &AdminUrl,
+    token: &str,
+    to: &str,
+    scenes: &[String],
+    interrupted: &AtomicBool,
+    progress: &dyn Fn(u64, u64),
+) -> Result<serde_json::Value> {
+    let body = serde_json::json!({ "to": to, "scenes": scenes }).to_string();
+    let id = submit(
+        url,
+        token,
+        "/v1/copies",
+        Some(&body),
+        &format!("the copy to {to}"),
+    )?;
+    follow(
+        url,
+        token,
+        &format!("copying to {to} (copy {id})"),
+        &format!("/v1/copies/{id}"),
+        &["done"],
+        interrupted,
+        &|s| {
+            progress(
+                s["bytes_planned"].as_u64().unwrap_or(0),
+                s["bytes_copied"].as_u64().unwrap_or(0),
+            )
+        },
+    )
+}
+
+/// Follows the background job whose status is at `status_path` until its phase is one of
+/// `ended` (returns that status) or `failed` / `cancelled` (an error naming `what` and why);
+/// `progress` sees every status read. Once `interrupted` is set, cancels the job on the daemon
+/// and fails saying so.
+fn follow(
+    url: &AdminUrl,
+    token: &str,
+    what: &str,
+    status_path: &str,
+    ended: &[&str],
+    interrupted: &AtomicBool,
+    progress: &dyn Fn(&serde_json::Value),
+) -> Result<serde_json::Value> {
     loop {
         std::thread::sleep(Duration::from_millis(250));
         if interrupted.load(Ordering::Relaxed) {
-            request(url, token, "DELETE", &status_path, None)?;
-            bail!("interrupted: check {id} of {scene} cancelled on the server");
+            request(url, token, "DELETE", status_path, None)?;
+            bail!("interrupted: {what} cancelled on the server");
         }
-        let (status, body) = request(url, token, "GET", &status_path, None)?;
+        let (status, body) = request(url, token, "GET", status_path, None)?;
         if status != 200 {
-            bail!("verification {id}: status {status}: {body}");
+            bail!("{what}: status {status}: {body}");
         }
         let s: serde_json::Value = serde_json::from_str(&body)?;
-        progress(
-            s["treelets_planned"].as_u64().unwrap_or(0),
-            s["treelets_checked"].as_u64().unwrap_or(0),
-        );
+        progress(&s);
         match s["phase"].as_str().unwrap_or("?") {
-            "ok" | "problems" => return Ok(s),
+            phase if ended.contains(&phase) => return Ok(s),
             "failed" => bail!(
-                "checking {scene} failed on the server: {}",
+                "{what} failed on the server: {}",
                 s["error"].as_str().unwrap_or("(no message)")
             ),
-            "cancelled" => bail!("the check of {scene} was cancelled on the server"),
+            "cancelled" => bail!("{what} was cancelled on the server"),
             _ => {}
         }
     }

@@ -108,6 +108,8 @@ pub struct DaemonOptions {
     /// Check every published scene this often (`None`: only the checks asked for through the
     /// admin API).
     pub check_every: Option<std::time::Duration>,
+    /// Directory under which `POST /v1/copies` makes pool copies; `None`: copies disabled.
+    pub copy_root: Option<PathBuf>,
 }
 
 /// Starts the daemon: the admin token, the treelet service, and (unless off) the admin listener
@@ -121,14 +123,19 @@ pub async fn start_with(
     config: ServeConfig,
     options: DaemonOptions,
 ) -> Result<RunningServer, ServeError> {
-    if let Some(root) = &options.import_root
-        && let Err(source) = std::fs::read_dir(root)
-    {
-        return Err(ServeError::Config(ConfigError::Read {
-            key: "--import-root".into(),
-            path: root.clone(),
-            source,
-        }));
+    for (key, root) in [
+        ("--import-root", &options.import_root),
+        ("--copy-root", &options.copy_root),
+    ] {
+        if let Some(root) = root
+            && let Err(source) = std::fs::read_dir(root)
+        {
+            return Err(ServeError::Config(ConfigError::Read {
+                key: key.into(),
+                path: root.clone(),
+                source,
+            }));
+        }
     }
     let admin_listen = config.admin_listen;
     let (admin_tls, admin_identity) = (config.admin_tls, config.admin_identity.clone());
@@ -146,19 +153,13 @@ pub async fn start_with(
     let imports = match LiveImports::new(
         service.pool().clone(),
         service.state.clone(),
-        options.import_root.as_deref(),
-        options.import_scratch.clone(),
-        options.import_priority,
-        options.check_every,
+        &options,
+        &data_dir,
     ) {
         Ok(i) => i,
-        Err(source) => {
+        Err(e) => {
             service.shutdown().await;
-            return Err(ServeError::Config(ConfigError::Read {
-                key: "--import-root".into(),
-                path: options.import_root.unwrap_or_default(),
-                source,
-            }));
+            return Err(e.into());
         }
     };
     let admin_https = admin_listen.is_some_and(|a| admin_tls.encrypts(a));

@@ -29,6 +29,8 @@
 pub mod admin;
 pub mod daemon;
 pub mod import;
+mod jobs;
+pub mod live_copy;
 pub mod live_import;
 pub mod live_verify;
 pub mod logging;

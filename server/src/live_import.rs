@@ -27,8 +27,10 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use serde::{Deserialize, Serialize};
 
+use crate::daemon::DaemonOptions;
 use crate::import::tiles::{TileOptions, expand_inputs};
 use crate::import::{Format, ImportOptions};
+use crate::live_copy::Copies;
 use crate::live_verify::Verifications;
 use crate::octree::{BuildOptions, DepthChoice};
 use crate::pipeline::{SceneImport, Superseded, import_scene_observed};
@@ -53,6 +55,30 @@ pub enum ImportPriority {
     /// idle rate on two shared cores).
     Low,
 }
+/// Why the scene manager could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum ManagerError {
+    /// A configured directory (import root, copy root) cannot be read.
+    #[error("{key} {}: {source}", path.display())]
+    Root {
+        key: &'static str,
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A worker thread could not be started.
+    #[error("starting the scene manager's threads: {0}")]
+    Threads(#[from] std::io::Error),
+}
+
+fn root_error(
+    key: &'static str,
+    path: &Option<PathBuf>,
+) -> impl FnOnce(std::io::Error) -> ManagerError {
+    let path = path.clone().unwrap_or_default();
+    move |source| ManagerError::Root { key, path, source }
+}
+
 /// How often retired generations are checked for sessions still reading them.
 const REAP_EVERY: Duration = Duration::from_millis(250);
 /// Finished imports kept for `GET /v1/imports`.
@@ -166,12 +192,19 @@ struct Inner {
     queue: Mutex<mpsc::Sender<Arc<Job>>>,
     retired: Mutex<Vec<Retired>>,
     verifications: Verifications,
+    copies: Copies,
 }
 
 /// The guarded value, whether or not a thread panicked holding it (the jobs' state stays
 /// readable).
 pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// `t` in seconds since the Unix epoch (0 before it).
+pub(crate) fn unix_seconds(t: SystemTime) -> f64 {
+    t.duration_since(UNIX_EPOCH)
+        .map_or(0.0, |d| d.as_secs_f64())
 }
 
 /// Of the background jobs kept for status (by id, so oldest first), removes the oldest finished
@@ -205,27 +238,36 @@ impl LiveImports {
     pub fn new(
         pool: Pool,
         state: Arc<ServiceState>,
-        root: Option<&Path>,
-        scratch: Option<PathBuf>,
-        priority: ImportPriority,
-        check_every: Option<Duration>,
-    ) -> std::io::Result<LiveImports> {
-        let root = match root {
-            Some(r) => Some(std::fs::canonicalize(r)?),
-            None => None,
-        };
+        options: &DaemonOptions,
+        state_dir: &Path,
+    ) -> Result<LiveImports, ManagerError> {
+        let priority = options.import_priority;
+        let root = options
+            .import_root
+            .as_deref()
+            .map(std::fs::canonicalize)
+            .transpose()
+            .map_err(root_error("--import-root", &options.import_root))?;
+        let copies = Copies::new(
+            pool.clone(),
+            options.copy_root.as_deref(),
+            state_dir,
+            priority,
+        )
+        .map_err(root_error("--copy-root", &options.copy_root))?;
         let (tx, rx) = mpsc::channel::<Arc<Job>>();
         let verifications = Verifications::new(pool.clone(), priority)?;
         let inner = Arc::new(Inner {
             pool,
             root,
-            scratch,
+            scratch: options.import_scratch.clone(),
             state,
             jobs: Mutex::new(BTreeMap::new()),
             next: AtomicU64::new(1),
             queue: Mutex::new(tx),
             retired: Mutex::new(Vec::new()),
             verifications,
+            copies,
         });
         let weak = Arc::downgrade(&inner);
         std::thread::Builder::new()
@@ -235,7 +277,7 @@ impl LiveImports {
         std::thread::Builder::new()
             .name("arbor-reaper".into())
             .spawn(move || run_reaper(weak))?;
-        if let Some(period) = check_every {
+        if let Some(period) = options.check_every {
             let weak = Arc::downgrade(&inner);
             std::thread::Builder::new()
                 .name("arbor-scrub".into())
@@ -315,6 +357,11 @@ impl LiveImports {
         &self.inner.verifications
     }
 
+    /// The pool copies ([`crate::live_copy`]).
+    pub fn copies(&self) -> &Copies {
+        &self.inner.copies
+    }
+
     /// Generations retired but still read by live sessions or checks.
     pub fn retired_generations(&self) -> Vec<u64> {
         lock(&self.inner.retired)
@@ -347,7 +394,10 @@ impl Inner {
         let mut retired = lock(&self.retired);
         retired.retain_mut(|r| {
             r.sessions.retain(|s| live.contains(s));
-            if !r.sessions.is_empty() || self.verifications.holds(r.generation) {
+            if !r.sessions.is_empty()
+                || self.verifications.holds(r.generation)
+                || self.copies.holds(r.generation)
+            {
                 return true;
             }
             match self.pool.drop_retired(r.generation) {
@@ -382,10 +432,7 @@ fn status_of(j: &Job) -> ImportStatus {
         inputs: j.inputs.clone(),
         progress,
         seconds,
-        submitted_unix: j
-            .submitted
-            .duration_since(UNIX_EPOCH)
-            .map_or(0.0, |d| d.as_secs_f64()),
+        submitted_unix: unix_seconds(j.submitted),
         error: outcome.and_then(|o| o.result.err()),
         treelets: figures.map(|f| f.0),
         voxels: figures.map(|f| f.1),
@@ -402,7 +449,8 @@ fn status_of(j: &Job) -> ImportStatus {
 /// showed clients at 74 % of their idle rate). Where `SCHED_IDLE` is refused, and for
 /// [`ImportPriority::Low`], nice [`IMPORT_NICE`].
 #[allow(unsafe_code)]
-fn lower_priority(priority: ImportPriority) {
+/// Lowers the calling thread's CPU priority to `priority`.
+pub(crate) fn lower_priority(priority: ImportPriority) {
     if priority == ImportPriority::Low {
         set_nice(None);
         return;

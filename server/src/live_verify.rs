@@ -27,16 +27,14 @@ use std::collections::BTreeMap;
 use std::ops::ControlFlow;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, mpsc};
-use std::time::{Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Instant, SystemTime};
 
 use serde::Serialize;
 
-use crate::live_import::{ImportPriority, background_threads, forget_oldest_finished, lock};
+use crate::jobs::{BackgroundJob, JobBoard};
+use crate::live_import::{ImportPriority, background_threads, lock, unix_seconds};
 use crate::pool::{Pool, PoolError, StoredScene};
 use crate::verify::{BATCH_TREELETS, VerifyProgress, VerifyReport, verify_scene_observed};
-
-/// Finished checks kept for `GET /v1/verifications`.
-const KEEP_FINISHED: usize = 64;
 
 /// Where a check stands.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -115,9 +113,16 @@ struct Outcome {
     result: Result<Option<VerifyReport>, String>,
 }
 
-impl Job {
+impl BackgroundJob for Job {
+    type Status = VerifyStatus;
+
     fn finished(&self) -> bool {
         lock(&self.outcome).is_some()
+    }
+
+    fn request_cancel(&self) {
+        self.cancelled.store(true, Ordering::Release);
+        tracing::info!(id = self.id, scene = %self.scene, "verification cancelled");
     }
 
     fn status(&self) -> VerifyStatus {
@@ -143,10 +148,7 @@ impl Job {
             treelets_planned: self.planned,
             treelets_checked: self.checked.load(Ordering::Relaxed),
             seconds,
-            submitted_unix: self
-                .submitted
-                .duration_since(UNIX_EPOCH)
-                .map_or(0.0, |d| d.as_secs_f64()),
+            submitted_unix: unix_seconds(self.submitted),
             error,
             report,
         }
@@ -158,9 +160,7 @@ impl Job {
 #[derive(Debug)]
 pub struct Verifications {
     pool: Pool,
-    jobs: Mutex<BTreeMap<u64, Arc<Job>>>,
-    next: AtomicU64,
-    queue: Mutex<mpsc::Sender<Arc<Job>>>,
+    board: JobBoard<Job>,
     tally: Arc<Tally>,
 }
 
@@ -220,9 +220,7 @@ impl Tally {
             f.ended[i] += 1;
         }
         if outcome != VerifyPhase::Cancelled {
-            let ended_unix = SystemTime::now()
-                .duration_since(UNIX_EPOCH)
-                .map_or(0.0, |d| d.as_secs_f64());
+            let ended_unix = unix_seconds(SystemTime::now());
             f.last.insert(
                 job.scene.clone(),
                 LastCheck {
@@ -247,9 +245,7 @@ impl Verifications {
             .spawn(move || run_worker(rx, priority, &worker_tally))?;
         Ok(Verifications {
             pool,
-            jobs: Mutex::new(BTreeMap::new()),
-            next: AtomicU64::new(1),
-            queue: Mutex::new(tx),
+            board: JobBoard::new(tx),
             tally,
         })
     }
@@ -286,7 +282,7 @@ impl Verifications {
         // The scene is opened under the jobs' lock: the reaper asks `holds` under it too, so a
         // generation it finds unheld cannot be opened here afterwards (it was unpublished before
         // it was retired).
-        let mut jobs = lock(&self.jobs);
+        let jobs = self.board.lock();
         let stored = self.pool.scene(scene)?.with_reads_apart();
         if let Some(j) = jobs.values().find(|j| {
             j.scene == scene
@@ -296,7 +292,7 @@ impl Verifications {
         }) {
             return Ok(j.id);
         }
-        let id = self.next.fetch_add(1, Ordering::Relaxed);
+        let id = self.board.next_id();
         let job = Arc::new(Job {
             id,
             scene: scene.to_owned(),
@@ -310,16 +306,13 @@ impl Verifications {
             clock: Instant::now(),
             outcome: Mutex::new(None),
         });
-        jobs.insert(id, job.clone());
-        forget_oldest_finished(&mut jobs, KEEP_FINISHED, Job::finished);
-        drop(jobs);
         tracing::info!(
             id,
             scene,
             generation = job.generation,
             "verification queued"
         );
-        if lock(&self.queue).send(job.clone()).is_err() {
+        if !self.board.add(jobs, id, job.clone()) {
             *lock(&job.outcome) = Some(Outcome {
                 seconds: 0.0,
                 result: Err("the verification worker has stopped".into()),
@@ -330,39 +323,29 @@ impl Verifications {
 
     /// One check's status.
     pub fn status(&self, id: u64) -> Option<VerifyStatus> {
-        lock(&self.jobs).get(&id).map(|j| j.status())
+        self.board.status(id)
     }
 
     /// Every check kept (queued, running, and the last finished ones), by id.
     pub fn list(&self) -> Vec<VerifyStatus> {
-        lock(&self.jobs).values().map(|j| j.status()).collect()
+        self.board.list()
     }
 
     /// Asks a queued or running check to stop (after the batch in hand); its status then says
     /// `cancelled`. `None`: no such check. A finished check is left as it is.
     pub fn cancel(&self, id: u64) -> Option<VerifyStatus> {
-        let jobs = lock(&self.jobs);
-        let job = jobs.get(&id)?;
-        if !job.finished() {
-            job.cancelled.store(true, Ordering::Release);
-            tracing::info!(id, scene = %job.scene, "verification cancelled");
-        }
-        Some(job.status())
+        self.board.cancel(id)
     }
 
     /// Whether a check that has not ended reads `generation` (the reaper keeps it meanwhile).
     pub fn holds(&self, generation: u64) -> bool {
-        lock(&self.jobs)
-            .values()
-            .any(|j| j.generation == generation && !j.finished())
+        self.board.any_running(|j| j.generation == generation)
     }
 }
 
 impl Drop for Verifications {
     fn drop(&mut self) {
-        for job in lock(&self.jobs).values() {
-            job.cancelled.store(true, Ordering::Release);
-        }
+        self.board.cancel_all();
     }
 }
 
@@ -462,9 +445,7 @@ mod tests {
         let (tx, rx) = mpsc::channel();
         let checks = Verifications {
             pool,
-            jobs: Mutex::new(BTreeMap::new()),
-            next: AtomicU64::new(1),
-            queue: Mutex::new(tx),
+            board: JobBoard::new(tx),
             tally: Arc::default(),
         };
         let threads = rayon::ThreadPoolBuilder::new()

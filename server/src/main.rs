@@ -15,6 +15,7 @@ use anyhow::{Context, Result, bail};
 use arbor_server::daemon::{AdminTokenOrigin, DaemonOptions};
 use arbor_server::import::tiles::TileOptions;
 use arbor_server::import::{Format, ImportOptions, RawSpec, SampleType};
+use arbor_server::live_copy::CopySummary;
 use arbor_server::live_import::ImportPriority;
 use arbor_server::logging::LogFormat;
 use arbor_server::octree::{BuildOptions, DepthChoice};
@@ -124,6 +125,18 @@ struct ImportArgs {
     files: Vec<PathBuf>,
 }
 
+/// `--server` and its token: a command a running daemon does instead, on the pool it serves.
+#[derive(Args, Debug)]
+struct DaemonArgs {
+    /// Ask a running daemon to do it, on the pool it serves: its admin API
+    /// (`http://127.0.0.1:9090`). Ctrl-C cancels the job there.
+    #[arg(long, conflicts_with = "db")]
+    server: Option<admin_client::AdminUrl>,
+    /// The admin token, for `--server` (default: $ARBOR_ADMIN_TOKEN).
+    #[arg(long, requires = "server")]
+    token_file: Option<PathBuf>,
+}
+
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Import a scan (OBJ, PLY, LAS/LAZ, NRRD, raw volume), or a set of point tiles, into the
@@ -158,13 +171,8 @@ enum Command {
         /// Pool directory (no process may hold it).
         #[arg(long, required_unless_present = "server")]
         db: Option<PathBuf>,
-        /// Ask a running daemon to check the scene instead: its admin API
-        /// (`http://127.0.0.1:9090`). Ctrl-C cancels the check there.
-        #[arg(long, conflicts_with = "db")]
-        server: Option<admin_client::AdminUrl>,
-        /// The admin token, for `--server` (default: $ARBOR_ADMIN_TOKEN).
-        #[arg(long, requires = "server")]
-        token_file: Option<PathBuf>,
+        #[command(flatten)]
+        daemon: DaemonArgs,
         #[arg(long)]
         scene: String,
         /// No progress bar.
@@ -189,16 +197,24 @@ enum Command {
     /// then renamed to the destination; a failed or killed copy leaves no pool there. The
     /// server's state files in the source directory (certificate, key, admin token, path memory)
     /// go with it; the list of hot pages does not (it names the old file's pages).
+    ///
+    /// A pool a daemon serves is copied by the daemon instead (`--server`, a backup or a new
+    /// replica's pool while it keeps serving): into a new directory under its `--copy-root`,
+    /// with the same check and rename, the scenes as published when asked for.
     #[command(after_help = "Examples:\n  \
         arbor-server copy --db pool --to pool-new\n  \
-        arbor-server copy --db pool --to lion-only --scene lion\n\n\
+        arbor-server copy --db pool --to lion-only --scene lion\n  \
+        arbor-server copy --server http://127.0.0.1:9090 --token-file pool/admin-token --to backup-2026-12-02\n\n\
         To replace a pool by its copy: stop the server, copy, then `mv pool pool-old && mv \
         pool-new pool`, start the server, and remove pool-old once it serves.")]
     Copy {
-        /// Pool directory to copy (only read).
-        #[arg(long)]
-        db: PathBuf,
-        /// New pool directory (must not exist).
+        /// Pool directory to copy (only read; no process may hold it).
+        #[arg(long, required_unless_present = "server")]
+        db: Option<PathBuf>,
+        #[command(flatten)]
+        daemon: DaemonArgs,
+        /// New pool directory (must not exist); with `--server`, the new directory's name
+        /// under the daemon's `--copy-root`.
         #[arg(long)]
         to: PathBuf,
         /// Copy only this scene (repeatable) [default: every scene].
@@ -221,6 +237,7 @@ enum Command {
         arbor-server serve --db pool --listen 127.0.0.1:0 --admin off --data-dir state\n  \
         arbor-server serve --db pool --import-root /srv/scans   (admin API may import files under it)\n  \
         arbor-server serve --db pool --check-every 24h          (checks every scene once a day)\n  \
+        arbor-server serve --db pool --copy-root /srv/backups   (admin API may copy the pool there)\n  \
         arbor-server serve --config /etc/arbor/serve.toml\n\n\
         Without --config every scene is public (development). The config file's keys are \
         documented in deploy/ and docs/config-schema.md; command-line flags override them.")]
@@ -257,6 +274,11 @@ enum Command {
         /// `low` (nice 10: an import always progresses, streaming slows while it runs).
         #[arg(long, value_enum, default_value_t = ImportPriority::Idle)]
         import_priority: ImportPriority,
+        /// Let the admin API copy the served pool into new directories under this one
+        /// (`POST /v1/copies`, `arbor-server copy --server`: backups, a new replica's pool)
+        /// while serving; without it copies are refused.
+        #[arg(long)]
+        copy_root: Option<PathBuf>,
         /// Check every published scene this often (`90s`, `30m`, `24h`, `7d`), as `verify
         /// --server` would, at the import priority: damage that appears on disk is found
         /// without anyone asking (`arbor_scene_check_ok` in /metrics) [default: never].
@@ -402,7 +424,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 "RSS MiB"
             );
             for d in pool.scenes()? {
-                let bytes = d.stats.node_bytes + d.stats.channel_bytes.iter().sum::<u64>();
+                let bytes = d.stats.stored_bytes();
                 line!(
                     out,
                     "{:<20} {:>6} {:>9} {:>5} {:>6} {:>9} {:>10} {:>11} {:>6.2} {:>8.2} {:>8.1}  {}",
@@ -442,8 +464,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Verify {
             db,
-            server,
-            token_file,
+            daemon: DaemonArgs { server, token_file },
             scene,
             quiet,
         } => {
@@ -493,10 +514,15 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Copy {
             db,
+            daemon: DaemonArgs { server, token_file },
             to,
             scene,
             quiet,
-        } => copy(&db, &to, &scene, quiet),
+        } => match (db, server) {
+            (_, Some(url)) => copy_remote(&url, token_file.as_deref(), &to, &scene, quiet),
+            (Some(db), None) => copy(&db, &to, &scene, quiet),
+            (None, None) => unreachable!("clap requires --db or --server"),
+        },
         Command::Serve {
             db,
             listen,
@@ -507,6 +533,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             import_root,
             import_scratch,
             import_priority,
+            copy_root,
             check_every,
             pool_prewarm,
         } => {
@@ -529,6 +556,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 import_scratch,
                 import_priority,
                 check_every,
+                copy_root,
             };
             let result = rt.block_on(serve(config, options));
             rt.shutdown_timeout(std::time::Duration::from_secs(1));
@@ -627,15 +655,9 @@ fn progress_bar(quiet: bool, template: &str) -> indicatif::ProgressBar {
 fn copy(db: &Path, to: &Path, scenes: &[String], quiet: bool) -> Result<ExitCode> {
     use arbor_server::pool::copy::{CopyOptions, CopyProgress, copy_pool};
     let bar = progress_bar(quiet, "copying [{bar:40}] {bytes}/{total_bytes}");
-    let carry_files = [
-        arbor_server::service::tls::CERT_FILE,
-        arbor_server::service::tls::KEY_FILE,
-        arbor_server::daemon::ADMIN_TOKEN_FILE,
-        arbor_server::service::path_memory::PATHS_FILE,
-    ];
     let options = CopyOptions {
         scenes,
-        carry_files: &carry_files,
+        carry_files: &arbor_server::live_copy::CARRIED_FILES,
         ..CopyOptions::default()
     };
     let report = copy_pool(db, to, &options, &|p| match p {
@@ -644,30 +666,20 @@ fn copy(db: &Path, to: &Path, scenes: &[String], quiet: bool) -> Result<ExitCode
     });
     bar.finish_and_clear();
     let report = report.with_context(|| format!("copying {} to {}", db.display(), to.display()))?;
-    let mut out = String::new();
-    for s in &report.scenes {
-        line!(
-            out,
-            "copied {}: {} packs, {} bytes",
-            s.name,
-            s.packs,
-            s.bytes
-        );
-    }
-    if !report.carried.is_empty() {
-        line!(out, "carried {}", report.carried.join(", "));
-    }
+    let (source_disk_bytes, reopens) = (report.source_disk_bytes, report.reopens);
+    let report = CopySummary::from(report);
+    let mut out = copied_lines(&report);
     line!(
         out,
         "{}: {} bytes on disk ({} in {}), written in {:.1} s, checked against the source in {:.1} s \
          (both pools opened again {} times, to bound sled's memory)",
         to.display(),
         report.disk_bytes,
-        report.source_disk_bytes,
+        source_disk_bytes,
         db.display(),
-        report.copy_time.as_secs_f64(),
-        report.check_time.as_secs_f64(),
-        report.reopens
+        report.copy_seconds,
+        report.check_seconds,
+        reopens
     );
     emit(&out)?;
     Ok(ExitCode::SUCCESS)
@@ -682,6 +694,35 @@ fn verify_remote(
     bar: &indicatif::ProgressBar,
 ) -> Result<verify::VerifyReport> {
     let token = admin_client::token(token_file)?;
+    let interrupted = ctrl_c_flag()?;
+    let done = admin_client::verify(url, &token, scene, &interrupted, &|planned, checked| {
+        bar.set_length(planned);
+        bar.set_position(checked);
+    })?;
+    serde_json::from_value(done["report"].clone())
+        .context("the daemon's answer has no readable report")
+}
+
+/// What a copy wrote, a line per scene and one for the carried files.
+fn copied_lines(report: &CopySummary) -> String {
+    let mut out = String::new();
+    for s in &report.scenes {
+        line!(
+            out,
+            "copied {}: {} packs, {} bytes",
+            s.name,
+            s.packs,
+            s.bytes
+        );
+    }
+    if !report.carried.is_empty() {
+        line!(out, "carried {}", report.carried.join(", "));
+    }
+    out
+}
+
+/// A flag set once Ctrl-C is pressed (watched on a thread of its own).
+fn ctrl_c_flag() -> Result<Arc<AtomicBool>> {
     let interrupted = Arc::new(AtomicBool::new(false));
     let flag = interrupted.clone();
     let signals = tokio::runtime::Builder::new_current_thread()
@@ -695,12 +736,49 @@ fn verify_remote(
             }
         })
     });
-    let done = admin_client::verify(url, &token, scene, &interrupted, &|planned, checked| {
+    Ok(interrupted)
+}
+
+/// `copy --server`: the daemon copies the pool it serves into `to` under its copy root.
+fn copy_remote(
+    url: &admin_client::AdminUrl,
+    token_file: Option<&Path>,
+    to: &Path,
+    scenes: &[String],
+    quiet: bool,
+) -> Result<ExitCode> {
+    let to = to
+        .to_str()
+        .filter(|t| arbor_server::live_copy::validate_destination(t).is_ok())
+        .with_context(|| {
+            format!(
+                "--to {}: with --server, a directory name under the daemon's --copy-root \
+                 (letters, digits, '-', '_', '.'; not starting with '.')",
+                to.display()
+            )
+        })?;
+    let token = admin_client::token(token_file)?;
+    let interrupted = ctrl_c_flag()?;
+    let bar = progress_bar(quiet, "copying [{bar:40}] {bytes}/{total_bytes}");
+    let done = admin_client::copy(url, &token, to, scenes, &interrupted, &|planned, copied| {
         bar.set_length(planned);
-        bar.set_position(checked);
-    })?;
-    serde_json::from_value(done["report"].clone())
-        .context("the daemon's answer has no readable report")
+        bar.set_position(copied);
+    });
+    bar.finish_and_clear();
+    let done = done?;
+    let report: CopySummary = serde_json::from_value(done["report"].clone())
+        .context("the daemon's answer has no readable report")?;
+    let mut out = copied_lines(&report);
+    line!(
+        out,
+        "{}: {} bytes on disk, written in {:.1} s, checked against the served pool in {:.1} s",
+        done["path"].as_str().unwrap_or(to),
+        report.disk_bytes,
+        report.copy_seconds,
+        report.check_seconds
+    );
+    emit(&out)?;
+    Ok(ExitCode::SUCCESS)
 }
 
 /// `import --server`: the same import, run by a daemon on files under its import root.
@@ -801,7 +879,7 @@ fn channel_names(d: &arbor_proto::SceneDescription) -> String {
 fn info_text(d: &arbor_proto::SceneDescription, disk: Option<u64>) -> String {
     let mut out = String::new();
     let s = &d.stats;
-    let pool_bytes = s.node_bytes + s.channel_bytes.iter().sum::<u64>();
+    let pool_bytes = s.stored_bytes();
     line!(out, "scene            {}", d.name);
     line!(out, "source           {}", d.source);
     line!(

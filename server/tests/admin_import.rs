@@ -4,7 +4,8 @@
 //! generation (it finishes on it; newcomers get the new one; the old trees go when it ends),
 //! removal, and the `arbor-server import --server` CLI. Checks of scenes while the daemon serves
 //! (`POST /v1/scenes/{name}/verify`): a sound scene, a damaged one, an unreadable one, by the
-//! API and by `arbor-server verify --server`.
+//! API and by `arbor-server verify --server`. Copies of the served pool (`POST /v1/copies`): the
+//! copy against the served scenes, refusals, metrics, and `arbor-server copy --server`.
 
 mod common;
 
@@ -84,6 +85,16 @@ impl Daemon {
     }
 
     async fn start_on(pool: TestPool, with_root: bool, check_every: Option<Duration>) -> Daemon {
+        Self::start_with(pool, |root| DaemonOptions {
+            import_root: with_root.then(|| root.to_owned()),
+            check_every,
+            ..DaemonOptions::default()
+        })
+        .await
+    }
+
+    /// A daemon on `pool` with the options `options` makes for its scratch root.
+    async fn start_with(pool: TestPool, options: impl FnOnce(&Path) -> DaemonOptions) -> Daemon {
         let root = tempfile::tempdir().unwrap();
         let mut config: ServeConfig = pool.config();
         config.admin_token = arbor_server::service::config::AdminTokenSource::Inline(ADMIN.into());
@@ -92,11 +103,7 @@ impl Daemon {
                 .scenes
                 .insert(scene.into(), SceneAccess::Tokens(vec![SCAN_TOKEN.into()]));
         }
-        let options = DaemonOptions {
-            import_root: with_root.then(|| root.path().to_owned()),
-            check_every,
-            ..DaemonOptions::default()
-        };
+        let options = options(root.path());
         let t0 = Instant::now();
         let server = loop {
             match arbor_server::daemon::start_with(config.clone(), options.clone()).await {
@@ -444,15 +451,19 @@ async fn check(d: &Daemon, scene: &str) -> Value {
     )
     .await;
     assert_eq!(status, 202, "{answer}");
-    let path = answer["status"].as_str().unwrap().to_owned();
+    follow(d, answer["status"].as_str().unwrap()).await
+}
+
+/// Polls a background job's status (a check, a copy) until it ends.
+async fn follow(d: &Daemon, path: &str) -> Value {
     let t0 = Instant::now();
     loop {
-        let (status, s) = http(d.admin, "GET", &path, ADMIN, "").await;
+        let (status, s) = http(d.admin, "GET", path, ADMIN, "").await;
         assert_eq!(status, 200, "{s}");
         if !["queued", "running"].contains(&s["phase"].as_str().unwrap()) {
             return s;
         }
-        assert!(t0.elapsed() < Duration::from_secs(60), "check stuck: {s}");
+        assert!(t0.elapsed() < Duration::from_secs(60), "{path} stuck: {s}");
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
 }
@@ -713,5 +724,172 @@ async fn every_scene_is_checked_each_period_and_metrics_say_how_it_went() {
     let metrics = text(d.admin, "/metrics").await;
     assert!(!metrics.contains("scene=\"holes\""), "{metrics}");
     bunny_streams(&d).await;
+    d.server.shutdown().await;
+}
+
+/// The daemon's pool copied while it serves: refusals first (token, names, unknown scene,
+/// disabled), then a copy of every scene, compared pack for pack with what the daemon serves,
+/// carrying its certificate, not counted as serving reads, in `/metrics` and on the page; the
+/// destination taken afterwards; and the CLI's copy of one scene.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_served_pool_is_copied_while_the_daemon_serves() {
+    let without = Daemon::start_on(TestPool::new(), false, None).await;
+    let (s, e) = http(without.admin, "POST", "/v1/copies", ADMIN, r#"{"to":"a"}"#).await;
+    assert_eq!(s, 403, "{e}");
+    assert!(e["error"].as_str().unwrap().contains("--copy-root"), "{e}");
+    without.server.shutdown().await;
+
+    let d = Daemon::start_with(TestPool::with_copies(&["second"]), |root| {
+        std::fs::create_dir(root.join("copies")).unwrap();
+        DaemonOptions {
+            copy_root: Some(root.join("copies")),
+            ..DaemonOptions::default()
+        }
+    })
+    .await;
+    let copies = d.root.path().join("copies");
+    let post = |body: &'static str, token: &'static str| {
+        let admin = d.admin;
+        async move { http(admin, "POST", "/v1/copies", token, body).await }
+    };
+    assert_eq!(post(r#"{"to":"a"}"#, "").await.0, 401);
+    for (body, status) in [
+        (r#"{"to":"../a"}"#, 400),
+        (r#"{"to":".a"}"#, 400),
+        (r#"{"to":"a/b"}"#, 400),
+        (r#"{"to":""}"#, 400),
+        (r#"{"to":"a","extra":1}"#, 400),
+        (r#"{"scenes":["bunny"]}"#, 400),
+        ("not json", 400),
+        (r#"{"to":"a","scenes":["nope"]}"#, 404),
+    ] {
+        let (s, e) = post(body, ADMIN).await;
+        assert_eq!(s, status, "{body}: {e}");
+        assert!(e["error"].is_string(), "{body}: {e}");
+    }
+    assert_eq!(std::fs::read_dir(&copies).unwrap().count(), 0);
+    let reads = serving_reads(&d).await;
+
+    let (s, answer) = post(r#"{"to":"backup"}"#, ADMIN).await;
+    assert_eq!(s, 202, "{answer}");
+    let done = follow(&d, answer["status"].as_str().unwrap()).await;
+    assert_eq!(done["phase"], "done", "{done}");
+    assert_eq!(done["bytes_copied"], done["bytes_planned"], "{done}");
+    let names: Vec<&str> = done["scenes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, [common::SCENE, "second"]);
+    let carried = &done["report"]["carried"];
+    assert_eq!(carried, &json!(["cert.pem", "key.pem"]), "{done}");
+    assert_eq!(
+        serving_reads(&d).await,
+        reads,
+        "the copy's reads were counted as serving"
+    );
+    let backup = copies.join("backup");
+    assert!(!copies.join(".backup.copy-partial").exists());
+    assert_eq!(
+        std::fs::read(backup.join("cert.pem")).unwrap(),
+        std::fs::read(d.pool.data_dir().join("cert.pem")).unwrap()
+    );
+    {
+        let copied = arbor_server::pool::Pool::open(&backup).unwrap();
+        for name in names {
+            let served = d.server.pool().scene(name).unwrap();
+            let scene = copied.scene(name).unwrap();
+            arbor_server::pool::copy::compare_scene(&served, &scene).unwrap();
+            assert!(arbor_server::verify::verify_scene(&scene).unwrap().is_ok());
+        }
+    }
+    bunny_streams(&d).await;
+    let (s, e) = post(r#"{"to":"backup"}"#, ADMIN).await;
+    assert_eq!(s, 409, "{e}");
+
+    let metrics = text(d.admin, "/metrics").await;
+    assert!(
+        metrics.contains("arbor_pool_copies_total{outcome=\"done\"} 1\n"),
+        "{metrics}"
+    );
+    let ended: f64 = metrics
+        .lines()
+        .find_map(|l| l.strip_prefix("arbor_pool_copy_last_done_seconds "))
+        .unwrap_or_else(|| panic!("no copy's end in {metrics}"))
+        .parse()
+        .unwrap();
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs_f64();
+    assert!(
+        (now - 60.0..=now + 1.0).contains(&ended),
+        "{ended} against {now}"
+    );
+    let page = text(d.admin, "/").await;
+    assert!(page.contains("<h2>Copies</h2>") && page.contains("compared with the source"));
+    let (s, all) = http(d.admin, "GET", "/v1/copies", ADMIN, "").await;
+    assert_eq!((s, all.as_array().unwrap().len()), (200, 1), "{all}");
+    for path in ["/v1/copies/999", "/v1/copies/x"] {
+        assert_eq!(http(d.admin, "GET", path, ADMIN, "").await.0, 404, "{path}");
+        assert_eq!(http(d.admin, "DELETE", path, ADMIN, "").await.0, 404);
+    }
+
+    // The CLI: one scene; a name that is not a plain directory name refused before asking.
+    let token_file = d.root.path().join("token");
+    std::fs::write(&token_file, ADMIN).unwrap();
+    let cli = |to: &str| {
+        let args: Vec<String> = [
+            "copy",
+            "--server",
+            &format!("http://{}", d.admin),
+            "--token-file",
+            &token_file.display().to_string(),
+            "--to",
+            to,
+            "--scene",
+            "second",
+            "--quiet",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        tokio::task::spawn_blocking(move || {
+            let o = std::process::Command::new(env!("CARGO_BIN_EXE_arbor-server"))
+                .args(args)
+                .output()
+                .unwrap();
+            let text = format!(
+                "{}{}",
+                String::from_utf8_lossy(&o.stdout),
+                String::from_utf8_lossy(&o.stderr)
+            );
+            (o.status.code(), text)
+        })
+    };
+    let (code, out) = cli("second-only").await.unwrap();
+    assert_eq!(code, Some(0), "{out}");
+    assert!(out.contains("copied second:"), "{out}");
+    let copied = arbor_server::pool::Pool::open(&copies.join("second-only")).unwrap();
+    let names: Vec<String> = copied
+        .scenes()
+        .unwrap()
+        .into_iter()
+        .map(|d| d.name)
+        .collect();
+    assert_eq!(names, ["second"]);
+    let (code, out) = cli("../escape").await.unwrap();
+    assert_eq!(code, Some(1), "{out}");
+    assert!(
+        out.contains("a directory name under the daemon's --copy-root"),
+        "{out}"
+    );
+    let (code, out) = cli("backup").await.unwrap();
+    assert_eq!(code, Some(1), "{out}");
+    assert!(
+        out.contains("409") && out.contains("already exists"),
+        "{out}"
+    );
     d.server.shutdown().await;
 }

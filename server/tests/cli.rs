@@ -215,6 +215,38 @@ fn help_has_examples_and_bad_parameters_are_named() {
         assert!(!o.status.success(), "--check-every {period} accepted");
         assert!(err.contains(needle), "{period}: {err}");
     }
+    // Copies: a copy root that cannot be read is named before anything serves; `copy` needs a
+    // source; `--to` with `--server` is a plain name, refused before any request.
+    assert!(h.contains("--copy-root"), "{h}");
+    let missing = dir.path().join("no-such-root");
+    let o = run(&[
+        "serve",
+        "--db",
+        &db,
+        "--listen",
+        "127.0.0.1:0",
+        "--admin",
+        "off",
+        "--copy-root",
+        missing.to_str().unwrap(),
+    ]);
+    let (_, err) = text(&o);
+    assert!(!o.status.success() && err.contains("--copy-root"), "{err}");
+    let o = run(&["copy", "--to", "x"]);
+    assert!(
+        !o.status.success() && text(&o).1.contains("--db"),
+        "{}",
+        text(&o).1
+    );
+    for to in ["../up", "a/b", ".hidden"] {
+        let o = run(&["copy", "--server", "http://127.0.0.1:9", "--to", to]);
+        let (_, err) = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{to}: {err}");
+        assert!(
+            err.contains("a directory name under the daemon's --copy-root"),
+            "{to}: {err}"
+        );
+    }
 }
 
 #[test]

@@ -755,6 +755,7 @@ fn an_older_pool_is_copied_whole_into_this_builds_layout() {
         scenes: &[],
         carry_files: &carry,
         reopen_after_bytes: 4096,
+        stop: None,
     };
     let planned = AtomicU64::new(0);
     let report = copy_pool(&older, &copy, &options, &|p| match p {
@@ -800,8 +801,7 @@ fn an_older_pool_is_copied_whole_into_this_builds_layout() {
             "{name}: every treelet has every block"
         );
         assert!(verify_scene(&b).unwrap().is_ok(), "{name}");
-        let st = &b.description.stats;
-        stored += st.node_bytes + st.channel_bytes.iter().sum::<u64>();
+        stored += b.description.stats.stored_bytes();
     }
     let lion_channels = copied
         .scene("lion")
@@ -971,4 +971,119 @@ fn a_copy_never_carries_damage_or_differences_unnamed() {
         "{text}"
     );
     assert!(!again.exists() && !partial_dir(&again).unwrap().exists());
+}
+
+/// The daemon's live copy reads a pool this process keeps open, by a `get` per pack: every
+/// scene comes back pack for pack (a pack missing from the middle of a source tree is missing
+/// in the copy too, and the compare agrees), resuming after its last pack at every reopening of
+/// the copy; the state files come from the directory given. A copy asked to stop — open source
+/// or closed — fails `Cancelled` and leaves neither the destination nor its partial directory.
+#[test]
+fn a_served_pool_is_copied_by_get_and_a_copy_stops_when_asked() {
+    use arbor_server::pool::copy::{
+        CopyError, CopyOptions, CopyProgress, compare_scene, copy_pool, copy_served, partial_dir,
+    };
+    use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+    let scratch = tempfile::tempdir().unwrap();
+    let source = bunny(scratch.path());
+    let root = tempfile::tempdir().unwrap();
+    let (src, state) = (root.path().join("src"), root.path().join("state"));
+    std::fs::create_dir(&state).unwrap();
+    std::fs::write(state.join("cert.pem"), "the daemon's certificate").unwrap();
+    let pool = Pool::open(&src).unwrap();
+    for name in ["b", "c"] {
+        import(&pool, &source, scratch.path(), name, false);
+    }
+    // A hole in the middle of b's node packs.
+    let gap = 1u32.to_be_bytes();
+    {
+        let b = pool.scene("b").unwrap();
+        let nodes = b.trees()[0].1;
+        assert!(nodes.len() > 2, "b needs three node packs");
+        nodes.remove(gap).unwrap().expect("pack 1 stored");
+    }
+
+    let copy = root.path().join("copy");
+    let (planned, copied) = (AtomicU64::new(0), AtomicU64::new(0));
+    let options = CopyOptions {
+        carry_files: &["cert.pem", "admin-token"],
+        reopen_after_bytes: 4096,
+        ..CopyOptions::default()
+    };
+    let report = copy_served(
+        &pool,
+        scenes_of(&pool),
+        &state,
+        &copy,
+        &options,
+        &|p| match p {
+            CopyProgress::Planned { bytes } => planned.store(bytes, Ordering::Relaxed),
+            CopyProgress::Copied(n) => drop(copied.fetch_add(n, Ordering::Relaxed)),
+        },
+    )
+    .unwrap();
+    assert!(report.reopens > 4, "{} reopenings", report.reopens);
+    assert_eq!(report.carried, ["cert.pem"]);
+    assert!(!partial_dir(&copy).unwrap().exists());
+    assert_eq!(
+        std::fs::read(copy.join("cert.pem")).unwrap(),
+        b"the daemon's certificate"
+    );
+    {
+        let copied_pool = reopen(&copy);
+        for name in ["b", "c"] {
+            let (a, b) = (pool.scene(name).unwrap(), copied_pool.scene(name).unwrap());
+            compare_scene(&a, &b).unwrap();
+        }
+        let b = copied_pool.scene("b").unwrap();
+        assert!(b.trees()[0].1.get(gap).unwrap().is_none(), "hole filled");
+        assert!(b.trees()[0].1.get(2u32.to_be_bytes()).unwrap().is_some());
+    }
+    let stored: u64 = scenes_of(&pool)
+        .iter()
+        .map(|s| s.description.stats.stored_bytes())
+        .sum();
+    assert_eq!(planned.load(Ordering::Relaxed), stored);
+    assert!(copied.load(Ordering::Relaxed) > 0);
+    assert!(
+        copied.load(Ordering::Relaxed) <= stored,
+        "the hole's blocks are not counted"
+    );
+
+    // Stopped after the first pack: nothing left, from an open source or a closed one.
+    let stop = AtomicBool::new(false);
+    let stopping = CopyOptions {
+        stop: Some(&stop),
+        ..CopyOptions::default()
+    };
+    let halted = root.path().join("halted");
+    let on_copied = |p| {
+        if let CopyProgress::Copied(_) = p {
+            stop.store(true, Ordering::Release);
+        }
+    };
+    let e = copy_served(
+        &pool,
+        scenes_of(&pool),
+        &state,
+        &halted,
+        &stopping,
+        &on_copied,
+    )
+    .unwrap_err();
+    assert!(matches!(e, CopyError::Cancelled), "{e}");
+    assert!(!halted.exists() && !partial_dir(&halted).unwrap().exists());
+    drop(pool);
+    stop.store(false, Ordering::Release);
+    let e = copy_pool(&src, &halted, &stopping, &on_copied).unwrap_err();
+    assert!(matches!(e, CopyError::Cancelled), "{e}");
+    assert!(!halted.exists() && !partial_dir(&halted).unwrap().exists());
+    // An existing destination is refused before anything is read.
+    let pool = reopen(&src);
+    let e = copy_served(&pool, scenes_of(&pool), &state, &copy, &options, &|_| {}).unwrap_err();
+    assert!(matches!(e, CopyError::DestinationExists(_)), "{e}");
+}
+
+fn scenes_of(pool: &Pool) -> Vec<arbor_server::pool::StoredScene> {
+    ["b", "c"].iter().map(|n| pool.scene(n).unwrap()).collect()
 }

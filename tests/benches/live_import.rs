@@ -77,7 +77,7 @@ async fn main() {
             Ok("low") => ImportPriority::Low,
             _ => ImportPriority::Idle,
         },
-        check_every: None,
+        ..DaemonOptions::default()
     };
     let served = Arc::new(serve_with("points/lion_takanawa.copc.laz", "lion", 1024, options).await);
     let admin = served.server.admin_addr.unwrap();

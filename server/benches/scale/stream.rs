@@ -11,9 +11,11 @@
 //! cache is dropped, and the first view from its successor (the same data directory, so the
 //! hot-page list the first left) is timed, in turns with the list removed before the restart.
 //!
-//! Unless `ARBOR_SCALE_CHECK=0`, then a view streamed while the same server checks the scene
+//! Unless `ARBOR_SCALE_CHECK=0`, then views streamed while the same server checks the scene
 //! (`arbor-server verify --server`, the daemon's live check), between a view before and one
-//! after: the check's time, and the server's RSS before, after and at its peak.
+//! after: the check's time, and the server's RSS before, after and at its peak. Unless
+//! `ARBOR_SCALE_COPY=0`, the same while a fresh server copies its pool into its data directory
+//! (`arbor-server copy --server`, the daemon's live copy).
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -201,6 +203,9 @@ impl Server {
         .arg(pool)
         .arg("--data-dir")
         .arg(state);
+        let copies = state.join("copies");
+        std::fs::create_dir_all(&copies).expect("making the copy root");
+        cmd.arg("--copy-root").arg(copies);
         if let Some(config) = config {
             let file = state.join("serve.toml");
             std::fs::write(&file, format!("default_access = \"public\"\n{config}\n")).unwrap();
@@ -380,7 +385,10 @@ pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
         }
     }
     if std::env::var("ARBOR_SCALE_CHECK").as_deref() != Ok("0") {
-        check_while_streaming(server_bin, pool, scene, &runtime);
+        job_while_streaming(server_bin, pool, scene, &runtime, AdminJob::Check);
+    }
+    if std::env::var("ARBOR_SCALE_COPY").as_deref() != Ok("0") {
+        job_while_streaming(server_bin, pool, scene, &runtime, AdminJob::Copy);
     }
     let rounds = std::env::var("ARBOR_SCALE_RESTART").ok().map_or(0, |v| {
         v.parse::<u32>()
@@ -397,68 +405,98 @@ pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
     );
 }
 
-/// A view before, during and after the server's live check of the scene
-/// (`arbor-server verify --server`, run as its operator would), from one server: the check's
-/// time and the server's memory around it.
-fn check_while_streaming(
+/// Background work a server does while it serves, asked for through its admin API.
+#[derive(Clone, Copy)]
+enum AdminJob {
+    /// `verify --server`: the live check of the scene.
+    Check,
+    /// `copy --server`: the live copy of the pool into the server's copy root.
+    Copy,
+}
+
+impl AdminJob {
+    fn name(self) -> &'static str {
+        match self {
+            AdminJob::Check => "check",
+            AdminJob::Copy => "copy",
+        }
+    }
+
+    /// The CLI's arguments that ask `server` for it.
+    fn args(self, server: &Server, scene: &str) -> Vec<String> {
+        let mut args: Vec<String> = match self {
+            AdminJob::Check => vec!["verify".into(), "--scene".into(), scene.into()],
+            AdminJob::Copy => vec!["copy".into(), "--to".into(), format!("{scene}-copy")],
+        };
+        args.extend([
+            "--quiet".into(),
+            "--server".into(),
+            server.admin.clone(),
+            "--token-file".into(),
+            server.admin_token_file.clone(),
+        ]);
+        args
+    }
+}
+
+/// A view before, during and after the server's live check of the scene or live copy of its
+/// pool (asked for by the CLI, as its operator would), from a fresh server: the job's time and
+/// the server's memory around it.
+fn job_while_streaming(
     server_bin: &str,
     pool: &Path,
     scene: &str,
     runtime: &tokio::runtime::Runtime,
+    job: AdminJob,
 ) {
+    let name = job.name();
     let server = Server::start(server_bin, pool, scene, None);
     let pid = server.child.id().to_string();
-    println!(" a live check of {scene} (verify --server) on a fresh server with visible cuts on:");
+    println!(
+        " a live {name} ({} --server) on a fresh server with visible cuts on:",
+        job.args(&server, scene)[0]
+    );
     stream_view(&server, "first view", runtime);
-    let before = stream_view(&server, "before the check", runtime);
+    let before = stream_view(&server, &format!("before the {name}"), runtime);
     let rss_before = process_status_mib(&pid, "VmRSS:");
     let started = std::time::Instant::now();
-    let check = Command::new(server_bin)
-        .args([
-            "verify",
-            "--quiet",
-            "--server",
-            &server.admin,
-            "--token-file",
-        ])
-        .arg(&server.admin_token_file)
-        .args(["--scene", scene])
+    let mut running = Command::new(server_bin)
+        .args(job.args(&server, scene))
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
-        .expect("starting arbor-server verify --server");
-    // Let the check get going, then stream views while it runs (at least one).
+        .unwrap_or_else(|e| panic!("starting the {name}: {e}"));
+    // Let the job get going, then stream views while it runs (at least one).
     std::thread::sleep(Duration::from_millis(500));
-    let mut check = check;
     let mut during = Vec::new();
     loop {
-        during.extend(stream_view(&server, "during the check", runtime));
-        if check.try_wait().expect("the check's status").is_some() {
+        during.extend(stream_view(&server, &format!("during the {name}"), runtime));
+        if running.try_wait().expect("the job's status").is_some() {
             break;
         }
     }
-    let out = check.wait_with_output().expect("waiting for the check");
-    let check_s = started.elapsed().as_secs_f64();
+    let out = running.wait_with_output().expect("waiting for the job");
+    let job_s = started.elapsed().as_secs_f64();
     assert!(
         out.status.success(),
-        "the live check failed: {}{}",
+        "the live {name} failed: {}{}",
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
     );
     println!(
-        "  the check: {check_s:.1} s, {}; server RSS {rss_before:.0} MiB before, {:.0} MiB after, peak {:.0} MiB",
+        "  the {name}: {job_s:.1} s, {}; server RSS {rss_before:.0} MiB before, {:.0} MiB after, peak {:.0} MiB",
         String::from_utf8_lossy(&out.stdout)
             .trim()
             .replace('\n', "; "),
         process_status_mib(&pid, "VmRSS:"),
         process_status_mib(&pid, "VmHWM:")
     );
-    let after = stream_view(&server, "after the check", runtime);
+    let after = stream_view(&server, &format!("after the {name}"), runtime);
     during.sort_by(f64::total_cmp);
     let seconds =
         |t: Option<f64>| t.map_or_else(|| "NOT converged".into(), |t| format!("{t:.2} s"));
     println!(
-        "  views converged in {} before the check, {} after; while it ran: median {} of {} views (the check's threads count in the server CPU above)",
+        "  views converged in {} before the {name}, {} after; while it ran: median {} of {} views (its threads count in the server CPU above)",
         seconds(before),
         seconds(after),
         seconds(during.get(during.len() / 2).copied()),

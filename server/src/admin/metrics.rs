@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use arbor_proto::SceneDescription;
 
+use crate::live_copy::{CopyFigures, OUTCOMES as COPY_OUTCOMES};
 use crate::live_verify::{CheckFigures, OUTCOMES};
 use crate::pool::{Pool, PoolError, PoolReadBuckets};
 use crate::prometheus::{Histogram, Kind, PromText};
@@ -47,13 +48,15 @@ pub(super) fn stream_bytes(d: &SceneDescription) -> Vec<(&'static str, u64)> {
 /// The whole `/metrics` body. `pool` is `None` when the pool could not be read: its families are
 /// still declared, without samples, and `arbor_pool_readable` is 0.
 /// `reads` are the pool handle's block read times, which need no catalogue read; `checks` the
-/// scene checks' figures (`None`: no scene manager, or the catalogue could not be read).
+/// scene checks' figures (`None`: no scene manager, or the catalogue could not be read);
+/// `copies` the pool copies' (`None`: no scene manager).
 pub(super) fn render(
     state: &ServiceState,
     uptime: Duration,
     reads: &Histogram<PoolReadBuckets>,
     pool: Option<&PoolFigures>,
     checks: Option<&CheckFigures>,
+    copies: Option<&CopyFigures>,
 ) -> String {
     let mut p = PromText::default();
     state.write_prometheus(&mut p);
@@ -124,7 +127,36 @@ pub(super) fn render(
     }
     scene_families(&mut p, pool.map_or(&[][..], |p| &p.scenes[..]));
     check_families(&mut p, checks);
+    copy_families(&mut p, copies);
     p.finish()
+}
+
+/// The pool copies' counters and when the last one succeeded.
+fn copy_families(p: &mut PromText, copies: Option<&CopyFigures>) {
+    p.family(
+        "arbor_pool_copies_total",
+        Kind::Counter,
+        "Copies of the served pool (POST /v1/copies, copy --server) ended since the start, by \
+         outcome: done, failed, cancelled.",
+    );
+    if let Some(c) = copies {
+        for (outcome, n) in COPY_OUTCOMES.iter().zip(c.ended) {
+            p.sample(
+                "arbor_pool_copies_total",
+                &[("outcome", outcome.as_str())],
+                n,
+            );
+        }
+    }
+    p.family(
+        "arbor_pool_copy_last_done_seconds",
+        Kind::Gauge,
+        "When the last copy that succeeded ended, seconds since the Unix epoch (alert when it \
+         is older than the backup period); no sample before the first.",
+    );
+    if let Some(t) = copies.and_then(|c| c.last_done_unix) {
+        p.sample("arbor_pool_copy_last_done_seconds", &[], t);
+    }
 }
 
 /// The scene checks' counters and each published scene's last check.
@@ -224,11 +256,16 @@ mod tests {
             &Histogram::default(),
             None,
             None,
+            None,
         );
         assert!(t.contains("arbor_pool_readable 0\n"), "{t}");
+        for counter in ["arbor_scene_checks_total", "arbor_pool_copies_total"] {
+            assert!(t.contains(&format!("# TYPE {counter} counter\n")), "{t}");
+        }
         assert!(
-            t.contains("# TYPE arbor_scene_checks_total counter\n"),
-            "{t}"
+            !t.lines()
+                .any(|l| l.starts_with("arbor_pool_copy_last_done_seconds")),
+            "a copy's end before any copy: {t}"
         );
         assert!(!t.contains("arbor_pool_scenes 0"), "{t}");
         let mut names: Vec<_> = t

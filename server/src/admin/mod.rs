@@ -21,6 +21,10 @@
 //! | `GET /v1/verifications` | token  | JSON array of checks (queued, running, last finished)    |
 //! | `GET /v1/verifications/{id}` | token | one check: phase, treelets checked, error or report |
 //! | `DELETE /v1/verifications/{id}` | token | cancels a check (after the batch in hand)        |
+//! | `POST /v1/copies`       | token  | copies the served pool under the copy root: `202` + copy id |
+//! | `GET /v1/copies`        | token  | JSON array of copies (queued, running, last finished)    |
+//! | `GET /v1/copies/{id}`   | token  | one copy: phase, bytes copied, error or summary          |
+//! | `DELETE /v1/copies/{id}` | token | cancels a copy (after the pack in hand; nothing is left) |
 //! | `GET /`                 | token  | HTML status page; without credentials, `303` to `/login` |
 //! | `GET /login`            | none   | HTML form asking for the token                           |
 //! | `POST /login`           | none   | form field `token`: sets the `arbor_admin` cookie, `303` |
@@ -43,8 +47,17 @@
 //! unknown scene; asking again while that generation's check is queued or running answers the
 //! same id. A check's `phase` is `queued`, `running`, `ok`, `problems` (the `report` lists them),
 //! `failed` (the pool could not be read: `error`) or `cancelled`.
+//!
+//! Pool copies (`copies.rs`, [`crate::live_copy`]): `POST /v1/copies` takes `{"to": NAME,
+//! "scenes": [names]}` (no scenes: every published scene) and copies them, as published now,
+//! into the new directory `NAME` under the daemon's `--copy-root`; `403` when copies are
+//! disabled, `400` for a name that is not a plain directory name, `409` when the destination
+//! exists or another copy writes it, `404` for an unknown scene. A copy's `phase` is `queued`,
+//! `running`, `done` (`report`: packs and bytes per scene, carried files, seconds), `failed`
+//! (`error`; nothing left at the destination) or `cancelled`.
 
 mod auth;
+mod copies;
 pub mod https;
 mod imports;
 mod metrics;
@@ -149,6 +162,11 @@ pub fn router_with_imports(ctx: AdminContext, imports: Option<LiveImports>) -> R
             "/v1/verifications/{id}",
             get(verifications::status).delete(verifications::cancel),
         )
+        .route("/v1/copies", get(copies::list).post(copies::submit))
+        .route(
+            "/v1/copies/{id}",
+            get(copies::status).delete(copies::cancel),
+        )
         .route("/v1/sessions", get(sessions))
         .route("/v1/paths", get(paths).delete(forget_paths))
         .route("/v1/server", get(server))
@@ -208,6 +226,31 @@ fn scene_name(name: Result<Path<String>, PathRejection>) -> Result<String, ApiEr
         return Err(PoolError::NoSuchScene(name).into());
     }
     Ok(name)
+}
+
+/// The daemon's scene manager, which the routes of background work reach; `403` when this
+/// admin API was started without one.
+fn manager(app: &Shared) -> Result<&LiveImports, ApiError> {
+    app.imports.as_ref().ok_or_else(|| {
+        ApiError::new(
+            StatusCode::FORBIDDEN,
+            "scene management is not mounted on this admin API",
+        )
+    })
+}
+
+/// A background job's id from the route's path; one that is not a number is `404`, like an
+/// unknown one.
+fn id_of(id: Result<Path<u64>, PathRejection>) -> Result<u64, ApiError> {
+    let Path(id) = id.map_err(|e| ApiError::new(StatusCode::NOT_FOUND, e.body_text()))?;
+    Ok(id)
+}
+
+/// A background job's status as JSON, or `404` saying there is no `what` with that id.
+fn job_answer<S: serde::Serialize>(status: Option<S>, what: &str) -> Result<Response, ApiError> {
+    let status = status
+        .ok_or_else(|| ApiError::new(StatusCode::NOT_FOUND, format!("no {what} with that id")))?;
+    Ok(axum::Json(status).into_response())
 }
 
 /// `202 Accepted` for background work: `Location` and `{"id", "status"}` name where its status
@@ -384,12 +427,14 @@ async fn prometheus(State(app): State<Shared>) -> Response {
             .and_then(Result::ok),
         None => None,
     };
+    let copies = app.imports.as_ref().map(|i| i.copies().figures());
     let body = metrics::render(
         &app.state,
         app.started.elapsed(),
         app.pool.read_times(),
         pool.ok().as_ref(),
         checks.as_ref(),
+        copies.as_ref(),
     );
     (
         StatusCode::OK,
@@ -454,7 +499,17 @@ async fn index(State(app): State<Shared>) -> Result<Response, ApiError> {
         .as_ref()
         .map(|i| i.verifications().list())
         .unwrap_or_default();
-    let body = page::status_page(&app.state, app.started.elapsed(), &pool, &imports, &checks);
+    let copies = app
+        .imports
+        .as_ref()
+        .map(|i| i.copies().list())
+        .unwrap_or_default();
+    let jobs = page::Jobs {
+        imports: &imports,
+        checks: &checks,
+        copies: &copies,
+    };
+    let body = page::status_page(&app.state, app.started.elapsed(), &pool, &jobs);
     Ok(html(&app, StatusCode::OK, body))
 }
 

@@ -13,6 +13,7 @@ use ring::digest;
 
 use super::metrics::{PoolFigures, stream_bytes};
 use super::views::kind_name;
+use crate::live_copy::{CopyPhase, CopyStatus};
 use crate::live_import::ImportStatus;
 use crate::live_verify::{VerifyPhase, VerifyStatus};
 use crate::service::state::{ServiceState, SessionInfo};
@@ -169,13 +170,19 @@ pub(super) fn login_page(message: Option<&str>) -> String {
     out
 }
 
+/// The background jobs the status page lists.
+pub(super) struct Jobs<'a> {
+    pub imports: &'a [ImportStatus],
+    pub checks: &'a [VerifyStatus],
+    pub copies: &'a [CopyStatus],
+}
+
 /// The status page.
 pub(super) fn status_page(
     state: &ServiceState,
     uptime: Duration,
     pool: &PoolFigures,
-    imports: &[ImportStatus],
-    checks: &[VerifyStatus],
+    jobs: &Jobs<'_>,
 ) -> String {
     let sessions = state.sessions();
     let mut out = head("Arbor server");
@@ -190,8 +197,9 @@ pub(super) fn status_page(
     status_section(&mut out, state, uptime, pool);
     traffic_section(&mut out, state, &sessions);
     scenes_section(&mut out, pool);
-    imports_section(&mut out, imports);
-    checks_section(&mut out, checks);
+    imports_section(&mut out, jobs.imports);
+    checks_section(&mut out, jobs.checks);
+    copies_section(&mut out, jobs.copies);
     sessions_section(&mut out, &sessions);
     out.push_str("</main>\n");
     let _ = write!(
@@ -280,6 +288,44 @@ fn checks_section(out: &mut String, checks: &[VerifyStatus]) {
             c.phase.as_str(),
             c.treelets_checked,
             c.treelets_planned,
+            c.seconds,
+            result
+        );
+    }
+    out.push_str("</table>\n");
+}
+
+/// Pool copies running, queued and finished (nothing when there were none).
+fn copies_section(out: &mut String, copies: &[CopyStatus]) {
+    if copies.is_empty() {
+        return;
+    }
+    out.push_str(
+        "<h2>Copies</h2>\n<table><tr><th class=\"n\">id</th><th>to</th><th>phase</th>\
+         <th class=\"n\">bytes</th><th class=\"n\">time</th><th>result</th></tr>\n",
+    );
+    for c in copies.iter().rev() {
+        let result = match (c.phase, &c.error) {
+            (CopyPhase::Done, _) => format!(
+                "<span class=\"badge ok\">compared with the source</span> {}",
+                escape(&c.path)
+            ),
+            (CopyPhase::Failed, Some(e)) => {
+                format!("<span class=\"badge bad\">failed</span> {}", escape(e))
+            }
+            _ => String::new(),
+        };
+        let scenes: Vec<&str> = c.scenes.iter().map(|s| s.name.as_str()).collect();
+        let _ = writeln!(
+            out,
+            "<tr><td class=\"n\">{}</td><td>{} <small>{}</small></td><td>{}</td>\
+             <td class=\"n\">{} / {}</td><td class=\"n\">{:.1} s</td><td>{}</td></tr>",
+            c.id,
+            escape(&c.to),
+            escape(&scenes.join(", ")),
+            c.phase.as_str(),
+            c.bytes_copied,
+            c.bytes_planned,
             c.seconds,
             result
         );

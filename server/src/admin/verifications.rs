@@ -4,29 +4,9 @@
 
 use axum::extract::rejection::PathRejection;
 use axum::extract::{Json, Path, State};
-use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 
-use super::{ApiError, Shared, accepted, scene_name};
-use crate::live_import::LiveImports;
-
-fn manager(app: &Shared) -> Result<&LiveImports, ApiError> {
-    app.imports.as_ref().ok_or_else(|| {
-        ApiError::new(
-            StatusCode::FORBIDDEN,
-            "scene management is not mounted on this admin API",
-        )
-    })
-}
-
-fn id_of(id: Result<Path<u64>, PathRejection>) -> Result<u64, ApiError> {
-    let Path(id) = id.map_err(|e| ApiError::new(StatusCode::NOT_FOUND, e.body_text()))?;
-    Ok(id)
-}
-
-fn unknown() -> ApiError {
-    ApiError::new(StatusCode::NOT_FOUND, "no verification with that id")
-}
+use super::{ApiError, Shared, accepted, id_of, job_answer, manager, scene_name};
 
 /// `POST /v1/scenes/{name}/verify`: `202` with `{"id", "status"}`; the check runs in the
 /// background on the generation published now.
@@ -54,8 +34,7 @@ pub(super) async fn status(
     id: Result<Path<u64>, PathRejection>,
 ) -> Result<Response, ApiError> {
     let id = id_of(id)?;
-    let status = manager(&app)?.verifications().status(id);
-    Ok(Json(status.ok_or_else(unknown)?).into_response())
+    job_answer(manager(&app)?.verifications().status(id), "verification")
 }
 
 /// `DELETE /v1/verifications/{id}`: stops a queued or running check after the batch in hand;
@@ -65,6 +44,5 @@ pub(super) async fn cancel(
     id: Result<Path<u64>, PathRejection>,
 ) -> Result<Response, ApiError> {
     let id = id_of(id)?;
-    let status = manager(&app)?.verifications().cancel(id);
-    Ok(Json(status.ok_or_else(unknown)?).into_response())
+    job_answer(manager(&app)?.verifications().cancel(id), "verification")
 }

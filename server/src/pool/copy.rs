@@ -25,11 +25,13 @@
 //! nothing is renamed then.
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use arbor_proto::SceneDescription;
 
 use super::{Pool, PoolError, StoredScene, channel_tree, decode_entry, nodes_tree, pack};
+use arbor_proto::ProtoError;
 
 /// Bytes of packs copied or compared between two openings of both pools (module docs).
 pub const REOPEN_AFTER_BYTES: u64 = 64 << 20;
@@ -62,6 +64,9 @@ pub enum CopyError {
     /// The copy, opened again, differs from the source (nothing was renamed to the destination).
     #[error("the copy of scene {scene:?} differs from the source: {what}")]
     Mismatch { scene: String, what: String },
+    /// Stopped on request ([`CopyOptions::stop`]); nothing was renamed to the destination.
+    #[error("the copy was cancelled")]
+    Cancelled,
     /// A file or directory operation failed.
     #[error("{what} {}: {source}", path.display())]
     Io {
@@ -80,15 +85,18 @@ fn io(what: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> CopyErr
 /// What to copy.
 #[derive(Debug)]
 pub struct CopyOptions<'a> {
-    /// The scenes to copy, by name; empty: every scene.
+    /// The scenes to copy, by name; empty: every scene ([`copy_pool`]; [`copy_served`] copies
+    /// the scenes it is given).
     pub scenes: &'a [String],
-    /// Files of the source directory copied beside the pool when present: the server's state
-    /// when its data directory is the pool directory (certificate, key, admin token, path
-    /// memory), so that a server on the copy keeps its identity.
+    /// Files of the source directory ([`copy_served`]: of the state directory it is given)
+    /// copied beside the pool when present: the server's state (certificate, key, admin token,
+    /// path memory), so that a server on the copy keeps its identity.
     pub carry_files: &'a [&'a str],
-    /// Bytes of packs copied or compared between two openings of both pools
+    /// Bytes of packs copied or compared between two openings of the pools
     /// ([`REOPEN_AFTER_BYTES`]; tests take less to reopen within a tree).
     pub reopen_after_bytes: u64,
+    /// Set from elsewhere to stop the copy after the pack in hand ([`CopyError::Cancelled`]).
+    pub stop: Option<&'a AtomicBool>,
 }
 
 impl Default for CopyOptions<'_> {
@@ -97,6 +105,7 @@ impl Default for CopyOptions<'_> {
             scenes: &[],
             carry_files: &[],
             reopen_after_bytes: REOPEN_AFTER_BYTES,
+            stop: None,
         }
     }
 }
@@ -150,7 +159,7 @@ pub fn partial_dir(dest: &Path) -> Result<PathBuf, CopyError> {
     Ok(dest.with_file_name(partial))
 }
 
-/// A scene to copy: its description and where its trees are in the source.
+/// A scene to copy: its description and its generation in the source.
 struct Planned {
     description: SceneDescription,
     generation: u64,
@@ -158,11 +167,11 @@ struct Planned {
 
 impl Planned {
     fn stored_bytes(&self) -> u64 {
-        let st = &self.description.stats;
-        st.node_bytes + st.channel_bytes.iter().sum::<u64>()
+        self.description.stats.stored_bytes()
     }
 
-    /// Each tree's label and its name in a pool where the scene is generation `generation`.
+    /// Each tree's label and its name in a pool where the scene is generation `generation`
+    /// (in [`StoredScene::trees`]'s order).
     fn trees(&self, generation: u64) -> Vec<(&'static str, String)> {
         let mut t = vec![("nodes", nodes_tree(generation))];
         t.extend(
@@ -188,11 +197,8 @@ pub fn copy_pool(
     if !super::is_pool(source_dir) {
         return Err(CopyError::NoSource(source_dir.to_owned()));
     }
-    if dest.symlink_metadata().is_ok() {
-        return Err(CopyError::DestinationExists(dest.to_owned()));
-    }
-    let partial = partial_dir(dest)?;
-    let (planned, planned_bytes, need, source_disk_bytes) = {
+    let partial = new_destination(dest)?;
+    let (planned, all_bytes, disk) = {
         let source = Pool::open_for_scan(source_dir)?;
         let disk = source.disk_bytes()?;
         let mut all = Vec::new();
@@ -221,13 +227,100 @@ pub fn copy_pool(
             }
             chosen
         };
-        let chosen_bytes: u64 = chosen.iter().map(Planned::stored_bytes).sum();
-        let need = if all_bytes == 0 {
-            0
-        } else {
-            (u128::from(disk) * u128::from(chosen_bytes) / u128::from(all_bytes)) as u64
-        };
-        (chosen, chosen_bytes, need, disk)
+        (chosen, all_bytes, disk)
+    };
+    let source = Source {
+        reading: Reading::Closed(source_dir),
+        dir: source_dir,
+        disk_bytes: disk,
+        all_bytes,
+    };
+    copy_planned(source, planned, dest, &partial, options, progress)
+}
+
+/// Copies `scenes`, opened from `pool`, which this process keeps open and serves from (the
+/// daemon's live copy, [`crate::live_copy`]), into the new pool directory `dest`, as
+/// [`copy_pool`] copies a closed pool: the same partial directory, check and rename. The caller
+/// keeps the scenes' generations' trees until this returns, whatever replaces the scenes
+/// meanwhile. The source is read by a `get` per pack, never by iterating a tree: sled keeps
+/// what iteration reads far past its cache until the pool is closed (module docs), and a
+/// served pool cannot be closed; reading the city's every pack by `get` left 96 MB resident,
+/// iterating 503 MB (docs/measurements.md, stop 71). `options.carry_files` are read from
+/// `state_dir`; `options.scenes` is not used.
+pub fn copy_served(
+    pool: &Pool,
+    scenes: Vec<StoredScene>,
+    state_dir: &Path,
+    dest: &Path,
+    options: &CopyOptions<'_>,
+    progress: &dyn Fn(CopyProgress),
+) -> Result<CopyReport, CopyError> {
+    let partial = new_destination(dest)?;
+    let planned: Vec<Planned> = scenes
+        .iter()
+        .map(|s| Planned {
+            description: s.description.clone(),
+            generation: s.generation,
+        })
+        .collect();
+    // A held generation the catalogue no longer names (replaced since) counts too.
+    let published: u64 = pool.scenes()?.iter().map(|d| d.stats.stored_bytes()).sum();
+    let chosen: u64 = planned.iter().map(Planned::stored_bytes).sum();
+    let source = Source {
+        reading: Reading::Served(scenes),
+        dir: state_dir,
+        disk_bytes: pool.disk_bytes()?,
+        all_bytes: published.max(chosen),
+    };
+    copy_planned(source, planned, dest, &partial, options, progress)
+}
+
+/// Refuses a destination that exists; the partial directory a copy to `dest` writes.
+fn new_destination(dest: &Path) -> Result<PathBuf, CopyError> {
+    if dest.symlink_metadata().is_ok() {
+        return Err(CopyError::DestinationExists(dest.to_owned()));
+    }
+    partial_dir(dest)
+}
+
+/// Where a copy reads, and what it knows of the source before it starts.
+struct Source<'a> {
+    reading: Reading<'a>,
+    /// Where the carried files are read.
+    dir: &'a Path,
+    /// The source's database on disk.
+    disk_bytes: u64,
+    /// Stored bytes of every scene of the source (the room a copy takes is estimated from the
+    /// disk bytes in proportion to the chosen scenes' share).
+    all_bytes: u64,
+}
+
+/// How the source's scenes are opened.
+enum Reading<'a> {
+    /// A pool directory no process has open: opened by the copy, and again after every
+    /// `reopen_after` bytes; each opening checks that no other process replaced or removed
+    /// the planned scenes meanwhile.
+    Closed(&'a Path),
+    /// Scenes of a pool this process keeps open, their trees kept by the caller.
+    Served(Vec<StoredScene>),
+}
+
+/// Copies the planned scenes of `source` into `partial`, checks the copy, and renames it to
+/// `dest`; removes `partial` when anything fails.
+fn copy_planned(
+    source: Source<'_>,
+    planned: Vec<Planned>,
+    dest: &Path,
+    partial: &Path,
+    options: &CopyOptions<'_>,
+    progress: &dyn Fn(CopyProgress),
+) -> Result<CopyReport, CopyError> {
+    let planned_bytes: u64 = planned.iter().map(Planned::stored_bytes).sum();
+    let need = if source.all_bytes == 0 {
+        0
+    } else {
+        (u128::from(source.disk_bytes) * u128::from(planned_bytes) / u128::from(source.all_bytes))
+            as u64
     };
     let parent = match partial.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_owned(),
@@ -246,34 +339,34 @@ pub fn copy_pool(
             path = %partial.display(),
             "removing the partial directory of an earlier copy that did not finish"
         );
-        std::fs::remove_dir_all(&partial).map_err(io("removing", &partial))?;
+        std::fs::remove_dir_all(partial).map_err(io("removing", partial))?;
     }
     progress(CopyProgress::Planned {
         bytes: planned_bytes,
     });
     let mut copy = Copy {
-        source_dir,
         planned_generations: planned
             .iter()
             .map(|p| (p.description.name.clone(), p.generation))
             .collect(),
-        source_disk_bytes,
-        partial: &partial,
-        pools: None,
+        source,
+        partial,
+        opened: None,
         reopen_after: options.reopen_after_bytes.max(1),
         since_reopen: 0,
         reopens: 0,
+        stop: options.stop,
     };
     let result = copy.write_and_check(&planned, options, progress);
     drop(copy);
     match result {
         Ok(report) => {
-            std::fs::rename(&partial, dest).map_err(io("renaming the copy to", dest))?;
+            std::fs::rename(partial, dest).map_err(io("renaming the copy to", dest))?;
             sync_dir(&parent)?;
             Ok(report)
         }
         Err(e) => {
-            if let Err(r) = std::fs::remove_dir_all(&partial) {
+            if let Err(r) = std::fs::remove_dir_all(partial) {
                 tracing::warn!(path = %partial.display(), "could not remove the failed copy: {r}");
             }
             Err(e)
@@ -281,41 +374,90 @@ pub fn copy_pool(
     }
 }
 
-/// Both pools of a copy in progress, opened again every `reopen_after` bytes.
+/// The source's planned scenes (in plan order) and the copy, while open.
+struct Opened {
+    /// A closed source's pool, opened by the copy; `None` for a served one.
+    _source: Option<Pool>,
+    scenes: Vec<StoredScene>,
+    copy: Pool,
+}
+
+/// A copy in progress: the pools it opens again every `reopen_after` bytes.
 struct Copy<'a> {
-    source_dir: &'a Path,
-    /// The planned scenes' names and generations in the source: checked at every opening.
+    source: Source<'a>,
+    /// The planned scenes' names and generations in the source: checked at every opening of a
+    /// closed source.
     planned_generations: Vec<(String, u64)>,
-    /// The source's database on disk when the copy began (for the report).
-    source_disk_bytes: u64,
     partial: &'a Path,
-    /// The source and the copy, while open.
-    pools: Option<(Pool, Pool)>,
+    opened: Option<Opened>,
     reopen_after: u64,
     since_reopen: u64,
     reopens: u32,
+    stop: Option<&'a AtomicBool>,
 }
 
 impl Copy<'_> {
-    /// The two pools, opened if they are not.
-    fn pools(&mut self) -> Result<&(Pool, Pool), CopyError> {
-        if self.pools.is_none() {
-            let source = Pool::open_for_scan(self.source_dir)?;
-            // Another process may have opened the source since the plan or the last opening.
-            // A scene replaced or removed meanwhile has had its trees dropped: opening them by
-            // name would make empty ones in the source and copy nothing, unnoticed.
-            for (name, generation) in &self.planned_generations {
-                source.scene_of_generation(name, *generation)?;
-            }
+    /// The source's scenes and the copy, opened if they are not.
+    fn opened(&mut self) -> Result<&Opened, CopyError> {
+        if self.opened.is_none() {
+            let (source, scenes) = match &self.source.reading {
+                Reading::Closed(dir) => {
+                    let source = Pool::open_for_scan(dir)?;
+                    // Another process may have opened the source since the plan or the last
+                    // opening, and replaced or removed a scene: its trees are gone.
+                    let scenes = self
+                        .planned_generations
+                        .iter()
+                        .map(|(name, generation)| source.scene_of_generation(name, *generation))
+                        .collect::<Result<Vec<_>, _>>()?;
+                    (Some(source), scenes)
+                }
+                Reading::Served(scenes) => (None, scenes.clone()),
+            };
             // Unpublished trees are the copy's own, written before the last reopening.
             let copy = Pool::open_for_scan(self.partial)?;
-            self.pools = Some((source, copy));
+            self.opened = Some(Opened {
+                _source: source,
+                scenes,
+                copy,
+            });
         }
-        Ok(self.pools.as_ref().expect("opened above"))
+        Ok(self.opened.as_ref().expect("opened above"))
     }
 
-    /// Counts `bytes` copied or compared; past `reopen_after` both pools are flushed and
-    /// closed (the next [`Copy::pools`] opens them again).
+    /// Tree `tree` (in [`StoredScene::trees`]'s order) of planned scene `scene` in the source,
+    /// and the tree named `to` in the copy.
+    fn tree_pair(
+        &mut self,
+        scene: usize,
+        tree: usize,
+        to: &str,
+    ) -> Result<(sled::Tree, sled::Tree), CopyError> {
+        let opened = self.opened()?;
+        let from = opened.scenes[scene].trees()[tree].1.clone();
+        let to = opened.copy.db.open_tree(to).map_err(PoolError::from)?;
+        Ok((from, to))
+    }
+
+    /// The source's packs of `tree` after `after`, read as this source is read.
+    fn source_packs(
+        &self,
+        tree: &sled::Tree,
+        after: Option<&sled::IVec>,
+    ) -> Result<SourcePacks, CopyError> {
+        let by_key = matches!(self.source.reading, Reading::Served(_));
+        Ok(SourcePacks::after(tree, after, by_key)?)
+    }
+
+    fn check_stop(&self) -> Result<(), CopyError> {
+        match self.stop {
+            Some(stop) if stop.load(Ordering::Acquire) => Err(CopyError::Cancelled),
+            _ => Ok(()),
+        }
+    }
+
+    /// Counts `bytes` copied or compared; past `reopen_after` the pools are flushed and
+    /// closed (the next [`Copy::opened`] opens them again).
     fn account(&mut self, bytes: u64) -> Result<(), CopyError> {
         self.since_reopen += bytes;
         if self.since_reopen >= self.reopen_after {
@@ -326,8 +468,8 @@ impl Copy<'_> {
     }
 
     fn close(&mut self) -> Result<(), CopyError> {
-        if let Some((_, copy)) = self.pools.take() {
-            copy.flush()?;
+        if let Some(opened) = self.opened.take() {
+            opened.copy.flush()?;
         }
         self.since_reopen = 0;
         Ok(())
@@ -344,18 +486,18 @@ impl Copy<'_> {
         let started = Instant::now();
         let mut copied = Vec::with_capacity(planned.len());
         let mut generations = Vec::with_capacity(planned.len());
-        for scene in planned {
-            let (c, generation) = self.copy_scene(scene, progress)?;
+        for (i, scene) in planned.iter().enumerate() {
+            let (c, generation) = self.copy_scene(i, scene, progress)?;
             copied.push(c);
             generations.push(generation);
         }
         self.close()?;
         let copy_time = started.elapsed();
         let started = Instant::now();
-        for (scene, &generation) in planned.iter().zip(&generations) {
-            self.check_scene(scene, generation)?;
+        for (i, (scene, &generation)) in planned.iter().zip(&generations).enumerate() {
+            self.check_scene(i, scene, generation)?;
         }
-        let (_, copy) = self.pools()?;
+        let copy = &self.opened()?.copy;
         let found = copy.catalogue.len();
         if found != planned.len() {
             return Err(CopyError::Mismatch {
@@ -368,7 +510,7 @@ impl Copy<'_> {
         let check_time = started.elapsed();
         let mut carried = Vec::new();
         for name in options.carry_files {
-            let from = self.source_dir.join(name);
+            let from = self.source.dir.join(name);
             if from.is_file() {
                 let to = self.partial.join(name);
                 std::fs::copy(&from, &to).map_err(io("copying", &from))?;
@@ -383,43 +525,42 @@ impl Copy<'_> {
             scenes: copied,
             carried,
             disk_bytes,
-            source_disk_bytes: self.source_disk_bytes,
+            source_disk_bytes: self.source.disk_bytes,
             copy_time,
             check_time,
             reopens: self.reopens,
         })
     }
 
-    /// Copies one scene's packs unchanged, tree by tree in key order, then publishes it in the
-    /// copy under a generation of the copy's own.
+    /// Copies planned scene `index`'s packs unchanged, tree by tree in key order, then
+    /// publishes it in the copy under a generation of the copy's own.
     fn copy_scene(
         &mut self,
+        index: usize,
         scene: &Planned,
         progress: &dyn Fn(CopyProgress),
     ) -> Result<(CopiedScene, u64), CopyError> {
         let name = &scene.description.name;
-        let generation = self.pools()?.1.db.generate_id().map_err(PoolError::from)?;
+        let generation = self
+            .opened()?
+            .copy
+            .db
+            .generate_id()
+            .map_err(PoolError::from)?;
         let mut done = CopiedScene {
             name: name.clone(),
             packs: 0,
             bytes: 0,
         };
-        for ((label, from), (_, to)) in scene
-            .trees(scene.generation)
-            .into_iter()
-            .zip(scene.trees(generation))
-        {
+        for (tree, (label, to)) in scene.trees(generation).into_iter().enumerate() {
             let mut after: Option<sled::IVec> = None;
             loop {
-                let (source, copy) = self.pools()?;
-                let (from_tree, to_tree) = (
-                    source.db.open_tree(&from).map_err(PoolError::from)?,
-                    copy.db.open_tree(&to).map_err(PoolError::from)?,
-                );
+                let (from_tree, to_tree) = self.tree_pair(index, tree, &to)?;
                 let mut stretch = 0;
                 let mut finished = true;
-                for entry in range_after(&from_tree, after.as_ref()) {
-                    let (key, value) = entry.map_err(PoolError::from)?;
+                for entry in self.source_packs(&from_tree, after.as_ref())? {
+                    self.check_stop()?;
+                    let (key, value) = entry?;
                     let blocks =
                         pack::block_bytes(&value).map_err(|source| PoolError::Corrupt {
                             what: format!("{label} pack {:?} of scene {name:?}", key.as_ref()),
@@ -453,7 +594,7 @@ impl Copy<'_> {
             })?;
         let mut entry = generation.to_be_bytes().to_vec();
         entry.extend_from_slice(&encoded);
-        let copy = &self.pools()?.1;
+        let copy = &self.opened()?.copy;
         copy.flush()?;
         copy.catalogue
             .insert(name.as_bytes(), entry)
@@ -462,11 +603,17 @@ impl Copy<'_> {
         Ok((done, generation))
     }
 
-    /// Compares one copied scene with its source: the catalogue entries' descriptions, then
-    /// every tree pack by pack, in stretches between reopenings.
-    fn check_scene(&mut self, scene: &Planned, generation: u64) -> Result<(), CopyError> {
+    /// Compares planned scene `index`'s copy (generation `generation`) with its source: the
+    /// catalogue entries' descriptions, then every tree pack by pack, in stretches between
+    /// reopenings.
+    fn check_scene(
+        &mut self,
+        index: usize,
+        scene: &Planned,
+        generation: u64,
+    ) -> Result<(), CopyError> {
         let name = &scene.description.name;
-        let stored = self.pools()?.1.scene(name)?;
+        let stored = self.opened()?.copy.scene(name)?;
         if stored.generation != generation || stored.description != scene.description {
             return Err(CopyError::Mismatch {
                 scene: name.clone(),
@@ -474,20 +621,15 @@ impl Copy<'_> {
             });
         }
         drop(stored);
-        for ((label, from), (_, to)) in scene
-            .trees(scene.generation)
-            .into_iter()
-            .zip(scene.trees(generation))
-        {
+        for (tree, (label, to)) in scene.trees(generation).into_iter().enumerate() {
             let mut after = None;
             loop {
-                let (source, copy) = self.pools()?;
-                let (a, b) = (
-                    source.db.open_tree(&from).map_err(PoolError::from)?,
-                    copy.db.open_tree(&to).map_err(PoolError::from)?,
-                );
+                self.check_stop()?;
+                let (a, b) = self.tree_pair(index, tree, &to)?;
                 let budget = self.reopen_after.saturating_sub(self.since_reopen);
-                let (compared, last) = compare_trees(name, label, &a, &b, after.as_ref(), budget)?;
+                let packs = self.source_packs(&a, after.as_ref())?;
+                let (compared, last) =
+                    compare_trees(name, label, packs, &b, after.as_ref(), budget)?;
                 drop((a, b));
                 self.account(compared)?;
                 match last {
@@ -511,13 +653,86 @@ fn range_after(tree: &sled::Tree, key: Option<&sled::IVec>) -> sled::Iter {
     }
 }
 
-/// Compares the packs of `a` (source) and `b` (copy) after `after`, until both end or `budget`
-/// bytes of `a` are compared; returns the bytes compared and, when the budget ran out first, the
-/// last key compared. Fails naming the first difference.
+/// A source tree's packs after a key, in key order.
+enum SourcePacks {
+    /// Iterating the tree (a pool the copy opened itself, and closes every `reopen_after`).
+    Iter(Box<sled::Iter>),
+    /// A `get` per pack index from `next` to the tree's last key (a served pool,
+    /// [`copy_served`]). A pool's pack keys are 4-byte indices; a tree whose last key is not
+    /// one is named as corrupt.
+    ByKey {
+        tree: sled::Tree,
+        next: u64,
+        last: Option<u64>,
+    },
+}
+
+impl SourcePacks {
+    fn after(
+        tree: &sled::Tree,
+        after: Option<&sled::IVec>,
+        by_key: bool,
+    ) -> Result<SourcePacks, PoolError> {
+        if !by_key {
+            return Ok(SourcePacks::Iter(Box::new(range_after(tree, after))));
+        }
+        let index = |key: &[u8]| -> Result<u64, PoolError> {
+            let key: [u8; 4] = key.try_into().map_err(|_| PoolError::Corrupt {
+                what: format!("pack key {key:?}"),
+                source: ProtoError::OutOfRange {
+                    what: "pack key",
+                    detail: "not a 4-byte pack index".into(),
+                },
+            })?;
+            Ok(u64::from(u32::from_be_bytes(key)))
+        };
+        let next = match after {
+            Some(k) => index(k)? + 1,
+            None => 0,
+        };
+        let last = match tree.last()? {
+            Some((k, _)) => Some(index(&k)?),
+            None => None,
+        };
+        Ok(SourcePacks::ByKey {
+            tree: tree.clone(),
+            next,
+            last,
+        })
+    }
+}
+
+impl Iterator for SourcePacks {
+    type Item = Result<(sled::IVec, sled::IVec), PoolError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        match self {
+            SourcePacks::Iter(packs) => packs.next().map(|p| p.map_err(PoolError::from)),
+            SourcePacks::ByKey { tree, next, last } => {
+                let last = (*last)?;
+                while *next <= last {
+                    let key = u32::try_from(*next).ok()?.to_be_bytes();
+                    *next += 1;
+                    match tree.get(key) {
+                        Ok(Some(pack)) => return Some(Ok((sled::IVec::from(&key[..]), pack))),
+                        Ok(None) => {}
+                        Err(e) => return Some(Err(e.into())),
+                    }
+                }
+                None
+            }
+        }
+    }
+}
+
+/// Compares the packs of `a` (the source's, in key order) with those of the copy's tree `b`
+/// after `after`, until both end or `budget` bytes of `a` are compared; returns the bytes
+/// compared and, when the budget ran out first, the last key compared. Fails naming the first
+/// difference.
 fn compare_trees(
     scene: &str,
     tree: &str,
-    a: &sled::Tree,
+    mut ia: SourcePacks,
     b: &sled::Tree,
     after: Option<&sled::IVec>,
     budget: u64,
@@ -526,11 +741,12 @@ fn compare_trees(
         scene: scene.to_owned(),
         what: format!("{tree}: {what}"),
     };
-    let (mut ia, mut ib) = (range_after(a, after), range_after(b, after));
+    let mut ib = range_after(b, after);
     let mut compared = 0;
     loop {
-        let next = |i: &mut sled::Iter| i.next().transpose().map_err(PoolError::from);
-        match (next(&mut ia)?, next(&mut ib)?) {
+        let a_next = ia.next().transpose()?;
+        let b_next = ib.next().transpose().map_err(PoolError::from)?;
+        match (a_next, b_next) {
             (None, None) => return Ok((compared, None)),
             (Some((k, _)), None) => {
                 return Err(mismatch(format!("pack {k:?} missing in the copy")));
@@ -567,16 +783,9 @@ pub fn compare_scene(source: &StoredScene, copy: &StoredScene) -> Result<(), Cop
             what: "the descriptions differ".into(),
         });
     }
-    let mut pairs = vec![("nodes", &source.nodes, &copy.nodes)];
-    pairs.extend(
-        source
-            .channels
-            .iter()
-            .zip(&copy.channels)
-            .map(|((c, from), (_, to))| (c.name(), from, to)),
-    );
-    for (tree, a, b) in pairs {
-        compare_trees(name, tree, a, b, None, u64::MAX)?;
+    for ((tree, a), (_, b)) in source.trees().into_iter().zip(copy.trees()) {
+        let packs = SourcePacks::after(a, None, false)?;
+        compare_trees(name, tree, packs, b, None, u64::MAX)?;
     }
     Ok(())
 }

@@ -35,7 +35,8 @@ pub enum PoolError {
     /// server serves it or an import writes it.
     #[error(
         "the pool {} is in use by another process (a server serving it, or an import): stop it \
-         first, or ask the server through its admin API (`import --server`, `verify --server`)",
+         first, or ask the server through its admin API (`import --server`, `verify --server`, \
+         `copy --server`)",
         .0.display()
     )]
     InUse(std::path::PathBuf),
@@ -208,6 +209,14 @@ impl StoredScene {
             Some((c, t)) => packed_blocks(t, c.name(), ids, &self.reads),
             None => Ok(vec![None; ids.len()]),
         }
+    }
+
+    /// The scene's trees with their names in reports: the nodes, then each channel of its
+    /// layout, in the layout's order.
+    pub fn trees(&self) -> Vec<(&'static str, &sled::Tree)> {
+        let mut trees = vec![("nodes", &self.nodes)];
+        trees.extend(self.channels.iter().map(|(c, t)| (c.name(), t)));
+        trees
     }
 
     /// This scene with its reads counted apart from the pool's read histogram (what

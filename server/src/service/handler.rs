@@ -172,7 +172,7 @@ impl Handler {
         // scene's mean stored treelet, so a fresh connection is not held to `window_min` until
         // the first tick (a whole small scene is sent before it).
         let stats = &scene.stored.description.stats;
-        let stored = stats.node_bytes + stats.channel_bytes.iter().sum::<u64>();
+        let stored = stats.stored_bytes();
         let mean = (stored / u64::from(scene.treelet_count().max(1))).max(256);
         let window = (2 * shared.config.initial_window).div_ceil(mean).clamp(
             shared.config.window_min as u64,

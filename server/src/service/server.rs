@@ -94,6 +94,9 @@ pub enum ServeError {
         #[source]
         source: std::io::Error,
     },
+    /// The daemon's scene manager (imports, checks, copies) could not start.
+    #[error(transparent)]
+    Manager(#[from] crate::live_import::ManagerError),
     /// The threads that read the pool could not be started.
     #[error("starting the pool's reader threads: {0}")]
     Readers(#[source] std::io::Error),

@@ -1,0 +1,750 @@
+//! Copies of the pool a running daemon serves (`POST /v1/copies`): a backup, or the pool for
+//! a new replica, made without stopping the server. sled locks a pool per process, so the
+//! stand-alone `arbor-server copy` needs the daemon stopped; this copy reads through the
+//! daemon's open pool instead.
+//!
+//! * **Where copies go**: only into a new directory directly under the configured copy root
+//!   (`serve --copy-root DIR`), named by the request (a plain directory name, never a path); a
+//!   destination that exists, or that another copy queued or running writes, is refused.
+//! * **What is copied**: the generations published when the copy was asked for (every scene,
+//!   or the ones named), whatever replaces them meanwhile; their trees are opened at submission
+//!   and a generation retired while a copy holds it is kept until the copy ends
+//!   ([`Copies::holds`], asked by the scene manager's reaper). The daemon's state files
+//!   (certificate, key, admin token, path memory) go with it, so a server on the copy keeps the
+//!   fingerprint clients pinned.
+//! * **The same guarantees as the stand-alone copy** ([`crate::pool::copy`]): written into a
+//!   partial directory beside the destination, opened again and compared with the source pack
+//!   by pack, renamed into place only then; a copy that fails, is cancelled or is killed leaves
+//!   no pool at the destination.
+//! * **Memory**: the source is read by a `get` per pack ([`copy_served`]), which sled's page
+//!   cache bounds; the copy's own pool is closed and opened again every 64 MiB.
+//! * **CPU**: one copy at a time, queued, on a worker thread at the import priority
+//!   ([`ImportPriority`]: `SCHED_IDLE` by default), so streaming keeps its rate.
+//! * **Cancellation**: `DELETE /v1/copies/{id}` ([`Copies::cancel`]), and every copy queued or
+//!   running when the scene manager is dropped, stops after the pack in hand and removes its
+//!   partial directory.
+//! * **Metrics**: copies ended by outcome, and when the last one succeeded
+//!   ([`Copies::figures`]): what an alert on a missing backup reads.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, mpsc};
+use std::time::{Instant, SystemTime};
+
+use serde::{Deserialize, Serialize};
+
+use crate::daemon::ADMIN_TOKEN_FILE;
+use crate::jobs::{BackgroundJob, JobBoard};
+use crate::live_import::{ImportPriority, lock, lower_priority, unix_seconds};
+use crate::pool::copy::{CopyError, CopyOptions, CopyProgress, CopyReport, copy_served};
+use crate::pool::{Pool, PoolError, StoredScene};
+use crate::service::path_memory::PATHS_FILE;
+use crate::service::tls::{CERT_FILE, KEY_FILE};
+
+/// The daemon's state files a copy carries (read from its data directory).
+pub const CARRIED_FILES: [&str; 4] = [CERT_FILE, KEY_FILE, ADMIN_TOKEN_FILE, PATHS_FILE];
+
+/// Longest destination name.
+const MAX_NAME_BYTES: usize = 128;
+
+/// Why a copy request was refused before it was queued. Each maps to an HTTP status in the
+/// admin API.
+#[derive(Debug, thiserror::Error)]
+pub enum LiveCopyError {
+    /// The daemon was started without a copy root.
+    #[error("copies are disabled: start the daemon with --copy-root DIR")]
+    Disabled,
+    /// The destination is not a plain directory name.
+    #[error(
+        "copy destination {0:?}: a directory name of 1 to 128 letters, digits, '-', '_' or '.', not starting with '.'"
+    )]
+    BadName(String),
+    /// The destination exists under the copy root (a copy never writes into a directory it did
+    /// not make), or a copy queued or running writes it.
+    #[error("copy destination {0:?} {1}")]
+    DestinationTaken(String, &'static str),
+    /// A scene asked for is not published, or the pool could not be read.
+    #[error(transparent)]
+    Pool(#[from] PoolError),
+}
+
+/// `POST /v1/copies`'s body.
+#[derive(Clone, Debug, Default, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct CopyRequest {
+    /// The new directory's name under the copy root.
+    pub to: String,
+    /// Scenes to copy; empty or absent: every published scene.
+    #[serde(default)]
+    pub scenes: Vec<String>,
+}
+
+/// Where a copy stands.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CopyPhase {
+    /// Waiting for the copy before it.
+    Queued,
+    Running,
+    /// Done: the copy is in place, compared with the source.
+    Done,
+    /// Nothing is left at the destination (the error says why).
+    Failed,
+    /// Cancelled before it ended; nothing is left at the destination.
+    Cancelled,
+}
+
+impl CopyPhase {
+    /// The phase as the API and `/metrics` name it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            CopyPhase::Queued => "queued",
+            CopyPhase::Running => "running",
+            CopyPhase::Done => "done",
+            CopyPhase::Failed => "failed",
+            CopyPhase::Cancelled => "cancelled",
+        }
+    }
+}
+
+/// The outcomes a copy can end with, as `/metrics` labels them.
+pub const OUTCOMES: [CopyPhase; 3] = [CopyPhase::Done, CopyPhase::Failed, CopyPhase::Cancelled];
+
+/// A scene a copy holds: its name and the generation copied.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CopySceneRef {
+    pub name: String,
+    pub generation: u64,
+}
+
+/// What a copy that ended wrote.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CopySummary {
+    /// Packs and bytes per scene.
+    pub scenes: Vec<CopiedSceneSummary>,
+    /// The state files carried.
+    pub carried: Vec<String>,
+    /// The copy's database on disk.
+    pub disk_bytes: u64,
+    /// Writing, then comparing with the source.
+    pub copy_seconds: f64,
+    pub check_seconds: f64,
+}
+
+/// One scene of a [`CopySummary`].
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CopiedSceneSummary {
+    pub name: String,
+    pub packs: u64,
+    pub bytes: u64,
+}
+
+impl From<CopyReport> for CopySummary {
+    fn from(r: CopyReport) -> Self {
+        CopySummary {
+            scenes: r
+                .scenes
+                .into_iter()
+                .map(|s| CopiedSceneSummary {
+                    name: s.name,
+                    packs: s.packs,
+                    bytes: s.bytes,
+                })
+                .collect(),
+            carried: r.carried,
+            disk_bytes: r.disk_bytes,
+            copy_seconds: r.copy_time.as_secs_f64(),
+            check_seconds: r.check_time.as_secs_f64(),
+        }
+    }
+}
+
+/// What `GET /v1/copies/{id}` answers.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct CopyStatus {
+    pub id: u64,
+    /// The destination's name under the copy root, and its path.
+    pub to: String,
+    pub path: String,
+    pub scenes: Vec<CopySceneRef>,
+    pub phase: CopyPhase,
+    /// Bytes of treelet blocks the scenes hold, and how many are copied so far.
+    pub bytes_planned: u64,
+    pub bytes_copied: u64,
+    /// Seconds since submission (until it ended, when it did).
+    pub seconds: f64,
+    /// Submission time, seconds since the Unix epoch.
+    pub submitted_unix: f64,
+    /// Why it failed.
+    pub error: Option<String>,
+    /// What was written, when done.
+    pub report: Option<CopySummary>,
+}
+
+#[derive(Debug)]
+struct Job {
+    id: u64,
+    to: String,
+    path: PathBuf,
+    scenes: Vec<CopySceneRef>,
+    /// The scenes' trees, until the worker takes them.
+    stored: Mutex<Option<Vec<StoredScene>>>,
+    started: AtomicBool,
+    cancelled: AtomicBool,
+    planned: u64,
+    copied: AtomicU64,
+    submitted: SystemTime,
+    clock: Instant,
+    outcome: Mutex<Option<Outcome>>,
+}
+
+#[derive(Clone, Debug)]
+struct Outcome {
+    seconds: f64,
+    phase: CopyPhase,
+    error: Option<String>,
+    report: Option<CopySummary>,
+}
+
+impl BackgroundJob for Job {
+    type Status = CopyStatus;
+
+    fn finished(&self) -> bool {
+        lock(&self.outcome).is_some()
+    }
+
+    fn request_cancel(&self) {
+        self.cancelled.store(true, Ordering::Release);
+        tracing::info!(id = self.id, to = %self.to, "copy cancelled");
+    }
+
+    fn status(&self) -> CopyStatus {
+        let outcome = lock(&self.outcome).clone();
+        let (phase, seconds, error, report) = match outcome {
+            Some(o) => (o.phase, o.seconds, o.error, o.report),
+            None => (
+                if self.started.load(Ordering::Acquire) {
+                    CopyPhase::Running
+                } else {
+                    CopyPhase::Queued
+                },
+                self.clock.elapsed().as_secs_f64(),
+                None,
+                None,
+            ),
+        };
+        CopyStatus {
+            id: self.id,
+            to: self.to.clone(),
+            path: self.path.display().to_string(),
+            scenes: self.scenes.clone(),
+            phase,
+            bytes_planned: self.planned,
+            bytes_copied: self.copied.load(Ordering::Relaxed),
+            seconds,
+            submitted_unix: unix_seconds(self.submitted),
+            error,
+            report,
+        }
+    }
+}
+
+/// What `/metrics` reports of the copies.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CopyFigures {
+    /// Copies ended since the daemon started, in [`OUTCOMES`] order.
+    pub ended: [u64; 3],
+    /// When the last successful copy ended, seconds since the Unix epoch.
+    pub last_done_unix: Option<f64>,
+}
+
+/// Where copies are written and what they carry.
+#[derive(Clone, Debug)]
+struct Places {
+    /// The copy root, canonicalized; `None`: copies disabled.
+    root: Option<PathBuf>,
+    /// The daemon's data directory (its state files).
+    state_dir: PathBuf,
+}
+
+/// The daemon's pool copies: a queue, its worker, and the copies kept for status. Held by the
+/// scene manager ([`crate::live_import::LiveImports`]), whose routes reach it.
+#[derive(Debug)]
+pub struct Copies {
+    pool: Pool,
+    places: Places,
+    board: JobBoard<Job>,
+    figures: Arc<Mutex<CopyFigures>>,
+}
+
+impl Copies {
+    /// Copies of `pool`'s scenes into new directories under `root` (`None`: copies refused),
+    /// carrying the state files of `state_dir`, run one at a time on a worker thread at
+    /// `priority`.
+    pub fn new(
+        pool: Pool,
+        root: Option<&Path>,
+        state_dir: &Path,
+        priority: ImportPriority,
+    ) -> std::io::Result<Copies> {
+        let root = root.map(std::fs::canonicalize).transpose()?;
+        let (tx, rx) = mpsc::channel::<Arc<Job>>();
+        let figures = Arc::new(Mutex::new(CopyFigures::default()));
+        let places = Places {
+            root,
+            state_dir: state_dir.to_owned(),
+        };
+        let worker = (pool.clone(), places.clone(), figures.clone());
+        std::thread::Builder::new()
+            .name("arbor-copy".into())
+            .spawn(move || {
+                lower_priority(priority);
+                let (pool, places, figures) = worker;
+                while let Ok(job) = rx.recv() {
+                    run_job(&pool, &places, &job, &figures);
+                }
+            })?;
+        Ok(Copies {
+            pool,
+            places,
+            board: JobBoard::new(tx),
+            figures,
+        })
+    }
+
+    /// Whether copies are enabled (a copy root is configured).
+    pub fn enabled(&self) -> bool {
+        self.places.root.is_some()
+    }
+
+    /// Checks and queues a copy; returns its id.
+    pub fn submit(&self, req: &CopyRequest) -> Result<u64, LiveCopyError> {
+        let root = self.places.root.as_ref().ok_or(LiveCopyError::Disabled)?;
+        validate_destination(&req.to)?;
+        let path = root.join(&req.to);
+        // The scenes are opened under the jobs' lock: the reaper asks `holds` under it too, so
+        // a generation it finds unheld cannot be opened here afterwards.
+        let jobs = self.board.lock();
+        if jobs.values().any(|j| j.to == req.to && !j.finished()) {
+            return Err(LiveCopyError::DestinationTaken(
+                req.to.clone(),
+                "is being written by another copy",
+            ));
+        }
+        if path.symlink_metadata().is_ok() {
+            return Err(LiveCopyError::DestinationTaken(
+                req.to.clone(),
+                "already exists under the copy root: a copy is made into a new directory",
+            ));
+        }
+        let names: Vec<String> = if req.scenes.is_empty() {
+            self.pool
+                .generations()?
+                .into_iter()
+                .map(|(n, _)| n)
+                .collect()
+        } else {
+            let mut names = req.scenes.clone();
+            names.sort();
+            names.dedup();
+            names
+        };
+        let stored = names
+            .iter()
+            .map(|n| Ok(self.pool.scene(n)?.with_reads_apart()))
+            .collect::<Result<Vec<StoredScene>, PoolError>>()?;
+        let id = self.board.next_id();
+        let scenes: Vec<CopySceneRef> = stored
+            .iter()
+            .map(|s| CopySceneRef {
+                name: s.description.name.clone(),
+                generation: s.generation,
+            })
+            .collect();
+        let planned = stored
+            .iter()
+            .map(|s| s.description.stats.stored_bytes())
+            .sum();
+        let job = Arc::new(Job {
+            id,
+            to: req.to.clone(),
+            path,
+            scenes,
+            stored: Mutex::new(Some(stored)),
+            started: AtomicBool::new(false),
+            cancelled: AtomicBool::new(false),
+            planned,
+            copied: AtomicU64::new(0),
+            submitted: SystemTime::now(),
+            clock: Instant::now(),
+            outcome: Mutex::new(None),
+        });
+        tracing::info!(id, to = %req.to, scenes = job.scenes.len(), "copy queued");
+        if !self.board.add(jobs, id, job.clone()) {
+            *lock(&job.outcome) = Some(Outcome {
+                seconds: 0.0,
+                phase: CopyPhase::Failed,
+                error: Some("the copy worker has stopped".into()),
+                report: None,
+            });
+        }
+        Ok(id)
+    }
+
+    /// One copy's status.
+    pub fn status(&self, id: u64) -> Option<CopyStatus> {
+        self.board.status(id)
+    }
+
+    /// Every copy kept (queued, running, and the last finished ones), by id.
+    pub fn list(&self) -> Vec<CopyStatus> {
+        self.board.list()
+    }
+
+    /// Asks a queued or running copy to stop (after the pack in hand); its status then says
+    /// `cancelled`. `None`: no such copy. A finished copy is left as it is.
+    pub fn cancel(&self, id: u64) -> Option<CopyStatus> {
+        self.board.cancel(id)
+    }
+
+    /// Whether a copy that has not ended reads `generation` (the reaper keeps it meanwhile).
+    pub fn holds(&self, generation: u64) -> bool {
+        self.board
+            .any_running(|j| j.scenes.iter().any(|s| s.generation == generation))
+    }
+
+    /// Copies ended by outcome, and when the last successful one ended.
+    pub fn figures(&self) -> CopyFigures {
+        lock(&self.figures).clone()
+    }
+}
+
+impl Drop for Copies {
+    fn drop(&mut self) {
+        self.board.cancel_all();
+    }
+}
+
+/// Refuses a destination that is not a plain directory name (no separator, no `..`, no hidden
+/// or partial directory of a copy).
+pub fn validate_destination(to: &str) -> Result<(), LiveCopyError> {
+    let plain = !to.is_empty()
+        && to.len() <= MAX_NAME_BYTES
+        && !to.starts_with('.')
+        && to
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'-' | b'_' | b'.'));
+    if plain {
+        Ok(())
+    } else {
+        Err(LiveCopyError::BadName(to.to_owned()))
+    }
+}
+
+/// Runs one copy (or records it cancelled, if it was before it started), and counts its
+/// outcome in `figures`.
+fn run_job(pool: &Pool, places: &Places, job: &Job, figures: &Mutex<CopyFigures>) {
+    let stored = lock(&job.stored).take();
+    let result = match stored {
+        Some(_) if job.cancelled.load(Ordering::Acquire) => Err(CopyError::Cancelled),
+        None => Err(CopyError::Mismatch {
+            scene: String::new(),
+            what: "the scenes' trees were already taken".into(),
+        }),
+        Some(scenes) => {
+            job.started.store(true, Ordering::Release);
+            tracing::info!(id = job.id, to = %job.to, "copy started");
+            let options = CopyOptions {
+                carry_files: &CARRIED_FILES,
+                stop: Some(&job.cancelled),
+                ..CopyOptions::default()
+            };
+            copy_served(pool, scenes, &places.state_dir, &job.path, &options, &|p| {
+                if let CopyProgress::Copied(n) = p {
+                    job.copied.fetch_add(n, Ordering::Relaxed);
+                }
+            })
+        }
+    };
+    let seconds = job.clock.elapsed().as_secs_f64();
+    let outcome = match result {
+        Ok(report) => {
+            tracing::info!(
+                id = job.id,
+                to = %job.to,
+                disk_bytes = report.disk_bytes,
+                seconds,
+                "copy done: compared with the source"
+            );
+            Outcome {
+                seconds,
+                phase: CopyPhase::Done,
+                error: None,
+                report: Some(report.into()),
+            }
+        }
+        Err(CopyError::Cancelled) => {
+            tracing::info!(id = job.id, to = %job.to, "copy stopped");
+            Outcome {
+                seconds,
+                phase: CopyPhase::Cancelled,
+                error: None,
+                report: None,
+            }
+        }
+        Err(e) => {
+            tracing::error!(id = job.id, to = %job.to, "copy failed: {e}");
+            Outcome {
+                seconds,
+                phase: CopyPhase::Failed,
+                error: Some(e.to_string()),
+                report: None,
+            }
+        }
+    };
+    {
+        let mut f = lock(figures);
+        if let Some(i) = OUTCOMES.iter().position(|&o| o == outcome.phase) {
+            f.ended[i] += 1;
+        }
+        if outcome.phase == CopyPhase::Done {
+            f.last_done_unix = Some(unix_seconds(SystemTime::now()));
+        }
+    }
+    *lock(&job.outcome) = Some(outcome);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::octree::{BuildOptions, DepthChoice};
+    use crate::pipeline::{SceneImport, Superseded, import_scene, import_scene_observed};
+    use crate::pool::copy::compare_scene;
+    use crate::progress::ImportProgress;
+
+    fn bunny_import(replace: bool) -> SceneImport {
+        let request = SceneImport {
+            name: "bunny".into(),
+            input: Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../../shared/data/meshes/stanford-bunny.obj"),
+            build: BuildOptions {
+                depth: DepthChoice::Fixed(6),
+                treelet_bytes: 1024,
+                progress: false,
+                ..BuildOptions::default()
+            },
+            replace,
+            ..SceneImport::default()
+        };
+        assert!(
+            request.input.exists(),
+            "the real scans in ../shared/data are required"
+        );
+        request
+    }
+
+    /// A pool holding the bunny, a copy root and a state directory, and copies whose queue
+    /// this test drains itself (no worker: every step is the test's).
+    struct Unstarted {
+        dir: tempfile::TempDir,
+        copies: Copies,
+        rx: mpsc::Receiver<Arc<Job>>,
+    }
+
+    fn unstarted() -> Unstarted {
+        let dir = tempfile::tempdir().unwrap();
+        let pool = Pool::open(&dir.path().join("pool")).unwrap();
+        import_scene(&pool, &bunny_import(false)).unwrap();
+        let root = dir.path().join("copies");
+        std::fs::create_dir(&root).unwrap();
+        std::fs::write(dir.path().join("pool").join(CERT_FILE), "certificate").unwrap();
+        let (tx, rx) = mpsc::channel();
+        let copies = Copies {
+            pool,
+            places: Places {
+                root: Some(std::fs::canonicalize(&root).unwrap()),
+                state_dir: dir.path().join("pool"),
+            },
+            board: JobBoard::new(tx),
+            figures: Arc::default(),
+        };
+        Unstarted { dir, copies, rx }
+    }
+
+    impl Unstarted {
+        fn run_next(&self) -> Arc<Job> {
+            let job = self.rx.try_recv().expect("a copy queued");
+            run_job(
+                &self.copies.pool,
+                &self.copies.places,
+                &job,
+                &self.copies.figures,
+            );
+            job
+        }
+    }
+
+    fn request(to: &str) -> CopyRequest {
+        CopyRequest {
+            to: to.into(),
+            scenes: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn phases_are_named_as_serde_names_them() {
+        for phase in [CopyPhase::Queued, CopyPhase::Running]
+            .into_iter()
+            .chain(OUTCOMES)
+        {
+            assert_eq!(serde_json::to_value(phase).unwrap(), phase.as_str());
+        }
+    }
+
+    #[test]
+    fn destinations_are_plain_names_under_the_root() {
+        for bad in [
+            "",
+            ".",
+            "..",
+            ".hidden",
+            "a/b",
+            "../up",
+            "/abs",
+            "a b",
+            "a\\b",
+            "ü",
+            &"x".repeat(129),
+        ] {
+            assert!(
+                matches!(validate_destination(bad), Err(LiveCopyError::BadName(_))),
+                "{bad:?} accepted"
+            );
+        }
+        for good in ["backup", "pool-2026-12-02", "a.b_c", &"x".repeat(128)] {
+            validate_destination(good).unwrap();
+        }
+    }
+
+    /// What a copy holds is what was published when it was asked for: the bunny replaced
+    /// before the copy runs is copied as it was, pack for pack, and its old generation is held
+    /// until the copy ends. Destinations are taken once; a copy cancelled while queued writes
+    /// nothing; the figures count each outcome; dropping the manager cancels what is queued.
+    #[test]
+    fn copies_hold_the_generations_published_when_asked_and_end_as_counted() {
+        let t = unstarted();
+        let copies = &t.copies;
+        let disabled = Copies::new(
+            copies.pool.clone(),
+            None,
+            t.dir.path(),
+            ImportPriority::Idle,
+        )
+        .unwrap();
+        assert!(!disabled.enabled() && copies.enabled());
+        assert!(matches!(
+            disabled.submit(&request("a")),
+            Err(LiveCopyError::Disabled)
+        ));
+        assert!(matches!(
+            copies.submit(&CopyRequest {
+                to: "a".into(),
+                scenes: vec!["nope".into()],
+            }),
+            Err(LiveCopyError::Pool(PoolError::NoSuchScene(_)))
+        ));
+        assert!(matches!(
+            copies.submit(&request("../a")),
+            Err(LiveCopyError::BadName(_))
+        ));
+
+        let old = copies.pool.scene("bunny").unwrap();
+        let first = copies.submit(&request("first")).unwrap();
+        assert!(matches!(
+            copies.submit(&request("first")),
+            Err(LiveCopyError::DestinationTaken(..))
+        ));
+        assert!(copies.holds(old.generation));
+        let s = copies.status(first).unwrap();
+        assert_eq!(s.phase, CopyPhase::Queued);
+        assert_eq!(
+            s.scenes,
+            [CopySceneRef {
+                name: "bunny".into(),
+                generation: old.generation
+            }]
+        );
+
+        // Replaced before the copy runs; the old generation's trees kept (as the daemon's
+        // reaper keeps them while `holds` says so).
+        let (_, retired) = import_scene_observed(
+            &copies.pool,
+            &bunny_import(true),
+            &ImportProgress::default(),
+            Superseded::Keep,
+        )
+        .unwrap();
+        assert_eq!(retired, Some(old.generation));
+        let job = t.run_next();
+        let s = job.status();
+        assert_eq!(s.phase, CopyPhase::Done, "{s:?}");
+        assert!(!copies.holds(old.generation));
+        assert_eq!(s.bytes_copied, s.bytes_planned);
+        let report = s.report.unwrap();
+        assert_eq!(report.carried, [CERT_FILE]);
+        assert_eq!(report.scenes[0].name, "bunny");
+        let dest = t.dir.path().join("copies").join("first");
+        {
+            let copied = Pool::open(&dest).unwrap();
+            let scene = copied.scene("bunny").unwrap();
+            compare_scene(&old, &scene).unwrap();
+            assert_ne!(
+                scene.description,
+                copies.pool.scene("bunny").unwrap().description,
+                "the replacement was copied"
+            );
+        }
+        assert!(matches!(
+            copies.submit(&request("first")),
+            Err(LiveCopyError::DestinationTaken(..))
+        ));
+
+        // Cancelled while queued: nothing written.
+        let second = copies.submit(&request("second")).unwrap();
+        assert_eq!(copies.cancel(second).unwrap().phase, CopyPhase::Queued);
+        t.run_next();
+        let s = copies.status(second).unwrap();
+        assert_eq!((s.phase, s.bytes_copied), (CopyPhase::Cancelled, 0));
+        assert!(!t.dir.path().join("copies").join("second").exists());
+        assert_eq!(copies.cancel(first).unwrap().phase, CopyPhase::Done);
+        assert!(copies.cancel(99).is_none());
+        let f = copies.figures();
+        assert_eq!(f.ended, [1, 0, 1]);
+        assert!(f.last_done_unix.is_some_and(|t| t > 1.7e9));
+        assert_eq!(
+            copies.list().iter().map(|s| s.id).collect::<Vec<_>>(),
+            [first, second]
+        );
+
+        // A copy that fails leaves nothing and says why; dropping the manager cancels.
+        let third = copies.submit(&request("third")).unwrap();
+        std::fs::create_dir(t.dir.path().join("copies").join("third")).unwrap();
+        t.run_next();
+        let s = copies.status(third).unwrap();
+        assert_eq!(s.phase, CopyPhase::Failed);
+        assert!(s.error.unwrap().contains("already exists"));
+        copies.submit(&request("fourth")).unwrap();
+        let Unstarted { dir, copies, rx } = t;
+        let (pool, places, figures) = (
+            copies.pool.clone(),
+            copies.places.clone(),
+            copies.figures.clone(),
+        );
+        drop(copies);
+        let job = rx.try_recv().unwrap();
+        run_job(&pool, &places, &job, &figures);
+        assert_eq!(job.status().phase, CopyPhase::Cancelled);
+        assert!(!dir.path().join("copies").join("fourth").exists());
+        assert_eq!(lock(&figures).ended, [1, 1, 2]);
+    }
+}
