@@ -15,7 +15,8 @@
 //! * **The same guarantees as the stand-alone copy** ([`crate::pool::copy`]): written into a
 //!   partial directory beside the destination, opened again and compared with the source pack
 //!   by pack, renamed into place only then; a copy that fails, is cancelled or is killed leaves
-//!   no pool at the destination.
+//!   no pool at the destination. The partial directories of copies killed with the daemon are
+//!   removed when it starts again.
 //! * **Memory**: the source is read by a `get` per pack ([`copy_served`]), which sled's page
 //!   cache bounds; the copy's own pool is closed and opened again every 64 MiB.
 //! * **CPU**: one copy at a time, queued, on a worker thread at the import priority
@@ -280,7 +281,8 @@ pub struct Copies {
 impl Copies {
     /// Copies of `pool`'s scenes into new directories under `root` (`None`: copies refused),
     /// carrying the state files of `state_dir`, run one at a time on a worker thread at
-    /// `priority`.
+    /// `priority`. The partial directories copies left under `root` when the daemon was
+    /// killed are removed first.
     pub fn new(
         pool: Pool,
         root: Option<&Path>,
@@ -288,6 +290,9 @@ impl Copies {
         priority: ImportPriority,
     ) -> std::io::Result<Copies> {
         let root = root.map(std::fs::canonicalize).transpose()?;
+        if let Some(root) = &root {
+            remove_partial_copies(root)?;
+        }
         let (tx, rx) = mpsc::channel::<Arc<Job>>();
         let figures = Arc::new(Mutex::new(CopyFigures::default()));
         let places = Places {
@@ -423,6 +428,24 @@ impl Drop for Copies {
     fn drop(&mut self) {
         self.board.cancel_all();
     }
+}
+
+/// Removes the partial directories (`.NAME.copy-partial`) of copies that did not end under
+/// `root`: nothing else writes there, and no copy runs before the manager starts.
+fn remove_partial_copies(root: &Path) -> std::io::Result<()> {
+    for entry in std::fs::read_dir(root)? {
+        let entry = entry?;
+        let name = entry.file_name();
+        let name = name.to_string_lossy();
+        if name.starts_with('.') && name.ends_with(".copy-partial") && entry.file_type()?.is_dir() {
+            tracing::warn!(
+                path = %entry.path().display(),
+                "removing the partial directory of a copy that did not end"
+            );
+            std::fs::remove_dir_all(entry.path())?;
+        }
+    }
+    Ok(())
 }
 
 /// Refuses a destination that is not a plain directory name (no separator, no `..`, no hidden
@@ -642,6 +665,29 @@ mod tests {
         )
         .unwrap();
         assert!(!disabled.enabled() && copies.enabled());
+        // A manager starting removes what copies killed with the daemon left, and only that.
+        let root = t.dir.path().join("copies");
+        for left in [".killed.copy-partial", ".other.copy-partial/db"] {
+            std::fs::create_dir_all(root.join(left)).unwrap();
+        }
+        std::fs::create_dir(root.join("kept")).unwrap();
+        std::fs::write(root.join(".note.copy-partial"), "a file, not a copy").unwrap();
+        let restarted = Copies::new(
+            copies.pool.clone(),
+            Some(&root),
+            t.dir.path(),
+            ImportPriority::Idle,
+        )
+        .unwrap();
+        let mut left: Vec<String> = std::fs::read_dir(&root)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        left.sort();
+        assert_eq!(left, [".note.copy-partial", "kept"]);
+        std::fs::remove_dir(root.join("kept")).unwrap();
+        std::fs::remove_file(root.join(".note.copy-partial")).unwrap();
+        drop(restarted);
         assert!(matches!(
             disabled.submit(&request("a")),
             Err(LiveCopyError::Disabled)

@@ -269,11 +269,16 @@ impl Verifications {
     /// Checks ended by outcome, and each published scene's last check of the generation
     /// published now (a replaced or removed scene's checks say nothing of what is served).
     pub fn figures(&self) -> Result<CheckFigures, PoolError> {
-        let published = self.pool.generations()?;
+        Ok(self.figures_of(&self.pool.generations()?))
+    }
+
+    /// [`Verifications::figures`], with the published scenes' names and generations already
+    /// read (`/metrics` reads the catalogue once per scrape).
+    pub fn figures_of(&self, published: &[(String, u64)]) -> CheckFigures {
         let mut f = lock(&self.tally.figures).clone();
         f.last
             .retain(|scene, last| published.contains(&(scene.clone(), last.generation)));
-        Ok(f)
+        f
     }
 
     /// Queues a check of the generation of `scene` published now; returns its id (the id of

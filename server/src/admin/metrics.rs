@@ -19,14 +19,22 @@ pub(super) const CONTENT_TYPE: &str = "text/plain; version=0.0.4; charset=utf-8"
 #[derive(Debug)]
 pub(super) struct PoolFigures {
     pub scenes: Vec<SceneDescription>,
+    /// Each scene's name and published generation, in `scenes`' order.
+    pub generations: Vec<(String, u64)>,
     pub disk_bytes: u64,
 }
 
 impl PoolFigures {
-    /// Blocking: decodes the catalogue and sizes the database directory.
+    /// Blocking: decodes the catalogue (once) and sizes the database directory.
     pub(super) fn read(pool: &Pool) -> Result<Self, PoolError> {
+        let (generations, scenes) = pool
+            .published()?
+            .into_iter()
+            .map(|(g, d)| ((d.name.clone(), g), d))
+            .unzip();
         Ok(Self {
-            scenes: pool.scenes()?,
+            scenes,
+            generations,
             disk_bytes: pool.disk_bytes()?,
         })
     }

@@ -420,12 +420,9 @@ async fn prometheus(State(app): State<Shared>) -> Response {
     if let Err(e) = &pool {
         tracing::warn!("admin /metrics: pool figures unavailable: {}", e.message);
     }
-    let checks = match app.imports.clone() {
-        Some(imports) => tokio::task::spawn_blocking(move || imports.verifications().figures())
-            .await
-            .ok()
-            .and_then(Result::ok),
-        None => None,
+    let checks = match (&app.imports, &pool) {
+        (Some(imports), Ok(pool)) => Some(imports.verifications().figures_of(&pool.generations)),
+        _ => None,
     };
     let copies = app.imports.as_ref().map(|i| i.copies().figures());
     let body = metrics::render(

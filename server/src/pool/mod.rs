@@ -542,10 +542,15 @@ impl Pool {
 
     /// All scenes, by name.
     pub fn scenes(&self) -> Result<Vec<SceneDescription>, PoolError> {
+        Ok(self.published()?.into_iter().map(|(_, d)| d).collect())
+    }
+
+    /// Every published scene's generation and description, by name.
+    pub fn published(&self) -> Result<Vec<(u64, SceneDescription)>, PoolError> {
         let mut out = Vec::new();
         for entry in self.catalogue.iter() {
             let (k, v) = entry?;
-            out.push(decode_entry(&k, &v)?.1);
+            out.push(decode_entry(&k, &v)?);
         }
         Ok(out)
     }
