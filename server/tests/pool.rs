@@ -977,7 +977,8 @@ fn a_copy_never_carries_damage_or_differences_unnamed() {
 /// scene comes back pack for pack (a pack missing from the middle of a source tree is missing
 /// in the copy too, and the compare agrees), resuming after its last pack at every reopening of
 /// the copy; the state files come from the directory given. A copy asked to stop — open source
-/// or closed — fails `Cancelled` and leaves neither the destination nor its partial directory.
+/// or closed — fails `Cancelled` and leaves neither the destination nor its partial directory;
+/// one without room on the destination's file system is refused before anything is written.
 #[test]
 fn a_served_pool_is_copied_by_get_and_a_copy_stops_when_asked() {
     use arbor_server::pool::copy::{
@@ -1082,6 +1083,31 @@ fn a_served_pool_is_copied_by_get_and_a_copy_stops_when_asked() {
     let pool = reopen(&src);
     let e = copy_served(&pool, scenes_of(&pool), &state, &copy, &options, &|_| {}).unwrap_err();
     assert!(matches!(e, CopyError::DestinationExists(_)), "{e}");
+    // A copy the destination's file system has no room for is refused before it writes: the
+    // pool made to look 8 TiB on disk (a sparse file where sled counts its blobs' sizes).
+    let huge = std::fs::File::create(src.join("blobs").join("sparse-for-the-test")).unwrap();
+    huge.set_len(8 << 40).unwrap();
+    let roomless = root.path().join("roomless");
+    let planned = AtomicBool::new(false);
+    let e = copy_served(
+        &pool,
+        scenes_of(&pool),
+        &state,
+        &roomless,
+        &options,
+        &|_| planned.store(true, Ordering::Relaxed),
+    )
+    .unwrap_err();
+    match &e {
+        CopyError::NoRoom { free, need, .. } => assert!(need > free, "{e}"),
+        other => panic!("not NoRoom: {other}"),
+    }
+    assert!(e.to_string().contains("bytes free"), "{e}");
+    assert!(
+        !planned.load(Ordering::Relaxed),
+        "progress before the room was checked"
+    );
+    assert!(!roomless.exists() && !partial_dir(&roomless).unwrap().exists());
 }
 
 fn scenes_of(pool: &Pool) -> Vec<arbor_server::pool::StoredScene> {
