@@ -28,10 +28,9 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use arbor_proto::SceneDescription;
+use arbor_proto::{ProtoError, SceneDescription};
 
 use super::{Pool, PoolError, StoredScene, channel_tree, decode_entry, nodes_tree, pack};
-use arbor_proto::ProtoError;
 
 /// Bytes of packs copied or compared between two openings of both pools (module docs).
 pub const REOPEN_AFTER_BYTES: u64 = 64 << 20;
