@@ -467,27 +467,25 @@ pub fn validate_destination(to: &str) -> Result<(), LiveCopyError> {
 /// Runs one copy (or records it cancelled, if it was before it started), and counts its
 /// outcome in `figures`.
 fn run_job(pool: &Pool, places: &Places, job: &Job, figures: &Mutex<CopyFigures>) {
-    let stored = lock(&job.stored).take();
-    let result = match stored {
-        Some(_) if job.cancelled.load(Ordering::Acquire) => Err(CopyError::Cancelled),
-        None => Err(CopyError::Mismatch {
-            scene: String::new(),
-            what: "the scenes' trees were already taken".into(),
-        }),
-        Some(scenes) => {
-            job.started.store(true, Ordering::Release);
-            tracing::info!(id = job.id, to = %job.to, "copy started");
-            let options = CopyOptions {
-                carry_files: &CARRIED_FILES,
-                stop: Some(&job.cancelled),
-                ..CopyOptions::default()
-            };
-            copy_served(pool, scenes, &places.state_dir, &job.path, &options, &|p| {
-                if let CopyProgress::Copied(n) = p {
-                    job.copied.fetch_add(n, Ordering::Relaxed);
-                }
-            })
-        }
+    // Taken once: a job is queued once, and the trees are let go when it ends.
+    let Some(scenes) = lock(&job.stored).take() else {
+        return;
+    };
+    let result = if job.cancelled.load(Ordering::Acquire) {
+        Err(CopyError::Cancelled)
+    } else {
+        job.started.store(true, Ordering::Release);
+        tracing::info!(id = job.id, to = %job.to, "copy started");
+        let options = CopyOptions {
+            carry_files: &CARRIED_FILES,
+            stop: Some(&job.cancelled),
+            ..CopyOptions::default()
+        };
+        copy_served(pool, scenes, &places.state_dir, &job.path, &options, &|p| {
+            if let CopyProgress::Copied(n) = p {
+                job.copied.fetch_add(n, Ordering::Relaxed);
+            }
+        })
     };
     let seconds = job.clock.elapsed().as_secs_f64();
     let outcome = match result {
