@@ -37,7 +37,9 @@ use serde::{Deserialize, Serialize};
 use crate::daemon::ADMIN_TOKEN_FILE;
 use crate::jobs::{BackgroundJob, JobBoard};
 use crate::live_import::{ImportPriority, lock, lower_priority, unix_seconds};
-use crate::pool::copy::{CopyError, CopyOptions, CopyProgress, CopyReport, copy_served};
+use crate::pool::copy::{
+    CopiedScene, CopyError, CopyOptions, CopyProgress, CopyReport, copy_served,
+};
 use crate::pool::{Pool, PoolError, StoredScene};
 use crate::service::path_memory::PATHS_FILE;
 use crate::service::tls::{CERT_FILE, KEY_FILE};
@@ -122,7 +124,7 @@ pub struct CopySceneRef {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CopySummary {
     /// Packs and bytes per scene.
-    pub scenes: Vec<CopiedSceneSummary>,
+    pub scenes: Vec<CopiedScene>,
     /// The state files carried.
     pub carried: Vec<String>,
     /// The copy's database on disk.
@@ -132,26 +134,10 @@ pub struct CopySummary {
     pub check_seconds: f64,
 }
 
-/// One scene of a [`CopySummary`].
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub struct CopiedSceneSummary {
-    pub name: String,
-    pub packs: u64,
-    pub bytes: u64,
-}
-
 impl From<CopyReport> for CopySummary {
     fn from(r: CopyReport) -> Self {
         CopySummary {
-            scenes: r
-                .scenes
-                .into_iter()
-                .map(|s| CopiedSceneSummary {
-                    name: s.name,
-                    packs: s.packs,
-                    bytes: s.bytes,
-                })
-                .collect(),
+            scenes: r.scenes,
             carried: r.carried,
             disk_bytes: r.disk_bytes,
             copy_seconds: r.copy_time.as_secs_f64(),

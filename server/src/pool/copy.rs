@@ -120,7 +120,7 @@ pub enum CopyProgress {
 }
 
 /// One scene copied.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct CopiedScene {
     pub name: String,
     /// Packs written, over all of the scene's trees.
