@@ -30,7 +30,10 @@
 //!   (`ARBOR_SCALE_RESTART_VIEW_AFTER_MS` after it serves, default 10000), in turns with and
 //!   without the hot-page list the first left (root, cgroup v1);
 //! * `ARBOR_SCALE_CHECK=0` — skip the view streamed while the server checks the scene
-//!   (`verify --server`);
+//!   (`verify --server`); `ARBOR_SCALE_COPY=0` — the same while it copies its pool (`copy
+//!   --server`); `ARBOR_SCALE_JOB_RATE=RATE` — those servers' `--background-read-rate` (`20MB`);
+//!   `ARBOR_SCALE_JOB_MEMORY_MIB`, `ARBOR_SCALE_JOB_SECONDS`, `ARBOR_SCALE_JOB_COLD_VIEWS`: in a
+//!   memory cgroup, stopped after a while, each view from the disk (`scale/stream.rs`);
 //! * `ARBOR_SCALE_SERVER_LOG=FILE` — append the stream step's servers' logs (stderr, with
 //!   `RUST_LOG` as set) to FILE instead of dropping them.
 //!

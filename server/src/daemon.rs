@@ -110,6 +110,9 @@ pub struct DaemonOptions {
     pub check_every: Option<std::time::Duration>,
     /// Directory under which `POST /v1/copies` makes pool copies; `None`: copies disabled.
     pub copy_root: Option<PathBuf>,
+    /// Bytes per second that checks and copies may read from the pool together (`None`: no
+    /// limit; [`crate::pace`]). `PUT /v1/background-reads` changes it while serving.
+    pub background_read_rate: Option<u64>,
 }
 
 /// Starts the daemon: the admin token, the treelet service, and (unless off) the admin listener

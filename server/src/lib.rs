@@ -17,8 +17,9 @@
 //! * [`admin`] is the axum admin API (health, readiness, metrics, scenes, sessions, status page),
 //!   its text metrics written through [`prometheus`];
 //! * [`daemon`] starts the service and mounts the admin API beside it — what `arbor-server
-//!   serve` runs; [`live_import`] imports and removes scenes in it, and [`live_verify`] checks
-//!   them, while it serves.
+//!   serve` runs; [`live_import`] imports and removes scenes in it, [`live_verify`] checks
+//!   them and [`live_copy`] copies the pool, while it serves, the checks' and copies' reads
+//!   held to the [`pace`] the operator sets.
 //!
 //! [`logging`] sets up the binaries' log lines (text, coloured only on a terminal, or JSON).
 //!
@@ -36,6 +37,7 @@ pub mod live_verify;
 pub mod logging;
 pub mod memory;
 pub mod octree;
+pub mod pace;
 pub mod pipeline;
 pub mod pool;
 pub mod progress;

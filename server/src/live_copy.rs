@@ -21,6 +21,9 @@
 //!   cache bounds; the copy's own pool is closed and opened again every 64 MiB.
 //! * **CPU**: one copy at a time, queued, on a worker thread at the import priority
 //!   ([`ImportPriority`]: `SCHED_IDLE` by default), so streaming keeps its rate.
+//! * **Disk**: every source pack read, for the copy and for the compare, takes its bytes from the
+//!   daemon's [`ReadPace`] (`serve --background-read-rate`, shared with checks); a cancelled
+//!   copy stops waiting.
 //! * **Cancellation**: `DELETE /v1/copies/{id}` ([`Copies::cancel`]), and every copy queued or
 //!   running when the scene manager is dropped, stops after the pack in hand and removes its
 //!   partial directory.
@@ -37,6 +40,7 @@ use serde::{Deserialize, Serialize};
 use crate::daemon::ADMIN_TOKEN_FILE;
 use crate::jobs::{BackgroundJob, JobBoard};
 use crate::live_import::{ImportPriority, lock, lower_priority, unix_seconds};
+use crate::pace::ReadPace;
 use crate::pool::copy::{
     CopiedScene, CopyError, CopyOptions, CopyProgress, CopyReport, copy_served,
 };
@@ -274,6 +278,7 @@ impl Copies {
         root: Option<&Path>,
         state_dir: &Path,
         priority: ImportPriority,
+        pace: Arc<ReadPace>,
     ) -> std::io::Result<Copies> {
         let root = root.map(std::fs::canonicalize).transpose()?;
         if let Some(root) = &root {
@@ -285,14 +290,14 @@ impl Copies {
             root,
             state_dir: state_dir.to_owned(),
         };
-        let worker = (pool.clone(), places.clone(), figures.clone());
+        let worker = (pool.clone(), places.clone(), figures.clone(), pace);
         std::thread::Builder::new()
             .name("arbor-copy".into())
             .spawn(move || {
                 lower_priority(priority);
-                let (pool, places, figures) = worker;
+                let (pool, places, figures, pace) = worker;
                 while let Ok(job) = rx.recv() {
-                    run_job(&pool, &places, &job, &figures);
+                    run_job(&pool, &places, &job, &figures, &pace);
                 }
             })?;
         Ok(Copies {
@@ -452,7 +457,7 @@ pub fn validate_destination(to: &str) -> Result<(), LiveCopyError> {
 
 /// Runs one copy (or records it cancelled, if it was before it started), and counts its
 /// outcome in `figures`.
-fn run_job(pool: &Pool, places: &Places, job: &Job, figures: &Mutex<CopyFigures>) {
+fn run_job(pool: &Pool, places: &Places, job: &Job, figures: &Mutex<CopyFigures>, pace: &ReadPace) {
     // Taken once: a job is queued once, and the trees are let go when it ends.
     let Some(scenes) = lock(&job.stored).take() else {
         return;
@@ -465,6 +470,7 @@ fn run_job(pool: &Pool, places: &Places, job: &Job, figures: &Mutex<CopyFigures>
         let options = CopyOptions {
             carry_files: &CARRIED_FILES,
             stop: Some(&job.cancelled),
+            pace: Some(pace),
             ..CopyOptions::default()
         };
         copy_served(pool, scenes, &places.state_dir, &job.path, &options, &|p| {
@@ -556,6 +562,7 @@ mod tests {
         dir: tempfile::TempDir,
         copies: Copies,
         rx: mpsc::Receiver<Arc<Job>>,
+        pace: Arc<ReadPace>,
     }
 
     fn unstarted() -> Unstarted {
@@ -575,7 +582,13 @@ mod tests {
             board: JobBoard::new(tx),
             figures: Arc::default(),
         };
-        Unstarted { dir, copies, rx }
+        let pace = Arc::new(ReadPace::new(None));
+        Unstarted {
+            dir,
+            copies,
+            rx,
+            pace,
+        }
     }
 
     impl Unstarted {
@@ -586,6 +599,7 @@ mod tests {
                 &self.copies.places,
                 &job,
                 &self.copies.figures,
+                &self.pace,
             );
             job
         }
@@ -646,6 +660,7 @@ mod tests {
             None,
             t.dir.path(),
             ImportPriority::Idle,
+            t.pace.clone(),
         )
         .unwrap();
         assert!(!disabled.enabled() && copies.enabled());
@@ -661,6 +676,7 @@ mod tests {
             Some(&root),
             t.dir.path(),
             ImportPriority::Idle,
+            t.pace.clone(),
         )
         .unwrap();
         let mut left: Vec<String> = std::fs::read_dir(&root)
@@ -764,7 +780,12 @@ mod tests {
         assert_eq!(s.phase, CopyPhase::Failed);
         assert!(s.error.unwrap().contains("already exists"));
         copies.submit(&request("fourth")).unwrap();
-        let Unstarted { dir, copies, rx } = t;
+        let Unstarted {
+            dir,
+            copies,
+            rx,
+            pace,
+        } = t;
         let (pool, places, figures) = (
             copies.pool.clone(),
             copies.places.clone(),
@@ -772,7 +793,7 @@ mod tests {
         );
         drop(copies);
         let job = rx.try_recv().unwrap();
-        run_job(&pool, &places, &job, &figures);
+        run_job(&pool, &places, &job, &figures, &pace);
         assert_eq!(job.status().phase, CopyPhase::Cancelled);
         assert!(!dir.path().join("copies").join("fourth").exists());
         assert_eq!(lock(&figures).ended, [1, 1, 2]);

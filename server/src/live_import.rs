@@ -33,6 +33,7 @@ use crate::import::{Format, ImportOptions};
 use crate::live_copy::Copies;
 use crate::live_verify::Verifications;
 use crate::octree::{BuildOptions, DepthChoice};
+use crate::pace::{self, PaceError, ReadPace};
 use crate::pipeline::{SceneImport, Superseded, import_scene_observed};
 use crate::pool::{Pool, PoolError};
 use crate::progress::{ImportProgress, Phase, ProgressSnapshot};
@@ -69,6 +70,9 @@ pub enum ManagerError {
     /// A worker thread could not be started.
     #[error("starting the scene manager's threads: {0}")]
     Threads(#[from] std::io::Error),
+    /// The background read rate is out of range.
+    #[error(transparent)]
+    Pace(#[from] PaceError),
 }
 
 fn root_error(
@@ -193,6 +197,7 @@ struct Inner {
     retired: Mutex<Vec<Retired>>,
     verifications: Verifications,
     copies: Copies,
+    pace: Arc<ReadPace>,
 }
 
 /// The guarded value, whether or not a thread panicked holding it (the jobs' state stays
@@ -242,6 +247,13 @@ impl LiveImports {
         state_dir: &Path,
     ) -> Result<LiveImports, ManagerError> {
         let priority = options.import_priority;
+        let pace = Arc::new(ReadPace::new(pace::validate(options.background_read_rate)?));
+        if let Some(rate) = options.background_read_rate {
+            tracing::info!(
+                rate = %pace::describe_rate(Some(rate)),
+                "checks and copies read the pool at most at this rate"
+            );
+        }
         let root = options
             .import_root
             .as_deref()
@@ -253,10 +265,11 @@ impl LiveImports {
             options.copy_root.as_deref(),
             state_dir,
             priority,
+            pace.clone(),
         )
         .map_err(root_error("--copy-root", &options.copy_root))?;
         let (tx, rx) = mpsc::channel::<Arc<Job>>();
-        let verifications = Verifications::new(pool.clone(), priority)?;
+        let verifications = Verifications::new(pool.clone(), priority, pace.clone())?;
         let inner = Arc::new(Inner {
             pool,
             root,
@@ -268,6 +281,7 @@ impl LiveImports {
             retired: Mutex::new(Vec::new()),
             verifications,
             copies,
+            pace,
         });
         let weak = Arc::downgrade(&inner);
         std::thread::Builder::new()
@@ -360,6 +374,11 @@ impl LiveImports {
     /// The pool copies ([`crate::live_copy`]).
     pub fn copies(&self) -> &Copies {
         &self.inner.copies
+    }
+
+    /// The pace the checks' and copies' reads keep ([`crate::pace`]).
+    pub fn background_reads(&self) -> &ReadPace {
+        &self.inner.pace
     }
 
     /// Generations retired but still read by live sessions or checks.

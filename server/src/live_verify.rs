@@ -12,6 +12,8 @@
 //!   out of it while it runs. Its reads are counted apart from the serving read histogram.
 //! * **CPU**: one check at a time, queued, on a worker thread whose rayon pool runs at the
 //!   import priority ([`ImportPriority`]: `SCHED_IDLE` by default), so streaming keeps its rate.
+//! * **Disk**: every pack a check reads takes its bytes from the daemon's [`ReadPace`]
+//!   (`serve --background-read-rate`, shared with copies); a cancelled check stops waiting.
 //! * **Cancellation**: `DELETE /v1/verifications/{id}` ([`Verifications::cancel`]), and every
 //!   check queued or running when the daemon's scene manager is dropped, stops after the batch
 //!   in hand.
@@ -33,6 +35,7 @@ use serde::Serialize;
 
 use crate::jobs::{BackgroundJob, JobBoard};
 use crate::live_import::{ImportPriority, background_threads, lock, unix_seconds};
+use crate::pace::ReadPace;
 use crate::pool::{Pool, PoolError, StoredScene};
 use crate::verify::{BATCH_TREELETS, VerifyProgress, VerifyReport, verify_scene_observed};
 
@@ -97,7 +100,8 @@ struct Job {
     /// The scene's trees, until the worker takes them.
     stored: Mutex<Option<StoredScene>>,
     started: AtomicBool,
-    cancelled: AtomicBool,
+    /// Shared with the scene's reads: a cancelled check stops waiting for the pace.
+    cancelled: Arc<AtomicBool>,
     /// Treelets the scene's description counts.
     planned: u64,
     checked: AtomicU64,
@@ -160,6 +164,7 @@ impl BackgroundJob for Job {
 #[derive(Debug)]
 pub struct Verifications {
     pool: Pool,
+    pace: Arc<ReadPace>,
     board: JobBoard<Job>,
     tally: Arc<Tally>,
 }
@@ -235,8 +240,13 @@ impl Tally {
 }
 
 impl Verifications {
-    /// Checks of `pool`'s scenes, run one at a time on a worker thread at `priority`.
-    pub fn new(pool: Pool, priority: ImportPriority) -> std::io::Result<Verifications> {
+    /// Checks of `pool`'s scenes, run one at a time on a worker thread at `priority`, their
+    /// reads held to `pace`.
+    pub fn new(
+        pool: Pool,
+        priority: ImportPriority,
+        pace: Arc<ReadPace>,
+    ) -> std::io::Result<Verifications> {
         let (tx, rx) = mpsc::channel::<Arc<Job>>();
         let tally = Arc::new(Tally::default());
         let worker_tally = tally.clone();
@@ -245,6 +255,7 @@ impl Verifications {
             .spawn(move || run_worker(rx, priority, &worker_tally))?;
         Ok(Verifications {
             pool,
+            pace,
             board: JobBoard::new(tx),
             tally,
         })
@@ -288,7 +299,12 @@ impl Verifications {
         // generation it finds unheld cannot be opened here afterwards (it was unpublished before
         // it was retired).
         let jobs = self.board.lock();
-        let stored = self.pool.scene(scene)?.with_reads_apart();
+        let cancelled = Arc::new(AtomicBool::new(false));
+        let stored = self
+            .pool
+            .scene(scene)?
+            .with_reads_apart()
+            .paced(self.pace.clone(), cancelled.clone());
         if let Some(j) = jobs.values().find(|j| {
             j.scene == scene
                 && j.generation == stored.generation
@@ -305,7 +321,7 @@ impl Verifications {
             planned: u64::from(stored.description.treelet_count),
             stored: Mutex::new(Some(stored)),
             started: AtomicBool::new(false),
-            cancelled: AtomicBool::new(false),
+            cancelled,
             checked: AtomicU64::new(0),
             submitted: SystemTime::now(),
             clock: Instant::now(),
@@ -450,6 +466,7 @@ mod tests {
         let (tx, rx) = mpsc::channel();
         let checks = Verifications {
             pool,
+            pace: Arc::new(ReadPace::new(None)),
             board: JobBoard::new(tx),
             tally: Arc::default(),
         };
@@ -538,7 +555,12 @@ mod tests {
         assert_eq!(job.status().phase, VerifyPhase::Cancelled);
 
         // A scene no longer published has no last check to report.
-        let checks = Verifications::new(pool.clone(), ImportPriority::Idle).unwrap();
+        let checks = Verifications::new(
+            pool.clone(),
+            ImportPriority::Idle,
+            Arc::new(ReadPace::new(None)),
+        )
+        .unwrap();
         *lock(&checks.tally.figures) = lock(&tally.figures).clone();
         assert!(checks.figures().unwrap().last.contains_key("bunny"));
         pool.remove("bunny").unwrap();

@@ -238,6 +238,7 @@ enum Command {
         arbor-server serve --db pool --import-root /srv/scans   (admin API may import files under it)\n  \
         arbor-server serve --db pool --check-every 24h          (checks every scene once a day)\n  \
         arbor-server serve --db pool --copy-root /srv/backups   (admin API may copy the pool there)\n  \
+        arbor-server serve --db pool --check-every 24h --background-read-rate 20MB\n  \
         arbor-server serve --config /etc/arbor/serve.toml\n\n\
         Without --config every scene is public (development). The config file's keys are \
         documented in deploy/ and docs/config-schema.md; command-line flags override them.")]
@@ -284,6 +285,11 @@ enum Command {
         /// without anyone asking (`arbor_scene_check_ok` in /metrics) [default: never].
         #[arg(long, value_parser = parse_period)]
         check_every: Option<std::time::Duration>,
+        /// Bytes per second that checks and copies may read from the pool together (`20MB`,
+        /// `512KiB`, `off`), so that they leave the disk to serving; `PUT
+        /// /v1/background-reads` changes it while serving [default: off].
+        #[arg(long, value_parser = parse_background_rate)]
+        background_read_rate: Option<BackgroundRate>,
         /// Read the pool's files into the page cache at start, so a fresh server's reads need
         /// not wait for the disk, the pages the last run had cached first: `auto` (the whole
         /// pool when it fits in half of the memory left, else only those pages), `always`, or
@@ -299,6 +305,16 @@ struct AdminArg(Option<SocketAddr>);
 
 fn parse_admin(s: &str) -> Result<AdminArg, String> {
     arbor_server::service::config::parse_admin_listen(s).map(AdminArg)
+}
+
+/// `--background-read-rate RATE|off`.
+#[derive(Clone, Copy, Debug)]
+struct BackgroundRate(Option<u64>);
+
+fn parse_background_rate(s: &str) -> Result<BackgroundRate, String> {
+    arbor_server::pace::parse_rate(s)
+        .map(BackgroundRate)
+        .map_err(|e| e.to_string())
 }
 
 /// A period: a whole number with `s`, `m`, `h` or `d`, at least a second.
@@ -535,6 +551,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             import_priority,
             copy_root,
             check_every,
+            background_read_rate,
             pool_prewarm,
         } => {
             let overrides = ConfigOverrides {
@@ -557,6 +574,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 import_priority,
                 check_every,
                 copy_root,
+                background_read_rate: background_read_rate.and_then(|r| r.0),
             };
             let result = rt.block_on(serve(config, options));
             rt.shutdown_timeout(std::time::Duration::from_secs(1));

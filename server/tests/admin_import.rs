@@ -300,6 +300,18 @@ async fn fetch_all_and_compare(
     }
 }
 
+/// Waits (at most 10 s) until the pool no longer stores `generation`'s trees.
+async fn dropped(d: &Daemon, generation: u64) {
+    let t0 = Instant::now();
+    while d.server.pool().stored_generations().contains(&generation) {
+        assert!(
+            t0.elapsed() < Duration::from_secs(10),
+            "generation {generation} kept"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn replacing_a_scene_lets_sessions_finish_on_their_generation() {
     let d = Daemon::start(true).await;
@@ -332,19 +344,7 @@ async fn replacing_a_scene_lets_sessions_finish_on_their_generation() {
 
     // The old generation goes once its last session ended.
     old_client.conn.close(0u32.into(), b"done");
-    let t0 = Instant::now();
-    while d
-        .server
-        .pool()
-        .stored_generations()
-        .contains(&old.generation)
-    {
-        assert!(
-            t0.elapsed() < Duration::from_secs(10),
-            "old generation kept"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
+    dropped(&d, old.generation).await;
     assert!(d.server.imports.retired_generations().is_empty());
 
     // Removal: unpublished at once; the live session still finishes on it.
@@ -891,5 +891,195 @@ async fn the_served_pool_is_copied_while_the_daemon_serves() {
         out.contains("409") && out.contains("already exists"),
         "{out}"
     );
+    d.server.shutdown().await;
+}
+
+/// Every pack of a scene's trees, by tree name and key.
+fn packs_of(scene: &arbor_server::pool::StoredScene) -> Vec<(&'static str, Vec<u8>, Vec<u8>)> {
+    scene
+        .trees()
+        .into_iter()
+        .flat_map(|(name, tree)| {
+            tree.iter()
+                .map(move |e| {
+                    let (k, v) = e.unwrap();
+                    (name, k.to_vec(), v.to_vec())
+                })
+                .collect::<Vec<_>>()
+        })
+        .collect()
+}
+
+/// A sample of the text metrics, by its line's prefix.
+fn sample(metrics: &str, prefix: &str) -> Option<f64> {
+    metrics
+        .lines()
+        .find_map(|l| l.strip_prefix(prefix))
+        .map(|v| v.trim().parse().unwrap())
+}
+
+/// Polls a job's status until `ready` holds of it.
+async fn until(d: &Daemon, path: &str, ready: impl Fn(&Value) -> bool) -> Value {
+    let t0 = Instant::now();
+    loop {
+        let (status, s) = http(d.admin, "GET", path, ADMIN, "").await;
+        assert_eq!(status, 200, "{s}");
+        if ready(&s) {
+            return s;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(60), "{path}: {s}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Checks and copies read at the daemon's background read rate, which the admin API changes
+/// while they run. A check and a copy slowed to it are running when the bunny is replaced: the
+/// reaper keeps the old generation while they read it, both end on it once the rate is lifted
+/// (the copy pack for pack the old generation), and the old generation goes after them. A
+/// copy at the slowest rate stops at once when cancelled (its reader waits no more).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn background_jobs_keep_the_read_rate_and_the_generation_they_read() {
+    let d = Daemon::start_with(TestPool::new(), |root| {
+        std::fs::create_dir(root.join("copies")).unwrap();
+        DaemonOptions {
+            import_root: Some(root.to_owned()),
+            copy_root: Some(root.join("copies")),
+            background_read_rate: Some(1_000),
+            ..DaemonOptions::default()
+        }
+    })
+    .await;
+    let put = |body: &'static str, token: &'static str| {
+        let admin = d.admin;
+        async move { http(admin, "PUT", "/v1/background-reads", token, body).await }
+    };
+    let (s, f) = http(d.admin, "GET", "/v1/background-reads", ADMIN, "").await;
+    assert_eq!(s, 200, "{f}");
+    assert_eq!(f["read_bytes_per_second"], 1_000, "{f}");
+    assert_eq!(put(r#"{"read_bytes_per_second":null}"#, "").await.0, 401);
+    for body in [
+        r#"{"read_bytes_per_second":5}"#,
+        r#"{"read_bytes_per_second":"fast"}"#,
+        r#"{"read_bytes_per_second":-1}"#,
+        r#"{"read_bytes_per_second":"2000TB"}"#,
+        r#"{"rate":1}"#,
+        "not json",
+    ] {
+        let (s, e) = put(body, ADMIN).await;
+        assert_eq!(s, 400, "{body}: {e}");
+        assert!(e["error"].is_string(), "{body}: {e}");
+    }
+    let (_, f) = http(d.admin, "GET", "/v1/background-reads", ADMIN, "").await;
+    assert_eq!(
+        f["read_bytes_per_second"], 1_000,
+        "a refused rate was set: {f}"
+    );
+
+    let old = d.server.pool().scene(common::SCENE).unwrap();
+    let old_packs = packs_of(&old);
+    let old_bytes: usize = old_packs.iter().map(|(_, _, v)| v.len()).sum();
+    assert!(
+        old_bytes > 80 * 1024,
+        "{old_bytes} bytes: the bunny's copy fits in the pace's burst"
+    );
+    let (s, copy) = http(d.admin, "POST", "/v1/copies", ADMIN, r#"{"to":"held"}"#).await;
+    assert_eq!(s, 202, "{copy}");
+    let copy = copy["status"].as_str().unwrap().to_owned();
+    let (s, check) = http(d.admin, "POST", "/v1/scenes/bunny/verify", ADMIN, "").await;
+    assert_eq!(s, 202, "{check}");
+    let check = check["status"].as_str().unwrap().to_owned();
+    until(&d, &copy, |s| {
+        s["phase"] == "running" && s["bytes_copied"].as_u64() > Some(0)
+    })
+    .await;
+    until(&d, &check, |s| s["phase"] == "running").await;
+
+    // The bunny replaced (2 KiB treelets: another treelet count) while both read it.
+    std::fs::copy(common::bunny_path(), d.root.path().join("bunny.obj")).unwrap();
+    let replaced = d
+        .import(
+            json!({"scene": "bunny", "inputs": ["bunny.obj"], "replace": true,
+                       "depth": 6, "treelet_bytes": 2048}),
+        )
+        .await;
+    assert_eq!(replaced["phase"], "done", "{replaced}");
+    let new = d.server.pool().scene(common::SCENE).unwrap();
+    assert_ne!(new.description.treelet_count, old.description.treelet_count);
+    tokio::time::sleep(Duration::from_millis(1_000)).await;
+    assert_eq!(d.server.imports.retired_generations(), [old.generation]);
+    assert!(
+        d.server
+            .pool()
+            .stored_generations()
+            .contains(&old.generation)
+    );
+    let (_, running) = http(d.admin, "GET", &copy, ADMIN, "").await;
+    assert_eq!(
+        running["phase"], "running",
+        "the copy outran the pace: {running}"
+    );
+    let metrics = text(d.admin, "/metrics").await;
+    assert_eq!(
+        sample(&metrics, "arbor_pool_background_read_rate_bytes "),
+        Some(1_000.0),
+        "{metrics}"
+    );
+    assert!(
+        sample(&metrics, "arbor_pool_background_wait_seconds_total ") > Some(0.0),
+        "{metrics}"
+    );
+
+    // The rate lifted: both end on the old generation, which then goes.
+    let (s, f) = put(r#"{"read_bytes_per_second":null}"#, ADMIN).await;
+    assert_eq!((s, &f["read_bytes_per_second"]), (200, &Value::Null), "{f}");
+    let copied = follow(&d, &copy).await;
+    assert_eq!(copied["phase"], "done", "{copied}");
+    let checked = follow(&d, &check).await;
+    assert_eq!(checked["phase"], "ok", "{checked}");
+    assert_eq!(checked["generation"], old.generation, "{checked}");
+    dropped(&d, old.generation).await;
+    assert!(d.server.imports.retired_generations().is_empty());
+    {
+        let held = arbor_server::pool::Pool::open(&d.root.path().join("copies/held")).unwrap();
+        let scene = held.scene(common::SCENE).unwrap();
+        assert_eq!(scene.description, old.description);
+        assert!(
+            packs_of(&scene) == old_packs,
+            "the copy is not the old generation"
+        );
+    }
+    let metrics = text(d.admin, "/metrics").await;
+    assert_eq!(
+        sample(&metrics, "arbor_pool_background_read_rate_bytes "),
+        None
+    );
+    let read = sample(&metrics, "arbor_pool_background_read_bytes_total ").unwrap();
+    // The copy read every pack twice (copied, then compared); the check read each at least once.
+    assert!(read >= 3.0 * old_bytes as f64, "{read} of {old_bytes}");
+
+    // At the slowest rate, a cancelled copy stops at once.
+    let (s, f) = put(r#"{"read_bytes_per_second":"1kB/s"}"#, ADMIN).await;
+    assert_eq!(
+        (s, &f["read_bytes_per_second"]),
+        (200, &json!(1_000)),
+        "{f}"
+    );
+    let (s, slow) = http(d.admin, "POST", "/v1/copies", ADMIN, r#"{"to":"slow"}"#).await;
+    assert_eq!(s, 202, "{slow}");
+    let slow = slow["status"].as_str().unwrap().to_owned();
+    until(&d, &slow, |s| {
+        s["phase"] == "running" && s["bytes_copied"].as_u64() > Some(0)
+    })
+    .await;
+    let t0 = Instant::now();
+    let (s, _) = http(d.admin, "DELETE", &slow, ADMIN, "").await;
+    assert_eq!(s, 200);
+    let stopped = follow(&d, &slow).await;
+    assert_eq!(stopped["phase"], "cancelled", "{stopped}");
+    // What was left to read would take minutes at 1 kB/s.
+    assert!(t0.elapsed() < Duration::from_secs(10), "{:?}", t0.elapsed());
+    assert!(!d.root.path().join("copies/slow").exists());
+    let page = text(d.admin, "/").await;
+    assert!(page.contains("Background reads (checks, copies): at most 1.0 kB/s"));
     d.server.shutdown().await;
 }

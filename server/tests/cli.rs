@@ -215,6 +215,22 @@ fn help_has_examples_and_bad_parameters_are_named() {
         assert!(!o.status.success(), "--check-every {period} accepted");
         assert!(err.contains(needle), "{period}: {err}");
     }
+    // The background read rate: units read, absurd rates named.
+    assert!(h.contains("--background-read-rate 20MB"), "{h}");
+    for (rate, needle) in [
+        ("fast", "expected a rate such as 20MB"),
+        ("1.5MB", "expected a rate such as 20MB"),
+        ("0", "outside 1 kB/s to 1 TB/s"),
+        ("5000GB", "outside 1 kB/s to 1 TB/s"),
+    ] {
+        let o = run(&["serve", "--db", &db, "--background-read-rate", rate]);
+        let (_, err) = text(&o);
+        assert!(
+            !o.status.success(),
+            "--background-read-rate {rate} accepted"
+        );
+        assert!(err.contains(needle), "{rate}: {err}");
+    }
     // Copies: a copy root that cannot be read is named before anything serves; `copy` needs a
     // source; `--to` with `--server` is a plain name, refused before any request.
     assert!(h.contains("--copy-root"), "{h}");

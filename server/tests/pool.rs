@@ -756,6 +756,7 @@ fn an_older_pool_is_copied_whole_into_this_builds_layout() {
         carry_files: &carry,
         reopen_after_bytes: 4096,
         stop: None,
+        pace: None,
     };
     let planned = AtomicU64::new(0);
     let report = copy_pool(&older, &copy, &options, &|p| match p {
@@ -1006,9 +1007,11 @@ fn a_served_pool_is_copied_by_get_and_a_copy_stops_when_asked() {
 
     let copy = root.path().join("copy");
     let (planned, copied) = (AtomicU64::new(0), AtomicU64::new(0));
+    let pace = arbor_server::pace::ReadPace::new(None);
     let options = CopyOptions {
         carry_files: &["cert.pem", "admin-token"],
         reopen_after_bytes: 4096,
+        pace: Some(&pace),
         ..CopyOptions::default()
     };
     let report = copy_served(
@@ -1025,6 +1028,22 @@ fn a_served_pool_is_copied_by_get_and_a_copy_stops_when_asked() {
     .unwrap();
     assert!(report.reopens > 4, "{} reopenings", report.reopens);
     assert_eq!(report.carried, ["cert.pem"]);
+    // Every source pack was read through the pace twice: copied, then compared.
+    let source_bytes: u64 = scenes_of(&pool)
+        .iter()
+        .flat_map(|s| {
+            s.trees()
+                .into_iter()
+                .map(|(_, t)| t.clone())
+                .collect::<Vec<_>>()
+        })
+        .flat_map(|t| {
+            t.iter()
+                .map(|e| e.unwrap().1.len() as u64)
+                .collect::<Vec<_>>()
+        })
+        .sum();
+    assert_eq!(pace.figures().read_bytes, 2 * source_bytes);
     assert!(!partial_dir(&copy).unwrap().exists());
     assert_eq!(
         std::fs::read(copy.join("cert.pem")).unwrap(),

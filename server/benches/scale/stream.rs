@@ -15,7 +15,11 @@
 //! (`arbor-server verify --server`, the daemon's live check), between a view before and one
 //! after: the check's time, and the server's RSS before, after and at its peak. Unless
 //! `ARBOR_SCALE_COPY=0`, the same while a fresh server copies its pool into its data directory
-//! (`arbor-server copy --server`, the daemon's live copy).
+//! (`arbor-server copy --server`, the daemon's live copy). `ARBOR_SCALE_JOB_RATE=RATE` gives
+//! those servers `--background-read-rate RATE` (`20MB`); `ARBOR_SCALE_JOB_MEMORY_MIB=N` starts
+//! them in a memory cgroup of N MiB (root, cgroup v1), the page cache dropped first;
+//! `ARBOR_SCALE_JOB_SECONDS=N` stops the job after N s (the CLI interrupted, which cancels it);
+//! `ARBOR_SCALE_JOB_COLD_VIEWS=1` drops the page cache before each timed view (root).
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -150,14 +154,40 @@ struct Server {
 impl Server {
     /// Starts serving `pool`, with `config` (TOML) when given; scenes are public either way.
     fn start(server_bin: &str, pool: &Path, scene: &str, config: Option<&str>) -> Server {
+        Server::start_with(server_bin, pool, scene, config, &[])
+    }
+
+    /// [`Server::start`] with more arguments for `serve`.
+    fn start_with(
+        server_bin: &str,
+        pool: &Path,
+        scene: &str,
+        config: Option<&str>,
+        args: &[String],
+    ) -> Server {
         let state = tempfile::tempdir().unwrap();
-        let mut server = Server::start_in(server_bin, pool, scene, config, state.path(), None);
+        let mut server =
+            Server::start_in(server_bin, pool, scene, config, state.path(), None, args);
         server._state = Some(state);
         server
     }
 
-    /// [`Server::start`] with the data directory `state`, in the memory cgroup (v1) `confined`
-    /// from its first instruction when given (a shell enters it, then runs the server).
+    /// A server with scenes public, on the data directory `state`, in the memory cgroup (v1)
+    /// `cgroup` from its first instruction.
+    fn start_confined(
+        server_bin: &str,
+        pool: &Path,
+        scene: &str,
+        state: &Path,
+        cgroup: &Path,
+        args: &[String],
+    ) -> Server {
+        Server::start_in(server_bin, pool, scene, None, state, Some(cgroup), args)
+    }
+
+    /// [`Server::start_with`] with the data directory `state`, in the memory cgroup (v1)
+    /// `confined` from its first instruction when given (a shell enters it, then runs the
+    /// server).
     fn start_in(
         server_bin: &str,
         pool: &Path,
@@ -165,6 +195,7 @@ impl Server {
         config: Option<&str>,
         state: &Path,
         confined: Option<&Path>,
+        args: &[String],
     ) -> Server {
         let throttled = throttled_reads(pool);
         // The server enters its cgroups before its first instruction (a shell enters them,
@@ -205,7 +236,7 @@ impl Server {
         .arg(state);
         let copies = state.join("copies");
         std::fs::create_dir_all(&copies).expect("making the copy root");
-        cmd.arg("--copy-root").arg(copies);
+        cmd.arg("--copy-root").arg(copies).args(args);
         if let Some(config) = config {
             let file = state.join("serve.toml");
             std::fs::write(&file, format!("default_access = \"public\"\n{config}\n")).unwrap();
@@ -274,6 +305,18 @@ impl Server {
         assert!(sent, "kill -TERM {} failed", self.child.id());
         let status = self.child.wait().expect("waiting for the server");
         assert!(status.success(), "the server ended with {status}");
+    }
+
+    /// Its admin API's `/metrics` text (`curl`, with its token).
+    fn metrics(&self) -> String {
+        let token = std::fs::read_to_string(&self.admin_token_file).expect("the admin token");
+        let out = Command::new("curl")
+            .args(["-sf", "-H"])
+            .arg(format!("Authorization: Bearer {}", token.trim()))
+            .arg(format!("{}/metrics", self.admin))
+            .output()
+            .expect("curl for the server's /metrics");
+        String::from_utf8_lossy(&out.stdout).into_owned()
     }
 
     /// The server process's user + system CPU time so far, seconds (clock ticks of 1/100 s).
@@ -450,14 +493,54 @@ fn job_while_streaming(
     job: AdminJob,
 ) {
     let name = job.name();
-    let server = Server::start(server_bin, pool, scene, None);
+    let rate = std::env::var("ARBOR_SCALE_JOB_RATE")
+        .ok()
+        .filter(|r| !r.is_empty());
+    let args: Vec<String> = rate
+        .iter()
+        .flat_map(|r| ["--background-read-rate".to_owned(), r.clone()])
+        .collect();
+    let confined_mib = std::env::var("ARBOR_SCALE_JOB_MEMORY_MIB")
+        .ok()
+        .map(|v| v.parse::<u64>().expect("ARBOR_SCALE_JOB_MEMORY_MIB is MiB"));
+    let bound = std::env::var("ARBOR_SCALE_JOB_SECONDS")
+        .ok()
+        .map(|v| Duration::from_secs(v.parse().expect("ARBOR_SCALE_JOB_SECONDS is seconds")));
+    let server = match confined_mib {
+        None => Server::start_with(server_bin, pool, scene, None, &args),
+        Some(mib) => {
+            let state = tempfile::tempdir().unwrap();
+            let cgroup = memory_cgroup(mib, &format!("job-{name}"));
+            drop_page_cache("ARBOR_SCALE_JOB_MEMORY_MIB");
+            let mut server =
+                Server::start_confined(server_bin, pool, scene, state.path(), &cgroup, &args);
+            server._state = Some(state);
+            server
+        }
+    };
     let pid = server.child.id().to_string();
     println!(
-        " a live {name} ({} --server) on a fresh server with visible cuts on:",
-        job.args(&server, scene)[0]
+        " a live {name} ({} --server) on a fresh server with visible cuts on{}, background reads \
+         at most {}{}:",
+        job.args(&server, scene)[0],
+        confined_mib.map_or(String::new(), |m| format!(" in a {m} MiB memory cgroup")),
+        rate.as_deref().unwrap_or("off"),
+        bound.map_or(String::new(), |b| format!(
+            ", the {name} stopped after {} s",
+            b.as_secs()
+        ))
     );
     stream_view(&server, "first view", runtime);
-    let before = stream_view(&server, &format!("before the {name}"), runtime);
+    let cold = std::env::var("ARBOR_SCALE_JOB_COLD_VIEWS").as_deref() == Ok("1");
+    // Each timed view from the disk (the page cache dropped first): a client looking where no
+    // one looked, whose reads meet the job's.
+    let view = |what: &str| {
+        if cold {
+            drop_page_cache("ARBOR_SCALE_JOB_COLD_VIEWS");
+        }
+        stream_view(&server, what, runtime)
+    };
+    let before = view(&format!("before the {name}"));
     let rss_before = process_status_mib(&pid, "VmRSS:");
     let started = std::time::Instant::now();
     let mut running = Command::new(server_bin)
@@ -469,16 +552,45 @@ fn job_while_streaming(
     // Let the job get going, then stream views while it runs (at least one).
     std::thread::sleep(Duration::from_millis(500));
     let mut during = Vec::new();
+    let mut stopped = false;
     loop {
-        during.extend(stream_view(&server, &format!("during the {name}"), runtime));
+        during.push(view(&format!("during the {name}")).unwrap_or(f64::INFINITY));
         if running.try_wait().expect("the job's status").is_some() {
+            break;
+        }
+        if bound.is_some_and(|b| started.elapsed() >= b) {
+            // The CLI cancels the job on the daemon when interrupted.
+            let sent = Command::new("kill")
+                .args(["-INT", &running.id().to_string()])
+                .status()
+                .is_ok_and(|s| s.success());
+            assert!(sent, "kill -INT {} failed", running.id());
+            stopped = true;
             break;
         }
     }
     let out = running.wait_with_output().expect("waiting for the job");
     let job_s = started.elapsed().as_secs_f64();
+    let metrics = server.metrics();
+    let sample = |prefix: &str| {
+        metrics
+            .lines()
+            .find_map(|l| l.strip_prefix(prefix))
+            .and_then(|v| v.trim().parse::<f64>().ok())
+            .unwrap_or(f64::NAN)
+    };
+    println!(
+        "  background reads: {:.0} MB read, {:.1} s waited for the rate{}",
+        sample("arbor_pool_background_read_bytes_total ") / 1e6,
+        sample("arbor_pool_background_wait_seconds_total "),
+        if stopped {
+            " (the job stopped, as asked)"
+        } else {
+            ""
+        }
+    );
     assert!(
-        out.status.success(),
+        stopped || out.status.success(),
         "the live {name} failed: {}{}",
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
@@ -491,7 +603,8 @@ fn job_while_streaming(
         process_status_mib(&pid, "VmRSS:"),
         process_status_mib(&pid, "VmHWM:")
     );
-    let after = stream_view(&server, &format!("after the {name}"), runtime);
+    let after = view(&format!("after the {name}"));
+    // Views that did not converge count as the slowest.
     during.sort_by(f64::total_cmp);
     let seconds =
         |t: Option<f64>| t.map_or_else(|| "NOT converged".into(), |t| format!("{t:.2} s"));
@@ -499,7 +612,12 @@ fn job_while_streaming(
         "  views converged in {} before the {name}, {} after; while it ran: median {} of {} views (its threads count in the server CPU above)",
         seconds(before),
         seconds(after),
-        seconds(during.get(during.len() / 2).copied()),
+        seconds(
+            during
+                .get(during.len() / 2)
+                .copied()
+                .filter(|t| t.is_finite())
+        ),
         during.len()
     );
 }
@@ -554,7 +672,7 @@ fn restart_and_stream(
             let state = tempfile::tempdir().unwrap();
             let cgroup = memory_cgroup(mib, &format!("{round}-{i}"));
             let before =
-                Server::start_in(server_bin, pool, scene, None, state.path(), Some(&cgroup));
+                Server::start_confined(server_bin, pool, scene, state.path(), &cgroup, &[]);
             stream_view(&before, "  before the restart", runtime);
             before.stop();
             let list = state.path().join("pool-hot-pages.json");
@@ -570,7 +688,7 @@ fn restart_and_stream(
             drop_page_cache("ARBOR_SCALE_RESTART");
             let cgroup = memory_cgroup(mib, &format!("{round}-{i}-after"));
             let after_server =
-                Server::start_in(server_bin, pool, scene, None, state.path(), Some(&cgroup));
+                Server::start_confined(server_bin, pool, scene, state.path(), &cgroup, &[]);
             println!(
                 "  restarted: serving {:.2} s after its start",
                 after_server.serving_after.as_secs_f64()

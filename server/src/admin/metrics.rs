@@ -8,6 +8,7 @@ use arbor_proto::SceneDescription;
 
 use crate::live_copy::{CopyFigures, OUTCOMES as COPY_OUTCOMES};
 use crate::live_verify::{CheckFigures, OUTCOMES};
+use crate::pace::PaceFigures;
 use crate::pool::{Pool, PoolError, PoolReadBuckets};
 use crate::prometheus::{Histogram, Kind, PromText};
 use crate::service::state::ServiceState;
@@ -57,7 +58,8 @@ pub(super) fn stream_bytes(d: &SceneDescription) -> Vec<(&'static str, u64)> {
 /// still declared, without samples, and `arbor_pool_readable` is 0.
 /// `reads` are the pool handle's block read times, which need no catalogue read; `checks` the
 /// scene checks' figures (`None`: no scene manager, or the catalogue could not be read);
-/// `copies` the pool copies' (`None`: no scene manager).
+/// `copies` the pool copies' and `background` their and the checks' reads (`None`: no scene
+/// manager).
 pub(super) fn render(
     state: &ServiceState,
     uptime: Duration,
@@ -65,6 +67,7 @@ pub(super) fn render(
     pool: Option<&PoolFigures>,
     checks: Option<&CheckFigures>,
     copies: Option<&CopyFigures>,
+    background: Option<&PaceFigures>,
 ) -> String {
     let mut p = PromText::default();
     state.write_prometheus(&mut p);
@@ -136,7 +139,41 @@ pub(super) fn render(
     scene_families(&mut p, pool.map_or(&[][..], |p| &p.scenes[..]));
     check_families(&mut p, checks);
     copy_families(&mut p, copies);
+    background_families(&mut p, background);
     p.finish()
+}
+
+/// What checks and copies read, how long the pace held them, and the pace.
+fn background_families(p: &mut PromText, background: Option<&PaceFigures>) {
+    p.family(
+        "arbor_pool_background_read_bytes_total",
+        Kind::Counter,
+        "Bytes of packs that scene checks and pool copies read from the served pool since the \
+         start (not counted in arbor_pool_read_seconds).",
+    );
+    if let Some(b) = background {
+        p.sample("arbor_pool_background_read_bytes_total", &[], b.read_bytes);
+    }
+    p.family(
+        "arbor_pool_background_wait_seconds_total",
+        Kind::Counter,
+        "Seconds checks and copies waited to keep --background-read-rate since the start.",
+    );
+    if let Some(b) = background {
+        p.sample(
+            "arbor_pool_background_wait_seconds_total",
+            &[],
+            b.waited_seconds,
+        );
+    }
+    p.family(
+        "arbor_pool_background_read_rate_bytes",
+        Kind::Gauge,
+        "Bytes per second checks and copies may read together; no sample without a limit.",
+    );
+    if let Some(rate) = background.and_then(|b| b.read_bytes_per_second) {
+        p.sample("arbor_pool_background_read_rate_bytes", &[], rate);
+    }
 }
 
 /// The pool copies' counters and when the last one succeeded.
@@ -265,15 +302,28 @@ mod tests {
             None,
             None,
             None,
+            None,
         );
         assert!(t.contains("arbor_pool_readable 0\n"), "{t}");
-        for counter in ["arbor_scene_checks_total", "arbor_pool_copies_total"] {
+        for counter in [
+            "arbor_scene_checks_total",
+            "arbor_pool_copies_total",
+            "arbor_pool_background_read_bytes_total",
+            "arbor_pool_background_wait_seconds_total",
+        ] {
             assert!(t.contains(&format!("# TYPE {counter} counter\n")), "{t}");
         }
         assert!(
             !t.lines()
                 .any(|l| l.starts_with("arbor_pool_copy_last_done_seconds")),
             "a copy's end before any copy: {t}"
+        );
+        assert!(
+            t.contains("# TYPE arbor_pool_background_read_rate_bytes gauge\n")
+                && !t
+                    .lines()
+                    .any(|l| l.starts_with("arbor_pool_background_read_rate_bytes")),
+            "a rate sample without a scene manager: {t}"
         );
         assert!(!t.contains("arbor_pool_scenes 0"), "{t}");
         let mut names: Vec<_> = t

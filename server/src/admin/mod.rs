@@ -25,6 +25,8 @@
 //! | `GET /v1/copies`        | token  | JSON array of copies (queued, running, last finished)    |
 //! | `GET /v1/copies/{id}`   | token  | one copy: phase, bytes copied, error or summary          |
 //! | `DELETE /v1/copies/{id}` | token | cancels a copy (after the pack in hand; nothing is left) |
+//! | `GET /v1/background-reads` | token | the checks' and copies' read rate, bytes read, seconds waited |
+//! | `PUT /v1/background-reads` | token | `{"read_bytes_per_second": N, "20MB" or null}`: sets the rate |
 //! | `GET /`                 | token  | HTML status page; without credentials, `303` to `/login` |
 //! | `GET /login`            | none   | HTML form asking for the token                           |
 //! | `POST /login`           | none   | form field `token`: sets the `arbor_admin` cookie, `303` |
@@ -55,8 +57,13 @@
 //! exists or another copy writes it, `404` for an unknown scene. A copy's `phase` is `queued`,
 //! `running`, `done` (`report`: packs and bytes per scene, carried files, seconds), `failed`
 //! (`error`; nothing left at the destination) or `cancelled`.
+//!
+//! Background reads (`background.rs`, [`crate::pace`]): checks and copies read the pool at most
+//! at the daemon's `--background-read-rate` together; `PUT /v1/background-reads` changes it
+//! while they run (`400` for a rate outside 1 kB/s to 1 TB/s or unreadable text).
 
 mod auth;
+mod background;
 mod copies;
 pub mod https;
 mod imports;
@@ -166,6 +173,10 @@ pub fn router_with_imports(ctx: AdminContext, imports: Option<LiveImports>) -> R
         .route(
             "/v1/copies/{id}",
             get(copies::status).delete(copies::cancel),
+        )
+        .route(
+            "/v1/background-reads",
+            get(background::figures).put(background::set),
         )
         .route("/v1/sessions", get(sessions))
         .route("/v1/paths", get(paths).delete(forget_paths))
@@ -425,6 +436,7 @@ async fn prometheus(State(app): State<Shared>) -> Response {
         _ => None,
     };
     let copies = app.imports.as_ref().map(|i| i.copies().figures());
+    let background = app.imports.as_ref().map(|i| i.background_reads().figures());
     let body = metrics::render(
         &app.state,
         app.started.elapsed(),
@@ -432,6 +444,7 @@ async fn prometheus(State(app): State<Shared>) -> Response {
         pool.ok().as_ref(),
         checks.as_ref(),
         copies.as_ref(),
+        background.as_ref(),
     );
     (
         StatusCode::OK,
@@ -505,6 +518,7 @@ async fn index(State(app): State<Shared>) -> Result<Response, ApiError> {
         imports: &imports,
         checks: &checks,
         copies: &copies,
+        background: app.imports.as_ref().map(|i| i.background_reads().figures()),
     };
     let body = page::status_page(&app.state, app.started.elapsed(), &pool, &jobs);
     Ok(html(&app, StatusCode::OK, body))

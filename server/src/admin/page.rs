@@ -16,6 +16,7 @@ use super::views::kind_name;
 use crate::live_copy::{CopyPhase, CopyStatus};
 use crate::live_import::ImportStatus;
 use crate::live_verify::{VerifyPhase, VerifyStatus};
+use crate::pace::{PaceFigures, describe_rate};
 use crate::service::state::{ServiceState, SessionInfo};
 
 const STYLE: &str = r#"
@@ -175,6 +176,8 @@ pub(super) struct Jobs<'a> {
     pub imports: &'a [ImportStatus],
     pub checks: &'a [VerifyStatus],
     pub copies: &'a [CopyStatus],
+    /// The checks' and copies' reads (`None`: no scene manager).
+    pub background: Option<PaceFigures>,
 }
 
 /// The status page.
@@ -200,6 +203,7 @@ pub(super) fn status_page(
     imports_section(&mut out, jobs.imports);
     checks_section(&mut out, jobs.checks);
     copies_section(&mut out, jobs.copies);
+    background_line(&mut out, jobs);
     sessions_section(&mut out, &sessions);
     out.push_str("</main>\n");
     let _ = write!(
@@ -331,6 +335,24 @@ fn copies_section(out: &mut String, copies: &[CopyStatus]) {
         );
     }
     out.push_str("</table>\n");
+}
+
+/// The pace of checks and copies, and what they read (nothing when no rate is set and no job
+/// is listed).
+fn background_line(out: &mut String, jobs: &Jobs<'_>) {
+    let Some(b) = jobs.background else {
+        return;
+    };
+    if b.read_bytes_per_second.is_none() && jobs.checks.is_empty() && jobs.copies.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        out,
+        "<p>Background reads (checks, copies): at most {} · {:.1} MB read · waited {:.1} s</p>",
+        escape(&describe_rate(b.read_bytes_per_second)),
+        b.read_bytes as f64 / 1e6,
+        b.waited_seconds
+    );
 }
 
 /// Readiness, certificate, uptime, pool size.

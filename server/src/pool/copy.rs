@@ -23,6 +23,9 @@
 //! copy fail naming the pool in use; a scene that process replaced or removed between two
 //! openings fails it naming the scene ([`PoolError::ChangedWhileRead`]: its trees are gone);
 //! nothing is renamed then.
+//!
+//! A served pool ([`copy_served`]) is read by a `get` per pack, each pack's bytes taken from
+//! [`CopyOptions::pace`] when given (the daemon's background read rate, [`crate::pace`]).
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -31,6 +34,7 @@ use std::time::{Duration, Instant};
 use arbor_proto::{ProtoError, SceneDescription};
 
 use super::{Pool, PoolError, StoredScene, channel_tree, decode_entry, nodes_tree, pack};
+use crate::pace::ReadPace;
 
 /// Bytes of packs copied or compared between two openings of both pools (module docs).
 pub const REOPEN_AFTER_BYTES: u64 = 64 << 20;
@@ -96,6 +100,9 @@ pub struct CopyOptions<'a> {
     pub reopen_after_bytes: u64,
     /// Set from elsewhere to stop the copy after the pack in hand ([`CopyError::Cancelled`]).
     pub stop: Option<&'a AtomicBool>,
+    /// The pace the source's reads keep ([`copy_served`]: the daemon's background jobs share
+    /// it); a closed source is read as fast as it comes.
+    pub pace: Option<&'a ReadPace>,
 }
 
 impl Default for CopyOptions<'_> {
@@ -105,6 +112,7 @@ impl Default for CopyOptions<'_> {
             carry_files: &[],
             reopen_after_bytes: REOPEN_AFTER_BYTES,
             stop: None,
+            pace: None,
         }
     }
 }
@@ -355,6 +363,7 @@ fn copy_planned(
         since_reopen: 0,
         reopens: 0,
         stop: options.stop,
+        pace: options.pace,
     };
     let result = copy.write_and_check(&planned, options, progress);
     drop(copy);
@@ -393,9 +402,10 @@ struct Copy<'a> {
     since_reopen: u64,
     reopens: u32,
     stop: Option<&'a AtomicBool>,
+    pace: Option<&'a ReadPace>,
 }
 
-impl Copy<'_> {
+impl<'a> Copy<'a> {
     /// The source's scenes and the copy, opened if they are not.
     fn opened(&mut self) -> Result<&Opened, CopyError> {
         if self.opened.is_none() {
@@ -443,9 +453,15 @@ impl Copy<'_> {
         &self,
         tree: &sled::Tree,
         after: Option<&sled::IVec>,
-    ) -> Result<SourcePacks, CopyError> {
-        let by_key = matches!(self.source.reading, Reading::Served(_));
-        Ok(SourcePacks::after(tree, after, by_key)?)
+    ) -> Result<SourcePacks<'a>, CopyError> {
+        let read = match self.source.reading {
+            Reading::Served(_) => Read::ByKey {
+                pace: self.pace,
+                stop: self.stop,
+            },
+            Reading::Closed(_) => Read::InOrder,
+        };
+        Ok(SourcePacks::after(tree, after, read)?)
     }
 
     fn check_stop(&self) -> Result<(), CopyError> {
@@ -652,8 +668,20 @@ fn range_after(tree: &sled::Tree, key: Option<&sled::IVec>) -> sled::Iter {
     }
 }
 
+/// How a source tree is read.
+#[derive(Clone, Copy)]
+enum Read<'a> {
+    /// Iterating the tree.
+    InOrder,
+    /// A `get` per pack index, each pack's bytes taken from `pace` (no wait once `stop` is set).
+    ByKey {
+        pace: Option<&'a ReadPace>,
+        stop: Option<&'a AtomicBool>,
+    },
+}
+
 /// A source tree's packs after a key, in key order.
-enum SourcePacks {
+enum SourcePacks<'a> {
     /// Iterating the tree (a pool the copy opened itself, and closes every `reopen_after`).
     Iter(Box<sled::Iter>),
     /// A `get` per pack index from `next` to the tree's last key (a served pool,
@@ -663,18 +691,20 @@ enum SourcePacks {
         tree: sled::Tree,
         next: u64,
         last: Option<u64>,
+        pace: Option<&'a ReadPace>,
+        stop: Option<&'a AtomicBool>,
     },
 }
 
-impl SourcePacks {
+impl<'a> SourcePacks<'a> {
     fn after(
         tree: &sled::Tree,
         after: Option<&sled::IVec>,
-        by_key: bool,
-    ) -> Result<SourcePacks, PoolError> {
-        if !by_key {
+        read: Read<'a>,
+    ) -> Result<SourcePacks<'a>, PoolError> {
+        let Read::ByKey { pace, stop } = read else {
             return Ok(SourcePacks::Iter(Box::new(range_after(tree, after))));
-        }
+        };
         let index = |key: &[u8]| -> Result<u64, PoolError> {
             let key: [u8; 4] = key.try_into().map_err(|_| PoolError::Corrupt {
                 what: format!("pack key {key:?}"),
@@ -697,23 +727,36 @@ impl SourcePacks {
             tree: tree.clone(),
             next,
             last,
+            pace,
+            stop,
         })
     }
 }
 
-impl Iterator for SourcePacks {
+impl Iterator for SourcePacks<'_> {
     type Item = Result<(sled::IVec, sled::IVec), PoolError>;
 
     fn next(&mut self) -> Option<Self::Item> {
         match self {
             SourcePacks::Iter(packs) => packs.next().map(|p| p.map_err(PoolError::from)),
-            SourcePacks::ByKey { tree, next, last } => {
+            SourcePacks::ByKey {
+                tree,
+                next,
+                last,
+                pace,
+                stop,
+            } => {
                 let last = (*last)?;
                 while *next <= last {
                     let key = u32::try_from(*next).ok()?.to_be_bytes();
                     *next += 1;
                     match tree.get(key) {
-                        Ok(Some(pack)) => return Some(Ok((sled::IVec::from(&key[..]), pack))),
+                        Ok(Some(pack)) => {
+                            if let Some(pace) = pace {
+                                pace.take(pack.len() as u64, *stop);
+                            }
+                            return Some(Ok((sled::IVec::from(&key[..]), pack)));
+                        }
                         Ok(None) => {}
                         Err(e) => return Some(Err(e.into())),
                     }
@@ -731,7 +774,7 @@ impl Iterator for SourcePacks {
 fn compare_trees(
     scene: &str,
     tree: &str,
-    mut ia: SourcePacks,
+    mut ia: SourcePacks<'_>,
     b: &sled::Tree,
     after: Option<&sled::IVec>,
     budget: u64,
@@ -783,7 +826,7 @@ pub fn compare_scene(source: &StoredScene, copy: &StoredScene) -> Result<(), Cop
         });
     }
     for ((tree, a), (_, b)) in source.trees().into_iter().zip(copy.trees()) {
-        let packs = SourcePacks::after(a, None, false)?;
+        let packs = SourcePacks::after(a, None, Read::InOrder)?;
         compare_trees(name, tree, packs, b, None, u64::MAX)?;
     }
     Ok(())

@@ -16,12 +16,14 @@ pub mod pack;
 
 use std::path::Path;
 use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use arbor_proto::scene::validate_scene_name;
 use arbor_proto::{AttributeLayout, Channel, ProtoError, SceneDescription, TreeletId};
 
 use crate::octree::{BuildError, TreeletSink};
+use crate::pace::ReadPace;
 use crate::prometheus::{Buckets, Histogram};
 use pack::PackWriter;
 
@@ -170,7 +172,26 @@ pub struct StoredScene {
     pub generation: u64,
     nodes: sled::Tree,
     channels: Vec<(Channel, sled::Tree)>,
-    reads: Arc<Histogram<PoolReadBuckets>>,
+    reads: ReadAccount,
+}
+
+/// Where a scene's block reads are counted, and the pace they keep.
+#[derive(Debug, Clone)]
+struct ReadAccount {
+    /// The pool's serving histogram, or one of the scene's own ([`StoredScene::with_reads_apart`]).
+    times: Arc<Histogram<PoolReadBuckets>>,
+    /// A background job's pace and stop flag ([`StoredScene::paced`]).
+    paced: Option<(Arc<ReadPace>, Arc<AtomicBool>)>,
+}
+
+impl ReadAccount {
+    /// Counts one sled read of `bytes` that took from `began` until now, and waits for the pace.
+    fn observe(&self, began: Instant, bytes: usize) {
+        self.times.observe(began.elapsed());
+        if let Some((pace, stop)) = &self.paced {
+            pace.take(bytes as u64, Some(stop));
+        }
+    }
 }
 
 impl StoredScene {
@@ -223,7 +244,14 @@ impl StoredScene {
     /// `arbor_pool_read_seconds` reports), so that a whole-scene check in the daemon does not
     /// show as serving latency.
     pub fn with_reads_apart(mut self) -> StoredScene {
-        self.reads = Arc::default();
+        self.reads.times = Arc::default();
+        self
+    }
+
+    /// This scene with every block read keeping `pace` (shared by a daemon's background jobs),
+    /// until `stop` is set: what a check reads while the daemon serves ([`crate::pace`]).
+    pub fn paced(mut self, pace: Arc<ReadPace>, stop: Arc<AtomicBool>) -> StoredScene {
+        self.reads.paced = Some((pace, stop));
         self
     }
 
@@ -312,7 +340,7 @@ fn packed_block(
     tree: &sled::Tree,
     stream: &str,
     id: TreeletId,
-    reads: &Histogram<PoolReadBuckets>,
+    reads: &ReadAccount,
 ) -> Result<Option<sled::IVec>, PoolError> {
     PackCursor::default().block(tree, stream, id, reads)
 }
@@ -322,7 +350,7 @@ fn packed_blocks(
     tree: &sled::Tree,
     stream: &str,
     ids: &[TreeletId],
-    reads: &Histogram<PoolReadBuckets>,
+    reads: &ReadAccount,
 ) -> Result<Vec<Option<sled::IVec>>, PoolError> {
     let mut cursor = PackCursor::default();
     ids.iter()
@@ -347,7 +375,7 @@ impl PackCursor {
         tree: &sled::Tree,
         stream: &str,
         id: TreeletId,
-        reads: &Histogram<PoolReadBuckets>,
+        reads: &ReadAccount,
     ) -> Result<Option<sled::IVec>, PoolError> {
         let (key, slot) = pack::locate(id);
         let pack = match &self.held {
@@ -355,7 +383,7 @@ impl PackCursor {
             _ => {
                 let began = Instant::now();
                 let pack = tree.get(key)?;
-                reads.observe(began.elapsed());
+                reads.observe(began, pack.as_ref().map_or(0, |p| p.len()));
                 &self.held.insert((key, pack)).1
             }
         };
@@ -593,7 +621,10 @@ impl Pool {
             generation,
             nodes,
             channels,
-            reads: Arc::clone(&self.reads),
+            reads: ReadAccount {
+                times: Arc::clone(&self.reads),
+                paced: None,
+            },
         })
     }
 
