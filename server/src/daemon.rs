@@ -113,6 +113,12 @@ pub struct DaemonOptions {
     /// Bytes per second that checks and copies may read from the pool together (`None`: no
     /// limit; [`crate::pace`]). `PUT /v1/background-reads` changes it while serving.
     pub background_read_rate: Option<u64>,
+    /// Copy every published scene under the copy root this often (`None`: only the copies
+    /// asked for); needs `copy_root`.
+    pub copy_every: Option<std::time::Duration>,
+    /// Scheduled copies kept: after each one succeeds, older ones beyond this are removed
+    /// (`None`: every one kept).
+    pub copy_keep: Option<std::num::NonZeroUsize>,
 }
 
 /// Starts the daemon: the admin token, the treelet service, and (unless off) the admin listener

@@ -27,9 +27,14 @@
 //! * **Cancellation**: `DELETE /v1/copies/{id}` ([`Copies::cancel`]), and every copy queued or
 //!   running when the scene manager is dropped, stops after the pack in hand and removes its
 //!   partial directory.
+//! * **Scheduled copies**: with `serve --copy-every`, every published scene is copied each
+//!   period into `scheduled-<UTC time>` ([`Copies::submit_scheduled`]; skipped while the last
+//!   one runs), and after each that succeeds the oldest scheduled copies beyond `--copy-keep`
+//!   are removed ([`prune_scheduled`]: only directories named exactly so).
 //! * **Metrics**: copies ended by outcome, and when the last one succeeded
 //!   ([`Copies::figures`]): what an alert on a missing backup reads.
 
+use std::num::NonZeroUsize;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, mpsc};
@@ -157,6 +162,9 @@ pub struct CopyStatus {
     /// The destination's name under the copy root, and its path.
     pub to: String,
     pub path: String,
+    /// Made by `serve --copy-every` (named [`SCHEDULED_PREFIX`] and its time, pruned to
+    /// `--copy-keep`), not asked for.
+    pub scheduled: bool,
     pub scenes: Vec<CopySceneRef>,
     pub phase: CopyPhase,
     /// Bytes of treelet blocks the scenes hold, and how many are copied so far.
@@ -177,6 +185,7 @@ struct Job {
     id: u64,
     to: String,
     path: PathBuf,
+    scheduled: bool,
     scenes: Vec<CopySceneRef>,
     /// The scenes' trees, until the worker takes them.
     stored: Mutex<Option<Vec<StoredScene>>>,
@@ -228,6 +237,7 @@ impl BackgroundJob for Job {
             id: self.id,
             to: self.to.clone(),
             path: self.path.display().to_string(),
+            scheduled: self.scheduled,
             scenes: self.scenes.clone(),
             phase,
             bytes_planned: self.planned,
@@ -256,6 +266,8 @@ struct Places {
     root: Option<PathBuf>,
     /// The daemon's data directory (its state files).
     state_dir: PathBuf,
+    /// Scheduled copies kept once one succeeds (`None`: every one).
+    keep_scheduled: Option<NonZeroUsize>,
 }
 
 /// The daemon's pool copies: a queue, its worker, and the copies kept for status. Held by the
@@ -271,14 +283,16 @@ pub struct Copies {
 impl Copies {
     /// Copies of `pool`'s scenes into new directories under `root` (`None`: copies refused),
     /// carrying the state files of `state_dir`, run one at a time on a worker thread at
-    /// `priority`. The partial directories copies left under `root` when the daemon was
-    /// killed are removed first.
+    /// `priority`, their reads held to `pace`; after each scheduled copy that succeeds, the
+    /// newest `keep_scheduled` scheduled copies are kept ([`prune_scheduled`]). The partial
+    /// directories copies left under `root` when the daemon was killed are removed first.
     pub fn new(
         pool: Pool,
         root: Option<&Path>,
         state_dir: &Path,
         priority: ImportPriority,
         pace: Arc<ReadPace>,
+        keep_scheduled: Option<NonZeroUsize>,
     ) -> std::io::Result<Copies> {
         let root = root.map(std::fs::canonicalize).transpose()?;
         if let Some(root) = &root {
@@ -289,6 +303,7 @@ impl Copies {
         let places = Places {
             root,
             state_dir: state_dir.to_owned(),
+            keep_scheduled,
         };
         let worker = (pool.clone(), places.clone(), figures.clone(), pace);
         std::thread::Builder::new()
@@ -315,6 +330,25 @@ impl Copies {
 
     /// Checks and queues a copy; returns its id.
     pub fn submit(&self, req: &CopyRequest) -> Result<u64, LiveCopyError> {
+        self.submit_job(req, false)
+    }
+
+    /// Queues the scheduled copy due at `now` (`serve --copy-every`): every published scene
+    /// into [`scheduled_name`]`(now)`. `None`: a scheduled copy is still queued or running, and
+    /// this one is skipped rather than piled behind it.
+    pub fn submit_scheduled(&self, now: SystemTime) -> Result<Option<u64>, LiveCopyError> {
+        if self
+            .board
+            .any_running(|j| j.scheduled && !j.cancelled.load(Ordering::Acquire))
+        {
+            return Ok(None);
+        }
+        let to = scheduled_name(now);
+        self.submit_job(&CopyRequest { to, scenes: vec![] }, true)
+            .map(Some)
+    }
+
+    fn submit_job(&self, req: &CopyRequest, scheduled: bool) -> Result<u64, LiveCopyError> {
         let root = self.places.root.as_ref().ok_or(LiveCopyError::Disabled)?;
         validate_destination(&req.to)?;
         let path = root.join(&req.to);
@@ -365,6 +399,7 @@ impl Copies {
             id,
             to: req.to.clone(),
             path,
+            scheduled,
             scenes,
             stored: Mutex::new(Some(stored)),
             started: AtomicBool::new(false),
@@ -375,7 +410,13 @@ impl Copies {
             clock: Instant::now(),
             outcome: Mutex::new(None),
         });
-        tracing::info!(id, to = %req.to, scenes = job.scenes.len(), "copy queued");
+        tracing::info!(
+            id,
+            to = %req.to,
+            scenes = job.scenes.len(),
+            scheduled,
+            "copy queued"
+        );
         if !self.board.add(jobs, id, job.clone()) {
             *lock(&job.outcome) = Some(Outcome {
                 seconds: 0.0,
@@ -439,6 +480,75 @@ fn remove_partial_copies(root: &Path) -> std::io::Result<()> {
     Ok(())
 }
 
+/// The name of scheduled copies: this prefix, then the UTC time it was due, `YYYY-MM-DDTHHMMSSZ`
+/// (names sort as times do). Only directories named so are ever pruned.
+pub const SCHEDULED_PREFIX: &str = "scheduled-";
+
+/// The destination of the scheduled copy due at `t`: [`SCHEDULED_PREFIX`] and its UTC time.
+pub fn scheduled_name(t: SystemTime) -> String {
+    let secs = t
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let (days, rest) = (secs / 86_400, secs % 86_400);
+    let (year, month, day) = civil_from_days(days);
+    format!(
+        "{SCHEDULED_PREFIX}{year:04}-{month:02}-{day:02}T{:02}{:02}{:02}Z",
+        rest / 3_600,
+        rest / 60 % 60,
+        rest % 60
+    )
+}
+
+/// The proleptic Gregorian date `days` after 1970-01-01 (Howard Hinnant's `civil_from_days`).
+fn civil_from_days(days: u64) -> (u64, u64, u64) {
+    let z = days + 719_468;
+    let era = z / 146_097;
+    let doe = z % 146_097;
+    let yoe = (doe - doe / 1_460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + u64::from(month <= 2);
+    (year, month, day)
+}
+
+/// Whether `name` is a scheduled copy's name, exactly as [`scheduled_name`] writes one.
+fn is_scheduled_name(name: &str) -> bool {
+    let Some(time) = name.strip_prefix(SCHEDULED_PREFIX) else {
+        return false;
+    };
+    let b = time.as_bytes();
+    b.len() == 18
+        && b.iter().enumerate().all(|(i, &c)| match i {
+            4 | 7 => c == b'-',
+            10 => c == b'T',
+            17 => c == b'Z',
+            _ => c.is_ascii_digit(),
+        })
+}
+
+/// Removes all but the newest `keep` scheduled copies under `root` (directories named as
+/// [`scheduled_name`] names them; nothing else is touched), and returns the names removed.
+pub fn prune_scheduled(root: &Path, keep: NonZeroUsize) -> std::io::Result<Vec<String>> {
+    let mut scheduled = Vec::new();
+    for entry in std::fs::read_dir(root)? {
+        let entry = entry?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if is_scheduled_name(&name) && entry.file_type()?.is_dir() {
+            scheduled.push(name);
+        }
+    }
+    scheduled.sort();
+    let old = scheduled.len().saturating_sub(keep.get());
+    let removed: Vec<String> = scheduled.into_iter().take(old).collect();
+    for name in &removed {
+        std::fs::remove_dir_all(root.join(name))?;
+        tracing::info!(name, "old scheduled copy removed (--copy-keep)");
+    }
+    Ok(removed)
+}
+
 /// Refuses a destination that is not a plain directory name (no separator, no `..`, no hidden
 /// or partial directory of a copy).
 pub fn validate_destination(to: &str) -> Result<(), LiveCopyError> {
@@ -489,6 +599,17 @@ fn run_job(pool: &Pool, places: &Places, job: &Job, figures: &Mutex<CopyFigures>
                 seconds,
                 "copy done: compared with the source"
             );
+            if let (true, Some(root), Some(keep)) =
+                (job.scheduled, &places.root, places.keep_scheduled)
+            {
+                // After the new copy is whole, so a failed one never costs a good one.
+                if let Err(e) = prune_scheduled(root, keep) {
+                    tracing::error!(
+                        "removing old scheduled copies under {}: {e}",
+                        root.display()
+                    );
+                }
+            }
             Outcome {
                 seconds,
                 phase: CopyPhase::Done,
@@ -534,6 +655,7 @@ mod tests {
     use crate::pipeline::{SceneImport, Superseded, import_scene, import_scene_observed};
     use crate::pool::copy::compare_scene;
     use crate::progress::ImportProgress;
+    use std::time::UNIX_EPOCH;
 
     fn bunny_import(replace: bool) -> SceneImport {
         let request = SceneImport {
@@ -578,6 +700,7 @@ mod tests {
             places: Places {
                 root: Some(std::fs::canonicalize(&root).unwrap()),
                 state_dir: dir.path().join("pool"),
+                keep_scheduled: None,
             },
             board: JobBoard::new(tx),
             figures: Arc::default(),
@@ -605,6 +728,16 @@ mod tests {
         }
     }
 
+    /// The names in `dir`, sorted.
+    fn names_in(dir: &Path) -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        names
+    }
+
     fn request(to: &str) -> CopyRequest {
         CopyRequest {
             to: to.into(),
@@ -620,6 +753,124 @@ mod tests {
         {
             assert_eq!(serde_json::to_value(phase).unwrap(), phase.as_str());
         }
+    }
+
+    #[test]
+    fn scheduled_copies_are_named_by_their_utc_time() {
+        let at = |secs: u64| scheduled_name(UNIX_EPOCH + std::time::Duration::from_secs(secs));
+        assert_eq!(at(0), "scheduled-1970-01-01T000000Z");
+        // 2024-02-29 23:59:59 UTC (a leap day), then the next second.
+        assert_eq!(at(1_709_251_199), "scheduled-2024-02-29T235959Z");
+        assert_eq!(at(1_709_251_200), "scheduled-2024-03-01T000000Z");
+        // 2000-12-31 (a leap year divisible by 400: day 366), 2100-03-01 (not a leap year).
+        assert_eq!(at(978_220_800), "scheduled-2000-12-31T000000Z");
+        assert_eq!(at(4_107_542_400), "scheduled-2100-03-01T000000Z");
+        assert_eq!(at(1_764_646_245), "scheduled-2025-12-02T033045Z");
+        for secs in [0, 1_709_251_199, 4_107_542_400] {
+            let name = at(secs);
+            assert!(is_scheduled_name(&name), "{name}");
+            validate_destination(&name).unwrap();
+        }
+        for other in [
+            "scheduled-",
+            "scheduled-2024-02-29T235959",
+            "scheduled-2024-02-29T235959Zx",
+            "scheduled-2024-02-29 235959Z",
+            "scheduled-2024_02-29T235959Z",
+            "Scheduled-2024-02-29T235959Z",
+            "nightly-2024-02-29",
+        ] {
+            assert!(!is_scheduled_name(other), "{other}");
+        }
+        // Names sort as times do.
+        let mut names: Vec<String> = [4_107_542_400, 0, 1_709_251_200, 1_709_251_199]
+            .into_iter()
+            .map(at)
+            .collect();
+        names.sort();
+        assert_eq!(names[0], at(0));
+        assert_eq!(names[3], at(4_107_542_400));
+    }
+
+    #[test]
+    fn pruning_keeps_the_newest_scheduled_copies_and_touches_nothing_else() {
+        let root = tempfile::tempdir().unwrap();
+        let dirs = [
+            "scheduled-2026-11-28T030000Z",
+            "scheduled-2026-11-30T030000Z",
+            "scheduled-2026-11-29T030000Z",
+            "scheduled-2026-12-01T030000Z",
+            "scheduled-bogus",
+            "nightly-2026-11-01",
+            ".scheduled-2026-12-02T030000Z.copy-partial",
+        ];
+        for d in dirs {
+            std::fs::create_dir(root.path().join(d)).unwrap();
+            std::fs::write(root.path().join(d).join("db"), "a pool").unwrap();
+        }
+        // A file with a scheduled name is not a copy.
+        std::fs::write(root.path().join("scheduled-2000-01-01T000000Z"), "").unwrap();
+        let keep = NonZeroUsize::new(2).unwrap();
+        let removed = prune_scheduled(root.path(), keep).unwrap();
+        assert_eq!(
+            removed,
+            [
+                "scheduled-2026-11-28T030000Z",
+                "scheduled-2026-11-29T030000Z"
+            ]
+        );
+        let left = names_in(root.path());
+        assert_eq!(
+            left,
+            [
+                ".scheduled-2026-12-02T030000Z.copy-partial",
+                "nightly-2026-11-01",
+                "scheduled-2000-01-01T000000Z",
+                "scheduled-2026-11-30T030000Z",
+                "scheduled-2026-12-01T030000Z",
+                "scheduled-bogus",
+            ]
+        );
+        // Fewer than kept: nothing goes.
+        assert!(prune_scheduled(root.path(), keep).unwrap().is_empty());
+    }
+
+    /// A scheduled copy is skipped while the last one is queued; once one is done, the oldest
+    /// scheduled copies beyond the number kept go, and copies asked for stay.
+    #[test]
+    fn scheduled_copies_do_not_pile_up_and_are_pruned_after_one_succeeds() {
+        let mut t = unstarted();
+        t.copies.places.keep_scheduled = NonZeroUsize::new(2);
+        let root = t.dir.path().join("copies");
+        for old in [
+            "scheduled-2020-01-01T000000Z",
+            "scheduled-2020-01-02T000000Z",
+        ] {
+            std::fs::create_dir(root.join(old)).unwrap();
+        }
+        let copies = &t.copies;
+        let day = |d: u64| UNIX_EPOCH + std::time::Duration::from_secs(1_764_633_600 + d * 86_400);
+        let first = copies.submit_scheduled(day(0)).unwrap().expect("queued");
+        assert_eq!(copies.submit_scheduled(day(1)).unwrap(), None, "piled up");
+        let asked = copies.submit(&request("asked")).unwrap();
+        assert!(copies.status(first).unwrap().scheduled);
+        assert!(!copies.status(asked).unwrap().scheduled);
+        t.run_next();
+        assert_eq!(t.copies.status(first).unwrap().phase, CopyPhase::Done);
+        t.run_next();
+        let left = names_in(&root);
+        assert_eq!(
+            left,
+            [
+                "asked",
+                "scheduled-2020-01-02T000000Z",
+                "scheduled-2025-12-02T000000Z"
+            ]
+        );
+        // A scheduled copy cancelled while queued does not hold the next one back.
+        let third = t.copies.submit_scheduled(day(2)).unwrap().expect("queued");
+        t.copies.cancel(third);
+        assert!(t.copies.submit_scheduled(day(3)).unwrap().is_some());
     }
 
     #[test]
@@ -661,6 +912,7 @@ mod tests {
             t.dir.path(),
             ImportPriority::Idle,
             t.pace.clone(),
+            None,
         )
         .unwrap();
         assert!(!disabled.enabled() && copies.enabled());
@@ -677,13 +929,10 @@ mod tests {
             t.dir.path(),
             ImportPriority::Idle,
             t.pace.clone(),
+            None,
         )
         .unwrap();
-        let mut left: Vec<String> = std::fs::read_dir(&root)
-            .unwrap()
-            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-            .collect();
-        left.sort();
+        let left = names_in(&root);
         assert_eq!(left, [".note.copy-partial", "kept"]);
         std::fs::remove_dir(root.join("kept")).unwrap();
         std::fs::remove_file(root.join(".note.copy-partial")).unwrap();

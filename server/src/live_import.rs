@@ -73,6 +73,9 @@ pub enum ManagerError {
     /// The background read rate is out of range.
     #[error(transparent)]
     Pace(#[from] PaceError),
+    /// Scheduled copies were asked for without a copy root to put them in.
+    #[error("--copy-every needs --copy-root (where the scheduled copies go)")]
+    ScheduleWithoutRoot,
 }
 
 fn root_error(
@@ -236,10 +239,11 @@ pub struct LiveImports {
 }
 
 impl LiveImports {
-    /// A manager for `pool`. `root`: the import root (`None`: imports disabled, removal still
-    /// works); `scratch`: where import scratch directories go (default: the system's);
-    /// `check_every`: the period of checks of every published scene (`None`: only checks asked
-    /// for).
+    /// A manager for `pool`, configured by `options`: the import root (`None`: imports
+    /// disabled, removal still works) and scratch; the periods of checks of every published
+    /// scene and of scheduled copies (`None`: only those asked for); the copy root and how many
+    /// scheduled copies are kept; the background read rate. `state_dir` holds the files a copy
+    /// carries.
     pub fn new(
         pool: Pool,
         state: Arc<ServiceState>,
@@ -247,6 +251,9 @@ impl LiveImports {
         state_dir: &Path,
     ) -> Result<LiveImports, ManagerError> {
         let priority = options.import_priority;
+        if options.copy_every.is_some() && options.copy_root.is_none() {
+            return Err(ManagerError::ScheduleWithoutRoot);
+        }
         let pace = Arc::new(ReadPace::new(pace::validate(options.background_read_rate)?));
         if let Some(rate) = options.background_read_rate {
             tracing::info!(
@@ -266,6 +273,7 @@ impl LiveImports {
             state_dir,
             priority,
             pace.clone(),
+            options.copy_keep,
         )
         .map_err(root_error("--copy-root", &options.copy_root))?;
         let (tx, rx) = mpsc::channel::<Arc<Job>>();
@@ -295,7 +303,13 @@ impl LiveImports {
             let weak = Arc::downgrade(&inner);
             std::thread::Builder::new()
                 .name("arbor-scrub".into())
-                .spawn(move || run_scrub(weak, period))?;
+                .spawn(move || every(weak, period, check_every_scene))?;
+        }
+        if let Some(period) = options.copy_every {
+            let weak = Arc::downgrade(&inner);
+            std::thread::Builder::new()
+                .name("arbor-backup".into())
+                .spawn(move || every(weak, period, copy_the_pool))?;
         }
         Ok(LiveImports { inner })
     }
@@ -556,7 +570,27 @@ fn run_worker(rx: mpsc::Receiver<Arc<Job>>, inner: Weak<Inner>, priority: Import
 
 /// Queues a check of every published scene each `period` (the first one period after the
 /// start), until the scene manager is dropped.
-fn run_scrub(inner: Weak<Inner>, period: Duration) {
+/// `serve --check-every`'s work: a check of every published scene queued.
+fn check_every_scene(inner: &Inner) {
+    match inner.verifications.check_all() {
+        Ok(n) => tracing::info!(scenes = n, "periodic check of every scene queued"),
+        Err(e) => tracing::warn!("periodic check: reading the catalogue: {e}"),
+    }
+}
+
+/// `serve --copy-every`'s work: the scheduled copy queued, unless the last one still runs.
+fn copy_the_pool(inner: &Inner) {
+    match inner.copies.submit_scheduled(SystemTime::now()) {
+        Ok(Some(id)) => tracing::info!(id, "scheduled copy of the pool queued"),
+        Ok(None) => tracing::warn!(
+            "scheduled copy skipped: the last one has not ended (a period shorter than a copy?)"
+        ),
+        Err(e) => tracing::error!("scheduled copy: {e}"),
+    }
+}
+
+/// Runs `work` every `period` while the manager lives.
+fn every(inner: Weak<Inner>, period: Duration, work: fn(&Inner)) {
     let mut next = Instant::now() + period;
     loop {
         std::thread::sleep(REAP_EVERY.min(next.saturating_duration_since(Instant::now())));
@@ -567,10 +601,7 @@ fn run_scrub(inner: Weak<Inner>, period: Duration) {
         // From now, not from when it was due: a process that was stopped for a while (or a
         // clock that jumped) asks once, not once for every period it missed.
         next = Instant::now() + period;
-        match inner.verifications.check_all() {
-            Ok(n) => tracing::info!(scenes = n, "periodic check of every scene queued"),
-            Err(e) => tracing::warn!("periodic check: reading the catalogue: {e}"),
-        }
+        work(&inner);
     }
 }
 

@@ -238,6 +238,7 @@ enum Command {
         arbor-server serve --db pool --import-root /srv/scans   (admin API may import files under it)\n  \
         arbor-server serve --db pool --check-every 24h          (checks every scene once a day)\n  \
         arbor-server serve --db pool --copy-root /srv/backups   (admin API may copy the pool there)\n  \
+        arbor-server serve --db pool --copy-root /srv/backups --copy-every 1d --copy-keep 7\n  \
         arbor-server serve --db pool --check-every 24h --background-read-rate 20MB\n  \
         arbor-server serve --config /etc/arbor/serve.toml\n\n\
         Without --config every scene is public (development). The config file's keys are \
@@ -280,6 +281,15 @@ enum Command {
         /// while serving; without it copies are refused.
         #[arg(long)]
         copy_root: Option<PathBuf>,
+        /// Copy every published scene under --copy-root this often (`12h`, `1d`), into
+        /// `scheduled-<UTC time>`, as `copy --server` would: backups without cron [default:
+        /// never].
+        #[arg(long, value_parser = parse_period, requires = "copy_root")]
+        copy_every: Option<std::time::Duration>,
+        /// Scheduled copies kept: once one succeeds, older `scheduled-*` directories beyond
+        /// this many are removed (`0`: keep every one). Nothing else under the root is touched.
+        #[arg(long, default_value_t = 7, requires = "copy_every")]
+        copy_keep: usize,
         /// Check every published scene this often (`90s`, `30m`, `24h`, `7d`), as `verify
         /// --server` would, at the import priority: damage that appears on disk is found
         /// without anyone asking (`arbor_scene_check_ok` in /metrics) [default: never].
@@ -550,6 +560,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
             import_scratch,
             import_priority,
             copy_root,
+            copy_every,
+            copy_keep,
             check_every,
             background_read_rate,
             pool_prewarm,
@@ -574,6 +586,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 import_priority,
                 check_every,
                 copy_root,
+                copy_every,
+                copy_keep: std::num::NonZeroUsize::new(copy_keep),
                 background_read_rate: background_read_rate.and_then(|r| r.0),
             };
             let result = rt.block_on(serve(config, options));

@@ -1083,3 +1083,77 @@ async fn background_jobs_keep_the_read_rate_and_the_generation_they_read() {
     assert!(page.contains("Background reads (checks, copies): at most 1.0 kB/s"));
     d.server.shutdown().await;
 }
+
+/// `serve --copy-every` copies the pool on its own, names each copy by its time, and keeps the
+/// newest `--copy-keep`; directories it did not make are left alone.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_pool_is_copied_each_period_and_old_scheduled_copies_go() {
+    let pool = TestPool::new();
+    let refused = arbor_server::daemon::start_with(
+        pool.config(),
+        DaemonOptions {
+            copy_every: Some(Duration::from_secs(1)),
+            ..DaemonOptions::default()
+        },
+    )
+    .await
+    .unwrap_err();
+    assert!(
+        refused
+            .to_string()
+            .contains("--copy-every needs --copy-root"),
+        "{refused}"
+    );
+    drop(pool);
+    let d = Daemon::start_with(TestPool::new(), |root| {
+        std::fs::create_dir_all(root.join("copies/manual")).unwrap();
+        DaemonOptions {
+            copy_root: Some(root.join("copies")),
+            copy_every: Some(Duration::from_secs(1)),
+            copy_keep: std::num::NonZeroUsize::new(2),
+            ..DaemonOptions::default()
+        }
+    })
+    .await;
+    let copies = d.root.path().join("copies");
+    let t0 = Instant::now();
+    loop {
+        let metrics = text(d.admin, "/metrics").await;
+        let done = sample(&metrics, "arbor_pool_copies_total{outcome=\"done\"} ").unwrap_or(0.0);
+        if done >= 3.0 {
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(60), "{metrics}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let (s, all) = http(d.admin, "GET", "/v1/copies", ADMIN, "").await;
+    assert_eq!(s, 200);
+    let all = all.as_array().unwrap();
+    assert!(all.len() >= 3, "{all:?}");
+    assert!(all.iter().all(|c| c["scheduled"] == true), "{all:?}");
+    d.server.shutdown().await;
+    // The copy in hand, if any, sees the cancel within a pack.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    // Each copy done pruned the ones before it to two (a third appears between a copy's rename
+    // and its pruning).
+    let mut scheduled: Vec<String> = std::fs::read_dir(&copies)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with("scheduled-"))
+        .collect();
+    scheduled.sort();
+    assert!(
+        (2..=3).contains(&scheduled.len()),
+        "{scheduled:?} after at least three copies"
+    );
+    assert!(
+        copies.join("manual").is_dir(),
+        "a directory it did not make was removed"
+    );
+    // Each one left is a whole pool with the bunny.
+    for name in scheduled {
+        let copy = copies.join(&name);
+        let pool = arbor_server::pool::Pool::open(&copy).unwrap();
+        assert_eq!(pool.scenes().unwrap()[0].name, common::SCENE, "{name}");
+    }
+}

@@ -215,6 +215,18 @@ fn help_has_examples_and_bad_parameters_are_named() {
         assert!(!o.status.success(), "--check-every {period} accepted");
         assert!(err.contains(needle), "{period}: {err}");
     }
+    // Scheduled copies need a root; the number kept needs a schedule.
+    assert!(h.contains("--copy-every 1d --copy-keep 7"), "{h}");
+    for args in [
+        &["--copy-every", "1d"][..],
+        &["--copy-root", "x", "--copy-keep", "3"][..],
+        &["--copy-root", "x", "--copy-every", "0s"][..],
+    ] {
+        let o = run(&[&["serve", "--db", &db][..], args].concat());
+        let (_, err) = text(&o);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains("--copy-"), "{args:?}: {err}");
+    }
     // The background read rate: units read, absurd rates named.
     assert!(h.contains("--background-read-rate 20MB"), "{h}");
     for (rate, needle) in [
