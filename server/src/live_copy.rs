@@ -71,6 +71,12 @@ pub enum LiveCopyError {
         "copy destination {0:?}: a directory name of 1 to 128 letters, digits, '-', '_' or '.', not starting with '.'"
     )]
     BadName(String),
+    /// The destination of a copy asked for is named as scheduled copies are, which
+    /// `--copy-keep` removes.
+    #[error(
+        "copy destination {0:?} is named as scheduled copies are (scheduled-<UTC time>), which --copy-keep removes: choose another name"
+    )]
+    Reserved(String),
     /// The destination exists under the copy root (a copy never writes into a directory it did
     /// not make), or a copy queued or running writes it.
     #[error("copy destination {0:?} {1}")]
@@ -330,6 +336,9 @@ impl Copies {
 
     /// Checks and queues a copy; returns its id.
     pub fn submit(&self, req: &CopyRequest) -> Result<u64, LiveCopyError> {
+        if is_scheduled_name(&req.to) {
+            return Err(LiveCopyError::Reserved(req.to.clone()));
+        }
         self.submit_job(req, false)
     }
 
@@ -853,6 +862,10 @@ mod tests {
         let first = copies.submit_scheduled(day(0)).unwrap().expect("queued");
         assert_eq!(copies.submit_scheduled(day(1)).unwrap(), None, "piled up");
         let asked = copies.submit(&request("asked")).unwrap();
+        assert!(matches!(
+            copies.submit(&request("scheduled-2030-01-01T000000Z")),
+            Err(LiveCopyError::Reserved(_))
+        ));
         assert!(copies.status(first).unwrap().scheduled);
         assert!(!copies.status(asked).unwrap().scheduled);
         t.run_next();

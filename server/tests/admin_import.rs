@@ -762,6 +762,7 @@ async fn the_served_pool_is_copied_while_the_daemon_serves() {
         (r#"{"scenes":["bunny"]}"#, 400),
         ("not json", 400),
         (r#"{"to":"a","scenes":["nope"]}"#, 404),
+        (r#"{"to":"scheduled-2026-12-02T030000Z"}"#, 400),
     ] {
         let (s, e) = post(body, ADMIN).await;
         assert_eq!(s, status, "{body}: {e}");

@@ -15,7 +15,9 @@ impl From<LiveCopyError> for ApiError {
         match e {
             LiveCopyError::Pool(e) => e.into(),
             e @ LiveCopyError::Disabled => ApiError::new(StatusCode::FORBIDDEN, e.to_string()),
-            e @ LiveCopyError::BadName(_) => ApiError::new(StatusCode::BAD_REQUEST, e.to_string()),
+            e @ (LiveCopyError::BadName(_) | LiveCopyError::Reserved(_)) => {
+                ApiError::new(StatusCode::BAD_REQUEST, e.to_string())
+            }
             e @ LiveCopyError::DestinationTaken(..) => {
                 ApiError::new(StatusCode::CONFLICT, e.to_string())
             }

@@ -53,7 +53,8 @@
 //! Pool copies (`copies.rs`, [`crate::live_copy`]): `POST /v1/copies` takes `{"to": NAME,
 //! "scenes": [names]}` (no scenes: every published scene) and copies them, as published now,
 //! into the new directory `NAME` under the daemon's `--copy-root`; `403` when copies are
-//! disabled, `400` for a name that is not a plain directory name, `409` when the destination
+//! disabled, `400` for a name that is not a plain directory name (or is named as scheduled
+//! copies are, `scheduled-<UTC time>`, which `--copy-keep` removes), `409` when the destination
 //! exists or another copy writes it, `404` for an unknown scene. A copy's `phase` is `queued`,
 //! `running`, `done` (`report`: packs and bytes per scene, carried files, seconds), `failed`
 //! (`error`; nothing left at the destination) or `cancelled`.
