@@ -568,8 +568,6 @@ fn run_worker(rx: mpsc::Receiver<Arc<Job>>, inner: Weak<Inner>, priority: Import
     }
 }
 
-/// Queues a check of every published scene each `period` (the first one period after the
-/// start), until the scene manager is dropped.
 /// `serve --check-every`'s work: a check of every published scene queued.
 fn check_every_scene(inner: &Inner) {
     match inner.verifications.check_all() {
@@ -589,7 +587,8 @@ fn copy_the_pool(inner: &Inner) {
     }
 }
 
-/// Runs `work` every `period` while the manager lives.
+/// Runs `work` each `period` (the first time one period after the start), until the scene
+/// manager is dropped.
 fn every(inner: Weak<Inner>, period: Duration, work: fn(&Inner)) {
     let mut next = Instant::now() + period;
     loop {

@@ -14,6 +14,9 @@
 //!   job stops waiting (it ends the batch in hand at full speed and stops).
 //! * Bytes are counted whether a rate is set or not; `/metrics` shows them, the time jobs waited,
 //!   and the rate ([`ReadPace::figures`]).
+//! * What is counted is the packs' bytes as a job reads them by `get`, from the disk or from the
+//!   page cache alike. A check lists the stored ids by iterating the nodes tree a batch ahead of
+//!   its reads, so its disk reads may run one batch (a few MB) ahead of the rate, never further.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Mutex, PoisonError};
