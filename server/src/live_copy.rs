@@ -196,7 +196,8 @@ struct Job {
     /// The scenes' trees, until the worker takes them.
     stored: Mutex<Option<Vec<StoredScene>>>,
     started: AtomicBool,
-    cancelled: AtomicBool,
+    /// Shared with the scenes' reads: a cancelled copy stops waiting for the pace.
+    cancelled: Arc<AtomicBool>,
     planned: u64,
     copied: AtomicU64,
     submitted: SystemTime,
@@ -284,6 +285,8 @@ pub struct Copies {
     places: Places,
     board: JobBoard<Job>,
     figures: Arc<Mutex<CopyFigures>>,
+    /// The pace the copies' reads keep (shared with the daemon's checks).
+    pace: Arc<ReadPace>,
 }
 
 impl Copies {
@@ -311,14 +314,14 @@ impl Copies {
             state_dir: state_dir.to_owned(),
             keep_scheduled,
         };
-        let worker = (pool.clone(), places.clone(), figures.clone(), pace);
+        let worker = (pool.clone(), places.clone(), figures.clone());
         std::thread::Builder::new()
             .name("arbor-copy".into())
             .spawn(move || {
                 lower_priority(priority);
-                let (pool, places, figures, pace) = worker;
+                let (pool, places, figures) = worker;
                 while let Ok(job) = rx.recv() {
-                    run_job(&pool, &places, &job, &figures, &pace);
+                    run_job(&pool, &places, &job, &figures);
                 }
             })?;
         Ok(Copies {
@@ -326,6 +329,7 @@ impl Copies {
             places,
             board: JobBoard::new(tx),
             figures,
+            pace,
         })
     }
 
@@ -388,9 +392,13 @@ impl Copies {
             names.dedup();
             names
         };
+        let cancelled = Arc::new(AtomicBool::new(false));
         let stored = names
             .iter()
-            .map(|n| Ok(self.pool.scene(n)?.with_reads_apart()))
+            .map(|n| {
+                let scene = self.pool.scene(n)?.with_reads_apart();
+                Ok(scene.paced(self.pace.clone(), cancelled.clone()))
+            })
             .collect::<Result<Vec<StoredScene>, PoolError>>()?;
         let id = self.board.next_id();
         let scenes: Vec<CopySceneRef> = stored
@@ -412,7 +420,7 @@ impl Copies {
             scenes,
             stored: Mutex::new(Some(stored)),
             started: AtomicBool::new(false),
-            cancelled: AtomicBool::new(false),
+            cancelled,
             planned,
             copied: AtomicU64::new(0),
             submitted: SystemTime::now(),
@@ -576,7 +584,7 @@ pub fn validate_destination(to: &str) -> Result<(), LiveCopyError> {
 
 /// Runs one copy (or records it cancelled, if it was before it started), and counts its
 /// outcome in `figures`.
-fn run_job(pool: &Pool, places: &Places, job: &Job, figures: &Mutex<CopyFigures>, pace: &ReadPace) {
+fn run_job(pool: &Pool, places: &Places, job: &Job, figures: &Mutex<CopyFigures>) {
     // Taken once: a job is queued once, and the trees are let go when it ends.
     let Some(scenes) = lock(&job.stored).take() else {
         return;
@@ -589,7 +597,6 @@ fn run_job(pool: &Pool, places: &Places, job: &Job, figures: &Mutex<CopyFigures>
         let options = CopyOptions {
             carry_files: &CARRIED_FILES,
             stop: Some(&job.cancelled),
-            pace: Some(pace),
             ..CopyOptions::default()
         };
         copy_served(pool, scenes, &places.state_dir, &job.path, &options, &|p| {
@@ -713,8 +720,9 @@ mod tests {
             },
             board: JobBoard::new(tx),
             figures: Arc::default(),
+            pace: Arc::new(ReadPace::new(None)),
         };
-        let pace = Arc::new(ReadPace::new(None));
+        let pace = copies.pace.clone();
         Unstarted {
             dir,
             copies,
@@ -731,7 +739,6 @@ mod tests {
                 &self.copies.places,
                 &job,
                 &self.copies.figures,
-                &self.pace,
             );
             job
         }
@@ -1053,9 +1060,9 @@ mod tests {
             copies.places.clone(),
             copies.figures.clone(),
         );
-        drop(copies);
+        drop((copies, pace));
         let job = rx.try_recv().unwrap();
-        run_job(&pool, &places, &job, &figures, &pace);
+        run_job(&pool, &places, &job, &figures);
         assert_eq!(job.status().phase, CopyPhase::Cancelled);
         assert!(!dir.path().join("copies").join("fourth").exists());
         assert_eq!(lock(&figures).ended, [1, 1, 2]);

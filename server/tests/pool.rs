@@ -756,7 +756,6 @@ fn an_older_pool_is_copied_whole_into_this_builds_layout() {
         carry_files: &carry,
         reopen_after_bytes: 4096,
         stop: None,
-        pace: None,
     };
     let planned = AtomicU64::new(0);
     let report = copy_pool(&older, &copy, &options, &|p| match p {
@@ -1007,24 +1006,21 @@ fn a_served_pool_is_copied_by_get_and_a_copy_stops_when_asked() {
 
     let copy = root.path().join("copy");
     let (planned, copied) = (AtomicU64::new(0), AtomicU64::new(0));
-    let pace = arbor_server::pace::ReadPace::new(None);
+    let pace = std::sync::Arc::new(arbor_server::pace::ReadPace::new(None));
     let options = CopyOptions {
         carry_files: &["cert.pem", "admin-token"],
         reopen_after_bytes: 4096,
-        pace: Some(&pace),
         ..CopyOptions::default()
     };
-    let report = copy_served(
-        &pool,
-        scenes_of(&pool),
-        &state,
-        &copy,
-        &options,
-        &|p| match p {
-            CopyProgress::Planned { bytes } => planned.store(bytes, Ordering::Relaxed),
-            CopyProgress::Copied(n) => drop(copied.fetch_add(n, Ordering::Relaxed)),
-        },
-    )
+    let never = std::sync::Arc::new(AtomicBool::new(false));
+    let paced = scenes_of(&pool)
+        .into_iter()
+        .map(|s| s.paced(pace.clone(), never.clone()))
+        .collect();
+    let report = copy_served(&pool, paced, &state, &copy, &options, &|p| match p {
+        CopyProgress::Planned { bytes } => planned.store(bytes, Ordering::Relaxed),
+        CopyProgress::Copied(n) => drop(copied.fetch_add(n, Ordering::Relaxed)),
+    })
     .unwrap();
     assert!(report.reopens > 4, "{} reopenings", report.reopens);
     assert_eq!(report.carried, ["cert.pem"]);

@@ -24,8 +24,8 @@
 //! openings fails it naming the scene ([`PoolError::ChangedWhileRead`]: its trees are gone);
 //! nothing is renamed then.
 //!
-//! A served pool ([`copy_served`]) is read by a `get` per pack, each pack's bytes taken from
-//! [`CopyOptions::pace`] when given (the daemon's background read rate, [`crate::pace`]).
+//! A served pool ([`copy_served`]) is read by a `get` per pack, counted as its scenes count their
+//! reads and held to their pace ([`StoredScene::paced`]: the daemon's background read rate).
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -33,8 +33,9 @@ use std::time::{Duration, Instant};
 
 use arbor_proto::{ProtoError, SceneDescription};
 
-use super::{Pool, PoolError, StoredScene, channel_tree, decode_entry, nodes_tree, pack};
-use crate::pace::ReadPace;
+use super::{
+    Pool, PoolError, ReadAccount, StoredScene, channel_tree, decode_entry, nodes_tree, pack,
+};
 
 /// Bytes of packs copied or compared between two openings of both pools (module docs).
 pub const REOPEN_AFTER_BYTES: u64 = 64 << 20;
@@ -100,9 +101,6 @@ pub struct CopyOptions<'a> {
     pub reopen_after_bytes: u64,
     /// Set from elsewhere to stop the copy after the pack in hand ([`CopyError::Cancelled`]).
     pub stop: Option<&'a AtomicBool>,
-    /// The pace the source's reads keep ([`copy_served`]: the daemon's background jobs share
-    /// it); a closed source is read as fast as it comes.
-    pub pace: Option<&'a ReadPace>,
 }
 
 impl Default for CopyOptions<'_> {
@@ -112,7 +110,6 @@ impl Default for CopyOptions<'_> {
             carry_files: &[],
             reopen_after_bytes: REOPEN_AFTER_BYTES,
             stop: None,
-            pace: None,
         }
     }
 }
@@ -363,7 +360,6 @@ fn copy_planned(
         since_reopen: 0,
         reopens: 0,
         stop: options.stop,
-        pace: options.pace,
     };
     let result = copy.write_and_check(&planned, options, progress);
     drop(copy);
@@ -402,10 +398,9 @@ struct Copy<'a> {
     since_reopen: u64,
     reopens: u32,
     stop: Option<&'a AtomicBool>,
-    pace: Option<&'a ReadPace>,
 }
 
-impl<'a> Copy<'a> {
+impl Copy<'_> {
     /// The source's scenes and the copy, opened if they are not.
     fn opened(&mut self) -> Result<&Opened, CopyError> {
         if self.opened.is_none() {
@@ -448,20 +443,19 @@ impl<'a> Copy<'a> {
         Ok((from, to))
     }
 
-    /// The source's packs of `tree` after `after`, read as this source is read.
+    /// The source's packs of `tree` (of planned scene `scene`) after `after`, read as this
+    /// source is read.
     fn source_packs(
         &self,
+        scene: usize,
         tree: &sled::Tree,
         after: Option<&sled::IVec>,
-    ) -> Result<SourcePacks<'a>, CopyError> {
-        let read = match self.source.reading {
-            Reading::Served(_) => Read::ByKey {
-                pace: self.pace,
-                stop: self.stop,
-            },
-            Reading::Closed(_) => Read::InOrder,
+    ) -> Result<SourcePacks, CopyError> {
+        let by_key = match &self.source.reading {
+            Reading::Served(scenes) => Some(scenes[scene].reads().clone()),
+            Reading::Closed(_) => None,
         };
-        Ok(SourcePacks::after(tree, after, read)?)
+        Ok(SourcePacks::after(tree, after, by_key)?)
     }
 
     fn check_stop(&self) -> Result<(), CopyError> {
@@ -573,7 +567,7 @@ impl<'a> Copy<'a> {
                 let (from_tree, to_tree) = self.tree_pair(index, tree, &to)?;
                 let mut stretch = 0;
                 let mut finished = true;
-                for entry in self.source_packs(&from_tree, after.as_ref())? {
+                for entry in self.source_packs(index, &from_tree, after.as_ref())? {
                     self.check_stop()?;
                     let (key, value) = entry?;
                     let blocks =
@@ -642,7 +636,7 @@ impl<'a> Copy<'a> {
                 self.check_stop()?;
                 let (a, b) = self.tree_pair(index, tree, &to)?;
                 let budget = self.reopen_after.saturating_sub(self.since_reopen);
-                let packs = self.source_packs(&a, after.as_ref())?;
+                let packs = self.source_packs(index, &a, after.as_ref())?;
                 let (compared, last) =
                     compare_trees(name, label, packs, &b, after.as_ref(), budget)?;
                 drop((a, b));
@@ -668,20 +662,8 @@ fn range_after(tree: &sled::Tree, key: Option<&sled::IVec>) -> sled::Iter {
     }
 }
 
-/// How a source tree is read.
-#[derive(Clone, Copy)]
-enum Read<'a> {
-    /// Iterating the tree.
-    InOrder,
-    /// A `get` per pack index, each pack's bytes taken from `pace` (no wait once `stop` is set).
-    ByKey {
-        pace: Option<&'a ReadPace>,
-        stop: Option<&'a AtomicBool>,
-    },
-}
-
 /// A source tree's packs after a key, in key order.
-enum SourcePacks<'a> {
+enum SourcePacks {
     /// Iterating the tree (a pool the copy opened itself, and closes every `reopen_after`).
     Iter(Box<sled::Iter>),
     /// A `get` per pack index from `next` to the tree's last key (a served pool,
@@ -691,18 +673,19 @@ enum SourcePacks<'a> {
         tree: sled::Tree,
         next: u64,
         last: Option<u64>,
-        pace: Option<&'a ReadPace>,
-        stop: Option<&'a AtomicBool>,
+        /// The scene's read account: its pace, if any, holds these reads.
+        reads: ReadAccount,
     },
 }
 
-impl<'a> SourcePacks<'a> {
+impl SourcePacks {
+    /// Iterating, or with `by_key`, a `get` per pack counted in that account.
     fn after(
         tree: &sled::Tree,
         after: Option<&sled::IVec>,
-        read: Read<'a>,
-    ) -> Result<SourcePacks<'a>, PoolError> {
-        let Read::ByKey { pace, stop } = read else {
+        by_key: Option<ReadAccount>,
+    ) -> Result<SourcePacks, PoolError> {
+        let Some(reads) = by_key else {
             return Ok(SourcePacks::Iter(Box::new(range_after(tree, after))));
         };
         let index = |key: &[u8]| -> Result<u64, PoolError> {
@@ -727,13 +710,12 @@ impl<'a> SourcePacks<'a> {
             tree: tree.clone(),
             next,
             last,
-            pace,
-            stop,
+            reads,
         })
     }
 }
 
-impl Iterator for SourcePacks<'_> {
+impl Iterator for SourcePacks {
     type Item = Result<(sled::IVec, sled::IVec), PoolError>;
 
     fn next(&mut self) -> Option<Self::Item> {
@@ -743,18 +725,16 @@ impl Iterator for SourcePacks<'_> {
                 tree,
                 next,
                 last,
-                pace,
-                stop,
+                reads,
             } => {
                 let last = (*last)?;
                 while *next <= last {
                     let key = u32::try_from(*next).ok()?.to_be_bytes();
                     *next += 1;
+                    let began = Instant::now();
                     match tree.get(key) {
                         Ok(Some(pack)) => {
-                            if let Some(pace) = pace {
-                                pace.take(pack.len() as u64, *stop);
-                            }
+                            reads.observe(began, pack.len());
                             return Some(Ok((sled::IVec::from(&key[..]), pack)));
                         }
                         Ok(None) => {}
@@ -774,7 +754,7 @@ impl Iterator for SourcePacks<'_> {
 fn compare_trees(
     scene: &str,
     tree: &str,
-    mut ia: SourcePacks<'_>,
+    mut ia: SourcePacks,
     b: &sled::Tree,
     after: Option<&sled::IVec>,
     budget: u64,
@@ -826,7 +806,7 @@ pub fn compare_scene(source: &StoredScene, copy: &StoredScene) -> Result<(), Cop
         });
     }
     for ((tree, a), (_, b)) in source.trees().into_iter().zip(copy.trees()) {
-        let packs = SourcePacks::after(a, None, Read::InOrder)?;
+        let packs = SourcePacks::after(a, None, None)?;
         compare_trees(name, tree, packs, b, None, u64::MAX)?;
     }
     Ok(())

@@ -177,7 +177,7 @@ pub struct StoredScene {
 
 /// Where a scene's block reads are counted, and the pace they keep.
 #[derive(Debug, Clone)]
-struct ReadAccount {
+pub(crate) struct ReadAccount {
     /// The pool's serving histogram, or one of the scene's own ([`StoredScene::with_reads_apart`]).
     times: Arc<Histogram<PoolReadBuckets>>,
     /// A background job's pace and stop flag ([`StoredScene::paced`]).
@@ -186,7 +186,7 @@ struct ReadAccount {
 
 impl ReadAccount {
     /// Counts one sled read of `bytes` that took from `began` until now, and waits for the pace.
-    fn observe(&self, began: Instant, bytes: usize) {
+    pub(crate) fn observe(&self, began: Instant, bytes: usize) {
         self.times.observe(began.elapsed());
         if let Some((pace, stop)) = &self.paced {
             pace.take(bytes as u64, Some(stop));
@@ -253,6 +253,11 @@ impl StoredScene {
     pub fn paced(mut self, pace: Arc<ReadPace>, stop: Arc<AtomicBool>) -> StoredScene {
         self.reads.paced = Some((pace, stop));
         self
+    }
+
+    /// Where this scene's reads are counted, and their pace (a copy reading its packs by key).
+    pub(crate) fn reads(&self) -> &ReadAccount {
+        &self.reads
     }
 
     /// Number of node blocks stored.
