@@ -106,16 +106,22 @@ pub struct DaemonOptions {
     /// How imports share the CPU with the service.
     pub import_priority: ImportPriority,
     /// Check every published scene this often (`None`: only the checks asked for through the
-    /// admin API).
+    /// admin API, unless `check_at` is set).
     pub check_every: Option<std::time::Duration>,
+    /// Keep the checks of every scene to this UTC time of day (a day apart unless
+    /// `check_every` says otherwise; [`crate::periodic`]).
+    pub check_at: Option<crate::periodic::ClockTime>,
     /// Directory under which `POST /v1/copies` makes pool copies; `None`: copies disabled.
     pub copy_root: Option<PathBuf>,
     /// Bytes per second that checks and copies may read from the pool together (`None`: no
     /// limit; [`crate::pace`]). `PUT /v1/background-reads` changes it while serving.
     pub background_read_rate: Option<u64>,
     /// Copy every published scene under the copy root this often (`None`: only the copies
-    /// asked for); needs `copy_root`.
+    /// asked for, unless `copy_at` is set); needs `copy_root`.
     pub copy_every: Option<std::time::Duration>,
+    /// Keep the scheduled copies to this UTC time of day (a day apart unless `copy_every` says
+    /// otherwise; [`crate::periodic`]); needs `copy_root`.
+    pub copy_at: Option<crate::periodic::ClockTime>,
     /// Scheduled copies kept: after each one succeeds, older ones beyond this are removed
     /// (`None`: every one kept).
     pub copy_keep: Option<std::num::NonZeroUsize>,

@@ -19,7 +19,7 @@
 //! * [`daemon`] starts the service and mounts the admin API beside it — what `arbor-server
 //!   serve` runs; [`live_import`] imports and removes scenes in it, [`live_verify`] checks
 //!   them and [`live_copy`] copies the pool, while it serves, the checks' and copies' reads
-//!   held to the [`pace`] the operator sets.
+//!   held to the [`pace`] the operator sets; [`periodic`] says when the scheduled ones are due.
 //!
 //! [`logging`] sets up the binaries' log lines (text, coloured only on a terminal, or JSON).
 //!
@@ -38,6 +38,7 @@ pub mod logging;
 pub mod memory;
 pub mod octree;
 pub mod pace;
+pub mod periodic;
 pub mod pipeline;
 pub mod pool;
 pub mod progress;

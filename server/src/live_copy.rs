@@ -46,6 +46,7 @@ use crate::daemon::ADMIN_TOKEN_FILE;
 use crate::jobs::{BackgroundJob, JobBoard};
 use crate::live_import::{ImportPriority, lock, lower_priority, unix_seconds};
 use crate::pace::ReadPace;
+use crate::periodic::{ScheduleFigures, utc_fields};
 use crate::pool::copy::{
     CopiedScene, CopyError, CopyOptions, CopyProgress, CopyReport, copy_served,
 };
@@ -264,6 +265,10 @@ pub struct CopyFigures {
     pub ended: [u64; 3],
     /// When the last successful copy ended, seconds since the Unix epoch.
     pub last_done_unix: Option<f64>,
+    /// Scheduled copies skipped because the last one had not ended.
+    pub skipped: u64,
+    /// The copies by `--copy-every`/`--copy-at`, if scheduled.
+    pub scheduled: Option<ScheduleFigures>,
 }
 
 /// Where copies are written and what they carry.
@@ -346,17 +351,18 @@ impl Copies {
         self.submit_job(req, false)
     }
 
-    /// Queues the scheduled copy due at `now` (`serve --copy-every`): every published scene
-    /// into [`scheduled_name`]`(now)`. `None`: a scheduled copy is still queued or running, and
-    /// this one is skipped rather than piled behind it.
-    pub fn submit_scheduled(&self, now: SystemTime) -> Result<Option<u64>, LiveCopyError> {
+    /// Queues the scheduled copy due at `due` (`serve --copy-every/--copy-at`): every published
+    /// scene into [`scheduled_name`]`(due)`. `None`: a scheduled copy is still queued or
+    /// running, and this one is skipped (and counted) rather than piled behind it.
+    pub fn submit_scheduled(&self, due: SystemTime) -> Result<Option<u64>, LiveCopyError> {
         if self
             .board
             .any_running(|j| j.scheduled && !j.cancelled.load(Ordering::Acquire))
         {
+            lock(&self.figures).skipped += 1;
             return Ok(None);
         }
-        let to = scheduled_name(now);
+        let to = scheduled_name(due);
         self.submit_job(&CopyRequest { to, scenes: vec![] }, true)
             .map(Some)
     }
@@ -467,7 +473,12 @@ impl Copies {
             .any_running(|j| j.scenes.iter().any(|s| s.generation == generation))
     }
 
-    /// Copies ended by outcome, and when the last successful one ended.
+    /// Says when the scheduled copy is next due (`/metrics`, the page).
+    pub fn schedule_next(&self, figures: ScheduleFigures) {
+        lock(&self.figures).scheduled = Some(figures);
+    }
+
+    /// Copies ended by outcome, when the last successful one ended, and the schedule's figures.
     pub fn figures(&self) -> CopyFigures {
         lock(&self.figures).clone()
     }
@@ -503,31 +514,8 @@ pub const SCHEDULED_PREFIX: &str = "scheduled-";
 
 /// The destination of the scheduled copy due at `t`: [`SCHEDULED_PREFIX`] and its UTC time.
 pub fn scheduled_name(t: SystemTime) -> String {
-    let secs = t
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs());
-    let (days, rest) = (secs / 86_400, secs % 86_400);
-    let (year, month, day) = civil_from_days(days);
-    format!(
-        "{SCHEDULED_PREFIX}{year:04}-{month:02}-{day:02}T{:02}{:02}{:02}Z",
-        rest / 3_600,
-        rest / 60 % 60,
-        rest % 60
-    )
-}
-
-/// The proleptic Gregorian date `days` after 1970-01-01 (Howard Hinnant's `civil_from_days`).
-fn civil_from_days(days: u64) -> (u64, u64, u64) {
-    let z = days + 719_468;
-    let era = z / 146_097;
-    let doe = z % 146_097;
-    let yoe = (doe - doe / 1_460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = doy - (153 * mp + 2) / 5 + 1;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 };
-    let year = yoe + era * 400 + u64::from(month <= 2);
-    (year, month, day)
+    let (year, month, day, hour, minute, second) = utc_fields(t);
+    format!("{SCHEDULED_PREFIX}{year:04}-{month:02}-{day:02}T{hour:02}{minute:02}{second:02}Z")
 }
 
 /// Whether `name` is a scheduled copy's name, exactly as [`scheduled_name`] writes one.
@@ -868,6 +856,7 @@ mod tests {
         let day = |d: u64| UNIX_EPOCH + std::time::Duration::from_secs(1_764_633_600 + d * 86_400);
         let first = copies.submit_scheduled(day(0)).unwrap().expect("queued");
         assert_eq!(copies.submit_scheduled(day(1)).unwrap(), None, "piled up");
+        assert_eq!(copies.figures().skipped, 1, "a skipped copy not counted");
         let asked = copies.submit(&request("asked")).unwrap();
         assert!(matches!(
             copies.submit(&request("scheduled-2030-01-01T000000Z")),

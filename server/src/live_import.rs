@@ -34,6 +34,7 @@ use crate::live_copy::Copies;
 use crate::live_verify::Verifications;
 use crate::octree::{BuildOptions, DepthChoice};
 use crate::pace::{self, PaceError, ReadPace};
+use crate::periodic::{Schedule, ScheduleError, ScheduleFigures, Timer};
 use crate::pipeline::{SceneImport, Superseded, import_scene_observed};
 use crate::pool::{Pool, PoolError};
 use crate::progress::{ImportProgress, Phase, ProgressSnapshot};
@@ -74,8 +75,15 @@ pub enum ManagerError {
     #[error(transparent)]
     Pace(#[from] PaceError),
     /// Scheduled copies were asked for without a copy root to put them in.
-    #[error("--copy-every needs --copy-root (where the scheduled copies go)")]
+    #[error("--copy-every and --copy-at need --copy-root (where the scheduled copies go)")]
     ScheduleWithoutRoot,
+    /// A periodic check's or copy's schedule cannot be kept.
+    #[error("{key}: {source}")]
+    Schedule {
+        key: &'static str,
+        #[source]
+        source: ScheduleError,
+    },
 }
 
 fn root_error(
@@ -251,7 +259,20 @@ impl LiveImports {
         state_dir: &Path,
     ) -> Result<LiveImports, ManagerError> {
         let priority = options.import_priority;
-        if options.copy_every.is_some() && options.copy_root.is_none() {
+        let schedule = |key, every, at| {
+            Schedule::new(every, at).map_err(|source| ManagerError::Schedule { key, source })
+        };
+        let check_schedule = schedule(
+            "--check-every/--check-at",
+            options.check_every,
+            options.check_at,
+        )?;
+        let copy_schedule = schedule(
+            "--copy-every/--copy-at",
+            options.copy_every,
+            options.copy_at,
+        )?;
+        if copy_schedule.is_some() && options.copy_root.is_none() {
             return Err(ManagerError::ScheduleWithoutRoot);
         }
         let pace = Arc::new(ReadPace::new(pace::validate(options.background_read_rate)?));
@@ -299,17 +320,19 @@ impl LiveImports {
         std::thread::Builder::new()
             .name("arbor-reaper".into())
             .spawn(move || run_reaper(weak))?;
-        if let Some(period) = options.check_every {
+        if let Some(schedule) = check_schedule {
+            tracing::info!(schedule = %schedule.describe(), "every scene is checked");
             let weak = Arc::downgrade(&inner);
             std::thread::Builder::new()
                 .name("arbor-scrub".into())
-                .spawn(move || every(weak, period, check_every_scene))?;
+                .spawn(move || every(weak, schedule, &CHECK_EVERY_SCENE))?;
         }
-        if let Some(period) = options.copy_every {
+        if let Some(schedule) = copy_schedule {
+            tracing::info!(schedule = %schedule.describe(), "the pool is copied");
             let weak = Arc::downgrade(&inner);
             std::thread::Builder::new()
                 .name("arbor-backup".into())
-                .spawn(move || every(weak, period, copy_the_pool))?;
+                .spawn(move || every(weak, schedule, &COPY_THE_POOL))?;
         }
         Ok(LiveImports { inner })
     }
@@ -568,39 +591,67 @@ fn run_worker(rx: mpsc::Receiver<Arc<Job>>, inner: Weak<Inner>, priority: Import
     }
 }
 
-/// `serve --check-every`'s work: a check of every published scene queued.
-fn check_every_scene(inner: &Inner) {
-    match inner.verifications.check_all() {
-        Ok(n) => tracing::info!(scenes = n, "periodic check of every scene queued"),
-        Err(e) => tracing::warn!("periodic check: reading the catalogue: {e}"),
-    }
+/// A periodic job: what it does when due (given the time it was due), and where it says when it
+/// is next due.
+struct Periodic {
+    work: fn(&Inner, SystemTime),
+    publish: fn(&Inner, ScheduleFigures),
 }
 
-/// `serve --copy-every`'s work: the scheduled copy queued, unless the last one still runs.
-fn copy_the_pool(inner: &Inner) {
-    match inner.copies.submit_scheduled(SystemTime::now()) {
+/// `serve --check-every/--check-at`'s job: a check of every published scene queued.
+const CHECK_EVERY_SCENE: Periodic = Periodic {
+    work: |inner, _| match inner.verifications.check_all() {
+        Ok(n) => tracing::info!(scenes = n, "periodic check of every scene queued"),
+        Err(e) => tracing::warn!("periodic check: reading the catalogue: {e}"),
+    },
+    publish: |inner, figures| inner.verifications.schedule_next(figures),
+};
+
+/// `serve --copy-every/--copy-at`'s job: the scheduled copy queued, named by the time it was
+/// due, unless the last one still runs.
+const COPY_THE_POOL: Periodic = Periodic {
+    work: |inner, due| match inner.copies.submit_scheduled(due) {
         Ok(Some(id)) => tracing::info!(id, "scheduled copy of the pool queued"),
         Ok(None) => tracing::warn!(
             "scheduled copy skipped: the last one has not ended (a period shorter than a copy?)"
         ),
         Err(e) => tracing::error!("scheduled copy: {e}"),
-    }
-}
+    },
+    publish: |inner, figures| inner.copies.schedule_next(figures),
+};
 
-/// Runs `work` each `period` (the first time one period after the start), until the scene
-/// manager is dropped.
-fn every(inner: Weak<Inner>, period: Duration, work: fn(&Inner)) {
-    let mut next = Instant::now() + period;
+/// Runs `job` each time `schedule` is due (the first time one period after the start, or at
+/// the next clock time), until the scene manager is dropped.
+fn every(inner: Weak<Inner>, schedule: Schedule, job: &Periodic) {
+    let mut timer = Timer::start(schedule, SystemTime::now(), Instant::now());
+    let describe = schedule.describe();
+    let mut published = None;
     loop {
-        std::thread::sleep(REAP_EVERY.min(next.saturating_duration_since(Instant::now())));
-        let Some(inner) = inner.upgrade() else { return };
-        if Instant::now() < next {
-            continue;
+        let (wall, mono) = (SystemTime::now(), Instant::now());
+        let due = timer.poll(wall, mono);
+        let next = timer.next_due(wall, mono);
+        {
+            let Some(inner) = inner.upgrade() else { return };
+            if let Some(due) = due {
+                (job.work)(&inner, due);
+            }
+            // Said again only when it changed, to the second (a period counted from the start
+            // is projected on the wall clock anew at each wake-up).
+            let next_unix = unix_seconds(next).round();
+            if published != Some(next_unix) {
+                published = Some(next_unix);
+                (job.publish)(
+                    &inner,
+                    ScheduleFigures {
+                        schedule: describe.clone(),
+                        next_due_unix: next_unix,
+                    },
+                );
+            }
         }
-        // From now, not from when it was due: a process that was stopped for a while (or a
-        // clock that jumped) asks once, not once for every period it missed.
-        next = Instant::now() + period;
-        work(&inner);
+        // Short sleeps: the manager's drop is seen soon, and a clock stepped is followed.
+        let wait = next.duration_since(SystemTime::now()).unwrap_or_default();
+        std::thread::sleep(REAP_EVERY.min(wait));
     }
 }
 

@@ -36,6 +36,7 @@ use serde::Serialize;
 use crate::jobs::{BackgroundJob, JobBoard};
 use crate::live_import::{ImportPriority, background_threads, lock, unix_seconds};
 use crate::pace::ReadPace;
+use crate::periodic::ScheduleFigures;
 use crate::pool::{Pool, PoolError, StoredScene};
 use crate::verify::{BATCH_TREELETS, VerifyProgress, VerifyReport, verify_scene_observed};
 
@@ -195,6 +196,8 @@ pub struct CheckFigures {
     pub ended: [u64; 4],
     /// Each scene's last check, while the generation it checked is published.
     pub last: BTreeMap<String, LastCheck>,
+    /// The checks of every scene by `--check-every`/`--check-at`, if scheduled.
+    pub scheduled: Option<ScheduleFigures>,
 }
 
 /// How a check that ended ended: `Ok(None)` is cancelled.
@@ -259,6 +262,16 @@ impl Verifications {
             board: JobBoard::new(tx),
             tally,
         })
+    }
+
+    /// Says when the scheduled checks of every scene are next due (`/metrics`, the page).
+    pub fn schedule_next(&self, figures: ScheduleFigures) {
+        lock(&self.tally.figures).scheduled = Some(figures);
+    }
+
+    /// The scheduled checks' figures, if they are scheduled.
+    pub fn scheduled(&self) -> Option<ScheduleFigures> {
+        lock(&self.tally.figures).scheduled.clone()
     }
 
     /// Queues a check of every published scene (one already queued or running is not queued

@@ -19,12 +19,13 @@ use arbor_server::live_copy::CopySummary;
 use arbor_server::live_import::ImportPriority;
 use arbor_server::logging::LogFormat;
 use arbor_server::octree::{BuildOptions, DepthChoice};
+use arbor_server::periodic::{ClockTime, Schedule};
 use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
 use arbor_server::service::config::{AdminTls, PoolPrewarm};
 use arbor_server::service::{ConfigOverrides, ServeConfig};
 use arbor_server::verify;
-use clap::{Args, Parser, Subcommand};
+use clap::{ArgGroup, Args, Parser, Subcommand};
 
 /// mimalloc rather than glibc's malloc: an import's threads (sled's inserts, the compressors,
 /// the sort's rounds) waited on glibc's arena locks, and its pages are reused rather than
@@ -239,10 +240,13 @@ enum Command {
         arbor-server serve --db pool --check-every 24h          (checks every scene once a day)\n  \
         arbor-server serve --db pool --copy-root /srv/backups   (admin API may copy the pool there)\n  \
         arbor-server serve --db pool --copy-root /srv/backups --copy-every 1d --copy-keep 7\n  \
+        arbor-server serve --db pool --copy-root /srv/backups --copy-at 03:00  (nightly, UTC)\n  \
+        arbor-server serve --db pool --check-at \"Sun 04:00\"        (weekly, UTC)\n  \
         arbor-server serve --db pool --check-every 24h --background-read-rate 20MB\n  \
         arbor-server serve --config /etc/arbor/serve.toml\n\n\
         Without --config every scene is public (development). The config file's keys are \
         documented in deploy/ and docs/config-schema.md; command-line flags override them.")]
+    #[command(group(ArgGroup::new("copy_schedule").args(["copy_every", "copy_at"]).multiple(true)))]
     Serve {
         /// Pool directory (overrides `db` in the config).
         #[arg(long)]
@@ -282,19 +286,29 @@ enum Command {
         #[arg(long)]
         copy_root: Option<PathBuf>,
         /// Copy every published scene under --copy-root this often (`12h`, `1d`), into
-        /// `scheduled-<UTC time>`, as `copy --server` would: backups without cron [default:
-        /// never].
+        /// `scheduled-<UTC time>`, as `copy --server` would: backups without cron. Counted
+        /// from the start, unless --copy-at pins it to the clock [default: never].
         #[arg(long, value_parser = parse_period, requires = "copy_root")]
         copy_every: Option<std::time::Duration>,
+        /// Make the scheduled copies at this UTC time (`03:00`, `23:30:15`, `"Sun 03:00"`),
+        /// and every --copy-every before and after it (a day, a week with a weekday, if not
+        /// given; the period must divide a day or be whole days, whole weeks with a weekday).
+        #[arg(long, value_parser = parse_clock_time, requires = "copy_root")]
+        copy_at: Option<ClockTime>,
         /// Scheduled copies kept: once one succeeds, older `scheduled-*` directories beyond
         /// this many are removed (`0`: keep every one). Nothing else under the root is touched.
-        #[arg(long, default_value_t = 7, requires = "copy_every")]
+        #[arg(long, default_value_t = 7, requires = "copy_schedule")]
         copy_keep: usize,
         /// Check every published scene this often (`90s`, `30m`, `24h`, `7d`), as `verify
         /// --server` would, at the import priority: damage that appears on disk is found
-        /// without anyone asking (`arbor_scene_check_ok` in /metrics) [default: never].
+        /// without anyone asking (`arbor_scene_check_ok` in /metrics). Counted from the
+        /// start, unless --check-at pins it to the clock [default: never].
         #[arg(long, value_parser = parse_period)]
         check_every: Option<std::time::Duration>,
+        /// Check every published scene at this UTC time (`04:00`, `"Sun 04:00"`), and every
+        /// --check-every before and after it (a day, a week with a weekday, if not given).
+        #[arg(long, value_parser = parse_clock_time)]
+        check_at: Option<ClockTime>,
         /// Bytes per second that checks and copies may read from the pool together (`20MB`,
         /// `512KiB`, `off`), so that they leave the disk to serving; `PUT
         /// /v1/background-reads` changes it while serving [default: off].
@@ -325,6 +339,10 @@ fn parse_background_rate(s: &str) -> Result<BackgroundRate, String> {
     arbor_server::pace::parse_rate(s)
         .map(BackgroundRate)
         .map_err(|e| e.to_string())
+}
+
+fn parse_clock_time(s: &str) -> Result<ClockTime, String> {
+    arbor_server::periodic::parse_clock_time(s).map_err(|e| e.to_string())
 }
 
 /// A period: a whole number with `s`, `m`, `h` or `d`, at least a second.
@@ -561,11 +579,17 @@ fn run(cli: Cli) -> Result<ExitCode> {
             import_priority,
             copy_root,
             copy_every,
+            copy_at,
             copy_keep,
             check_every,
+            check_at,
             background_read_rate,
             pool_prewarm,
         } => {
+            // Refused before anything starts: a weekday with a daily period, a period that
+            // would drift from the clock time.
+            Schedule::new(check_every, check_at).context("--check-every/--check-at")?;
+            Schedule::new(copy_every, copy_at).context("--copy-every/--copy-at")?;
             let overrides = ConfigOverrides {
                 db,
                 listen,
@@ -585,8 +609,10 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 import_scratch,
                 import_priority,
                 check_every,
+                check_at,
                 copy_root,
                 copy_every,
+                copy_at,
                 copy_keep: std::num::NonZeroUsize::new(copy_keep),
                 background_read_rate: background_read_rate.and_then(|r| r.0),
             };

@@ -1102,7 +1102,7 @@ async fn the_pool_is_copied_each_period_and_old_scheduled_copies_go() {
     assert!(
         refused
             .to_string()
-            .contains("--copy-every needs --copy-root"),
+            .contains("--copy-every and --copy-at need --copy-root"),
         "{refused}"
     );
     drop(pool);
@@ -1157,4 +1157,96 @@ async fn the_pool_is_copied_each_period_and_old_scheduled_copies_go() {
         let pool = arbor_server::pool::Pool::open(&copy).unwrap();
         assert_eq!(pool.scenes().unwrap()[0].name, common::SCENE, "{name}");
     }
+}
+
+/// `serve --copy-at`/`--check-at` pin the schedules to the wall clock: copies every 2 s at odd
+/// seconds are named by the odd second they were due, whatever second the daemon started in;
+/// `/metrics` and the page say when each schedule is next due; a schedule that would drift
+/// from its clock time, or scheduled copies without a root, are refused before serving.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clock_time_schedules_name_copies_by_the_time_they_were_due() {
+    use arbor_server::periodic::parse_clock_time;
+    for (options, expected) in [
+        (
+            DaemonOptions {
+                copy_at: Some(parse_clock_time("03:00").unwrap()),
+                ..DaemonOptions::default()
+            },
+            "--copy-every and --copy-at need --copy-root",
+        ),
+        (
+            DaemonOptions {
+                check_at: Some(parse_clock_time("Sun 04:00").unwrap()),
+                check_every: Some(Duration::from_secs(86_400)),
+                ..DaemonOptions::default()
+            },
+            "whole weeks",
+        ),
+    ] {
+        let pool = TestPool::new();
+        let refused = arbor_server::daemon::start_with(pool.config(), options)
+            .await
+            .unwrap_err();
+        assert!(refused.to_string().contains(expected), "{refused}");
+    }
+    let d = Daemon::start_with(TestPool::new(), |root| {
+        std::fs::create_dir_all(root.join("copies")).unwrap();
+        DaemonOptions {
+            copy_root: Some(root.join("copies")),
+            copy_every: Some(Duration::from_secs(2)),
+            copy_at: Some(parse_clock_time("00:00:01").unwrap()),
+            check_every: Some(Duration::from_secs(3)),
+            check_at: Some(parse_clock_time("00:00:02Z").unwrap()),
+            ..DaemonOptions::default()
+        }
+    })
+    .await;
+    let t0 = Instant::now();
+    let metrics = loop {
+        let metrics = text(d.admin, "/metrics").await;
+        let done = sample(&metrics, "arbor_pool_copies_total{outcome=\"done\"} ").unwrap_or(0.0);
+        if done >= 2.0 {
+            break metrics;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(60), "{metrics}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs_f64();
+    let next_copy = sample(&metrics, "arbor_pool_copy_next_scheduled_seconds ").unwrap();
+    let next_check = sample(&metrics, "arbor_scene_check_next_scheduled_seconds ").unwrap();
+    assert_eq!(next_copy % 2.0, 1.0, "{metrics}");
+    assert_eq!(next_check % 3.0, 2.0, "{metrics}");
+    for next in [next_copy, next_check] {
+        assert!(next > now - 1.5 && next < now + 3.5, "{next} at {now}");
+    }
+    assert!(sample(&metrics, "arbor_pool_copies_skipped_total ").is_some());
+    let (s, all) = http(d.admin, "GET", "/v1/copies", ADMIN, "").await;
+    assert_eq!(s, 200);
+    let names: Vec<&str> = all
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["to"].as_str().unwrap())
+        .collect();
+    assert!(names.len() >= 2, "{all}");
+    for name in &names {
+        // scheduled-YYYY-MM-DDTHHMMSSZ: the seconds are the two digits before the Z.
+        let second: u32 = name[name.len() - 3..name.len() - 1].parse().unwrap();
+        assert_eq!(
+            second % 2,
+            1,
+            "{name} was not due at an odd second: {names:?}"
+        );
+    }
+    let page = text(d.admin, "/").await;
+    for part in [
+        "Scheduled: checks of every scene every 3s at 00:00:02 UTC, next 20",
+        "copies of the pool every 2s at 00:00:01 UTC, next 20",
+    ] {
+        assert!(page.contains(part), "{part} not in the page:\n{page}");
+    }
+    d.server.shutdown().await;
 }

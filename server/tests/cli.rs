@@ -227,6 +227,57 @@ fn help_has_examples_and_bad_parameters_are_named() {
         assert_eq!(o.status.code(), Some(2), "{args:?}: {err}");
         assert!(err.contains("--copy-"), "{args:?}: {err}");
     }
+    // Schedules pinned to the clock: times read or named, drifting periods refused before
+    // serving, the number kept accepted with a clock time alone.
+    assert!(h.contains("--copy-at 03:00"), "{h}");
+    assert!(h.contains("--check-at \"Sun 04:00\""), "{h}");
+    for (args, code, needle) in [
+        (
+            &["--check-at", "25:00"][..],
+            2,
+            "expected a UTC time of day",
+        ),
+        (
+            &["--check-at", "03:00 CET"][..],
+            2,
+            "expected a UTC time of day",
+        ),
+        (&["--copy-at", "03:00"][..], 2, "--copy-root"),
+        (
+            &["--check-at", "Sun 04:00", "--check-every", "1d"][..],
+            1,
+            "whole weeks",
+        ),
+        (
+            &[
+                "--copy-root",
+                "x",
+                "--copy-at",
+                "03:00",
+                "--copy-every",
+                "7h",
+            ][..],
+            1,
+            "must divide a day",
+        ),
+        (
+            &[
+                "--copy-root",
+                "no-such-root",
+                "--copy-at",
+                "03:00",
+                "--copy-keep",
+                "3",
+            ][..],
+            1,
+            "no-such-root",
+        ),
+    ] {
+        let o = run(&[&["serve", "--db", &db][..], args].concat());
+        let (_, err) = text(&o);
+        assert_eq!(o.status.code(), Some(code), "{args:?}: {err}");
+        assert!(err.contains(needle), "{args:?}: {err}");
+    }
     // The background read rate: units read, absurd rates named.
     assert!(h.contains("--background-read-rate 20MB"), "{h}");
     for (rate, needle) in [

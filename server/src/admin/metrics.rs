@@ -202,6 +202,28 @@ fn copy_families(p: &mut PromText, copies: Option<&CopyFigures>) {
     if let Some(t) = copies.and_then(|c| c.last_done_unix) {
         p.sample("arbor_pool_copy_last_done_seconds", &[], t);
     }
+    p.family(
+        "arbor_pool_copies_skipped_total",
+        Kind::Counter,
+        "Scheduled copies (serve --copy-every/--copy-at) not made because the last one had not \
+         ended (a period shorter than a copy, or a copy held back by the background read rate).",
+    );
+    if let Some(c) = copies {
+        p.sample("arbor_pool_copies_skipped_total", &[], c.skipped);
+    }
+    p.family(
+        "arbor_pool_copy_next_scheduled_seconds",
+        Kind::Gauge,
+        "When the next scheduled copy is due, seconds since the Unix epoch (alert when it is \
+         in the past: the schedule stopped); no sample without a schedule.",
+    );
+    if let Some(s) = copies.and_then(|c| c.scheduled.as_ref()) {
+        p.sample(
+            "arbor_pool_copy_next_scheduled_seconds",
+            &[],
+            s.next_due_unix,
+        );
+    }
 }
 
 /// The scene checks' counters and each published scene's last check.
@@ -221,6 +243,19 @@ fn check_families(p: &mut PromText, checks: Option<&CheckFigures>) {
                 n,
             );
         }
+    }
+    p.family(
+        "arbor_scene_check_next_scheduled_seconds",
+        Kind::Gauge,
+        "When the next check of every scene (serve --check-every/--check-at) is due, seconds \
+         since the Unix epoch; no sample without a schedule.",
+    );
+    if let Some(s) = checks.and_then(|c| c.scheduled.as_ref()) {
+        p.sample(
+            "arbor_scene_check_next_scheduled_seconds",
+            &[],
+            s.next_due_unix,
+        );
     }
     let last = checks.map(|c| &c.last);
     let each =
@@ -308,6 +343,7 @@ mod tests {
         for counter in [
             "arbor_scene_checks_total",
             "arbor_pool_copies_total",
+            "arbor_pool_copies_skipped_total",
             "arbor_pool_background_read_bytes_total",
             "arbor_pool_background_wait_seconds_total",
         ] {
@@ -325,6 +361,16 @@ mod tests {
                     .any(|l| l.starts_with("arbor_pool_background_read_rate_bytes")),
             "a rate sample without a scene manager: {t}"
         );
+        for gauge in [
+            "arbor_pool_copy_next_scheduled_seconds",
+            "arbor_scene_check_next_scheduled_seconds",
+        ] {
+            assert!(t.contains(&format!("# TYPE {gauge} gauge\n")), "{t}");
+            assert!(
+                !t.lines().any(|l| l.starts_with(gauge)),
+                "a schedule's next time without a schedule: {t}"
+            );
+        }
         assert!(!t.contains("arbor_pool_scenes 0"), "{t}");
         let mut names: Vec<_> = t
             .lines()

@@ -520,6 +520,14 @@ async fn index(State(app): State<Shared>) -> Result<Response, ApiError> {
         checks: &checks,
         copies: &copies,
         background: app.imports.as_ref().map(|i| i.background_reads().figures()),
+        scheduled_checks: app
+            .imports
+            .as_ref()
+            .and_then(|i| i.verifications().scheduled()),
+        scheduled_copies: app.imports.as_ref().and_then(|i| {
+            let f = i.copies().figures();
+            f.scheduled.map(|s| (s, f.skipped))
+        }),
     };
     let body = page::status_page(&app.state, app.started.elapsed(), &pool, &jobs);
     Ok(html(&app, StatusCode::OK, body))

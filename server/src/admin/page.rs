@@ -17,6 +17,7 @@ use crate::live_copy::{CopyPhase, CopyStatus};
 use crate::live_import::ImportStatus;
 use crate::live_verify::{VerifyPhase, VerifyStatus};
 use crate::pace::{PaceFigures, describe_rate};
+use crate::periodic::{ScheduleFigures, utc_text};
 use crate::service::state::{ServiceState, SessionInfo};
 
 const STYLE: &str = r#"
@@ -178,6 +179,10 @@ pub(super) struct Jobs<'a> {
     pub copies: &'a [CopyStatus],
     /// The checks' and copies' reads (`None`: no scene manager).
     pub background: Option<PaceFigures>,
+    /// The scheduled checks of every scene, if any.
+    pub scheduled_checks: Option<ScheduleFigures>,
+    /// The scheduled copies, if any, and how many were skipped.
+    pub scheduled_copies: Option<(ScheduleFigures, u64)>,
 }
 
 /// The status page.
@@ -204,6 +209,7 @@ pub(super) fn status_page(
     checks_section(&mut out, jobs.checks);
     copies_section(&mut out, jobs.copies);
     background_line(&mut out, jobs);
+    schedule_line(&mut out, jobs);
     sessions_section(&mut out, &sessions);
     out.push_str("</main>\n");
     let _ = write!(
@@ -353,6 +359,30 @@ fn background_line(out: &mut String, jobs: &Jobs<'_>) {
         b.read_bytes as f64 / 1e6,
         b.waited_seconds
     );
+}
+
+/// When the scheduled checks and copies are next due (nothing without a schedule).
+fn schedule_line(out: &mut String, jobs: &Jobs<'_>) {
+    let due = |s: &ScheduleFigures| {
+        let next = std::time::UNIX_EPOCH + Duration::from_secs_f64(s.next_due_unix.max(0.0));
+        format!("{}, next {}", escape(&s.schedule), escape(&utc_text(next)))
+    };
+    let mut parts = Vec::new();
+    if let Some(s) = &jobs.scheduled_checks {
+        parts.push(format!("checks of every scene {}", due(s)));
+    }
+    if let Some((s, skipped)) = &jobs.scheduled_copies {
+        let skipped = match skipped {
+            0 => String::new(),
+            n => {
+                format!(" (<span class=\"badge warn\">{n} skipped</span>: the last had not ended)")
+            }
+        };
+        parts.push(format!("copies of the pool {}{skipped}", due(s)));
+    }
+    if !parts.is_empty() {
+        let _ = writeln!(out, "<p>Scheduled: {}</p>", parts.join(" · "));
+    }
 }
 
 /// Readiness, certificate, uptime, pool size.
