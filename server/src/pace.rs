@@ -203,18 +203,21 @@ impl ReadPace {
         if wait.is_zero() {
             return;
         }
-        let began = Instant::now();
-        let until = began + wait;
+        let mut counted = Instant::now();
+        let until = counted + wait;
         loop {
+            // Counted slice by slice, so `/metrics` shows a long wait while it lasts (a pack's
+            // debt at a low rate is a minute), not only once it ended.
             let now = Instant::now();
+            let slept = u64::try_from((now - counted).as_nanos()).unwrap_or(u64::MAX);
+            self.waited_nanos.fetch_add(slept, Ordering::Relaxed);
+            counted = now;
             let stopped = stop.is_some_and(|s| s.load(Ordering::Acquire));
             if now >= until || stopped || self.epoch.load(Ordering::Acquire) != epoch {
                 break;
             }
             std::thread::sleep(SLICE.min(until - now));
         }
-        let waited = u64::try_from(began.elapsed().as_nanos()).unwrap_or(u64::MAX);
-        self.waited_nanos.fetch_add(waited, Ordering::Relaxed);
     }
 
     pub fn figures(&self) -> PaceFigures {
@@ -332,12 +335,15 @@ mod tests {
         let t0 = Instant::now();
         pace.take(MIN_BURST, None);
         assert!(t0.elapsed() < Duration::from_secs(1));
-        // 10 kB at 1 kB/s owes 10 s; the stop flag set from another thread ends the wait.
+        // 10 kB at 1 kB/s owes 10 s; the stop flag set from another thread ends the wait, which
+        // the figures show while it lasts.
         let stop = AtomicBool::new(false);
         std::thread::scope(|s| {
             s.spawn(|| {
                 std::thread::sleep(Duration::from_millis(100));
+                let waiting = pace.figures().waited_seconds;
                 stop.store(true, Ordering::Release);
+                assert!(waiting >= 0.03, "{waiting} s counted 100 ms into a wait");
             });
             let t0 = Instant::now();
             pace.take(10_000, Some(&stop));
