@@ -18,11 +18,14 @@
 //!   `ARBOR_SCALE_DIR` (no tiles, import or verify);
 //! * `ARBOR_SCALE_SERVER_BIN=PATH` — the stream step serves from this `arbor-server` instead of
 //!   the one built with the bench (another build's, to compare two in turns);
+//! * `ARBOR_SCALE_PLAIN_VIEWS=0` — the stream step skips its two plain servers' views (only
+//!   the jobs' and restarts' below);
 //! * `ARBOR_SCALE_FIRST_VIEW_AFTER_MS=N` — the stream step's first view waits N ms after its
 //!   server started (a client that comes a while after a restart; default 0);
 //! * `ARBOR_SCALE_READ_IOPS=N` — the stream step's servers read the pool's disk at most N times
 //!   a second (a cgroup v1 blkio limit; root), with the page cache dropped as each starts: a
-//!   cloud disk past its burst (docs/measurements.md, stop 68);
+//!   cloud disk past its burst (docs/measurements.md, stop 68); `ARBOR_SCALE_READ_BPS=B` the
+//!   same for bytes a second (a throughput baseline; both may be set);
 //! * `ARBOR_SCALE_RESTART=N` — after the stream step's views, N rounds of a restart: a server in
 //!   a memory cgroup of `ARBOR_SCALE_RESTART_MEMORY_MIB` (default 1024, less than the city's
 //!   pool) serves one view and is stopped with SIGTERM, the page cache is dropped, and its
@@ -32,8 +35,9 @@
 //! * `ARBOR_SCALE_CHECK=0` — skip the view streamed while the server checks the scene
 //!   (`verify --server`); `ARBOR_SCALE_COPY=0` — the same while it copies its pool (`copy
 //!   --server`); `ARBOR_SCALE_JOB_RATE=RATE` — those servers' `--background-read-rate` (`20MB`);
-//!   `ARBOR_SCALE_JOB_MEMORY_MIB`, `ARBOR_SCALE_JOB_SECONDS`, `ARBOR_SCALE_JOB_COLD_VIEWS`: in a
-//!   memory cgroup, stopped after a while, each view from the disk (`scale/stream.rs`);
+//!   `ARBOR_SCALE_JOB_MEMORY_MIB`, `ARBOR_SCALE_JOB_SECONDS`, `ARBOR_SCALE_JOB_COLD_VIEWS`,
+//!   `ARBOR_SCALE_JOB_CONFIG`: in a memory cgroup, stopped after a while, each view from the
+//!   disk, with server settings of its own (`scale/stream.rs`);
 //! * `ARBOR_SCALE_SERVER_LOG=FILE` — append the stream step's servers' logs (stderr, with
 //!   `RUST_LOG` as set) to FILE instead of dropping them.
 //!

@@ -19,7 +19,10 @@
 //! those servers `--background-read-rate RATE` (`20MB`); `ARBOR_SCALE_JOB_MEMORY_MIB=N` starts
 //! them in a memory cgroup of N MiB (root, cgroup v1), the page cache dropped first;
 //! `ARBOR_SCALE_JOB_SECONDS=N` stops the job after N s (the CLI interrupted, which cancels it);
-//! `ARBOR_SCALE_JOB_COLD_VIEWS=1` drops the page cache before each timed view (root).
+//! `ARBOR_SCALE_JOB_COLD_VIEWS=1` drops the page cache before each timed view (root);
+//! `ARBOR_SCALE_JOB_CONFIG=TOML` gives them these config lines (`message_cache_bytes = 0`,
+//! `pool_cache_bytes = 1048576`: the server's own caches out of the way, so each view reads the
+//! pool). `ARBOR_SCALE_READ_BPS` holds their disk to bytes a second.
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -70,32 +73,57 @@ fn disk_of(path: &Path) -> String {
         sys.join("dev")
     };
     std::fs::read_to_string(&disk)
-        .unwrap_or_else(|e| panic!("ARBOR_SCALE_READ_IOPS: reading {}: {e}", disk.display()))
+        .unwrap_or_else(|e| panic!("ARBOR_SCALE_READ_*: reading {}: {e}", disk.display()))
         .trim()
         .to_owned()
 }
 
-/// `ARBOR_SCALE_READ_IOPS=N`: a fresh block I/O cgroup that holds reads of the pool's disk to N
-/// a second (cloud block storage past its burst), for the next server to start in, and the page
-/// cache dropped, so the pool (and sled's open) is read from that disk. Needs root and cgroup
-/// v1's blkio controller; says so loudly when either is missing. Returns the cgroup (removed
-/// with the server).
+/// `ARBOR_SCALE_READ_IOPS=N` and/or `ARBOR_SCALE_READ_BPS=B`: a fresh block I/O cgroup that
+/// holds reads of the pool's disk to N a second (cloud block storage past its burst) and/or B
+/// bytes a second (a throughput baseline), for the next server to start in, and the page cache
+/// dropped, so the pool (and sled's open) is read from that disk. Needs root and cgroup v1's
+/// blkio controller; says so loudly when either is missing. Returns the cgroup (removed with
+/// the server).
 fn throttled_reads(pool: &Path) -> Option<std::path::PathBuf> {
     static NEXT: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
-    let iops: u64 = std::env::var("ARBOR_SCALE_READ_IOPS")
-        .ok()?
-        .parse()
-        .expect("ARBOR_SCALE_READ_IOPS is a number of reads a second");
+    let limit = |knob: &str| {
+        std::env::var(knob).ok().map(|v| {
+            v.parse::<u64>()
+                .unwrap_or_else(|_| panic!("{knob} is a whole number a second, not {v:?}"))
+        })
+    };
+    let limits = [
+        ("ARBOR_SCALE_READ_IOPS", "blkio.throttle.read_iops_device"),
+        ("ARBOR_SCALE_READ_BPS", "blkio.throttle.read_bps_device"),
+    ]
+    .map(|(knob, file)| (knob, file, limit(knob)));
+    let (knob, _, _) = limits.iter().find(|(_, _, l)| l.is_some())?;
     let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let cgroup = fresh_cgroup(
-        "ARBOR_SCALE_READ_IOPS",
-        BLKIO_CGROUPS,
-        &n.to_string(),
-        "blkio.throttle.read_iops_device",
-        format!("{} {iops}", disk_of(pool)),
-    );
-    drop_page_cache("ARBOR_SCALE_READ_IOPS");
-    Some(cgroup)
+    let disk = disk_of(pool);
+    let mut cgroup = None;
+    for (knob, file, value) in limits {
+        let Some(value) = value else { continue };
+        let value = format!("{disk} {value}");
+        match &cgroup {
+            None => {
+                cgroup = Some(fresh_cgroup(
+                    knob,
+                    BLKIO_CGROUPS,
+                    &n.to_string(),
+                    file,
+                    value,
+                ))
+            }
+            Some(c) => {
+                let path = Path::new(c).join(file);
+                std::fs::write(&path, &value).unwrap_or_else(|e| {
+                    panic!("{knob}: writing {value} to {}: {e}", path.display())
+                });
+            }
+        }
+    }
+    drop_page_cache(knob);
+    cgroup
 }
 
 /// A fresh cgroup (v1) under the controller at `root`, named for this process and `tag`, with
@@ -135,7 +163,7 @@ struct Server {
     child: Child,
     /// From its start to its first line saying where it serves (the pool opened).
     serving_after: Duration,
-    /// The block I/O cgroup it runs in (`ARBOR_SCALE_READ_IOPS`), removed once it ended.
+    /// The block I/O cgroup it runs in (`ARBOR_SCALE_READ_IOPS`/`_BPS`), removed once it ended.
     throttled: Option<std::path::PathBuf>,
     url: ServerUrl,
     fingerprint: String,
@@ -178,11 +206,11 @@ impl Server {
         server_bin: &str,
         pool: &Path,
         scene: &str,
-        state: &Path,
-        cgroup: &Path,
+        config: Option<&str>,
+        (state, cgroup): (&Path, &Path),
         args: &[String],
     ) -> Server {
-        Server::start_in(server_bin, pool, scene, None, state, Some(cgroup), args)
+        Server::start_in(server_bin, pool, scene, config, state, Some(cgroup), args)
     }
 
     /// [`Server::start_with`] with the data directory `state`, in the memory cgroup (v1)
@@ -407,13 +435,18 @@ pub fn serve_and_stream(server_bin: &str, pool: &Path, scene: &str) {
         BUDGET >> 20,
         first_view_after.as_millis()
     );
+    // `ARBOR_SCALE_PLAIN_VIEWS=0`: only the jobs' and restarts' views below.
+    let plain = std::env::var("ARBOR_SCALE_PLAIN_VIEWS").as_deref() != Ok("0");
     for (servers, config) in [
         ("visible cuts on (the default)", None),
         (
             "visible cuts off (visibility_grid = 0)",
             Some("visibility_grid = 0"),
         ),
-    ] {
+    ]
+    .into_iter()
+    .filter(|_| plain)
+    {
         let server = Server::start(server_bin, pool, scene, config);
         println!(
             " {servers}: serving {:.2} s after its start",
@@ -506,14 +539,25 @@ fn job_while_streaming(
     let bound = std::env::var("ARBOR_SCALE_JOB_SECONDS")
         .ok()
         .map(|v| Duration::from_secs(v.parse().expect("ARBOR_SCALE_JOB_SECONDS is seconds")));
+    // Server settings for the job's server (`message_cache_bytes = 0` with a small
+    // `pool_cache_bytes`: every view reads the pool, a client looking where no one looked).
+    let config = std::env::var("ARBOR_SCALE_JOB_CONFIG")
+        .ok()
+        .filter(|c| !c.is_empty());
     let server = match confined_mib {
-        None => Server::start_with(server_bin, pool, scene, None, &args),
+        None => Server::start_with(server_bin, pool, scene, config.as_deref(), &args),
         Some(mib) => {
             let state = tempfile::tempdir().unwrap();
             let cgroup = memory_cgroup(mib, &format!("job-{name}"));
             drop_page_cache("ARBOR_SCALE_JOB_MEMORY_MIB");
-            let mut server =
-                Server::start_confined(server_bin, pool, scene, state.path(), &cgroup, &args);
+            let mut server = Server::start_confined(
+                server_bin,
+                pool,
+                scene,
+                config.as_deref(),
+                (state.path(), &cgroup),
+                &args,
+            );
             server._state = Some(state);
             server
         }
@@ -672,7 +716,7 @@ fn restart_and_stream(
             let state = tempfile::tempdir().unwrap();
             let cgroup = memory_cgroup(mib, &format!("{round}-{i}"));
             let before =
-                Server::start_confined(server_bin, pool, scene, state.path(), &cgroup, &[]);
+                Server::start_confined(server_bin, pool, scene, None, (state.path(), &cgroup), &[]);
             stream_view(&before, "  before the restart", runtime);
             before.stop();
             let list = state.path().join("pool-hot-pages.json");
@@ -688,7 +732,7 @@ fn restart_and_stream(
             drop_page_cache("ARBOR_SCALE_RESTART");
             let cgroup = memory_cgroup(mib, &format!("{round}-{i}-after"));
             let after_server =
-                Server::start_confined(server_bin, pool, scene, state.path(), &cgroup, &[]);
+                Server::start_confined(server_bin, pool, scene, None, (state.path(), &cgroup), &[]);
             println!(
                 "  restarted: serving {:.2} s after its start",
                 after_server.serving_after.as_secs_f64()
