@@ -46,7 +46,7 @@ use crate::daemon::ADMIN_TOKEN_FILE;
 use crate::jobs::{BackgroundJob, JobBoard};
 use crate::live_import::{ImportPriority, lock, lower_priority, unix_seconds};
 use crate::pace::ReadPace;
-use crate::periodic::{ScheduleFigures, utc_fields};
+use crate::periodic::{ScheduleFigures, utc_fields, utc_time};
 use crate::pool::copy::{
     CopiedScene, CopyError, CopyOptions, CopyProgress, CopyReport, copy_served,
 };
@@ -473,6 +473,18 @@ impl Copies {
             .any_running(|j| j.scenes.iter().any(|s| s.generation == generation))
     }
 
+    /// When the newest scheduled copy under the copy root was due (its name says it; only
+    /// whole copies, renamed into place, count). `None`: none, or copies disabled.
+    pub fn last_scheduled(&self) -> Option<SystemTime> {
+        let root = self.places.root.as_ref()?;
+        std::fs::read_dir(root)
+            .ok()?
+            .filter_map(|e| e.ok())
+            .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
+            .filter_map(|e| scheduled_time(&e.file_name().to_string_lossy()))
+            .max()
+    }
+
     /// Says when the scheduled copy is next due (`/metrics`, the page).
     pub fn schedule_next(&self, figures: ScheduleFigures) {
         lock(&self.figures).scheduled = Some(figures);
@@ -516,6 +528,23 @@ pub const SCHEDULED_PREFIX: &str = "scheduled-";
 pub fn scheduled_name(t: SystemTime) -> String {
     let (year, month, day, hour, minute, second) = utc_fields(t);
     format!("{SCHEDULED_PREFIX}{year:04}-{month:02}-{day:02}T{hour:02}{minute:02}{second:02}Z")
+}
+
+/// The time a scheduled copy was due, read back from its name; `None` for any other name.
+pub fn scheduled_time(name: &str) -> Option<SystemTime> {
+    if !is_scheduled_name(name) {
+        return None;
+    }
+    let t = &name[SCHEDULED_PREFIX.len()..];
+    let field = |range: std::ops::Range<usize>| t[range].parse::<u64>().ok();
+    utc_time(
+        field(0..4)?,
+        field(5..7)?,
+        field(8..10)?,
+        field(11..13)?,
+        field(13..15)?,
+        field(15..17)?,
+    )
 }
 
 /// Whether `name` is a scheduled copy's name, exactly as [`scheduled_name`] writes one.
@@ -880,6 +909,34 @@ mod tests {
         let third = t.copies.submit_scheduled(day(2)).unwrap().expect("queued");
         t.copies.cancel(third);
         assert!(t.copies.submit_scheduled(day(3)).unwrap().is_some());
+    }
+
+    #[test]
+    fn a_scheduled_copy_says_when_it_was_due_and_the_newest_whole_one_counts() {
+        for t in [0, 951_782_400, 1_764_658_800, 4_107_542_399] {
+            let t = std::time::UNIX_EPOCH + std::time::Duration::from_secs(t);
+            assert_eq!(scheduled_time(&scheduled_name(t)), Some(t));
+        }
+        for other in [
+            "scheduled-2026-02-30T000000Z",
+            "scheduled-2026-12-02T250000Z",
+            "scheduled-bogus",
+            "manual",
+        ] {
+            assert_eq!(scheduled_time(other), None, "{other}");
+        }
+        let t = unstarted();
+        let root = t.dir.path().join("copies");
+        assert_eq!(t.copies.last_scheduled(), None);
+        std::fs::create_dir(root.join("scheduled-2026-12-01T030000Z")).unwrap();
+        std::fs::create_dir(root.join("scheduled-2025-12-01T030000Z")).unwrap();
+        std::fs::create_dir(root.join(".scheduled-2027-01-01T030000Z.copy-partial")).unwrap();
+        std::fs::create_dir(root.join("scheduled-2026-13-01T030000Z")).unwrap();
+        std::fs::write(root.join("scheduled-2028-01-01T030000Z"), "a file").unwrap();
+        assert_eq!(
+            t.copies.last_scheduled().map(scheduled_name).as_deref(),
+            Some("scheduled-2026-12-01T030000Z")
+        );
     }
 
     #[test]

@@ -596,6 +596,8 @@ fn run_worker(rx: mpsc::Receiver<Arc<Job>>, inner: Weak<Inner>, priority: Import
 struct Periodic {
     work: fn(&Inner, SystemTime),
     publish: fn(&Inner, ScheduleFigures),
+    /// When it was last due, as the daemon's files say (`None`: not known).
+    last_due: fn(&Inner) -> Option<SystemTime>,
 }
 
 /// `serve --check-every/--check-at`'s job: a check of every published scene queued.
@@ -605,6 +607,7 @@ const CHECK_EVERY_SCENE: Periodic = Periodic {
         Err(e) => tracing::warn!("periodic check: reading the catalogue: {e}"),
     },
     publish: |inner, figures| inner.verifications.schedule_next(figures),
+    last_due: |_| None,
 };
 
 /// `serve --copy-every/--copy-at`'s job: the scheduled copy queued, named by the time it was
@@ -618,12 +621,24 @@ const COPY_THE_POOL: Periodic = Periodic {
         Err(e) => tracing::error!("scheduled copy: {e}"),
     },
     publish: |inner, figures| inner.copies.schedule_next(figures),
+    last_due: |inner| inner.copies.last_scheduled(),
 };
 
 /// Runs `job` each time `schedule` is due (the first time one period after the start, or at
-/// the next clock time), until the scene manager is dropped.
+/// the next clock time, or at once for a clock time missed since it last ran), until the
+/// scene manager is dropped.
 fn every(inner: Weak<Inner>, schedule: Schedule, job: &Periodic) {
-    let mut timer = Timer::start(schedule, SystemTime::now(), Instant::now());
+    let Some(last) = inner.upgrade().map(|i| (job.last_due)(&i)) else {
+        return;
+    };
+    let (wall, mono) = (SystemTime::now(), Instant::now());
+    let mut timer = Timer::resume(schedule, wall, mono, last);
+    if timer.next_due(wall, mono) <= wall {
+        tracing::info!(
+            schedule = %schedule.describe(),
+            "a scheduled time passed since the job last ran (the daemon was down): it runs now"
+        );
+    }
     let describe = schedule.describe();
     let mut published = None;
     loop {

@@ -16,8 +16,10 @@
 //!   tests step the wall clock back and forward without sleeping: a clock stepped back never
 //!   makes a job due twice in its period, one stepped forward (or a process stopped for days)
 //!   makes it due once, named by the latest time it was due, not once for every time it missed.
-//! * A wall-clock schedule does not catch up on start: a daemon down at 03:00 copies at the
-//!   next 03:00 (the alert on the last copy's age catches a missed one).
+//! * A wall-clock schedule catches up once on start ([`Timer::resume`]): told when the job was
+//!   last due (a scheduled copy's name says it), a daemon that was down at 03:00, or whose
+//!   restart cut that copy short, makes it when it starts, named by the time it was due; only
+//!   the latest missed time, never one for each.
 
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
@@ -276,6 +278,30 @@ impl Timer {
         }
     }
 
+    /// [`Timer::start`], for a job whose last run was due at `last` (`None`: never, or not
+    /// known): when a clock-time schedule's latest due time at or before the start is later
+    /// than that, the job is due at once, named by that time — the run the daemon was down
+    /// for, or one a restart cut short. A period from the start has nothing to catch up.
+    pub fn resume(
+        schedule: Schedule,
+        wall: SystemTime,
+        mono: Instant,
+        last: Option<SystemTime>,
+    ) -> Timer {
+        let mut timer = Timer::start(schedule, wall, mono);
+        let period = schedule.period.as_secs();
+        if let (Next::Wall { due, anchor, .. }, Some(last)) = (&mut timer.next, last) {
+            let now = seconds(wall);
+            if let Some(since) = now.checked_sub(*anchor) {
+                let latest = now - since % period;
+                if seconds(last) < latest {
+                    *due = latest;
+                }
+            }
+        }
+        timer
+    }
+
     /// Whether the job is due at `wall` / `mono`: `Some(when it was due)` once per time it
     /// comes (the wall time of a period counted from the start), and the next due time is set.
     pub fn poll(&mut self, wall: SystemTime, mono: Instant) -> Option<SystemTime> {
@@ -330,6 +356,30 @@ pub fn utc_fields(t: SystemTime) -> (u64, u64, u64, u64, u64, u64) {
     let (days, rest) = (secs / DAY, secs % DAY);
     let (year, month, day) = civil_from_days(days);
     (year, month, day, rest / 3_600, rest / 60 % 60, rest % 60)
+}
+
+/// The time of a UTC civil date and time; `None` when a field is out of range (the 30th of
+/// February, hour 24) or the time is before the epoch.
+pub fn utc_time(
+    year: u64,
+    month: u64,
+    day: u64,
+    hour: u64,
+    minute: u64,
+    second: u64,
+) -> Option<SystemTime> {
+    if !(1970..=9999).contains(&year) || !(1..=12).contains(&month) || !(1..=31).contains(&day) {
+        return None;
+    }
+    // Howard Hinnant's `days_from_civil`, in a year counted from March.
+    let y = if month <= 2 { year - 1 } else { year };
+    let (era, yoe) = (y / 400, y % 400);
+    let doy = (153 * ((month + 9) % 12) + 2) / 5 + day - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    let days = (era * 146_097 + doe).checked_sub(719_468)?;
+    let t = UNIX_EPOCH + Duration::from_secs(days * DAY + hour * 3_600 + minute * 60 + second);
+    // Out-of-range days and times come back as other fields.
+    (utc_fields(t) == (year, month, day, hour, minute, second)).then_some(t)
 }
 
 /// `t` as people read it: `2026-12-03 03:00:00 UTC`.
@@ -566,6 +616,67 @@ mod tests {
             utc_text(wall(utc(2026, 12, 3, 3, 0, 0))),
             "2026-12-03 03:00:00 UTC"
         );
+        // And back, over four centuries against the brute-force count.
+        let mut rng = 0x9e37_79b9_7f4a_7c15_u64;
+        for _ in 0..2_000 {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            let secs = rng % utc(2400, 1, 1, 0, 0, 0);
+            let (y, mo, d, h, mi, s) = utc_fields(wall(secs));
+            assert_eq!(utc(y, mo, d, h, mi, s), secs);
+            assert_eq!(utc_time(y, mo, d, h, mi, s), Some(wall(secs)));
+        }
+        for bad in [
+            (2026, 2, 29, 0, 0, 0),
+            (2100, 2, 29, 0, 0, 0),
+            (2026, 4, 31, 0, 0, 0),
+            (2026, 13, 1, 0, 0, 0),
+            (2026, 0, 1, 0, 0, 0),
+            (2026, 1, 0, 0, 0, 0),
+            (2026, 1, 1, 24, 0, 0),
+            (2026, 1, 1, 0, 60, 0),
+            (2026, 1, 1, 0, 0, 60),
+            (1969, 12, 31, 23, 59, 59),
+            (10_000, 1, 1, 0, 0, 0),
+        ] {
+            let (y, mo, d, h, mi, s) = bad;
+            assert_eq!(utc_time(y, mo, d, h, mi, s), None, "{bad:?}");
+        }
+        assert_eq!(
+            utc_time(2000, 2, 29, 0, 0, 0),
+            Some(wall(utc(2000, 2, 29, 0, 0, 0)))
+        );
+    }
+
+    #[test]
+    fn a_time_missed_while_down_is_due_at_once_and_only_the_latest() {
+        let schedule = Schedule::new(None, Some(at("03:00"))).unwrap().unwrap();
+        let mono = Instant::now();
+        let start = utc(2026, 12, 2, 7, 55, 47);
+        let today = utc(2026, 12, 2, 3, 0, 0);
+        // The last copy was due yesterday (or days ago): today's is made at once, named so.
+        for last in [today - DAY, today - 10 * DAY, 0] {
+            let mut t = Timer::resume(schedule, wall(start), mono, Some(wall(last)));
+            assert_eq!(t.next_due(wall(start), mono), wall(today));
+            assert_eq!(t.poll(wall(start), mono), Some(wall(today)));
+            assert_eq!(t.poll(wall(start + 1), mono), None);
+            assert_eq!(t.next_due(wall(start), mono), wall(today + DAY));
+        }
+        // Today's was made (or nothing is known): the next one, as a plain start.
+        for last in [Some(today), Some(today + 5), None] {
+            let t = Timer::resume(schedule, wall(start), mono, last.map(wall));
+            assert_eq!(t.next_due(wall(start), mono), wall(today + DAY), "{last:?}");
+        }
+        // Started in the very second it is due, after yesterday's: due now.
+        let mut t = Timer::resume(schedule, wall(today), mono, Some(wall(today - DAY)));
+        assert_eq!(t.poll(wall(today), mono), Some(wall(today)));
+        // A period from the start has nothing to catch up.
+        let plain = Schedule::new(Some(Duration::from_secs(60)), None)
+            .unwrap()
+            .unwrap();
+        let t = Timer::resume(plain, wall(start), mono, Some(wall(0)));
+        assert_eq!(t.next_due(wall(start), mono), wall(start + 60));
     }
 
     #[test]

@@ -1250,3 +1250,47 @@ async fn clock_time_schedules_name_copies_by_the_time_they_were_due() {
     }
     d.server.shutdown().await;
 }
+
+/// A daemon started after the time its nightly copy was due, with the last scheduled copy
+/// older than that (it was down, or a restart cut the copy short), makes the missed one at
+/// once, named by the time it was due.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_nightly_copy_missed_while_down_is_made_at_start() {
+    use arbor_server::live_copy::{scheduled_name, scheduled_time};
+    let d = Daemon::start_with(TestPool::new(), |root| {
+        std::fs::create_dir_all(root.join("copies/scheduled-2020-01-01T000000Z")).unwrap();
+        DaemonOptions {
+            copy_root: Some(root.join("copies")),
+            copy_at: Some(arbor_server::periodic::parse_clock_time("00:00").unwrap()),
+            ..DaemonOptions::default()
+        }
+    })
+    .await;
+    let t0 = Instant::now();
+    let all = loop {
+        let (s, all) = http(d.admin, "GET", "/v1/copies", ADMIN, "").await;
+        assert_eq!(s, 200);
+        if all.as_array().unwrap().iter().any(|c| c["phase"] == "done") {
+            break all;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(60), "{all}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    let all = all.as_array().unwrap();
+    assert_eq!(all.len(), 1, "one missed time, one copy: {all:?}");
+    let name = all[0]["to"].as_str().unwrap();
+    let due = scheduled_time(name).unwrap();
+    let now = std::time::SystemTime::now();
+    let midnight = std::time::UNIX_EPOCH
+        + Duration::from_secs(
+            now.duration_since(std::time::UNIX_EPOCH).unwrap().as_secs() / 86_400 * 86_400,
+        );
+    // Today's midnight (yesterday's if the test straddles one).
+    assert!(
+        name == scheduled_name(midnight)
+            || name == scheduled_name(midnight - Duration::from_secs(86_400)),
+        "{name}"
+    );
+    assert!(due <= now);
+    d.server.shutdown().await;
+}
