@@ -209,6 +209,8 @@ struct Inner {
     verifications: Verifications,
     copies: Copies,
     pace: Arc<ReadPace>,
+    /// The daemon's data directory: the scheduled checks' record goes there.
+    state_dir: PathBuf,
 }
 
 /// The guarded value, whether or not a thread panicked holding it (the jobs' state stays
@@ -311,6 +313,7 @@ impl LiveImports {
             verifications,
             copies,
             pace,
+            state_dir: state_dir.to_owned(),
         });
         let weak = Arc::downgrade(&inner);
         std::thread::Builder::new()
@@ -600,15 +603,40 @@ struct Periodic {
     last_due: fn(&Inner) -> Option<SystemTime>,
 }
 
-/// `serve --check-every/--check-at`'s job: a check of every published scene queued.
+/// Where the daemon keeps the time the last scheduled check of every scene was due (seconds
+/// since the Unix epoch), so a restart knows whether it missed one.
+pub const LAST_SCHEDULED_CHECK_FILE: &str = "last-scheduled-check";
+
+/// `serve --check-every/--check-at`'s job: a check of every published scene queued, and the
+/// time it was due recorded.
 const CHECK_EVERY_SCENE: Periodic = Periodic {
-    work: |inner, _| match inner.verifications.check_all() {
-        Ok(n) => tracing::info!(scenes = n, "periodic check of every scene queued"),
+    work: |inner, due| match inner.verifications.check_all() {
+        Ok(n) => {
+            tracing::info!(scenes = n, "periodic check of every scene queued");
+            record_check(&inner.state_dir, due);
+        }
         Err(e) => tracing::warn!("periodic check: reading the catalogue: {e}"),
     },
     publish: |inner, figures| inner.verifications.schedule_next(figures),
-    last_due: |_| None,
+    last_due: |inner| {
+        let text = std::fs::read_to_string(inner.state_dir.join(LAST_SCHEDULED_CHECK_FILE)).ok()?;
+        let seconds = text.trim().parse::<u64>().ok()?;
+        Some(UNIX_EPOCH + Duration::from_secs(seconds))
+    },
 };
+
+/// Writes the time the last scheduled check was due, whole or not at all (a sibling renamed
+/// over it); a failure is logged, and costs at most a repeated check after a restart.
+fn record_check(state_dir: &Path, due: SystemTime) {
+    let file = state_dir.join(LAST_SCHEDULED_CHECK_FILE);
+    let partial = state_dir.join(format!(".{LAST_SCHEDULED_CHECK_FILE}.partial"));
+    let seconds = due.duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
+    let written = std::fs::write(&partial, format!("{seconds}\n"))
+        .and_then(|()| std::fs::rename(&partial, &file));
+    if let Err(e) = written {
+        tracing::warn!(path = %file.display(), "recording the scheduled check's time: {e}");
+    }
+}
 
 /// `serve --copy-every/--copy-at`'s job: the scheduled copy queued, named by the time it was
 /// due, unless the last one still runs.

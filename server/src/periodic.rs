@@ -17,9 +17,9 @@
 //!   makes a job due twice in its period, one stepped forward (or a process stopped for days)
 //!   makes it due once, named by the latest time it was due, not once for every time it missed.
 //! * A wall-clock schedule catches up once on start ([`Timer::resume`]): told when the job was
-//!   last due (a scheduled copy's name says it), a daemon that was down at 03:00, or whose
-//!   restart cut that copy short, makes it when it starts, named by the time it was due; only
-//!   the latest missed time, never one for each.
+//!   last due (a scheduled copy's name, the checks' record in the data directory), a daemon
+//!   that was down at 03:00, or whose restart cut that run short, runs it when it starts, named
+//!   by the time it was due; only the latest missed time, never one for each.
 
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 

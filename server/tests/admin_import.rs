@@ -1294,3 +1294,40 @@ async fn a_nightly_copy_missed_while_down_is_made_at_start() {
     assert!(due <= now);
     d.server.shutdown().await;
 }
+
+/// The scheduled checks keep the time the last one was due in the data directory; a daemon
+/// started after a check time it missed checks every scene at once and records that time.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_scheduled_check_missed_while_down_runs_at_start() {
+    use arbor_server::live_import::LAST_SCHEDULED_CHECK_FILE;
+    let pool = TestPool::new();
+    let record = pool.data_dir().join(LAST_SCHEDULED_CHECK_FILE);
+    std::fs::create_dir_all(pool.data_dir()).unwrap();
+    std::fs::write(&record, "1577836800\n").unwrap();
+    let d = Daemon::start_with(pool, |_| DaemonOptions {
+        check_at: Some(arbor_server::periodic::parse_clock_time("00:00").unwrap()),
+        ..DaemonOptions::default()
+    })
+    .await;
+    let done = until(&d, "/v1/verifications", |all| {
+        all.as_array()
+            .is_some_and(|a| a.iter().any(|c| c["phase"] == "ok"))
+    })
+    .await;
+    assert_eq!(done.as_array().unwrap().len(), 1, "{done}");
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs();
+    let recorded: u64 = std::fs::read_to_string(&record)
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap();
+    assert_eq!(recorded % 86_400, 0, "not a midnight: {recorded}");
+    assert!(
+        recorded <= now && now - recorded < 2 * 86_400,
+        "{recorded} at {now}"
+    );
+    d.server.shutdown().await;
+}
