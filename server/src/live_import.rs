@@ -34,7 +34,7 @@ use crate::live_copy::Copies;
 use crate::live_verify::Verifications;
 use crate::octree::{BuildOptions, DepthChoice};
 use crate::pace::{self, PaceError, ReadPace};
-use crate::periodic::{Schedule, ScheduleError, ScheduleFigures, Timer};
+use crate::periodic::{self, Schedule, ScheduleError, ScheduleFigures, Timer};
 use crate::pipeline::{SceneImport, Superseded, import_scene_observed};
 use crate::pool::{Pool, PoolError};
 use crate::progress::{ImportProgress, Phase, ProgressSnapshot};
@@ -619,9 +619,18 @@ const CHECK_EVERY_SCENE: Periodic = Periodic {
     },
     publish: |inner, figures| inner.verifications.schedule_next(figures),
     last_due: |inner| {
-        let text = std::fs::read_to_string(inner.state_dir.join(LAST_SCHEDULED_CHECK_FILE)).ok()?;
-        let seconds = text.trim().parse::<u64>().ok()?;
-        Some(UNIX_EPOCH + Duration::from_secs(seconds))
+        let file = inner.state_dir.join(LAST_SCHEDULED_CHECK_FILE);
+        let text = std::fs::read_to_string(&file).ok()?;
+        match text.trim().parse::<u64>() {
+            Ok(seconds) => Some(UNIX_EPOCH + Duration::from_secs(seconds)),
+            Err(_) => {
+                tracing::warn!(
+                    path = %file.display(),
+                    "not a time (seconds since the epoch): a missed check is not made up"
+                );
+                None
+            }
+        }
     },
 };
 
@@ -630,8 +639,7 @@ const CHECK_EVERY_SCENE: Periodic = Periodic {
 fn record_check(state_dir: &Path, due: SystemTime) {
     let file = state_dir.join(LAST_SCHEDULED_CHECK_FILE);
     let partial = state_dir.join(format!(".{LAST_SCHEDULED_CHECK_FILE}.partial"));
-    let seconds = due.duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
-    let written = std::fs::write(&partial, format!("{seconds}\n"))
+    let written = std::fs::write(&partial, format!("{}\n", periodic::seconds(due)))
         .and_then(|()| std::fs::rename(&partial, &file));
     if let Err(e) = written {
         tracing::warn!(path = %file.display(), "recording the scheduled check's time: {e}");

@@ -403,7 +403,7 @@ fn civil_from_days(days: u64) -> (u64, u64, u64) {
 }
 
 /// Whole seconds since the epoch (a clock before it reads as the epoch).
-fn seconds(t: SystemTime) -> u64 {
+pub(crate) fn seconds(t: SystemTime) -> u64 {
     t.duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs())
 }
 

@@ -92,38 +92,31 @@ fn throttled_reads(pool: &Path) -> Option<std::path::PathBuf> {
                 .unwrap_or_else(|_| panic!("{knob} is a whole number a second, not {v:?}"))
         })
     };
-    let limits = [
+    let limits: Vec<(&str, &str, u64)> = [
         ("ARBOR_SCALE_READ_IOPS", "blkio.throttle.read_iops_device"),
         ("ARBOR_SCALE_READ_BPS", "blkio.throttle.read_bps_device"),
     ]
-    .map(|(knob, file)| (knob, file, limit(knob)));
-    let (knob, _, _) = limits.iter().find(|(_, _, l)| l.is_some())?;
-    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    .into_iter()
+    .filter_map(|(knob, file)| limit(knob).map(|l| (knob, file, l)))
+    .collect();
+    let &(knob, file, first) = limits.first()?;
     let disk = disk_of(pool);
-    let mut cgroup = None;
-    for (knob, file, value) in limits {
-        let Some(value) = value else { continue };
+    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let cgroup = fresh_cgroup(
+        knob,
+        BLKIO_CGROUPS,
+        &n.to_string(),
+        file,
+        format!("{disk} {first}"),
+    );
+    for &(knob, file, value) in &limits[1..] {
+        let path = cgroup.join(file);
         let value = format!("{disk} {value}");
-        match &cgroup {
-            None => {
-                cgroup = Some(fresh_cgroup(
-                    knob,
-                    BLKIO_CGROUPS,
-                    &n.to_string(),
-                    file,
-                    value,
-                ))
-            }
-            Some(c) => {
-                let path = Path::new(c).join(file);
-                std::fs::write(&path, &value).unwrap_or_else(|e| {
-                    panic!("{knob}: writing {value} to {}: {e}", path.display())
-                });
-            }
-        }
+        std::fs::write(&path, &value)
+            .unwrap_or_else(|e| panic!("{knob}: writing {value} to {}: {e}", path.display()));
     }
     drop_page_cache(knob);
-    cgroup
+    Some(cgroup)
 }
 
 /// A fresh cgroup (v1) under the controller at `root`, named for this process and `tag`, with
