@@ -18,7 +18,7 @@ use arbor_proto::{Channel, TreeletId};
 use arbor_server::daemon::{DaemonOptions, RunningServer};
 use arbor_server::service::ServeConfig;
 use arbor_server::service::config::SceneAccess;
-use common::{TestPool, connect, hello, receive};
+use common::{TestPool, connect, damaged_pool, hello, receive};
 use serde_json::{Value, json};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
@@ -104,18 +104,7 @@ impl Daemon {
                 .insert(scene.into(), SceneAccess::Tokens(vec![SCAN_TOKEN.into()]));
         }
         let options = options(root.path());
-        let t0 = Instant::now();
-        let server = loop {
-            match arbor_server::daemon::start_with(config.clone(), options.clone()).await {
-                Ok(s) => break s,
-                Err(arbor_server::service::ServeError::Pool { .. })
-                    if t0.elapsed() < Duration::from_secs(10) =>
-                {
-                    tokio::time::sleep(Duration::from_millis(50)).await;
-                }
-                Err(e) => panic!("daemon: {e}"),
-            }
-        };
+        let server = common::start_with(config, options).await;
         let admin = server.admin_addr.unwrap();
         Daemon {
             server,
@@ -398,46 +387,6 @@ async fn the_cli_drives_a_daemon_import() {
     );
     d.server.shutdown().await;
     drop(d.pool);
-}
-
-/// The bunny's pool with two more copies, damaged before the daemon opens it: `holes` lost a
-/// pack of attribute blocks (broken invariants), `garbage` has a node pack that does not decode
-/// (the pool cannot be read).
-fn damaged_pool() -> TestPool {
-    let pool = TestPool::with_copies(&["holes", "garbage"]);
-    // Opened as soon as the import's handle has let go of sled's lock.
-    fn when_unlocked<T, E>(open: impl Fn() -> Result<T, E>) -> T {
-        (0..100)
-            .find_map(|_| {
-                open()
-                    .map_err(|_| std::thread::sleep(Duration::from_millis(50)))
-                    .ok()
-            })
-            .expect("sled lock released")
-    }
-    let (holes, garbage, channel) = {
-        let p = when_unlocked(|| arbor_server::pool::Pool::open(&pool.db()));
-        let holes = p.scene("holes").unwrap();
-        let garbage = p.scene("garbage").unwrap();
-        let channel = holes.description.layout.channels()[0];
-        (holes.generation, garbage.generation, channel)
-    };
-    let db = when_unlocked(|| {
-        sled::Config::new()
-            .path(pool.db())
-            .segment_size(arbor_server::pool::POOL_SEGMENT_BYTES)
-            .open()
-    });
-    let attributes = db
-        .open_tree(format!("g{holes}:ch:{}", channel.name()))
-        .unwrap();
-    let (key, _) = attributes.first().unwrap().expect("an attribute pack");
-    attributes.remove(key).unwrap();
-    let nodes = db.open_tree(format!("g{garbage}:nodes")).unwrap();
-    let (key, _) = nodes.first().unwrap().expect("a node pack");
-    nodes.insert(key, vec![0xAB; 40]).unwrap();
-    db.flush().unwrap();
-    pool
 }
 
 /// Asks for a check of `scene` and polls it until it ends.

@@ -1,4 +1,5 @@
-//! Shared helpers of the service tests: a real bunny pool, a server configuration for tests, and
+//! Shared helpers of the service tests: a real bunny pool (and one damaged on disk), a server
+//! started as the daemon is (with its background jobs if asked), a configuration for tests, and
 //! a raw quinn client (fingerprint pinning, control frames, treelet streams) written against
 //! the wire protocol only — not the client library.
 #![allow(dead_code, reason = "each test binary uses a different subset")]
@@ -104,9 +105,17 @@ impl TestPool {
 /// Starts a server, retrying while sled's flusher thread of the just-dropped import handle
 /// still holds the pool's lock.
 pub async fn start(config: ServeConfig) -> RunningServer {
+    start_with(config, arbor_server::daemon::DaemonOptions::default()).await
+}
+
+/// [`start`], with the daemon's background jobs as `options` say.
+pub async fn start_with(
+    config: ServeConfig,
+    options: arbor_server::daemon::DaemonOptions,
+) -> RunningServer {
     let t0 = Instant::now();
     loop {
-        match arbor_server::daemon::start(config.clone()).await {
+        match arbor_server::daemon::start_with(config.clone(), options.clone()).await {
             Ok(s) => return s,
             Err(arbor_server::service::ServeError::Pool { .. })
                 if t0.elapsed() < Duration::from_secs(10) =>
@@ -116,6 +125,46 @@ pub async fn start(config: ServeConfig) -> RunningServer {
             Err(e) => panic!("start: {e}"),
         }
     }
+}
+
+/// The bunny's pool with two more copies, damaged before the daemon opens it: `holes` lost a
+/// pack of attribute blocks (broken invariants), `garbage` has a node pack that does not decode
+/// (the pool cannot be read).
+pub fn damaged_pool() -> TestPool {
+    let pool = TestPool::with_copies(&["holes", "garbage"]);
+    // Opened as soon as the import's handle has let go of sled's lock.
+    fn when_unlocked<T, E>(open: impl Fn() -> Result<T, E>) -> T {
+        (0..100)
+            .find_map(|_| {
+                open()
+                    .map_err(|_| std::thread::sleep(Duration::from_millis(50)))
+                    .ok()
+            })
+            .expect("sled lock released")
+    }
+    let (holes, garbage, channel) = {
+        let p = when_unlocked(|| arbor_server::pool::Pool::open(&pool.db()));
+        let holes = p.scene("holes").unwrap();
+        let garbage = p.scene("garbage").unwrap();
+        let channel = holes.description.layout.channels()[0];
+        (holes.generation, garbage.generation, channel)
+    };
+    let db = when_unlocked(|| {
+        sled::Config::new()
+            .path(pool.db())
+            .segment_size(arbor_server::pool::POOL_SEGMENT_BYTES)
+            .open()
+    });
+    let attributes = db
+        .open_tree(format!("g{holes}:ch:{}", channel.name()))
+        .unwrap();
+    let (key, _) = attributes.first().unwrap().expect("an attribute pack");
+    attributes.remove(key).unwrap();
+    let nodes = db.open_tree(format!("g{garbage}:nodes")).unwrap();
+    let (key, _) = nodes.first().unwrap().expect("a node pack");
+    nodes.insert(key, vec![0xAB; 40]).unwrap();
+    db.flush().unwrap();
+    pool
 }
 
 // ---------------------------------------------------------------------------------------------
