@@ -1,9 +1,11 @@
-//! The shipped Prometheus files (`deploy/prometheus/`) against the real tools and a real daemon:
-//! the alerting rules through `promtool check rules` and their unit tests through `promtool test
-//! rules`; every metric the rules name declared by a daemon's `/metrics`, and that page clean
-//! under `promtool check metrics`; and a real Prometheus, started on the shipped
+//! The shipped monitoring files against the real tools and a real daemon. The alerting rules
+//! (`deploy/prometheus/arbor-alerts.yml`) through `promtool check rules` and their unit tests
+//! through `promtool test rules`; every metric they name declared by a daemon's `/metrics`, and
+//! that page clean under `promtool check metrics`; a real Prometheus, started on the shipped
 //! `prometheus.yml` pointed at a daemon serving a damaged pool, that scrapes it, evaluates every
-//! rule without an error and fires `ArborSceneDamaged` for the damaged scenes and no others.
+//! rule without an error and fires `ArborSceneDamaged` for the damaged scenes and no others. The
+//! Grafana dashboard (`deploy/grafana/arbor-dashboard.json`): its layout, and every panel's
+//! query answered with data by a real Prometheus scraping a daemon a client has fetched from.
 //! `promtool` and `prometheus` come from Debian's `prometheus` package, which `scripts/test`
 //! installs; without them these tests fail and say so.
 
@@ -23,6 +25,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 const ADMIN: &str = "admin-secret";
 
+/// A file of `deploy/prometheus/`.
 fn shipped(file: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../deploy/prometheus")
@@ -93,10 +96,10 @@ async fn get(addr: SocketAddr, path: &str, token: Option<&str>) -> (u16, String)
     (status, body.to_owned())
 }
 
-/// The `arbor_*` names the rules' expressions and texts mention.
-fn names_in_rules(rules: &str) -> BTreeSet<String> {
+/// The `arbor_*` names a text mentions.
+fn arbor_names(text: &str) -> BTreeSet<String> {
     let mut names = BTreeSet::new();
-    let mut rest = rules;
+    let mut rest = text;
     while let Some(at) = rest.find("arbor_") {
         let name: String = rest[at..]
             .chars()
@@ -106,6 +109,23 @@ fn names_in_rules(rules: &str) -> BTreeSet<String> {
         names.insert(name);
     }
     names
+}
+
+/// Fails unless every `arbor_*` name in `text` (a family, or a histogram's `_bucket`, `_count`
+/// or `_sum` series) is a family the metrics page `page` declares.
+fn assert_served(text: &str, page: &str, file: &str) {
+    let declared = families(page);
+    for name in arbor_names(text) {
+        let family = ["_bucket", "_count", "_sum"]
+            .iter()
+            .find_map(|s| name.strip_suffix(s))
+            .filter(|f| declared.contains(*f))
+            .unwrap_or(&name);
+        assert!(
+            declared.contains(family),
+            "{file} reads {name}, which the daemon does not serve"
+        );
+    }
 }
 
 /// The families a metrics page declares (`# TYPE name kind`).
@@ -118,7 +138,8 @@ fn families(page: &str) -> BTreeSet<String> {
 }
 
 /// A daemon with the admin token [`ADMIN`], checking every scene every 300 ms and copying the
-/// pool every 2 s under a scratch root (so every family the rules name has samples).
+/// pool every 2 s under a scratch root, its background reads limited to 1 GB/s (so every
+/// family the rules and the dashboard name has samples).
 async fn daemon(pool: &TestPool, copy_root: &Path) -> RunningServer {
     let mut config = pool.config();
     config.admin_token = AdminTokenSource::Inline(ADMIN.into());
@@ -134,6 +155,7 @@ async fn daemon(pool: &TestPool, copy_root: &Path) -> RunningServer {
             check_every: Some(Duration::from_millis(300)),
             copy_root: Some(copy_root.to_owned()),
             copy_every: Some(Duration::from_secs(2)),
+            background_read_rate: Some(1_000_000_000),
             ..DaemonOptions::default()
         },
     )
@@ -175,7 +197,7 @@ async fn a_real_prometheus_scrapes_the_daemon_and_fires_the_shipped_alerts() {
 
     // Every metric the rules name is a family the daemon declares, and its page is clean.
     let rules = std::fs::read_to_string(shipped("arbor-alerts.yml")).unwrap();
-    let named = names_in_rules(&rules);
+    let named = arbor_names(&rules);
     assert!(named.len() >= 15, "{named:?}");
     let t0 = Instant::now();
     let page = loop {
@@ -195,40 +217,15 @@ async fn a_real_prometheus_scrapes_the_daemon_and_fires_the_shipped_alerts() {
         assert!(t0.elapsed() < Duration::from_secs(60), "{page}");
         tokio::time::sleep(Duration::from_millis(100)).await;
     };
-    let declared = families(&page);
-    for name in &named {
-        assert!(
-            declared.contains(name),
-            "the rules name {name}, which the daemon does not serve"
-        );
-    }
+    assert_served(&rules, &page, "arbor-alerts.yml");
     let (ok, out) = promtool(Path::new("."), &["check", "metrics"], Some(&page));
     assert!(
         ok && out.trim().is_empty(),
         "promtool check metrics:\n{out}"
     );
 
-    // The shipped configuration, pointed at this daemon, scraped and evaluated every second.
-    let token_file = copies.path().join("admin-token");
-    std::fs::write(&token_file, ADMIN).unwrap();
-    let mut config = std::fs::read_to_string(shipped("prometheus.yml")).unwrap();
-    for (from, to) in [
-        ("127.0.0.1:9090", admin.to_string()),
-        (
-            "/var/lib/arbor/admin-token",
-            token_file.display().to_string(),
-        ),
-        (
-            "- arbor-alerts.yml",
-            format!("- {}", shipped("arbor-alerts.yml").display()),
-        ),
-        ("scrape_interval: 15s", "scrape_interval: 1s".into()),
-        ("evaluation_interval: 15s", "evaluation_interval: 1s".into()),
-    ] {
-        assert!(config.contains(from), "prometheus.yml no longer has {from}");
-        config = config.replace(from, &to);
-    }
-    let prometheus = Prometheus::start(&config);
+    let prometheus = Prometheus::watching(admin);
+    prometheus.ready().await;
 
     let firing = |alerts: &Value, name: &str| -> BTreeSet<String> {
         alerts["data"]["alerts"]
@@ -281,8 +278,7 @@ async fn a_real_prometheus_scrapes_the_daemon_and_fires_the_shipped_alerts() {
     }
 
     // The daemon is a healthy target, and every rule evaluated on its real series without error.
-    let (_, body) = get(prometheus.addr, "/api/v1/query?query=up", None).await;
-    let up: Value = serde_json::from_str(&body).unwrap();
+    let up = query(&prometheus, "up").await;
     let up = &up["data"]["result"][0];
     assert_eq!(up["metric"]["job"], "arbor", "{up}");
     assert_eq!(up["value"][1], "1", "{up}");
@@ -314,6 +310,151 @@ async fn a_real_prometheus_scrapes_the_daemon_and_fires_the_shipped_alerts() {
     drop(pool);
 }
 
+/// The Grafana dashboard's panels, those with queries.
+fn dashboard_panels() -> Vec<Value> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/grafana/arbor-dashboard.json");
+    let dashboard: Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    dashboard["panels"].as_array().unwrap().clone()
+}
+
+#[test]
+fn the_shipped_dashboard_is_laid_out_on_grafanas_grid() {
+    let panels = dashboard_panels();
+    let mut ids = BTreeSet::new();
+    let mut cells = BTreeSet::new();
+    for p in &panels {
+        let title = p["title"].as_str().unwrap();
+        assert!(ids.insert(p["id"].as_u64().unwrap()), "{title}: id taken");
+        let g = &p["gridPos"];
+        let (x, y, w, h) = [&g["x"], &g["y"], &g["w"], &g["h"]]
+            .map(|v| v.as_u64().unwrap())
+            .into();
+        assert!(w > 0 && h > 0 && x + w <= 24, "{title}: {g}");
+        // No two panels overlap.
+        for cx in x..x + w {
+            for cy in y..y + h {
+                assert!(
+                    cells.insert((cx, cy)),
+                    "{title} overlaps another panel at {cx},{cy}"
+                );
+            }
+        }
+        if p["type"] == "row" {
+            continue;
+        }
+        assert!(!p["description"].as_str().unwrap().is_empty(), "{title}");
+        assert_eq!(p["datasource"]["uid"], "${datasource}", "{title}");
+        let targets = p["targets"].as_array().unwrap();
+        assert!(!targets.is_empty(), "{title}: no query");
+        let refs: BTreeSet<&str> = targets
+            .iter()
+            .map(|t| t["refId"].as_str().unwrap())
+            .collect();
+        assert_eq!(refs.len(), targets.len(), "{title}: refIds repeat");
+        for t in targets {
+            let expr = t["expr"].as_str().unwrap();
+            // Every series the panel reads follows the replica selector.
+            assert_eq!(
+                expr.matches("arbor_").count(),
+                expr.matches("{instance=~\"$instance\"").count(),
+                "{title}: {expr}"
+            );
+        }
+    }
+}
+
+/// `s` percent-encoded for a URL's query.
+fn url_encoded(s: &str) -> String {
+    s.bytes()
+        .map(|b| match b {
+            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'_' | b'.' | b'~' => {
+                (b as char).to_string()
+            }
+            _ => format!("%{b:02X}"),
+        })
+        .collect()
+}
+
+/// An instant query; the API's answer.
+async fn query(prometheus: &Prometheus, expr: &str) -> Value {
+    let (status, body) = get(
+        prometheus.addr,
+        &format!("/api/v1/query?query={}", url_encoded(expr)),
+        None,
+    )
+    .await;
+    serde_json::from_str(&body).unwrap_or_else(|_| panic!("{expr}: {status} {body}"))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_panel_of_the_shipped_dashboard_shows_a_real_daemons_data() {
+    let pool = TestPool::new();
+    let copies = tempfile::tempdir().unwrap();
+    let server = daemon(&pool, copies.path()).await;
+    let admin = server.admin_addr.unwrap();
+    let prometheus = Prometheus::watching(admin);
+    prometheus.ready().await;
+
+    // Every name the dashboard reads is a family the daemon declares.
+    let panels = dashboard_panels();
+    let exprs: Vec<String> = panels
+        .iter()
+        .flat_map(|p| p["targets"].as_array().cloned().unwrap_or_default())
+        .map(|t| t["expr"].as_str().unwrap().to_owned())
+        .collect();
+    assert!(exprs.len() >= 40, "{exprs:?}");
+    let (_, page) = get(admin, "/metrics", Some(ADMIN)).await;
+    assert_served(&exprs.join("\n"), &page, "arbor-dashboard.json");
+
+    // A client fetches every treelet a few times while the daemon checks and copies.
+    let client = common::connect(server.quic_addr, &server.fingerprint).await;
+    let (mut control, info) = common::hello(
+        &client.conn,
+        common::SCENE,
+        &[arbor_proto::Channel::Normal],
+        common::TOKEN,
+    )
+    .await;
+    let ids = common::all_ids(&info.unwrap());
+    let t0 = Instant::now();
+    let mut seq = 0;
+    loop {
+        seq += 1;
+        common::round(&client, &mut control, seq, &ids)
+            .await
+            .unwrap();
+        let copied = query(&prometheus, "arbor_pool_copy_last_done_seconds").await;
+        let scraped = query(&prometheus, "count_over_time(arbor_uptime_seconds[1m])").await;
+        let samples = scraped["data"]["result"][0]["value"][1]
+            .as_str()
+            .map_or(0, |v| v.parse::<u32>().unwrap());
+        if samples >= 6 && !copied["data"]["result"].as_array().unwrap().is_empty() {
+            break;
+        }
+        assert!(
+            t0.elapsed() < Duration::from_secs(90),
+            "no copy, or no scrapes: {copied} {scraped}\n{}",
+            prometheus.log()
+        );
+        tokio::time::sleep(Duration::from_millis(300)).await;
+    }
+
+    // Each query as Grafana sends it for "All" replicas: valid, and with a series to draw.
+    for expr in &exprs {
+        let sent = expr
+            .replace("$instance", ".*")
+            .replace("$__rate_interval", "30s");
+        let answer = query(&prometheus, &sent).await;
+        assert_eq!(answer["status"], "success", "{sent}: {answer}");
+        assert!(
+            !answer["data"]["result"].as_array().unwrap().is_empty(),
+            "{sent}: no data from a daemon that served, checked and copied"
+        );
+    }
+    drop(prometheus);
+    server.shutdown().await;
+}
+
 /// A Prometheus server on a free loopback port with its own scratch storage, stopped on drop.
 struct Prometheus {
     child: Child,
@@ -322,8 +463,29 @@ struct Prometheus {
 }
 
 impl Prometheus {
-    fn start(config: &str) -> Prometheus {
+    /// Started on the shipped `prometheus.yml`, pointed at the admin API at `admin` (token
+    /// [`ADMIN`]), scraping and evaluating every second.
+    fn watching(admin: SocketAddr) -> Prometheus {
         let dir = tempfile::tempdir().unwrap();
+        let token_file = dir.path().join("admin-token");
+        std::fs::write(&token_file, ADMIN).unwrap();
+        let mut config = std::fs::read_to_string(shipped("prometheus.yml")).unwrap();
+        for (from, to) in [
+            ("127.0.0.1:9090", admin.to_string()),
+            (
+                "/var/lib/arbor/admin-token",
+                token_file.display().to_string(),
+            ),
+            (
+                "- arbor-alerts.yml",
+                format!("- {}", shipped("arbor-alerts.yml").display()),
+            ),
+            ("scrape_interval: 15s", "scrape_interval: 1s".into()),
+            ("evaluation_interval: 15s", "evaluation_interval: 1s".into()),
+        ] {
+            assert!(config.contains(from), "prometheus.yml no longer has {from}");
+            config = config.replace(from, &to);
+        }
         std::fs::write(dir.path().join("prometheus.yml"), config).unwrap();
         let addr = std::net::TcpListener::bind("127.0.0.1:0")
             .unwrap()
@@ -345,6 +507,19 @@ impl Prometheus {
             .spawn()
             .expect("prometheus starts");
         Prometheus { child, addr, dir }
+    }
+
+    /// Waits until it answers `/-/ready`.
+    async fn ready(&self) {
+        let t0 = Instant::now();
+        while get(self.addr, "/-/ready", None).await.0 != 200 {
+            assert!(
+                t0.elapsed() < Duration::from_secs(60),
+                "Prometheus did not start:\n{}",
+                self.log()
+            );
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
     }
 
     fn log(&self) -> String {
