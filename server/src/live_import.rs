@@ -267,12 +267,12 @@ impl LiveImports {
         let check_schedule = schedule(
             "--check-every/--check-at",
             options.check_every,
-            options.check_at,
+            options.check_at.clone(),
         )?;
         let copy_schedule = schedule(
             "--copy-every/--copy-at",
             options.copy_every,
-            options.copy_at,
+            options.copy_at.clone(),
         )?;
         if copy_schedule.is_some() && options.copy_root.is_none() {
             return Err(ManagerError::ScheduleWithoutRoot);
@@ -668,7 +668,7 @@ fn every(inner: Weak<Inner>, schedule: Schedule, job: &Periodic) {
         return;
     };
     let (wall, mono) = (SystemTime::now(), Instant::now());
-    let mut timer = Timer::resume(schedule, wall, mono, last);
+    let mut timer = Timer::resume(&schedule, wall, mono, last);
     if timer.next_due(wall, mono) <= wall {
         tracing::info!(
             schedule = %schedule.describe(),

@@ -242,6 +242,7 @@ enum Command {
         arbor-server serve --db pool --copy-root /srv/backups --copy-every 1d --copy-keep 7\n  \
         arbor-server serve --db pool --copy-root /srv/backups --copy-at 03:00  (nightly, UTC)\n  \
         arbor-server serve --db pool --check-at \"Sun 04:00\"        (weekly, UTC)\n  \
+        arbor-server serve --db pool --copy-root /srv/backups --copy-at \"03:00 Europe/Berlin\"  (nightly, local)\n  \
         arbor-server serve --db pool --check-every 24h --background-read-rate 20MB\n  \
         arbor-server serve --config /etc/arbor/serve.toml\n\n\
         Without --config every scene is public (development). The config file's keys are \
@@ -290,9 +291,11 @@ enum Command {
         /// from the start, unless --copy-at pins it to the clock [default: never].
         #[arg(long, value_parser = parse_period, requires = "copy_root")]
         copy_every: Option<std::time::Duration>,
-        /// Make the scheduled copies at this UTC time (`03:00`, `23:30:15`, `"Sun 03:00"`),
-        /// and every --copy-every before and after it (a day, a week with a weekday, if not
-        /// given; the period must divide a day or be whole days, whole weeks with a weekday).
+        /// Make the scheduled copies at this time of day, UTC unless a time zone follows
+        /// (`03:00`, `23:30:15`, `"Sun 03:00"`, `"03:00 Europe/Berlin"`), and every
+        /// --copy-every before and after it (a day, a week with a weekday, if not given; the
+        /// period must divide a day or be whole days, whole weeks with a weekday). In a zone,
+        /// a time the clock skips runs when it jumps, one it repeats runs once.
         #[arg(long, value_parser = parse_clock_time, requires = "copy_root")]
         copy_at: Option<ClockTime>,
         /// Scheduled copies kept: once one succeeds, older `scheduled-*` directories beyond
@@ -305,8 +308,9 @@ enum Command {
         /// start, unless --check-at pins it to the clock [default: never].
         #[arg(long, value_parser = parse_period)]
         check_every: Option<std::time::Duration>,
-        /// Check every published scene at this UTC time (`04:00`, `"Sun 04:00"`), and every
-        /// --check-every before and after it (a day, a week with a weekday, if not given).
+        /// Check every published scene at this time of day, UTC unless a time zone follows
+        /// (`04:00`, `"Sun 04:00"`, `"04:00 America/New_York"`), and every --check-every
+        /// before and after it (a day, a week with a weekday, if not given).
         #[arg(long, value_parser = parse_clock_time)]
         check_at: Option<ClockTime>,
         /// Bytes per second that checks and copies may read from the pool together (`20MB`,
@@ -588,8 +592,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
         } => {
             // Refused before anything starts: a weekday with a daily period, a period that
             // would drift from the clock time.
-            Schedule::new(check_every, check_at).context("--check-every/--check-at")?;
-            Schedule::new(copy_every, copy_at).context("--copy-every/--copy-at")?;
+            Schedule::new(check_every, check_at.clone()).context("--check-every/--check-at")?;
+            Schedule::new(copy_every, copy_at.clone()).context("--copy-every/--copy-at")?;
             let overrides = ConfigOverrides {
                 db,
                 listen,

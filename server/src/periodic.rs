@@ -3,15 +3,23 @@
 //!
 //! Why two kinds: a period alone (`--copy-every 12h`) counts from the daemon's start, on the
 //! monotonic clock, so a restart moves it and a clock step never does. A time of day
-//! (`--copy-at 03:00`, `--copy-at "Sun 03:00"`) pins the jobs to the wall clock in UTC: due at
-//! that time and every period before and after it, so a nightly backup lands in the quiet hour
-//! whenever the daemon was started.
+//! (`--copy-at 03:00`, `--copy-at "Sun 03:00"`, `--copy-at "03:00 Europe/Berlin"`) pins the
+//! jobs to the wall clock, in UTC or in a time zone of the system's database: due at that time
+//! and every period before and after it, so a nightly backup lands in the quiet hour whenever
+//! the daemon was started, and stays in it across daylight-saving changes.
 //!
 //! * [`ClockTime`] and [`parse_clock_time`]: `HH:MM[:SS]`, optionally after a weekday and
-//!   before `Z` or `UTC`. The daemon has no time-zone database: times are UTC.
+//!   before `Z`, `UTC` or an IANA time-zone name (read from `/usr/share/zoneinfo` through
+//!   `jiff`, so the system's updates of the database apply).
 //! * [`Schedule`]: a period, and the clock time it is aligned to. With a clock time the period
 //!   divides a day or is whole days (whole weeks with a weekday), so the due times are the same
-//!   each day (each week) and never drift; without a period it is a day (a week with a weekday).
+//!   each day (each week) on that clock and never drift; without a period it is a day (a week
+//!   with a weekday).
+//! * The due times are a grid on the zone's clock (`Grid`), each mapped to the first instant
+//!   the clock reads it: a time the clock skips (02:30 on the night it jumps from 02:00 to 03:00)
+//!   is due when it jumps, and a time it reads twice (the hour repeated in autumn) is due the
+//!   first time only. So every due time comes once, in order, and a day of 23 or 25 hours loses
+//!   or repeats no run of a daily schedule.
 //! * [`Timer`] is the arithmetic alone, both clocks passed in (as `quinn-proto` takes time), so
 //!   tests step the wall clock back and forward without sleeping: a clock stepped back never
 //!   makes a job due twice in its period, one stepped forward (or a process stopped for days)
@@ -23,6 +31,8 @@
 
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
+use jiff::tz::{AmbiguousOffset, TimeZone};
+
 const DAY: u64 = 86_400;
 const WEEK: u64 = 7 * DAY;
 /// Days from the Unix epoch (a Thursday) to the first Monday, 1970-01-05.
@@ -32,12 +42,18 @@ const WEEKDAYS: [&str; 7] = ["Mon", "Tue", "Wed", "Thu", "Fri", "Sat", "Sun"];
 /// Why a schedule was refused.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum ScheduleError {
-    /// Not `[weekday] HH:MM[:SS] [Z|UTC]`, or a field out of range.
+    /// Not `[weekday] HH:MM[:SS] [Z|UTC|zone]`, or a field out of range.
     #[error(
-        "'{0}': expected a UTC time of day such as 03:00, 23:30:15 or \"Sun 03:00\" (hours 0-23, \
-         minutes and seconds 0-59)"
+        "'{0}': expected a time of day such as 03:00, 23:30:15, \"Sun 03:00\" or \"03:00 \
+         Europe/Berlin\" (hours 0-23, minutes and seconds 0-59; UTC unless a time zone follows)"
     )]
     Unreadable(String),
+    /// A time zone the system's time-zone database does not have.
+    #[error(
+        "'{zone}' is not a time zone of this system's database ({reason}); use an IANA name \
+         such as Europe/Berlin (the tzdata package provides /usr/share/zoneinfo), or UTC"
+    )]
+    UnknownZone { zone: String, reason: String },
     /// A period of zero.
     #[error("a schedule's period must be longer than zero")]
     ZeroPeriod,
@@ -50,14 +66,20 @@ pub enum ScheduleError {
     Misaligned { period_seconds: u64, at: ClockTime },
 }
 
-/// A time of day in UTC, and optionally a weekday: when a wall-clock schedule is due.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// A time of day on a clock (UTC or a time zone), and optionally a weekday: when a wall-clock
+/// schedule is due.
+#[derive(Debug, Clone, PartialEq)]
 pub struct ClockTime {
     /// Monday 0 to Sunday 6; `None`: every day.
     weekday: Option<u8>,
-    /// Seconds after midnight UTC.
+    /// Seconds after midnight on the clock.
     second_of_day: u32,
+    /// The clock's time zone; `None`: UTC.
+    zone: Option<TimeZone>,
 }
+
+// jiff compares time zones by their rules and name, an equivalence.
+impl Eq for ClockTime {}
 
 impl ClockTime {
     /// The time `hour:minute:second` UTC, on `weekday` (Monday 0 .. Sunday 6) or every day;
@@ -67,17 +89,38 @@ impl ClockTime {
             ClockTime {
                 weekday,
                 second_of_day: hour * 3_600 + minute * 60 + second,
+                zone: None,
             },
         )
     }
 
-    /// Seconds from the Unix epoch to the first time this is due: that day's time in the
-    /// epoch's first day, or in its first week counted from Monday.
-    fn anchor(self) -> u64 {
+    /// The same time of day on the clock of `zone` (IANA name, from the system's database).
+    pub fn in_zone(self, zone: &str) -> Result<ClockTime, ScheduleError> {
+        let tz = TimeZone::get(zone).map_err(|e| ScheduleError::UnknownZone {
+            zone: zone.to_owned(),
+            reason: e.to_string(),
+        })?;
+        Ok(ClockTime {
+            zone: Some(tz),
+            ..self
+        })
+    }
+
+    /// The clock's time since the Unix epoch on that clock (civil seconds) of the first time
+    /// this is due: that day's time in the epoch's first day, or in its first week counted
+    /// from Monday.
+    fn anchor(&self) -> i64 {
         let day = self
             .weekday
             .map_or(0, |d| (FIRST_MONDAY + u64::from(d)) % 7);
-        day * DAY + u64::from(self.second_of_day)
+        (day * DAY) as i64 + i64::from(self.second_of_day)
+    }
+
+    /// The zone's name as the database gives it, or `UTC`.
+    fn zone_name(&self) -> &str {
+        self.zone
+            .as_ref()
+            .map_or("UTC", |z| z.iana_name().unwrap_or("(unnamed zone)"))
     }
 }
 
@@ -91,31 +134,35 @@ impl std::fmt::Display for ClockTime {
         if !s.is_multiple_of(60) {
             write!(f, ":{:02}", s % 60)?;
         }
-        f.write_str(" UTC")
+        write!(f, " {}", self.zone_name())
     }
 }
 
 /// Reads a time as the command line writes it: `HH:MM` or `HH:MM:SS` (hours may have one
-/// digit), after an optional weekday (`Sun`, `sunday`, any case) and before an optional `Z`
-/// or `UTC`.
+/// digit), after an optional weekday (`Sun`, `sunday`, any case) and before an optional `Z`,
+/// `UTC` or IANA time-zone name (`Europe/Berlin`).
 pub fn parse_clock_time(s: &str) -> Result<ClockTime, ScheduleError> {
     let bad = || ScheduleError::Unreadable(s.to_owned());
     let mut words: Vec<&str> = s.split_whitespace().collect();
-    if words
-        .last()
-        .is_some_and(|w| w.eq_ignore_ascii_case("utc") || w.eq_ignore_ascii_case("z"))
-    {
-        words.pop();
-    }
+    // A last word that is not the time (it has no colon) names the clock.
+    let zone = match words[..] {
+        [.., w] if words.len() >= 2 && !w.contains(':') => {
+            words.pop();
+            (!w.eq_ignore_ascii_case("utc") && !w.eq_ignore_ascii_case("z")).then_some(w)
+        }
+        _ => None,
+    };
     let (weekday, time) = match words[..] {
         [time] => (None, time),
         [day, time] => (Some(weekday_of(day).ok_or_else(bad)?), time),
         _ => return Err(bad()),
     };
-    let time = time
-        .strip_suffix('Z')
-        .or_else(|| time.strip_suffix('z'))
-        .unwrap_or(time);
+    let time = match time.strip_suffix('Z').or_else(|| time.strip_suffix('z')) {
+        // `03:00Z Europe/Berlin` says two clocks.
+        Some(_) if zone.is_some() => return Err(bad()),
+        Some(utc) => utc,
+        None => time,
+    };
     let fields: Vec<&str> = time.split(':').collect();
     let number = |f: &str, max_digits: usize| -> Result<u32, ScheduleError> {
         if f.is_empty() || f.len() > max_digits || !f.bytes().all(|b| b.is_ascii_digit()) {
@@ -130,7 +177,11 @@ pub fn parse_clock_time(s: &str) -> Result<ClockTime, ScheduleError> {
         }
         _ => return Err(bad()),
     };
-    ClockTime::new(weekday, hour, minute, second).ok_or_else(bad)
+    let time = ClockTime::new(weekday, hour, minute, second).ok_or_else(bad)?;
+    match zone {
+        Some(zone) => time.in_zone(zone),
+        None => Ok(time),
+    }
 }
 
 /// Monday 0 .. Sunday 6 from a weekday's name or its first three letters, any case.
@@ -152,7 +203,7 @@ fn weekday_of(word: &str) -> Option<u8> {
 }
 
 /// When a periodic job is due: every `period`, counted from the start or kept to a clock time.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Schedule {
     period: Duration,
     at: Option<ClockTime>,
@@ -165,7 +216,7 @@ impl Schedule {
         period: Option<Duration>,
         at: Option<ClockTime>,
     ) -> Result<Option<Schedule>, ScheduleError> {
-        let period = match (period, at) {
+        let period = match (period, &at) {
             (None, None) => return Ok(None),
             (Some(p), _) => p,
             (None, Some(at)) => Duration::from_secs(if at.weekday.is_some() { WEEK } else { DAY }),
@@ -173,7 +224,7 @@ impl Schedule {
         if period.is_zero() {
             return Err(ScheduleError::ZeroPeriod);
         }
-        if let Some(at) = at {
+        if let Some(at) = &at {
             let seconds = period.as_secs();
             let whole = period.subsec_nanos() == 0;
             let aligned = match at.weekday {
@@ -183,7 +234,7 @@ impl Schedule {
             if !aligned {
                 return Err(ScheduleError::Misaligned {
                     period_seconds: seconds,
-                    at,
+                    at: at.clone(),
                 });
             }
         }
@@ -196,8 +247,8 @@ impl Schedule {
     }
 
     /// The clock time it keeps, if any.
-    pub fn at(&self) -> Option<ClockTime> {
-        self.at
+    pub fn at(&self) -> Option<&ClockTime> {
+        self.at.as_ref()
     }
 
     /// For logs and the status page: `every 1d`, `every 1d at 03:00 UTC`.
@@ -210,19 +261,129 @@ impl Schedule {
             _ if s.is_multiple_of(60) => format!("{}m", s / 60),
             _ => format!("{s}s"),
         };
-        match self.at {
+        match &self.at {
             Some(at) => format!("every {every} at {at}"),
             None => format!("every {every}"),
         }
     }
+}
 
-    /// The first due time at or after `t` (seconds since the epoch) of a clock-time schedule.
-    fn due_at_or_after(period: u64, anchor: u64, t: u64) -> u64 {
-        match t.checked_sub(anchor) {
-            None => anchor,
-            Some(since) => anchor + since.div_ceil(period) * period,
+/// The due times of a clock-time schedule: every `period` from `anchor` on the zone's clock
+/// (civil seconds, the clock's reading counted from 1970-01-01 00:00 on that clock), each due at
+/// the first instant the clock reads it (seconds since the Unix epoch). That map never goes
+/// back, so the grid's instants are in order; two grid times the clock skips over share the
+/// instant it jumps at.
+#[derive(Debug, Clone)]
+struct Grid {
+    anchor: i64,
+    period: i64,
+    zone: Option<TimeZone>,
+}
+
+impl Grid {
+    fn new(at: &ClockTime, period: Duration) -> Grid {
+        Grid {
+            anchor: at.anchor(),
+            period: period.as_secs().max(1) as i64,
+            zone: at.zone.clone(),
         }
     }
+
+    /// The clock's reading at the instant `t`.
+    fn civil(&self, t: u64) -> i64 {
+        let t = t as i64;
+        match &self.zone {
+            None => t,
+            Some(zone) => match jiff::Timestamp::from_second(t) {
+                Ok(ts) => t + i64::from(zone.to_offset(ts).seconds()),
+                Err(_) => t,
+            },
+        }
+    }
+
+    /// The first instant the clock reads `c` or later.
+    fn instant(&self, c: i64) -> u64 {
+        let Some(zone) = &self.zone else {
+            return c.max(0) as u64;
+        };
+        let Some(datetime) = civil_datetime(c) else {
+            return c.max(0) as u64;
+        };
+        let at = |offset: jiff::tz::Offset| (c - i64::from(offset.seconds())).max(0) as u64;
+        match zone.to_ambiguous_timestamp(datetime).offset() {
+            AmbiguousOffset::Unambiguous { offset } => at(offset),
+            // Read twice: the first time.
+            AmbiguousOffset::Fold { before, .. } => at(before),
+            // Skipped: when the clock jumps past it, between the reading with the offset after
+            // the jump (too early) and the one with the offset before it (too late).
+            AmbiguousOffset::Gap { before, after } => {
+                let (mut lo, mut hi) = (at(after), at(before));
+                while lo < hi {
+                    let mid = lo + (hi - lo) / 2;
+                    if self.civil(mid) >= c {
+                        hi = mid;
+                    } else {
+                        lo = mid + 1;
+                    }
+                }
+                lo
+            }
+        }
+    }
+
+    /// The instant of the `k`th due time.
+    fn due(&self, k: i64) -> u64 {
+        self.instant(self.anchor + k * self.period)
+    }
+
+    /// The smallest `k` whose due time is at or after `t` (none before the anchor).
+    fn first_index_at_or_after(&self, t: u64) -> i64 {
+        // A clock is within 26 hours of UTC, and the map from clock to instant never goes back:
+        // the index lies in this bracket, found by halving it.
+        let c = self.civil(t) - self.anchor;
+        let mut lo = (c - 3 * DAY as i64).div_euclid(self.period).max(0);
+        let mut hi = (c + 3 * DAY as i64).div_euclid(self.period).max(0) + 1;
+        if self.due(lo) >= t {
+            return lo;
+        }
+        while lo + 1 < hi {
+            let mid = lo + (hi - lo) / 2;
+            if self.due(mid) >= t {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        hi
+    }
+
+    /// The first due time at or after `t`.
+    fn first_at_or_after(&self, t: u64) -> u64 {
+        self.due(self.first_index_at_or_after(t))
+    }
+
+    /// The latest due time at or before `t`; `None` before the first.
+    fn latest_at_or_before(&self, t: u64) -> Option<u64> {
+        let k = self.first_index_at_or_after(t + 1);
+        (k > 0).then(|| self.due(k - 1))
+    }
+}
+
+/// The civil date and time `c` seconds after 1970-01-01 00:00; `None` outside jiff's years.
+fn civil_datetime(c: i64) -> Option<jiff::civil::DateTime> {
+    let c = u64::try_from(c).ok()?;
+    let (year, month, day) = civil_from_days(c / DAY);
+    let rest = c % DAY;
+    jiff::civil::DateTime::new(
+        i16::try_from(year).ok()?,
+        month as i8,
+        day as i8,
+        (rest / 3_600) as i8,
+        (rest / 60 % 60) as i8,
+        (rest % 60) as i8,
+        0,
+    )
+    .ok()
 }
 
 /// What `/metrics` and the status page say of a running schedule.
@@ -242,15 +403,14 @@ pub struct Timer {
     next: Next,
 }
 
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 enum Next {
     /// One period after the start, then one period after each time it fired.
     Monotonic(Instant),
-    /// Seconds since the epoch of the next clock time, of the anchor of the clock time, and of
-    /// the last time it fired.
+    /// Seconds since the epoch of the next due time of the grid and of the last time it fired.
     Wall {
+        grid: Grid,
         due: u64,
-        anchor: u64,
         last: Option<u64>,
     },
 }
@@ -258,16 +418,15 @@ enum Next {
 impl Timer {
     /// A timer started at `wall` / `mono`: due one period later, or at the next clock time
     /// strictly after the start.
-    pub fn start(schedule: Schedule, wall: SystemTime, mono: Instant) -> Timer {
-        let next = match schedule.at {
+    pub fn start(schedule: &Schedule, wall: SystemTime, mono: Instant) -> Timer {
+        let next = match &schedule.at {
             None => Next::Monotonic(mono + schedule.period),
             Some(at) => {
-                let anchor = at.anchor();
-                let due =
-                    Schedule::due_at_or_after(schedule.period.as_secs(), anchor, seconds(wall) + 1);
+                let grid = Grid::new(at, schedule.period);
+                let due = grid.first_at_or_after(seconds(wall) + 1);
                 Next::Wall {
+                    grid,
                     due,
-                    anchor,
                     last: None,
                 }
             }
@@ -283,21 +442,17 @@ impl Timer {
     /// than that, the job is due at once, named by that time — the run the daemon was down
     /// for, or one a restart cut short. A period from the start has nothing to catch up.
     pub fn resume(
-        schedule: Schedule,
+        schedule: &Schedule,
         wall: SystemTime,
         mono: Instant,
         last: Option<SystemTime>,
     ) -> Timer {
         let mut timer = Timer::start(schedule, wall, mono);
-        let period = schedule.period.as_secs();
-        if let (Next::Wall { due, anchor, .. }, Some(last)) = (&mut timer.next, last) {
-            let now = seconds(wall);
-            if let Some(since) = now.checked_sub(*anchor) {
-                let latest = now - since % period;
-                if seconds(last) < latest {
-                    *due = latest;
-                }
-            }
+        if let (Next::Wall { grid, due, .. }, Some(last)) = (&mut timer.next, last)
+            && let Some(latest) = grid.latest_at_or_before(seconds(wall))
+            && seconds(last) < latest
+        {
+            *due = latest;
         }
         timer
     }
@@ -315,24 +470,24 @@ impl Timer {
                 *due = mono + self.period;
                 Some(wall)
             }
-            Next::Wall { due, anchor, last } => {
+            Next::Wall { grid, due, last } => {
                 let now = seconds(wall);
-                let period = self.period.as_secs();
                 if now < *due {
-                    if *due - now > period {
-                        // The clock was stepped back: the next time is the next one from the
-                        // clock's new now, and after the last time it fired unless the clock
-                        // went back beyond that by a whole period (then that one is forgotten).
+                    if grid.first_at_or_after(now + 1) < *due {
+                        // The clock was stepped back past a due time: the next time is the next
+                        // one from the clock's new now, and after the last time it fired unless
+                        // the clock went back beyond that by a whole period (then that one is
+                        // forgotten).
                         let after = match *last {
-                            Some(l) if now + period >= l => l.max(now),
+                            Some(l) if now + self.period.as_secs() >= l => l.max(now),
                             _ => now,
                         };
-                        *due = Schedule::due_at_or_after(period, *anchor, after + 1);
+                        *due = grid.first_at_or_after(after + 1);
                     }
                     return None;
                 }
-                let latest = now - (now - *anchor) % period;
-                *due = latest + period;
+                let latest = grid.latest_at_or_before(now).unwrap_or(*due);
+                *due = grid.first_at_or_after(latest + 1);
                 *last = Some(latest);
                 Some(UNIX_EPOCH + Duration::from_secs(latest))
             }
@@ -342,9 +497,9 @@ impl Timer {
     /// When the job is next due, on the wall clock (a period counted from the start is
     /// projected from `wall` / `mono`).
     pub fn next_due(&self, wall: SystemTime, mono: Instant) -> SystemTime {
-        match self.next {
+        match &self.next {
             Next::Monotonic(due) => wall + due.saturating_duration_since(mono),
-            Next::Wall { due, .. } => UNIX_EPOCH + Duration::from_secs(due),
+            Next::Wall { due, .. } => UNIX_EPOCH + Duration::from_secs(*due),
         }
     }
 }
@@ -440,7 +595,7 @@ mod tests {
             .unwrap()
             .unwrap();
         let mono = Instant::now();
-        (Timer::start(schedule, wall(start), mono), mono)
+        (Timer::start(&schedule, wall(start), mono), mono)
     }
 
     #[test]
@@ -470,7 +625,6 @@ mod tests {
             "someday 03:00",
             "Sun",
             "Sun Mon 03:00",
-            "03:00 CET",
             "03h00",
             "٣:00",
         ] {
@@ -574,7 +728,7 @@ mod tests {
             (14 * DAY, "Thu 00:00"),
             (5 * DAY, "12:00"),
         ] {
-            let anchor = at(clock).anchor();
+            let anchor = at(clock).anchor() as u64;
             for _ in 0..300 {
                 rng ^= rng << 13;
                 rng ^= rng >> 7;
@@ -657,7 +811,7 @@ mod tests {
         let today = utc(2026, 12, 2, 3, 0, 0);
         // The last copy was due yesterday (or days ago): today's is made at once, named so.
         for last in [today - DAY, today - 10 * DAY, 0] {
-            let mut t = Timer::resume(schedule, wall(start), mono, Some(wall(last)));
+            let mut t = Timer::resume(&schedule, wall(start), mono, Some(wall(last)));
             assert_eq!(t.next_due(wall(start), mono), wall(today));
             assert_eq!(t.poll(wall(start), mono), Some(wall(today)));
             assert_eq!(t.poll(wall(start + 1), mono), None);
@@ -665,17 +819,17 @@ mod tests {
         }
         // Today's was made (or nothing is known): the next one, as a plain start.
         for last in [Some(today), Some(today + 5), None] {
-            let t = Timer::resume(schedule, wall(start), mono, last.map(wall));
+            let t = Timer::resume(&schedule, wall(start), mono, last.map(wall));
             assert_eq!(t.next_due(wall(start), mono), wall(today + DAY), "{last:?}");
         }
         // Started in the very second it is due, after yesterday's: due now.
-        let mut t = Timer::resume(schedule, wall(today), mono, Some(wall(today - DAY)));
+        let mut t = Timer::resume(&schedule, wall(today), mono, Some(wall(today - DAY)));
         assert_eq!(t.poll(wall(today), mono), Some(wall(today)));
         // A period from the start has nothing to catch up.
         let plain = Schedule::new(Some(Duration::from_secs(60)), None)
             .unwrap()
             .unwrap();
-        let t = Timer::resume(plain, wall(start), mono, Some(wall(0)));
+        let t = Timer::resume(&plain, wall(start), mono, Some(wall(0)));
         assert_eq!(t.next_due(wall(start), mono), wall(start + 60));
     }
 
@@ -713,7 +867,7 @@ mod tests {
             .unwrap()
             .unwrap();
         let mono = Instant::now();
-        let mut t = Timer::start(schedule, wall(1_000), mono);
+        let mut t = Timer::start(&schedule, wall(1_000), mono);
         assert_eq!(
             t.next_due(wall(1_000), mono),
             wall(1_060),
@@ -737,5 +891,167 @@ mod tests {
             t.poll(wall(2_002), late + Duration::from_secs(60))
                 .is_some()
         );
+    }
+
+    #[test]
+    fn clock_times_in_a_time_zone_are_read_and_unknown_zones_named() {
+        let berlin = at("03:00 Europe/Berlin");
+        assert_eq!(berlin.to_string(), "03:00 Europe/Berlin");
+        assert_ne!(berlin, at("03:00"));
+        assert_eq!(
+            at("sun 23:30:15 America/New_York").to_string(),
+            "Sun 23:30:15 America/New_York"
+        );
+        assert_eq!(at("03:00 utc"), at("03:00"));
+        let daily = Schedule::new(Some(Duration::from_secs(6 * 3_600)), Some(berlin))
+            .unwrap()
+            .unwrap();
+        assert_eq!(daily.describe(), "every 6h at 03:00 Europe/Berlin");
+        assert!(matches!(
+            parse_clock_time("03:00Z Europe/Berlin"),
+            Err(ScheduleError::Unreadable(_))
+        ));
+        for (bad, zone) in [
+            ("03:00 Mars/Olympus", "Mars/Olympus"),
+            ("Sun 03:00 Europe/Atlantis", "Europe/Atlantis"),
+            ("03:00 sunday", "sunday"),
+        ] {
+            let e = parse_clock_time(bad).unwrap_err();
+            assert!(
+                matches!(&e, ScheduleError::UnknownZone { zone: z, .. } if z == zone),
+                "{bad}: {e:?}"
+            );
+            assert!(e.to_string().contains(&format!("'{zone}'")), "{e}");
+        }
+        // A time zone does not excuse a period that drifts from it.
+        let e = Schedule::new(
+            Some(Duration::from_secs(7 * 3_600)),
+            Some(at("03:00 Europe/Berlin")),
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("03:00 Europe/Berlin"), "{e}");
+    }
+
+    /// Polls `timer` at each due time from `from` to `until` (and the second before it), and
+    /// returns the times it fired.
+    fn fired(timer: &mut Timer, until: u64) -> Vec<u64> {
+        let mono = Instant::now();
+        let mut out = Vec::new();
+        loop {
+            let due = seconds(timer.next_due(wall(0), mono));
+            if due > until {
+                return out;
+            }
+            assert_eq!(timer.poll(wall(due - 1), mono), None, "early at {due}");
+            assert_eq!(timer.poll(wall(due), mono), Some(wall(due)));
+            assert_eq!(timer.poll(wall(due), mono), None, "twice at {due}");
+            out.push(due);
+        }
+    }
+
+    #[test]
+    fn a_daily_time_in_a_zone_is_due_once_a_day_across_daylight_saving_changes() {
+        // Berlin, 2026: clocks jump from 02:00 to 03:00 on 29 March and fall back from 03:00
+        // to 02:00 on 25 October; 02:30 is skipped on the first and read twice on the second.
+        let (mut t, _) = wall_timer(None, "02:30 Europe/Berlin", utc(2026, 3, 27, 12, 0, 0));
+        let times = fired(&mut t, utc(2026, 3, 31, 0, 0, 0));
+        assert_eq!(
+            times,
+            [
+                utc(2026, 3, 28, 1, 30, 0), // 02:30 CET
+                utc(2026, 3, 29, 1, 0, 0),  // the jump: 03:00 CEST
+                utc(2026, 3, 30, 0, 30, 0), // 02:30 CEST
+            ]
+        );
+        let (mut t, _) = wall_timer(None, "02:30 Europe/Berlin", utc(2026, 10, 23, 12, 0, 0));
+        let times = fired(&mut t, utc(2026, 10, 27, 0, 0, 0));
+        assert_eq!(
+            times,
+            [
+                utc(2026, 10, 24, 0, 30, 0), // 02:30 CEST
+                utc(2026, 10, 25, 0, 30, 0), // the first 02:30, still CEST
+                utc(2026, 10, 26, 1, 30, 0), // 02:30 CET
+            ]
+        );
+        // A daemon started between the two readings of 02:30 does not run it again.
+        let (t, mono) = wall_timer(None, "02:30 Europe/Berlin", utc(2026, 10, 25, 1, 0, 0));
+        assert_eq!(t.next_due(wall(0), mono), wall(utc(2026, 10, 26, 1, 30, 0)));
+        // Nor does a catch-up name a time the clock skipped later than when it jumped.
+        let schedule = Schedule::new(None, Some(at("02:30 Europe/Berlin")))
+            .unwrap()
+            .unwrap();
+        let jump = utc(2026, 3, 29, 1, 0, 0);
+        let t = Timer::resume(
+            &schedule,
+            wall(jump + 600),
+            Instant::now(),
+            Some(wall(utc(2026, 3, 28, 1, 30, 0))),
+        );
+        assert_eq!(t.next_due(wall(0), Instant::now()), wall(jump));
+    }
+
+    #[test]
+    fn zoned_due_times_match_a_minute_by_minute_walk_of_the_clock() {
+        // Each zone over a year with its clock changes: Berlin and New York (an hour, at
+        // 02:00 and 03:00), Lord Howe (half an hour), Sao Paulo in 2018 (midnight skipped:
+        // the day starts at 01:00), Apia in 2011 (30 December skipped whole), Kolkata (no
+        // change, +05:30).
+        let zones = [
+            ("Europe/Berlin", 2026),
+            ("America/New_York", 2026),
+            ("Australia/Lord_Howe", 2026),
+            ("America/Sao_Paulo", 2018),
+            ("Pacific/Apia", 2011),
+            ("Asia/Kolkata", 2026),
+        ];
+        let schedules = [
+            ("02:30", DAY),
+            ("00:00", DAY),
+            ("00:00", 3_600),
+            ("00:15", 6 * 3_600),
+            ("Sun 02:00", WEEK),
+        ];
+        for (zone, year) in zones {
+            let tz = TimeZone::get(zone).unwrap();
+            let (from, until) = (utc(year, 1, 1, 0, 0, 0), utc(year + 1, 1, 1, 0, 0, 0));
+            // The clock's reading each minute, straight from the database's offsets.
+            let civil: Vec<(u64, i64)> = (from..until)
+                .step_by(60)
+                .map(|t| {
+                    let ts = jiff::Timestamp::from_second(t as i64).unwrap();
+                    (t, t as i64 + i64::from(tz.to_offset(ts).seconds()))
+                })
+                .collect();
+            for (clock, period) in schedules {
+                let time = at(&format!("{clock} {zone}"));
+                let (anchor, p) = (time.anchor(), period as i64);
+                // A grid time is due at the first minute the clock reads it or later.
+                let mut reference = Vec::new();
+                let mut seen = civil[0].1;
+                for &(t, c) in &civil[1..] {
+                    if c > seen {
+                        let first = (seen - anchor).div_euclid(p) + 1;
+                        if anchor + first * p <= c {
+                            reference.push(t);
+                        }
+                        seen = c;
+                    }
+                }
+                let what = format!("{clock} {zone} every {period} s in {year}");
+                let (mut timer, _) = wall_timer(Some(period), &format!("{clock} {zone}"), from);
+                assert_eq!(fired(&mut timer, until - 60), reference, "{what}");
+                // Started anywhere, the next time is the reference's next.
+                for (i, &t) in reference.iter().enumerate().step_by(7) {
+                    let start = t - 1 - (i as u64 * 7_919) % 3_000;
+                    let start = start.max(reference.get(i.wrapping_sub(1)).map_or(from, |&r| r));
+                    let (timer, mono) = wall_timer(Some(period), &format!("{clock} {zone}"), start);
+                    assert_eq!(
+                        seconds(timer.next_due(wall(0), mono)),
+                        t,
+                        "{what}, started at {start}"
+                    );
+                }
+            }
+        }
     }
 }

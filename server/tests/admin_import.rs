@@ -1206,42 +1206,49 @@ async fn clock_time_schedules_name_copies_by_the_time_they_were_due() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_nightly_copy_missed_while_down_is_made_at_start() {
     use arbor_server::live_copy::{scheduled_name, scheduled_time};
-    let d = Daemon::start_with(TestPool::new(), |root| {
-        std::fs::create_dir_all(root.join("copies/scheduled-2020-01-01T000000Z")).unwrap();
-        DaemonOptions {
-            copy_root: Some(root.join("copies")),
-            copy_at: Some(arbor_server::periodic::parse_clock_time("00:00").unwrap()),
-            ..DaemonOptions::default()
-        }
-    })
-    .await;
-    let t0 = Instant::now();
-    let all = loop {
-        let (s, all) = http(d.admin, "GET", "/v1/copies", ADMIN, "").await;
-        assert_eq!(s, 200);
-        if all.as_array().unwrap().iter().any(|c| c["phase"] == "done") {
-            break all;
-        }
-        assert!(t0.elapsed() < Duration::from_secs(60), "{all}");
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    };
-    let all = all.as_array().unwrap();
-    assert_eq!(all.len(), 1, "one missed time, one copy: {all:?}");
-    let name = all[0]["to"].as_str().unwrap();
-    let due = scheduled_time(name).unwrap();
-    let now = std::time::SystemTime::now();
-    let midnight = std::time::UNIX_EPOCH
-        + Duration::from_secs(
-            now.duration_since(std::time::UNIX_EPOCH).unwrap().as_secs() / 86_400 * 86_400,
+    // Midnight in UTC, and in Kolkata (UTC+05:30 all year): named by its UTC time, 18:30.
+    for (clock, offset) in [("00:00", 0), ("00:00 Asia/Kolkata", 19_800)] {
+        let d = Daemon::start_with(TestPool::new(), |root| {
+            std::fs::create_dir_all(root.join("copies/scheduled-2020-01-01T000000Z")).unwrap();
+            DaemonOptions {
+                copy_root: Some(root.join("copies")),
+                copy_at: Some(arbor_server::periodic::parse_clock_time(clock).unwrap()),
+                ..DaemonOptions::default()
+            }
+        })
+        .await;
+        let t0 = Instant::now();
+        let all = loop {
+            let (s, all) = http(d.admin, "GET", "/v1/copies", ADMIN, "").await;
+            assert_eq!(s, 200);
+            if all.as_array().unwrap().iter().any(|c| c["phase"] == "done") {
+                break all;
+            }
+            assert!(t0.elapsed() < Duration::from_secs(60), "{clock}: {all}");
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        };
+        let all = all.as_array().unwrap();
+        assert_eq!(all.len(), 1, "{clock}: one missed time, one copy: {all:?}");
+        let name = all[0]["to"].as_str().unwrap();
+        let due = scheduled_time(name).unwrap();
+        let now = std::time::SystemTime::now();
+        let local = now.duration_since(std::time::UNIX_EPOCH).unwrap().as_secs() + offset;
+        let midnight =
+            std::time::UNIX_EPOCH + Duration::from_secs(local / 86_400 * 86_400 - offset);
+        // Today's midnight there (yesterday's if the test straddles one).
+        assert!(
+            name == scheduled_name(midnight)
+                || name == scheduled_name(midnight - Duration::from_secs(86_400)),
+            "{clock}: {name}"
         );
-    // Today's midnight (yesterday's if the test straddles one).
-    assert!(
-        name == scheduled_name(midnight)
-            || name == scheduled_name(midnight - Duration::from_secs(86_400)),
-        "{name}"
-    );
-    assert!(due <= now);
-    d.server.shutdown().await;
+        assert!(due <= now);
+        let page = text(d.admin, "/").await;
+        assert!(
+            page.contains(&format!("copies of the pool every 1d at {clock}")),
+            "{page}"
+        );
+        d.server.shutdown().await;
+    }
 }
 
 /// The scheduled checks keep the time the last one was due in the data directory; a daemon

@@ -231,16 +231,25 @@ fn help_has_examples_and_bad_parameters_are_named() {
     // serving, the number kept accepted with a clock time alone.
     assert!(h.contains("--copy-at 03:00"), "{h}");
     assert!(h.contains("--check-at \"Sun 04:00\""), "{h}");
+    assert!(h.contains("--copy-at \"03:00 Europe/Berlin\""), "{h}");
     for (args, code, needle) in [
+        (&["--check-at", "25:00"][..], 2, "expected a time of day"),
         (
-            &["--check-at", "25:00"][..],
+            &["--check-at", "03:00 Mars/Olympus"][..],
             2,
-            "expected a UTC time of day",
+            "'Mars/Olympus' is not a time zone",
         ),
         (
-            &["--check-at", "03:00 CET"][..],
-            2,
-            "expected a UTC time of day",
+            &[
+                "--copy-root",
+                "x",
+                "--copy-at",
+                "03:00 Europe/Berlin",
+                "--copy-every",
+                "7h",
+            ][..],
+            1,
+            "cannot keep the time 03:00 Europe/Berlin",
         ),
         (&["--copy-at", "03:00"][..], 2, "--copy-root"),
         (
