@@ -405,6 +405,14 @@ async fn every_panel_of_the_shipped_dashboard_shows_a_real_daemons_data() {
     assert!(exprs.len() >= 40, "{exprs:?}");
     let (_, page) = get(admin, "/metrics", Some(ADMIN)).await;
     assert_served(&exprs.join("\n"), &page, "arbor-dashboard.json");
+    // The limits the rules and panels compare with, as configured.
+    let config = pool.config();
+    for line in [
+        format!("arbor_connections_max {}\n", config.max_connections),
+        format!("arbor_pool_readers {}\n", config.pool_readers),
+    ] {
+        assert!(page.contains(&line), "no {line} in {page}");
+    }
 
     // A client fetches every treelet a few times while the daemon checks and copies.
     let client = common::connect(server.quic_addr, &server.fingerprint).await;

@@ -96,6 +96,10 @@ impl Shared {
             "memory bound (runtime, allocator slack and admin API on top)"
         );
         state.set_memory_bound(bound);
+        state.set_limits(super::state::ServiceLimits {
+            max_connections: config.max_connections,
+            pool_readers: config.pool_readers,
+        });
         {
             let mut paths = state.paths();
             paths.set_lifetime(config.path_memory());

@@ -150,9 +150,22 @@ pub struct ServiceState {
     /// The service's memory bound, with the scenes the pool held at the start; set once by
     /// the service as it starts.
     memory_bound: OnceLock<super::config::MemoryBound>,
+    /// The configured limits `/metrics` reports beside the figures they bound; set once by the
+    /// service as it starts.
+    limits: OnceLock<ServiceLimits>,
     /// Congestion windows and RTTs of recent connections by client address; off (lifetime
     /// zero) until the service sets `path_memory_secs`.
     paths: Mutex<PathMemory>,
+}
+
+/// Limits of a running service that alerts compare its figures with (so the shipped rules
+/// need no copy of the configuration).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ServiceLimits {
+    /// `max_connections`: clients beyond it are refused.
+    pub max_connections: usize,
+    /// `pool_readers`: threads reading the pool.
+    pub pool_readers: usize,
 }
 
 /// The caches every scene of a running service shares, and what it learned of each scene.
@@ -217,6 +230,11 @@ impl ServiceState {
     /// Records the service's memory bound (a second call changes nothing).
     pub fn set_memory_bound(&self, bound: super::config::MemoryBound) {
         let _ = self.memory_bound.set(bound);
+    }
+
+    /// Records the service's configured limits (once, at start).
+    pub fn set_limits(&self, limits: ServiceLimits) {
+        let _ = self.limits.set(limits);
     }
 
     /// The service's memory bound, once it started.
@@ -491,8 +509,22 @@ impl ServiceState {
             Kind::Gauge,
             "Reads queued for or running on the pool's readers now.",
             load(&reads.waiting),
-        )
-        .single(
+        );
+        if let Some(limits) = self.limits.get() {
+            p.single(
+                "arbor_connections_max",
+                Kind::Gauge,
+                "Connections the service accepts at most (max_connections); beyond, ServerBusy.",
+                limits.max_connections as u64,
+            )
+            .single(
+                "arbor_pool_readers",
+                Kind::Gauge,
+                "Threads reading the pool (pool_readers): reads waiting beyond them queue.",
+                limits.pool_readers as u64,
+            );
+        }
+        p.single(
             "arbor_pool_prewarm_total_bytes",
             Kind::Gauge,
             "Bytes of the pool's files the start's prewarm set out to read into the page cache \
