@@ -674,6 +674,15 @@ fn every(inner: Weak<Inner>, schedule: Schedule, job: &Periodic) {
             schedule = %schedule.describe(),
             "a scheduled time passed since the job last ran (the daemon was down): it runs now"
         );
+    } else if let Some(last) = last.filter(|&l| l > wall) {
+        // A clock set back, or a copy named in the future brought in by hand: either way no
+        // time is made up at this start, which the operator should know.
+        tracing::warn!(
+            schedule = %schedule.describe(),
+            last = %crate::periodic::utc_text(last),
+            "the job's last scheduled time is later than now (a clock set back, or a scheduled \
+             copy named in the future): nothing missed is made up at this start"
+        );
     }
     let describe = schedule.describe();
     let mut published = None;

@@ -1,5 +1,6 @@
 //! The real `arbor-server serve` binary's log lines on a pipe: plain text without a single ANSI
-//! escape by default, one JSON object per line with `--log-format json`.
+//! escape by default, one JSON object per line with `--log-format json`; and a warning an
+//! operator needs at start (a scheduled copy named in the future).
 
 use std::io::{BufRead as _, BufReader, Read as _};
 use std::process::{Command, Stdio};
@@ -92,4 +93,60 @@ fn json_logs_are_one_object_per_line() {
         lines.iter().any(|l| l.contains("\"message\"")),
         "no event carried a message:\n{log}"
     );
+}
+
+/// A scheduled copy named after now under the copy root (a clock set back, a directory brought
+/// in by hand) keeps the daemon from making up a missed copy at start; it says so, naming the
+/// time.
+#[test]
+fn a_scheduled_copy_named_in_the_future_is_warned_of_at_start() {
+    let dir = tempfile::tempdir().unwrap();
+    drop(arbor_server::pool::Pool::open(&dir.path().join("pool")).unwrap());
+    let root = dir.path().join("copies");
+    std::fs::create_dir_all(root.join("scheduled-2099-01-01T030000Z")).unwrap();
+    let mut child = Command::new(BIN)
+        .args(["serve", "--db"])
+        .arg(dir.path().join("pool"))
+        .args(["--listen", "127.0.0.1:0", "--admin", "off", "--data-dir"])
+        .arg(dir.path().join("state"))
+        .arg("--copy-root")
+        .arg(&root)
+        .args(["--copy-at", "03:00"])
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let mut log = Vec::new();
+    let warning = loop {
+        match rx.recv_timeout(Duration::from_secs(30)) {
+            Ok(line) if line.contains("later than now") => break line,
+            Ok(line) => log.push(line),
+            Err(_) => {
+                let _ = child.kill();
+                panic!(
+                    "no warning of the future copy; the log:\n{}",
+                    log.join("\n")
+                );
+            }
+        }
+    };
+    assert!(warning.contains("WARN"), "{warning}");
+    assert!(warning.contains("2099-01-01 03:00:00 UTC"), "{warning}");
+    let ok = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "kill -TERM");
+    assert!(child.wait().unwrap().success());
 }
