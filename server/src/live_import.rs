@@ -705,6 +705,7 @@ fn every(inner: Weak<Inner>, schedule: Schedule, job: &Periodic) {
                     ScheduleFigures {
                         schedule: describe.clone(),
                         next_due_unix: next_unix,
+                        period_seconds: schedule.period().as_secs_f64(),
                     },
                 );
             }

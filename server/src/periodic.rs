@@ -393,6 +393,8 @@ pub struct ScheduleFigures {
     pub schedule: String,
     /// When the job is next due, seconds since the Unix epoch.
     pub next_due_unix: f64,
+    /// Its period in seconds (alerts compare the age of the last run with it).
+    pub period_seconds: f64,
 }
 
 /// Counts a [`Schedule`] down: told the time on both clocks, it says whether the job is due

@@ -1172,6 +1172,14 @@ async fn clock_time_schedules_name_copies_by_the_time_they_were_due() {
         assert!(next > now - 1.5 && next < now + 3.5, "{next} at {now}");
     }
     assert!(sample(&metrics, "arbor_pool_copies_skipped_total ").is_some());
+    assert_eq!(
+        sample(&metrics, "arbor_pool_copy_period_seconds "),
+        Some(2.0)
+    );
+    assert_eq!(
+        sample(&metrics, "arbor_scene_check_period_seconds "),
+        Some(3.0)
+    );
     let (s, all) = http(d.admin, "GET", "/v1/copies", ADMIN, "").await;
     assert_eq!(s, 200);
     let names: Vec<&str> = all

@@ -224,6 +224,15 @@ fn copy_families(p: &mut PromText, copies: Option<&CopyFigures>) {
             s.next_due_unix,
         );
     }
+    p.family(
+        "arbor_pool_copy_period_seconds",
+        Kind::Gauge,
+        "The scheduled copies' period (serve --copy-every/--copy-at), in seconds (alert when \
+         the last good copy is older than two); no sample without a schedule.",
+    );
+    if let Some(s) = copies.and_then(|c| c.scheduled.as_ref()) {
+        p.sample("arbor_pool_copy_period_seconds", &[], s.period_seconds);
+    }
 }
 
 /// The scene checks' counters and each published scene's last check.
@@ -256,6 +265,15 @@ fn check_families(p: &mut PromText, checks: Option<&CheckFigures>) {
             &[],
             s.next_due_unix,
         );
+    }
+    p.family(
+        "arbor_scene_check_period_seconds",
+        Kind::Gauge,
+        "The scheduled checks' period (serve --check-every/--check-at), in seconds (alert when \
+         a scene's last check is older than two); no sample without a schedule.",
+    );
+    if let Some(s) = checks.and_then(|c| c.scheduled.as_ref()) {
+        p.sample("arbor_scene_check_period_seconds", &[], s.period_seconds);
     }
     let last = checks.map(|c| &c.last);
     let each =
@@ -364,6 +382,8 @@ mod tests {
         for gauge in [
             "arbor_pool_copy_next_scheduled_seconds",
             "arbor_scene_check_next_scheduled_seconds",
+            "arbor_pool_copy_period_seconds",
+            "arbor_scene_check_period_seconds",
         ] {
             assert!(t.contains(&format!("# TYPE {gauge} gauge\n")), "{t}");
             assert!(
