@@ -68,7 +68,7 @@ pub enum ScheduleError {
 
 /// A time of day on a clock (UTC or a time zone), and optionally a weekday: when a wall-clock
 /// schedule is due.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ClockTime {
     /// Monday 0 to Sunday 6; `None`: every day.
     weekday: Option<u8>,
@@ -77,9 +77,6 @@ pub struct ClockTime {
     /// The clock's time zone; `None`: UTC.
     zone: Option<TimeZone>,
 }
-
-// jiff compares time zones by their rules and name, an equivalence.
-impl Eq for ClockTime {}
 
 impl ClockTime {
     /// The time `hour:minute:second` UTC, on `weekday` (Monday 0 .. Sunday 6) or every day;
@@ -203,7 +200,7 @@ fn weekday_of(word: &str) -> Option<u8> {
 }
 
 /// When a periodic job is due: every `period`, counted from the start or kept to a clock time.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Schedule {
     period: Duration,
     at: Option<ClockTime>,
