@@ -6,6 +6,8 @@
 //! rule without an error and fires `ArborSceneDamaged` for the damaged scenes and no others. The
 //! Grafana dashboard (`deploy/grafana/arbor-dashboard.json`): its layout, and every panel's
 //! query answered with data by a real Prometheus scraping a daemon a client has fetched from.
+//! The Prometheus Operator's `PrometheusRule` (`deploy/kubernetes/prometheusrule.yaml`): the
+//! same rules, line for line.
 //! `promtool` and `prometheus` come from Debian's `prometheus` package, which `scripts/test`
 //! installs; without them these tests fail and say so.
 
@@ -186,6 +188,40 @@ fn the_shipped_rules_pass_promtool_and_their_unit_tests() {
             "{alert} has no unit test in arbor-alerts.test.yml"
         );
     }
+}
+
+#[test]
+fn the_operators_prometheusrule_holds_the_same_rules() {
+    let rules = std::fs::read_to_string(shipped("arbor-alerts.yml")).unwrap();
+    let groups: Vec<&str> = rules[rules.find("groups:\n").unwrap()..].lines().collect();
+    let path =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/kubernetes/prometheusrule.yaml");
+    let manifest = std::fs::read_to_string(path).unwrap();
+    let spec = &manifest[manifest.find("\nspec:\n").expect("a spec") + "\nspec:\n".len()..];
+    // The same lines, two spaces in.
+    let undented: Vec<&str> = spec
+        .lines()
+        .map(|l| match l.strip_prefix("  ") {
+            Some(rest) => rest,
+            None => {
+                assert!(l.is_empty(), "not under spec: {l:?}");
+                l
+            }
+        })
+        .collect();
+    assert_eq!(
+        undented, groups,
+        "prometheusrule.yaml differs from arbor-alerts.yml"
+    );
+    // And promtool reads them as rules.
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("rules.yml"), undented.join("\n")).unwrap();
+    let (ok, out) = promtool(dir.path(), &["check", "rules", "rules.yml"], None);
+    let count = rules.matches("- alert: ").count();
+    assert!(
+        ok && out.contains(&format!("SUCCESS: {count} rules found")),
+        "{out}"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
