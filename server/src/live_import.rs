@@ -669,22 +669,23 @@ fn every(inner: Weak<Inner>, schedule: Schedule, job: &Periodic) {
     };
     let (wall, mono) = (SystemTime::now(), Instant::now());
     let mut timer = Timer::resume(&schedule, wall, mono, last);
+    let describe = schedule.describe();
+    let period_seconds = schedule.period().as_secs_f64();
     if timer.next_due(wall, mono) <= wall {
         tracing::info!(
-            schedule = %schedule.describe(),
+            schedule = %describe,
             "a scheduled time passed since the job last ran (the daemon was down): it runs now"
         );
     } else if let Some(last) = last.filter(|&l| l > wall) {
         // A clock set back, or a copy named in the future brought in by hand: either way no
         // time is made up at this start, which the operator should know.
         tracing::warn!(
-            schedule = %schedule.describe(),
+            schedule = %describe,
             last = %crate::periodic::utc_text(last),
             "the job's last scheduled time is later than now (a clock set back, or a scheduled \
              copy named in the future): nothing missed is made up at this start"
         );
     }
-    let describe = schedule.describe();
     let mut published = None;
     loop {
         let (wall, mono) = (SystemTime::now(), Instant::now());
@@ -705,7 +706,7 @@ fn every(inner: Weak<Inner>, schedule: Schedule, job: &Periodic) {
                     ScheduleFigures {
                         schedule: describe.clone(),
                         next_due_unix: next_unix,
-                        period_seconds: schedule.period().as_secs_f64(),
+                        period_seconds,
                     },
                 );
             }

@@ -2,54 +2,73 @@
 //! escape by default, one JSON object per line with `--log-format json`; and a warning an
 //! operator needs at start (a scheduled copy named in the future).
 
-use std::io::{BufRead as _, BufReader, Read as _};
+use std::io::{BufRead as _, BufReader, Read};
+use std::path::Path;
 use std::process::{Command, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
 
 const BIN: &str = env!("CARGO_BIN_EXE_arbor-server");
 
-/// Serves an empty pool with `extra` arguments and stderr on a pipe until it has printed its
-/// addresses, stops it with SIGTERM and returns everything it logged.
-fn serve_and_collect_log(extra: &[&str]) -> String {
-    let dir = tempfile::tempdir().unwrap();
+/// `arbor-server [global] serve … [serve_args]` on an empty pool in `dir`, logging at info.
+fn serve_command(dir: &Path, global: &[&str], serve_args: &[&str]) -> Command {
     // An empty pool is enough to serve.
-    drop(arbor_server::pool::Pool::open(&dir.path().join("pool")).unwrap());
-    let mut child = Command::new(BIN)
-        .args(extra)
+    drop(arbor_server::pool::Pool::open(&dir.join("pool")).unwrap());
+    let mut command = Command::new(BIN);
+    command
+        .args(global)
         .args(["serve", "--db"])
-        .arg(dir.path().join("pool"))
+        .arg(dir.join("pool"))
         .args(["--listen", "127.0.0.1:0", "--admin", "off", "--data-dir"])
-        .arg(dir.path().join("state"))
-        .env("RUST_LOG", "info")
-        .env_remove("NO_COLOR")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let stdout = child.stdout.take().unwrap();
+        .arg(dir.join("state"))
+        .args(serve_args)
+        .env("RUST_LOG", "info");
+    command
+}
+
+/// The lines `reader` gives, as they come, from a thread of their own.
+fn lines_of(reader: impl Read + Send + 'static) -> mpsc::Receiver<String> {
     let (tx, rx) = mpsc::channel();
     std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+        for line in BufReader::new(reader).lines().map_while(Result::ok) {
             if tx.send(line).is_err() {
                 break;
             }
         }
     });
-    loop {
-        let line = rx
-            .recv_timeout(Duration::from_secs(30))
-            .expect("serve printed its fingerprint line");
-        if line.starts_with("fingerprint ") {
-            break;
-        }
-    }
+    rx
+}
+
+/// Asks a server to stop (SIGTERM).
+fn sigterm(child: &std::process::Child) {
     let ok = Command::new("kill")
         .args(["-TERM", &child.id().to_string()])
         .status()
         .unwrap()
         .success();
     assert!(ok, "kill -TERM");
+}
+
+/// Serves an empty pool with `global` arguments and stderr on a pipe until it has printed its
+/// addresses, stops it with SIGTERM and returns everything it logged.
+fn serve_and_collect_log(global: &[&str]) -> String {
+    let dir = tempfile::tempdir().unwrap();
+    let mut child = serve_command(dir.path(), global, &[])
+        .env_remove("NO_COLOR")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stdout = lines_of(child.stdout.take().unwrap());
+    loop {
+        let line = stdout
+            .recv_timeout(Duration::from_secs(30))
+            .expect("serve printed its fingerprint line");
+        if line.starts_with("fingerprint ") {
+            break;
+        }
+    }
+    sigterm(&child);
     let mut log = String::new();
     child
         .stderr
@@ -101,34 +120,22 @@ fn json_logs_are_one_object_per_line() {
 #[test]
 fn a_scheduled_copy_named_in_the_future_is_warned_of_at_start() {
     let dir = tempfile::tempdir().unwrap();
-    drop(arbor_server::pool::Pool::open(&dir.path().join("pool")).unwrap());
     let root = dir.path().join("copies");
     std::fs::create_dir_all(root.join("scheduled-2099-01-01T030000Z")).unwrap();
-    let mut child = Command::new(BIN)
-        .args(["serve", "--db"])
-        .arg(dir.path().join("pool"))
-        .args(["--listen", "127.0.0.1:0", "--admin", "off", "--data-dir"])
-        .arg(dir.path().join("state"))
-        .arg("--copy-root")
-        .arg(&root)
-        .args(["--copy-at", "03:00"])
-        .env("RUST_LOG", "info")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
+    let root = root.to_str().unwrap();
+    let mut child = serve_command(
+        dir.path(),
+        &[],
+        &["--copy-root", root, "--copy-at", "03:00"],
+    )
+    .stdout(Stdio::null())
+    .stderr(Stdio::piped())
+    .spawn()
+    .unwrap();
+    let stderr = lines_of(child.stderr.take().unwrap());
     let mut log = Vec::new();
     let warning = loop {
-        match rx.recv_timeout(Duration::from_secs(30)) {
+        match stderr.recv_timeout(Duration::from_secs(30)) {
             Ok(line) if line.contains("later than now") => break line,
             Ok(line) => log.push(line),
             Err(_) => {
@@ -142,11 +149,7 @@ fn a_scheduled_copy_named_in_the_future_is_warned_of_at_start() {
     };
     assert!(warning.contains("WARN"), "{warning}");
     assert!(warning.contains("2099-01-01 03:00:00 UTC"), "{warning}");
-    let ok = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap()
-        .success();
-    assert!(ok, "kill -TERM");
+    sigterm(&child);
+    // The reader thread drains the rest of the log while the server stops.
     assert!(child.wait().unwrap().success());
 }
