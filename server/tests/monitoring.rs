@@ -7,7 +7,9 @@
 //! Grafana dashboard (`deploy/grafana/arbor-dashboard.json`): its layout, and every panel's
 //! query answered with data by a real Prometheus scraping a daemon a client has fetched from.
 //! The Prometheus Operator's `PrometheusRule` (`deploy/kubernetes/prometheusrule.yaml`): the
-//! same rules, line for line.
+//! same rules, line for line. Its `ServiceMonitor` (`deploy/kubernetes/servicemonitor.yaml`):
+//! what it names found in the other manifests, and its endpoint's settings scraping a real
+//! daemon's HTTPS admin API through a real Prometheus, the certificate checked.
 //! `promtool` and `prometheus` come from Debian's `prometheus` package, which `scripts/test`
 //! installs; without them these tests fail and say so.
 
@@ -20,7 +22,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use arbor_server::daemon::{DaemonOptions, RunningServer};
-use arbor_server::service::config::AdminTokenSource;
+use arbor_server::service::config::{AdminTls, AdminTokenSource, TlsSource};
 use common::{TestPool, damaged_pool};
 use serde_json::Value;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -76,19 +78,23 @@ fn promtool(dir: &Path, args: &[&str], stdin: Option<&str>) -> (bool, String) {
 }
 
 /// A `GET` over HTTP/1.0 (so the answer is neither chunked nor kept alive): status and body;
-/// status 0 when nothing listens yet.
+/// status 0 when nothing listens yet, or what listens does not answer whole within 10 s.
 async fn get(addr: SocketAddr, path: &str, token: Option<&str>) -> (u16, String) {
-    let Ok(mut s) = tokio::net::TcpStream::connect(addr).await else {
-        return (0, String::new());
-    };
     let auth = token
         .map(|t| format!("Authorization: Bearer {t}\r\n"))
         .unwrap_or_default();
-    s.write_all(format!("GET {path} HTTP/1.0\r\nHost: x\r\n{auth}\r\n").as_bytes())
-        .await
-        .unwrap();
-    let mut raw = String::new();
-    s.read_to_string(&mut raw).await.unwrap();
+    let exchange = async {
+        let mut s = tokio::net::TcpStream::connect(addr).await?;
+        s.write_all(format!("GET {path} HTTP/1.0\r\nHost: x\r\n{auth}\r\n").as_bytes())
+            .await?;
+        let mut bytes = Vec::new();
+        s.read_to_end(&mut bytes).await?;
+        std::io::Result::Ok(bytes)
+    };
+    let Ok(Ok(bytes)) = tokio::time::timeout(Duration::from_secs(10), exchange).await else {
+        return (0, String::new());
+    };
+    let raw = String::from_utf8_lossy(&bytes);
     let (head, body) = raw.split_once("\r\n\r\n").unwrap_or((&raw, ""));
     let status = head
         .split(' ')
@@ -224,6 +230,240 @@ fn the_operators_prometheusrule_holds_the_same_rules() {
     );
 }
 
+/// A file of `deploy/kubernetes/`.
+fn manifest(file: &str) -> String {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../deploy/kubernetes")
+        .join(file);
+    std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// The mapping under the one line `key:` of `yaml` (the lines indented deeper), for reading
+/// the few fields of a hand-written manifest without a YAML parser.
+fn block(yaml: &str, key: &str) -> String {
+    let lines: Vec<&str> = yaml
+        .lines()
+        .filter(|l| !l.trim_start().starts_with('#'))
+        .collect();
+    let heads: Vec<usize> = (0..lines.len())
+        .filter(|&i| lines[i].trim().trim_start_matches("- ") == format!("{key}:"))
+        .collect();
+    assert_eq!(heads.len(), 1, "one '{key}:' in\n{yaml}");
+    let indent = |l: &str| l.len() - l.trim_start().len();
+    let own = indent(lines[heads[0]]);
+    lines[heads[0] + 1..]
+        .iter()
+        .take_while(|l| l.trim().is_empty() || indent(l) > own)
+        .copied()
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// The value of the one `key: value` line of `yaml` (a list item's `- key:` too).
+fn field<'a>(yaml: &'a str, key: &str) -> &'a str {
+    let values: Vec<&str> = yaml
+        .lines()
+        .filter_map(|l| {
+            l.trim()
+                .trim_start_matches("- ")
+                .strip_prefix(&format!("{key}: "))
+        })
+        .map(|v| v.trim().trim_matches('"'))
+        .collect();
+    assert_eq!(values.len(), 1, "one '{key}:' in\n{yaml}");
+    values[0]
+}
+
+/// The one document of a multi-document manifest whose `metadata` has `name: NAME`.
+fn document<'a>(yaml: &'a str, name: &str) -> &'a str {
+    let found: Vec<&str> = yaml
+        .split("\n---\n")
+        .filter(|d| field(&block(d, "metadata"), "name") == name)
+        .collect();
+    assert_eq!(found.len(), 1, "one document named {name}");
+    found[0]
+}
+
+/// The labels a `matchLabels:` or `labels:` block lists, as `key=value`.
+fn labels(block: &str) -> BTreeSet<String> {
+    block
+        .lines()
+        .filter_map(|l| l.trim().split_once(": "))
+        .map(|(k, v)| format!("{k}={v}"))
+        .collect()
+}
+
+/// The ServiceMonitor (`deploy/kubernetes/servicemonitor.yaml`) names what the other manifests
+/// hold: the admin Service (by its labels, not the QUIC one) and its port, the Secrets' token
+/// and certificate under the keys the server reads, the namespace, and the job the rules
+/// select. Then a real Prometheus scrapes a real daemon's HTTPS admin API with its endpoint's
+/// settings as the Operator would write them (scheme, path, the bearer token, the replicas'
+/// certificate as CA, `serverName`, the job relabeling): the target is up as job `arbor`,
+/// while a job that expects another name in the certificate is refused by the TLS check.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_servicemonitor_scrapes_the_replicas_admin_api_over_verified_tls() {
+    let monitor = manifest("servicemonitor.yaml");
+    let services = manifest("service.yaml");
+    let admin_service = document(&services, "arbor-admin");
+    let quic_service = document(&services, "arbor-quic");
+    let endpoint = block(&monitor, "endpoints");
+
+    let (metadata, admin_metadata) = (
+        block(&monitor, "metadata"),
+        block(admin_service, "metadata"),
+    );
+    assert_eq!(
+        field(&metadata, "namespace"),
+        field(&admin_metadata, "namespace")
+    );
+    let wanted = labels(&block(&monitor, "matchLabels"));
+    assert!(
+        wanted.is_subset(&labels(&block(admin_service, "labels"))),
+        "the selector {wanted:?} misses arbor-admin"
+    );
+    assert!(
+        !wanted.is_subset(&labels(&block(quic_service, "labels"))),
+        "the selector {wanted:?} also picks arbor-quic"
+    );
+    let port = field(&endpoint, "port");
+    assert_eq!(port, field(&block(admin_service, "ports"), "name"));
+
+    let token = block(&endpoint, "credentials");
+    let secrets = manifest("secret.yaml");
+    assert_eq!(
+        field(&token, "name"),
+        field(&block(&secrets, "metadata"), "name")
+    );
+    let token_key = field(&token, "key");
+    assert!(
+        block(&secrets, "stringData")
+            .lines()
+            .any(|l| l.trim().starts_with(&format!("{token_key}:"))),
+        "secret.yaml has no key {token_key}"
+    );
+    let config = manifest("configmap.yaml");
+    assert!(
+        config.contains(&format!(
+            "admin_token_file = \"/etc/arbor/secrets/{token_key}\""
+        )),
+        "the server does not read the admin token from key {token_key}"
+    );
+    let ca = block(&endpoint, "secret");
+    let deployment = manifest("deployment.yaml");
+    assert!(
+        deployment.contains(&format!("secretName: {}", field(&ca, "name"))),
+        "the replicas do not mount {}",
+        field(&ca, "name")
+    );
+    let ca_key = field(&ca, "key");
+    assert!(
+        config.contains(&format!("cert = \"/etc/arbor/tls/{ca_key}\"")),
+        "the replicas' certificate is not key {ca_key}"
+    );
+    assert!(
+        !config.contains("admin_cert"),
+        "the admin listener must present the replicas' certificate"
+    );
+    let tls = block(&endpoint, "tlsConfig");
+    let server_name = field(&tls, "serverName");
+    let guide =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/README.md"))
+            .unwrap();
+    assert!(
+        guide.contains(&format!("subjectAltName=DNS:{server_name}")),
+        "deploy/README.md's certificate does not carry {server_name}"
+    );
+    let relabel = block(&endpoint, "relabelings");
+    assert_eq!(field(&relabel, "targetLabel"), "job");
+    let job = field(&relabel, "replacement");
+    let rules = std::fs::read_to_string(shipped("arbor-alerts.yml")).unwrap();
+    assert!(
+        rules.contains(&format!("up{{job=\"{job}\"}}")),
+        "the rules select another job"
+    );
+
+    // A replica: the shared certificate names `server_name` only (Prometheus dials the pod's
+    // address, 127.0.0.1 here, and checks the name it was given), the admin API on HTTPS.
+    let dir = tempfile::tempdir().unwrap();
+    let identity = rcgen::generate_simple_self_signed(vec![server_name.to_owned()]).unwrap();
+    let (cert, key) = (dir.path().join(ca_key), dir.path().join("tls.key"));
+    std::fs::write(&cert, identity.cert.pem()).unwrap();
+    std::fs::write(&key, identity.signing_key.serialize_pem()).unwrap();
+    let pool = TestPool::new();
+    let mut config = pool.config();
+    config.admin_token = AdminTokenSource::Inline(ADMIN.into());
+    config.tls = TlsSource::Files {
+        cert: cert.clone(),
+        key,
+    };
+    config.admin_tls = AdminTls::On;
+    let server = common::start(config).await;
+    assert!(server.admin_https);
+    let admin = server.admin_addr.unwrap();
+
+    let token_file = dir.path().join(token_key);
+    std::fs::write(&token_file, ADMIN).unwrap();
+    let scrape = |name: &str, tls_name: &str| {
+        format!(
+            "  - job_name: {name}\n    scrape_interval: 1s\n    scheme: {scheme}\n    metrics_path: {path}\n    \
+             authorization: {{ type: {kind}, credentials_file: {token} }}\n    \
+             tls_config: {{ ca_file: {ca}, server_name: {tls_name} }}\n    \
+             static_configs: [{{ targets: ['{admin}'] }}]\n    \
+             relabel_configs: [{{ target_label: job, replacement: {job}-{name} }}]\n",
+            scheme = field(&endpoint, "scheme"),
+            path = field(&endpoint, "path"),
+            kind = field(&block(&endpoint, "authorization"), "type"),
+            token = token_file.display(),
+            ca = cert.display(),
+        )
+    };
+    let prometheus = Prometheus::start(
+        tempfile::tempdir().unwrap(),
+        &format!(
+            "scrape_configs:\n{}{}",
+            scrape("monitor", server_name),
+            scrape("other", "other.example.org")
+        ),
+    )
+    .await;
+    let targets = prometheus
+        .api_until("/api/v1/targets", "both targets scraped", |targets| {
+            targets["data"]["activeTargets"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .filter(|t| t["health"] != "unknown")
+                .count()
+                == 2
+        })
+        .await;
+    let target = |name: &str| {
+        targets["data"]["activeTargets"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|t| t["labels"]["job"] == format!("{job}-{name}"))
+            .unwrap_or_else(|| panic!("no target {name}: {targets}"))
+            .clone()
+    };
+    let good = target("monitor");
+    assert_eq!(good["health"], "up", "{good}");
+    let wrong = target("other");
+    assert_eq!(wrong["health"], "down", "{wrong}");
+    assert!(
+        wrong["lastError"]
+            .as_str()
+            .is_some_and(|e| e.contains("certificate") && e.contains("other.example.org")),
+        "{wrong}"
+    );
+    let info = query(&prometheus, "arbor_build_info").await;
+    let info = &info["data"]["result"];
+    assert_eq!(info.as_array().map(Vec::len), Some(1), "{info}");
+    assert_eq!(info[0]["metric"]["job"], format!("{job}-monitor"), "{info}");
+    drop(prometheus);
+    server.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_real_prometheus_scrapes_the_daemon_and_fires_the_shipped_alerts() {
     let pool = damaged_pool();
@@ -260,8 +500,7 @@ async fn a_real_prometheus_scrapes_the_daemon_and_fires_the_shipped_alerts() {
         "promtool check metrics:\n{out}"
     );
 
-    let prometheus = Prometheus::watching(admin);
-    prometheus.ready().await;
+    let prometheus = Prometheus::watching(admin).await;
 
     let firing = |alerts: &Value, name: &str| -> BTreeSet<String> {
         alerts["data"]["alerts"]
@@ -272,22 +511,11 @@ async fn a_real_prometheus_scrapes_the_daemon_and_fires_the_shipped_alerts() {
             .map(|a| a["labels"]["scene"].as_str().unwrap_or("").to_owned())
             .collect()
     };
-    let t0 = Instant::now();
-    let alerts = loop {
-        let (status, body) = get(prometheus.addr, "/api/v1/alerts", None).await;
-        if status == 200 {
-            let alerts: Value = serde_json::from_str(&body).unwrap();
-            if firing(&alerts, "ArborSceneDamaged").len() >= 2 {
-                break alerts;
-            }
-        }
-        assert!(
-            t0.elapsed() < Duration::from_secs(90),
-            "ArborSceneDamaged did not fire: {status} {body}\n{}",
-            prometheus.log()
-        );
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    };
+    let alerts = prometheus
+        .api_until("/api/v1/alerts", "ArborSceneDamaged fired", |alerts| {
+            firing(alerts, "ArborSceneDamaged").len() >= 2
+        })
+        .await;
     assert_eq!(
         firing(&alerts, "ArborSceneDamaged"),
         BTreeSet::from(["garbage".to_owned(), "holes".to_owned()]),
@@ -432,8 +660,7 @@ async fn every_panel_of_the_shipped_dashboard_shows_a_real_daemons_data() {
     let copies = tempfile::tempdir().unwrap();
     let server = daemon(&pool, copies.path()).await;
     let admin = server.admin_addr.unwrap();
-    let prometheus = Prometheus::watching(admin);
-    prometheus.ready().await;
+    let prometheus = Prometheus::watching(admin).await;
 
     // Every name the dashboard reads is a family the daemon declares.
     let panels = dashboard_panels();
@@ -512,8 +739,8 @@ struct Prometheus {
 
 impl Prometheus {
     /// Started on the shipped `prometheus.yml`, pointed at the admin API at `admin` (token
-    /// [`ADMIN`]), scraping and evaluating every second.
-    fn watching(admin: SocketAddr) -> Prometheus {
+    /// [`ADMIN`]), scraping and evaluating every second, and answering `/-/ready`.
+    async fn watching(admin: SocketAddr) -> Prometheus {
         let dir = tempfile::tempdir().unwrap();
         let token_file = dir.path().join("admin-token");
         std::fs::write(&token_file, ADMIN).unwrap();
@@ -534,44 +761,92 @@ impl Prometheus {
             assert!(config.contains(from), "prometheus.yml no longer has {from}");
             config = config.replace(from, &to);
         }
-        std::fs::write(dir.path().join("prometheus.yml"), config).unwrap();
-        let addr = std::net::TcpListener::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap();
-        let log = std::fs::File::create(dir.path().join("log")).unwrap();
-        let child = Command::new(prometheus_tool("prometheus"))
-            .arg(format!(
-                "--config.file={}",
-                dir.path().join("prometheus.yml").display()
-            ))
-            .arg(format!(
-                "--storage.tsdb.path={}",
-                dir.path().join("data").display()
-            ))
-            .arg(format!("--web.listen-address={addr}"))
-            .stdout(log.try_clone().unwrap())
-            .stderr(log)
-            .spawn()
-            .expect("prometheus starts");
-        Prometheus { child, addr, dir }
+        Prometheus::start(dir, &config).await
     }
 
-    /// Waits until it answers `/-/ready`.
-    async fn ready(&self) {
-        let t0 = Instant::now();
-        while get(self.addr, "/-/ready", None).await.0 != 200 {
+    /// Started on `config` (written into `dir`, which also holds its storage and log), and
+    /// answering `/-/ready`. Its port is one the kernel had free a moment before; should
+    /// another process take it in between, Prometheus exits naming the address, and it is
+    /// started again on another (at most five times).
+    async fn start(dir: tempfile::TempDir, config: &str) -> Prometheus {
+        std::fs::write(dir.path().join("prometheus.yml"), config).unwrap();
+        let log_file = dir.path().join("log");
+        for attempt in 1..=5 {
+            let addr = std::net::TcpListener::bind("127.0.0.1:0")
+                .unwrap()
+                .local_addr()
+                .unwrap();
+            let log = std::fs::File::create(&log_file).unwrap();
+            let mut child = Command::new(prometheus_tool("prometheus"))
+                .arg(format!(
+                    "--config.file={}",
+                    dir.path().join("prometheus.yml").display()
+                ))
+                .arg(format!(
+                    "--storage.tsdb.path={}",
+                    dir.path().join("data").display()
+                ))
+                .arg(format!("--web.listen-address={addr}"))
+                .stdout(log.try_clone().unwrap())
+                .stderr(log)
+                .spawn()
+                .expect("prometheus starts");
+            if answers_ready(&mut child, addr, &log_file).await {
+                return Prometheus { child, addr, dir };
+            }
+            let log = std::fs::read_to_string(&log_file).unwrap_or_default();
             assert!(
-                t0.elapsed() < Duration::from_secs(60),
-                "Prometheus did not start:\n{}",
+                log.contains("address already in use") && attempt < 5,
+                "Prometheus did not start (attempt {attempt}):\n{log}"
+            );
+        }
+        unreachable!("the fifth attempt returns or fails above")
+    }
+
+    /// The JSON of the API's `path` once `done` holds for it; fails after 90 s, saying
+    /// `what` did not happen, with the last answer and the log.
+    async fn api_until(&self, path: &str, what: &str, done: impl Fn(&Value) -> bool) -> Value {
+        let t0 = Instant::now();
+        loop {
+            let (status, body) = get(self.addr, path, None).await;
+            if status == 200 {
+                let answer: Value = serde_json::from_str(&body).unwrap();
+                if done(&answer) {
+                    return answer;
+                }
+            }
+            assert!(
+                t0.elapsed() < Duration::from_secs(90),
+                "{what}: not within 90 s; the last answer {status} {body}\n{}",
                 self.log()
             );
-            tokio::time::sleep(Duration::from_millis(100)).await;
+            tokio::time::sleep(Duration::from_millis(200)).await;
         }
     }
 
     fn log(&self) -> String {
         std::fs::read_to_string(self.dir.path().join("log")).unwrap_or_default()
+    }
+}
+
+/// Waits until the Prometheus of `child` answers `/-/ready` at `addr` as Prometheus does:
+/// `true`. `false`: it exited first (its log says why). Fails after 60 s.
+async fn answers_ready(child: &mut Child, addr: SocketAddr, log: &Path) -> bool {
+    let t0 = Instant::now();
+    loop {
+        if matches!(child.try_wait(), Ok(Some(_))) {
+            return false;
+        }
+        let (status, body) = get(addr, "/-/ready", None).await;
+        if status == 200 && body.contains("Prometheus") {
+            return true;
+        }
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "Prometheus did not start:\n{}",
+            std::fs::read_to_string(log).unwrap_or_default()
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
 
