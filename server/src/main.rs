@@ -232,6 +232,9 @@ enum Command {
     /// `admin-token-file PATH` (or `admin-token config` when the token is set in the config).
     /// Stops gracefully on SIGINT or SIGTERM (in-flight treelets may finish for
     /// `shutdown_grace_ms`, clients get `Goodbye` and close code ShuttingDown) and exits 0.
+    /// On SIGHUP reads the `--config` file again and puts its scene rules and tokens in force:
+    /// sessions whose token no longer opens their scene are closed (Unauthorized), all others
+    /// go on; a file that does not load changes nothing (logged).
     #[command(after_help = "Examples:\n  \
         arbor-server serve --db pool\n  \
         arbor-server serve --db pool --listen 0.0.0.0:4433 --admin 127.0.0.1:9090\n  \
@@ -602,7 +605,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 data_dir,
                 pool_prewarm,
             };
-            let config = ServeConfig::load(config.as_deref(), &overrides)?;
+            let file = config;
+            let config = ServeConfig::load(file.as_deref(), &overrides)?;
+            let reload = ConfigSource { file, overrides };
             let rt = tokio::runtime::Builder::new_multi_thread()
                 .enable_all()
                 .thread_name("arbor-serve")
@@ -620,7 +625,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 copy_keep: std::num::NonZeroUsize::new(copy_keep),
                 background_read_rate: background_read_rate.and_then(|r| r.0),
             };
-            let result = rt.block_on(serve(config, options));
+            let result = rt.block_on(serve(config, options, reload));
             rt.shutdown_timeout(std::time::Duration::from_secs(1));
             result?;
             Ok(ExitCode::SUCCESS)
@@ -876,8 +881,55 @@ fn import_remote(url: &admin_client::AdminUrl, args: &ImportArgs) -> Result<Exit
     Ok(ExitCode::SUCCESS)
 }
 
-/// Runs the service until SIGINT or SIGTERM, then shuts it down gracefully.
-async fn serve(config: ServeConfig, options: DaemonOptions) -> Result<()> {
+/// Where `serve`'s configuration came from, to read it again on SIGHUP.
+struct ConfigSource {
+    file: Option<PathBuf>,
+    overrides: ConfigOverrides,
+}
+
+impl ConfigSource {
+    /// Reads the file again and puts its scene rules in force (`RunningServer::reload_access`);
+    /// a file that does not load leaves the rules as they were. Other changed settings are
+    /// named: they apply at the next start.
+    fn reload(&self, running: &ServeConfig, access: &arbor_server::service::AccessHandle) {
+        let Some(file) = &self.file else {
+            tracing::warn!("SIGHUP: no --config file to read again; the scene rules stay");
+            return;
+        };
+        let config = match ServeConfig::load(Some(file), &self.overrides) {
+            Ok(c) => c,
+            Err(e) => {
+                tracing::error!(
+                    config = %file.display(),
+                    "SIGHUP: the configuration does not load, the scene rules stay as they \
+                     were: {e}"
+                );
+                return;
+            }
+        };
+        let done = access.reload(&config);
+        tracing::info!(
+            config = %file.display(),
+            scenes = config.scenes.len(),
+            sessions_closed = done.shut_out,
+            sessions_kept = done.kept,
+            "SIGHUP: scene rules and tokens read again and in force"
+        );
+        let mut rest = config;
+        rest.scenes = running.scenes.clone();
+        rest.default_access = running.default_access;
+        if rest != *running {
+            tracing::warn!(
+                config = %file.display(),
+                "SIGHUP: settings other than the scene rules changed; they apply at the next start"
+            );
+        }
+    }
+}
+
+/// Runs the service until SIGINT or SIGTERM, then shuts it down gracefully; on SIGHUP it
+/// reads the scene rules again ([`ConfigSource::reload`]).
+async fn serve(config: ServeConfig, options: DaemonOptions, source: ConfigSource) -> Result<()> {
     use tokio::signal::unix::{SignalKind, signal};
     if !config.transparent_huge_pages {
         // Process-wide, before the service allocates its caches: the allocator's requests for
@@ -889,14 +941,20 @@ async fn serve(config: ServeConfig, options: DaemonOptions) -> Result<()> {
     // Handlers first, so a signal that arrives right after the addresses are printed is not lost.
     let mut term = signal(SignalKind::terminate()).context("installing the SIGTERM handler")?;
     let mut int = signal(SignalKind::interrupt()).context("installing the SIGINT handler")?;
+    let mut hup = signal(SignalKind::hangup()).context("installing the SIGHUP handler")?;
+    let running = config.clone();
     let server = arbor_server::daemon::start_with(config, options).await?;
     announce(&server);
+    let access = server.access_handle();
     let trigger = server.shutdown_trigger();
     let mut stopped = std::pin::pin!(server.wait());
-    let signal = tokio::select! {
-        _ = term.recv() => "SIGTERM",
-        _ = int.recv() => "SIGINT",
-        () = &mut stopped => bail!("the service stopped on its own"),
+    let signal = loop {
+        tokio::select! {
+            _ = term.recv() => break "SIGTERM",
+            _ = int.recv() => break "SIGINT",
+            _ = hup.recv() => source.reload(&running, &access),
+            () = &mut stopped => bail!("the service stopped on its own"),
+        }
     };
     tracing::info!("{signal}: shutting down gracefully");
     trigger.trigger();

@@ -1,6 +1,7 @@
 //! The real `arbor-server serve` binary: prints its addresses, fingerprint and admin token file,
 //! serves a raw client, and on SIGTERM says goodbye to it (close code ShuttingDown) and exits 0
-//! within the grace bound; restarted on the same data dir it keeps its certificate.
+//! within the grace bound; restarted on the same data dir it keeps its certificate. On SIGHUP it
+//! puts the config's scene rules and tokens in force, ending only the sessions they revoke.
 
 mod common;
 
@@ -201,6 +202,91 @@ async fn sigterm_closes_clients_with_shutting_down_and_exits_0() {
         code(ErrorCode::ShuttingDown)
     );
     let status = wait_exit(&mut again.child, Duration::from_secs(4));
+    assert_eq!(status.code(), Some(0), "{status}");
+}
+
+/// SIGHUP reads the config again and puts its scene rules in force: a token taken out of the
+/// scene's token files ends the session it let in (close code Unauthorized, the reason naming
+/// the scene) and opens nothing more, a token added opens the scene, every other session goes
+/// on; a config that no longer loads changes nothing and the server serves on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sighup_puts_new_tokens_in_force_and_ends_only_revoked_sessions() {
+    let (dir, config) = bunny_pool_and_config();
+    let token_file = |name: &str, token: &str| {
+        let path = dir.path().join(name);
+        std::fs::write(&path, format!("{token}\n")).unwrap();
+        path.display().to_string()
+    };
+    let (alpha, beta, gamma) = (
+        token_file("alpha.token", "alpha"),
+        token_file("beta.token", "beta"),
+        token_file("gamma.token", "gamma"),
+    );
+    let rules = |files: &[&str]| {
+        let files: Vec<String> = files.iter().map(|f| format!("{f:?}")).collect();
+        format!(
+            "shutdown_grace_ms = 1000\n[scenes.{SCENE}]\ntoken_files = [{}]\n",
+            files.join(", ")
+        )
+    };
+    std::fs::write(&config, rules(&[&alpha, &beta])).unwrap();
+    let mut s = serve(dir.path(), &config);
+    let admin_token = std::fs::read_to_string(&s.token_file).unwrap();
+    let unauthorized = || {
+        let metrics = http_get(&s.admin, "/metrics", admin_token.trim());
+        sample(&metrics, "arbor_errors_total{kind=\"unauthorized\"}")
+    };
+
+    let revoked = connect(s.quic, &s.fingerprint).await;
+    let (mut revoked_control, info) = hello(&revoked.conn, SCENE, &[], "alpha").await;
+    let ids = all_ids(&info.unwrap());
+    round(&revoked, &mut revoked_control, 1, &ids)
+        .await
+        .unwrap();
+    let kept = connect(s.quic, &s.fingerprint).await;
+    let (mut kept_control, info) = hello(&kept.conn, SCENE, &[], "beta").await;
+    info.unwrap();
+    round(&kept, &mut kept_control, 1, &ids).await.unwrap();
+    let refused_before = unauthorized();
+
+    // alpha's file taken out, gamma's added.
+    std::fs::write(&config, rules(&[&beta, &gamma])).unwrap();
+    signal(&s.child, "-HUP");
+    let (code_, reason) = close_code_and_reason(&revoked.conn, Duration::from_secs(5))
+        .await
+        .expect("the revoked session is closed");
+    assert_eq!(Ok(code_), code(ErrorCode::Unauthorized));
+    assert!(
+        reason.contains("revoked") && reason.contains(SCENE),
+        "{reason}"
+    );
+    round(&kept, &mut kept_control, 2, &ids)
+        .await
+        .expect("the session beta let in goes on");
+    for (token, opens) in [("alpha", false), ("beta", true), ("gamma", true)] {
+        let c = connect(s.quic, &s.fingerprint).await;
+        let (_control, info) = hello(&c.conn, SCENE, &[], token).await;
+        assert_eq!(info.is_ok(), opens, "{token}: {info:?}");
+    }
+    assert_eq!(
+        unauthorized(),
+        refused_before + 2.0,
+        "the revoked session and alpha's hello"
+    );
+
+    // A config that does not load leaves the rules in force, and the server serving.
+    std::fs::write(&config, "no_such_key = 1\n").unwrap();
+    signal(&s.child, "-HUP");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert!(s.child.try_wait().unwrap().is_none(), "the server ended");
+    for (token, opens) in [("alpha", false), ("gamma", true)] {
+        let c = connect(s.quic, &s.fingerprint).await;
+        let (_control, info) = hello(&c.conn, SCENE, &[], token).await;
+        assert_eq!(info.is_ok(), opens, "{token}: {info:?}");
+    }
+    round(&kept, &mut kept_control, 3, &ids).await.unwrap();
+    signal(&s.child, "-TERM");
+    let status = wait_exit(&mut s.child, Duration::from_secs(5));
     assert_eq!(status.code(), Some(0), "{status}");
 }
 

@@ -53,12 +53,10 @@
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
 use std::time::Duration;
 
 use arbor_proto::limits::{MAX_FRAME_BYTES, MAX_REQUEST_ITEMS, MAX_TOKEN_BYTES};
 use arbor_proto::scene::validate_scene_name;
-use arbor_proto::wire::ErrorCode;
 use serde::Deserialize;
 
 pub use super::prewarm::PoolPrewarm;
@@ -963,54 +961,6 @@ impl ServeConfig {
             scenes: scenes as u64,
         }
     }
-
-    /// Whether `token` opens `scene`. `exists` says whether the pool has the scene.
-    ///
-    /// Unknown scene → [`ErrorCode::UnknownScene`] (checked first); a scene that needs a token
-    /// and did not get a matching one → [`ErrorCode::Unauthorized`]. Tokens are compared in
-    /// constant time; every configured token of the scene is compared, whatever matched.
-    pub fn access(
-        &self,
-        scene: &str,
-        token: &str,
-        exists: impl FnOnce(&str) -> bool,
-    ) -> Result<(), ErrorCode> {
-        if validate_scene_name(scene).is_err() || !exists(scene) {
-            return Err(ErrorCode::UnknownScene);
-        }
-        match self.scenes.get(scene) {
-            Some(SceneAccess::Public) => Ok(()),
-            Some(SceneAccess::Tokens(tokens)) => {
-                let presented = ring::hmac::sign(token_key(), token.as_bytes());
-                let mut ok = false;
-                for t in tokens {
-                    ok |= ring::hmac::verify(token_key(), t.as_bytes(), presented.as_ref()).is_ok();
-                }
-                if ok {
-                    Ok(())
-                } else {
-                    Err(ErrorCode::Unauthorized)
-                }
-            }
-            None => match self.default_access {
-                Access::Public => Ok(()),
-                Access::Token => Err(ErrorCode::Unauthorized),
-            },
-        }
-    }
-}
-
-/// Per-process random HMAC key for token comparison.
-fn token_key() -> &'static ring::hmac::Key {
-    static KEY: OnceLock<ring::hmac::Key> = OnceLock::new();
-    KEY.get_or_init(|| {
-        let rng = ring::rand::SystemRandom::new();
-        ring::hmac::Key::generate(ring::hmac::HMAC_SHA256, &rng).unwrap_or_else(|_| {
-            // The system RNG failing is not recoverable in any useful way; a fixed key keeps
-            // the comparison constant-time (its secrecy is not what makes it so).
-            ring::hmac::Key::new(ring::hmac::HMAC_SHA256, b"arbor token comparison")
-        })
-    })
 }
 
 #[cfg(test)]
@@ -1307,51 +1257,6 @@ access = "public"
                 .shutdown_grace_ms,
             0
         );
-    }
-
-    #[test]
-    fn access_rules() {
-        let mut c = ServeConfig::new("p");
-        c.default_access = Access::Token;
-        c.scenes.insert(
-            "bunny".into(),
-            SceneAccess::Tokens(vec!["s3cret".into(), "other".into()]),
-        );
-        c.scenes.insert("lion".into(), SceneAccess::Public);
-        let pool = ["bunny", "lion", "igea"];
-        let exists = |s: &str| pool.contains(&s);
-        assert_eq!(c.access("bunny", "s3cret", exists), Ok(()));
-        assert_eq!(c.access("bunny", "other", exists), Ok(()));
-        assert_eq!(
-            c.access("bunny", "s3cre", exists),
-            Err(ErrorCode::Unauthorized)
-        );
-        assert_eq!(
-            c.access("bunny", "s3cret!", exists),
-            Err(ErrorCode::Unauthorized)
-        );
-        assert_eq!(c.access("bunny", "", exists), Err(ErrorCode::Unauthorized));
-        assert_eq!(c.access("lion", "", exists), Ok(()));
-        assert_eq!(c.access("lion", "anything", exists), Ok(()));
-        // Not configured: the default rule.
-        assert_eq!(
-            c.access("igea", "s3cret", exists),
-            Err(ErrorCode::Unauthorized)
-        );
-        c.default_access = Access::Public;
-        assert_eq!(c.access("igea", "", exists), Ok(()));
-        // Not in the pool: unknown, whatever the token.
-        assert_eq!(
-            c.access("dragon", "s3cret", exists),
-            Err(ErrorCode::UnknownScene)
-        );
-        assert_eq!(
-            c.access("../etc", "", |_| true),
-            Err(ErrorCode::UnknownScene)
-        );
-        // A configured scene that the pool lacks is unknown too.
-        c.scenes.insert("gone".into(), SceneAccess::Public);
-        assert_eq!(c.access("gone", "", exists), Err(ErrorCode::UnknownScene));
     }
 
     #[test]

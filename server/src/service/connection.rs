@@ -8,7 +8,7 @@
 //!    within `hello_timeout_ms` of the connection's first packet, else the connection is closed
 //!    with `ProtocolViolation`.
 //! 2. `Hello` is checked: version (`UnsupportedVersion`, decided by the frame decoder from the
-//!    first field), scene and token ([`super::config::ServeConfig::access`]: `UnknownScene`,
+//!    first field), scene and token ([`super::access::AccessPolicy::admit`]: `UnknownScene`,
 //!    `Unauthorized`), channels stored by the scene (`UnknownChannel`; over the limit:
 //!    `TooManyChannels`). Success: `SceneInfo` with the stored description.
 //! 3. Request lists are read with [`FrameDecoder::for_server`]: an over-limit length is refused
@@ -44,6 +44,7 @@ use arbor_proto::wire::{
 use bytes::Bytes;
 use tracing::Instrument as _;
 
+use super::access::Grant;
 use super::handler;
 use super::shared::{CLOSE_FLUSH, Shared};
 use super::shutdown::{Done, Shutdown};
@@ -220,6 +221,7 @@ pub(crate) async fn run(
             }
             End::Lost(e) => tracing::info!("connection ended: {e}"),
         }
+        shared.access.leave(id.0);
         if let Some(s) = shared.state.remove_session(id.0) {
             tracing::debug!(
                 lists = s.request_lists,
@@ -248,6 +250,8 @@ pub(super) struct Greeting {
     /// The view to push the root's refinement for ([`arbor_proto::wire::HELLO_VIEW`]; the
     /// decoder checked it and that it comes with [`HELLO_SEND_ROOT`]).
     pub view: Option<ViewHint>,
+    /// What it was let in with, for the scene rules that may replace these.
+    pub grant: Grant,
 }
 
 pub(super) async fn hello(
@@ -292,16 +296,20 @@ pub(super) async fn hello(
         ));
     }
     let pool = &shared.pool;
-    if let Err(code) = shared
-        .config
-        .access(&scene, &token, |s| pool.contains(s).unwrap_or(false))
-    {
-        let reason = match code {
-            ErrorCode::UnknownScene => format!("no scene named {scene:?}"),
-            _ => format!("access to scene {scene:?} denied"),
-        };
-        return Err(close(code, reason));
-    }
+    let admitted = shared
+        .access
+        .policy()
+        .admit(&scene, &token, |s| pool.contains(s).unwrap_or(false));
+    let grant = match admitted {
+        Ok(grant) => grant,
+        Err(code) => {
+            let reason = match code {
+                ErrorCode::UnknownScene => format!("no scene named {scene:?}"),
+                _ => format!("access to scene {scene:?} denied"),
+            };
+            return Err(close(code, reason));
+        }
+    };
     let stored = match pool.scene(&scene) {
         Ok(s) => s,
         Err(PoolError::NoSuchScene(_)) => {
@@ -347,5 +355,6 @@ pub(super) async fn hello(
         channels,
         send_root: flags & HELLO_SEND_ROOT != 0,
         view,
+        grant,
     })
 }

@@ -78,10 +78,18 @@ pub(super) async fn serve(
         channels,
         send_root,
         view,
+        grant,
     } = match greeted {
         Ok(g) => g,
         Err(end) => return end,
     };
+    let scene_name = grant.scene.clone();
+    if !shared.access.enter(id.0, grant, conn.clone()) {
+        return close(
+            ErrorCode::Unauthorized,
+            format!("access to scene {scene_name:?} revoked"),
+        );
+    }
     let root = scene.stored.description.root_treelet;
     let mut handler = match Handler::register(shared, id, conn, scene, channels) {
         Ok(h) => h,

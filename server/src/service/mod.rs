@@ -35,6 +35,7 @@
 //!   client's connection resumes near the rate its path carried instead of slow-starting
 //!   (careful resume; `path_memory_secs`); [`state_file`]: the JSON files it and the hot-page
 //!   list keep in the data directory between runs, written whole or not at all.
+pub mod access;
 mod batches;
 pub mod config;
 pub mod connection;
@@ -62,5 +63,5 @@ pub mod visibility;
 
 pub use config::{ConfigError, ConfigOverrides, ServeConfig};
 pub use readers::ReadFigures;
-pub use server::{RunningService, ServeError, start_service};
+pub use server::{AccessHandle, AccessReload, RunningService, ServeError, start_service};
 pub use shutdown::ShutdownTrigger;

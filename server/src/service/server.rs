@@ -49,6 +49,7 @@ use arbor_proto::wire::ErrorCode;
 use tokio::sync::Semaphore;
 use tokio::task::JoinHandle;
 
+use super::access::{AccessPolicy, SceneAccess};
 use super::config::{ConfigError, ServeConfig};
 use super::connection;
 use super::path_memory;
@@ -102,6 +103,43 @@ pub enum ServeError {
     Readers(#[source] std::io::Error),
 }
 
+/// Puts new scene rules in force while the service runs ([`RunningService::access_handle`]).
+#[derive(Clone, Debug)]
+pub struct AccessHandle {
+    access: Arc<SceneAccess<quinn::Connection>>,
+    state: Arc<ServiceState>,
+}
+
+impl AccessHandle {
+    /// Puts `config`'s scene rules in force ([`super::access`]): the next `Hello` is answered
+    /// by them, and the sessions they no longer admit are closed with `Unauthorized`.
+    pub fn reload(&self, config: &ServeConfig) -> AccessReload {
+        let shut_out = self.access.replace(AccessPolicy::of(config));
+        for (id, grant, conn) in &shut_out {
+            let reason = format!("access to scene {:?} revoked", grant.scene);
+            tracing::warn!(connection = id, "closed: {reason}");
+            conn.close(
+                quinn::VarInt::from_u32(ErrorCode::Unauthorized.to_u32()),
+                reason.as_bytes(),
+            );
+            self.state.metrics.error(ErrorCode::Unauthorized);
+        }
+        AccessReload {
+            shut_out: shut_out.len(),
+            kept: self.access.sessions(),
+        }
+    }
+}
+
+/// What putting new scene rules in force did ([`AccessHandle::reload`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct AccessReload {
+    /// Sessions closed: their token no longer opens their scene.
+    pub shut_out: usize,
+    /// Sessions the new rules still admit.
+    pub kept: usize,
+}
+
 /// A started service. Dropping it without [`RunningService::shutdown`] leaves the tasks
 /// running until the runtime ends.
 #[derive(Debug)]
@@ -114,6 +152,7 @@ pub struct RunningService {
     pub tls_origin: IdentityOrigin,
     /// Metrics, sessions and readiness.
     pub state: Arc<ServiceState>,
+    access: Arc<SceneAccess<quinn::Connection>>,
     pool: Pool,
     trigger: ShutdownTrigger,
     shutdown: Shutdown,
@@ -129,6 +168,14 @@ impl RunningService {
     /// A handle that starts graceful shutdown from elsewhere (e.g. a signal handler).
     pub fn shutdown_trigger(&self) -> ShutdownTrigger {
         self.trigger.clone()
+    }
+
+    /// What puts new scene rules in force while the service runs.
+    pub fn access_handle(&self) -> AccessHandle {
+        AccessHandle {
+            access: self.access.clone(),
+            state: self.state.clone(),
+        }
     }
 
     /// Graceful shutdown, as on SIGTERM; returns when the service has stopped (within the grace
@@ -313,9 +360,11 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
         db = %shared.config.db.display(),
         "serving"
     );
+    let access = shared.access.clone();
     let task = tokio::spawn(supervise(shared, endpoint, shutdown.clone(), dispatcher));
     Ok(RunningService {
         quic_addr,
+        access,
         fingerprint: identity.fingerprint,
         tls_origin: identity.origin,
         state,

@@ -11,6 +11,7 @@ use arbor_proto::TreeletId;
 use rustc_hash::FxHashMap;
 use tokio::sync::{Notify, mpsc};
 
+use super::access::{AccessPolicy, SceneAccess};
 use super::config::ServeConfig;
 use super::path_memory::PathObserver;
 use super::prewarm::Prewarm;
@@ -38,7 +39,10 @@ pub(crate) struct Core {
 /// Everything the service's tasks share.
 #[derive(Debug)]
 pub(crate) struct Shared {
+    /// As the service started; the scene rules in force are `access`'s.
     pub config: ServeConfig,
+    /// The scene rules in force and the sessions they let in ([`super::access`]).
+    pub access: Arc<SceneAccess<quinn::Connection>>,
     pub pool: Pool,
     pub state: Arc<ServiceState>,
     core: Mutex<Core>,
@@ -118,6 +122,7 @@ impl Shared {
             scenes: Mutex::new(HashMap::new()),
             caches,
             next_id: AtomicU64::new(1),
+            access: Arc::new(SceneAccess::new(AccessPolicy::of(&config))),
             config,
             server_config: None,
         })
