@@ -22,9 +22,7 @@ use crate::service::config::{AdminTokenSource, ConfigError, TlsSource};
 use crate::service::shutdown::ShutdownTrigger;
 use crate::service::state::ServiceState;
 use crate::service::tls::{IdentityOrigin, read_pem};
-use crate::service::{
-    AccessHandle, AccessReload, RunningService, ServeConfig, ServeError, start_service,
-};
+use crate::service::{AccessHandle, RunningService, ServeConfig, ServeError, start_service};
 
 /// File holding the generated admin token in the data dir.
 pub const ADMIN_TOKEN_FILE: &str = "admin-token";
@@ -79,17 +77,10 @@ impl RunningServer {
         self.service.shutdown_trigger()
     }
 
-    /// Puts the scene rules of `config` (`[scenes.NAME]`, `default_access`, token files read)
-    /// in force while serving: what `arbor-server serve` does on SIGHUP. The next `Hello` is
-    /// answered by them; sessions whose token no longer opens their scene are closed with
-    /// `Unauthorized`, every other session goes on ([`crate::service::access`]). Nothing else
-    /// of `config` is applied.
-    pub fn reload_access(&self, config: &ServeConfig) -> AccessReload {
-        self.access_handle().reload(config)
-    }
-
-    /// [`RunningServer::reload_access`] from elsewhere (a signal handler), while the server is
-    /// waited for.
+    /// What puts the scene rules of a configuration (`[scenes.NAME]`, `default_access`, token
+    /// files read) in force while serving, also while the server is waited for: what
+    /// `arbor-server serve` does on SIGHUP ([`AccessHandle::reload`]). Nothing else of the
+    /// configuration is applied.
     pub fn access_handle(&self) -> AccessHandle {
         self.service.access_handle()
     }

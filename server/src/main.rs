@@ -888,7 +888,7 @@ struct ConfigSource {
 }
 
 impl ConfigSource {
-    /// Reads the file again and puts its scene rules in force (`RunningServer::reload_access`);
+    /// Reads the file again and puts its scene rules in force (`AccessHandle::reload`);
     /// a file that does not load leaves the rules as they were. Other changed settings are
     /// named: they apply at the next start.
     fn reload(&self, running: &ServeConfig, access: &arbor_server::service::AccessHandle) {

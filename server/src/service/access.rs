@@ -2,7 +2,7 @@
 //!
 //! The scene rules of the configuration (`[scenes.NAME]` with `access` or tokens,
 //! `default_access`) are read at start and again when the daemon is told to
-//! ([`crate::daemon::RunningServer::reload_access`], SIGHUP for `arbor-server serve`). A token
+//! ([`super::AccessHandle::reload`], SIGHUP for `arbor-server serve`). A token
 //! added opens its scene to the next `Hello`; a token removed, or a public scene made
 //! token-only, also ends the sessions it let in (close code `Unauthorized`), so revoking a
 //! token needs no restart and leaves every other client connected.
@@ -95,7 +95,7 @@ pub struct SceneAccess<C> {
     sessions: Mutex<BTreeMap<u64, (Grant, C)>>,
 }
 
-impl<C: Clone> SceneAccess<C> {
+impl<C> SceneAccess<C> {
     pub fn new(policy: AccessPolicy) -> SceneAccess<C> {
         SceneAccess {
             policy: RwLock::new(Arc::new(policy)),
