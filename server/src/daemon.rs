@@ -6,7 +6,8 @@
 //! The service knows nothing of the admin API; this module owns what joins them: the admin
 //! bearer token (configured, read from a file, or generated once into the data dir), the admin
 //! listener (HTTPS off loopback, `admin/https.rs`), and the order of shutdown (the service drains first, then the admin server gets at
-//! most [`ADMIN_STOP_BOUND`]).
+//! most [`ADMIN_STOP_BOUND`]). [`Reloader`] puts a configuration read again (SIGHUP) in force
+//! across both: the scene rules, the certificates of both listeners, the admin tokens.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -15,14 +16,17 @@ use std::time::Duration;
 
 use tokio::task::JoinHandle;
 
-use crate::admin::{AdminContext, router_with_imports};
+use crate::admin::{AdminContext, AdminCredentials, router_with_imports};
 use crate::live_import::{ImportPriority, LiveImports};
 use crate::pool::Pool;
+use crate::service::certificate::{LiveCertificate, PresentedCertificate};
 use crate::service::config::{AdminTokenSource, ConfigError, TlsSource};
 use crate::service::shutdown::ShutdownTrigger;
 use crate::service::state::ServiceState;
-use crate::service::tls::{IdentityOrigin, read_pem};
-use crate::service::{AccessHandle, RunningService, ServeConfig, ServeError, start_service};
+use crate::service::tls::{self, IdentityOrigin, read_pem};
+use crate::service::{
+    AccessHandle, AccessReload, RunningService, ServeConfig, ServeError, start_service,
+};
 
 /// File holding the generated admin token in the data dir.
 pub const ADMIN_TOKEN_FILE: &str = "admin-token";
@@ -62,6 +66,7 @@ pub struct RunningServer {
     pub state: Arc<ServiceState>,
     /// Scene management (imports, removals) of the pool being served.
     pub imports: LiveImports,
+    reloader: Reloader,
     service: RunningService,
     admin: Option<JoinHandle<()>>,
 }
@@ -77,12 +82,11 @@ impl RunningServer {
         self.service.shutdown_trigger()
     }
 
-    /// What puts the scene rules of a configuration (`[scenes.NAME]`, `default_access`, token
-    /// files read) in force while serving, also while the server is waited for: what
-    /// `arbor-server serve` does on SIGHUP ([`AccessHandle::reload`]). Nothing else of the
-    /// configuration is applied.
-    pub fn access_handle(&self) -> AccessHandle {
-        self.service.access_handle()
+    /// What puts a configuration's scene rules, certificates and admin tokens in force while
+    /// serving, also while the server is waited for: what `arbor-server serve` does on SIGHUP
+    /// ([`Reloader::reload`]).
+    pub fn reloader(&self) -> Reloader {
+        self.reloader.clone()
     }
 
     /// Graceful shutdown, as on SIGTERM; returns when the daemon has stopped (within the grace
@@ -186,8 +190,8 @@ pub async fn start_with(
         }
     };
     let admin_https = admin_listen.is_some_and(|a| admin_tls.encrypts(a));
-    let https = if admin_https {
-        match admin_rustls_config(&admin_identity, &service.tls_origin) {
+    let admin_certificate = if admin_https {
+        match admin_certificate(&admin_identity, &service.certificate()) {
             Ok(c) => Some(c),
             Err(e) => {
                 service.shutdown().await;
@@ -197,6 +201,21 @@ pub async fn start_with(
     } else {
         None
     };
+    let https = match admin_certificate
+        .clone()
+        .map(crate::admin::https::rustls_config)
+    {
+        None => None,
+        Some(Ok(c)) => Some(Arc::new(c)),
+        Some(Err(e)) => {
+            service.shutdown().await;
+            return Err(e.into());
+        }
+    };
+    if let Some(c) = &admin_certificate {
+        service.state.present_certificate("admin", c.clone());
+    }
+    let credentials = AdminCredentials::new(&admin_token, probe_token.as_deref());
     let (admin, admin_addr) = match admin_listen {
         None => (None, None),
         Some(addr) => {
@@ -221,8 +240,7 @@ pub async fn start_with(
                 AdminContext {
                     state: service.state.clone(),
                     pool: service.pool().clone(),
-                    token: admin_token.clone(),
-                    probe_token,
+                    credentials: credentials.clone(),
                 },
                 Some(imports.clone()),
             );
@@ -243,8 +261,17 @@ pub async fn start_with(
     };
     let scheme = if admin_https { "https" } else { "http" };
     tracing::info!(admin = ?admin_addr, scheme, "admin API");
+    let reloader = Reloader {
+        access: service.access_handle(),
+        quic: service.certificate(),
+        admin: admin_certificate,
+        credentials: admin_addr.map(|_| credentials),
+        state: service.state.clone(),
+        data_dir,
+    };
     Ok(RunningServer {
         quic_addr: service.quic_addr,
+        reloader,
         admin_addr,
         admin_https,
         fingerprint: service.fingerprint.clone(),
@@ -258,20 +285,18 @@ pub async fn start_with(
     })
 }
 
-/// The admin listener's TLS configuration: its own PEM pair when configured, else the files of
-/// the identity the service loaded (the self-signed pair exists by now).
-fn admin_rustls_config(
+/// The admin listener's certificate: its own PEM pair when configured, else the one the
+/// service presents (a listener of its own, renewed with it on reload).
+fn admin_certificate(
     admin_identity: &TlsSource,
-    service_identity: &IdentityOrigin,
-) -> Result<Arc<rustls::ServerConfig>, ServeError> {
-    let (cert, key) = match (admin_identity, service_identity) {
-        (TlsSource::Files { cert, key }, _)
-        | (_, IdentityOrigin::Created { cert, key })
-        | (_, IdentityOrigin::Reused { cert, key })
-        | (_, IdentityOrigin::Files { cert, key }) => (cert, key),
-    };
-    let identity = read_pem(cert, key)?;
-    Ok(Arc::new(crate::admin::https::rustls_config(&identity)?))
+    service: &LiveCertificate,
+) -> Result<Arc<LiveCertificate>, ServeError> {
+    Ok(Arc::new(LiveCertificate::new(match admin_identity {
+        TlsSource::Files { cert, key } => {
+            Arc::new(PresentedCertificate::of(&read_pem(cert, key)?)?)
+        }
+        TlsSource::SelfSigned => service.current(),
+    })))
 }
 
 fn read_token(path: &Path) -> Result<String, ServeError> {
@@ -333,5 +358,127 @@ fn admin_token(
                 },
             ))
         }
+    }
+}
+
+/// Puts what a configuration says of who may connect and what they are shown in force while
+/// the daemon serves ([`RunningServer::reloader`]; SIGHUP in `arbor-server serve`):
+///
+/// * the scene rules and scene tokens (`[scenes.NAME]`, `default_access`, the token files
+///   read): [`AccessHandle::reload`], which closes the sessions they no longer admit;
+/// * the TLS certificate and key (`cert`/`key`, or the self-signed pair in the data dir, read
+///   again, never created) and the admin listener's (`admin_cert`/`admin_key`, else the same):
+///   presented from the next handshake on, every open session going on
+///   ([`crate::service::certificate`]);
+/// * the admin and probe tokens (`admin_token`, `admin_token_file`, the generated file,
+///   `probe_token`): required from the next request on.
+///
+/// Everything is read first and put in force only when all of it loaded: a file that does not
+/// load (or a key that is not its certificate's) changes nothing. Either way the reload is
+/// counted in `/metrics` (`arbor_config_reloads_total`, `arbor_config_last_reload_successful`).
+/// The data dir is the one the daemon started with; the other settings apply at the next start.
+#[derive(Clone, Debug)]
+pub struct Reloader {
+    access: AccessHandle,
+    quic: Arc<LiveCertificate>,
+    /// The admin listener's certificate, when it speaks HTTPS.
+    admin: Option<Arc<LiveCertificate>>,
+    /// The admin API's tokens, when it listens.
+    credentials: Option<Arc<AdminCredentials>>,
+    state: Arc<ServiceState>,
+    data_dir: PathBuf,
+}
+
+/// What a reload put in force ([`Reloader::reload`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Reloaded {
+    /// Sessions closed and kept by the scene rules.
+    pub sessions: AccessReload,
+    /// The fingerprint QUIC clients are shown from now on.
+    pub fingerprint: String,
+    /// Whether the QUIC certificate changed.
+    pub certificate_changed: bool,
+    /// Whether the admin listener's certificate changed (false without HTTPS).
+    pub admin_certificate_changed: bool,
+    /// Whether the admin token changed (false without an admin listener).
+    pub admin_token_changed: bool,
+}
+
+impl Reloader {
+    /// Reads `config`'s certificates and tokens and puts them and its scene rules in force, or
+    /// changes nothing and says what did not load.
+    pub fn reload(&self, config: &ServeConfig) -> Result<Reloaded, ServeError> {
+        let outcome = self.load(config).map(|loaded| self.apply(config, loaded));
+        self.state.record_reload(outcome.is_ok());
+        outcome
+    }
+
+    /// Counts a reload whose configuration file did not load (nothing changed).
+    pub fn record_unloadable(&self) {
+        self.state.record_reload(false);
+    }
+
+    fn load(&self, config: &ServeConfig) -> Result<Loaded, ServeError> {
+        let quic = Arc::new(PresentedCertificate::of(&tls::load_existing(
+            &config.tls,
+            &self.data_dir,
+        )?)?);
+        let admin = match (&self.admin, &config.admin_identity) {
+            (None, _) => None,
+            (Some(_), TlsSource::Files { cert, key }) => {
+                Some(Arc::new(PresentedCertificate::of(&read_pem(cert, key)?)?))
+            }
+            (Some(_), TlsSource::SelfSigned) => Some(quic.clone()),
+        };
+        let tokens = match &self.credentials {
+            None => None,
+            Some(_) => Some((
+                existing_admin_token(&config.admin_token, &self.data_dir)?,
+                config.probe_token.clone(),
+            )),
+        };
+        Ok(Loaded {
+            quic,
+            admin,
+            tokens,
+        })
+    }
+
+    fn apply(&self, config: &ServeConfig, loaded: Loaded) -> Reloaded {
+        let sessions = self.access.reload(config);
+        let fingerprint = loaded.quic.fingerprint.clone();
+        let certificate_changed = self.quic.replace(loaded.quic);
+        let admin_certificate_changed = match (&self.admin, loaded.admin) {
+            (Some(live), Some(next)) => live.replace(next),
+            _ => false,
+        };
+        let admin_token_changed = match (&self.credentials, &loaded.tokens) {
+            (Some(c), Some((admin, probe))) => c.replace(admin, probe.as_deref()),
+            _ => false,
+        };
+        Reloaded {
+            sessions,
+            fingerprint,
+            certificate_changed,
+            admin_certificate_changed,
+            admin_token_changed,
+        }
+    }
+}
+
+/// What a reload read, before any of it is put in force.
+struct Loaded {
+    quic: Arc<PresentedCertificate>,
+    admin: Option<Arc<PresentedCertificate>>,
+    tokens: Option<(String, Option<String>)>,
+}
+
+/// The admin token as [`admin_token`] finds it, but never generated: a reload reads the
+/// generated file, and a missing one is an error rather than a new token.
+fn existing_admin_token(source: &AdminTokenSource, data_dir: &Path) -> Result<String, ServeError> {
+    match source {
+        AdminTokenSource::Inline(t) => Ok(t.trim().to_owned()),
+        AdminTokenSource::File(p) => read_token(p),
+        AdminTokenSource::Generated => read_token(&data_dir.join(ADMIN_TOKEN_FILE)),
     }
 }

@@ -232,9 +232,11 @@ enum Command {
     /// `admin-token-file PATH` (or `admin-token config` when the token is set in the config).
     /// Stops gracefully on SIGINT or SIGTERM (in-flight treelets may finish for
     /// `shutdown_grace_ms`, clients get `Goodbye` and close code ShuttingDown) and exits 0.
-    /// On SIGHUP reads the `--config` file again and puts its scene rules and tokens in force:
-    /// sessions whose token no longer opens their scene are closed (Unauthorized), all others
-    /// go on; a file that does not load changes nothing (logged).
+    /// On SIGHUP reads the `--config` file again and puts its scene rules and tokens, the TLS
+    /// certificate and key, and the admin tokens in force: sessions whose token no longer opens
+    /// their scene are closed (Unauthorized), all others go on; the next handshake gets the
+    /// certificate read (renewals need no restart); a file that does not load, or a key that is
+    /// not its certificate's, changes nothing (logged at ERROR, counted in /metrics).
     #[command(after_help = "Examples:\n  \
         arbor-server serve --db pool\n  \
         arbor-server serve --db pool --listen 0.0.0.0:4433 --admin 127.0.0.1:9090\n  \
@@ -888,47 +890,71 @@ struct ConfigSource {
 }
 
 impl ConfigSource {
-    /// Reads the file again and puts its scene rules in force (`AccessHandle::reload`);
-    /// a file that does not load leaves the rules as they were. Other changed settings are
-    /// named: they apply at the next start.
-    fn reload(&self, running: &ServeConfig, access: &arbor_server::service::AccessHandle) {
+    /// Reads the file again and puts its scene rules, certificates and admin tokens in force
+    /// ([`arbor_server::daemon::Reloader`]); a file that does not load leaves everything as it
+    /// was. Other changed settings are named: they apply at the next start.
+    fn reload(&self, running: &ServeConfig, reloader: &arbor_server::daemon::Reloader) {
         let Some(file) = &self.file else {
-            tracing::warn!("SIGHUP: no --config file to read again; the scene rules stay");
+            tracing::warn!("SIGHUP: no --config file to read again; nothing changes");
             return;
         };
-        let config = match ServeConfig::load(Some(file), &self.overrides) {
+        let loaded = match ServeConfig::load(Some(file), &self.overrides) {
+            Ok(config) => reloader.reload(&config).map(|done| (config, done)),
+            Err(e) => {
+                reloader.record_unloadable();
+                Err(e.into())
+            }
+        };
+        let (config, done) = match loaded {
             Ok(c) => c,
             Err(e) => {
                 tracing::error!(
                     config = %file.display(),
-                    "SIGHUP: the configuration does not load, the scene rules stay as they \
-                     were: {e}"
+                    "SIGHUP: the configuration does not load, nothing changes: {e}"
                 );
                 return;
             }
         };
-        let done = access.reload(&config);
         tracing::info!(
             config = %file.display(),
             scenes = config.scenes.len(),
-            sessions_closed = done.shut_out,
-            sessions_kept = done.kept,
-            "SIGHUP: scene rules and tokens read again and in force"
+            sessions_closed = done.sessions.shut_out,
+            sessions_kept = done.sessions.kept,
+            fingerprint = %done.fingerprint,
+            "SIGHUP: scene rules, certificates and admin tokens read again and in force"
         );
+        if done.certificate_changed {
+            tracing::warn!(
+                fingerprint = %done.fingerprint,
+                "SIGHUP: a new certificate is presented to QUIC clients from now on; open \
+                 sessions go on, and clients that pin the old fingerprint are refused"
+            );
+        }
+        if done.admin_certificate_changed {
+            tracing::info!("SIGHUP: the admin listener presents a new certificate");
+        }
+        if done.admin_token_changed {
+            tracing::info!("SIGHUP: the admin token changed; the old one is refused");
+        }
         let mut rest = config;
         rest.scenes = running.scenes.clone();
         rest.default_access = running.default_access;
+        rest.tls = running.tls.clone();
+        rest.admin_identity = running.admin_identity.clone();
+        rest.admin_token = running.admin_token.clone();
+        rest.probe_token = running.probe_token.clone();
         if rest != *running {
             tracing::warn!(
                 config = %file.display(),
-                "SIGHUP: settings other than the scene rules changed; they apply at the next start"
+                "SIGHUP: settings other than the scene rules, certificates and admin tokens \
+                 changed; they apply at the next start"
             );
         }
     }
 }
 
 /// Runs the service until SIGINT or SIGTERM, then shuts it down gracefully; on SIGHUP it
-/// reads the scene rules again ([`ConfigSource::reload`]).
+/// reads the scene rules, certificates and admin tokens again ([`ConfigSource::reload`]).
 async fn serve(config: ServeConfig, options: DaemonOptions, source: ConfigSource) -> Result<()> {
     use tokio::signal::unix::{SignalKind, signal};
     if !config.transparent_huge_pages {
@@ -945,14 +971,14 @@ async fn serve(config: ServeConfig, options: DaemonOptions, source: ConfigSource
     let running = config.clone();
     let server = arbor_server::daemon::start_with(config, options).await?;
     announce(&server);
-    let access = server.access_handle();
+    let reloader = server.reloader();
     let trigger = server.shutdown_trigger();
     let mut stopped = std::pin::pin!(server.wait());
     let signal = loop {
         tokio::select! {
             _ = term.recv() => break "SIGTERM",
             _ = int.recv() => break "SIGINT",
-            _ = hup.recv() => source.reload(&running, &access),
+            _ = hup.recv() => source.reload(&running, &reloader),
             () = &mut stopped => bail!("the service stopped on its own"),
         }
     };

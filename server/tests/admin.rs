@@ -13,7 +13,7 @@ use std::time::Duration;
 
 use arbor_proto::wire::ErrorCode;
 use arbor_proto::{Channel, SceneDescription, TreeletId};
-use arbor_server::admin::{AdminContext, router};
+use arbor_server::admin::{AdminContext, AdminCredentials, router};
 use arbor_server::octree::{BuildOptions, DepthChoice};
 use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::{Pool, PoolReadBuckets, pack};
@@ -135,8 +135,7 @@ async fn start(bunny: bool, token: &str) -> Fixture {
     let app = router(AdminContext {
         state: state.clone(),
         pool: pool.clone(),
-        token: token.into(),
-        probe_token: Some(PROBE.into()),
+        credentials: AdminCredentials::new(token, Some(PROBE)),
     });
     let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();
@@ -1228,8 +1227,7 @@ async fn graceful_shutdown_ends_the_server() {
     let app = router(AdminContext {
         state,
         pool,
-        token: TOKEN.into(),
-        probe_token: None,
+        credentials: AdminCredentials::new(TOKEN, None),
     });
     let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();

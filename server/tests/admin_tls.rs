@@ -1,6 +1,10 @@
 //! The admin listener's transport: HTTPS with the daemon's certificate (or a given one) when it
 //! binds anything other than loopback or when asked to; cleartext on loopback, or anywhere with
 //! an explicit `admin_tls = "off"`. Real daemons on real ports; requests go to 127.0.0.1 only.
+//! A reload renews both listeners' certificates and the admin token for the next handshake and
+//! request, and changes nothing when a file does not load.
+
+mod common;
 
 use std::net::SocketAddr;
 use std::path::Path;
@@ -40,9 +44,18 @@ fn loopback(server: &RunningServer) -> SocketAddr {
 }
 
 /// One HTTP/1.1 GET with the bearer token over `stream`; the whole answer.
-async fn get(mut stream: impl AsyncRead + AsyncWrite + Unpin, path: &str) -> String {
+async fn get(stream: impl AsyncRead + AsyncWrite + Unpin, path: &str) -> String {
+    get_as(stream, path, "t0ken").await
+}
+
+/// [`get`] with `token`.
+async fn get_as(
+    mut stream: impl AsyncRead + AsyncWrite + Unpin,
+    path: &str,
+    token: &str,
+) -> String {
     let request = format!(
-        "GET {path} HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer t0ken\r\nConnection: close\r\n\r\n"
+        "GET {path} HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {token}\r\nConnection: close\r\n\r\n"
     );
     stream.write_all(request.as_bytes()).await.unwrap();
     let mut raw = Vec::new();
@@ -59,6 +72,16 @@ async fn get_https(
     addr: SocketAddr,
     roots: &[CertificateDer<'static>],
     path: &str,
+) -> (String, CertificateDer<'static>) {
+    get_https_as(addr, roots, path, "t0ken").await
+}
+
+/// [`get_https`] with `token`.
+async fn get_https_as(
+    addr: SocketAddr,
+    roots: &[CertificateDer<'static>],
+    path: &str,
+    token: &str,
 ) -> (String, CertificateDer<'static>) {
     let mut store = rustls::RootCertStore::empty();
     for c in roots {
@@ -78,7 +101,7 @@ async fn get_https(
         .await
         .expect("TLS handshake with the admin listener");
     let presented = tls.get_ref().1.peer_certificates().unwrap()[0].clone();
-    (get(tls, path).await, presented)
+    (get_as(tls, path, token).await, presented)
 }
 
 fn certs(path: &Path) -> Vec<CertificateDer<'static>> {
@@ -183,6 +206,110 @@ async fn a_given_admin_certificate_is_presented_instead() {
         server.fingerprint,
         "the QUIC certificate was presented"
     );
+    server.shutdown().await;
+}
+
+/// One sample of `/metrics`.
+fn sample(metrics: &str, series: &str) -> Option<f64> {
+    metrics
+        .lines()
+        .find_map(|l| l.strip_prefix(series)?.strip_prefix(' ')?.parse().ok())
+}
+
+/// A reload renews what both listeners present and the admin token, for the next handshake
+/// and the next request, while an open QUIC session goes on; a pair whose key is not its
+/// certificate's changes nothing at all, and `/metrics` counts both.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reload_renews_the_certificates_and_the_admin_token_without_ending_sessions() {
+    use common::*;
+    let pool = TestPool::new();
+    let tls_dir = pool.dir.path().join("tls");
+    std::fs::create_dir_all(&tls_dir).unwrap();
+    let first = write_pair(&tls_dir, 2030);
+    let mut config = pool.config();
+    config.tls = TlsSource::Files {
+        cert: tls_dir.join("cert.pem"),
+        key: tls_dir.join("key.pem"),
+    };
+    config.admin_listen = Some("0.0.0.0:0".parse().unwrap());
+    config.admin_token = arbor_server::service::config::AdminTokenSource::Inline("t0ken".into());
+    let server = start(config.clone()).await;
+    let admin = loopback(&server);
+    let pinned = |der: &CertificateDer<'_>| arbor_server::service::tls::fingerprint(der);
+    assert_eq!(server.fingerprint, pinned(&first));
+
+    let session = connect(server.quic_addr, &pinned(&first)).await;
+    let (mut control, info) = hello(&session.conn, SCENE, &[], TOKEN).await;
+    let ids = all_ids(&info.unwrap());
+    round(&session, &mut control, 1, &ids).await.unwrap();
+    let (metrics, presented) = get_https(admin, std::slice::from_ref(&first), "/metrics").await;
+    assert_eq!(presented, first);
+    for listener in ["quic", "admin"] {
+        let series =
+            format!("arbor_tls_certificate_expiry_timestamp_seconds{{listener=\"{listener}\"}}");
+        assert_eq!(sample(&metrics, &series), Some(new_year(2030)), "{metrics}");
+    }
+    assert_eq!(
+        sample(&metrics, "arbor_config_last_reload_successful"),
+        Some(1.0)
+    );
+
+    // The pair renewed in place and a new admin token, as certbot and a secret rotation do.
+    let second = write_pair(&tls_dir, 2031);
+    config.admin_token = arbor_server::service::config::AdminTokenSource::Inline("n3w".into());
+    let done = server.reloader().reload(&config).unwrap();
+    assert!(done.certificate_changed && done.admin_certificate_changed && done.admin_token_changed);
+    assert_eq!(done.fingerprint, pinned(&second));
+    assert_eq!(done.sessions.shut_out, 0);
+
+    round(&session, &mut control, 2, &ids)
+        .await
+        .expect("the session begun under the old certificate goes on");
+    let refused = connect_with(server.quic_addr, &pinned(&first), ClientOptions::default()).await;
+    assert!(refused.is_err(), "the old certificate was presented");
+    let renewed = connect(server.quic_addr, &pinned(&second)).await;
+    let (_control, info) = hello(&renewed.conn, SCENE, &[], TOKEN).await;
+    info.expect("a client pinning the new certificate is served");
+    let (answer, presented) = get_https(admin, std::slice::from_ref(&second), "/healthz").await;
+    assert!(status_ok(&answer), "{answer}");
+    assert_eq!(presented, second, "the admin listener renewed too");
+    let (answer, _) = get_https(admin, std::slice::from_ref(&second), "/metrics").await;
+    assert!(
+        answer.starts_with("HTTP/1.1 401"),
+        "the old admin token: {answer}"
+    );
+    let (metrics, _) = get_https_as(admin, std::slice::from_ref(&second), "/metrics", "n3w").await;
+    assert!(status_ok(&metrics), "{metrics}");
+    let (server_view, _) =
+        get_https_as(admin, std::slice::from_ref(&second), "/v1/server", "n3w").await;
+    assert!(server_view.contains(&pinned(&second)), "{server_view}");
+    for listener in ["quic", "admin"] {
+        let series =
+            format!("arbor_tls_certificate_expiry_timestamp_seconds{{listener=\"{listener}\"}}");
+        assert_eq!(sample(&metrics, &series), Some(new_year(2031)), "{metrics}");
+    }
+    let applied = "arbor_config_reloads_total{outcome=\"applied\"}";
+    assert_eq!(sample(&metrics, applied), Some(1.0), "{metrics}");
+
+    // A key that is not the certificate's: nothing changes, the token included.
+    let third_key = rcgen::KeyPair::generate().unwrap();
+    std::fs::write(tls_dir.join("key.pem"), third_key.serialize_pem()).unwrap();
+    config.admin_token = arbor_server::service::config::AdminTokenSource::Inline("l4st".into());
+    let e = server.reloader().reload(&config).unwrap_err().to_string();
+    assert!(e.contains("key.pem") && e.contains("not the key"), "{e}");
+    let again = connect(server.quic_addr, &pinned(&second)).await;
+    drop(again);
+    let (metrics, presented) =
+        get_https_as(admin, std::slice::from_ref(&second), "/metrics", "n3w").await;
+    assert!(status_ok(&metrics), "the admin token stayed: {metrics}");
+    assert_eq!(presented, second);
+    assert_eq!(
+        sample(&metrics, "arbor_config_last_reload_successful"),
+        Some(0.0)
+    );
+    let failed = "arbor_config_reloads_total{outcome=\"failed\"}";
+    assert_eq!(sample(&metrics, failed), Some(1.0), "{metrics}");
+    round(&session, &mut control, 3, &ids).await.unwrap();
     server.shutdown().await;
 }
 

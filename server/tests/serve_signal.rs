@@ -1,7 +1,8 @@
 //! The real `arbor-server serve` binary: prints its addresses, fingerprint and admin token file,
 //! serves a raw client, and on SIGTERM says goodbye to it (close code ShuttingDown) and exits 0
 //! within the grace bound; restarted on the same data dir it keeps its certificate. On SIGHUP it
-//! puts the config's scene rules and tokens in force, ending only the sessions they revoke.
+//! puts the config's scene rules and tokens in force, ending only the sessions they revoke, and
+//! presents a renewed certificate to the next handshake.
 
 mod common;
 
@@ -290,6 +291,102 @@ async fn sighup_puts_new_tokens_in_force_and_ends_only_revoked_sessions() {
     assert_eq!(status.code(), Some(0), "{status}");
 }
 
+/// SIGHUP renews the certificate and the admin token the way certbot's deploy hook or a
+/// rotated Kubernetes secret does (the files rewritten in place, then `systemctl reload`): the
+/// next QUIC handshake presents the new certificate and the admin API wants the new token,
+/// while the session begun under the old certificate goes on; a key that is not its
+/// certificate's changes nothing and `/metrics` says the reload failed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sighup_renews_the_certificate_and_admin_token_without_a_restart() {
+    let (dir, config) = bunny_pool_and_config();
+    let tls = dir.path().join("tls");
+    std::fs::create_dir_all(&tls).unwrap();
+    let token_file = dir.path().join("admin.token");
+    let first = write_pair(&tls, 2030);
+    std::fs::write(&token_file, "first\n").unwrap();
+    let settings = format!(
+        "shutdown_grace_ms = 1000\ncert = {:?}\nkey = {:?}\nadmin_token_file = {:?}\n\
+         [scenes.{SCENE}]\ntokens = [\"{TOKEN}\"]\n",
+        tls.join("cert.pem"),
+        tls.join("key.pem"),
+        token_file
+    );
+    std::fs::write(&config, settings).unwrap();
+    let mut s = serve(dir.path(), &config);
+    let pin =
+        |der: &rustls::pki_types::CertificateDer<'_>| arbor_server::service::tls::fingerprint(der);
+    assert_eq!(s.fingerprint, pin(&first));
+    let session = connect(s.quic, &s.fingerprint).await;
+    let (mut control, info) = hello(&session.conn, SCENE, &[], TOKEN).await;
+    let ids = all_ids(&info.unwrap());
+    round(&session, &mut control, 1, &ids).await.unwrap();
+
+    let second = write_pair(&tls, 2031);
+    std::fs::write(&token_file, "second\n").unwrap();
+    signal(&s.child, "-HUP");
+    let t0 = Instant::now();
+    let renewed = loop {
+        match connect_with(s.quic, &pin(&second), ClientOptions::default()).await {
+            Ok(c) => break c,
+            Err(e) => assert!(
+                t0.elapsed() < Duration::from_secs(5),
+                "the new certificate not presented 5 s after SIGHUP: {e}"
+            ),
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    let (_renewed_control, info) = hello(&renewed.conn, SCENE, &[], TOKEN).await;
+    info.expect("a client pinning the renewed certificate is served");
+    assert!(
+        connect_with(s.quic, &pin(&first), ClientOptions::default())
+            .await
+            .is_err(),
+        "the old certificate still presented"
+    );
+    round(&session, &mut control, 2, &ids)
+        .await
+        .expect("the session begun under the old certificate goes on");
+    let refused = http_answer(&s.admin, "/metrics", "first");
+    assert!(refused.starts_with("HTTP/1.1 401"), "{refused}");
+    let metrics = http_get(&s.admin, "/metrics", "second");
+    assert_eq!(
+        sample(
+            &metrics,
+            "arbor_tls_certificate_expiry_timestamp_seconds{listener=\"quic\"}"
+        ),
+        new_year(2031)
+    );
+    assert_eq!(
+        sample(&metrics, "arbor_config_reloads_total{outcome=\"applied\"}"),
+        1.0
+    );
+
+    // A key that is not the certificate's: the reload fails, the renewed pair stays.
+    std::fs::write(
+        tls.join("key.pem"),
+        rcgen::KeyPair::generate().unwrap().serialize_pem(),
+    )
+    .unwrap();
+    signal(&s.child, "-HUP");
+    let t0 = Instant::now();
+    while sample(
+        &http_get(&s.admin, "/metrics", "second"),
+        "arbor_config_last_reload_successful",
+    ) != 0.0
+    {
+        assert!(
+            t0.elapsed() < Duration::from_secs(5),
+            "the failed reload not counted"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    connect(s.quic, &pin(&second)).await;
+    round(&session, &mut control, 3, &ids).await.unwrap();
+    signal(&s.child, "-TERM");
+    let status = wait_exit(&mut s.child, Duration::from_secs(5));
+    assert_eq!(status.code(), Some(0), "{status}");
+}
+
 /// A reader that leaves before the serving lines are written (a script that read what it
 /// needed, a closed terminal) does not stop the service: the write fails, the server warns and
 /// serves on, and still ends cleanly on SIGTERM.
@@ -393,6 +490,13 @@ fn serve_help_has_examples_and_bad_config_is_named() {
 
 /// One `GET` over HTTP/1.1 with a bearer token; the body.
 fn http_get(addr: &str, path: &str, token: &str) -> String {
+    let reply = http_answer(addr, path, token);
+    assert!(reply.starts_with("HTTP/1.1 200"), "{reply}");
+    reply.split_once("\r\n\r\n").unwrap().1.to_owned()
+}
+
+/// The whole answer to a GET with `token`, whatever its status.
+fn http_answer(addr: &str, path: &str, token: &str) -> String {
     use std::io::{Read as _, Write as _};
     let mut s = std::net::TcpStream::connect(addr).unwrap();
     write!(
@@ -402,8 +506,7 @@ fn http_get(addr: &str, path: &str, token: &str) -> String {
     .unwrap();
     let mut reply = String::new();
     s.read_to_string(&mut reply).unwrap();
-    assert!(reply.starts_with("HTTP/1.1 200"), "{reply}");
-    reply.split_once("\r\n\r\n").unwrap().1.to_owned()
+    reply
 }
 
 /// The value of an unlabelled sample in Prometheus text.

@@ -7,6 +7,8 @@
 //! The cookie holds the token itself, percent-encoding the bytes a cookie value may not hold
 //! (RFC 6265 `cookie-octet`, and `%`), so `arbor_admin=<token>` set by hand works for usual tokens.
 
+use std::sync::{Arc, PoisonError, RwLock};
+
 use axum::http::{HeaderMap, header};
 use ring::digest;
 
@@ -51,6 +53,67 @@ impl Secret {
             diff |= a ^ b;
         }
         std::hint::black_box(diff) == 0 && self.enabled && !presented.is_empty()
+    }
+}
+
+/// The admin token and the probe token in force; [`AdminCredentials::replace`] puts new ones
+/// in force for the next request (SIGHUP, [`crate::daemon::Reloader`]). A login cookie holds
+/// the token itself, so a replaced token logs its browsers out.
+pub struct AdminCredentials {
+    current: RwLock<Arc<Tokens>>,
+}
+
+/// One generation of [`AdminCredentials`].
+#[derive(Debug)]
+pub(super) struct Tokens {
+    pub(super) admin: Secret,
+    pub(super) probe: Option<Secret>,
+}
+
+impl Tokens {
+    fn new(admin: &str, probe: Option<&str>) -> Self {
+        if admin.is_empty() {
+            tracing::error!(
+                "the admin token is empty: every authenticated admin route will answer 401"
+            );
+        }
+        Self {
+            admin: Secret::new(admin),
+            probe: probe.map(Secret::new),
+        }
+    }
+}
+
+impl std::fmt::Debug for AdminCredentials {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("AdminCredentials").finish_non_exhaustive()
+    }
+}
+
+impl AdminCredentials {
+    /// The bearer token of every route but `/healthz` and the login form (empty: nobody is
+    /// admitted), and a low-privilege one accepted by `/readyz` only (orchestrator probes).
+    pub fn new(admin: &str, probe: Option<&str>) -> Arc<Self> {
+        Arc::new(Self {
+            current: RwLock::new(Arc::new(Tokens::new(admin, probe))),
+        })
+    }
+
+    /// Puts `admin` and `probe` in force; true when the admin token changed.
+    pub fn replace(&self, admin: &str, probe: Option<&str>) -> bool {
+        let next = Arc::new(Tokens::new(admin, probe));
+        let mut current = self.current.write().unwrap_or_else(PoisonError::into_inner);
+        let changed = current.admin.digest != next.admin.digest;
+        *current = next;
+        changed
+    }
+
+    /// The tokens in force.
+    pub(super) fn current(&self) -> Arc<Tokens> {
+        self.current
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
     }
 }
 
@@ -250,5 +313,31 @@ mod tests {
             check(&headers(&[(header::AUTHORIZATION, "Bearer ")]), &s),
             Credentials::Invalid
         );
+    }
+
+    #[test]
+    fn replaced_tokens_admit_from_the_next_request() {
+        let credentials = AdminCredentials::new("first", Some("probe-1"));
+        let bearer = |t: &str| headers(&[(header::AUTHORIZATION, &format!("Bearer {t}"))]);
+        let tokens = credentials.current();
+        assert_eq!(check(&bearer("first"), &tokens.admin), Credentials::Valid);
+        let probe = tokens.probe.as_ref().unwrap();
+        assert_eq!(check(&bearer("probe-1"), probe), Credentials::Valid);
+
+        assert!(credentials.replace("second", None));
+        let tokens = credentials.current();
+        assert_eq!(check(&bearer("first"), &tokens.admin), Credentials::Invalid);
+        assert_eq!(check(&bearer("second"), &tokens.admin), Credentials::Valid);
+        assert!(tokens.probe.is_none(), "the probe token taken out");
+        assert!(
+            !credentials.replace("second", Some("probe-2")),
+            "the admin token is the same"
+        );
+        let probe = credentials
+            .current()
+            .probe
+            .as_ref()
+            .map(|p| p.matches(b"probe-2"));
+        assert_eq!(probe, Some(true));
     }
 }

@@ -21,8 +21,9 @@ use tokio::sync::{Semaphore, mpsc};
 use tokio_rustls::TlsAcceptor;
 use tokio_rustls::server::TlsStream;
 
+use crate::service::certificate::LiveCertificate;
 use crate::service::config::AdminTls;
-use crate::service::tls::{TlsError, TlsIdentity};
+use crate::service::tls::TlsError;
 
 /// How long a client has to complete the TLS handshake.
 pub const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
@@ -41,13 +42,14 @@ impl AdminTls {
 }
 
 /// The rustls configuration of the admin listener: TLS 1.2 and 1.3 (browsers and `curl`), ALPN
-/// `http/1.1` (the admin router speaks HTTP/1.1), the given identity.
-pub fn rustls_config(identity: &TlsIdentity) -> Result<rustls::ServerConfig, TlsError> {
+/// `http/1.1` (the admin router speaks HTTP/1.1), the certificate `certificate` holds at each
+/// handshake.
+pub fn rustls_config(certificate: Arc<LiveCertificate>) -> Result<rustls::ServerConfig, TlsError> {
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let mut cfg = rustls::ServerConfig::builder_with_provider(provider)
         .with_safe_default_protocol_versions()?
         .with_no_client_auth()
-        .with_single_cert(identity.certs.clone(), identity.key.clone_key())?;
+        .with_cert_resolver(certificate);
     cfg.alpn_protocols = vec![b"http/1.1".to_vec()];
     Ok(cfg)
 }

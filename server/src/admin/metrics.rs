@@ -136,11 +136,62 @@ pub(super) fn render(
             p.sample("arbor_memory_bound_bytes", &[("part", part)], bytes);
         }
     }
+    reload_families(&mut p, state);
     scene_families(&mut p, pool.map_or(&[][..], |p| &p.scenes[..]));
     check_families(&mut p, checks);
     copy_families(&mut p, copies);
     background_families(&mut p, background);
     p.finish()
+}
+
+/// The configuration's reloads and the certificates the listeners present.
+fn reload_families(p: &mut PromText, state: &ServiceState) {
+    let reloads = state.reloads();
+    p.family(
+        "arbor_config_reloads_total",
+        Kind::Counter,
+        "Reloads of the configuration (SIGHUP: scene rules, certificates, admin tokens) since \
+         the start, by outcome: applied, or failed (something did not load; nothing changed).",
+    )
+    .sample(
+        "arbor_config_reloads_total",
+        &[("outcome", "applied")],
+        reloads.applied,
+    )
+    .sample(
+        "arbor_config_reloads_total",
+        &[("outcome", "failed")],
+        reloads.failed,
+    )
+    .single(
+        "arbor_config_last_reload_successful",
+        Kind::Gauge,
+        "0 when the last reload of the configuration failed (the server serves on under what \
+         it had; its log names the file at ERROR), else 1.",
+        u8::from(reloads.last_successful),
+    )
+    .single(
+        "arbor_config_last_reload_success_timestamp_seconds",
+        Kind::Gauge,
+        "When the configuration in force was loaded (the start, or the last reload applied), \
+         seconds since the Unix epoch.",
+        reloads.last_success_unix,
+    );
+    p.family(
+        "arbor_tls_certificate_expiry_timestamp_seconds",
+        Kind::Gauge,
+        "When the certificate a listener presents now expires (its notAfter), seconds since the \
+         Unix epoch, by listener: quic, and admin when the admin API speaks HTTPS.",
+    );
+    for (listener, certificate) in state.certificates() {
+        if let Some(t) = certificate.not_after_unix {
+            p.sample(
+                "arbor_tls_certificate_expiry_timestamp_seconds",
+                &[("listener", listener)],
+                t,
+            );
+        }
+    }
 }
 
 /// What checks and copies read, how long the pace held them, and the pace.

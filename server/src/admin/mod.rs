@@ -90,32 +90,16 @@ use crate::live_import::LiveImports;
 use crate::pool::{Pool, PoolError};
 use crate::service::state::ServiceState;
 
-pub use auth::COOKIE;
+pub use auth::{AdminCredentials, COOKIE};
 
 /// What the admin API reads.
-#[derive(Clone)]
+#[derive(Clone, Debug)]
 pub struct AdminContext {
     pub state: Arc<ServiceState>,
     pub pool: Pool,
-    /// Bearer token required on every route but `/healthz` (and the login form). An empty token
-    /// admits nobody.
-    pub token: String,
-    /// A low-privilege bearer token accepted by `/readyz` only (orchestrator probes).
-    pub probe_token: Option<String>,
-}
-
-impl fmt::Debug for AdminContext {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.debug_struct("AdminContext")
-            .field("state", &self.state)
-            .field("pool", &self.pool)
-            .field("token", &"<redacted>")
-            .field(
-                "probe_token",
-                &self.probe_token.as_ref().map(|_| "<redacted>"),
-            )
-            .finish()
-    }
+    /// The bearer tokens: the admin token of every route but `/healthz` (and the login form),
+    /// and the probe token of `/readyz`.
+    pub credentials: Arc<AdminCredentials>,
 }
 
 /// The router's shared state.
@@ -123,8 +107,7 @@ impl fmt::Debug for AdminContext {
 struct App {
     state: Arc<ServiceState>,
     pool: Pool,
-    secret: auth::Secret,
-    probe: Option<auth::Secret>,
+    credentials: Arc<AdminCredentials>,
     /// When the router was made: the service makes it at start, so this is the service's uptime.
     started: Instant,
     /// `Content-Security-Policy` of the HTML pages (hashes of their inline style and script).
@@ -142,14 +125,8 @@ pub fn router(ctx: AdminContext) -> Router {
 
 /// The admin HTTP routes, with scene management by `imports`.
 pub fn router_with_imports(ctx: AdminContext, imports: Option<LiveImports>) -> Router {
-    if ctx.token.is_empty() {
-        tracing::error!(
-            "the admin token is empty: every authenticated admin route will answer 401"
-        );
-    }
     let app: Shared = Arc::new(App {
-        secret: auth::Secret::new(&ctx.token),
-        probe: ctx.probe_token.as_deref().map(auth::Secret::new),
+        credentials: ctx.credentials,
         state: ctx.state,
         pool: ctx.pool,
         started: Instant::now(),
@@ -296,13 +273,14 @@ async fn with_pool<T: Send + 'static>(
 /// everything else gets `401`.
 async fn require_auth(State(app): State<Shared>, req: Request, next: Next) -> Response {
     // The probe token opens readiness and nothing else.
+    let tokens = app.credentials.current();
     if req.uri().path() == "/readyz"
-        && let Some(probe) = &app.probe
+        && let Some(probe) = &tokens.probe
         && auth::check(req.headers(), probe) == auth::Credentials::Valid
     {
         return next.run(req).await;
     }
-    let presented = auth::check(req.headers(), &app.secret);
+    let presented = auth::check(req.headers(), &tokens.admin);
     if presented == auth::Credentials::Valid {
         return next.run(req).await;
     }
@@ -554,7 +532,12 @@ async fn login(
             page::login_page(Some("The form must carry a token field.")),
         );
     };
-    if app.secret.matches(form.token.as_bytes()) {
+    if app
+        .credentials
+        .current()
+        .admin
+        .matches(form.token.as_bytes())
+    {
         tracing::info!("admin API: browser login");
         see_other("/", Some(auth::set_cookie(&form.token)))
     } else {

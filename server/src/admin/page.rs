@@ -401,7 +401,7 @@ fn status_section(out: &mut String, state: &ServiceState, uptime: Duration, pool
          <tr><th>Certificate SHA-256</th><td><code id=\"fingerprint\">{}</code></td></tr>\
          <tr><th>Uptime</th><td>{}</td></tr>\
          <tr><th>Pool on disk</th><td>{}</td></tr></table>",
-        escape(&state.fingerprint),
+        escape(&state.fingerprint()),
         duration(uptime),
         bytes(pool.disk_bytes)
     );

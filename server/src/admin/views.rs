@@ -102,11 +102,14 @@ impl<'a> SceneView<'a> {
 
 /// `/v1/server`.
 #[derive(Debug, Serialize)]
-pub(super) struct ServerView<'a> {
+pub(super) struct ServerView {
     pub name: &'static str,
     pub version: &'static str,
-    /// SHA-256 of the server certificate (DER), lowercase hex: what clients pin.
-    pub fingerprint: &'a str,
+    /// SHA-256 of the certificate QUIC clients are shown now (DER), lowercase hex: what they
+    /// pin.
+    pub fingerprint: String,
+    /// When that certificate expires, seconds since the Unix epoch (`null`: not read).
+    pub certificate_expiry_unix: Option<i64>,
     pub ready: bool,
     pub shutting_down: bool,
     pub uptime_seconds: f64,
@@ -114,12 +117,17 @@ pub(super) struct ServerView<'a> {
     pub sessions: usize,
 }
 
-impl<'a> ServerView<'a> {
-    pub(super) fn new(state: &'a ServiceState, uptime: Duration) -> Self {
+impl ServerView {
+    pub(super) fn new(state: &ServiceState, uptime: Duration) -> Self {
+        let quic = state
+            .certificates()
+            .into_iter()
+            .find(|(listener, _)| *listener == "quic");
         Self {
             name: env!("CARGO_PKG_NAME"),
             version: env!("CARGO_PKG_VERSION"),
-            fingerprint: &state.fingerprint,
+            fingerprint: state.fingerprint(),
+            certificate_expiry_unix: quic.and_then(|(_, c)| c.not_after_unix),
             ready: state.is_ready(),
             shutting_down: state.is_shutting_down(),
             uptime_seconds: uptime.as_secs_f64(),

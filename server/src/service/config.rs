@@ -128,7 +128,7 @@ pub enum SceneAccess {
 pub enum AdminTokenSource {
     /// `admin_token` in the config (or set by a program).
     Inline(String),
-    /// `admin_token_file`: read at start, surrounding whitespace trimmed.
+    /// `admin_token_file`: read at start and on reload, surrounding whitespace trimmed.
     File(PathBuf),
     /// Neither: generated into `<data_dir>/admin-token` (mode 0600) on first start, reused after.
     Generated,

@@ -8,6 +8,7 @@
 //!   property-tested without sockets.
 //! * [`config`]: `ServeConfig` from TOML + CLI overrides, validation, scene access.
 //! * [`tls`]: the certificate (self-signed on first start, or given) and its fingerprint;
+//!   [`certificate`]: the one a listener presents, replaced on reload for the next handshakes;
 //!   [`reset`]: stateless resets that outlive the process (key from the TLS key, random ids).
 //! * [`server`]: [`start_service`] → [`RunningService`]: QUIC endpoint, connection cap,
 //!   dispatcher, graceful shutdown; [`connection`]: one client; [`shutdown`]: the broadcast and
@@ -37,6 +38,7 @@
 //!   list keep in the data directory between runs, written whole or not at all.
 pub mod access;
 mod batches;
+pub mod certificate;
 pub mod config;
 pub mod connection;
 pub mod generations;

@@ -9,6 +9,13 @@
 //! the certificate, share it), and connection ids are plain random bytes that any process
 //! accepts as possibly its own. The client then sees `connection reset` within a round trip
 //! instead of waiting for its idle timeout.
+//!
+//! The key is derived once, from the key the process started with: quinn fixes an endpoint's
+//! reset key when the endpoint is made, so a certificate renewed by a reload
+//! ([`super::certificate`]) leaves it as it was. Replicas that renewed their pair by reloads
+//! keep sharing the old key; one restarted since derives the new one, and a client moved from
+//! it to a replica still on the old key (or the other way) waits for its idle timeout until
+//! those restart too.
 
 use std::time::Duration;
 

@@ -50,6 +50,7 @@ use tokio::sync::Semaphore;
 use tokio::task::JoinHandle;
 
 use super::access::{AccessPolicy, SceneAccess};
+use super::certificate::{LiveCertificate, PresentedCertificate};
 use super::config::{ConfigError, ServeConfig};
 use super::connection;
 use super::path_memory;
@@ -153,6 +154,7 @@ pub struct RunningService {
     /// Metrics, sessions and readiness.
     pub state: Arc<ServiceState>,
     access: Arc<SceneAccess<quinn::Connection>>,
+    certificate: Arc<LiveCertificate>,
     pool: Pool,
     trigger: ShutdownTrigger,
     shutdown: Shutdown,
@@ -176,6 +178,12 @@ impl RunningService {
             access: self.access.clone(),
             state: self.state.clone(),
         }
+    }
+
+    /// The certificate QUIC clients are shown: [`LiveCertificate::replace`] renews it for the
+    /// next handshakes.
+    pub fn certificate(&self) -> Arc<LiveCertificate> {
+        self.certificate.clone()
     }
 
     /// Graceful shutdown, as on SIGTERM; returns when the service has stopped (within the grace
@@ -310,12 +318,15 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
         }
     }
     let identity = tls::load_or_create(&config.tls, config.data_dir())?;
+    let presented = Arc::new(PresentedCertificate::of(&identity)?);
+    let certificate = Arc::new(LiveCertificate::new(presented));
     let state = Arc::new(ServiceState::new(identity.fingerprint.clone()));
+    state.present_certificate("quic", certificate.clone());
     // Without path memory every connection shares this config; its controller filters random
     // loss all the same (`super::random_loss`).
     let common = path_factory(&config, &state, None, None);
     let transport = transport_config(&config, Arc::new(common));
-    let server_config = tls::quic_server_config(&identity, transport)?;
+    let server_config = tls::quic_server_config(certificate.clone(), transport)?;
     let endpoint_config = super::reset::endpoint_config(&identity);
     let endpoint = std::net::UdpSocket::bind(config.listen)
         .and_then(|socket| {
@@ -365,6 +376,7 @@ pub async fn start_service(config: ServeConfig) -> Result<RunningService, ServeE
     Ok(RunningService {
         quic_addr,
         access,
+        certificate,
         fingerprint: identity.fingerprint,
         tls_origin: identity.origin,
         state,

@@ -14,6 +14,7 @@ use arbor_proto::Channel;
 use arbor_proto::wire::ErrorCode;
 use serde::Serialize;
 
+use super::certificate::{LiveCertificate, PresentedCertificate};
 use super::path_memory::{PathMemory, ResumeCounters};
 use super::random_loss::LossCounters;
 use super::shapes::ShapeCache;
@@ -118,9 +119,7 @@ impl SessionInfo {
             peer,
             scene: String::new(),
             channels: Vec::new(),
-            connected_at: SystemTime::now()
-                .duration_since(SystemTime::UNIX_EPOCH)
-                .map_or(0.0, |d| d.as_secs_f64()),
+            connected_at: unix_now(),
             request_lists: 0,
             treelets_sent: 0,
             bytes_sent: 0,
@@ -141,8 +140,13 @@ pub struct ServiceState {
     sessions: Mutex<BTreeMap<u64, SessionInfo>>,
     ready: AtomicBool,
     shutting_down: AtomicBool,
-    /// SHA-256 of the server certificate (DER), lowercase hex.
-    pub fingerprint: String,
+    /// SHA-256 of the server certificate (DER), lowercase hex, when no listener registered
+    /// its certificate ([`ServiceState::fingerprint`]).
+    fingerprint: String,
+    /// The certificates the listeners present, by listener (`quic`, `admin`).
+    certificates: Mutex<Vec<(&'static str, Arc<LiveCertificate>)>>,
+    /// Reloads of the configuration (SIGHUP) and how the last one went.
+    reloads: Mutex<ReloadRecord>,
     /// Per-treelet timeline for benchmarks; off unless started.
     pub timeline: super::timeline::Timeline,
     /// The server-wide caches, reported in `/metrics`; set once by the service as it starts.
@@ -156,6 +160,37 @@ pub struct ServiceState {
     /// Congestion windows and RTTs of recent connections by client address; off (lifetime
     /// zero) until the service sets `path_memory_secs`.
     paths: Mutex<PathMemory>,
+}
+
+/// The configuration's reloads since the start ([`crate::daemon::Reloader`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ReloadRecord {
+    /// Reloads put in force.
+    pub applied: u64,
+    /// Reloads refused: something did not load, and nothing changed.
+    pub failed: u64,
+    /// Whether the last reload was put in force (true before the first: the start's
+    /// configuration loaded).
+    pub last_successful: bool,
+    /// When the configuration in force was loaded, seconds since the Unix epoch.
+    pub last_success_unix: f64,
+}
+
+impl Default for ReloadRecord {
+    fn default() -> Self {
+        Self {
+            applied: 0,
+            failed: 0,
+            last_successful: true,
+            last_success_unix: unix_now(),
+        }
+    }
+}
+
+fn unix_now() -> f64 {
+    SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map_or(0.0, |d| d.as_secs_f64())
 }
 
 /// Limits of a running service that alerts compare its figures with (so the shipped rules
@@ -202,6 +237,49 @@ impl ServiceState {
             fingerprint,
             ..Self::default()
         }
+    }
+
+    /// SHA-256 of the certificate QUIC clients are shown now (lowercase hex): what they pin.
+    pub fn fingerprint(&self) -> String {
+        self.certificates()
+            .into_iter()
+            .find(|(listener, _)| *listener == "quic")
+            .map_or_else(|| self.fingerprint.clone(), |(_, c)| c.fingerprint.clone())
+    }
+
+    /// Registers the certificate `listener` presents, for [`ServiceState::fingerprint`] and
+    /// `/metrics`; a second registration of a listener replaces the first.
+    pub fn present_certificate(&self, listener: &'static str, certificate: Arc<LiveCertificate>) {
+        let mut all = self.certificates.lock().unwrap_or_else(|p| p.into_inner());
+        all.retain(|(l, _)| *l != listener);
+        all.push((listener, certificate));
+    }
+
+    /// The certificate each listener presents now.
+    pub fn certificates(&self) -> Vec<(&'static str, Arc<PresentedCertificate>)> {
+        self.certificates
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .iter()
+            .map(|(l, c)| (*l, c.current()))
+            .collect()
+    }
+
+    /// Counts a reload of the configuration: put in force, or refused.
+    pub fn record_reload(&self, applied: bool) {
+        let mut r = self.reloads.lock().unwrap_or_else(|p| p.into_inner());
+        if applied {
+            r.applied += 1;
+            r.last_success_unix = unix_now();
+        } else {
+            r.failed += 1;
+        }
+        r.last_successful = applied;
+    }
+
+    /// The reloads so far.
+    pub fn reloads(&self) -> ReloadRecord {
+        *self.reloads.lock().unwrap_or_else(|p| p.into_inner())
     }
 
     /// Ready: the pool is open, the QUIC endpoint is bound and shutdown has not begun.

@@ -21,6 +21,7 @@ use std::sync::Arc;
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer, PrivatePkcs8KeyDer};
 
+use super::certificate::LiveCertificate;
 use super::config::TlsSource;
 
 /// Errors setting up TLS.
@@ -48,6 +49,9 @@ pub enum TlsError {
     /// quinn rejected the rustls configuration (not TLS 1.3 capable).
     #[error("QUIC crypto configuration: {0}")]
     Quic(String),
+    /// The key is not the one the certificate was issued for.
+    #[error("{}: not the key of the certificate in {}", key.display(), cert.display())]
+    KeyMismatch { cert: PathBuf, key: PathBuf },
 }
 
 /// The certificate chain and key the server presents.
@@ -70,6 +74,17 @@ pub enum IdentityOrigin {
     Reused { cert: PathBuf, key: PathBuf },
     /// Configured PEM files.
     Files { cert: PathBuf, key: PathBuf },
+}
+
+impl IdentityOrigin {
+    /// The certificate and key files.
+    pub fn paths(&self) -> (&Path, &Path) {
+        match self {
+            IdentityOrigin::Created { cert, key }
+            | IdentityOrigin::Reused { cert, key }
+            | IdentityOrigin::Files { cert, key } => (cert, key),
+        }
+    }
 }
 
 /// SHA-256 of a certificate's DER, lowercase hex, 64 characters, no separators.
@@ -196,6 +211,20 @@ pub fn load_or_create(source: &TlsSource, data_dir: &Path) -> Result<TlsIdentity
     }
 }
 
+/// Loads the identity as [`load_or_create`] but never creates one: what a reload reads (a
+/// missing self-signed pair is an error, not a new fingerprint).
+pub fn load_existing(source: &TlsSource, data_dir: &Path) -> Result<TlsIdentity, TlsError> {
+    match source {
+        TlsSource::Files { cert, key } => read_pem(cert, key),
+        TlsSource::SelfSigned => {
+            let (cert, key) = (data_dir.join(CERT_FILE), data_dir.join(KEY_FILE));
+            let mut id = read_pem(&cert, &key)?;
+            id.origin = IdentityOrigin::Reused { cert, key };
+            Ok(id)
+        }
+    }
+}
+
 fn create_self_signed(
     data_dir: &Path,
     cert_path: PathBuf,
@@ -221,24 +250,28 @@ fn create_self_signed(
     })
 }
 
-/// The rustls server configuration: TLS 1.3 only, ring provider, ALPN `arbor/1` only.
-pub fn rustls_server_config(identity: &TlsIdentity) -> Result<rustls::ServerConfig, TlsError> {
+/// The rustls server configuration: TLS 1.3 only, ring provider, ALPN `arbor/1` only, the
+/// certificate `certificate` holds at each handshake.
+pub fn rustls_server_config(
+    certificate: Arc<LiveCertificate>,
+) -> Result<rustls::ServerConfig, TlsError> {
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let mut cfg = rustls::ServerConfig::builder_with_provider(provider)
         .with_protocol_versions(&[&rustls::version::TLS13])?
         .with_no_client_auth()
-        .with_single_cert(identity.certs.clone(), identity.key.clone_key())?;
+        .with_cert_resolver(certificate);
     cfg.alpn_protocols = vec![arbor_proto::wire::ALPN.to_vec()];
     Ok(cfg)
 }
 
 /// quinn's server configuration around [`rustls_server_config`] with the given transport.
 pub fn quic_server_config(
-    identity: &TlsIdentity,
+    certificate: Arc<LiveCertificate>,
     transport: quinn::TransportConfig,
 ) -> Result<quinn::ServerConfig, TlsError> {
-    let crypto = quinn::crypto::rustls::QuicServerConfig::try_from(rustls_server_config(identity)?)
-        .map_err(|e| TlsError::Quic(e.to_string()))?;
+    let crypto =
+        quinn::crypto::rustls::QuicServerConfig::try_from(rustls_server_config(certificate)?)
+            .map_err(|e| TlsError::Quic(e.to_string()))?;
     let mut cfg = quinn::ServerConfig::with_crypto(Arc::new(crypto));
     cfg.transport_config(Arc::new(transport));
     Ok(cfg)
@@ -247,6 +280,7 @@ pub fn quic_server_config(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::service::certificate::PresentedCertificate;
     use std::os::unix::fs::PermissionsExt as _;
 
     #[test]
@@ -285,7 +319,9 @@ mod tests {
         .unwrap();
         assert_eq!(c.fingerprint, a.fingerprint);
         // Usable by rustls and quinn.
-        quic_server_config(&a, quinn::TransportConfig::default()).unwrap();
+        let live = LiveCertificate::new(Arc::new(PresentedCertificate::of(&a).unwrap()));
+        let live = Arc::new(live);
+        quic_server_config(live, quinn::TransportConfig::default()).unwrap();
         // No temporary files left behind.
         let names: Vec<_> = std::fs::read_dir(&data)
             .unwrap()
@@ -351,5 +387,21 @@ mod tests {
         )
         .unwrap_err();
         assert!(e.to_string().contains("missing.pem"), "{e}");
+    }
+
+    #[test]
+    fn a_reload_reads_the_pair_and_never_creates_one() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let e = load_existing(&TlsSource::SelfSigned, d).unwrap_err();
+        assert!(e.to_string().contains(CERT_FILE), "{e}");
+        assert!(
+            std::fs::read_dir(d).unwrap().next().is_none(),
+            "nothing created"
+        );
+        let made = load_or_create(&TlsSource::SelfSigned, d).unwrap();
+        let read = load_existing(&TlsSource::SelfSigned, d).unwrap();
+        assert_eq!(read.fingerprint, made.fingerprint);
+        assert!(matches!(read.origin, IdentityOrigin::Reused { .. }));
     }
 }

@@ -1,7 +1,7 @@
 //! Shared helpers of the service tests: a real bunny pool (and one damaged on disk), a server
 //! started as the daemon is (with its background jobs if asked), a configuration for tests, and
 //! a raw quinn client (fingerprint pinning, control frames, treelet streams) written against
-//! the wire protocol only — not the client library.
+//! the wire protocol only — not the client library; certificates with a given expiry.
 #![allow(dead_code, reason = "each test binary uses a different subset")]
 
 use std::net::SocketAddr;
@@ -20,6 +20,7 @@ use arbor_server::pipeline::{SceneImport, import_scene};
 use arbor_server::pool::Pool;
 use arbor_server::service::ServeConfig;
 use arbor_server::service::config::SceneAccess;
+use rustls::pki_types::CertificateDer;
 
 pub const SCENE: &str = "bunny";
 pub const TOKEN: &str = "bunny-token";
@@ -447,4 +448,26 @@ pub async fn round(
 /// All treelet ids of a scene.
 pub fn all_ids(d: &SceneDescription) -> Vec<TreeletId> {
     (0..d.treelet_count).map(TreeletId).collect()
+}
+
+/// A certificate for `localhost` and 127.0.0.1 valid until the first of January of `year`,
+/// written as `cert.pem` and `key.pem` in `dir` (replacing what was there); its DER.
+pub fn write_pair(dir: &Path, year: i32) -> CertificateDer<'static> {
+    let key = rcgen::KeyPair::generate().unwrap();
+    let mut params =
+        rcgen::CertificateParams::new(vec!["localhost".into(), "127.0.0.1".into()]).unwrap();
+    params.not_after = rcgen::date_time_ymd(year, 1, 1);
+    let cert = params.self_signed(&key).unwrap();
+    std::fs::write(dir.join("cert.pem"), cert.pem()).unwrap();
+    std::fs::write(dir.join("key.pem"), key.serialize_pem()).unwrap();
+    cert.der().clone()
+}
+
+/// Seconds since the Unix epoch of the first of January of `year`, UTC.
+pub fn new_year(year: i16) -> f64 {
+    let midnight = jiff::civil::DateTime::new(year, 1, 1, 0, 0, 0, 0).unwrap();
+    jiff::tz::TimeZone::UTC
+        .to_timestamp(midnight)
+        .unwrap()
+        .as_second() as f64
 }
