@@ -19,7 +19,8 @@
 //! * [`daemon`] starts the service and mounts the admin API beside it — what `arbor-server
 //!   serve` runs; [`live_import`] imports and removes scenes in it, [`live_verify`] checks
 //!   them and [`live_copy`] copies the pool, while it serves, the checks' and copies' reads
-//!   held to the [`pace`] the operator sets; [`periodic`] says when the scheduled ones are due.
+//!   held to the [`pace`] the operator sets; [`periodic`] says when the scheduled ones are due;
+//!   [`config_watch`] notices a changed configuration, to reload it without a signal.
 //!
 //! [`logging`] sets up the binaries' log lines (text, coloured only on a terminal, or JSON).
 //!
@@ -28,6 +29,7 @@
 #![deny(unsafe_code)]
 
 pub mod admin;
+pub mod config_watch;
 pub mod daemon;
 pub mod import;
 mod jobs;

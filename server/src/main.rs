@@ -12,6 +12,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{Context, Result, bail};
+use arbor_server::config_watch::{ConfigSnapshot, ConfigWatch};
 use arbor_server::daemon::{AdminTokenOrigin, DaemonOptions};
 use arbor_server::import::tiles::TileOptions;
 use arbor_server::import::{Format, ImportOptions, RawSpec, SampleType};
@@ -236,7 +237,9 @@ enum Command {
     /// certificate and key, and the admin tokens in force: sessions whose token no longer opens
     /// their scene are closed (Unauthorized), all others go on; the next handshake gets the
     /// certificate read (renewals need no restart); a file that does not load, or a key that is
-    /// not its certificate's, changes nothing (logged at ERROR, counted in /metrics).
+    /// not its certificate's, changes nothing (logged at ERROR, counted in /metrics). With
+    /// `config_watch_secs` in the config file it does the same by itself when those files
+    /// change.
     #[command(after_help = "Examples:\n  \
         arbor-server serve --db pool\n  \
         arbor-server serve --db pool --listen 0.0.0.0:4433 --admin 127.0.0.1:9090\n  \
@@ -892,10 +895,11 @@ struct ConfigSource {
 impl ConfigSource {
     /// Reads the file again and puts its scene rules, certificates and admin tokens in force
     /// ([`arbor_server::daemon::Reloader`]); a file that does not load leaves everything as it
-    /// was. Other changed settings are named: they apply at the next start.
-    fn reload(&self, running: &ServeConfig, reloader: &arbor_server::daemon::Reloader) {
+    /// was. Other changed settings are named: they apply at the next start. `why` (SIGHUP, a
+    /// change seen) starts every log line.
+    fn reload(&self, why: &str, running: &ServeConfig, reloader: &arbor_server::daemon::Reloader) {
         let Some(file) = &self.file else {
-            tracing::warn!("SIGHUP: no --config file to read again; nothing changes");
+            tracing::warn!("{why}: no --config file to read again; nothing changes");
             return;
         };
         let loaded = match ServeConfig::load(Some(file), &self.overrides) {
@@ -910,7 +914,7 @@ impl ConfigSource {
             Err(e) => {
                 tracing::error!(
                     config = %file.display(),
-                    "SIGHUP: the configuration does not load, nothing changes: {e}"
+                    "{why}: the configuration does not load, nothing changes: {e}"
                 );
                 return;
             }
@@ -921,20 +925,20 @@ impl ConfigSource {
             sessions_closed = done.sessions.shut_out,
             sessions_kept = done.sessions.kept,
             fingerprint = %done.fingerprint,
-            "SIGHUP: scene rules, certificates and admin tokens read again and in force"
+            "{why}: scene rules, certificates and admin tokens read again and in force"
         );
         if done.certificate_changed {
             tracing::warn!(
                 fingerprint = %done.fingerprint,
-                "SIGHUP: a new certificate is presented to QUIC clients from now on; open \
+                "{why}: a new certificate is presented to QUIC clients from now on; open \
                  sessions go on, and clients that pin the old fingerprint are refused"
             );
         }
         if done.admin_certificate_changed {
-            tracing::info!("SIGHUP: the admin listener presents a new certificate");
+            tracing::info!("{why}: the admin listener presents a new certificate");
         }
         if done.admin_token_changed {
-            tracing::info!("SIGHUP: the admin token changed; the old one is refused");
+            tracing::info!("{why}: the admin token changed; the old one is refused");
         }
         let mut rest = config;
         rest.scenes = running.scenes.clone();
@@ -946,15 +950,16 @@ impl ConfigSource {
         if rest != *running {
             tracing::warn!(
                 config = %file.display(),
-                "SIGHUP: settings other than the scene rules, certificates and admin tokens \
+                "{why}: settings other than the scene rules, certificates and admin tokens \
                  changed; they apply at the next start"
             );
         }
     }
 }
 
-/// Runs the service until SIGINT or SIGTERM, then shuts it down gracefully; on SIGHUP it
-/// reads the scene rules, certificates and admin tokens again ([`ConfigSource::reload`]).
+/// Runs the service until SIGINT or SIGTERM, then shuts it down gracefully; on SIGHUP, and when
+/// `config_watch_secs` finds the files changed, it reads the scene rules, certificates and admin
+/// tokens again ([`ConfigSource::reload`]).
 async fn serve(config: ServeConfig, options: DaemonOptions, source: ConfigSource) -> Result<()> {
     use tokio::signal::unix::{SignalKind, signal};
     if !config.transparent_huge_pages {
@@ -969,6 +974,18 @@ async fn serve(config: ServeConfig, options: DaemonOptions, source: ConfigSource
     let mut int = signal(SignalKind::interrupt()).context("installing the SIGINT handler")?;
     let mut hup = signal(SignalKind::hangup()).context("installing the SIGHUP handler")?;
     let running = config.clone();
+    let data_dir = running.data_dir().to_path_buf();
+    // What the start reads, taken before it: a change in between is seen at the first look.
+    let snapshot = |file: &PathBuf| ConfigSnapshot::read(file, &source.overrides, &data_dir);
+    let (mut watch, mut looks) = match &source.file {
+        Some(file) if running.config_watch_secs > 0 => {
+            let mut looks =
+                tokio::time::interval(std::time::Duration::from_secs(running.config_watch_secs));
+            looks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            (Some((ConfigWatch::new(snapshot(file)), file)), Some(looks))
+        }
+        _ => (None, None),
+    };
     let server = arbor_server::daemon::start_with(config, options).await?;
     announce(&server);
     let reloader = server.reloader();
@@ -978,7 +995,19 @@ async fn serve(config: ServeConfig, options: DaemonOptions, source: ConfigSource
         tokio::select! {
             _ = term.recv() => break "SIGTERM",
             _ = int.recv() => break "SIGINT",
-            _ = hup.recv() => source.reload(&running, &reloader),
+            _ = hup.recv() => {
+                source.reload("SIGHUP", &running, &reloader);
+                if let Some((watch, file)) = &mut watch {
+                    watch.reloaded(snapshot(file));
+                }
+            }
+            () = next_look(&mut looks) => {
+                if let Some((watch, file)) = &mut watch
+                    && watch.observe(snapshot(file))
+                {
+                    source.reload("configuration changed", &running, &reloader);
+                }
+            }
             () = &mut stopped => bail!("the service stopped on its own"),
         }
     };
@@ -986,6 +1015,16 @@ async fn serve(config: ServeConfig, options: DaemonOptions, source: ConfigSource
     trigger.trigger();
     stopped.await;
     Ok(())
+}
+
+/// The next look at the configuration's files; never, without `config_watch_secs`.
+async fn next_look(looks: &mut Option<tokio::time::Interval>) {
+    match looks {
+        Some(looks) => {
+            looks.tick().await;
+        }
+        None => std::future::pending().await,
+    }
 }
 
 /// Prints the serving lines on stdout (see `serve --help`) in one write, so that a reader

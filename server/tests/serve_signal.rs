@@ -291,6 +291,21 @@ async fn sighup_puts_new_tokens_in_force_and_ends_only_revoked_sessions() {
     assert_eq!(status.code(), Some(0), "{status}");
 }
 
+/// What clients pin for `der`.
+fn pin(der: &rustls::pki_types::CertificateDer<'_>) -> String {
+    arbor_server::service::tls::fingerprint(der)
+}
+
+/// A session on the bunny (pinning what the server printed) that fetched the whole scene once:
+/// the client, its control stream and the scene's treelets.
+async fn fetching_session(s: &Serving) -> (Client, Control, Vec<arbor_proto::TreeletId>) {
+    let session = connect(s.quic, &s.fingerprint).await;
+    let (mut control, info) = hello(&session.conn, SCENE, &[], TOKEN).await;
+    let ids = all_ids(&info.unwrap());
+    round(&session, &mut control, 1, &ids).await.unwrap();
+    (session, control, ids)
+}
+
 /// SIGHUP renews the certificate and the admin token the way certbot's deploy hook or a
 /// rotated Kubernetes secret does (the files rewritten in place, then `systemctl reload`): the
 /// next QUIC handshake presents the new certificate and the admin API wants the new token,
@@ -313,13 +328,8 @@ async fn sighup_renews_the_certificate_and_admin_token_without_a_restart() {
     );
     std::fs::write(&config, settings).unwrap();
     let mut s = serve(dir.path(), &config);
-    let pin =
-        |der: &rustls::pki_types::CertificateDer<'_>| arbor_server::service::tls::fingerprint(der);
     assert_eq!(s.fingerprint, pin(&first));
-    let session = connect(s.quic, &s.fingerprint).await;
-    let (mut control, info) = hello(&session.conn, SCENE, &[], TOKEN).await;
-    let ids = all_ids(&info.unwrap());
-    round(&session, &mut control, 1, &ids).await.unwrap();
+    let (session, mut control, ids) = fetching_session(&s).await;
 
     let second = write_pair(&tls, 2031);
     std::fs::write(&token_file, "second\n").unwrap();
@@ -381,6 +391,81 @@ async fn sighup_renews_the_certificate_and_admin_token_without_a_restart() {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     connect(s.quic, &pin(&second)).await;
+    round(&session, &mut control, 3, &ids).await.unwrap();
+    signal(&s.child, "-TERM");
+    let status = wait_exit(&mut s.child, Duration::from_secs(5));
+    assert_eq!(status.code(), Some(0), "{status}");
+}
+
+/// With `config_watch_secs`, files rewritten by something that cannot signal the process (the
+/// kubelet updating a mounted Secret) are reloaded on their own: the renewed certificate is
+/// presented and a token added opens its scene, each change reloaded once; a configuration
+/// that stops loading is tried once, counted as a failed reload, and not retried until it
+/// changes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_watched_configuration_is_reloaded_without_a_signal() {
+    let (dir, config) = bunny_pool_and_config();
+    let tls = dir.path().join("tls");
+    std::fs::create_dir_all(&tls).unwrap();
+    let first = write_pair(&tls, 2030);
+    let tokens = dir.path().join("bunny.token");
+    std::fs::write(&tokens, format!("{TOKEN}\n")).unwrap();
+    let newcomer = dir.path().join("newcomer.token");
+    std::fs::write(&newcomer, "newcomer\n").unwrap();
+    let settings = |token_files: &[&Path]| {
+        format!(
+            "shutdown_grace_ms = 1000\nconfig_watch_secs = 1\ncert = {:?}\nkey = {:?}\n\
+             [scenes.{SCENE}]\ntoken_files = {:?}\n",
+            tls.join("cert.pem"),
+            tls.join("key.pem"),
+            token_files
+        )
+    };
+    std::fs::write(&config, settings(&[&tokens])).unwrap();
+    let mut s = serve(dir.path(), &config);
+    let admin_token = std::fs::read_to_string(&s.token_file).unwrap();
+    let metrics = || http_get(&s.admin, "/metrics", admin_token.trim());
+    assert_eq!(s.fingerprint, pin(&first));
+    let (session, mut control, ids) = fetching_session(&s).await;
+
+    let second = write_pair(&tls, 2031);
+    std::fs::write(&config, settings(&[&tokens, &newcomer])).unwrap();
+    let t0 = Instant::now();
+    while connect_with(s.quic, &pin(&second), ClientOptions::default())
+        .await
+        .is_err()
+    {
+        assert!(
+            t0.elapsed() < Duration::from_secs(10),
+            "the renewed certificate not presented 10 s after it was written"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let c = connect(s.quic, &pin(&second)).await;
+    let (_newcomer, info) = hello(&c.conn, SCENE, &[], "newcomer").await;
+    info.expect("the token added to the file opens the scene");
+    round(&session, &mut control, 2, &ids)
+        .await
+        .expect("the session goes on");
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let applied = "arbor_config_reloads_total{outcome=\"applied\"}";
+    assert_eq!(sample(&metrics(), applied), 1.0, "one change, one reload");
+
+    std::fs::write(&config, "no_such_key = 1\n").unwrap();
+    let failed = "arbor_config_reloads_total{outcome=\"failed\"}";
+    let t0 = Instant::now();
+    while sample(&metrics(), failed) < 1.0 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(10),
+            "the broken configuration not tried"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let now = metrics();
+    assert_eq!(sample(&now, failed), 1.0, "retried without a change");
+    assert_eq!(sample(&now, "arbor_config_last_reload_successful"), 0.0);
+    assert_eq!(sample(&now, applied), 1.0);
     round(&session, &mut control, 3, &ids).await.unwrap();
     signal(&s.child, "-TERM");
     let status = wait_exit(&mut s.child, Duration::from_secs(5));

@@ -17,6 +17,7 @@
 //! max_connection_memory = 67108864
 //! initial_window = 131072             # QUIC congestion window at the start, bytes
 //! path_memory_secs = 600              # a returning client's address resumes its last window for this long; 0: off
+//! config_watch_secs = 0               # reload when this file or the files it names change, checked this often; 0: on SIGHUP only
 //! random_loss_tolerance = true        # a loss with no queue behind it cuts the window one time in eight; false: every time
 //! pool_cache_bytes = 134217728        # pool pages sled keeps decoded, server-wide
 //! pool_readers = 8                    # threads reading treelets from the pool, so a disk read never holds an async worker
@@ -276,6 +277,10 @@ pub struct ServeConfig {
     pub slow_reader_timeout_ms: u64,
     /// How long shutdown lets in-flight treelet streams finish.
     pub shutdown_grace_ms: u64,
+    /// How often `arbor-server serve` looks at its configuration file and the files it names
+    /// (token files, certificates and keys, the admin token) and reloads when they changed, as
+    /// SIGHUP would ([`crate::config_watch`]), seconds; 0 (the default): only on SIGHUP.
+    pub config_watch_secs: u64,
     /// Rule for scenes without an entry in `scenes`.
     pub default_access: Access,
     /// Per-scene rules.
@@ -410,6 +415,8 @@ pub const MIN_VISIBILITY_CACHE_BYTES: u64 = 1 << 20;
 pub const DEFAULT_PATH_MEMORY_SECS: u64 = 600;
 /// Largest accepted [`ServeConfig::path_memory_secs`]: a day (paths change).
 pub const MAX_PATH_MEMORY_SECS: u64 = 86_400;
+/// Largest accepted [`ServeConfig::config_watch_secs`]: a day.
+pub const MAX_CONFIG_WATCH_SECS: u64 = 86_400;
 /// Smallest accepted initial window (two full-size packets).
 pub const MIN_INITIAL_WINDOW: u64 = 2400;
 /// Largest accepted initial window.
@@ -462,6 +469,7 @@ struct FileConfig {
     window_max: Option<usize>,
     slow_reader_timeout_ms: Option<u64>,
     shutdown_grace_ms: Option<u64>,
+    config_watch_secs: Option<u64>,
     default_access: Option<Access>,
     #[serde(default)]
     scenes: BTreeMap<String, SceneFile>,
@@ -572,6 +580,7 @@ impl ServeConfig {
             max_connection_memory: 64 << 20,
             initial_window: DEFAULT_INITIAL_WINDOW,
             path_memory_secs: DEFAULT_PATH_MEMORY_SECS,
+            config_watch_secs: 0,
             random_loss_tolerance: true,
             transparent_huge_pages: false,
             pool_cache_bytes: crate::pool::POOL_CACHE_BYTES,
@@ -696,7 +705,8 @@ impl ServeConfig {
             window_min,
             window_max,
             slow_reader_timeout_ms,
-            shutdown_grace_ms
+            shutdown_grace_ms,
+            config_watch_secs
         );
         c.default_access = f.default_access.unwrap_or(if have_file {
             Access::Token
@@ -754,6 +764,12 @@ impl ServeConfig {
             return Err(invalid(
                 "initial_window",
                 format!("{MIN_INITIAL_WINDOW}..={MAX_INITIAL_WINDOW} bytes"),
+            ));
+        }
+        if self.config_watch_secs > MAX_CONFIG_WATCH_SECS {
+            return Err(invalid(
+                "config_watch_secs",
+                format!("at most {MAX_CONFIG_WATCH_SECS} seconds (0: only on SIGHUP)"),
             ));
         }
         if self.path_memory_secs > MAX_PATH_MEMORY_SECS {
@@ -1210,6 +1226,7 @@ access = "public"
             ("visibility_follow_share = -0.5", "visibility_follow_share"),
             ("initial_window = 1000000000", "initial_window"),
             ("path_memory_secs = 100000", "path_memory_secs"),
+            ("config_watch_secs = 86401", "config_watch_secs"),
             ("path_memory_secs = -1", "path_memory_secs"),
             ("window_min = 10\nwindow_max = 9", "window_min"),
             ("window_max = 1000000", "window_max"),
