@@ -54,9 +54,10 @@ pub struct RunningServer {
     pub admin_addr: Option<SocketAddr>,
     /// Whether the admin listener speaks HTTPS.
     pub admin_https: bool,
-    /// SHA-256 of the server certificate, lowercase hex: what clients pin.
+    /// SHA-256 of the server certificate at start, lowercase hex: what clients pin (after a
+    /// reload, `state.fingerprint()`).
     pub fingerprint: String,
-    /// Bearer token of the admin API.
+    /// Bearer token of the admin API at start (a reload may replace it).
     pub admin_token: String,
     /// Where the admin token came from.
     pub admin_token_origin: AdminTokenOrigin,

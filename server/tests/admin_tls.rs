@@ -309,6 +309,13 @@ async fn a_reload_renews_the_certificates_and_the_admin_token_without_ending_ses
     );
     let failed = "arbor_config_reloads_total{outcome=\"failed\"}";
     assert_eq!(sample(&metrics, failed), Some(1.0), "{metrics}");
+    let (page, _) = get_https_as(admin, std::slice::from_ref(&second), "/", "n3w").await;
+    assert!(page.contains("the last reload failed"), "{page}");
+    assert!(page.contains("1 reloads applied, 1 failed"), "{page}");
+    assert!(
+        page.contains("quic 2031-01-01 00:00:00 UTC · admin 2031-01-01 00:00:00 UTC"),
+        "{page}"
+    );
     round(&session, &mut control, 3, &ids).await.unwrap();
     server.shutdown().await;
 }

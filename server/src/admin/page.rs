@@ -385,7 +385,7 @@ fn schedule_line(out: &mut String, jobs: &Jobs<'_>) {
     }
 }
 
-/// Readiness, certificate, uptime, pool size.
+/// Readiness, certificate, uptime, pool size, the last reload.
 fn status_section(out: &mut String, state: &ServiceState, uptime: Duration, pool: &PoolFigures) {
     let (class, word) = if state.is_shutting_down() {
         ("warn", "shutting down")
@@ -399,12 +399,49 @@ fn status_section(out: &mut String, state: &ServiceState, uptime: Duration, pool
         "<table class=\"kv\">\
          <tr><th>Status</th><td><span class=\"badge {class}\">{word}</span></td></tr>\
          <tr><th>Certificate SHA-256</th><td><code id=\"fingerprint\">{}</code></td></tr>\
+         <tr><th>Certificates valid until</th><td>{}</td></tr>\
+         <tr><th>Configuration</th><td>{}</td></tr>\
          <tr><th>Uptime</th><td>{}</td></tr>\
          <tr><th>Pool on disk</th><td>{}</td></tr></table>",
         escape(&state.fingerprint()),
+        certificates_text(state),
+        reload_text(state),
         duration(uptime),
         bytes(pool.disk_bytes)
     );
+}
+
+/// When each listener's certificate expires, escaped.
+fn certificates_text(state: &ServiceState) -> String {
+    let at = |t: i64| {
+        let t = std::time::UNIX_EPOCH + Duration::from_secs(u64::try_from(t).unwrap_or(0));
+        utc_text(t)
+    };
+    let parts: Vec<String> = state
+        .certificates()
+        .into_iter()
+        .map(|(listener, c)| match c.not_after_unix {
+            Some(t) => format!("{listener} {}", at(t)),
+            None => format!("{listener} (expiry not read)"),
+        })
+        .collect();
+    escape(&parts.join(" · "))
+}
+
+/// How the last reload of the configuration went, escaped HTML.
+fn reload_text(state: &ServiceState) -> String {
+    let r = state.reloads();
+    let since = std::time::UNIX_EPOCH + Duration::from_secs_f64(r.last_success_unix.max(0.0));
+    let loaded = escape(&format!("in force since {}", utc_text(since)));
+    let counts = format!("{} reloads applied, {} failed", r.applied, r.failed);
+    if r.last_successful {
+        format!("{loaded} · {counts}")
+    } else {
+        format!(
+            "<span class=\"badge bad\">the last reload failed</span> (see the log) · {loaded} · \
+             {counts}"
+        )
+    }
 }
 
 /// Counters and the error table.

@@ -147,7 +147,8 @@ pub struct AccessReload {
 pub struct RunningService {
     /// The bound QUIC (UDP) address.
     pub quic_addr: SocketAddr,
-    /// SHA-256 of the server certificate, lowercase hex: what clients pin.
+    /// SHA-256 of the server certificate at start, lowercase hex: what clients pin (after a
+    /// reload, `state.fingerprint()`).
     pub fingerprint: String,
     /// Where the TLS identity came from.
     pub tls_origin: IdentityOrigin,
