@@ -48,9 +48,15 @@ impl ConfigSnapshot {
             },
         }
     }
+
+    /// The configuration as it loaded, or why it did not.
+    pub fn config(&self) -> Result<&ServeConfig, &str> {
+        self.config.as_ref().map_err(String::as_str)
+    }
 }
 
-/// The files besides the configuration a reload reads.
+/// The files besides the configuration a reload reads (`daemon::Reloader`'s `load`: keep them
+/// in step).
 fn named_files(config: &ServeConfig, data_dir: &Path) -> Vec<PathBuf> {
     let mut files = Vec::new();
     match &config.tls {
@@ -124,6 +130,12 @@ impl ConfigWatch {
         }
         self.pending = Some(now);
         false
+    }
+
+    /// What the last reload (or the start) read: after [`ConfigWatch::observe`] said to
+    /// reload, what to reload.
+    pub fn applied(&self) -> &ConfigSnapshot {
+        &self.applied
     }
 
     /// A reload happened without the watch (SIGHUP): `now` is what it read.

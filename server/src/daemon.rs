@@ -317,20 +317,15 @@ fn admin_token(
     source: &AdminTokenSource,
     data_dir: &Path,
 ) -> Result<(String, AdminTokenOrigin), ServeError> {
-    match source {
-        AdminTokenSource::Inline(t) => Ok((t.trim().to_owned(), AdminTokenOrigin::Config)),
-        AdminTokenSource::File(p) => Ok((read_token(p)?, AdminTokenOrigin::File(p.clone()))),
+    let path = data_dir.join(ADMIN_TOKEN_FILE);
+    let origin = match source {
+        AdminTokenSource::Inline(_) => AdminTokenOrigin::Config,
+        AdminTokenSource::File(p) => AdminTokenOrigin::File(p.clone()),
+        AdminTokenSource::Generated if path.exists() => AdminTokenOrigin::Generated {
+            path,
+            created: false,
+        },
         AdminTokenSource::Generated => {
-            let path = data_dir.join(ADMIN_TOKEN_FILE);
-            if path.exists() {
-                return Ok((
-                    read_token(&path)?,
-                    AdminTokenOrigin::Generated {
-                        path,
-                        created: false,
-                    },
-                ));
-            }
             let err = |reason: String| ServeError::AdminToken {
                 path: path.clone(),
                 reason,
@@ -351,15 +346,16 @@ fn admin_token(
             f.write_all(format!("{token}\n").as_bytes())
                 .and_then(|()| f.sync_all())
                 .map_err(|e| err(e.to_string()))?;
-            Ok((
+            return Ok((
                 token,
                 AdminTokenOrigin::Generated {
                     path,
                     created: true,
                 },
-            ))
+            ));
         }
-    }
+    };
+    Ok((existing_admin_token(source, data_dir)?, origin))
 }
 
 /// Puts what a configuration says of who may connect and what they are shown in force while
@@ -419,6 +415,7 @@ impl Reloader {
         self.state.record_reload(false);
     }
 
+    /// What a reload reads; `config_watch::named_files` names the same files, keep them in step.
     fn load(&self, config: &ServeConfig) -> Result<Loaded, ServeError> {
         let quic = Arc::new(PresentedCertificate::of(&tls::load_existing(
             &config.tls,

@@ -893,20 +893,30 @@ struct ConfigSource {
 }
 
 impl ConfigSource {
-    /// Reads the file again and puts its scene rules, certificates and admin tokens in force
-    /// ([`arbor_server::daemon::Reloader`]); a file that does not load leaves everything as it
-    /// was. Other changed settings are named: they apply at the next start. `why` (SIGHUP, a
-    /// change seen) starts every log line.
-    fn reload(&self, why: &str, running: &ServeConfig, reloader: &arbor_server::daemon::Reloader) {
-        let Some(file) = &self.file else {
-            tracing::warn!("{why}: no --config file to read again; nothing changes");
-            return;
-        };
-        let loaded = match ServeConfig::load(Some(file), &self.overrides) {
-            Ok(config) => reloader.reload(&config).map(|done| (config, done)),
+    /// What a reload of `file` reads now (the configuration and the files it names).
+    fn snapshot(&self, file: &Path, data_dir: &Path) -> ConfigSnapshot {
+        ConfigSnapshot::read(file, &self.overrides, data_dir)
+    }
+
+    /// Puts `now`'s scene rules, certificates and admin tokens in force
+    /// ([`arbor_server::daemon::Reloader`]); a configuration that does not load leaves
+    /// everything as it was. Other changed settings are named: they apply at the next start.
+    /// `why` (SIGHUP, a change seen) starts every log line.
+    fn reload(
+        why: &str,
+        file: &Path,
+        now: &ConfigSnapshot,
+        running: &ServeConfig,
+        reloader: &arbor_server::daemon::Reloader,
+    ) {
+        let loaded = match now.config() {
+            Ok(config) => reloader
+                .reload(config)
+                .map(|done| (config, done))
+                .map_err(|e| e.to_string()),
             Err(e) => {
                 reloader.record_unloadable();
-                Err(e.into())
+                Err(e.to_owned())
             }
         };
         let (config, done) = match loaded {
@@ -940,7 +950,7 @@ impl ConfigSource {
         if done.admin_token_changed {
             tracing::info!("{why}: the admin token changed; the old one is refused");
         }
-        let mut rest = config;
+        let mut rest = config.clone();
         rest.scenes = running.scenes.clone();
         rest.default_access = running.default_access;
         rest.tls = running.tls.clone();
@@ -976,13 +986,13 @@ async fn serve(config: ServeConfig, options: DaemonOptions, source: ConfigSource
     let running = config.clone();
     let data_dir = running.data_dir().to_path_buf();
     // What the start reads, taken before it: a change in between is seen at the first look.
-    let snapshot = |file: &PathBuf| ConfigSnapshot::read(file, &source.overrides, &data_dir);
     let (mut watch, mut looks) = match &source.file {
         Some(file) if running.config_watch_secs > 0 => {
             let mut looks =
                 tokio::time::interval(std::time::Duration::from_secs(running.config_watch_secs));
             looks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-            (Some((ConfigWatch::new(snapshot(file)), file)), Some(looks))
+            let watch = ConfigWatch::new(source.snapshot(file, &data_dir));
+            (Some((watch, file)), Some(looks))
         }
         _ => (None, None),
     };
@@ -995,17 +1005,22 @@ async fn serve(config: ServeConfig, options: DaemonOptions, source: ConfigSource
         tokio::select! {
             _ = term.recv() => break "SIGTERM",
             _ = int.recv() => break "SIGINT",
-            _ = hup.recv() => {
-                source.reload("SIGHUP", &running, &reloader);
-                if let Some((watch, file)) = &mut watch {
-                    watch.reloaded(snapshot(file));
+            _ = hup.recv() => match &source.file {
+                None => tracing::warn!("SIGHUP: no --config file to read again; nothing changes"),
+                Some(file) => {
+                    let now = source.snapshot(file, &data_dir);
+                    ConfigSource::reload("SIGHUP", file, &now, &running, &reloader);
+                    if let Some((watch, _)) = &mut watch {
+                        watch.reloaded(now);
+                    }
                 }
-            }
+            },
             () = next_look(&mut looks) => {
                 if let Some((watch, file)) = &mut watch
-                    && watch.observe(snapshot(file))
+                    && watch.observe(source.snapshot(file, &data_dir))
                 {
-                    source.reload("configuration changed", &running, &reloader);
+                    let now = watch.applied();
+                    ConfigSource::reload("configuration changed", file, now, &running, &reloader);
                 }
             }
             () = &mut stopped => bail!("the service stopped on its own"),

@@ -119,15 +119,12 @@ pub(super) struct ServerView {
 
 impl ServerView {
     pub(super) fn new(state: &ServiceState, uptime: Duration) -> Self {
-        let quic = state
-            .certificates()
-            .into_iter()
-            .find(|(listener, _)| *listener == "quic");
+        let quic = state.certificate("quic");
         Self {
             name: env!("CARGO_PKG_NAME"),
             version: env!("CARGO_PKG_VERSION"),
             fingerprint: state.fingerprint(),
-            certificate_expiry_unix: quic.and_then(|(_, c)| c.not_after_unix),
+            certificate_expiry_unix: quic.and_then(|c| c.not_after_unix),
             ready: state.is_ready(),
             shutting_down: state.is_shutting_down(),
             uptime_seconds: uptime.as_secs_f64(),

@@ -241,10 +241,18 @@ impl ServiceState {
 
     /// SHA-256 of the certificate QUIC clients are shown now (lowercase hex): what they pin.
     pub fn fingerprint(&self) -> String {
-        self.certificates()
-            .into_iter()
-            .find(|(listener, _)| *listener == "quic")
-            .map_or_else(|| self.fingerprint.clone(), |(_, c)| c.fingerprint.clone())
+        self.certificate("quic")
+            .map_or_else(|| self.fingerprint.clone(), |c| c.fingerprint.clone())
+    }
+
+    /// The certificate `listener` presents now, once registered.
+    pub fn certificate(&self, listener: &str) -> Option<Arc<PresentedCertificate>> {
+        self.certificates
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .iter()
+            .find(|(l, _)| *l == listener)
+            .map(|(_, c)| c.current())
     }
 
     /// Registers the certificate `listener` presents, for [`ServiceState::fingerprint`] and

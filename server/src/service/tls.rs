@@ -192,11 +192,7 @@ pub fn load_or_create(source: &TlsSource, data_dir: &Path) -> Result<TlsIdentity
             let cert = data_dir.join(CERT_FILE);
             let key = data_dir.join(KEY_FILE);
             match (cert.exists(), key.exists()) {
-                (true, true) => {
-                    let mut id = read_pem(&cert, &key)?;
-                    id.origin = IdentityOrigin::Reused { cert, key };
-                    Ok(id)
-                }
+                (true, true) => load_existing(source, data_dir),
                 (false, false) => create_self_signed(data_dir, cert, key),
                 (true, false) => Err(TlsError::HalfPair {
                     present: cert,
